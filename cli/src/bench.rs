@@ -1,0 +1,222 @@
+//! `msth bench step`: the cost of one full training step (proposal + field, forward + backward
+//! + Adam) at the demo (fast preset) and paper configurations, reported as field samples per
+//! second, with a same-run baseline: the same step on one worker thread, and the plain reference
+//! hash encoding against the batched one.
+
+use std::time::Instant;
+
+use anyhow::Result;
+use clap::{Args, Subcommand};
+use glam::Vec3;
+
+use msth_core::config::{Background, ModelConfig, Preset};
+use msth_core::field::ModelLayout;
+use msth_core::pipeline::TimedRay;
+use msth_core::rng::Rng;
+use msth_core::SceneBounds;
+use msth_trainer::adam::AdamConfig;
+use msth_trainer::train::{TrainSettings, Trainer};
+
+#[derive(Args)]
+pub struct BenchArgs {
+    #[command(subcommand)]
+    what: BenchKind,
+}
+
+#[derive(Subcommand)]
+enum BenchKind {
+    /// One full training step at the demo and paper configurations.
+    Step {
+        /// Timed steps per configuration (after 2 warm-up steps).
+        #[arg(long, default_value_t = 5)]
+        reps: usize,
+        /// Rays per step (default: the preset's batch).
+        #[arg(long)]
+        batch_rays: Option<usize>,
+        /// Only this configuration: demo | paper.
+        #[arg(long)]
+        only: Option<String>,
+        /// Write the results as JSON here.
+        #[arg(long)]
+        json: Option<std::path::PathBuf>,
+    },
+}
+
+pub fn run(a: BenchArgs) -> Result<()> {
+    match a.what {
+        BenchKind::Step {
+            reps,
+            batch_rays,
+            only,
+            json,
+        } => step(reps, batch_rays, only.as_deref(), json),
+    }
+}
+
+fn settings(preset: Preset, batch: Option<usize>) -> TrainSettings {
+    let model = ModelConfig::preset(
+        preset,
+        SceneBounds::dnerf_default(),
+        Background::Color { rgb: [1.0; 3] },
+        24,
+    );
+    let (iters, b) = match preset {
+        Preset::Fast => (1200, 2048),
+        _ => (20_000, 16_384),
+    };
+    TrainSettings {
+        preset,
+        iters,
+        batch_rays: batch.unwrap_or(b),
+        chunk_rays: 128,
+        seed: 0,
+        adam: AdamConfig::default(),
+        interlevel_weight: 1.0,
+        distortion_weight: 2e-3,
+        mask_loss_weight: 1e-2,
+        anneal_steps: 300,
+        checkpoint_every: 0,
+        eval_stride: 1,
+        time_limit_secs: 0.0,
+        random_background: true,
+        model,
+    }
+}
+
+/// Rays from a ring of cameras through the D-NeRF box, at random times.
+fn rays(n: usize, seed: u64) -> (Vec<TimedRay>, Vec<[f32; 3]>) {
+    let mut rng = Rng::new(seed);
+    let mut r = Vec::with_capacity(n);
+    let mut t = Vec::with_capacity(n);
+    for _ in 0..n {
+        let az = rng.f32() * std::f32::consts::TAU;
+        let o = Vec3::new(4.0 * az.cos(), 4.0 * az.sin(), 1.0);
+        let target = Vec3::new(
+            rng.range_f32(-1.0, 1.0),
+            rng.range_f32(-1.0, 1.0),
+            rng.range_f32(-1.0, 1.0),
+        );
+        r.push(TimedRay {
+            origin: o,
+            dir: (target - o).normalize(),
+            time: rng.f32(),
+        });
+        t.push([rng.f32(), rng.f32(), rng.f32()]);
+    }
+    (r, t)
+}
+
+struct StepResult {
+    secs: f64,
+    field_samples: usize,
+    proposal_samples: usize,
+    rays: usize,
+}
+
+fn time_steps(s: &TrainSettings, reps: usize) -> Result<StepResult> {
+    let mut trainer = Trainer::new(s.clone()).map_err(anyhow::Error::msg)?;
+    let (r, t) = rays(s.batch_rays, 1);
+    for _ in 0..2 {
+        trainer.step_on(&r, &t, None);
+    }
+    let start = Instant::now();
+    let mut fs = 0;
+    let mut ps = 0;
+    for _ in 0..reps {
+        let l = trainer.step_on(&r, &t, None);
+        fs += l.field_samples;
+        ps += l.proposal_samples;
+    }
+    Ok(StepResult {
+        secs: start.elapsed().as_secs_f64(),
+        field_samples: fs,
+        proposal_samples: ps,
+        rays: reps * s.batch_rays,
+    })
+}
+
+fn step(
+    reps: usize,
+    batch: Option<usize>,
+    only: Option<&str>,
+    json: Option<std::path::PathBuf>,
+) -> Result<()> {
+    let threads = rayon::current_num_threads();
+    println!("msth bench step: one full training step (proposal + field, forward + backward + Adam), {threads} threads");
+    let mut rows = Vec::new();
+    for (name, preset) in [
+        ("demo (fast preset)", Preset::Fast),
+        ("paper (2^19 rows/level)", Preset::Paper),
+    ] {
+        if let Some(o) = only {
+            if !name.starts_with(o) {
+                continue;
+            }
+        }
+        let s = settings(preset, batch);
+        let layout = ModelLayout::new(&s.model);
+        let all = time_steps(&s, reps)?;
+        let one = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()?
+            .install(|| time_steps(&s, reps.div_ceil(2)))?;
+        let sps = all.field_samples as f64 / all.secs;
+        let sps1 = one.field_samples as f64 / one.secs;
+        println!(
+            "{name:<26} params {:>10}  batch {:>6} rays x {}+{} samples: {:>8.1} ms/step  {:>9.0} field samples/s  {:>9.0} proposal samples/s  {:>7.0} rays/s  | 1 thread: {:>9.0} samples/s, speed-up {:.2}x",
+            layout.params.total,
+            s.batch_rays,
+            s.model.sampler.num_proposal_samples,
+            s.model.sampler.num_samples,
+            all.secs / reps as f64 * 1e3,
+            sps,
+            all.proposal_samples as f64 / all.secs,
+            all.rays as f64 / all.secs,
+            sps1,
+            sps / sps1
+        );
+        rows.push(serde_json::json!({
+            "config": name, "threads": threads, "params": layout.params.total, "batch_rays": s.batch_rays,
+            "proposal_samples_per_ray": s.model.sampler.num_proposal_samples, "samples_per_ray": s.model.sampler.num_samples,
+            "ms_per_step": all.secs / reps as f64 * 1e3, "field_samples_per_sec": sps,
+            "proposal_samples_per_sec": all.proposal_samples as f64 / all.secs, "rays_per_sec": all.rays as f64 / all.secs,
+            "one_thread_field_samples_per_sec": sps1, "thread_speedup": sps / sps1,
+        }));
+    }
+    // Kernel baseline: reference vs batched hash encoding of the demo field's 4D grid.
+    let s = settings(Preset::Fast, None);
+    let layout = ModelLayout::new(&s.model);
+    let params = layout.init_params(0);
+    let (g, range) = layout
+        .field
+        .encoding
+        .h4
+        .as_ref()
+        .expect("fast preset has a 4D grid");
+    let table = &params[range.clone()];
+    let mut rng = Rng::new(3);
+    let n = 1 << 16;
+    let pts: Vec<f32> = (0..n * 4).map(|_| rng.f32()).collect();
+    let mut out = vec![0f32; n * g.output_dim()];
+    let t = Instant::now();
+    g.encode(table, &pts, 4, &mut out, g.output_dim(), 0);
+    let fast = t.elapsed().as_secs_f64();
+    let t = Instant::now();
+    let mut acc = 0f32;
+    for i in 0..n {
+        acc += g.encode_point_reference(table, &pts[i * 4..i * 4 + 4])[0];
+    }
+    let reference = t.elapsed().as_secs_f64();
+    println!(
+        "4D hash encoding, {n} points, 1 thread: batched {:.0} points/s, reference {:.0} points/s, ratio {:.2}x (checksum {acc:.3})",
+        n as f64 / fast,
+        n as f64 / reference,
+        reference / fast
+    );
+    rows.push(serde_json::json!({"kernel": "hash4d_encode", "batched_points_per_sec": n as f64 / fast, "reference_points_per_sec": n as f64 / reference, "ratio": reference / fast}));
+    if let Some(p) = json {
+        std::fs::write(&p, serde_json::to_vec_pretty(&rows)?)?;
+        println!("wrote {}", p.display());
+    }
+    Ok(())
+}

@@ -1,0 +1,458 @@
+//! The subcommands that train, evaluate and render.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use glam::{Mat4, Vec3};
+use indicatif::{ProgressBar, ProgressStyle};
+
+use msth_core::config::Preset;
+use msth_core::field::ModelLayout;
+use msth_core::{Camera, SceneBounds};
+use msth_trainer::checkpoint::Checkpoint;
+use msth_trainer::dataset::{dnerf, Dataset, Image8};
+use msth_trainer::eval::{evaluate, render_image, Metrics};
+use msth_trainer::imageio::{colormap, save_png_atomic};
+use msth_trainer::synth::{generate, SynthConfig};
+use msth_trainer::train::{train as run_training, Progress, TrainOutcome, TrainSettings};
+
+use crate::{data, DemoArgs, EvalArgs, RenderArgs, SynthArgs, TrainArgs};
+
+pub fn synth(a: SynthArgs) -> Result<()> {
+    let mut cfg = SynthConfig::default();
+    if let Some(v) = a.width {
+        cfg.width = v;
+    }
+    if let Some(v) = a.height {
+        cfg.height = v;
+    }
+    if let Some(v) = a.frames {
+        cfg.num_frames = v;
+    }
+    if let Some(v) = a.cameras {
+        cfg.num_train_cams = v;
+    }
+    cfg.motion = !a.static_scene;
+    if cfg.width == 0 || cfg.height == 0 || cfg.num_frames == 0 || cfg.num_train_cams == 0 {
+        bail!("width, height, frames and cameras must all be at least 1");
+    }
+    if cfg.width as u64
+        * cfg.height as u64
+        * cfg.num_frames as u64
+        * (cfg.num_train_cams as u64 + 1)
+        > 2_000_000_000
+    {
+        bail!("that dataset would hold more than 2e9 pixels; choose a smaller size");
+    }
+    let t = Instant::now();
+    let data = generate(&cfg);
+    dnerf::write(&data, &a.out).with_context(|| format!("writing {}", a.out.display()))?;
+    println!(
+        "wrote the built-in scene to {} ({} training and {} test images of {}x{}, {} frames) in {:.1} s",
+        a.out.display(),
+        data.train.len(),
+        data.test.len(),
+        cfg.width,
+        cfg.height,
+        cfg.num_frames,
+        t.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
+
+fn read_config_file(path: &Path) -> Result<serde_json::Value> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let is_json = path.extension().is_some_and(|e| e == "json");
+    if is_json {
+        serde_json::from_str(&text).with_context(|| format!("{}: malformed JSON", path.display()))
+    } else {
+        let v: toml::Value =
+            toml::from_str(&text).with_context(|| format!("{}: malformed TOML", path.display()))?;
+        Ok(serde_json::to_value(v)?)
+    }
+}
+
+/// Shows training progress: a bar with ETA on a terminal, a log line every 5% otherwise.
+fn report(pb: &ProgressBar, p: &Progress) {
+    pb.set_position(p.step as u64);
+    let msg = format!(
+        "loss {:.5}  psnr {:.2} dB  {:.0}k samples/s",
+        p.loss,
+        p.psnr,
+        p.field_samples_per_sec / 1e3
+    );
+    if pb.is_hidden() {
+        let every = (p.iters / 20).max(1);
+        if p.step % every == 0 || p.step == p.iters {
+            eprintln!(
+                "step {}/{} [{:.1} s] {msg}",
+                p.step, p.iters, p.elapsed_secs
+            );
+        }
+    } else if p.step % 10 == 0 || p.step == p.iters {
+        pb.set_message(msg);
+    }
+}
+
+fn progress_bar(iters: usize) -> ProgressBar {
+    let pb = ProgressBar::new(iters as u64);
+    pb.set_style(
+        ProgressStyle::with_template(
+            "{spinner} [{elapsed_precise} / ETA {eta}] {bar:30} {pos}/{len} {msg}",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    pb
+}
+
+/// Trains (and evaluates unless told not to); returns the metrics when evaluated.
+pub fn train(a: TrainArgs) -> Result<Option<Metrics>> {
+    let preset: Preset = a.preset.parse().map_err(anyhow::Error::msg)?;
+    let t_load = Instant::now();
+    let data = data::load(&a.data, a.downscale)?;
+    let load_secs = t_load.elapsed().as_secs_f64();
+    let mut settings = TrainSettings::for_preset(preset, &data);
+    let mut sets = a.sets.clone();
+    if let Some(v) = a.iters {
+        sets.push(format!("iters={v}"));
+    }
+    if let Some(v) = a.batch_rays {
+        sets.push(format!("batch_rays={v}"));
+    }
+    if let Some(v) = a.seed {
+        sets.push(format!("seed={v}"));
+    }
+    if let Some(v) = a.time_limit {
+        sets.push(format!("time_limit_secs={v}"));
+    }
+    let file = a.config.as_deref().map(read_config_file).transpose()?;
+    settings
+        .apply_overrides(file, &sets)
+        .map_err(anyhow::Error::msg)?;
+    if a.print_settings {
+        println!("{}", serde_json::to_string_pretty(&settings)?);
+        return Ok(None);
+    }
+    let resume = if a.resume {
+        let p = a.out.join("model.ckpt");
+        Some(Checkpoint::load(&p).with_context(|| format!("--resume: reading {}", p.display()))?)
+    } else {
+        None
+    };
+    let layout = ModelLayout::new(&settings.model);
+    println!(
+        "dataset {}: {} training views, {} test views, {} frames, loaded in {load_secs:.1} s",
+        data.name,
+        data.train.len(),
+        data.test.len(),
+        data.num_frames
+    );
+    println!(
+        "model: {:?} blend, {} parameters ({:.1} MB f32); {} iterations of {} rays, {} -> {} samples per ray",
+        settings.model.field.encoding.blend,
+        layout.params.total,
+        layout.params.total as f64 * 4e-6,
+        settings.iters,
+        settings.batch_rays,
+        settings.model.sampler.num_proposal_samples,
+        settings.model.sampler.num_samples
+    );
+    let pb = progress_bar(settings.iters);
+    let stride = settings.eval_stride;
+    let (trainer, outcome) =
+        run_training(&data, settings, &a.out, resume, &mut |p| report(&pb, p))?;
+    pb.finish();
+    print_outcome(&outcome);
+    if a.no_eval {
+        return Ok(None);
+    }
+    let m = eval_and_save(
+        &data,
+        &trainer.settings.model,
+        &trainer.layout,
+        &trainer.params,
+        stride,
+        &a.out,
+        &outcome,
+    )?;
+    Ok(Some(m))
+}
+
+fn print_outcome(o: &TrainOutcome) {
+    println!(
+        "trained {} steps in {:.1} s ({:.0} field samples/s, {:.0} rays/s); checkpoint {}",
+        o.steps,
+        o.train_seconds,
+        o.field_samples_per_sec,
+        o.rays_per_sec,
+        o.checkpoint.display()
+    );
+}
+
+fn eval_and_save(
+    data: &Dataset,
+    cfg: &msth_core::config::ModelConfig,
+    layout: &ModelLayout,
+    params: &[f32],
+    stride: usize,
+    out: &Path,
+    outcome: &TrainOutcome,
+) -> Result<Metrics> {
+    let mut m = evaluate(data, cfg, layout, params, stride, Some(&out.join("eval")))
+        .context("evaluating")?;
+    m.train_seconds = outcome.train_seconds;
+    m.train_steps = outcome.steps as u64;
+    m.field_samples_per_sec = outcome.field_samples_per_sec;
+    m.rays_per_sec = outcome.rays_per_sec;
+    let path = out.join("metrics.json");
+    m.save(&path)
+        .with_context(|| format!("writing {}", path.display()))?;
+    print_metrics(&m, &path);
+    Ok(m)
+}
+
+fn print_metrics(m: &Metrics, path: &Path) {
+    println!(
+        "held-out: PSNR {:.2} dB, SSIM {:.4}, D-SSIM {:.4} over {} views (rendered in {:.1} s)",
+        m.psnr,
+        m.ssim,
+        m.dssim,
+        m.frames.len(),
+        m.render_seconds
+    );
+    println!("metrics: {}", path.display());
+    for p in &m.pictures {
+        println!("picture (ground truth | render | error): {}", p.display());
+    }
+}
+
+pub fn eval(a: EvalArgs) -> Result<()> {
+    let ckpt = Checkpoint::load(&a.checkpoint)?;
+    let data = data::load(&a.data, a.downscale)?;
+    let out = a.out.clone().unwrap_or_else(|| {
+        a.checkpoint
+            .parent()
+            .map(Path::to_path_buf)
+            .unwrap_or_else(|| PathBuf::from("."))
+    });
+    let layout = ModelLayout::new(&ckpt.header.model);
+    let outcome = TrainOutcome {
+        checkpoint: a.checkpoint.clone(),
+        steps: ckpt.header.step as usize,
+        train_seconds: ckpt.header.train_seconds,
+        field_samples_per_sec: 0.0,
+        rays_per_sec: 0.0,
+        last_loss: f32::NAN,
+    };
+    eval_and_save(
+        &data,
+        &ckpt.header.model,
+        &layout,
+        &ckpt.params,
+        a.stride,
+        &out,
+        &outcome,
+    )?;
+    Ok(())
+}
+
+fn parse_camera(spec: &str, ckpt: &Checkpoint) -> Result<Camera> {
+    let cams = &ckpt.header.cameras;
+    if let Ok(i) = spec.parse::<usize>() {
+        return cams.get(i).copied().with_context(|| {
+            format!(
+                "--camera {i}: the checkpoint has {} cameras (0..{})",
+                cams.len(),
+                cams.len()
+            )
+        });
+    }
+    let template = cams
+        .first()
+        .copied()
+        .unwrap_or_else(|| Camera::from_fov_x(256, 256, 0.8, Mat4::IDENTITY));
+    if let Some(rest) = spec.strip_prefix("orbit:") {
+        let v: Vec<f32> = rest
+            .split(',')
+            .map(|s| s.trim().parse::<f32>())
+            .collect::<Result<_, _>>()
+            .with_context(|| format!("--camera {spec}: expected orbit:AZ,EL,DIST"))?;
+        if v.len() != 3 || !v.iter().all(|x| x.is_finite()) || v[2] <= 0.0 {
+            bail!("--camera {spec}: expected orbit:AZ,EL,DIST with finite numbers and DIST > 0");
+        }
+        let (lo, hi) = ckpt.header.model.bounds.extent();
+        let centre = match ckpt.header.model.bounds {
+            SceneBounds::Box { .. } => 0.5 * (lo + hi),
+            SceneBounds::Contracted { center, .. } => center,
+        };
+        let (az, el) = (v[0].to_radians(), v[1].to_radians());
+        let eye = centre + v[2] * Vec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin());
+        let fov = 2.0 * (0.5 * template.width as f32 / template.fx).atan();
+        return Ok(Camera::look_at(
+            template.width,
+            template.height,
+            fov,
+            eye,
+            centre,
+            Vec3::Z,
+        ));
+    }
+    let path = Path::new(spec);
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("--camera {spec}: not an index, orbit: spec or readable file"))?;
+    let v: serde_json::Value =
+        serde_json::from_str(&text).with_context(|| format!("{spec}: malformed JSON"))?;
+    let m = v
+        .get("transform_matrix")
+        .and_then(|m| serde_json::from_value::<[[f32; 4]; 4]>(m.clone()).ok())
+        .with_context(|| {
+            format!("{spec}: field `transform_matrix` must be a 4x4 array of numbers")
+        })?;
+    let rows = Mat4::from_cols_array_2d(&m).transpose();
+    let w = v
+        .get("w")
+        .and_then(|x| x.as_u64())
+        .map(|x| x as u32)
+        .unwrap_or(template.width);
+    let h = v
+        .get("h")
+        .and_then(|x| x.as_u64())
+        .map(|x| x as u32)
+        .unwrap_or(template.height);
+    let cam = if let Some(fx) = v.get("fl_x").and_then(|x| x.as_f64()) {
+        let fy = v.get("fl_y").and_then(|x| x.as_f64()).unwrap_or(fx);
+        Camera {
+            width: w,
+            height: h,
+            fx: fx as f32,
+            fy: fy as f32,
+            cx: v
+                .get("cx")
+                .and_then(|x| x.as_f64())
+                .unwrap_or(w as f64 / 2.0) as f32,
+            cy: v
+                .get("cy")
+                .and_then(|x| x.as_f64())
+                .unwrap_or(h as f64 / 2.0) as f32,
+            world_from_camera: rows,
+        }
+    } else if let Some(a) = v.get("camera_angle_x").and_then(|x| x.as_f64()) {
+        Camera::from_fov_x(w, h, a as f32, rows)
+    } else {
+        bail!("{spec}: needs `fl_x` or `camera_angle_x`");
+    };
+    cam.validate().map_err(|e| anyhow::anyhow!("{spec}: {e}"))?;
+    Ok(cam)
+}
+
+pub fn render(a: RenderArgs) -> Result<()> {
+    let ckpt = Checkpoint::load(&a.checkpoint)?;
+    if a.list_cameras {
+        for (i, c) in ckpt.header.cameras.iter().enumerate() {
+            let p = c.center();
+            println!(
+                "{i}: {}x{} at ({:.3}, {:.3}, {:.3})",
+                c.width, c.height, p.x, p.y, p.z
+            );
+        }
+        return Ok(());
+    }
+    if !(a.time.is_finite() && (0.0..=1.0).contains(&a.time)) {
+        bail!("--time {} must be in [0, 1]", a.time);
+    }
+    let mut cam = parse_camera(&a.camera, &ckpt)?;
+    if a.width.is_some() || a.height.is_some() {
+        let w = a.width.unwrap_or(cam.width);
+        let sx = w as f32 / cam.width as f32;
+        let h = a.height.unwrap_or((cam.height as f32 * sx).round() as u32);
+        if w == 0 || h == 0 || w > 16384 || h > 16384 {
+            bail!("image size {w}x{h} must be between 1 and 16384 per side");
+        }
+        let sy = h as f32 / cam.height as f32;
+        cam = Camera {
+            width: w,
+            height: h,
+            fx: cam.fx * sx,
+            fy: cam.fy * sy,
+            cx: cam.cx * sx,
+            cy: cam.cy * sy,
+            world_from_camera: cam.world_from_camera,
+        };
+    }
+    let layout = ModelLayout::new(&ckpt.header.model);
+    let t = Instant::now();
+    let r = render_image(&ckpt.header.model, &layout, &ckpt.params, &cam, a.time);
+    let secs = t.elapsed().as_secs_f64();
+    let img = Image8::from_f32(r.width, r.height, &r.rgb);
+    save_png_atomic(&a.output, &img).with_context(|| format!("writing {}", a.output.display()))?;
+    println!(
+        "rendered {}x{} at t = {} in {:.2} s: {}",
+        r.width,
+        r.height,
+        a.time,
+        secs,
+        a.output.display()
+    );
+    if a.extras {
+        let stem = a.output.with_extension("");
+        let maxd = r.depth.iter().cloned().fold(1e-6f32, f32::max);
+        let depth: Vec<f32> = r.depth.iter().flat_map(|d| colormap(d / maxd)).collect();
+        let mask: Vec<f32> = r.mask.iter().flat_map(|m| colormap(1.0 - m)).collect();
+        let dp = PathBuf::from(format!("{}_depth.png", stem.display()));
+        let mp = PathBuf::from(format!("{}_dynamic.png", stem.display()));
+        save_png_atomic(&dp, &Image8::from_f32(r.width, r.height, &depth))?;
+        save_png_atomic(&mp, &Image8::from_f32(r.width, r.height, &mask))?;
+        println!(
+            "depth: {}\ndynamic weight (1 - mask, bright = dynamic): {}",
+            dp.display(),
+            mp.display()
+        );
+    }
+    Ok(())
+}
+
+pub fn demo(a: DemoArgs) -> Result<()> {
+    let t0 = Instant::now();
+    println!("msth demo: built-in scene -> train (fast preset) -> evaluate");
+    let cfg = SynthConfig::default();
+    let data = generate(&cfg);
+    println!(
+        "built-in scene: {} cameras x {} frames of {}x{} + a held-out camera, generated in {:.1} s",
+        cfg.num_train_cams,
+        cfg.num_frames,
+        cfg.width,
+        cfg.height,
+        t0.elapsed().as_secs_f64()
+    );
+    let mut settings = TrainSettings::for_preset(Preset::Fast, &data);
+    settings.seed = a.seed;
+    if let Some(i) = a.iters {
+        settings.iters = i;
+        settings.anneal_steps = (i / 4).max(1);
+    }
+    settings.validate().map_err(anyhow::Error::msg)?;
+    let pb = progress_bar(settings.iters);
+    let stride = settings.eval_stride;
+    let (trainer, outcome) = run_training(&data, settings, &a.out, None, &mut |p| report(&pb, p))?;
+    pb.finish();
+    print_outcome(&outcome);
+    let m = eval_and_save(
+        &data,
+        &trainer.settings.model,
+        &trainer.layout,
+        &trainer.params,
+        stride,
+        &a.out,
+        &outcome,
+    )?;
+    println!(
+        "demo done in {:.1} s: held-out PSNR {:.2} dB. Model: {}, metrics: {}",
+        t0.elapsed().as_secs_f64(),
+        m.psnr,
+        a.out.join("model.ckpt").display(),
+        a.out.join("metrics.json").display()
+    );
+    Ok(())
+}

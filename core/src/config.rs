@@ -1,0 +1,337 @@
+//! Model configuration: what a user sets (grids, mask, blend mode, decoders, sampling, scene) and
+//! the presets. Everything derives from these structs; presets are values, never copied code.
+
+use serde::{Deserialize, Serialize};
+
+use crate::grid::GridConfig;
+use crate::sampling::Spacing;
+use crate::scene::SceneBounds;
+
+/// How the 3D and 4D encodings are combined (method.md §1).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum BlendMode {
+    /// The paper: `m h3 + (1 - m) h4`.
+    Mst,
+    /// The reference code: `h3 + (1 - m) h4`.
+    Mt,
+    /// Ablation: `h3 + h4`, no mask.
+    Add,
+    /// Ablation: `h4` alone.
+    FourD,
+    /// A static scene: `h3` alone, no 4D table.
+    Static,
+}
+
+impl BlendMode {
+    pub fn uses_h3(self) -> bool {
+        !matches!(self, BlendMode::FourD)
+    }
+    pub fn uses_h4(self) -> bool {
+        !matches!(self, BlendMode::Static)
+    }
+    pub fn uses_mask(self) -> bool {
+        matches!(self, BlendMode::Mst | BlendMode::Mt)
+    }
+}
+
+/// The masked space-time encoding: a 3D grid, a 4D grid and a dense mask grid.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct EncodingConfig {
+    pub blend: BlendMode,
+    pub grid3: GridConfig,
+    pub grid4: GridConfig,
+    /// Mask grid resolution per axis (vertices).
+    pub mask_resolution: usize,
+    /// Initial mask logit (-1: m = 0.27, as the reference code).
+    pub mask_init: f32,
+}
+
+/// The main field: encoding, density MLP (`enc -> hidden -> 1 + geo`), colour MLP
+/// (`SH(16) + geo -> hidden x layers -> 3`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FieldConfig {
+    pub encoding: EncodingConfig,
+    pub density_hidden: usize,
+    pub geo_features: usize,
+    pub color_hidden: usize,
+    pub color_layers: usize,
+}
+
+/// The proposal field: an encoding and a density MLP `enc -> hidden -> 1`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ProposalConfig {
+    pub encoding: EncodingConfig,
+    pub hidden: usize,
+}
+
+/// What the renderer does with the transmittance left at the end of a ray.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", tag = "kind")]
+pub enum Background {
+    Color {
+        rgb: [f32; 3],
+    },
+    /// The colour of the ray's last sample (the reference code on real scenes).
+    LastSample,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SamplerConfig {
+    pub num_proposal_samples: usize,
+    pub num_samples: usize,
+    pub spacing: Spacing,
+    /// Closest distance from the camera, world units.
+    pub near: f32,
+    /// Farthest distance, world units.
+    pub far: f32,
+    /// Added to every proposal bin before resampling.
+    pub histogram_padding: f32,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ModelConfig {
+    pub field: FieldConfig,
+    pub proposal: ProposalConfig,
+    pub sampler: SamplerConfig,
+    pub bounds: SceneBounds,
+    pub background: Background,
+    /// Number of time steps the model was trained on (for players and the codec).
+    pub num_frames: usize,
+}
+
+/// Upper bounds on sizes read from configs and files (checked before allocating).
+pub const MAX_SAMPLES_PER_RAY: usize = 4096;
+pub const MAX_MLP_WIDTH: usize = 1024;
+pub const MAX_MASK_RESOLUTION: usize = 1024;
+
+impl ModelConfig {
+    /// Checks every value a user or a file could get wrong; the message names the field.
+    pub fn validate(&self) -> Result<(), String> {
+        for (name, enc) in [
+            ("field.encoding", &self.field.encoding),
+            ("proposal.encoding", &self.proposal.encoding),
+        ] {
+            if enc.blend.uses_h3() {
+                enc.grid3.validate(&format!("{name}.grid3"))?;
+                if enc.grid3.dims() != 3 {
+                    return Err(format!("{name}.grid3 must have 3 axes"));
+                }
+            }
+            if enc.blend.uses_h4() {
+                enc.grid4.validate(&format!("{name}.grid4"))?;
+                if enc.grid4.dims() != 4 {
+                    return Err(format!("{name}.grid4 must have 4 axes"));
+                }
+            }
+            if enc.blend.uses_h3()
+                && enc.blend.uses_h4()
+                && enc.grid3.output_dim() != enc.grid4.output_dim()
+            {
+                return Err(format!(
+                    "{name}: grid3 and grid4 must produce the same number of features (levels x features): {} vs {}",
+                    enc.grid3.output_dim(),
+                    enc.grid4.output_dim()
+                ));
+            }
+            if enc.blend.uses_mask() && !(2..=MAX_MASK_RESOLUTION).contains(&enc.mask_resolution) {
+                return Err(format!(
+                    "{name}.mask_resolution must be in 2..={MAX_MASK_RESOLUTION} (got {})",
+                    enc.mask_resolution
+                ));
+            }
+            if !enc.mask_init.is_finite() {
+                return Err(format!("{name}.mask_init must be finite"));
+            }
+        }
+        let f = &self.field;
+        for (n, v) in [
+            ("field.density_hidden", f.density_hidden),
+            ("field.color_hidden", f.color_hidden),
+            ("field.geo_features", f.geo_features),
+            ("proposal.hidden", self.proposal.hidden),
+        ] {
+            if v == 0 || v > MAX_MLP_WIDTH {
+                return Err(format!("{n} must be in 1..={MAX_MLP_WIDTH} (got {v})"));
+            }
+        }
+        if f.color_layers == 0 || f.color_layers > 8 {
+            return Err(format!(
+                "field.color_layers must be in 1..=8 (got {})",
+                f.color_layers
+            ));
+        }
+        let s = &self.sampler;
+        if !(1..=MAX_SAMPLES_PER_RAY).contains(&s.num_samples)
+            || !(1..=MAX_SAMPLES_PER_RAY).contains(&s.num_proposal_samples)
+        {
+            return Err(format!(
+                "sampler: num_samples and num_proposal_samples must be in 1..={MAX_SAMPLES_PER_RAY}"
+            ));
+        }
+        if !(s.near.is_finite() && s.far.is_finite() && s.near >= 0.0 && s.far > s.near) {
+            return Err(format!(
+                "sampler: need 0 <= near < far, finite (got {} .. {})",
+                s.near, s.far
+            ));
+        }
+        if !(s.histogram_padding.is_finite() && s.histogram_padding >= 0.0) {
+            return Err("sampler.histogram_padding must be finite and >= 0".into());
+        }
+        self.bounds.validate().map_err(|e| format!("bounds: {e}"))?;
+        if let Background::Color { rgb } = self.background {
+            if !rgb.iter().all(|v| v.is_finite()) {
+                return Err("background colour must be finite".into());
+            }
+        }
+        if self.num_frames == 0 {
+            return Err("num_frames must be at least 1".into());
+        }
+        Ok(())
+    }
+}
+
+/// Named size presets. `Paper` is method.md's configuration (2^19 rows, 16 levels, 128^3 mask,
+/// 128 -> 48 samples); the others trade accuracy for speed on a CPU.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Preset {
+    Fast,
+    Balanced,
+    Quality,
+    Paper,
+}
+
+impl std::str::FromStr for Preset {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "fast" => Ok(Preset::Fast),
+            "balanced" => Ok(Preset::Balanced),
+            "quality" => Ok(Preset::Quality),
+            "paper" => Ok(Preset::Paper),
+            _ => Err(format!(
+                "unknown preset `{s}` (expected fast, balanced, quality or paper)"
+            )),
+        }
+    }
+}
+
+fn grid(levels: usize, log2: u32, base: f32, finest: f32) -> GridConfig {
+    GridConfig {
+        levels,
+        features_per_level: 2,
+        log2_table_size: log2,
+        base_resolution: vec![base; 3],
+        finest_resolution: vec![finest; 3],
+    }
+}
+
+fn grid4(
+    levels: usize,
+    log2: u32,
+    base: f32,
+    finest: f32,
+    base_t: f32,
+    finest_t: f32,
+) -> GridConfig {
+    GridConfig {
+        levels,
+        features_per_level: 2,
+        log2_table_size: log2,
+        base_resolution: vec![base, base, base, base_t],
+        finest_resolution: vec![finest, finest, finest, finest_t],
+    }
+}
+
+impl ModelConfig {
+    /// A model for `preset`, a scene and a frame count. The time resolution follows the frame
+    /// count: the finest time resolution is `max(num_frames, 2)`, the coarsest `min(15, finest)`
+    /// (method.md: 15 -> 300 for 300 frames).
+    pub fn preset(
+        preset: Preset,
+        bounds: SceneBounds,
+        background: Background,
+        num_frames: usize,
+    ) -> Self {
+        let frames = num_frames.max(1) as f32;
+        let finest_t = frames.max(2.0);
+        let base_t = finest_t.min(15.0);
+        let (levels, log2, finest, mask_res, np, nf, log2_prop, hidden_c) = match preset {
+            Preset::Fast => (12, 15, 512.0, 64, 64, 24, 14, 64),
+            Preset::Balanced => (16, 17, 1024.0, 96, 96, 32, 16, 64),
+            Preset::Quality => (16, 19, 2048.0, 128, 128, 48, 18, 64),
+            Preset::Paper => (16, 19, 2048.0, 128, 128, 48, 18, 64),
+        };
+        let (spacing, near, far) = match bounds {
+            SceneBounds::Box { .. } => (Spacing::Linear, 0.0, 1e4),
+            SceneBounds::Contracted { radius, .. } => {
+                (Spacing::LinDisp, 0.05 * radius, 1000.0 * radius)
+            }
+        };
+        let prop_finest_t = finest_t.min(150.0);
+        let prop_base_t = base_t.min(prop_finest_t);
+        ModelConfig {
+            field: FieldConfig {
+                encoding: EncodingConfig {
+                    blend: BlendMode::Mst,
+                    grid3: grid(levels, log2, 16.0, finest),
+                    grid4: grid4(levels, log2, 16.0, finest, base_t, finest_t),
+                    mask_resolution: mask_res,
+                    mask_init: -1.0,
+                },
+                density_hidden: 64,
+                geo_features: 15,
+                color_hidden: hidden_c,
+                color_layers: 2,
+            },
+            proposal: ProposalConfig {
+                encoding: EncodingConfig {
+                    blend: BlendMode::Mst,
+                    grid3: grid(5, log2_prop, 16.0, 128.0),
+                    grid4: grid4(5, log2_prop, 16.0, 128.0, prop_base_t, prop_finest_t),
+                    mask_resolution: 64,
+                    mask_init: -1.0,
+                },
+                hidden: 16,
+            },
+            sampler: SamplerConfig {
+                num_proposal_samples: np,
+                num_samples: nf,
+                spacing,
+                near,
+                far,
+                histogram_padding: 0.01,
+            },
+            bounds,
+            background,
+            num_frames: num_frames.max(1),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn presets_validate() {
+        for p in [
+            Preset::Fast,
+            Preset::Balanced,
+            Preset::Quality,
+            Preset::Paper,
+        ] {
+            for frames in [1, 2, 30, 300, 10_000] {
+                let c = ModelConfig::preset(
+                    p,
+                    SceneBounds::dnerf_default(),
+                    Background::Color { rgb: [1.0; 3] },
+                    frames,
+                );
+                c.validate()
+                    .unwrap_or_else(|e| panic!("{p:?} {frames}: {e}"));
+            }
+        }
+    }
+}

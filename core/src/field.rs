@@ -1,0 +1,655 @@
+//! The masked space-time field: encoding (3D grid, 4D grid, mask, blend) followed by the
+//! decoders, batched forward and backward over the points of a chunk of rays.
+//!
+//! Points arrive as `[n, 4]` rows `(x, y, z, t)` in the unit cube / unit time. The main field
+//! returns density and colour; the proposal field density only.
+
+use std::ops::Range;
+
+use crate::activation::{sigmoid, sigmoid_grad_from_output, trunc_exp, trunc_exp_grad};
+use crate::config::{BlendMode, EncodingConfig, FieldConfig, ModelConfig, ProposalConfig};
+use crate::grid::{DenseGrid3, GridLayout};
+use crate::mlp::{MlpActivations, MlpLayout};
+use crate::params::ParamLayout;
+use crate::rng::Rng;
+use crate::sh::SH_COEFFS;
+
+/// Where the masked encoding's parts live in the flat buffer.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EncodingLayout {
+    pub blend: BlendMode,
+    pub h3: Option<(GridLayout, Range<usize>)>,
+    pub h4: Option<(GridLayout, Range<usize>)>,
+    pub mask: Option<(DenseGrid3, Range<usize>)>,
+    pub mask_init: f32,
+    pub out_dim: usize,
+}
+
+/// Scratch buffers of one encoding pass.
+#[derive(Clone, Debug, Default)]
+pub struct EncodingScratch {
+    pub h3: Vec<f32>,
+    pub h4: Vec<f32>,
+    /// `m = sigmoid(mask logit)` per point (1 where there is no mask).
+    pub m: Vec<f32>,
+    pub enc: Vec<f32>,
+    d_h3: Vec<f32>,
+    d_h4: Vec<f32>,
+}
+
+impl EncodingLayout {
+    pub fn new(cfg: &EncodingConfig, prefix: &str, params: &mut ParamLayout) -> Self {
+        let h3 = cfg.blend.uses_h3().then(|| {
+            let g = GridLayout::new(&cfg.grid3);
+            let r = params.push(&format!("{prefix}.h3"), g.num_params);
+            (g, r)
+        });
+        let h4 = cfg.blend.uses_h4().then(|| {
+            let g = GridLayout::new(&cfg.grid4);
+            let r = params.push(&format!("{prefix}.h4"), g.num_params);
+            (g, r)
+        });
+        let mask = cfg.blend.uses_mask().then(|| {
+            let d = DenseGrid3 {
+                res: cfg.mask_resolution,
+            };
+            let r = params.push(&format!("{prefix}.mask"), d.num_params());
+            (d, r)
+        });
+        let out_dim = h3
+            .as_ref()
+            .or(h4.as_ref())
+            .map(|(g, _)| g.output_dim())
+            .unwrap_or(0);
+        EncodingLayout {
+            blend: cfg.blend,
+            h3,
+            h4,
+            mask,
+            mask_init: cfg.mask_init,
+            out_dim,
+        }
+    }
+
+    pub fn init(&self, params: &mut [f32], rng: &mut Rng) {
+        for (_, r) in self.h3.iter().chain(self.h4.iter()) {
+            for v in &mut params[r.clone()] {
+                *v = rng.range_f32(-1e-4, 1e-4);
+            }
+        }
+        if let Some((_, r)) = &self.mask {
+            params[r.clone()].fill(self.mask_init);
+        }
+    }
+
+    /// Mask value `m` in `[0, 1]` at a unit-cube point (1 when the mode has no mask and h3 only,
+    /// 0 for 4D only, 0.5 for addition, meaning "both").
+    pub fn mask_at(&self, params: &[f32], x: &[f32]) -> f32 {
+        match &self.mask {
+            Some((d, r)) => sigmoid(d.sample(&params[r.clone()], x)),
+            None => match self.blend {
+                BlendMode::Static => 1.0,
+                BlendMode::FourD => 0.0,
+                _ => 0.5,
+            },
+        }
+    }
+
+    /// Plain reference encoding of one point `(x, y, z, t)`.
+    pub fn encode_point_reference(&self, params: &[f32], p: &[f32]) -> (Vec<f32>, f32) {
+        let h3 = self
+            .h3
+            .as_ref()
+            .map(|(g, r)| g.encode_point_reference(&params[r.clone()], &p[..3]));
+        let h4 = self
+            .h4
+            .as_ref()
+            .map(|(g, r)| g.encode_point_reference(&params[r.clone()], &p[..4]));
+        let m = self.mask_at(params, p);
+        let mut enc = vec![0f32; self.out_dim];
+        for k in 0..self.out_dim {
+            let a = h3.as_ref().map(|v| v[k]).unwrap_or(0.0);
+            let b = h4.as_ref().map(|v| v[k]).unwrap_or(0.0);
+            enc[k] = match self.blend {
+                BlendMode::Mst => m * a + (1.0 - m) * b,
+                BlendMode::Mt => a + (1.0 - m) * b,
+                BlendMode::Add => a + b,
+                BlendMode::FourD => b,
+                BlendMode::Static => a,
+            };
+        }
+        (enc, m)
+    }
+
+    /// Batched forward over `n` points (`points: [n, 4]`); result in `s.enc` (`[n, out_dim]`).
+    pub fn forward(&self, params: &[f32], points: &[f32], n: usize, s: &mut EncodingScratch) {
+        let e = self.out_dim;
+        s.enc.resize(n * e, 0.0);
+        s.m.resize(n, 1.0);
+        if let Some((g, r)) = &self.h3 {
+            s.h3.resize(n * e, 0.0);
+            g.encode(&params[r.clone()], &points[..n * 4], 4, &mut s.h3, e, 0);
+        }
+        if let Some((g, r)) = &self.h4 {
+            s.h4.resize(n * e, 0.0);
+            g.encode(&params[r.clone()], &points[..n * 4], 4, &mut s.h4, e, 0);
+        }
+        if let Some((d, r)) = &self.mask {
+            let vals = &params[r.clone()];
+            for i in 0..n {
+                s.m[i] = sigmoid(d.sample(vals, &points[i * 4..i * 4 + 3]));
+            }
+        }
+        match self.blend {
+            BlendMode::Mst => {
+                for i in 0..n {
+                    let m = s.m[i];
+                    for k in i * e..(i + 1) * e {
+                        s.enc[k] = m * s.h3[k] + (1.0 - m) * s.h4[k];
+                    }
+                }
+            }
+            BlendMode::Mt => {
+                for i in 0..n {
+                    let m = s.m[i];
+                    for k in i * e..(i + 1) * e {
+                        s.enc[k] = s.h3[k] + (1.0 - m) * s.h4[k];
+                    }
+                }
+            }
+            BlendMode::Add => {
+                for k in 0..n * e {
+                    s.enc[k] = s.h3[k] + s.h4[k];
+                }
+            }
+            BlendMode::FourD => s.enc[..n * e].copy_from_slice(&s.h4[..n * e]),
+            BlendMode::Static => s.enc[..n * e].copy_from_slice(&s.h3[..n * e]),
+        }
+    }
+
+    /// Backward of the last forward given `d_enc: [n, out_dim]`; accumulates into `grad`.
+    pub fn backward(
+        &self,
+        points: &[f32],
+        n: usize,
+        s: &mut EncodingScratch,
+        d_enc: &[f32],
+        grad: &mut [f32],
+    ) {
+        let e = self.out_dim;
+        let (use3, use4) = (self.h3.is_some(), self.h4.is_some());
+        if use3 {
+            s.d_h3.resize(n * e, 0.0);
+        }
+        if use4 {
+            s.d_h4.resize(n * e, 0.0);
+        }
+        for i in 0..n {
+            let m = s.m[i];
+            let row = i * e..(i + 1) * e;
+            let mut dm = 0f32;
+            match self.blend {
+                BlendMode::Mst => {
+                    for k in row {
+                        s.d_h3[k] = m * d_enc[k];
+                        s.d_h4[k] = (1.0 - m) * d_enc[k];
+                        dm += d_enc[k] * (s.h3[k] - s.h4[k]);
+                    }
+                }
+                BlendMode::Mt => {
+                    for k in row {
+                        s.d_h3[k] = d_enc[k];
+                        s.d_h4[k] = (1.0 - m) * d_enc[k];
+                        dm -= d_enc[k] * s.h4[k];
+                    }
+                }
+                BlendMode::Add => {
+                    for k in row {
+                        s.d_h3[k] = d_enc[k];
+                        s.d_h4[k] = d_enc[k];
+                    }
+                }
+                BlendMode::FourD => s.d_h4[row.clone()].copy_from_slice(&d_enc[row]),
+                BlendMode::Static => s.d_h3[row.clone()].copy_from_slice(&d_enc[row]),
+            }
+            if let Some((d, r)) = &self.mask {
+                d.backward(
+                    &points[i * 4..i * 4 + 3],
+                    dm * sigmoid_grad_from_output(m),
+                    &mut grad[r.clone()],
+                );
+            }
+        }
+        if let Some((g, r)) = &self.h3 {
+            g.backward(&points[..n * 4], 4, &s.d_h3, e, 0, &mut grad[r.clone()]);
+        }
+        if let Some((g, r)) = &self.h4 {
+            g.backward(&points[..n * 4], 4, &s.d_h4, e, 0, &mut grad[r.clone()]);
+        }
+    }
+}
+
+/// The main field: encoding + density MLP + colour MLP.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FieldLayout {
+    pub encoding: EncodingLayout,
+    pub density: (MlpLayout, Range<usize>),
+    pub color: (MlpLayout, Range<usize>),
+    pub geo_features: usize,
+}
+
+/// Scratch of one main-field pass over `n` points.
+#[derive(Clone, Debug, Default)]
+pub struct FieldScratch {
+    pub enc: EncodingScratch,
+    pub density_acts: MlpActivations,
+    pub color_acts: MlpActivations,
+    pub color_in: Vec<f32>,
+    pub sigma: Vec<f32>,
+    pub rgb: Vec<f32>,
+    d_density_out: Vec<f32>,
+    d_color_in: Vec<f32>,
+    d_color_out: Vec<f32>,
+    d_enc: Vec<f32>,
+}
+
+impl FieldLayout {
+    pub fn new(cfg: &FieldConfig, params: &mut ParamLayout) -> Self {
+        let encoding = EncodingLayout::new(&cfg.encoding, "field", params);
+        let dm = MlpLayout::new(&[encoding.out_dim, cfg.density_hidden, 1 + cfg.geo_features]);
+        let dr = params.push("field.density_mlp", dm.num_params);
+        let mut dims = vec![SH_COEFFS + cfg.geo_features];
+        dims.extend(std::iter::repeat_n(cfg.color_hidden, cfg.color_layers));
+        dims.push(3);
+        let cm = MlpLayout::new(&dims);
+        let cr = params.push("field.color_mlp", cm.num_params);
+        FieldLayout {
+            encoding,
+            density: (dm, dr),
+            color: (cm, cr),
+            geo_features: cfg.geo_features,
+        }
+    }
+
+    pub fn init(&self, params: &mut [f32], rng: &mut Rng) {
+        self.encoding.init(params, rng);
+        self.density
+            .0
+            .init(&mut params[self.density.1.clone()], rng);
+        self.color.0.init(&mut params[self.color.1.clone()], rng);
+    }
+
+    /// Plain reference: `(sigma, rgb, m)` at one point with direction encoding `sh`.
+    pub fn eval_point_reference(
+        &self,
+        params: &[f32],
+        p: &[f32],
+        sh: &[f32],
+    ) -> (f32, [f32; 3], f32) {
+        let (enc, m) = self.encoding.encode_point_reference(params, p);
+        let d = self
+            .density
+            .0
+            .forward_reference(&params[self.density.1.clone()], &enc);
+        let mut cin = sh.to_vec();
+        cin.extend_from_slice(&d[1..]);
+        let c = self
+            .color
+            .0
+            .forward_reference(&params[self.color.1.clone()], &cin);
+        (
+            trunc_exp(d[0]),
+            [sigmoid(c[0]), sigmoid(c[1]), sigmoid(c[2])],
+            m,
+        )
+    }
+
+    /// Density only (the first half of [`FieldLayout::forward`]): fills `s.sigma`.
+    pub fn forward_density(&self, params: &[f32], points: &[f32], n: usize, s: &mut FieldScratch) {
+        self.encoding.forward(params, points, n, &mut s.enc);
+        let (dm, dr) = &self.density;
+        dm.forward(&params[dr.clone()], &s.enc.enc, n, &mut s.density_acts);
+        let out = dm.output(&s.density_acts);
+        let w = dm.output_dim();
+        s.sigma.resize(n, 0.0);
+        for i in 0..n {
+            s.sigma[i] = trunc_exp(out[i * w]);
+        }
+    }
+
+    /// Forward over `n` points; `sh_per_point(i)` gives the direction encoding of point `i`.
+    /// Fills `s.sigma` (`[n]`) and `s.rgb` (`[n, 3]`).
+    pub fn forward(
+        &self,
+        params: &[f32],
+        points: &[f32],
+        sh: &[f32],
+        sh_index: &dyn Fn(usize) -> usize,
+        n: usize,
+        s: &mut FieldScratch,
+    ) {
+        self.forward_density(params, points, n, s);
+        let (dm, _) = &self.density;
+        let w = dm.output_dim();
+        let g = self.geo_features;
+        let cw = SH_COEFFS + g;
+        s.color_in.resize(n * cw, 0.0);
+        let out = dm.output(&s.density_acts);
+        for i in 0..n {
+            let j = sh_index(i);
+            s.color_in[i * cw..i * cw + SH_COEFFS]
+                .copy_from_slice(&sh[j * SH_COEFFS..(j + 1) * SH_COEFFS]);
+            s.color_in[i * cw + SH_COEFFS..(i + 1) * cw]
+                .copy_from_slice(&out[i * w + 1..i * w + 1 + g]);
+        }
+        let (cm, cr) = &self.color;
+        cm.forward(&params[cr.clone()], &s.color_in, n, &mut s.color_acts);
+        let c = cm.output(&s.color_acts);
+        s.rgb.resize(n * 3, 0.0);
+        for k in 0..n * 3 {
+            s.rgb[k] = sigmoid(c[k]);
+        }
+    }
+
+    /// Backward of the last [`FieldLayout::forward`] given `d_sigma: [n]` and `d_rgb: [n, 3]`.
+    pub fn backward(
+        &self,
+        params: &[f32],
+        points: &[f32],
+        n: usize,
+        s: &mut FieldScratch,
+        d_sigma: &[f32],
+        d_rgb: &[f32],
+        grad: &mut [f32],
+    ) {
+        let (cm, cr) = &self.color;
+        let (dm, _) = &self.density;
+        let g = self.geo_features;
+        let cw = SH_COEFFS + g;
+        s.d_color_out.resize(n * 3, 0.0);
+        for k in 0..n * 3 {
+            s.d_color_out[k] = d_rgb[k] * sigmoid_grad_from_output(s.rgb[k]);
+        }
+        s.d_color_in.resize(n * cw, 0.0);
+        cm.backward(
+            &params[cr.clone()],
+            &s.color_in,
+            n,
+            &mut s.color_acts,
+            &s.d_color_out,
+            &mut grad[cr.clone()],
+            Some(&mut s.d_color_in),
+        );
+        let w = dm.output_dim();
+        s.d_density_out.resize(n * w, 0.0);
+        let out = dm.output(&s.density_acts);
+        for i in 0..n {
+            s.d_density_out[i * w] = d_sigma[i] * trunc_exp_grad(out[i * w]);
+            s.d_density_out[i * w + 1..(i + 1) * w]
+                .copy_from_slice(&s.d_color_in[i * cw + SH_COEFFS..(i + 1) * cw]);
+        }
+        self.backward_density_mlp(params, n, s, grad);
+        self.encoding
+            .backward(points, n, &mut s.enc, &s.d_enc, grad);
+    }
+
+    fn backward_density_mlp(
+        &self,
+        params: &[f32],
+        n: usize,
+        s: &mut FieldScratch,
+        grad: &mut [f32],
+    ) {
+        let (dm, dr) = &self.density;
+        s.d_enc.resize(n * self.encoding.out_dim, 0.0);
+        dm.backward(
+            &params[dr.clone()],
+            &s.enc.enc,
+            n,
+            &mut s.density_acts,
+            &s.d_density_out,
+            &mut grad[dr.clone()],
+            Some(&mut s.d_enc),
+        );
+    }
+
+    /// Backward of [`FieldLayout::forward_density`] alone (used by the proposal field).
+    pub fn backward_density(
+        &self,
+        params: &[f32],
+        points: &[f32],
+        n: usize,
+        s: &mut FieldScratch,
+        d_sigma: &[f32],
+        grad: &mut [f32],
+    ) {
+        let (dm, _) = &self.density;
+        let w = dm.output_dim();
+        s.d_density_out.resize(n * w, 0.0);
+        let out = dm.output(&s.density_acts);
+        for i in 0..n {
+            s.d_density_out[i * w] = d_sigma[i] * trunc_exp_grad(out[i * w]);
+            for k in 1..w {
+                s.d_density_out[i * w + k] = 0.0;
+            }
+        }
+        self.backward_density_mlp(params, n, s, grad);
+        self.encoding
+            .backward(points, n, &mut s.enc, &s.d_enc, grad);
+    }
+}
+
+/// The proposal field: the same structure with a density-only decoder. It reuses
+/// [`FieldLayout`]'s density path with an empty colour MLP.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ProposalLayout {
+    pub field: FieldLayout,
+}
+
+impl ProposalLayout {
+    pub fn new(cfg: &ProposalConfig, params: &mut ParamLayout) -> Self {
+        let encoding = EncodingLayout::new(&cfg.encoding, "proposal", params);
+        let dm = MlpLayout::new(&[encoding.out_dim, cfg.hidden, 1]);
+        let dr = params.push("proposal.density_mlp", dm.num_params);
+        ProposalLayout {
+            field: FieldLayout {
+                encoding,
+                density: (dm, dr),
+                color: (MlpLayout::new(&[1, 1]), 0..0),
+                geo_features: 0,
+            },
+        }
+    }
+
+    pub fn init(&self, params: &mut [f32], rng: &mut Rng) {
+        self.field.encoding.init(params, rng);
+        self.field
+            .density
+            .0
+            .init(&mut params[self.field.density.1.clone()], rng);
+    }
+}
+
+/// The whole model's parameter layout.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ModelLayout {
+    pub params: ParamLayout,
+    pub field: FieldLayout,
+    pub proposal: ProposalLayout,
+}
+
+impl ModelLayout {
+    pub fn new(cfg: &ModelConfig) -> Self {
+        let mut params = ParamLayout::default();
+        let field = FieldLayout::new(&cfg.field, &mut params);
+        let proposal = ProposalLayout::new(&cfg.proposal, &mut params);
+        ModelLayout {
+            params,
+            field,
+            proposal,
+        }
+    }
+
+    /// Freshly initialised parameters for `seed`.
+    pub fn init_params(&self, seed: u64) -> Vec<f32> {
+        let mut p = vec![0f32; self.params.total];
+        let mut rng = Rng::stream(seed, 0x1417);
+        self.field.init(&mut p, &mut rng);
+        self.proposal.init(&mut p, &mut rng);
+        p
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::{Background, Preset};
+    use crate::scene::SceneBounds;
+
+    fn small_config(blend: BlendMode) -> ModelConfig {
+        let mut c = ModelConfig::preset(
+            Preset::Fast,
+            SceneBounds::dnerf_default(),
+            Background::Color { rgb: [1.0; 3] },
+            10,
+        );
+        for enc in [&mut c.field.encoding, &mut c.proposal.encoding] {
+            enc.blend = blend;
+            enc.grid3.levels = 3;
+            enc.grid4.levels = 3;
+            enc.grid3.log2_table_size = 8;
+            enc.grid4.log2_table_size = 8;
+            enc.grid3.finest_resolution = vec![40.0; 3];
+            enc.grid4.finest_resolution = vec![40.0, 40.0, 40.0, 10.0];
+            enc.mask_resolution = 6;
+        }
+        c.field.density_hidden = 8;
+        c.field.color_hidden = 8;
+        c.field.geo_features = 4;
+        c
+    }
+
+    /// Random parameters of a visible size so that gradients are not dominated by rounding.
+    fn params(layout: &ModelLayout, seed: u64) -> Vec<f32> {
+        let mut p = layout.init_params(seed);
+        let mut rng = Rng::new(seed + 1);
+        for e in &layout.params.entries {
+            if e.name.ends_with("h3") || e.name.ends_with("h4") {
+                for v in &mut p[e.range()] {
+                    *v = rng.range_f32(-0.5, 0.5);
+                }
+            }
+            if e.name.ends_with("mask") {
+                for v in &mut p[e.range()] {
+                    *v = rng.range_f32(-2.0, 2.0);
+                }
+            }
+        }
+        p
+    }
+
+    #[test]
+    fn batched_matches_reference_every_blend() {
+        for blend in [
+            BlendMode::Mst,
+            BlendMode::Mt,
+            BlendMode::Add,
+            BlendMode::FourD,
+            BlendMode::Static,
+        ] {
+            let cfg = small_config(blend);
+            cfg.validate().unwrap();
+            let layout = ModelLayout::new(&cfg);
+            let p = params(&layout, 1);
+            let mut rng = Rng::new(2);
+            let n = 23;
+            let pts: Vec<f32> = (0..n * 4).map(|_| rng.f32()).collect();
+            let mut sh = vec![0f32; SH_COEFFS];
+            crate::sh::sh4([0.0, 0.6, 0.8], &mut sh);
+            let mut s = FieldScratch::default();
+            layout.field.forward(&p, &pts, &sh, &|_| 0, n, &mut s);
+            for i in 0..n {
+                let (sig, rgb, _) =
+                    layout
+                        .field
+                        .eval_point_reference(&p, &pts[i * 4..i * 4 + 4], &sh);
+                assert!((sig - s.sigma[i]).abs() <= 1e-4 * sig.max(1.0), "{blend:?}");
+                for c in 0..3 {
+                    assert!((rgb[c] - s.rgb[i * 3 + c]).abs() < 1e-5);
+                }
+            }
+        }
+    }
+
+    /// Finite differences of `L = sum a_i sigma_i + b_i . rgb_i` through the whole field, for
+    /// a sample of parameters in every named slice.
+    #[test]
+    fn field_backward_matches_finite_differences() {
+        for blend in [
+            BlendMode::Mst,
+            BlendMode::Mt,
+            BlendMode::Add,
+            BlendMode::FourD,
+            BlendMode::Static,
+        ] {
+            let cfg = small_config(blend);
+            let layout = ModelLayout::new(&cfg);
+            let p = params(&layout, 3);
+            let mut rng = Rng::new(4);
+            let n = 6;
+            let pts: Vec<f32> = (0..n * 4).map(|_| rng.range_f32(0.05, 0.95)).collect();
+            let mut sh = vec![0f32; SH_COEFFS];
+            crate::sh::sh4([0.6, 0.0, 0.8], &mut sh);
+            let a: Vec<f32> = (0..n).map(|_| rng.range_f32(-1.0, 1.0)).collect();
+            let b: Vec<f32> = (0..n * 3).map(|_| rng.range_f32(-1.0, 1.0)).collect();
+            let loss = |p: &[f32]| -> f64 {
+                let mut l = 0f64;
+                for i in 0..n {
+                    let (sig, rgb, _) =
+                        layout
+                            .field
+                            .eval_point_reference(p, &pts[i * 4..i * 4 + 4], &sh);
+                    l += a[i] as f64 * sig as f64;
+                    for c in 0..3 {
+                        l += b[i * 3 + c] as f64 * rgb[c] as f64;
+                    }
+                }
+                l
+            };
+            let mut s = FieldScratch::default();
+            layout.field.forward(&p, &pts, &sh, &|_| 0, n, &mut s);
+            let mut grad = vec![0f32; p.len()];
+            layout
+                .field
+                .backward(&p, &pts, n, &mut s, &a, &b, &mut grad);
+            for e in &layout.params.entries {
+                if !e.name.starts_with("field") {
+                    continue;
+                }
+                // the parameters with the largest gradients, plus a few arbitrary ones
+                let mut idx: Vec<usize> = e.range().collect();
+                idx.sort_by(|&x, &y| grad[y].abs().partial_cmp(&grad[x].abs()).unwrap());
+                let mut checked = 0;
+                for &i in idx.iter().take(12) {
+                    let h = 3e-4f32;
+                    let mut pp = p.clone();
+                    pp[i] += h;
+                    let lp = loss(&pp);
+                    pp[i] -= 2.0 * h;
+                    let lm = loss(&pp);
+                    let fd = (lp - lm) / (2.0 * h as f64);
+                    let tol = 2e-3 + 2e-2 * fd.abs();
+                    assert!(
+                        (fd - grad[i] as f64).abs() < tol,
+                        "{blend:?} {} [{}]: fd {fd} vs {}",
+                        e.name,
+                        i - e.offset,
+                        grad[i]
+                    );
+                    checked += 1;
+                }
+                assert!(checked > 0);
+            }
+        }
+    }
+}

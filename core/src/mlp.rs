@@ -1,0 +1,356 @@
+//! Bias-free fully connected networks (as tiny-cuda-nn's fully fused MLP): ReLU on hidden layers,
+//! identity on the output (the caller applies `trunc_exp` / sigmoid).
+//!
+//! Weights of layer `k` are stored row-major `[dims[k], dims[k + 1]]` so that a batch
+//! `X: [n, dims[k]]` maps to `X W: [n, dims[k + 1]]` with one GEMM. [`MlpLayout::forward_reference`]
+//! is the plain per-row reference; [`MlpLayout::forward`] / [`MlpLayout::backward`] use
+//! `matrixmultiply`'s SGEMM on whole batches.
+
+use crate::rng::Rng;
+
+/// `C = alpha * A B + beta * C` for row-major slices with explicit leading dimensions.
+/// `A: [m, k]` (row stride `lda`), `B: [k, n]` (row stride `ldb`), `C: [m, n]` (row stride `ldc`);
+/// `transpose_a` / `transpose_b` read `A` / `B` as transposed views of row-major storage.
+#[allow(clippy::too_many_arguments)]
+pub fn gemm(
+    m: usize,
+    k: usize,
+    n: usize,
+    alpha: f32,
+    a: &[f32],
+    lda: usize,
+    transpose_a: bool,
+    b: &[f32],
+    ldb: usize,
+    transpose_b: bool,
+    beta: f32,
+    c: &mut [f32],
+    ldc: usize,
+) {
+    if m == 0 || n == 0 {
+        return;
+    }
+    // Bounds: the last element each operand touches must be inside its slice.
+    let a_last = if transpose_a {
+        (k.max(1) - 1) * lda + m - 1
+    } else {
+        (m - 1) * lda + k.max(1) - 1
+    };
+    let b_last = if transpose_b {
+        (n - 1) * ldb + k.max(1) - 1
+    } else {
+        (k.max(1) - 1) * ldb + n - 1
+    };
+    assert!(
+        k == 0 || (a_last < a.len() && b_last < b.len()),
+        "gemm operand out of bounds"
+    );
+    assert!((m - 1) * ldc + n - 1 < c.len(), "gemm output out of bounds");
+    let (rsa, csa) = if transpose_a {
+        (1, lda as isize)
+    } else {
+        (lda as isize, 1)
+    };
+    let (rsb, csb) = if transpose_b {
+        (1, ldb as isize)
+    } else {
+        (ldb as isize, 1)
+    };
+    // SAFETY: the asserts above guarantee every index the kernel touches is in bounds, and `c`
+    // is a unique borrow that does not alias `a` or `b`.
+    unsafe {
+        matrixmultiply::sgemm(
+            m,
+            k,
+            n,
+            alpha,
+            a.as_ptr(),
+            rsa,
+            csa,
+            b.as_ptr(),
+            rsb,
+            csb,
+            beta,
+            c.as_mut_ptr(),
+            ldc as isize,
+            1,
+        );
+    }
+}
+
+/// Shape of an MLP and where its weights sit inside its parameter slice.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MlpLayout {
+    /// `[input, hidden..., output]`.
+    pub dims: Vec<usize>,
+    /// Offset of each layer's weight matrix inside the slice.
+    pub offsets: Vec<usize>,
+    pub num_params: usize,
+}
+
+/// Activations of one batch kept for the backward pass.
+#[derive(Clone, Debug, Default)]
+pub struct MlpActivations {
+    /// `acts[k]`: output of layer `k` (post-ReLU for hidden layers, raw for the last), `[n, dims[k+1]]`.
+    pub acts: Vec<Vec<f32>>,
+    /// Scratch gradients, one per layer output.
+    grads: Vec<Vec<f32>>,
+}
+
+impl MlpLayout {
+    pub fn new(dims: &[usize]) -> Self {
+        assert!(dims.len() >= 2);
+        let mut offsets = Vec::new();
+        let mut off = 0;
+        for k in 0..dims.len() - 1 {
+            offsets.push(off);
+            off += dims[k] * dims[k + 1];
+        }
+        MlpLayout {
+            dims: dims.to_vec(),
+            offsets,
+            num_params: off,
+        }
+    }
+
+    pub fn input_dim(&self) -> usize {
+        self.dims[0]
+    }
+
+    pub fn output_dim(&self) -> usize {
+        *self.dims.last().unwrap_or(&0)
+    }
+
+    pub fn num_layers(&self) -> usize {
+        self.dims.len() - 1
+    }
+
+    fn weights<'a>(&self, params: &'a [f32], k: usize) -> &'a [f32] {
+        &params[self.offsets[k]..self.offsets[k] + self.dims[k] * self.dims[k + 1]]
+    }
+
+    /// Glorot-uniform initialisation.
+    pub fn init(&self, params: &mut [f32], rng: &mut Rng) {
+        for k in 0..self.num_layers() {
+            let (fi, fo) = (self.dims[k], self.dims[k + 1]);
+            let bound = (6.0 / (fi + fo) as f32).sqrt();
+            for w in &mut params[self.offsets[k]..self.offsets[k] + fi * fo] {
+                *w = rng.range_f32(-bound, bound);
+            }
+        }
+    }
+
+    /// Plain reference forward of one input row.
+    pub fn forward_reference(&self, params: &[f32], input: &[f32]) -> Vec<f32> {
+        let mut x = input.to_vec();
+        for k in 0..self.num_layers() {
+            let w = self.weights(params, k);
+            let (fi, fo) = (self.dims[k], self.dims[k + 1]);
+            let mut y = vec![0f32; fo];
+            for o in 0..fo {
+                let mut s = 0f32;
+                for i in 0..fi {
+                    s += x[i] * w[i * fo + o];
+                }
+                y[o] = if k + 1 < self.num_layers() {
+                    s.max(0.0)
+                } else {
+                    s
+                };
+            }
+            x = y;
+        }
+        x
+    }
+
+    /// Batched forward of `n` rows of `input` (row stride `dims[0]`); the output is
+    /// `acts.acts.last()`.
+    pub fn forward(&self, params: &[f32], input: &[f32], n: usize, acts: &mut MlpActivations) {
+        let layers = self.num_layers();
+        acts.acts.resize_with(layers, Vec::new);
+        for k in 0..layers {
+            let (fi, fo) = (self.dims[k], self.dims[k + 1]);
+            let (prev, rest) = acts.acts.split_at_mut(k);
+            let x: &[f32] = if k == 0 { input } else { &prev[k - 1] };
+            let y = &mut rest[0];
+            y.resize(n * fo, 0.0);
+            gemm(
+                n,
+                fi,
+                fo,
+                1.0,
+                x,
+                fi,
+                false,
+                self.weights(params, k),
+                fo,
+                false,
+                0.0,
+                y,
+                fo,
+            );
+            if k + 1 < layers {
+                for v in y.iter_mut() {
+                    *v = v.max(0.0);
+                }
+            }
+        }
+    }
+
+    /// Output of the last [`MlpLayout::forward`].
+    pub fn output<'a>(&self, acts: &'a MlpActivations) -> &'a [f32] {
+        &acts.acts[self.num_layers() - 1]
+    }
+
+    /// Backward of the last forward: accumulates weight gradients into `grad` (this MLP's slice)
+    /// and, when `d_input` is given, writes `dL/d input` (`[n, dims[0]]`) into it.
+    pub fn backward(
+        &self,
+        params: &[f32],
+        input: &[f32],
+        n: usize,
+        acts: &mut MlpActivations,
+        d_output: &[f32],
+        grad: &mut [f32],
+        d_input: Option<&mut [f32]>,
+    ) {
+        let layers = self.num_layers();
+        acts.grads.resize_with(layers, Vec::new);
+        let MlpActivations { acts: a, grads } = acts;
+        grads[layers - 1].clear();
+        grads[layers - 1].extend_from_slice(&d_output[..n * self.output_dim()]);
+        let mut d_input = d_input;
+        for k in (0..layers).rev() {
+            let (fi, fo) = (self.dims[k], self.dims[k + 1]);
+            let x: &[f32] = if k == 0 { input } else { &a[k - 1] };
+            let (lower, upper) = grads.split_at_mut(k);
+            let dy = &upper[0];
+            // dW += x^T dy
+            let off = self.offsets[k];
+            gemm(
+                fi,
+                n,
+                fo,
+                1.0,
+                x,
+                fi,
+                true,
+                dy,
+                fo,
+                false,
+                1.0,
+                &mut grad[off..off + fi * fo],
+                fo,
+            );
+            let w = self.weights(params, k);
+            if k > 0 {
+                let dx = &mut lower[k - 1];
+                dx.resize(n * fi, 0.0);
+                gemm(n, fo, fi, 1.0, dy, fo, false, w, fo, true, 0.0, dx, fi);
+                for (d, &act) in dx.iter_mut().zip(&a[k - 1]) {
+                    if act <= 0.0 {
+                        *d = 0.0;
+                    }
+                }
+            } else if let Some(dx) = d_input.as_deref_mut() {
+                gemm(n, fo, fi, 1.0, dy, fo, false, w, fo, true, 0.0, dx, fi);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn gemm_matches_naive_with_transposes() {
+        let mut rng = Rng::new(2);
+        let (m, k, n) = (7, 5, 3);
+        let a: Vec<f32> = (0..m * k).map(|_| rng.range_f32(-1.0, 1.0)).collect();
+        let b: Vec<f32> = (0..k * n).map(|_| rng.range_f32(-1.0, 1.0)).collect();
+        let mut c = vec![1f32; m * n];
+        gemm(m, k, n, 1.0, &a, k, false, &b, n, false, 1.0, &mut c, n);
+        for i in 0..m {
+            for j in 0..n {
+                let s: f32 = (0..k).map(|t| a[i * k + t] * b[t * n + j]).sum::<f32>() + 1.0;
+                assert!((s - c[i * n + j]).abs() < 1e-5);
+            }
+        }
+        // A^T stored as [k, m]
+        let at: Vec<f32> = (0..k * m).map(|idx| a[(idx % m) * k + idx / m]).collect();
+        let mut c2 = vec![0f32; m * n];
+        gemm(m, k, n, 1.0, &at, m, true, &b, n, false, 0.0, &mut c2, n);
+        for i in 0..m * n {
+            assert!((c2[i] - c[i] + 1.0).abs() < 1e-5);
+        }
+    }
+
+    #[test]
+    fn batched_forward_matches_reference() {
+        let mlp = MlpLayout::new(&[31, 64, 64, 3]);
+        let mut rng = Rng::new(3);
+        let mut p = vec![0f32; mlp.num_params];
+        mlp.init(&mut p, &mut rng);
+        let n = 37;
+        let x: Vec<f32> = (0..n * 31).map(|_| rng.range_f32(-1.0, 1.0)).collect();
+        let mut acts = MlpActivations::default();
+        mlp.forward(&p, &x, n, &mut acts);
+        let out = mlp.output(&acts);
+        for i in 0..n {
+            let r = mlp.forward_reference(&p, &x[i * 31..(i + 1) * 31]);
+            for o in 0..3 {
+                assert!((r[o] - out[i * 3 + o]).abs() < 1e-4);
+            }
+        }
+    }
+
+    #[test]
+    fn backward_matches_finite_differences() {
+        let mlp = MlpLayout::new(&[6, 8, 8, 3]);
+        let mut rng = Rng::new(4);
+        let mut p = vec![0f32; mlp.num_params];
+        mlp.init(&mut p, &mut rng);
+        let n = 5;
+        let x: Vec<f32> = (0..n * 6).map(|_| rng.range_f32(-1.0, 1.0)).collect();
+        let wts: Vec<f32> = (0..n * 3).map(|_| rng.range_f32(-1.0, 1.0)).collect();
+        let loss = |p: &[f32], x: &[f32]| -> f64 {
+            let mut s = 0f64;
+            for i in 0..n {
+                let r = mlp.forward_reference(p, &x[i * 6..(i + 1) * 6]);
+                for o in 0..3 {
+                    s += r[o] as f64 * wts[i * 3 + o] as f64;
+                }
+            }
+            s
+        };
+        let mut acts = MlpActivations::default();
+        mlp.forward(&p, &x, n, &mut acts);
+        let mut grad = vec![0f32; mlp.num_params];
+        let mut dx = vec![0f32; n * 6];
+        mlp.backward(&p, &x, n, &mut acts, &wts, &mut grad, Some(&mut dx));
+        let h = 1e-3f32;
+        for i in 0..mlp.num_params {
+            let mut pp = p.clone();
+            pp[i] += h;
+            let lp = loss(&pp, &x);
+            pp[i] -= 2.0 * h;
+            let lm = loss(&pp, &x);
+            let fd = (lp - lm) / (2.0 * h as f64);
+            assert!(
+                (fd - grad[i] as f64).abs() < 2e-3,
+                "w{i}: {fd} vs {}",
+                grad[i]
+            );
+        }
+        for i in 0..n * 6 {
+            let mut xx = x.clone();
+            xx[i] += h;
+            let lp = loss(&p, &xx);
+            xx[i] -= 2.0 * h;
+            let lm = loss(&p, &xx);
+            let fd = (lp - lm) / (2.0 * h as f64);
+            assert!((fd - dx[i] as f64).abs() < 2e-3, "x{i}: {fd} vs {}", dx[i]);
+        }
+    }
+}

@@ -1,0 +1,167 @@
+//! Adam over the flat parameter buffer (lr 1e-2, eps 1e-15 by default, exponential decay), with
+//! the MSTH mask loss fused into the update of the mask slices: its gradient is elementwise, so
+//! adding it where every mask parameter is already visited costs nothing extra.
+
+use std::ops::Range;
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use msth_core::activation::sigmoid;
+
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AdamConfig {
+    pub lr: f32,
+    /// Learning rate reached at the last step (exponential decay in between).
+    pub lr_final: f32,
+    pub beta1: f32,
+    pub beta2: f32,
+    pub eps: f32,
+}
+
+impl Default for AdamConfig {
+    fn default() -> Self {
+        AdamConfig {
+            lr: 1e-2,
+            lr_final: 2e-4,
+            beta1: 0.9,
+            beta2: 0.99,
+            eps: 1e-15,
+        }
+    }
+}
+
+impl AdamConfig {
+    pub fn lr_at(&self, step: usize, total: usize) -> f32 {
+        let f = if total > 1 {
+            step as f32 / (total - 1) as f32
+        } else {
+            1.0
+        };
+        self.lr * (self.lr_final / self.lr).powf(f.clamp(0.0, 1.0))
+    }
+}
+
+/// Optimiser state: first and second moments, one float each per parameter.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Adam {
+    pub m: Vec<f32>,
+    pub v: Vec<f32>,
+    pub step: u64,
+}
+
+/// A slice whose parameters also receive `weight * d/dx mean(1 - sigmoid(x))`.
+#[derive(Clone, Debug)]
+pub struct MaskLossSlice {
+    pub range: Range<usize>,
+    pub weight: f32,
+}
+
+impl Adam {
+    pub fn new(n: usize) -> Self {
+        Adam {
+            m: vec![0.0; n],
+            v: vec![0.0; n],
+            step: 0,
+        }
+    }
+
+    /// One update with learning rate `lr`; returns the mask loss value (weighted sum over slices).
+    pub fn update(
+        &mut self,
+        cfg: &AdamConfig,
+        lr: f32,
+        params: &mut [f32],
+        grad: &[f32],
+        masks: &[MaskLossSlice],
+    ) -> f32 {
+        self.step += 1;
+        let t = self.step as i32;
+        let bc1 = 1.0 - cfg.beta1.powi(t);
+        let bc2 = 1.0 - cfg.beta2.powi(t);
+        let step_size = lr / bc1;
+        let inv_sqrt_bc2 = 1.0 / bc2.sqrt();
+        const CHUNK: usize = 1 << 14;
+        let (b1, b2, eps) = (cfg.beta1, cfg.beta2, cfg.eps);
+        let mask_loss: f64 = params
+            .par_chunks_mut(CHUNK)
+            .zip(grad.par_chunks(CHUNK))
+            .zip(self.m.par_chunks_mut(CHUNK))
+            .zip(self.v.par_chunks_mut(CHUNK))
+            .enumerate()
+            .map(|(c, (((p, g), m), v))| {
+                let base = c * CHUNK;
+                let mut loss = 0f64;
+                // Which mask slice (if any) overlaps this chunk: handle per element.
+                let overl: Vec<&MaskLossSlice> = masks
+                    .iter()
+                    .filter(|s| s.range.start < base + p.len() && s.range.end > base)
+                    .collect();
+                for i in 0..p.len() {
+                    let mut gi = g[i];
+                    if !overl.is_empty() {
+                        let idx = base + i;
+                        for s in &overl {
+                            if s.range.contains(&idx) {
+                                let sg = sigmoid(p[i]);
+                                let n = s.range.len() as f32;
+                                gi += -s.weight * sg * (1.0 - sg) / n;
+                                loss += (s.weight * (1.0 - sg) / n) as f64;
+                            }
+                        }
+                    }
+                    m[i] = b1 * m[i] + (1.0 - b1) * gi;
+                    v[i] = b2 * v[i] + (1.0 - b2) * gi * gi;
+                    let denom = v[i].sqrt() * inv_sqrt_bc2 + eps;
+                    p[i] -= step_size * m[i] / denom;
+                }
+                loss
+            })
+            .sum();
+        mask_loss as f32
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn minimises_a_quadratic() {
+        let cfg = AdamConfig {
+            lr: 0.05,
+            lr_final: 0.01,
+            ..Default::default()
+        };
+        let target: Vec<f32> = (0..100).map(|i| (i as f32 * 0.37).sin()).collect();
+        let mut p = vec![0f32; 100];
+        let mut adam = Adam::new(100);
+        for s in 0..600 {
+            let g: Vec<f32> = p.iter().zip(&target).map(|(a, b)| 2.0 * (a - b)).collect();
+            adam.update(&cfg, cfg.lr_at(s, 600), &mut p, &g, &[]);
+        }
+        for (a, b) in p.iter().zip(&target) {
+            assert!((a - b).abs() < 1e-2, "{a} vs {b}");
+        }
+    }
+
+    #[test]
+    fn mask_loss_pushes_logits_up() {
+        let cfg = AdamConfig::default();
+        let mut p = vec![-1f32; 40_000];
+        let g = vec![0f32; 40_000];
+        let mut adam = Adam::new(p.len());
+        let masks = [MaskLossSlice {
+            range: 100..30_000,
+            weight: 1.0,
+        }];
+        let l0 = adam.update(&cfg, 1e-2, &mut p, &g, &masks);
+        for _ in 0..50 {
+            adam.update(&cfg, 1e-2, &mut p, &g, &masks);
+        }
+        assert!((l0 - (1.0 - sigmoid(-1.0))).abs() < 1e-3);
+        assert!(p[100] > -0.6 && p[29_999] > -0.6);
+        assert_eq!(p[99], -1.0);
+        assert_eq!(p[30_000], -1.0);
+    }
+}

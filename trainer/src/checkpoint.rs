@@ -1,0 +1,292 @@
+//! Checkpoint files (`model.ckpt`): the model configuration, training settings and metadata as
+//! JSON, then the flat parameter buffer and optionally the Adam moments, with a CRC-32 at the end.
+//!
+//! Layout (little endian):
+//! `b"MSTHCKPT"`, `version: u32 = 1`, `flags: u32` (bit 0: Adam state present, other bits 0),
+//! `header_len: u64`, header JSON, `n: u64`, `params: [f32; n]`, if flag 0: `m: [f32; n]`,
+//! `v: [f32; n]`, `adam_step: u64`; then `crc32: u32` of every preceding byte.
+//! Files are written to a temporary sibling and renamed, so a crash never leaves half a file.
+
+use std::io::{Read, Write};
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use msth_core::config::ModelConfig;
+use msth_core::field::ModelLayout;
+use msth_core::Camera;
+
+use crate::adam::Adam;
+
+const MAGIC: &[u8; 8] = b"MSTHCKPT";
+const VERSION: u32 = 1;
+const MAX_HEADER: u64 = 64 << 20;
+const MAX_PARAMS: u64 = 1 << 31;
+
+/// Everything in the JSON header.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct CheckpointHeader {
+    pub model: ModelConfig,
+    /// The training settings used (free-form so that old files stay readable).
+    pub train: serde_json::Value,
+    pub step: u64,
+    pub dataset: String,
+    /// Cameras worth playing back from (the dataset's test and training poses, deduplicated).
+    pub cameras: Vec<Camera>,
+    pub train_seconds: f64,
+}
+
+#[derive(Clone, Debug)]
+pub struct Checkpoint {
+    pub header: CheckpointHeader,
+    pub params: Vec<f32>,
+    pub adam: Option<Adam>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum CheckpointError {
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{path}: not an msth checkpoint ({reason})")]
+    Format { path: PathBuf, reason: String },
+}
+
+fn io(path: &Path) -> impl FnOnce(std::io::Error) -> CheckpointError + '_ {
+    move |source| CheckpointError::Io {
+        path: path.to_path_buf(),
+        source,
+    }
+}
+
+impl Checkpoint {
+    /// Serialises into bytes.
+    pub fn to_bytes(&self) -> Vec<u8> {
+        let header = serde_json::to_vec(&self.header).expect("header serialises");
+        let n = self.params.len();
+        let mut b = Vec::with_capacity(32 + header.len() + n * 4 * 3);
+        b.extend_from_slice(MAGIC);
+        b.extend_from_slice(&VERSION.to_le_bytes());
+        b.extend_from_slice(&(self.adam.is_some() as u32).to_le_bytes());
+        b.extend_from_slice(&(header.len() as u64).to_le_bytes());
+        b.extend_from_slice(&header);
+        b.extend_from_slice(&(n as u64).to_le_bytes());
+        let put = |b: &mut Vec<u8>, v: &[f32]| {
+            for x in v {
+                b.extend_from_slice(&x.to_le_bytes());
+            }
+        };
+        put(&mut b, &self.params);
+        if let Some(a) = &self.adam {
+            put(&mut b, &a.m);
+            put(&mut b, &a.v);
+            b.extend_from_slice(&a.step.to_le_bytes());
+        }
+        let crc = crc32fast::hash(&b);
+        b.extend_from_slice(&crc.to_le_bytes());
+        b
+    }
+
+    /// Writes atomically (temporary file in the same folder, then rename).
+    pub fn save(&self, path: &Path) -> Result<(), CheckpointError> {
+        write_atomic(path, &self.to_bytes()).map_err(io(path))
+    }
+
+    pub fn load(path: &Path) -> Result<Self, CheckpointError> {
+        let mut f = std::fs::File::open(path).map_err(io(path))?;
+        let len = f.metadata().map_err(io(path))?.len();
+        if len > MAX_HEADER + 3 * 4 * MAX_PARAMS + 64 {
+            return Err(CheckpointError::Format {
+                path: path.into(),
+                reason: format!("file is {len} bytes, larger than any valid checkpoint"),
+            });
+        }
+        let mut bytes = Vec::with_capacity(len as usize);
+        f.read_to_end(&mut bytes).map_err(io(path))?;
+        Self::from_bytes(&bytes).map_err(|reason| CheckpointError::Format {
+            path: path.into(),
+            reason,
+        })
+    }
+
+    pub fn from_bytes(b: &[u8]) -> Result<Self, String> {
+        if b.len() < 28 || &b[..8] != MAGIC {
+            return Err("bad magic number".into());
+        }
+        let (body, crc) = b.split_at(b.len() - 4);
+        let crc = u32::from_le_bytes(crc.try_into().map_err(|_| "short file")?);
+        if crc32fast::hash(body) != crc {
+            return Err("checksum mismatch (truncated or corrupted file)".into());
+        }
+        let mut r = Reader { b: body, pos: 8 };
+        let version = r.u32()?;
+        if version != VERSION {
+            return Err(format!(
+                "unsupported version {version} (this build reads {VERSION})"
+            ));
+        }
+        let flags = r.u32()?;
+        if flags & !1 != 0 {
+            return Err(format!("reserved flag bits set: {flags:#x}"));
+        }
+        let hlen = r.u64()?;
+        if hlen > MAX_HEADER {
+            return Err(format!("header length {hlen} exceeds {MAX_HEADER}"));
+        }
+        let header: CheckpointHeader = serde_json::from_slice(r.take(hlen as usize)?)
+            .map_err(|e| format!("header JSON: {e}"))?;
+        header
+            .model
+            .validate()
+            .map_err(|e| format!("model config: {e}"))?;
+        let n = r.u64()?;
+        let expect = ModelLayout::new(&header.model).params.total as u64;
+        if n != expect {
+            return Err(format!(
+                "{n} parameters stored but the configuration needs {expect}"
+            ));
+        }
+        let params = r.f32s(n as usize)?;
+        let adam = if flags & 1 == 1 {
+            let m = r.f32s(n as usize)?;
+            let v = r.f32s(n as usize)?;
+            let step = r.u64()?;
+            Some(Adam { m, v, step })
+        } else {
+            None
+        };
+        if r.pos != body.len() {
+            return Err(format!("{} unexpected trailing bytes", body.len() - r.pos));
+        }
+        Ok(Checkpoint {
+            header,
+            params,
+            adam,
+        })
+    }
+}
+
+struct Reader<'a> {
+    b: &'a [u8],
+    pos: usize,
+}
+
+impl<'a> Reader<'a> {
+    fn take(&mut self, n: usize) -> Result<&'a [u8], String> {
+        if n > self.b.len() - self.pos {
+            return Err(format!(
+                "truncated: wanted {n} bytes at offset {}",
+                self.pos
+            ));
+        }
+        let s = &self.b[self.pos..self.pos + n];
+        self.pos += n;
+        Ok(s)
+    }
+    fn u32(&mut self) -> Result<u32, String> {
+        Ok(u32::from_le_bytes(
+            self.take(4)?.try_into().expect("4 bytes"),
+        ))
+    }
+    fn u64(&mut self) -> Result<u64, String> {
+        Ok(u64::from_le_bytes(
+            self.take(8)?.try_into().expect("8 bytes"),
+        ))
+    }
+    fn f32s(&mut self, n: usize) -> Result<Vec<f32>, String> {
+        let bytes = self.take(n.checked_mul(4).ok_or("size overflow")?)?;
+        Ok(bytes
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes(c.try_into().expect("4 bytes")))
+            .collect())
+    }
+}
+
+/// Writes `bytes` to `path` through a temporary sibling and a rename.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    let dir = path
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("file");
+    let tmp = dir.join(format!(".{name}.{}.tmp", std::process::id()));
+    let res = (|| {
+        let mut f = std::fs::File::create(&tmp)?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+        std::fs::rename(&tmp, path)
+    })();
+    if res.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    res
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use msth_core::config::{Background, Preset};
+    use msth_core::SceneBounds;
+
+    fn sample() -> Checkpoint {
+        let model = ModelConfig::preset(
+            Preset::Fast,
+            SceneBounds::dnerf_default(),
+            Background::Color { rgb: [1.0; 3] },
+            4,
+        );
+        let layout = ModelLayout::new(&model);
+        let params = layout.init_params(1);
+        let n = params.len();
+        Checkpoint {
+            header: CheckpointHeader {
+                model,
+                train: serde_json::json!({"iters": 3}),
+                step: 3,
+                dataset: "t".into(),
+                cameras: vec![],
+                train_seconds: 1.5,
+            },
+            params,
+            adam: Some(Adam::new(n)),
+        }
+    }
+
+    #[test]
+    fn round_trip_and_corruption() {
+        let c = sample();
+        let b = c.to_bytes();
+        let d = Checkpoint::from_bytes(&b).unwrap();
+        assert_eq!(d.params, c.params);
+        assert_eq!(d.adam, c.adam);
+        assert_eq!(d.header.step, 3);
+        // Every truncation fails cleanly.
+        for cut in [0, 5, 27, 100, b.len() / 2, b.len() - 1] {
+            assert!(Checkpoint::from_bytes(&b[..cut]).is_err());
+        }
+        // A flipped byte is caught by the checksum.
+        let mut e = b.clone();
+        e[b.len() / 3] ^= 0x40;
+        assert!(Checkpoint::from_bytes(&e).unwrap_err().contains("checksum"));
+    }
+
+    #[test]
+    fn save_is_atomic_and_loads() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("model.ckpt");
+        sample().save(&p).unwrap();
+        let names: Vec<_> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
+        assert_eq!(names.len(), 1, "{names:?}");
+        assert_eq!(Checkpoint::load(&p).unwrap().header.dataset, "t");
+        let err = Checkpoint::load(&dir.path().join("missing.ckpt"))
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("missing.ckpt"));
+    }
+}

@@ -1,0 +1,16 @@
+//! `msth-trainer`: everything that turns a dataset into a trained MSTH model.
+//!
+//! - [`dataset`]: dataset types and loaders (one module per format), with validation;
+//! - [`synth`]: the built-in procedural dynamic scene with analytic ground truth;
+//! - [`metrics`], [`imageio`]: PSNR / SSIM / D-SSIM, PNG output and comparison pictures;
+//! - [`adam`], [`train`], [`checkpoint`], [`eval`]: the optimiser, the loop, the checkpoint file
+//!   and held-out evaluation.
+
+pub mod adam;
+pub mod checkpoint;
+pub mod dataset;
+pub mod eval;
+pub mod imageio;
+pub mod metrics;
+pub mod synth;
+pub mod train;

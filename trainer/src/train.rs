@@ -1,0 +1,557 @@
+//! The training loop: batches of random (view, pixel) rays, chunks processed in parallel with
+//! one gradient buffer per worker, Adam with the fused mask loss, periodic atomic checkpoints,
+//! `--resume`, and a divergence guard that stops before a NaN reaches a checkpoint.
+//!
+//! Repeatability: for a given seed and worker count the run is bit-for-bit repeatable (each
+//! chunk draws from its own random stream; worker gradients are summed in a fixed order).
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use msth_core::config::{Background, ModelConfig, Preset};
+use msth_core::field::ModelLayout;
+use msth_core::pipeline::{train_chunk, ChunkLosses, StepSettings, TimedRay, Workspace};
+use msth_core::rng::Rng;
+use msth_core::Camera;
+
+use crate::adam::{Adam, AdamConfig, MaskLossSlice};
+use crate::checkpoint::{Checkpoint, CheckpointError, CheckpointHeader};
+use crate::dataset::Dataset;
+
+/// Every knob of a training run. Presets fill it; a config file and `--set key=value` override
+/// any field (see [`TrainSettings::apply_overrides`]).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrainSettings {
+    pub preset: Preset,
+    pub iters: usize,
+    pub batch_rays: usize,
+    /// Rays per work item of a worker.
+    pub chunk_rays: usize,
+    pub seed: u64,
+    pub adam: AdamConfig,
+    pub interlevel_weight: f32,
+    pub distortion_weight: f32,
+    pub mask_loss_weight: f32,
+    /// Steps over which the proposal weights are annealed (`w^a`, `a = 10f/(9f+1)`).
+    pub anneal_steps: usize,
+    /// Checkpoint every this many steps (0: only at the end).
+    pub checkpoint_every: usize,
+    /// Evaluate every `eval_stride`-th test view.
+    pub eval_stride: usize,
+    /// Stop early after this many seconds of training (0: no limit).
+    pub time_limit_secs: f64,
+    /// For images with transparency: composite each training ray on a random background colour
+    /// (so empty space must be transparent rather than white).
+    pub random_background: bool,
+    pub model: ModelConfig,
+}
+
+impl TrainSettings {
+    pub fn for_preset(preset: Preset, data: &Dataset) -> Self {
+        let background = Background::Color {
+            rgb: data.background,
+        };
+        let model = ModelConfig::preset(preset, data.bounds, background, data.num_frames);
+        let (iters, batch) = match preset {
+            Preset::Fast => (1200, 2048),
+            Preset::Balanced => (4000, 4096),
+            Preset::Quality => (10_000, 8192),
+            Preset::Paper => (20_000, 16_384),
+        };
+        TrainSettings {
+            preset,
+            iters,
+            batch_rays: batch,
+            chunk_rays: 128,
+            seed: 0,
+            adam: AdamConfig::default(),
+            interlevel_weight: 1.0,
+            distortion_weight: 2e-3,
+            mask_loss_weight: 1e-2,
+            anneal_steps: (iters / 4).max(1),
+            checkpoint_every: 1000,
+            eval_stride: 1,
+            time_limit_secs: 0.0,
+            random_background: true,
+            model,
+        }
+    }
+
+    /// Applies a JSON object of overrides (e.g. read from a config file) and `key=value` pairs
+    /// with dotted paths (`model.sampler.num_samples=32`, values parsed as JSON, else as strings).
+    pub fn apply_overrides(
+        &mut self,
+        file: Option<serde_json::Value>,
+        sets: &[String],
+    ) -> Result<(), String> {
+        let mut v = serde_json::to_value(&*self).map_err(|e| e.to_string())?;
+        if let Some(f) = file {
+            merge(&mut v, f, "")?;
+        }
+        for s in sets {
+            let (key, val) = s
+                .split_once('=')
+                .ok_or_else(|| format!("--set `{s}`: expected key=value"))?;
+            let val: serde_json::Value = serde_json::from_str(val)
+                .unwrap_or_else(|_| serde_json::Value::String(val.to_string()));
+            let mut node = &mut v;
+            for part in key.split('.') {
+                node = node
+                    .get_mut(part)
+                    .ok_or_else(|| format!("--set `{key}`: unknown setting `{part}`"))?;
+            }
+            *node = val;
+        }
+        *self = serde_json::from_value(v).map_err(|e| format!("invalid settings: {e}"))?;
+        self.validate()
+    }
+
+    pub fn validate(&self) -> Result<(), String> {
+        if self.iters == 0 {
+            return Err("iters must be at least 1".into());
+        }
+        if !(1..=1 << 22).contains(&self.batch_rays) || !(1..=1 << 16).contains(&self.chunk_rays) {
+            return Err("batch_rays must be in 1..=4194304 and chunk_rays in 1..=65536".into());
+        }
+        for (n, v) in [
+            ("adam.lr", self.adam.lr),
+            ("adam.lr_final", self.adam.lr_final),
+            ("adam.eps", self.adam.eps),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(format!("{n} must be finite and positive"));
+            }
+        }
+        for (n, v) in [
+            ("interlevel_weight", self.interlevel_weight),
+            ("distortion_weight", self.distortion_weight),
+            ("mask_loss_weight", self.mask_loss_weight),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(format!("{n} must be finite and >= 0"));
+            }
+        }
+        if self.eval_stride == 0 {
+            return Err("eval_stride must be at least 1".into());
+        }
+        self.model.validate().map_err(|e| format!("model.{e}"))
+    }
+}
+
+fn merge(dst: &mut serde_json::Value, src: serde_json::Value, path: &str) -> Result<(), String> {
+    match src {
+        serde_json::Value::Object(map) => {
+            for (k, v) in map {
+                let p = if path.is_empty() {
+                    k.clone()
+                } else {
+                    format!("{path}.{k}")
+                };
+                let slot = dst
+                    .get_mut(&k)
+                    .ok_or_else(|| format!("config: unknown setting `{p}`"))?;
+                if v.is_object() && slot.is_object() {
+                    merge(slot, v, &p)?;
+                } else {
+                    *slot = v;
+                }
+            }
+            Ok(())
+        }
+        other => {
+            *dst = other;
+            Ok(())
+        }
+    }
+}
+
+/// Reported after each step.
+#[derive(Clone, Debug)]
+pub struct Progress {
+    pub step: usize,
+    pub iters: usize,
+    pub loss: f32,
+    /// PSNR of the batch's colours.
+    pub psnr: f32,
+    pub elapsed_secs: f64,
+    pub field_samples_per_sec: f64,
+}
+
+#[derive(Clone, Debug)]
+pub struct TrainOutcome {
+    pub checkpoint: PathBuf,
+    pub steps: usize,
+    pub train_seconds: f64,
+    pub field_samples_per_sec: f64,
+    pub rays_per_sec: f64,
+    pub last_loss: f32,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum TrainError {
+    #[error("invalid settings: {0}")]
+    Settings(String),
+    #[error(transparent)]
+    Checkpoint(#[from] CheckpointError),
+    #[error("training diverged at step {step}: {what} is not finite; the last good checkpoint is {last_good}")]
+    Diverged {
+        step: usize,
+        what: String,
+        last_good: String,
+    },
+    #[error("the dataset has no training views")]
+    NoData,
+}
+
+/// The state of a run: parameters, optimiser, workers' buffers.
+pub struct Trainer {
+    pub settings: TrainSettings,
+    pub layout: ModelLayout,
+    pub params: Vec<f32>,
+    pub adam: Adam,
+    pub step: usize,
+    mask_slices: Vec<MaskLossSlice>,
+    workers: Vec<Worker>,
+}
+
+struct Worker {
+    ws: Workspace,
+    grad: Vec<f32>,
+}
+
+impl Trainer {
+    pub fn new(settings: TrainSettings) -> Result<Self, TrainError> {
+        settings.validate().map_err(TrainError::Settings)?;
+        let layout = ModelLayout::new(&settings.model);
+        let params = layout.init_params(settings.seed);
+        let adam = Adam::new(params.len());
+        Ok(Self::assemble(settings, layout, params, adam, 0))
+    }
+
+    /// Continues from a checkpoint (its model configuration wins over `settings.model`).
+    pub fn resume(mut settings: TrainSettings, ckpt: Checkpoint) -> Result<Self, TrainError> {
+        settings.model = ckpt.header.model.clone();
+        settings.validate().map_err(TrainError::Settings)?;
+        let layout = ModelLayout::new(&settings.model);
+        let n = ckpt.params.len();
+        let adam = ckpt.adam.unwrap_or_else(|| Adam::new(n));
+        Ok(Self::assemble(
+            settings,
+            layout,
+            ckpt.params,
+            adam,
+            ckpt.header.step as usize,
+        ))
+    }
+
+    fn assemble(
+        settings: TrainSettings,
+        layout: ModelLayout,
+        params: Vec<f32>,
+        adam: Adam,
+        step: usize,
+    ) -> Self {
+        let workers_n = rayon::current_num_threads().max(1);
+        let workers = (0..workers_n)
+            .map(|_| Worker {
+                ws: Workspace::default(),
+                grad: vec![0.0; params.len()],
+            })
+            .collect();
+        let mask_slices = layout
+            .params
+            .entries
+            .iter()
+            .filter(|e| e.name.ends_with(".mask"))
+            .map(|e| MaskLossSlice {
+                range: e.range(),
+                weight: settings.mask_loss_weight,
+            })
+            .collect();
+        Trainer {
+            settings,
+            layout,
+            params,
+            adam,
+            step,
+            mask_slices,
+            workers,
+        }
+    }
+
+    /// One optimisation step on the given rays; returns the summed chunk losses.
+    pub fn step_on(
+        &mut self,
+        rays: &[TimedRay],
+        targets: &[[f32; 3]],
+        backgrounds: Option<&[[f32; 3]]>,
+    ) -> ChunkLosses {
+        let s = &self.settings;
+        let f = (self.step as f32 / s.anneal_steps.max(1) as f32).min(1.0);
+        let step_settings = StepSettings {
+            anneal: 10.0 * f / (9.0 * f + 1.0),
+            interlevel_weight: s.interlevel_weight,
+            distortion_weight: s.distortion_weight,
+            loss_scale: 1.0 / rays.len().max(1) as f32,
+        };
+        let chunk = s.chunk_rays;
+        let n_chunks = rays.len().div_ceil(chunk);
+        let n_workers = self.workers.len();
+        let (cfg, layout, params, seed, step) = (
+            &s.model,
+            &self.layout,
+            &self.params,
+            s.seed,
+            self.step as u64,
+        );
+        let losses: Vec<ChunkLosses> = self
+            .workers
+            .par_iter_mut()
+            .enumerate()
+            .map(|(w, worker)| {
+                worker.grad.fill(0.0);
+                let mut acc = ChunkLosses::default();
+                let mut c = w;
+                while c < n_chunks {
+                    let r = c * chunk..((c + 1) * chunk).min(rays.len());
+                    let mut rng = Rng::stream(seed, (step << 20) | c as u64);
+                    acc += train_chunk(
+                        cfg,
+                        layout,
+                        params,
+                        &mut worker.grad,
+                        &rays[r.clone()],
+                        &targets[r.clone()],
+                        backgrounds.map(|b| &b[r]),
+                        &step_settings,
+                        &mut rng,
+                        &mut worker.ws,
+                    );
+                    c += n_workers;
+                }
+                acc
+            })
+            .collect();
+        let mut total = ChunkLosses::default();
+        for l in losses {
+            total += l;
+        }
+        // Sum worker gradients in a fixed order into the first buffer.
+        let (first, rest) = self.workers.split_at_mut(1);
+        let g0 = &mut first[0].grad;
+        for w in rest.iter() {
+            g0.par_chunks_mut(1 << 14)
+                .zip(w.grad.par_chunks(1 << 14))
+                .for_each(|(a, b)| a.iter_mut().zip(b).for_each(|(x, y)| *x += y));
+        }
+        let lr = self.settings.adam.lr_at(self.step, self.settings.iters);
+        self.adam.update(
+            &self.settings.adam,
+            lr,
+            &mut self.params,
+            g0,
+            &self.mask_slices,
+        );
+        self.step += 1;
+        total
+    }
+
+    pub fn checkpoint(&self, data: &Dataset, train_seconds: f64) -> Checkpoint {
+        Checkpoint {
+            header: CheckpointHeader {
+                model: self.settings.model.clone(),
+                train: serde_json::to_value(&self.settings).unwrap_or_default(),
+                step: self.step as u64,
+                dataset: data.name.clone(),
+                cameras: playback_cameras(data),
+                train_seconds,
+            },
+            params: self.params.clone(),
+            adam: Some(self.adam.clone()),
+        }
+    }
+}
+
+/// Distinct camera poses of a dataset, test cameras first.
+pub fn playback_cameras(data: &Dataset) -> Vec<Camera> {
+    let mut out: Vec<Camera> = Vec::new();
+    for v in data.test.iter().chain(&data.train) {
+        let dup = out.iter().any(|c| {
+            c.world_from_camera
+                .abs_diff_eq(v.camera.world_from_camera, 1e-5)
+                && c.width == v.camera.width
+        });
+        if !dup {
+            out.push(v.camera);
+        }
+        if out.len() >= 64 {
+            break;
+        }
+    }
+    out
+}
+
+/// Draws a batch of random (view, pixel) rays with their colours. With `backgrounds`, views that
+/// have alpha are composited on a random colour per ray (recorded in `backgrounds`; views
+/// without alpha record the dataset background).
+pub fn sample_batch(
+    data: &Dataset,
+    n: usize,
+    rng: &mut Rng,
+    rays: &mut Vec<TimedRay>,
+    targets: &mut Vec<[f32; 3]>,
+    mut backgrounds: Option<&mut Vec<[f32; 3]>>,
+) {
+    rays.clear();
+    targets.clear();
+    if let Some(b) = backgrounds.as_deref_mut() {
+        b.clear();
+    }
+    let views = &data.train;
+    for _ in 0..n {
+        let v = &views[rng.below(views.len() as u64) as usize];
+        let (w, h) = (v.image.width, v.image.height);
+        let px = rng.below(w as u64) as u32;
+        let py = rng.below(h as u64) as u32;
+        // jitter inside the pixel so that the field sees the whole footprint
+        let ray = v
+            .camera
+            .ray_at(px as f32 + rng.f32(), py as f32 + rng.f32());
+        rays.push(TimedRay {
+            origin: ray.origin,
+            dir: ray.dir,
+            time: v.time,
+        });
+        let mut target = v.image.get(px, py);
+        if let Some(b) = backgrounds.as_deref_mut() {
+            match &v.alpha {
+                Some(alpha) => {
+                    let bg = [rng.f32(), rng.f32(), rng.f32()];
+                    let a = alpha[(py * w + px) as usize] as f32 / 255.0;
+                    // the image is composited on white: c*a + (1 - a)
+                    for ch in 0..3 {
+                        target[ch] += (bg[ch] - 1.0) * (1.0 - a);
+                    }
+                    b.push(bg);
+                }
+                None => b.push(data.background),
+            }
+        }
+        targets.push(target);
+    }
+}
+
+/// Runs a whole training: `iters` steps (or until the time limit), checkpoints to
+/// `out_dir/model.ckpt`, reporting progress after every step.
+pub fn train(
+    data: &Dataset,
+    settings: TrainSettings,
+    out_dir: &Path,
+    resume: Option<Checkpoint>,
+    progress: &mut dyn FnMut(&Progress),
+) -> Result<(Trainer, TrainOutcome), TrainError> {
+    if data.train.is_empty() {
+        return Err(TrainError::NoData);
+    }
+    let prior_secs = resume
+        .as_ref()
+        .map(|c| c.header.train_seconds)
+        .unwrap_or(0.0);
+    let mut trainer = match resume {
+        Some(c) => Trainer::resume(settings, c)?,
+        None => Trainer::new(settings)?,
+    };
+    std::fs::create_dir_all(out_dir).map_err(|source| CheckpointError::Io {
+        path: out_dir.to_path_buf(),
+        source,
+    })?;
+    let ckpt_path = out_dir.join("model.ckpt");
+    let mut last_good = if ckpt_path.exists() {
+        ckpt_path.display().to_string()
+    } else {
+        "none (no checkpoint was written yet)".into()
+    };
+    let iters = trainer.settings.iters;
+    let batch = trainer.settings.batch_rays;
+    let time_limit = trainer.settings.time_limit_secs;
+    // Each step's batch depends only on the seed and the step, so a resumed run sees the same
+    // batches as an uninterrupted one.
+    let batch_seed = trainer.settings.seed ^ 0xBA7C_0000;
+    let mut rays = Vec::with_capacity(batch);
+    let mut targets = Vec::with_capacity(batch);
+    let use_bg = trainer.settings.random_background && data.train.iter().any(|v| v.alpha.is_some());
+    let mut backgrounds = Vec::with_capacity(if use_bg { batch } else { 0 });
+    let start = Instant::now();
+    let mut samples = 0usize;
+    let mut steps_run = 0usize;
+    let mut last_loss = f32::NAN;
+    while trainer.step < iters {
+        let mut step_rng = Rng::stream(batch_seed, trainer.step as u64);
+        sample_batch(
+            data,
+            batch,
+            &mut step_rng,
+            &mut rays,
+            &mut targets,
+            use_bg.then_some(&mut backgrounds),
+        );
+        let l = trainer.step_on(&rays, &targets, use_bg.then_some(&backgrounds[..]));
+        steps_run += 1;
+        samples += l.field_samples;
+        let mse = l.sq_err / l.rays.max(1) as f64;
+        let loss = (mse
+            + trainer.settings.interlevel_weight as f64 * l.interlevel / l.rays.max(1) as f64
+            + trainer.settings.distortion_weight as f64 * l.distortion / l.rays.max(1) as f64)
+            as f32;
+        if !loss.is_finite() {
+            return Err(TrainError::Diverged {
+                step: trainer.step,
+                what: format!("the loss ({loss})"),
+                last_good,
+            });
+        }
+        last_loss = loss;
+        let elapsed = start.elapsed().as_secs_f64();
+        progress(&Progress {
+            step: trainer.step,
+            iters,
+            loss,
+            psnr: (-10.0 * mse.max(1e-12).log10()) as f32,
+            elapsed_secs: elapsed,
+            field_samples_per_sec: samples as f64 / elapsed.max(1e-9),
+        });
+        let every = trainer.settings.checkpoint_every;
+        let out_of_time = time_limit > 0.0 && elapsed >= time_limit;
+        let at_end = trainer.step >= iters || out_of_time;
+        if at_end || (every > 0 && trainer.step % every == 0) {
+            if let Some(i) = trainer.params.iter().position(|v| !v.is_finite()) {
+                return Err(TrainError::Diverged {
+                    step: trainer.step,
+                    what: format!("parameter {i}"),
+                    last_good,
+                });
+            }
+            trainer
+                .checkpoint(data, prior_secs + elapsed)
+                .save(&ckpt_path)?;
+            last_good = ckpt_path.display().to_string();
+        }
+        if out_of_time {
+            break;
+        }
+    }
+    let secs = start.elapsed().as_secs_f64();
+    let outcome = TrainOutcome {
+        checkpoint: ckpt_path,
+        steps: steps_run,
+        train_seconds: prior_secs + secs,
+        field_samples_per_sec: samples as f64 / secs.max(1e-9),
+        rays_per_sec: (steps_run * batch) as f64 / secs.max(1e-9),
+        last_loss,
+    };
+    Ok((trainer, outcome))
+}
