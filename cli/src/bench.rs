@@ -1,7 +1,7 @@
-//! `msth bench step`: the cost of one full training step (proposal + field, forward + backward
-//! + Adam) at the demo (fast preset) and paper configurations, reported as field samples per
-//! second, with a same-run baseline: the same step on one worker thread, and the plain reference
-//! hash encoding against the batched one.
+//! `msth bench step`: the cost of one full training step (proposal and field, forward, backward
+//! and Adam) at the demo (fast preset) and paper configurations, reported as field samples per
+//! second, with two same-run baselines: the same step on one worker thread, and the plain
+//! reference hash encoding against the batched one.
 
 use std::time::Instant;
 
@@ -79,6 +79,7 @@ fn settings(preset: Preset, batch: Option<usize>) -> TrainSettings {
         eval_stride: 1,
         time_limit_secs: 0.0,
         random_background: true,
+        pixel_jitter: true,
         model,
     }
 }

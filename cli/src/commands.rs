@@ -75,7 +75,7 @@ fn read_config_file(path: &Path) -> Result<serde_json::Value> {
 }
 
 /// Shows training progress: a bar with ETA on a terminal, a log line every 5% otherwise.
-fn report(pb: &ProgressBar, p: &Progress) {
+fn report(pb: &ProgressBar, p: &Progress) -> bool {
     pb.set_position(p.step as u64);
     let msg = format!(
         "loss {:.5}  psnr {:.2} dB  {:.0}k samples/s",
@@ -85,15 +85,16 @@ fn report(pb: &ProgressBar, p: &Progress) {
     );
     if pb.is_hidden() {
         let every = (p.iters / 20).max(1);
-        if p.step % every == 0 || p.step == p.iters {
+        if p.step.is_multiple_of(every) || p.step == p.iters {
             eprintln!(
                 "step {}/{} [{:.1} s] {msg}",
                 p.step, p.iters, p.elapsed_secs
             );
         }
-    } else if p.step % 10 == 0 || p.step == p.iters {
+    } else if p.step.is_multiple_of(10) || p.step == p.iters {
         pb.set_message(msg);
     }
+    true
 }
 
 fn progress_bar(iters: usize) -> ProgressBar {
@@ -413,6 +414,9 @@ pub fn render(a: RenderArgs) -> Result<()> {
     Ok(())
 }
 
+/// Training-time budget of `msth demo` (the whole demo must end within 3 minutes).
+const DEMO_TRAIN_SECONDS: f64 = 162.0;
+
 pub fn demo(a: DemoArgs) -> Result<()> {
     let t0 = Instant::now();
     println!("msth demo: built-in scene -> train (fast preset) -> evaluate");
@@ -428,6 +432,8 @@ pub fn demo(a: DemoArgs) -> Result<()> {
     );
     let mut settings = TrainSettings::for_preset(Preset::Fast, &data);
     settings.seed = a.seed;
+    // The demo promises an answer within three minutes on a 2-core machine: cap training time.
+    settings.time_limit_secs = DEMO_TRAIN_SECONDS;
     if let Some(i) = a.iters {
         settings.iters = i;
         settings.anneal_steps = (i / 4).max(1);

@@ -258,7 +258,7 @@ impl ModelConfig {
         let finest_t = frames.max(2.0);
         let base_t = finest_t.min(15.0);
         let (levels, log2, finest, mask_res, np, nf, log2_prop, hidden_c) = match preset {
-            Preset::Fast => (12, 15, 512.0, 64, 64, 24, 14, 64),
+            Preset::Fast => (12, 15, 512.0, 64, 48, 24, 14, 64),
             Preset::Balanced => (16, 17, 1024.0, 96, 96, 32, 16, 64),
             Preset::Quality => (16, 19, 2048.0, 128, 128, 48, 18, 64),
             Preset::Paper => (16, 19, 2048.0, 128, 128, 48, 18, 64),
@@ -274,7 +274,7 @@ impl ModelConfig {
         ModelConfig {
             field: FieldConfig {
                 encoding: EncodingConfig {
-                    blend: BlendMode::Mst,
+                    blend: BlendMode::Mt,
                     grid3: grid(levels, log2, 16.0, finest),
                     grid4: grid4(levels, log2, 16.0, finest, base_t, finest_t),
                     mask_resolution: mask_res,
@@ -287,7 +287,7 @@ impl ModelConfig {
             },
             proposal: ProposalConfig {
                 encoding: EncodingConfig {
-                    blend: BlendMode::Mst,
+                    blend: BlendMode::Mt,
                     grid3: grid(5, log2_prop, 16.0, 128.0),
                     grid4: grid4(5, log2_prop, 16.0, 128.0, prop_base_t, prop_finest_t),
                     mask_resolution: 64,

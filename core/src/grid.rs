@@ -361,48 +361,51 @@ pub fn clamp_unit(x: f32) -> f32 {
     }
 }
 
-/// Corner rows and weights of one point on one level (fast path).
+/// Corner rows and weights of one point on one level (fast path). `DENSE` selects the indexing
+/// once per level instead of once per corner; weights are built by doubling, one axis at a time.
 #[inline(always)]
-fn corners<const D: usize>(
-    layout: &GridLayout,
+fn corners<const D: usize, const DENSE: bool>(
+    mask: u32,
     level: &LevelLayout,
     x: &[f32],
     rows: &mut [u32; 16],
     weights: &mut [f32; 16],
 ) {
-    let mut lo = [0u32; D];
-    let mut hi = [0u32; D];
-    let mut w1 = [0f32; D];
+    rows[0] = 0;
+    weights[0] = 1.0;
+    let mut n = 1usize;
     for a in 0..D {
         let p = clamp_unit(x[a]) * level.scale[a] + 0.5;
         let i = p as u32; // p >= 0.5, so truncation is floor
         let fr = p - i as f32;
-        w1[a] = fr;
-        if level.dense {
-            lo[a] = i * level.stride[a];
-            hi[a] = lo[a] + level.stride[a];
+        let (lo, hi) = if DENSE {
+            let lo = i * level.stride[a];
+            (lo, lo + level.stride[a])
         } else {
-            lo[a] = i.wrapping_mul(PRIMES[a]);
-            hi[a] = (i + 1).wrapping_mul(PRIMES[a]);
+            (i.wrapping_mul(PRIMES[a]), (i + 1).wrapping_mul(PRIMES[a]))
+        };
+        for c in 0..n {
+            let (r, w) = (rows[c], weights[c]);
+            if DENSE {
+                rows[c] = r + lo;
+                rows[c + n] = r + hi;
+            } else {
+                rows[c] = r ^ lo;
+                rows[c + n] = r ^ hi;
+            }
+            weights[c] = w * (1.0 - fr);
+            weights[c + n] = w * fr;
         }
+        n *= 2;
     }
-    let mask = (layout.table_size - 1) as u32;
-    for c in 0..(1usize << D) {
-        let mut idx = 0u32;
-        let mut w = 1f32;
-        for a in 0..D {
-            let bit = (c >> a) & 1 == 1;
-            let v = if bit { hi[a] } else { lo[a] };
-            idx = if level.dense { idx + v } else { idx ^ v };
-            w *= if bit { w1[a] } else { 1.0 - w1[a] };
+    if !DENSE {
+        for r in rows.iter_mut().take(n) {
+            *r &= mask;
         }
-        rows[c] = if level.dense { idx } else { idx & mask };
-        weights[c] = w;
     }
 }
 
 #[allow(clippy::too_many_arguments)]
-#[inline(never)]
 fn encode_level<const D: usize, const F: usize>(
     layout: &GridLayout,
     level: &LevelLayout,
@@ -413,18 +416,61 @@ fn encode_level<const D: usize, const F: usize>(
     out_stride: usize,
     out_offset: usize,
 ) {
+    if level.dense {
+        encode_level_impl::<D, F, true>(
+            layout,
+            level,
+            table,
+            points,
+            point_stride,
+            out,
+            out_stride,
+            out_offset,
+        )
+    } else {
+        encode_level_impl::<D, F, false>(
+            layout,
+            level,
+            table,
+            points,
+            point_stride,
+            out,
+            out_stride,
+            out_offset,
+        )
+    }
+}
+
+#[allow(clippy::too_many_arguments)]
+#[inline(never)]
+fn encode_level_impl<const D: usize, const F: usize, const DENSE: bool>(
+    layout: &GridLayout,
+    level: &LevelLayout,
+    table: &[f32],
+    points: &[f32],
+    point_stride: usize,
+    out: &mut [f32],
+    out_stride: usize,
+    out_offset: usize,
+) {
     let n = points.len() / point_stride;
+    let mask = (layout.table_size - 1) as u32;
     let mut rows = [0u32; 16];
     let mut weights = [0f32; 16];
+    let rows_in_table = table.len() / F;
     for i in 0..n {
         let x = &points[i * point_stride..i * point_stride + D];
-        corners::<D>(layout, level, x, &mut rows, &mut weights);
+        corners::<D, DENSE>(mask, level, x, &mut rows, &mut weights);
         let mut acc = [0f32; F];
         for c in 0..(1usize << D) {
-            let r = rows[c] as usize * F;
-            let feat = &table[r..r + F];
-            for f in 0..F {
-                acc[f] += weights[c] * feat[f];
+            let r = rows[c] as usize;
+            // Rows are in range by construction (dense: corners <= res; hashed: masked); the
+            // check keeps the access safe and lets the compiler drop per-feature checks.
+            if r < rows_in_table {
+                let feat = &table[r * F..r * F + F];
+                for f in 0..F {
+                    acc[f] += weights[c] * feat[f];
+                }
             }
         }
         out[i * out_stride + out_offset..i * out_stride + out_offset + F].copy_from_slice(&acc);
@@ -432,7 +478,6 @@ fn encode_level<const D: usize, const F: usize>(
 }
 
 #[allow(clippy::too_many_arguments)]
-#[inline(never)]
 fn backward_level<const D: usize, const F: usize>(
     layout: &GridLayout,
     level: &LevelLayout,
@@ -443,9 +488,48 @@ fn backward_level<const D: usize, const F: usize>(
     d_stride: usize,
     d_offset: usize,
 ) {
+    if level.dense {
+        backward_level_impl::<D, F, true>(
+            layout,
+            level,
+            grad,
+            points,
+            point_stride,
+            d_out,
+            d_stride,
+            d_offset,
+        )
+    } else {
+        backward_level_impl::<D, F, false>(
+            layout,
+            level,
+            grad,
+            points,
+            point_stride,
+            d_out,
+            d_stride,
+            d_offset,
+        )
+    }
+}
+
+#[allow(clippy::too_many_arguments)]
+#[inline(never)]
+fn backward_level_impl<const D: usize, const F: usize, const DENSE: bool>(
+    layout: &GridLayout,
+    level: &LevelLayout,
+    grad: &mut [f32],
+    points: &[f32],
+    point_stride: usize,
+    d_out: &[f32],
+    d_stride: usize,
+    d_offset: usize,
+) {
     let n = points.len() / point_stride;
+    let mask = (layout.table_size - 1) as u32;
     let mut rows = [0u32; 16];
     let mut weights = [0f32; 16];
+    let rows_in_table = grad.len() / F;
     for i in 0..n {
         let g = &d_out[i * d_stride + d_offset..i * d_stride + d_offset + F];
         if g.iter().all(|&v| v == 0.0) {
@@ -454,12 +538,14 @@ fn backward_level<const D: usize, const F: usize>(
         let mut gv = [0f32; F];
         gv.copy_from_slice(g);
         let x = &points[i * point_stride..i * point_stride + D];
-        corners::<D>(layout, level, x, &mut rows, &mut weights);
+        corners::<D, DENSE>(mask, level, x, &mut rows, &mut weights);
         for c in 0..(1usize << D) {
-            let r = rows[c] as usize * F;
-            let dst = &mut grad[r..r + F];
-            for f in 0..F {
-                dst[f] += weights[c] * gv[f];
+            let r = rows[c] as usize;
+            if r < rows_in_table {
+                let dst = &mut grad[r * F..r * F + F];
+                for f in 0..F {
+                    dst[f] += weights[c] * gv[f];
+                }
             }
         }
     }

@@ -96,10 +96,7 @@ pub fn sample_pdf(
         return;
     }
     let inv = 1.0 / total;
-    let jitter = match rng {
-        Some(r) => Some(r.f32()),
-        None => None,
-    };
+    let jitter = rng.map(|r| r.f32());
     // u_k in [0, 1], sorted: stratified with one jitter offset per ray, or uniform.
     let mut bin = 0usize;
     let mut cdf_lo = 0f32;

@@ -48,7 +48,7 @@ impl SceneBounds {
                 }
             }
             SceneBounds::Contracted { center, radius } => {
-                if !center.is_finite() || !(radius.is_finite() && radius > 0.0) {
+                if !(center.is_finite() && radius.is_finite() && radius > 0.0) {
                     return Err(format!(
                         "contraction needs a finite centre and a positive radius (got {center}, {radius})"
                     ));

@@ -38,6 +38,11 @@ impl AdamConfig {
         } else {
             1.0
         };
+        self.lr_at_fraction(f)
+    }
+
+    /// Learning rate at a fraction `f` of the run (0 at the start, 1 at the end).
+    pub fn lr_at_fraction(&self, f: f32) -> f32 {
         self.lr * (self.lr_final / self.lr).powf(f.clamp(0.0, 1.0))
     }
 }

@@ -3,7 +3,7 @@
 //! for any camera and time ([`render_gt`]).
 //!
 //! World frame +Z up; everything lies inside [`SCENE_MIN`]..[`SCENE_MAX`]. Contents:
-//! - room: a floor (soft checker of 0.25 units modulated by value noise), a brick back wall, a
+//! - room: a floor (soft checker of 0.35 units modulated by value noise), a brick back wall, a
 //!   left wall of smooth coloured noise and a right wall of soft horizontal stripes (walls are
 //!   one-sided, seen from inside; the open front faces the cameras);
 //! - static props: a lat-long checkered sphere, a 3D-checker crate, a ringed cylinder;
@@ -73,8 +73,8 @@ impl Default for SynthConfig {
         SynthConfig {
             width: 96,
             height: 72,
-            num_frames: 24,
-            num_train_cams: 8,
+            num_frames: 20,
+            num_train_cams: 12,
             supersample: 3,
             motion: true,
             seed: 0,
@@ -429,13 +429,13 @@ impl Scene {
         let s = &self.state;
         match hit.surface {
             Surface::Floor => {
-                let c = soft_checker(p.x, p.y, 0.25, 0.03);
+                let c = soft_checker(p.x, p.y, 0.35, 0.06);
                 let n = fbm(seed ^ 1, p.x, p.y, 0.4);
                 let base = mix(Vec3::new(0.36, 0.25, 0.16), Vec3::new(0.86, 0.78, 0.62), c);
                 base * (0.7 + 0.6 * n)
             }
             Surface::BackWall => {
-                let (bw, bh, mortar) = (0.5, 0.25, 0.05);
+                let (bw, bh, mortar) = (0.5, 0.25, 0.07);
                 let row = (p.z / bh).floor();
                 let shift = if (row as i64).rem_euclid(2) == 0 {
                     0.0
@@ -446,7 +446,7 @@ impl Scene {
                 let fx = (p.x + shift) - col * bw;
                 let fz = p.z - row * bh;
                 let d = fx.min(bw - fx).min(fz.min(bh - fz));
-                let m = smoothstep(0.5 * mortar - 0.012, 0.5 * mortar + 0.012, d);
+                let m = smoothstep(0.5 * mortar - 0.03, 0.5 * mortar + 0.03, d);
                 let v = hash01(seed ^ 2, col as i64, row as i64, 0);
                 let brick = mix(Vec3::new(0.55, 0.2, 0.12), Vec3::new(0.78, 0.42, 0.25), v)
                     * (0.85 + 0.3 * fbm(seed ^ 3, p.x, p.z, 0.3));
@@ -478,14 +478,16 @@ impl Scene {
             }
             Surface::PropCrate => {
                 let q = p - CRATE_CENTER;
-                let cell = 0.15;
-                let par =
-                    ((q.x / cell).floor() + (q.y / cell).floor() + (q.z / cell).floor()) as i64;
-                let v = if par.rem_euclid(2) == 0 { 1.0 } else { 0.0 };
+                let cell = 0.3;
+                // A 3D checker with soft edges (a product of sines through a smoothstep).
+                let pi = std::f32::consts::PI;
+                let wave =
+                    (pi * q.x / cell).sin() * (pi * q.y / cell).sin() * (pi * q.z / cell).sin();
+                let v = smoothstep(-0.25, 0.25, wave);
                 mix(Vec3::new(0.5, 0.3, 0.1), Vec3::new(0.85, 0.65, 0.35), v)
             }
             Surface::PropCylinder => {
-                let rings = 0.5 + 0.5 * (std::f32::consts::TAU * p.z / 0.2).sin();
+                let rings = 0.5 + 0.5 * (std::f32::consts::TAU * p.z / 0.3).sin();
                 let ang = (p.y - CYL_CENTER.1).atan2(p.x - CYL_CENTER.0);
                 let stripes = smoothstep(-0.3, 0.3, (ang * 4.0).sin());
                 if hit.surface == Surface::PropCylinder && hit.normal.z > 0.5 {
@@ -518,10 +520,10 @@ impl Scene {
                 let q = s.slab_local(p - SLAB_CENTER);
                 let n = s.slab_local(hit.normal);
                 if n.y < -0.5 {
-                    let c = soft_checker(q.x, q.z, 0.12, 0.015);
+                    let c = soft_checker(q.x, q.z, 0.2, 0.025);
                     mix(Vec3::new(0.95, 0.45, 0.05), Vec3::new(0.98, 0.93, 0.8), c)
                 } else if n.y > 0.5 {
-                    let st = smoothstep(0.35, 0.65, 0.5 + 0.5 * (q.x * 40.0).sin());
+                    let st = smoothstep(0.35, 0.65, 0.5 + 0.5 * (q.x * 20.0).sin());
                     mix(Vec3::new(0.05, 0.2, 0.7), Vec3::new(0.85, 0.9, 0.98), st)
                 } else {
                     Vec3::splat(0.3)
@@ -707,6 +709,7 @@ mod tests {
             width: 48,
             height: 36,
             num_frames: 6,
+            num_train_cams: 8,
             supersample: 2,
             ..Default::default()
         }

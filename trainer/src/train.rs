@@ -42,11 +42,15 @@ pub struct TrainSettings {
     pub checkpoint_every: usize,
     /// Evaluate every `eval_stride`-th test view.
     pub eval_stride: usize,
-    /// Stop early after this many seconds of training (0: no limit).
+    /// Stop early after this many seconds of training (0: no limit). The learning rate then
+    /// decays with time as well as steps; such runs depend on the machine's speed and are not
+    /// bit-for-bit repeatable.
     pub time_limit_secs: f64,
     /// For images with transparency: composite each training ray on a random background colour
     /// (so empty space must be transparent rather than white).
     pub random_background: bool,
+    /// Jitter training rays inside their pixel (else through the pixel centre).
+    pub pixel_jitter: bool,
     pub model: ModelConfig,
 }
 
@@ -57,7 +61,7 @@ impl TrainSettings {
         };
         let model = ModelConfig::preset(preset, data.bounds, background, data.num_frames);
         let (iters, batch) = match preset {
-            Preset::Fast => (1200, 2048),
+            Preset::Fast => (1400, 2048),
             Preset::Balanced => (4000, 4096),
             Preset::Quality => (10_000, 8192),
             Preset::Paper => (20_000, 16_384),
@@ -77,6 +81,7 @@ impl TrainSettings {
             eval_stride: 1,
             time_limit_secs: 0.0,
             random_background: true,
+            pixel_jitter: false,
             model,
         }
     }
@@ -216,6 +221,9 @@ pub struct Trainer {
     pub step: usize,
     mask_slices: Vec<MaskLossSlice>,
     workers: Vec<Worker>,
+    /// Fraction of the time budget used (0 without a time limit); the learning rate follows
+    /// whichever of steps and time is further along, so a time-limited run still decays fully.
+    pub time_fraction: f32,
 }
 
 struct Worker {
@@ -280,6 +288,7 @@ impl Trainer {
             step,
             mask_slices,
             workers,
+            time_fraction: 0.0,
         }
     }
 
@@ -348,7 +357,11 @@ impl Trainer {
                 .zip(w.grad.par_chunks(1 << 14))
                 .for_each(|(a, b)| a.iter_mut().zip(b).for_each(|(x, y)| *x += y));
         }
-        let lr = self.settings.adam.lr_at(self.step, self.settings.iters);
+        let by_steps = self.step as f32 / (self.settings.iters.max(2) - 1) as f32;
+        let lr = self
+            .settings
+            .adam
+            .lr_at_fraction(by_steps.max(self.time_fraction));
         self.adam.update(
             &self.settings.adam,
             lr,
@@ -405,6 +418,7 @@ pub fn sample_batch(
     rays: &mut Vec<TimedRay>,
     targets: &mut Vec<[f32; 3]>,
     mut backgrounds: Option<&mut Vec<[f32; 3]>>,
+    jitter: bool,
 ) {
     rays.clear();
     targets.clear();
@@ -418,9 +432,12 @@ pub fn sample_batch(
         let px = rng.below(w as u64) as u32;
         let py = rng.below(h as u64) as u32;
         // jitter inside the pixel so that the field sees the whole footprint
-        let ray = v
-            .camera
-            .ray_at(px as f32 + rng.f32(), py as f32 + rng.f32());
+        let (ju, jv) = if jitter {
+            (rng.f32(), rng.f32())
+        } else {
+            (0.5, 0.5)
+        };
+        let ray = v.camera.ray_at(px as f32 + ju, py as f32 + jv);
         rays.push(TimedRay {
             origin: ray.origin,
             dir: ray.dir,
@@ -446,13 +463,14 @@ pub fn sample_batch(
 }
 
 /// Runs a whole training: `iters` steps (or until the time limit), checkpoints to
-/// `out_dir/model.ckpt`, reporting progress after every step.
+/// `out_dir/model.ckpt`, reporting progress after every step. `progress` returns `false` to stop
+/// early (the run is checkpointed and can be resumed exactly).
 pub fn train(
     data: &Dataset,
     settings: TrainSettings,
     out_dir: &Path,
     resume: Option<Checkpoint>,
-    progress: &mut dyn FnMut(&Progress),
+    progress: &mut dyn FnMut(&Progress) -> bool,
 ) -> Result<(Trainer, TrainOutcome), TrainError> {
     if data.train.is_empty() {
         return Err(TrainError::NoData);
@@ -498,7 +516,11 @@ pub fn train(
             &mut rays,
             &mut targets,
             use_bg.then_some(&mut backgrounds),
+            trainer.settings.pixel_jitter,
         );
+        if time_limit > 0.0 {
+            trainer.time_fraction = (start.elapsed().as_secs_f64() / time_limit) as f32;
+        }
         let l = trainer.step_on(&rays, &targets, use_bg.then_some(&backgrounds[..]));
         steps_run += 1;
         samples += l.field_samples;
@@ -516,7 +538,7 @@ pub fn train(
         }
         last_loss = loss;
         let elapsed = start.elapsed().as_secs_f64();
-        progress(&Progress {
+        let keep_going = progress(&Progress {
             step: trainer.step,
             iters,
             loss,
@@ -524,8 +546,9 @@ pub fn train(
             elapsed_secs: elapsed,
             field_samples_per_sec: samples as f64 / elapsed.max(1e-9),
         });
+
         let every = trainer.settings.checkpoint_every;
-        let out_of_time = time_limit > 0.0 && elapsed >= time_limit;
+        let out_of_time = (time_limit > 0.0 && elapsed >= time_limit) || !keep_going;
         let at_end = trainer.step >= iters || out_of_time;
         if at_end || (every > 0 && trainer.step % every == 0) {
             if let Some(i) = trainer.params.iter().position(|v| !v.is_finite()) {

@@ -1,0 +1,179 @@
+//! The `msth` command as a library: argument parsing and the subcommands, each a thin layer over
+//! the library crates. `main.rs` calls [`run`]; the end-to-end tests in `tests/` call it too.
+
+mod bench;
+mod commands;
+mod data;
+
+use std::ffi::OsString;
+use std::path::PathBuf;
+
+use clap::{Args, Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(
+    name = "msth",
+    version,
+    about = "Masked Space-Time Hash encoding: reconstruct, compress and play dynamic 3D scenes"
+)]
+struct Cli {
+    /// Worker threads (default: all cores).
+    #[arg(long, global = true)]
+    threads: Option<usize>,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Built-in scene -> train (fast preset) -> evaluate, in one go.
+    Demo(DemoArgs),
+    /// Write the built-in procedural scene as a D-NeRF-format dataset.
+    Synth(SynthArgs),
+    /// Train a model on a dataset (a folder, or `builtin`).
+    Train(TrainArgs),
+    /// Evaluate a checkpoint on a dataset's held-out views.
+    Eval(EvalArgs),
+    /// Render one image from a checkpoint for any camera and time.
+    Render(RenderArgs),
+    /// Benchmarks (`msth bench step`).
+    Bench(bench::BenchArgs),
+}
+
+#[derive(Args)]
+pub struct DemoArgs {
+    /// Output folder.
+    #[arg(long, default_value = "out/demo")]
+    pub out: PathBuf,
+    /// Override the number of iterations of the fast preset.
+    #[arg(long)]
+    pub iters: Option<usize>,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+}
+
+#[derive(Args)]
+pub struct SynthArgs {
+    #[arg(long)]
+    pub out: PathBuf,
+    #[arg(long)]
+    pub width: Option<u32>,
+    #[arg(long)]
+    pub height: Option<u32>,
+    #[arg(long)]
+    pub frames: Option<usize>,
+    #[arg(long)]
+    pub cameras: Option<usize>,
+    /// Freeze every moving object (a static video).
+    #[arg(long = "static")]
+    pub static_scene: bool,
+}
+
+#[derive(Args)]
+pub struct TrainArgs {
+    /// Dataset folder (D-NeRF / Blender JSON layout), or `builtin`.
+    pub data: String,
+    #[arg(long)]
+    pub out: PathBuf,
+    /// fast | balanced | quality | paper
+    #[arg(long, default_value = "balanced")]
+    pub preset: String,
+    #[arg(long)]
+    pub iters: Option<usize>,
+    #[arg(long)]
+    pub batch_rays: Option<usize>,
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Stop after this many seconds of training.
+    #[arg(long)]
+    pub time_limit: Option<f64>,
+    /// A TOML or JSON file of settings (any field of the settings, nested).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Override one setting by its dotted path, e.g. `--set model.sampler.num_samples=32`.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub sets: Vec<String>,
+    /// Continue from OUT/model.ckpt.
+    #[arg(long)]
+    pub resume: bool,
+    /// Downscale images by an integer factor on load.
+    #[arg(long, default_value_t = 1)]
+    pub downscale: u32,
+    /// Skip the evaluation at the end.
+    #[arg(long)]
+    pub no_eval: bool,
+    /// Print the resolved settings as JSON and exit.
+    #[arg(long)]
+    pub print_settings: bool,
+}
+
+#[derive(Args)]
+pub struct EvalArgs {
+    pub checkpoint: PathBuf,
+    /// Dataset folder, or `builtin`.
+    #[arg(long)]
+    pub data: String,
+    /// Output folder for metrics.json and pictures (default: the checkpoint's folder).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Evaluate every N-th test view.
+    #[arg(long, default_value_t = 1)]
+    pub stride: usize,
+    #[arg(long, default_value_t = 1)]
+    pub downscale: u32,
+}
+
+#[derive(Args)]
+pub struct RenderArgs {
+    pub checkpoint: PathBuf,
+    /// A camera index into the checkpoint's cameras (`msth render CKPT --list-cameras`), a JSON
+    /// file with `transform_matrix` and `camera_angle_x` or `fl_x`, or `orbit:AZ,EL,DIST` in
+    /// degrees and scene units around the scene centre (+Z up).
+    #[arg(long, default_value = "0")]
+    pub camera: String,
+    /// Normalised time in [0, 1].
+    #[arg(long, default_value_t = 0.0)]
+    pub time: f32,
+    #[arg(short = 'o', long, default_value = "render.png")]
+    pub output: PathBuf,
+    #[arg(long)]
+    pub width: Option<u32>,
+    #[arg(long)]
+    pub height: Option<u32>,
+    /// Also write the depth and the mask (1 = static) as pictures next to the output.
+    #[arg(long)]
+    pub extras: bool,
+    #[arg(long)]
+    pub list_cameras: bool,
+}
+
+/// Parses `args` (including the program name) and runs the subcommand.
+pub fn run<I, T>(args: I) -> anyhow::Result<()>
+where
+    I: IntoIterator<Item = T>,
+    T: Into<OsString> + Clone,
+{
+    let cli = match Cli::try_parse_from(args) {
+        Ok(c) => c,
+        Err(e) if !e.use_stderr() => {
+            // --help and --version
+            print!("{e}");
+            return Ok(());
+        }
+        Err(e) => return Err(anyhow::anyhow!("{e}")),
+    };
+    if let Some(t) = cli.threads {
+        // The global pool can be set once per process; a second request keeps the first.
+        let _ = rayon::ThreadPoolBuilder::new()
+            .num_threads(t.max(1))
+            .build_global();
+    }
+    match cli.command {
+        Command::Demo(a) => commands::demo(a),
+        Command::Synth(a) => commands::synth(a),
+        Command::Train(a) => commands::train(a).map(|_| ()),
+        Command::Eval(a) => commands::eval(a),
+        Command::Render(a) => commands::render(a),
+        Command::Bench(a) => bench::run(a),
+    }
+}

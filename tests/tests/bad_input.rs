@@ -1,0 +1,183 @@
+//! Bad datasets end with one clear error naming the file and the field, and leave nothing behind.
+
+use std::path::Path;
+
+use msth_tests::msth;
+
+/// Writes a tiny valid dataset and returns its folder.
+fn valid_dataset(root: &Path) -> std::path::PathBuf {
+    let d = root.join("data");
+    msth(&[
+        "synth",
+        "--out",
+        d.to_str().unwrap(),
+        "--width",
+        "16",
+        "--height",
+        "12",
+        "--frames",
+        "3",
+        "--cameras",
+        "2",
+    ])
+    .unwrap();
+    d
+}
+
+fn edit_json(path: &Path, f: impl FnOnce(&mut serde_json::Value)) {
+    let mut v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
+    f(&mut v);
+    std::fs::write(path, serde_json::to_string(&v).unwrap()).unwrap();
+}
+
+/// Trains on the broken dataset and checks the error and that no output was written.
+fn expect_failure(root: &Path, data: &Path, needles: &[&str]) {
+    let out = root.join("run");
+    let err = msth(&[
+        "train",
+        data.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--preset",
+        "fast",
+        "--iters",
+        "1",
+    ])
+    .expect_err("training on a broken dataset must fail");
+    for n in needles {
+        assert!(err.contains(n), "error should mention `{n}`: {err}");
+    }
+    assert!(
+        !out.join("model.ckpt").exists(),
+        "no checkpoint may be left behind"
+    );
+    assert!(!out.join("metrics.json").exists());
+}
+
+#[test]
+fn missing_transforms_file() {
+    let t = tempfile::tempdir().unwrap();
+    let d = valid_dataset(t.path());
+    std::fs::remove_file(d.join("transforms_train.json")).unwrap();
+    expect_failure(t.path(), &d, &["transforms_train.json"]);
+}
+
+#[test]
+fn malformed_transforms_file() {
+    let t = tempfile::tempdir().unwrap();
+    let d = valid_dataset(t.path());
+    std::fs::write(
+        d.join("transforms_train.json"),
+        "{\"frames\": [ {\"time\": 0.1,",
+    )
+    .unwrap();
+    expect_failure(t.path(), &d, &["transforms_train.json", "JSON"]);
+}
+
+#[test]
+fn missing_image() {
+    let t = tempfile::tempdir().unwrap();
+    let d = valid_dataset(t.path());
+    let json = d.join("transforms_train.json");
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let first = v["frames"][0]["file_path"].as_str().unwrap().to_string();
+    let mut img = d.join(first.trim_start_matches("./"));
+    if img.extension().is_none() {
+        img.set_extension("png");
+    }
+    std::fs::remove_file(&img).unwrap();
+    expect_failure(t.path(), &d, &[img.file_name().unwrap().to_str().unwrap()]);
+}
+
+#[test]
+fn images_of_mixed_sizes() {
+    let t = tempfile::tempdir().unwrap();
+    let d = valid_dataset(t.path());
+    let json = d.join("transforms_train.json");
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let second = v["frames"][1]["file_path"].as_str().unwrap().to_string();
+    let mut img = d.join(second.trim_start_matches("./"));
+    if img.extension().is_none() {
+        img.set_extension("png");
+    }
+    // A valid PNG of another size.
+    let small = msth_trainer::dataset::Image8::new(8, 8);
+    msth_trainer::imageio::save_png_atomic(&img, &small).unwrap();
+    // Without explicit w/h in the JSON the size mismatch is caught between images.
+    edit_json(&json, |v| {
+        for k in ["w", "h"] {
+            v.as_object_mut().unwrap().remove(k);
+        }
+        for f in v["frames"].as_array_mut().unwrap() {
+            for k in ["w", "h"] {
+                f.as_object_mut().unwrap().remove(k);
+            }
+        }
+    });
+    expect_failure(
+        t.path(),
+        &d,
+        &[img.file_name().unwrap().to_str().unwrap(), "8x8"],
+    );
+}
+
+#[test]
+fn non_finite_pose() {
+    let t = tempfile::tempdir().unwrap();
+    let d = valid_dataset(t.path());
+    let json = d.join("transforms_train.json");
+    // JSON has no NaN; 1e39 overflows f32 to infinity.
+    edit_json(&json, |v| {
+        v["frames"][0]["transform_matrix"][0][3] = serde_json::json!(1e39)
+    });
+    expect_failure(t.path(), &d, &["transforms_train.json", "transform_matrix"]);
+}
+
+#[test]
+fn non_invertible_pose() {
+    let t = tempfile::tempdir().unwrap();
+    let d = valid_dataset(t.path());
+    let json = d.join("transforms_train.json");
+    edit_json(&json, |v| {
+        v["frames"][0]["transform_matrix"] =
+            serde_json::json!([[0, 0, 0, 1], [0, 0, 0, 2], [0, 0, 0, 3], [0, 0, 0, 1]]);
+    });
+    expect_failure(t.path(), &d, &["transforms_train.json", "transform_matrix"]);
+}
+
+#[test]
+fn time_outside_unit_interval() {
+    let t = tempfile::tempdir().unwrap();
+    let d = valid_dataset(t.path());
+    let json = d.join("transforms_train.json");
+    edit_json(&json, |v| v["frames"][1]["time"] = serde_json::json!(1.5));
+    expect_failure(t.path(), &d, &["transforms_train.json", "time"]);
+}
+
+#[test]
+fn bad_settings_are_rejected_before_training() {
+    let t = tempfile::tempdir().unwrap();
+    let d = valid_dataset(t.path());
+    let out = t.path().join("run");
+    let run = |set: &str| {
+        msth(&[
+            "train",
+            d.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--iters",
+            "1",
+            "--set",
+            set,
+        ])
+        .unwrap_err()
+    };
+    assert!(run("model.sampler.num_samples=0").contains("num_samples"));
+    assert!(run("model.field.encoding.grid3.log2_table_size=40").contains("log2_table_size"));
+    assert!(run("no_such_knob=1").contains("no_such_knob"));
+    assert!(run("adam.lr=-1").contains("adam.lr"));
+    assert!(!out.join("model.ckpt").exists());
+}
