@@ -14,7 +14,6 @@ use msth_core::field::ModelLayout;
 use msth_core::pipeline::TimedRay;
 use msth_core::rng::Rng;
 use msth_core::SceneBounds;
-use msth_trainer::adam::AdamConfig;
 use msth_trainer::train::{TrainSettings, Trainer};
 
 #[derive(Args)]
@@ -60,28 +59,12 @@ fn settings(preset: Preset, batch: Option<usize>) -> TrainSettings {
         Background::Color { rgb: [1.0; 3] },
         24,
     );
-    let (iters, b) = match preset {
-        Preset::Fast => (1200, 2048),
-        _ => (20_000, 16_384),
-    };
-    TrainSettings {
-        preset,
-        iters,
-        batch_rays: batch.unwrap_or(b),
-        chunk_rays: 128,
-        seed: 0,
-        adam: AdamConfig::default(),
-        interlevel_weight: 1.0,
-        distortion_weight: 2e-3,
-        mask_loss_weight: 1e-2,
-        anneal_steps: 300,
-        checkpoint_every: 0,
-        eval_stride: 1,
-        time_limit_secs: 0.0,
-        random_background: true,
-        pixel_jitter: true,
-        model,
+    let mut s = TrainSettings::for_model(preset, model);
+    if let Some(b) = batch {
+        s.batch_rays = b;
     }
+    s.checkpoint_every = 0;
+    s
 }
 
 /// Rays from a ring of cameras through the D-NeRF box, at random times.

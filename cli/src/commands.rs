@@ -15,7 +15,7 @@ use msth_trainer::dataset::{dnerf, Dataset, Image8};
 use msth_trainer::eval::{evaluate, render_image, Metrics};
 use msth_trainer::imageio::{colormap, save_png_atomic};
 use msth_trainer::synth::{generate, SynthConfig};
-use msth_trainer::train::{train as run_training, Progress, TrainOutcome, TrainSettings};
+use msth_trainer::train::{train as run_training, Progress, TrainOutcome, TrainSettings, Trainer};
 
 use crate::{data, DemoArgs, EvalArgs, RenderArgs, SynthArgs, TrainArgs};
 
@@ -169,15 +169,7 @@ pub fn train(a: TrainArgs) -> Result<Option<Metrics>> {
     if a.no_eval {
         return Ok(None);
     }
-    let m = eval_and_save(
-        &data,
-        &trainer.settings.model,
-        &trainer.layout,
-        &trainer.params,
-        stride,
-        &a.out,
-        &outcome,
-    )?;
+    let m = eval_trained(&data, &trainer, stride, &a.out, &outcome)?;
     Ok(Some(m))
 }
 
@@ -190,6 +182,25 @@ fn print_outcome(o: &TrainOutcome) {
         o.rays_per_sec,
         o.checkpoint.display()
     );
+}
+
+fn eval_trained(
+    data: &Dataset,
+    trainer: &Trainer,
+    stride: usize,
+    out: &Path,
+    outcome: &TrainOutcome,
+) -> Result<Metrics> {
+    let s = &trainer.settings;
+    eval_and_save(
+        data,
+        &s.model,
+        &trainer.layout,
+        &trainer.params,
+        stride,
+        out,
+        outcome,
+    )
 }
 
 fn eval_and_save(
@@ -444,15 +455,7 @@ pub fn demo(a: DemoArgs) -> Result<()> {
     let (trainer, outcome) = run_training(&data, settings, &a.out, None, &mut |p| report(&pb, p))?;
     pb.finish();
     print_outcome(&outcome);
-    let m = eval_and_save(
-        &data,
-        &trainer.settings.model,
-        &trainer.layout,
-        &trainer.params,
-        stride,
-        &a.out,
-        &outcome,
-    )?;
+    let m = eval_trained(&data, &trainer, stride, &a.out, &outcome)?;
     println!(
         "demo done in {:.1} s: held-out PSNR {:.2} dB. Model: {}, metrics: {}",
         t0.elapsed().as_secs_f64(),

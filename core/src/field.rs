@@ -245,6 +245,8 @@ pub struct FieldScratch {
     pub density_acts: MlpActivations,
     pub color_acts: MlpActivations,
     pub color_in: Vec<f32>,
+    /// Points that got a colour in the last forward pass.
+    pub active: Vec<u32>,
     pub sigma: Vec<f32>,
     pub rgb: Vec<f32>,
     d_density_out: Vec<f32>,
@@ -317,8 +319,8 @@ impl FieldLayout {
         }
     }
 
-    /// Forward over `n` points; `sh_per_point(i)` gives the direction encoding of point `i`.
-    /// Fills `s.sigma` (`[n]`) and `s.rgb` (`[n, 3]`).
+    /// Forward over `n` points; `sh_index(i)` gives the row of `sh` (direction encodings) for
+    /// point `i`. Fills `s.sigma` (`[n]`) and `s.rgb` (`[n, 3]`).
     pub fn forward(
         &self,
         params: &[f32],
@@ -329,29 +331,55 @@ impl FieldLayout {
         s: &mut FieldScratch,
     ) {
         self.forward_density(params, points, n, s);
+        self.forward_color(params, sh, sh_index, None, n, s);
+    }
+
+    /// The colour half of [`FieldLayout::forward`], after [`FieldLayout::forward_density`].
+    /// With `active`, only those points get a colour (the others get 0 and no gradient): the
+    /// pipeline skips samples hidden behind opaque matter, whose colour cannot matter.
+    pub fn forward_color(
+        &self,
+        params: &[f32],
+        sh: &[f32],
+        sh_index: &dyn Fn(usize) -> usize,
+        active: Option<&[u32]>,
+        n: usize,
+        s: &mut FieldScratch,
+    ) {
+        s.active.clear();
+        match active {
+            Some(a) => s.active.extend_from_slice(a),
+            None => s.active.extend(0..n as u32),
+        }
+        let m = s.active.len();
         let (dm, _) = &self.density;
         let w = dm.output_dim();
         let g = self.geo_features;
         let cw = SH_COEFFS + g;
-        s.color_in.resize(n * cw, 0.0);
+        s.color_in.resize(m * cw, 0.0);
         let out = dm.output(&s.density_acts);
-        for i in 0..n {
+        for (k, &i) in s.active.iter().enumerate() {
+            let i = i as usize;
             let j = sh_index(i);
-            s.color_in[i * cw..i * cw + SH_COEFFS]
+            s.color_in[k * cw..k * cw + SH_COEFFS]
                 .copy_from_slice(&sh[j * SH_COEFFS..(j + 1) * SH_COEFFS]);
-            s.color_in[i * cw + SH_COEFFS..(i + 1) * cw]
+            s.color_in[k * cw + SH_COEFFS..(k + 1) * cw]
                 .copy_from_slice(&out[i * w + 1..i * w + 1 + g]);
         }
         let (cm, cr) = &self.color;
-        cm.forward(&params[cr.clone()], &s.color_in, n, &mut s.color_acts);
+        cm.forward(&params[cr.clone()], &s.color_in, m, &mut s.color_acts);
         let c = cm.output(&s.color_acts);
+        s.rgb.clear();
         s.rgb.resize(n * 3, 0.0);
-        for k in 0..n * 3 {
-            s.rgb[k] = sigmoid(c[k]);
+        for (k, &i) in s.active.iter().enumerate() {
+            for ch in 0..3 {
+                s.rgb[i as usize * 3 + ch] = sigmoid(c[k * 3 + ch]);
+            }
         }
     }
 
-    /// Backward of the last [`FieldLayout::forward`] given `d_sigma: [n]` and `d_rgb: [n, 3]`.
+    /// Backward of the last [`FieldLayout::forward`] given `d_sigma: [n]` and `d_rgb: [n, 3]`
+    /// (`d_rgb` of points without a colour is ignored).
     pub fn backward(
         &self,
         params: &[f32],
@@ -366,27 +394,35 @@ impl FieldLayout {
         let (dm, _) = &self.density;
         let g = self.geo_features;
         let cw = SH_COEFFS + g;
-        s.d_color_out.resize(n * 3, 0.0);
-        for k in 0..n * 3 {
-            s.d_color_out[k] = d_rgb[k] * sigmoid_grad_from_output(s.rgb[k]);
+        let m = s.active.len();
+        s.d_color_out.resize(m * 3, 0.0);
+        for (k, &i) in s.active.iter().enumerate() {
+            for ch in 0..3 {
+                let idx = i as usize * 3 + ch;
+                s.d_color_out[k * 3 + ch] = d_rgb[idx] * sigmoid_grad_from_output(s.rgb[idx]);
+            }
         }
-        s.d_color_in.resize(n * cw, 0.0);
+        s.d_color_in.resize(m * cw, 0.0);
         cm.backward(
             &params[cr.clone()],
             &s.color_in,
-            n,
+            m,
             &mut s.color_acts,
             &s.d_color_out,
             &mut grad[cr.clone()],
             Some(&mut s.d_color_in),
         );
         let w = dm.output_dim();
+        s.d_density_out.clear();
         s.d_density_out.resize(n * w, 0.0);
         let out = dm.output(&s.density_acts);
         for i in 0..n {
             s.d_density_out[i * w] = d_sigma[i] * trunc_exp_grad(out[i * w]);
+        }
+        for (k, &i) in s.active.iter().enumerate() {
+            let i = i as usize;
             s.d_density_out[i * w + 1..(i + 1) * w]
-                .copy_from_slice(&s.d_color_in[i * cw + SH_COEFFS..(i + 1) * cw]);
+                .copy_from_slice(&s.d_color_in[k * cw + SH_COEFFS..(k + 1) * cw]);
         }
         self.backward_density_mlp(params, n, s, grad);
         self.encoding
@@ -578,6 +614,50 @@ mod tests {
                     assert!((rgb[c] - s.rgb[i * 3 + c]).abs() < 1e-5);
                 }
             }
+        }
+    }
+
+    /// Colouring a subset of points gives those points the same colours and the same gradients
+    /// as colouring all of them (with zero upstream gradient on the others).
+    #[test]
+    fn colouring_a_subset_matches_colouring_all() {
+        let cfg = small_config(BlendMode::Mt);
+        let layout = ModelLayout::new(&cfg);
+        let p = params(&layout, 5);
+        let mut rng = Rng::new(6);
+        let n = 17;
+        let pts: Vec<f32> = (0..n * 4).map(|_| rng.f32()).collect();
+        let mut sh = vec![0f32; SH_COEFFS];
+        crate::sh::sh4([0.0, 0.0, 1.0], &mut sh);
+        let active: Vec<u32> = (0..n as u32).filter(|i| i % 3 != 1).collect();
+        let d_sigma: Vec<f32> = (0..n).map(|_| rng.range_f32(-1.0, 1.0)).collect();
+        let mut d_rgb: Vec<f32> = (0..n * 3).map(|_| rng.range_f32(-1.0, 1.0)).collect();
+        for i in 0..n {
+            if !active.contains(&(i as u32)) {
+                d_rgb[i * 3..i * 3 + 3].fill(0.0);
+            }
+        }
+        let mut all = FieldScratch::default();
+        layout.field.forward(&p, &pts, &sh, &|_| 0, n, &mut all);
+        let mut g_all = vec![0f32; p.len()];
+        layout
+            .field
+            .backward(&p, &pts, n, &mut all, &d_sigma, &d_rgb, &mut g_all);
+        let mut sub = FieldScratch::default();
+        layout.field.forward_density(&p, &pts, n, &mut sub);
+        layout
+            .field
+            .forward_color(&p, &sh, &|_| 0, Some(&active), n, &mut sub);
+        let mut g_sub = vec![0f32; p.len()];
+        layout
+            .field
+            .backward(&p, &pts, n, &mut sub, &d_sigma, &d_rgb, &mut g_sub);
+        for &i in &active {
+            let i = i as usize;
+            assert_eq!(all.rgb[i * 3..i * 3 + 3], sub.rgb[i * 3..i * 3 + 3]);
+        }
+        for (a, b) in g_all.iter().zip(&g_sub) {
+            assert!((a - b).abs() <= 1e-5 * (1.0 + a.abs()), "{a} vs {b}");
         }
     }
 

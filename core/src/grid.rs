@@ -20,6 +20,23 @@
 
 use serde::{Deserialize, Serialize};
 
+/// Calls the local macro `$go!(D, F)` with the grid's dimension and features as constants.
+macro_rules! dispatch_shape {
+    ($dims:expr, $features:expr, $go:ident) => {
+        match ($dims, $features) {
+            (3, 1) => $go!(3, 1),
+            (3, 2) => $go!(3, 2),
+            (3, 4) => $go!(3, 4),
+            (3, 8) => $go!(3, 8),
+            (4, 1) => $go!(4, 1),
+            (4, 2) => $go!(4, 2),
+            (4, 4) => $go!(4, 4),
+            (4, 8) => $go!(4, 8),
+            _ => unreachable!("validated grid config"),
+        }
+    };
+}
+
 /// Hash primes for (x, y, z, t).
 pub const PRIMES: [u32; 4] = [1, 2_654_435_761, 805_459_861, 3_674_653_429];
 
@@ -288,17 +305,7 @@ impl GridLayout {
                 }
             };
         }
-        match (self.dims, self.features) {
-            (3, 1) => go!(3, 1),
-            (3, 2) => go!(3, 2),
-            (3, 4) => go!(3, 4),
-            (3, 8) => go!(3, 8),
-            (4, 1) => go!(4, 1),
-            (4, 2) => go!(4, 2),
-            (4, 4) => go!(4, 4),
-            (4, 8) => go!(4, 8),
-            _ => unreachable!("validated grid config"),
-        }
+        dispatch_shape!(self.dims, self.features, go)
     }
 
     /// Batched fast backward: scatters `d_out` (same layout as [`GridLayout::encode`]'s `out`)
@@ -329,17 +336,7 @@ impl GridLayout {
                 }
             };
         }
-        match (self.dims, self.features) {
-            (3, 1) => go!(3, 1),
-            (3, 2) => go!(3, 2),
-            (3, 4) => go!(3, 4),
-            (3, 8) => go!(3, 8),
-            (4, 1) => go!(4, 1),
-            (4, 2) => go!(4, 2),
-            (4, 4) => go!(4, 4),
-            (4, 8) => go!(4, 8),
-            _ => unreachable!("validated grid config"),
-        }
+        dispatch_shape!(self.dims, self.features, go)
     }
 
     /// Calls `f(level, row)` for every table row that point `x` reads (used by the codec to find

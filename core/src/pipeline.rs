@@ -97,9 +97,14 @@ pub struct Workspace {
     d_rgb_main: Vec<f32>,
     d_sigma_prop: Vec<f32>,
     d_w_prop: Vec<f32>,
+    active: Vec<u32>,
     prop: FieldScratch,
     main: FieldScratch,
 }
+
+/// Samples whose transmittance has fallen below this get no colour evaluation: their weight,
+/// and every gradient through them, is below it.
+pub const HIDDEN_TRANSMITTANCE: f32 = 1e-4;
 
 /// Distance unit of the spacing function (the contraction radius for unbounded scenes).
 fn spacing_unit(bounds: &SceneBounds) -> f32 {
@@ -248,11 +253,29 @@ fn forward_chunk(
             &mut ws.delta_main[i * nf..(i + 1) * nf],
         );
     }
-    layout.field.forward(
+    layout
+        .field
+        .forward_density(params, &ws.pts_main, n * nf, &mut ws.main);
+    // Colour only where light can still arrive: a sample behind optical depth
+    // `ln(1 / HIDDEN_TRANSMITTANCE)` has weight and gradient below that transmittance.
+    let tau_hidden = (1.0 / HIDDEN_TRANSMITTANCE).ln();
+    ws.active.clear();
+    for i in 0..n {
+        let mut tau = 0f32;
+        for k in 0..nf {
+            let idx = i * nf + k;
+            if tau > tau_hidden {
+                break;
+            }
+            ws.active.push(idx as u32);
+            tau += render::tau_of(ws.main.sigma[idx], ws.delta_main[idx]);
+        }
+    }
+    layout.field.forward_color(
         params,
-        &ws.pts_main,
         &ws.sh,
         &|j| j / nf,
+        Some(&ws.active),
         n * nf,
         &mut ws.main,
     );

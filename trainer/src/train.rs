@@ -60,6 +60,11 @@ impl TrainSettings {
             rgb: data.background,
         };
         let model = ModelConfig::preset(preset, data.bounds, background, data.num_frames);
+        Self::for_model(preset, model)
+    }
+
+    /// The preset's run settings around a given model configuration.
+    pub fn for_model(preset: Preset, model: ModelConfig) -> Self {
         let (iters, batch) = match preset {
             Preset::Fast => (1400, 2048),
             Preset::Balanced => (4000, 4096),
