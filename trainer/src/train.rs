@@ -583,3 +583,71 @@ pub fn train(
     };
     Ok((trainer, outcome))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use msth_core::SceneBounds;
+
+    fn settings() -> TrainSettings {
+        let model = ModelConfig::preset(
+            Preset::Fast,
+            SceneBounds::dnerf_default(),
+            Background::Color { rgb: [1.0; 3] },
+            10,
+        );
+        TrainSettings::for_model(Preset::Fast, model)
+    }
+
+    #[test]
+    fn config_file_and_set_override_any_knob() {
+        let mut s = settings();
+        let file = serde_json::json!({
+            "iters": 77,
+            "model": {"sampler": {"num_samples": 16}, "field": {"encoding": {"blend": "mst"}}}
+        });
+        s.apply_overrides(
+            Some(file),
+            &[
+                "batch_rays=512".into(),
+                "model.field.encoding.grid3.levels=8".into(),
+                "model.field.encoding.grid4.levels=8".into(),
+            ],
+        )
+        .unwrap();
+        assert_eq!(s.iters, 77);
+        assert_eq!(s.batch_rays, 512);
+        assert_eq!(s.model.sampler.num_samples, 16);
+        assert_eq!(s.model.field.encoding.grid3.levels, 8);
+        assert_eq!(
+            s.model.field.encoding.blend,
+            msth_core::config::BlendMode::Mst
+        );
+        // Other knobs keep the preset's values.
+        assert_eq!(s.adam, AdamConfig::default());
+    }
+
+    #[test]
+    fn unknown_or_invalid_settings_are_named() {
+        let mut s = settings();
+        let e = s
+            .apply_overrides(Some(serde_json::json!({"modle": {}})), &[])
+            .unwrap_err();
+        assert!(e.contains("modle"), "{e}");
+        let e = s.apply_overrides(None, &["iters".into()]).unwrap_err();
+        assert!(e.contains("key=value"), "{e}");
+        let e = s
+            .apply_overrides(None, &["iters=\"many\"".into()])
+            .unwrap_err();
+        assert!(e.contains("invalid settings"), "{e}");
+        let e = s
+            .apply_overrides(None, &["model.sampler.near=-1".into()])
+            .unwrap_err();
+        assert!(e.contains("near"), "{e}");
+        // Settings that disagree with each other are caught too.
+        let e = s
+            .apply_overrides(None, &["model.field.encoding.grid3.levels=8".into()])
+            .unwrap_err();
+        assert!(e.contains("same number of features"), "{e}");
+    }
+}
