@@ -4,6 +4,7 @@
 mod bench;
 mod commands;
 mod data;
+mod export;
 
 use std::ffi::OsString;
 use std::path::PathBuf;
@@ -38,6 +39,8 @@ enum Command {
     Render(RenderArgs),
     /// Benchmarks (`msth bench step`).
     Bench(bench::BenchArgs),
+    /// Encode a checkpoint into a streamable `.msth` file (or `--measure` the codec's modes).
+    Export(export::ExportArgs),
 }
 
 #[derive(Args)]
@@ -175,5 +178,6 @@ where
         Command::Eval(a) => commands::eval(a),
         Command::Render(a) => commands::render(a),
         Command::Bench(a) => bench::run(a),
+        Command::Export(a) => export::export(a),
     }
 }

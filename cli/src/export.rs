@@ -1,0 +1,243 @@
+//! `msth export`: a checkpoint -> a `.msth` file (through `msth-codec`), with a summary of what
+//! went where; `--measure DATA` instead measures every quantisation mode and dynamic threshold
+//! (size, PSNR drop on the held-out views, speed) and prints markdown tables.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use clap::Args;
+
+use msth_codec::{decode_all, encode, EncodeOptions, EncodeReport, QuantMode};
+use msth_core::field::ModelLayout;
+use msth_trainer::checkpoint::{write_atomic, Checkpoint};
+use msth_trainer::dataset::Dataset;
+use msth_trainer::eval::render_image;
+use msth_trainer::metrics::psnr;
+
+use crate::data;
+
+#[derive(Args)]
+pub struct ExportArgs {
+    pub checkpoint: PathBuf,
+    /// Output file (required unless `--measure`).
+    #[arg(short = 'o', long)]
+    pub output: Option<PathBuf>,
+    /// f32 (lossless) | f16 | q8 | q6 | q5 | q4 | k4 | k3
+    #[arg(long, default_value = "q5")]
+    pub quant: String,
+    /// Frames per dynamic time chunk.
+    #[arg(long, default_value_t = 10)]
+    pub chunk_frames: usize,
+    /// A mask voxel is dynamic when `1 - sigmoid(logit) >= X`; 4D rows no dynamic voxel reaches
+    /// are dropped.
+    #[arg(long, default_value_t = 0.3)]
+    pub dynamic_threshold: f32,
+    /// Playback frame rate stored in the file.
+    #[arg(long)]
+    pub fps: Option<f32>,
+    #[arg(long, default_value_t = 9)]
+    pub zstd_level: i32,
+    /// Measure every mode and threshold on this dataset's held-out views (`builtin` or a folder)
+    /// instead of writing a file.
+    #[arg(long, value_name = "DATA")]
+    pub measure: Option<String>,
+    /// Evaluate every N-th held-out view when measuring.
+    #[arg(long, default_value_t = 3)]
+    pub stride: usize,
+}
+
+pub fn export(a: ExportArgs) -> Result<()> {
+    let ckpt = Checkpoint::load(&a.checkpoint)?;
+    let quant: QuantMode = a.quant.parse().map_err(anyhow::Error::msg)?;
+    let opts = EncodeOptions {
+        quant,
+        chunk_frames: a.chunk_frames,
+        dynamic_threshold: a.dynamic_threshold,
+        frame_rate: a.fps,
+        zstd_level: a.zstd_level,
+    };
+    if let Some(d) = &a.measure {
+        return measure(&ckpt, d, a.stride, &opts);
+    }
+    let Some(out) = &a.output else {
+        bail!("-o OUTPUT is required (or --measure DATA)");
+    };
+    let (bytes, report) = encode(
+        &ckpt.header.model,
+        &ckpt.params,
+        &ckpt.header.cameras,
+        &opts,
+    )
+    .with_context(|| format!("encoding {}", a.checkpoint.display()))?;
+    write_atomic(out, &bytes).with_context(|| format!("writing {}", out.display()))?;
+    print_summary(&report, out);
+    Ok(())
+}
+
+fn mb(b: u64) -> String {
+    if b >= 1 << 20 {
+        format!("{:.2} MiB", b as f64 / (1 << 20) as f64)
+    } else {
+        format!("{:.1} KiB", b as f64 / 1024.0)
+    }
+}
+
+fn print_summary(r: &EncodeReport, out: &std::path::Path) {
+    println!(
+        "wrote {} ({}, {} bytes): {:.1}x smaller than the raw f32 parameters ({}), {} per frame, quant {}, encoded in {:.2} s",
+        out.display(),
+        mb(r.file_bytes),
+        r.file_bytes,
+        r.ratio(),
+        mb(r.raw_param_bytes),
+        mb(r.bytes_per_frame() as u64),
+        r.quant,
+        r.encode_seconds
+    );
+    println!(
+        "  {:<10} {:>12} {:>12} {:>10}",
+        "section", "stored", "raw", "values"
+    );
+    println!(
+        "  {:<10} {:>12} {:>12} {:>10}",
+        "prefix",
+        mb(r.prefix_bytes),
+        "",
+        ""
+    );
+    for s in &r.sections {
+        println!(
+            "  {:<10} {:>12} {:>12} {:>10}",
+            s.name,
+            mb(s.stored_bytes),
+            mb(s.raw_bytes),
+            s.values
+        );
+    }
+    for (i, c) in r.chunks.iter().enumerate() {
+        let frames = (c.span.frame_end - c.span.frame_start).max(1) as u64;
+        println!(
+            "  chunk {:<4} {:>12} {:>12} {:>10}  frames {}..{} (t {:.3}..{:.3}), {} per frame; reaches {:.1}% of the 4D table with the shared rows",
+            i,
+            mb(c.stored_bytes),
+            mb(c.raw_bytes),
+            c.kept_values,
+            c.span.frame_start,
+            c.span.frame_end,
+            c.span.t_start,
+            c.span.t_end,
+            mb(c.stored_bytes / frames),
+            100.0 * c.reached_values as f64 / r.h4_values.max(1) as f64
+        );
+    }
+    match r.dynamic_voxels {
+        Some((d, n)) => println!(
+            "  dynamic voxels: {d} of {n} ({:.1}%); 4D values stored (shared + chunks): {} of {} ({:.1}%)",
+            100.0 * d as f64 / n.max(1) as f64,
+            r.h4_kept_union,
+            r.h4_values,
+            100.0 * r.h4_kept_union as f64 / r.h4_values.max(1) as f64
+        ),
+        None if r.h4_values > 0 => println!("  no mask: the whole 4D table is dynamic"),
+        None => println!("  no 4D table: no dynamic chunks"),
+    }
+    if r.chunks.is_empty() {
+        println!("  no dynamic chunks (static scene or no dynamic voxels)");
+    } else {
+        println!(
+            "  dynamic stream: {} per frame after the static and shared parts",
+            mb(r.dynamic_bytes_per_frame() as u64)
+        );
+    }
+}
+
+/// Mean PSNR over every `stride`-th test view; `params_at(t)` gives the buffer for time `t`.
+fn held_out_psnr(
+    data: &Dataset,
+    ckpt: &Checkpoint,
+    layout: &ModelLayout,
+    stride: usize,
+    params_at: &dyn Fn(f32) -> Vec<f32>,
+) -> f64 {
+    let views: Vec<_> = data.test.iter().step_by(stride.max(1)).collect();
+    let mut sum = 0.0;
+    for v in &views {
+        let p = params_at(v.time);
+        let r = render_image(&ckpt.header.model, layout, &p, &v.camera, v.time);
+        sum += psnr(&r.rgb, &v.image.to_f32());
+    }
+    sum / views.len().max(1) as f64
+}
+
+fn measure(ckpt: &Checkpoint, data_arg: &str, stride: usize, base: &EncodeOptions) -> Result<()> {
+    let data = data::load(data_arg, 1)?;
+    let model = &ckpt.header.model;
+    let layout = ModelLayout::new(model);
+    let reference = held_out_psnr(&data, ckpt, &layout, stride, &|_| ckpt.params.clone());
+    let raw = 4 * ckpt.params.len() as u64;
+    println!(
+        "checkpoint {}: {} parameters ({}), held-out PSNR {reference:.3} dB (every {stride}th test view of {} views)\n",
+        data.name,
+        ckpt.params.len(),
+        mb(raw),
+        data.test.len()
+    );
+    println!("| mode | file | bytes/frame | dynamic bytes/frame | ratio to raw f32 | PSNR drop (dB) | encode MB/s | decode MB/s |");
+    println!("|---|---|---|---|---|---|---|---|");
+    for quant in QuantMode::ALL {
+        let opts = EncodeOptions {
+            quant,
+            ..base.clone()
+        };
+        let (bytes, report) = encode(model, &ckpt.params, &ckpt.header.cameras, &opts)?;
+        let t = Instant::now();
+        let decoded = decode_all(&bytes)?;
+        let decode_s = t.elapsed().as_secs_f64();
+        let p = held_out_psnr(&data, ckpt, &layout, stride, &|t| {
+            decoded.params_for_time(t)
+        });
+        println!(
+            "| {quant} | {} | {} | {} | {:.1}x | {:.3} | {:.0} | {:.0} |",
+            mb(report.file_bytes),
+            mb(report.bytes_per_frame() as u64),
+            mb(report.dynamic_bytes_per_frame() as u64),
+            report.ratio(),
+            reference - p,
+            raw as f64 / 1e6 / report.encode_seconds,
+            raw as f64 / 1e6 / decode_s
+        );
+    }
+    println!("\nSparse dynamic section ({} chunk frames), f32 (lossless) so only the dropped 4D rows count:\n", base.chunk_frames);
+    println!("| dynamic threshold | dynamic voxels | 4D values stored | reached per chunk (mean) | 4D table values | file (f32) | PSNR drop (dB) |");
+    println!("|---|---|---|---|---|---|---|");
+    for th in [0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.7] {
+        let opts = EncodeOptions {
+            quant: QuantMode::F32,
+            dynamic_threshold: th,
+            ..base.clone()
+        };
+        let (bytes, r) = encode(model, &ckpt.params, &ckpt.header.cameras, &opts)?;
+        let decoded = decode_all(&bytes)?;
+        let p = held_out_psnr(&data, ckpt, &layout, stride, &|t| {
+            decoded.params_for_time(t)
+        });
+        let per_chunk = r.chunks.iter().map(|c| c.reached_values).sum::<u64>() as f64
+            / r.chunks.len().max(1) as f64;
+        let voxels = match r.dynamic_voxels {
+            Some((d, n)) => format!("{d} / {n} ({:.1}%)", 100.0 * d as f64 / n.max(1) as f64),
+            None => "no mask".into(),
+        };
+        println!(
+            "| {th} | {voxels} | {} ({:.1}%) | {:.0} ({:.1}%) | {} | {} | {:.3} |",
+            r.h4_kept_union,
+            100.0 * r.h4_kept_union as f64 / r.h4_values.max(1) as f64,
+            per_chunk,
+            100.0 * per_chunk / r.h4_values.max(1) as f64,
+            r.h4_values,
+            mb(r.file_bytes),
+            reference - p
+        );
+    }
+    Ok(())
+}

@@ -1,0 +1,355 @@
+//! The decoder: streaming ([`Decoder`]: the prefix first, then any section from its own bytes, in
+//! any order) and whole-file ([`decode_all`] -> [`DecodedModel`]). Untrusted input: every size is
+//! checked against [`Limits`] and the model before anything is allocated.
+
+use msth_core::config::ModelConfig;
+use msth_core::field::ModelLayout;
+use msth_core::Camera;
+
+use crate::error::DecodeError;
+use crate::format::{FileIndex, Limits, Metadata, SectionEntry, SectionKind, FIRST_CHUNK};
+use crate::sections::{
+    max_chunk_bytes, max_static_bytes, read_chunk, read_static, SparseChunk, StaticPart, SHARED_TAG,
+};
+
+/// Checks a section's stored bytes (length, CRC-32, size limits) and decompresses them.
+fn unpack(entry: &SectionEntry, stored: &[u8], max_raw: u64) -> Result<Vec<u8>, DecodeError> {
+    let what = entry.label();
+    if (stored.len() as u64) < entry.length {
+        return Err(DecodeError::Truncated {
+            what,
+            needed: entry.length,
+            have: stored.len() as u64,
+        });
+    }
+    if stored.len() as u64 != entry.length {
+        return Err(DecodeError::malformed(
+            what,
+            format!(
+                "{} bytes given, the index says {}",
+                stored.len(),
+                entry.length
+            ),
+        ));
+    }
+    let computed = crc32fast::hash(stored);
+    if computed != entry.crc32 && crate::error::VERIFY_CHECKSUMS {
+        return Err(DecodeError::Checksum {
+            what,
+            stored: entry.crc32,
+            computed,
+        });
+    }
+    if entry.raw_length > max_raw {
+        return Err(DecodeError::limit(
+            format!("{what} raw length (largest possible for this model)"),
+            entry.raw_length,
+            max_raw,
+        ));
+    }
+    // The output buffer is bounded by raw_length: zstd fails rather than grow it.
+    let raw = zstd::bulk::decompress(stored, entry.raw_length as usize).map_err(|e| {
+        DecodeError::Zstd {
+            what: what.clone(),
+            message: e.to_string(),
+        }
+    })?;
+    if raw.len() as u64 != entry.raw_length {
+        return Err(DecodeError::malformed(
+            what,
+            format!(
+                "decompressed to {} bytes, the index says {}",
+                raw.len(),
+                entry.raw_length
+            ),
+        ));
+    }
+    Ok(raw)
+}
+
+/// A streaming decoder: built from the file's prefix, fed sections as their bytes arrive.
+#[derive(Clone, Debug)]
+pub struct Decoder {
+    index: FileIndex,
+    /// MLPs, proposal and static tables; the 4D table stays zero here.
+    base: Vec<f32>,
+    have: [bool; 3],
+    shared: Option<SparseChunk>,
+    chunks: Vec<Option<SparseChunk>>,
+}
+
+impl Decoder {
+    /// Decodes the prefix (header, metadata, index) with the default limits. `bytes` is the start
+    /// of the file: [`FileIndex::prefix_len`] of them are enough.
+    pub fn new(bytes: &[u8]) -> Result<Self, DecodeError> {
+        Self::with_limits(bytes, &Limits::default())
+    }
+
+    pub fn with_limits(bytes: &[u8], limits: &Limits) -> Result<Self, DecodeError> {
+        let index = FileIndex::parse(bytes, limits)?;
+        let base = vec![0f32; index.layout.params.total];
+        let chunks = vec![None; index.metadata.chunks.len()];
+        Ok(Decoder {
+            index,
+            base,
+            have: [false; 3],
+            shared: None,
+            chunks,
+        })
+    }
+
+    pub fn index(&self) -> &FileIndex {
+        &self.index
+    }
+    pub fn metadata(&self) -> &Metadata {
+        &self.index.metadata
+    }
+    pub fn layout(&self) -> &ModelLayout {
+        &self.index.layout
+    }
+
+    /// Whether section `i` (index order) has been decoded.
+    pub fn is_decoded(&self, i: usize) -> bool {
+        match i {
+            0..=2 => self.have[i],
+            3 => self.shared.is_some(),
+            c => self
+                .chunks
+                .get(c - FIRST_CHUNK)
+                .is_some_and(|c| c.is_some()),
+        }
+    }
+
+    /// MLPs, proposal, static and (when there are chunks) shared sections all decoded: frames
+    /// can be rendered once their chunk is.
+    pub fn static_ready(&self) -> bool {
+        self.have.iter().all(|&h| h) && (self.chunks.is_empty() || self.shared.is_some())
+    }
+
+    /// Decodes section `i` (index order) from exactly its stored bytes.
+    pub fn decode_section(&mut self, i: usize, stored: &[u8]) -> Result<(), DecodeError> {
+        let entry = self
+            .index
+            .sections
+            .get(i)
+            .cloned()
+            .ok_or_else(|| DecodeError::malformed("request", format!("no section {i}")))?;
+        let layout = &self.index.layout;
+        let what = entry.label();
+        match entry.kind {
+            SectionKind::Dynamic => {
+                let raw = unpack(&entry, stored, max_chunk_bytes(layout))?;
+                let chunk = read_chunk(layout, &raw, entry.chunk, &what)?;
+                self.chunks[entry.chunk as usize] = Some(chunk);
+            }
+            SectionKind::Shared => {
+                let raw = unpack(&entry, stored, max_chunk_bytes(layout))?;
+                self.shared = Some(read_chunk(layout, &raw, SHARED_TAG, &what)?);
+            }
+            kind => {
+                let (part, slot) = match kind {
+                    SectionKind::Mlp => (StaticPart::Mlp, 0),
+                    SectionKind::Proposal => (StaticPart::Proposal, 1),
+                    _ => (StaticPart::Static, 2),
+                };
+                let raw = unpack(&entry, stored, max_static_bytes(layout, part))?;
+                // Decode into a copy so that a failure leaves the decoder unchanged.
+                let mut params = self.base.clone();
+                read_static(layout, &raw, part, &what, &mut params)?;
+                self.base = params;
+                self.have[slot] = true;
+            }
+        }
+        Ok(())
+    }
+
+    /// Decodes every section that lies wholly inside `file_prefix` (the first bytes of the file)
+    /// and is not decoded yet; returns their index positions. Sections not yet complete are left
+    /// for a later call.
+    pub fn feed(&mut self, file_prefix: &[u8]) -> Result<Vec<usize>, DecodeError> {
+        let mut done = Vec::new();
+        for i in 0..self.index.sections.len() {
+            if self.is_decoded(i) {
+                continue;
+            }
+            let e = &self.index.sections[i];
+            let end = e.offset + e.length;
+            if end > file_prefix.len() as u64 {
+                continue;
+            }
+            let stored = &file_prefix[e.offset as usize..end as usize];
+            self.decode_section(i, stored)?;
+            done.push(i);
+        }
+        Ok(done)
+    }
+
+    /// The decoded chunk `c`, if it has arrived.
+    pub fn chunk(&self, c: usize) -> Option<&SparseChunk> {
+        self.chunks.get(c).and_then(|c| c.as_ref())
+    }
+
+    /// Writes the parameters for normalised time `t` into `out`: the static part and the rows of
+    /// the chunk covering `t` (other 4D rows 0). Needs the static sections and that chunk.
+    pub fn params_for_time_into(&self, t: f32, out: &mut Vec<f32>) -> Result<(), DecodeError> {
+        if !self.static_ready() {
+            let missing = (0..FIRST_CHUNK.min(self.index.sections.len()))
+                .find(|&i| !self.is_decoded(i))
+                .unwrap_or(0);
+            return Err(not_loaded(&self.index.sections[missing]));
+        }
+        out.clear();
+        out.extend_from_slice(&self.base);
+        if let Some(c) = self.index.chunk_for_time(t) {
+            let chunk = self
+                .chunk(c)
+                .ok_or_else(|| not_loaded(&self.index.sections[FIRST_CHUNK + c]))?;
+            if let Some(shared) = &self.shared {
+                shared.apply(&self.index.layout, out);
+            }
+            chunk.apply(&self.index.layout, out);
+        }
+        Ok(())
+    }
+
+    pub fn params_for_time(&self, t: f32) -> Result<Vec<f32>, DecodeError> {
+        let mut out = Vec::new();
+        self.params_for_time_into(t, &mut out)?;
+        Ok(out)
+    }
+
+    /// The whole model; every section must have been decoded.
+    pub fn finish(self) -> Result<DecodedModel, DecodeError> {
+        if let Some(i) = (0..self.index.sections.len()).find(|&i| !self.is_decoded(i)) {
+            return Err(not_loaded(&self.index.sections[i]));
+        }
+        let chunks: Vec<SparseChunk> = self.chunks.into_iter().flatten().collect();
+        let mut base = self.base;
+        let shared = self.shared;
+        if let Some(shared) = &shared {
+            shared.apply(&self.index.layout, &mut base);
+        }
+        let mut params = base.clone();
+        for c in &chunks {
+            c.apply(&self.index.layout, &mut params);
+        }
+        Ok(DecodedModel {
+            config: self.index.metadata.model.clone(),
+            cameras: self.index.metadata.cameras.clone(),
+            layout: self.index.layout.clone(),
+            metadata: self.index.metadata,
+            params,
+            base,
+            shared,
+            chunks,
+        })
+    }
+}
+
+fn not_loaded(e: &SectionEntry) -> DecodeError {
+    DecodeError::Truncated {
+        what: format!(
+            "{} (bytes {}..{})",
+            e.label(),
+            e.offset,
+            e.offset + e.length
+        ),
+        needed: e.offset + e.length,
+        have: 0,
+    }
+}
+
+/// A whole decoded model.
+#[derive(Clone, Debug)]
+pub struct DecodedModel {
+    pub config: ModelConfig,
+    pub layout: ModelLayout,
+    /// The full flat buffer in [`ModelLayout`] order: the static part, the shared 4D rows and
+    /// the union of every chunk's 4D rows (4D rows the file does not store are 0).
+    pub params: Vec<f32>,
+    pub cameras: Vec<Camera>,
+    pub metadata: Metadata,
+    /// Static part plus the shared 4D rows.
+    base: Vec<f32>,
+    shared: Option<SparseChunk>,
+    chunks: Vec<SparseChunk>,
+}
+
+impl DecodedModel {
+    /// The chunk a player uses at normalised time `t` (`None`: no dynamic chunks).
+    pub fn chunk_for_time(&self, t: f32) -> Option<usize> {
+        let spans = &self.metadata.chunks;
+        if spans.is_empty() {
+            return None;
+        }
+        Some(spans.iter().rposition(|c| c.t_start <= t).unwrap_or(0))
+    }
+
+    pub fn chunks(&self) -> &[SparseChunk] {
+        &self.chunks
+    }
+
+    /// The 4D rows stored once for several chunks (`None` without chunks).
+    pub fn shared(&self) -> Option<&SparseChunk> {
+        self.shared.as_ref()
+    }
+
+    /// What a streaming player renders at time `t`: the static part, the shared 4D rows and the
+    /// covering chunk's rows; other 4D rows 0.
+    pub fn params_for_time_into(&self, t: f32, out: &mut Vec<f32>) {
+        out.clear();
+        out.extend_from_slice(&self.base);
+        if let Some(c) = self.chunk_for_time(t) {
+            self.chunks[c].apply(&self.layout, out);
+        }
+    }
+
+    pub fn params_for_time(&self, t: f32) -> Vec<f32> {
+        let mut out = Vec::new();
+        self.params_for_time_into(t, &mut out);
+        out
+    }
+}
+
+/// Decodes a whole file with the default limits.
+pub fn decode_all(bytes: &[u8]) -> Result<DecodedModel, DecodeError> {
+    decode_all_with_limits(bytes, &Limits::default())
+}
+
+/// Decodes a whole file; the file must end exactly where its last section ends.
+pub fn decode_all_with_limits(bytes: &[u8], limits: &Limits) -> Result<DecodedModel, DecodeError> {
+    let mut d = Decoder::with_limits(bytes, limits)?;
+    let end = d.index.file_len();
+    if (bytes.len() as u64) < end {
+        return Err(DecodeError::Truncated {
+            what: "file".into(),
+            needed: end,
+            have: bytes.len() as u64,
+        });
+    }
+    if bytes.len() as u64 > end {
+        return Err(DecodeError::malformed(
+            "file",
+            format!(
+                "{} trailing bytes after the last section",
+                bytes.len() as u64 - end
+            ),
+        ));
+    }
+    // Padding between sections is not covered by any checksum: it must be zero.
+    let mut at = d.index.header.header_size as u64;
+    for e in &d.index.sections {
+        if bytes[at as usize..e.offset as usize]
+            .iter()
+            .any(|&b| b != 0)
+        {
+            return Err(DecodeError::malformed(
+                "file",
+                format!("nonzero padding before {}", e.label()),
+            ));
+        }
+        at = e.offset + e.length;
+    }
+    d.feed(bytes)?;
+    d.finish()
+}

@@ -1,0 +1,367 @@
+//! The encoder: a model configuration, its flat parameter buffer and playback cameras in, a
+//! `.msth` file and a report of what went where out.
+
+use std::time::Instant;
+
+use msth_core::config::ModelConfig;
+use msth_core::field::ModelLayout;
+use msth_core::Camera;
+
+use crate::error::EncodeError;
+use crate::format::{
+    index_offset, prefix_size, write_entry, ChunkSpan, FixedHeader, Metadata, QuantMode,
+    SectionEntry, SectionKind, ALIGN, FIXED_HEADER, VERSION,
+};
+use crate::sections::{write_chunk, write_static, Encodings, StaticPart, SHARED_TAG};
+use crate::select::{dynamic_region, reached_rows};
+
+/// What the encoder is asked to do.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EncodeOptions {
+    pub quant: QuantMode,
+    /// Frames per dynamic chunk.
+    pub chunk_frames: usize,
+    /// A mask vertex is dynamic when `1 - sigmoid(logit) >= dynamic_threshold`.
+    pub dynamic_threshold: f32,
+    /// Playback frame rate written to the metadata.
+    pub frame_rate: Option<f32>,
+    /// zstd level for every section.
+    pub zstd_level: i32,
+}
+
+impl Default for EncodeOptions {
+    fn default() -> Self {
+        EncodeOptions {
+            quant: QuantMode::Q5,
+            chunk_frames: 10,
+            dynamic_threshold: 0.3,
+            frame_rate: None,
+            zstd_level: 9,
+        }
+    }
+}
+
+/// Bytes of one section.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SectionReport {
+    pub name: String,
+    pub stored_bytes: u64,
+    pub raw_bytes: u64,
+    /// Parameter values held.
+    pub values: u64,
+}
+
+/// Bytes and contents of one dynamic chunk.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ChunkReport {
+    pub span: ChunkSpan,
+    pub stored_bytes: u64,
+    pub raw_bytes: u64,
+    /// 4D values (rows x features) the chunk's time span reaches: what a player holds for it
+    /// (shared section + this chunk).
+    pub reached_values: u64,
+    /// 4D values stored in the chunk itself (those no other chunk needs).
+    pub kept_values: u64,
+}
+
+/// What went where.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EncodeReport {
+    pub quant: QuantMode,
+    pub file_bytes: u64,
+    /// Header, metadata and index.
+    pub prefix_bytes: u64,
+    /// `4 * parameter count`: the raw f32 parameters of the checkpoint.
+    pub raw_param_bytes: u64,
+    pub sections: Vec<SectionReport>,
+    pub chunks: Vec<ChunkReport>,
+    /// Values of the field's 4D table (0 without one).
+    pub h4_values: u64,
+    /// Distinct 4D values kept by at least one chunk.
+    pub h4_kept_union: u64,
+    /// Dynamic and total mask voxels (`None`: no mask, everything is dynamic).
+    pub dynamic_voxels: Option<(u64, u64)>,
+    pub num_frames: usize,
+    pub encode_seconds: f64,
+}
+
+impl EncodeReport {
+    pub fn ratio(&self) -> f64 {
+        self.raw_param_bytes as f64 / self.file_bytes.max(1) as f64
+    }
+    pub fn bytes_per_frame(&self) -> f64 {
+        self.file_bytes as f64 / self.num_frames.max(1) as f64
+    }
+    /// Chunk bytes per frame (the streaming rate once the static and shared parts are loaded).
+    pub fn dynamic_bytes_per_frame(&self) -> f64 {
+        self.chunks.iter().map(|c| c.stored_bytes).sum::<u64>() as f64
+            / self.num_frames.max(1) as f64
+    }
+}
+
+/// Normalised time of frame `f` of `n`.
+pub fn frame_time(f: usize, n: usize) -> f32 {
+    if n > 1 {
+        (f.min(n - 1)) as f32 / (n - 1) as f32
+    } else {
+        0.0
+    }
+}
+
+/// The chunk spans of a model: `ceil(frames / chunk_frames)` chunks, contiguous in time and
+/// covering `[0, 1]`.
+pub fn chunk_spans(num_frames: usize, chunk_frames: usize) -> Vec<ChunkSpan> {
+    let n = num_frames.max(1);
+    let count = n.div_ceil(chunk_frames);
+    (0..count)
+        .map(|c| {
+            let f0 = c * chunk_frames;
+            let f1 = ((c + 1) * chunk_frames).min(n);
+            ChunkSpan {
+                frame_start: f0 as u32,
+                frame_end: f1 as u32,
+                t_start: if c == 0 { 0.0 } else { frame_time(f0, n) },
+                t_end: if c + 1 == count {
+                    1.0
+                } else {
+                    frame_time(f1, n)
+                },
+            }
+        })
+        .collect()
+}
+
+fn compress(raw: &[u8], level: i32) -> Result<Vec<u8>, EncodeError> {
+    zstd::bulk::compress(raw, level).map_err(EncodeError::Compress)
+}
+
+/// Encodes a model into `.msth` bytes.
+pub fn encode(
+    model: &ModelConfig,
+    params: &[f32],
+    cameras: &[Camera],
+    opts: &EncodeOptions,
+) -> Result<(Vec<u8>, EncodeReport), EncodeError> {
+    let start = Instant::now();
+    model.validate().map_err(EncodeError::InvalidConfig)?;
+    let layout = ModelLayout::new(model);
+    if params.len() != layout.params.total {
+        return Err(EncodeError::ParamCount {
+            got: params.len(),
+            expected: layout.params.total,
+        });
+    }
+    for e in &layout.params.entries {
+        if let Some(i) = params[e.range()].iter().position(|v| !v.is_finite()) {
+            return Err(EncodeError::NonFinite {
+                slice: e.name.clone(),
+                index: i,
+            });
+        }
+    }
+    if opts.chunk_frames == 0 {
+        return Err(EncodeError::InvalidOption(
+            "chunk_frames must be at least 1".into(),
+        ));
+    }
+    if !(opts.dynamic_threshold.is_finite() && (0.0..=1.0).contains(&opts.dynamic_threshold)) {
+        return Err(EncodeError::InvalidOption(format!(
+            "dynamic_threshold must be in [0, 1] (got {})",
+            opts.dynamic_threshold
+        )));
+    }
+    if let Some(r) = opts.frame_rate {
+        if !(r.is_finite() && r > 0.0) {
+            return Err(EncodeError::InvalidOption(format!(
+                "frame_rate must be positive (got {r})"
+            )));
+        }
+    }
+    if !(-7..=22).contains(&opts.zstd_level) {
+        return Err(EncodeError::InvalidOption(format!(
+            "zstd_level must be in -7..=22 (got {})",
+            opts.zstd_level
+        )));
+    }
+    for (index, c) in cameras.iter().enumerate() {
+        c.validate()
+            .map_err(|message| EncodeError::InvalidCamera { index, message })?;
+    }
+    let enc = Encodings::for_mode(opts.quant);
+
+    let mut payloads: Vec<(SectionKind, u32, Vec<u8>)> = Vec::new();
+    let mut sections = Vec::new();
+    for (kind, part) in [
+        (SectionKind::Mlp, StaticPart::Mlp),
+        (SectionKind::Proposal, StaticPart::Proposal),
+        (SectionKind::Static, StaticPart::Static),
+    ] {
+        let (raw, values) = write_static(&layout, params, part, enc);
+        sections.push(SectionReport {
+            name: kind.name().into(),
+            stored_bytes: 0,
+            raw_bytes: raw.len() as u64,
+            values,
+        });
+        payloads.push((kind, 0, raw));
+    }
+
+    let region = dynamic_region(&layout.field.encoding, params, opts.dynamic_threshold);
+    let mut chunks = Vec::new();
+    let mut spans = Vec::new();
+    let mut h4_values = 0;
+    let mut h4_kept_union = 0;
+    if let Some((g, _)) = &layout.field.encoding.h4 {
+        h4_values = g.num_params as u64;
+        if !region.boxes.is_empty() {
+            spans = chunk_spans(model.num_frames, opts.chunk_frames);
+            let per_chunk: Vec<Vec<Vec<u32>>> = spans
+                .iter()
+                .map(|span| {
+                    (0..g.levels.len())
+                        .map(|l| reached_rows(g, l, &region, span.t_start, span.t_end))
+                        .collect()
+                })
+                .collect();
+            // How many chunks need each row: rows needed by two or more go to the shared section.
+            let mut users: Vec<Vec<u16>> = g.levels.iter().map(|l| vec![0; l.rows]).collect();
+            for rows in &per_chunk {
+                for (u, r) in users.iter_mut().zip(rows) {
+                    for &row in r {
+                        u[row as usize] = u[row as usize].saturating_add(1);
+                    }
+                }
+            }
+            let shared: Vec<Vec<u32>> = users
+                .iter()
+                .map(|u| {
+                    (0..u.len() as u32)
+                        .filter(|&r| u[r as usize] >= 2)
+                        .collect()
+                })
+                .collect();
+            let shared_values: u64 =
+                shared.iter().map(|r| r.len() as u64).sum::<u64>() * g.features as u64;
+            let raw = write_chunk(&layout, params, SHARED_TAG, &shared, enc);
+            sections.push(SectionReport {
+                name: SectionKind::Shared.name().into(),
+                stored_bytes: 0,
+                raw_bytes: raw.len() as u64,
+                values: shared_values,
+            });
+            payloads.push((SectionKind::Shared, 0, raw));
+            for (c, (span, rows)) in spans.iter().zip(&per_chunk).enumerate() {
+                let own: Vec<Vec<u32>> = rows
+                    .iter()
+                    .zip(&users)
+                    .map(|(r, u)| {
+                        r.iter()
+                            .copied()
+                            .filter(|&row| u[row as usize] == 1)
+                            .collect()
+                    })
+                    .collect();
+                let reached: u64 = rows.iter().map(|r| r.len() as u64).sum();
+                let kept: u64 = own.iter().map(|r| r.len() as u64).sum();
+                let raw = write_chunk(&layout, params, c as u32, &own, enc);
+                chunks.push(ChunkReport {
+                    span: span.clone(),
+                    stored_bytes: 0,
+                    raw_bytes: raw.len() as u64,
+                    reached_values: reached * g.features as u64,
+                    kept_values: kept * g.features as u64,
+                });
+                payloads.push((SectionKind::Dynamic, c as u32, raw));
+            }
+            h4_kept_union = users
+                .iter()
+                .map(|u| u.iter().filter(|&&n| n > 0).count() as u64)
+                .sum::<u64>()
+                * g.features as u64;
+        }
+    }
+
+    let metadata = Metadata {
+        model: model.clone(),
+        param_count: layout.params.total as u64,
+        frame_rate: opts.frame_rate,
+        time_range: [0.0, 1.0],
+        cameras: cameras.to_vec(),
+        quant: opts.quant,
+        dynamic_threshold: opts.dynamic_threshold,
+        chunk_frames: opts.chunk_frames as u32,
+        chunks: spans,
+        encoder: format!("msth-codec {}", env!("CARGO_PKG_VERSION")),
+    };
+    let meta = serde_json::to_vec(&metadata)
+        .map_err(|e| EncodeError::InvalidOption(format!("metadata does not serialise: {e}")))?;
+
+    let compressed: Vec<Vec<u8>> = payloads
+        .iter()
+        .map(|(_, _, raw)| compress(raw, opts.zstd_level))
+        .collect::<Result<_, _>>()?;
+    let header_size = prefix_size(meta.len() as u64, payloads.len() as u64);
+    let mut entries = Vec::with_capacity(payloads.len());
+    let mut offset = header_size;
+    for ((kind, chunk, raw), stored) in payloads.iter().zip(&compressed) {
+        offset = offset.div_ceil(ALIGN) * ALIGN;
+        entries.push(SectionEntry {
+            kind: *kind,
+            chunk: *chunk,
+            offset,
+            length: stored.len() as u64,
+            raw_length: raw.len() as u64,
+            crc32: crc32fast::hash(stored),
+        });
+        offset += stored.len() as u64;
+    }
+    let header_size_u32 = u32::try_from(header_size)
+        .map_err(|_| EncodeError::InvalidOption("metadata too large".into()))?;
+    let mut out = Vec::with_capacity(offset as usize);
+    out.extend_from_slice(&[0u8; FIXED_HEADER]);
+    out.extend_from_slice(&meta);
+    out.resize(index_offset(meta.len() as u64) as usize, 0);
+    for e in &entries {
+        write_entry(&mut out, e);
+    }
+    let mut header = FixedHeader {
+        version: VERSION,
+        flags: 0,
+        header_size: header_size_u32,
+        metadata_length: meta.len() as u32,
+        section_count: entries.len() as u32,
+        prefix_crc32: 0,
+    };
+    let bytes = header.to_bytes();
+    let mut crc = crc32fast::Hasher::new();
+    crc.update(&bytes[..28]);
+    crc.update(&out[FIXED_HEADER..]);
+    header.prefix_crc32 = crc.finalize();
+    out[..FIXED_HEADER].copy_from_slice(&header.to_bytes());
+    for (e, stored) in entries.iter().zip(&compressed) {
+        out.resize(e.offset as usize, 0);
+        out.extend_from_slice(stored);
+    }
+
+    for (s, e) in sections.iter_mut().zip(&entries) {
+        s.stored_bytes = e.length;
+    }
+    let first_chunk = entries.len() - chunks.len();
+    for (c, e) in chunks.iter_mut().zip(&entries[first_chunk..]) {
+        c.stored_bytes = e.length;
+    }
+    let report = EncodeReport {
+        quant: opts.quant,
+        file_bytes: out.len() as u64,
+        prefix_bytes: header_size,
+        raw_param_bytes: 4 * layout.params.total as u64,
+        sections,
+        chunks,
+        h4_values,
+        h4_kept_union,
+        dynamic_voxels: region.voxels,
+        num_frames: model.num_frames,
+        encode_seconds: start.elapsed().as_secs_f64(),
+    };
+    Ok((out, report))
+}

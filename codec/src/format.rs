@@ -1,0 +1,610 @@
+//! The file's container: the fixed header, the JSON metadata and the section index
+//! (format.md §2–§4), with the limits a decoder enforces before allocating. Section payloads are
+//! in [`crate::sections`].
+
+use serde::{Deserialize, Serialize};
+
+use msth_core::config::ModelConfig;
+use msth_core::field::ModelLayout;
+use msth_core::Camera;
+
+use crate::error::DecodeError;
+
+/// `b"MSTH"`.
+pub const MAGIC: [u8; 4] = *b"MSTH";
+/// The format version this crate writes and reads.
+pub const VERSION: u16 = 1;
+/// Bytes of the fixed header.
+pub const FIXED_HEADER: usize = 32;
+/// Bytes of one index entry.
+pub const INDEX_ENTRY: usize = 40;
+/// Sections and the index start on multiples of this many bytes.
+pub const ALIGN: u64 = 8;
+
+/// What a section holds (index entry `kind`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SectionKind {
+    /// Decoder MLP weights of the field and the proposal.
+    Mlp = 1,
+    /// The proposal field's tables and mask (the empty-space structure).
+    Proposal = 2,
+    /// The field's 3D table and mask grid.
+    Static = 3,
+    /// One time chunk of the field's 4D table, sparse: the rows only this chunk needs.
+    Dynamic = 4,
+    /// The 4D rows that two or more chunks need, stored once (present iff there are chunks).
+    Shared = 5,
+}
+
+impl SectionKind {
+    fn from_u8(v: u8) -> Option<Self> {
+        Some(match v {
+            1 => SectionKind::Mlp,
+            2 => SectionKind::Proposal,
+            3 => SectionKind::Static,
+            4 => SectionKind::Dynamic,
+            5 => SectionKind::Shared,
+            _ => return None,
+        })
+    }
+    pub fn name(self) -> &'static str {
+        match self {
+            SectionKind::Mlp => "mlp",
+            SectionKind::Proposal => "proposal",
+            SectionKind::Static => "static",
+            SectionKind::Dynamic => "dynamic",
+            SectionKind::Shared => "shared",
+        }
+    }
+}
+
+/// Index position of chunk 0 (after MLP, proposal, static and shared).
+pub const FIRST_CHUNK: usize = 4;
+
+/// Section compression (index entry `compression`); version 1 has zstd only.
+pub const COMPRESSION_ZSTD: u8 = 1;
+
+/// One index entry: where a section lives and how to check it.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct SectionEntry {
+    pub kind: SectionKind,
+    /// The chunk number for dynamic sections, 0 otherwise.
+    pub chunk: u32,
+    /// Absolute byte offset of the stored (compressed) bytes.
+    pub offset: u64,
+    /// Stored bytes.
+    pub length: u64,
+    /// Bytes after decompression.
+    pub raw_length: u64,
+    /// CRC-32 (ISO-HDLC, as zlib) of the stored bytes.
+    pub crc32: u32,
+}
+
+impl SectionEntry {
+    pub fn range(&self) -> std::ops::Range<u64> {
+        self.offset..self.offset + self.length
+    }
+    pub fn label(&self) -> String {
+        match self.kind {
+            SectionKind::Dynamic => format!("dynamic chunk {}", self.chunk),
+            SectionKind::Shared => "shared dynamic section".into(),
+            k => format!("{} section", k.name()),
+        }
+    }
+}
+
+/// How the tables, masks and MLPs are quantised (the metadata's `quant`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum QuantMode {
+    /// Lossless.
+    F32,
+    F16,
+    /// Per-level affine, 8 bits.
+    Q8,
+    /// Per-level affine, 6 bits.
+    Q6,
+    /// Per-level affine, 5 bits.
+    Q5,
+    /// Per-level affine, 4 bits.
+    Q4,
+    /// Per-level 16-entry codebook (Lloyd-Max), 4 bits.
+    K4,
+    /// Per-level 8-entry codebook, 3 bits.
+    K3,
+}
+
+impl QuantMode {
+    pub const ALL: [QuantMode; 8] = [
+        QuantMode::F32,
+        QuantMode::F16,
+        QuantMode::Q8,
+        QuantMode::Q6,
+        QuantMode::Q5,
+        QuantMode::Q4,
+        QuantMode::K4,
+        QuantMode::K3,
+    ];
+    pub fn name(self) -> &'static str {
+        match self {
+            QuantMode::F32 => "f32",
+            QuantMode::F16 => "f16",
+            QuantMode::Q8 => "q8",
+            QuantMode::Q6 => "q6",
+            QuantMode::Q5 => "q5",
+            QuantMode::Q4 => "q4",
+            QuantMode::K4 => "k4",
+            QuantMode::K3 => "k3",
+        }
+    }
+}
+
+impl std::str::FromStr for QuantMode {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        QuantMode::ALL
+            .into_iter()
+            .find(|m| m.name() == s)
+            .ok_or_else(|| {
+                format!(
+                    "unknown quantisation mode `{s}` (expected f32, f16, q8, q6, q5, q4, k4 or k3)"
+                )
+            })
+    }
+}
+
+impl std::fmt::Display for QuantMode {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// One dynamic chunk's span (the metadata's `chunks[i]`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ChunkSpan {
+    /// First frame (inclusive) and end frame (exclusive) the chunk is meant for.
+    pub frame_start: u32,
+    pub frame_end: u32,
+    /// Normalised times the stored rows cover: every point of a dynamic voxel at any time in
+    /// `[t_start, t_end]` reads only stored rows.
+    pub t_start: f32,
+    pub t_end: f32,
+}
+
+/// Everything in the metadata JSON (format.md §3).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Metadata {
+    /// The model: grids, mask, blend mode, MLP shapes, sampler, scene bounds, frame count.
+    pub model: ModelConfig,
+    /// Length of the flat parameter buffer the model needs (a consistency check).
+    pub param_count: u64,
+    /// Frames per second for playback (`null`: unknown).
+    pub frame_rate: Option<f32>,
+    /// Normalised time of frame `f` is `f / (num_frames - 1)` (0 for one frame).
+    pub time_range: [f32; 2],
+    /// Suggested playback cameras.
+    pub cameras: Vec<Camera>,
+    pub quant: QuantMode,
+    /// A mask vertex is dynamic when `1 - sigmoid(logit) >= dynamic_threshold`.
+    pub dynamic_threshold: f32,
+    /// Frames per dynamic chunk.
+    pub chunk_frames: u32,
+    /// One span per dynamic section, in chunk order (empty: no dynamic sections).
+    pub chunks: Vec<ChunkSpan>,
+    /// Free-form producer string.
+    pub encoder: String,
+}
+
+/// Sizes the decoder accepts; everything is checked before anything is allocated.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Limits {
+    /// Largest metadata JSON, bytes.
+    pub max_metadata: u64,
+    /// Most index entries.
+    pub max_sections: u64,
+    /// Largest flat parameter buffer, floats.
+    pub max_params: u64,
+    /// Largest stored or decompressed section, bytes.
+    pub max_section_bytes: u64,
+    /// Most playback cameras.
+    pub max_cameras: u64,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Limits {
+            max_metadata: 16 << 20,
+            max_sections: 1 << 16,
+            max_params: 1 << 27,
+            max_section_bytes: 2 << 30,
+            max_cameras: 4096,
+        }
+    }
+}
+
+/// The fixed header (format.md §2).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct FixedHeader {
+    pub version: u16,
+    pub flags: u16,
+    /// Bytes of fixed header + metadata + padding + index: the prefix a client fetches first.
+    pub header_size: u32,
+    pub metadata_length: u32,
+    pub section_count: u32,
+    pub prefix_crc32: u32,
+}
+
+impl FixedHeader {
+    pub fn to_bytes(&self) -> [u8; FIXED_HEADER] {
+        let mut b = [0u8; FIXED_HEADER];
+        b[0..4].copy_from_slice(&MAGIC);
+        b[4..6].copy_from_slice(&self.version.to_le_bytes());
+        b[6..8].copy_from_slice(&self.flags.to_le_bytes());
+        b[8..12].copy_from_slice(&self.header_size.to_le_bytes());
+        b[12..16].copy_from_slice(&self.metadata_length.to_le_bytes());
+        b[16..20].copy_from_slice(&self.section_count.to_le_bytes());
+        // 20..28 reserved, zero
+        b[28..32].copy_from_slice(&self.prefix_crc32.to_le_bytes());
+        b
+    }
+
+    /// Parses and checks the fixed header from the first 32 bytes (or fewer: `Truncated`).
+    pub fn parse(bytes: &[u8], limits: &Limits) -> Result<Self, DecodeError> {
+        let n = bytes.len().min(4);
+        if bytes[..n] != MAGIC[..n] {
+            return Err(DecodeError::malformed(
+                "header",
+                format!("bad magic {:02x?} (expected \"MSTH\")", &bytes[..n]),
+            ));
+        }
+        if bytes.len() < FIXED_HEADER {
+            return Err(DecodeError::Truncated {
+                what: "fixed header".into(),
+                needed: FIXED_HEADER as u64,
+                have: bytes.len() as u64,
+            });
+        }
+        let u16_at = |o: usize| u16::from_le_bytes([bytes[o], bytes[o + 1]]);
+        let u32_at =
+            |o: usize| u32::from_le_bytes([bytes[o], bytes[o + 1], bytes[o + 2], bytes[o + 3]]);
+        let h = FixedHeader {
+            version: u16_at(4),
+            flags: u16_at(6),
+            header_size: u32_at(8),
+            metadata_length: u32_at(12),
+            section_count: u32_at(16),
+            prefix_crc32: u32_at(28),
+        };
+        if h.version != VERSION {
+            return Err(DecodeError::Unsupported {
+                what: "version".into(),
+                message: format!(
+                    "file is version {}, this decoder reads {VERSION}",
+                    h.version
+                ),
+            });
+        }
+        if h.flags != 0 {
+            return Err(DecodeError::malformed(
+                "header",
+                format!("reserved flag bits set: {:#06x}", h.flags),
+            ));
+        }
+        if bytes[20..28].iter().any(|&b| b != 0) {
+            return Err(DecodeError::malformed(
+                "header",
+                "reserved bytes 20..28 must be zero",
+            ));
+        }
+        if h.metadata_length as u64 > limits.max_metadata {
+            return Err(DecodeError::limit(
+                "metadata length",
+                h.metadata_length as u64,
+                limits.max_metadata,
+            ));
+        }
+        if h.section_count as u64 > limits.max_sections {
+            return Err(DecodeError::limit(
+                "section count",
+                h.section_count as u64,
+                limits.max_sections,
+            ));
+        }
+        let expected = prefix_size(h.metadata_length as u64, h.section_count as u64);
+        if h.header_size as u64 != expected {
+            return Err(DecodeError::malformed(
+                "header",
+                format!(
+                    "header_size {} disagrees with metadata length {} and {} sections (expected {expected})",
+                    h.header_size, h.metadata_length, h.section_count
+                ),
+            ));
+        }
+        Ok(h)
+    }
+}
+
+/// Offset of the index for a metadata length.
+pub fn index_offset(metadata_length: u64) -> u64 {
+    (FIXED_HEADER as u64 + metadata_length).div_ceil(ALIGN) * ALIGN
+}
+
+/// Bytes of the prefix (fixed header, metadata, padding, index).
+pub fn prefix_size(metadata_length: u64, sections: u64) -> u64 {
+    index_offset(metadata_length) + sections * INDEX_ENTRY as u64
+}
+
+pub fn write_entry(out: &mut Vec<u8>, e: &SectionEntry) {
+    out.push(e.kind as u8);
+    out.push(COMPRESSION_ZSTD);
+    out.extend_from_slice(&0u16.to_le_bytes());
+    out.extend_from_slice(&e.chunk.to_le_bytes());
+    out.extend_from_slice(&e.offset.to_le_bytes());
+    out.extend_from_slice(&e.length.to_le_bytes());
+    out.extend_from_slice(&e.raw_length.to_le_bytes());
+    out.extend_from_slice(&e.crc32.to_le_bytes());
+    out.extend_from_slice(&0u32.to_le_bytes());
+}
+
+fn parse_entry(b: &[u8], i: usize) -> Result<SectionEntry, DecodeError> {
+    let what = format!("index entry {i}");
+    let u32_at = |o: usize| u32::from_le_bytes([b[o], b[o + 1], b[o + 2], b[o + 3]]);
+    let u64_at = |o: usize| {
+        let mut a = [0u8; 8];
+        a.copy_from_slice(&b[o..o + 8]);
+        u64::from_le_bytes(a)
+    };
+    let kind = SectionKind::from_u8(b[0]).ok_or_else(|| DecodeError::Unsupported {
+        what: what.clone(),
+        message: format!("section kind {}", b[0]),
+    })?;
+    if b[1] != COMPRESSION_ZSTD {
+        return Err(DecodeError::Unsupported {
+            what,
+            message: format!("compression {} (version 1 has zstd = 1 only)", b[1]),
+        });
+    }
+    if b[2] != 0 || b[3] != 0 || u32_at(36) != 0 {
+        return Err(DecodeError::malformed(what, "reserved fields must be zero"));
+    }
+    Ok(SectionEntry {
+        kind,
+        chunk: u32_at(4),
+        offset: u64_at(8),
+        length: u64_at(16),
+        raw_length: u64_at(24),
+        crc32: u32_at(32),
+    })
+}
+
+/// Everything in the file's prefix, checked: the first thing a streaming client decodes.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FileIndex {
+    pub header: FixedHeader,
+    pub metadata: Metadata,
+    pub sections: Vec<SectionEntry>,
+    /// The model's parameter layout (derived from `metadata.model`).
+    pub layout: ModelLayout,
+}
+
+impl FileIndex {
+    /// How many bytes from the start of the file the prefix needs (from its first 32 bytes).
+    pub fn prefix_len(first_bytes: &[u8], limits: &Limits) -> Result<u64, DecodeError> {
+        Ok(FixedHeader::parse(first_bytes, limits)?.header_size as u64)
+    }
+
+    /// Decodes and checks the prefix. `bytes` may be the whole file or any prefix of it that
+    /// holds at least `header_size` bytes; sections need not be present.
+    pub fn parse(bytes: &[u8], limits: &Limits) -> Result<Self, DecodeError> {
+        let header = FixedHeader::parse(bytes, limits)?;
+        let hs = header.header_size as usize;
+        if bytes.len() < hs {
+            return Err(DecodeError::Truncated {
+                what: "header and index".into(),
+                needed: hs as u64,
+                have: bytes.len() as u64,
+            });
+        }
+        let mut crc = crc32fast::Hasher::new();
+        crc.update(&bytes[..28]);
+        crc.update(&bytes[FIXED_HEADER..hs]);
+        let computed = crc.finalize();
+        if computed != header.prefix_crc32 && crate::error::VERIFY_CHECKSUMS {
+            return Err(DecodeError::Checksum {
+                what: "header and index".into(),
+                stored: header.prefix_crc32,
+                computed,
+            });
+        }
+        let ml = header.metadata_length as usize;
+        let meta_bytes = &bytes[FIXED_HEADER..FIXED_HEADER + ml];
+        let io = index_offset(ml as u64) as usize;
+        if bytes[FIXED_HEADER + ml..io].iter().any(|&b| b != 0) {
+            return Err(DecodeError::malformed("metadata", "padding must be zero"));
+        }
+        let metadata: Metadata = serde_json::from_slice(meta_bytes)
+            .map_err(|e| DecodeError::malformed("metadata JSON", e.to_string()))?;
+        let layout = check_metadata(&metadata, limits)?;
+        let mut sections = Vec::with_capacity(header.section_count as usize);
+        for i in 0..header.section_count as usize {
+            let o = io + i * INDEX_ENTRY;
+            sections.push(parse_entry(&bytes[o..o + INDEX_ENTRY], i)?);
+        }
+        check_sections(&sections, &metadata, hs as u64, limits)?;
+        Ok(FileIndex {
+            header,
+            metadata,
+            sections,
+            layout,
+        })
+    }
+
+    /// Total file length the index implies (end of the last section).
+    pub fn file_len(&self) -> u64 {
+        self.sections
+            .iter()
+            .map(|s| s.offset + s.length)
+            .max()
+            .unwrap_or(self.header.header_size as u64)
+    }
+
+    pub fn section(&self, kind: SectionKind) -> Option<&SectionEntry> {
+        self.sections.iter().find(|s| s.kind == kind)
+    }
+
+    pub fn chunk(&self, chunk: usize) -> Option<&SectionEntry> {
+        self.sections
+            .iter()
+            .find(|s| s.kind == SectionKind::Dynamic && s.chunk as usize == chunk)
+    }
+
+    /// The chunk a player uses at normalised time `t`: the last chunk whose `t_start <= t`
+    /// (chunk 0 before the first); `None` when the file has no dynamic chunks.
+    pub fn chunk_for_time(&self, t: f32) -> Option<usize> {
+        let spans = &self.metadata.chunks;
+        if spans.is_empty() {
+            return None;
+        }
+        Some(spans.iter().rposition(|c| c.t_start <= t).unwrap_or(0))
+    }
+}
+
+fn check_metadata(m: &Metadata, limits: &Limits) -> Result<ModelLayout, DecodeError> {
+    m.model.validate().map_err(DecodeError::Model)?;
+    // Bound the layout's size before building it: the parameter count of every grid is at most
+    // levels * table rows * features, and ModelLayout::new allocates nothing per row.
+    let layout = ModelLayout::new(&m.model);
+    let total = layout.params.total as u64;
+    if total > limits.max_params {
+        return Err(DecodeError::limit(
+            "parameter count",
+            total,
+            limits.max_params,
+        ));
+    }
+    if m.param_count != total {
+        return Err(DecodeError::Model(format!(
+            "metadata says {} parameters, the configuration needs {total}",
+            m.param_count
+        )));
+    }
+    if m.cameras.len() as u64 > limits.max_cameras {
+        return Err(DecodeError::limit(
+            "camera count",
+            m.cameras.len() as u64,
+            limits.max_cameras,
+        ));
+    }
+    for (i, c) in m.cameras.iter().enumerate() {
+        c.validate()
+            .map_err(|e| DecodeError::malformed("metadata", format!("camera {i}: {e}")))?;
+    }
+    if let Some(r) = m.frame_rate {
+        if !(r.is_finite() && r > 0.0) {
+            return Err(DecodeError::malformed(
+                "metadata",
+                format!("frame_rate must be positive and finite (got {r})"),
+            ));
+        }
+    }
+    if !(m.dynamic_threshold.is_finite() && (0.0..=1.0).contains(&m.dynamic_threshold)) {
+        return Err(DecodeError::malformed(
+            "metadata",
+            "dynamic_threshold must be in [0, 1]",
+        ));
+    }
+    let [t0, t1] = m.time_range;
+    if !(t0.is_finite() && t1.is_finite() && t0 <= t1) {
+        return Err(DecodeError::malformed("metadata", "bad time_range"));
+    }
+    if m.chunk_frames == 0 {
+        return Err(DecodeError::malformed(
+            "metadata",
+            "chunk_frames must be >= 1",
+        ));
+    }
+    if !m.chunks.is_empty() && !m.model.field.encoding.blend.uses_h4() {
+        return Err(DecodeError::malformed(
+            "metadata",
+            "dynamic chunks in a model without a 4D table",
+        ));
+    }
+    let mut prev = f32::NEG_INFINITY;
+    for (i, c) in m.chunks.iter().enumerate() {
+        if !(c.t_start.is_finite() && c.t_end.is_finite() && c.t_start <= c.t_end)
+            || c.t_start < prev
+            || c.frame_start > c.frame_end
+        {
+            return Err(DecodeError::malformed(
+                "metadata",
+                format!("chunk {i}: bad span {c:?}"),
+            ));
+        }
+        prev = c.t_start;
+    }
+    Ok(layout)
+}
+
+fn check_sections(
+    s: &[SectionEntry],
+    m: &Metadata,
+    header_size: u64,
+    limits: &Limits,
+) -> Result<(), DecodeError> {
+    let n_chunks = m.chunks.len();
+    let expected = if n_chunks == 0 { 3 } else { 4 + n_chunks };
+    if s.len() != expected {
+        return Err(DecodeError::malformed(
+            "index",
+            format!(
+                "{} sections, expected {expected} for {n_chunks} chunks in the metadata",
+                s.len()
+            ),
+        ));
+    }
+    let mut end = header_size;
+    for (i, e) in s.iter().enumerate() {
+        let (kind, chunk) = match i {
+            0 => (SectionKind::Mlp, 0),
+            1 => (SectionKind::Proposal, 0),
+            2 => (SectionKind::Static, 0),
+            3 => (SectionKind::Shared, 0),
+            c => (SectionKind::Dynamic, (c - FIRST_CHUNK) as u32),
+        };
+        if e.kind != kind || e.chunk != chunk {
+            return Err(DecodeError::malformed(
+                "index",
+                format!(
+                    "entry {i} is {:?} chunk {}, expected {kind:?} chunk {chunk}",
+                    e.kind, e.chunk
+                ),
+            ));
+        }
+        for (what, v) in [("length", e.length), ("raw_length", e.raw_length)] {
+            if v > limits.max_section_bytes {
+                return Err(DecodeError::limit(
+                    format!("{} {what}", e.label()),
+                    v,
+                    limits.max_section_bytes,
+                ));
+            }
+        }
+        if e.offset % ALIGN != 0 || e.offset < end {
+            return Err(DecodeError::malformed(
+                "index",
+                format!(
+                    "{} at offset {} overlaps the previous data (ends at {end}) or is not {ALIGN}-aligned",
+                    e.label(),
+                    e.offset
+                ),
+            ));
+        }
+        end = e.offset.checked_add(e.length).ok_or_else(|| {
+            DecodeError::malformed("index", format!("{} range overflows", e.label()))
+        })?;
+    }
+    Ok(())
+}

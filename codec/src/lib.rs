@@ -1,0 +1,32 @@
+//! `msth-codec`: the `.msth` streaming file format (normative spec: `docs/format.md`).
+//!
+//! A file is a prefix (fixed header, JSON metadata, section index) that one HTTP Range request
+//! fetches, then zstd-compressed sections a client fetches by byte range: decoder MLPs, the
+//! proposal field (the empty-space structure), the static part (3D table, mask grid) and the
+//! dynamic part as time chunks, each holding only the 4D-table rows that dynamic voxels reach in
+//! its time span.
+//!
+//! - [`encode`]: model configuration + flat parameters + cameras -> bytes and an [`EncodeReport`];
+//! - [`Decoder`]: streaming and random access (prefix first, then any section from its bytes);
+//! - [`decode_all`] -> [`DecodedModel`]: the flat buffer `msth_core::pipeline::render_chunk`
+//!   renders directly, and [`DecodedModel::params_for_time`] for a player's per-chunk buffer.
+//!
+//! Modules: [`format`] (header, metadata, index, limits), [`quant`] (value blocks and
+//! quantisation), [`sections`] (section payloads), [`select`] (which 4D rows a chunk keeps),
+//! [`error`]. This crate knows the model's layout, not how it was trained.
+
+pub mod decode;
+pub mod encode;
+pub mod error;
+pub mod format;
+pub mod quant;
+pub mod sections;
+pub mod select;
+
+pub use decode::{decode_all, decode_all_with_limits, DecodedModel, Decoder};
+pub use encode::{encode, ChunkReport, EncodeOptions, EncodeReport, SectionReport};
+pub use error::{DecodeError, EncodeError};
+pub use format::{FileIndex, Limits, Metadata, QuantMode, SectionEntry, SectionKind};
+
+#[cfg(test)]
+mod tests;

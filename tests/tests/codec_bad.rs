@@ -1,0 +1,495 @@
+//! Hostile and broken `.msth` files fail with an error, never a panic, hang or huge allocation:
+//! every file in `tests/bad/` is rejected by the whole-file and the streaming decoder.
+//!
+//! The corpus is written by the ignored generator below, from a tiny valid file, with checksums
+//! recomputed wherever a deeper check is the target. Regenerate with
+//! `cargo test --release -p msth-tests --test codec_bad -- --ignored regenerate_bad_corpus`.
+
+use std::path::{Path, PathBuf};
+
+use msth_codec::format::{index_offset, FIXED_HEADER, INDEX_ENTRY};
+use msth_codec::quant::{BlockEncoding, Writer};
+use msth_codec::{decode_all, encode, Decoder, EncodeOptions, QuantMode};
+use msth_core::config::{Background, BlendMode, ModelConfig, Preset};
+use msth_core::field::ModelLayout;
+use msth_core::SceneBounds;
+
+fn bad_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("bad")
+}
+
+/// A tiny model with a dynamic region, so that the file has chunks.
+fn tiny_model() -> (ModelConfig, Vec<f32>) {
+    let mut c = ModelConfig::preset(
+        Preset::Fast,
+        SceneBounds::dnerf_default(),
+        Background::Color { rgb: [1.0; 3] },
+        4,
+    );
+    for enc in [&mut c.field.encoding, &mut c.proposal.encoding] {
+        enc.blend = BlendMode::Mt;
+        enc.grid3.levels = 2;
+        enc.grid4.levels = 2;
+        enc.grid3.log2_table_size = 8;
+        enc.grid4.log2_table_size = 8;
+        enc.grid3.finest_resolution = vec![16.0; 3];
+        enc.grid4.finest_resolution[..3].copy_from_slice(&[16.0; 3]);
+        enc.mask_resolution = 4;
+    }
+    c.field.density_hidden = 4;
+    c.field.color_hidden = 4;
+    c.field.color_layers = 1;
+    c.proposal.hidden = 4;
+    let layout = ModelLayout::new(&c);
+    let mut p = layout.init_params(1);
+    if let Some((_, r)) = &layout.field.encoding.mask {
+        for (i, v) in p[r.clone()].iter_mut().enumerate() {
+            *v = if i == 21 { -4.0 } else { 4.0 };
+        }
+    }
+    (c, p)
+}
+
+/// A valid file: q8 (affine blocks), two chunks.
+fn valid_file() -> Vec<u8> {
+    let (c, p) = tiny_model();
+    let opts = EncodeOptions {
+        quant: QuantMode::Q8,
+        chunk_frames: 2,
+        ..Default::default()
+    };
+    encode(&c, &p, &[], &opts).unwrap().0
+}
+
+struct File {
+    bytes: Vec<u8>,
+}
+
+impl File {
+    fn u32_at(&self, o: usize) -> u32 {
+        u32::from_le_bytes(self.bytes[o..o + 4].try_into().unwrap())
+    }
+    fn meta_len(&self) -> usize {
+        self.u32_at(12) as usize
+    }
+    fn header_size(&self) -> usize {
+        self.u32_at(8) as usize
+    }
+    fn entry(&self, i: usize) -> usize {
+        index_offset(self.meta_len() as u64) as usize + i * INDEX_ENTRY
+    }
+    fn u64_at(&self, o: usize) -> u64 {
+        u64::from_le_bytes(self.bytes[o..o + 8].try_into().unwrap())
+    }
+    fn set_u64(&mut self, o: usize, v: u64) {
+        self.bytes[o..o + 8].copy_from_slice(&v.to_le_bytes());
+    }
+    fn set_u32(&mut self, o: usize, v: u32) {
+        self.bytes[o..o + 4].copy_from_slice(&v.to_le_bytes());
+    }
+    /// Recomputes the prefix CRC.
+    fn fix_prefix(&mut self) {
+        let hs = self.header_size();
+        let mut h = crc32fast::Hasher::new();
+        h.update(&self.bytes[..28]);
+        h.update(&self.bytes[FIXED_HEADER..hs]);
+        let crc = h.finalize();
+        self.set_u32(28, crc);
+    }
+    /// Replaces the metadata JSON, moving everything after it and fixing every offset.
+    fn set_metadata(&mut self, meta: &[u8]) {
+        let old_ml = self.meta_len();
+        let n = self.u32_at(16) as usize;
+        let old_io = index_offset(old_ml as u64) as usize;
+        let index = self.bytes[old_io..old_io + n * INDEX_ENTRY].to_vec();
+        let body = self.bytes[self.header_size()..].to_vec();
+        let new_io = index_offset(meta.len() as u64) as usize;
+        let new_hs = new_io + n * INDEX_ENTRY;
+        // Keep sections 8-aligned: shift by a multiple of 8.
+        let old_hs = self.header_size();
+        let shift = (new_hs as i64 - old_hs as i64).div_euclid(8) * 8 + 8;
+        let mut b = self.bytes[..FIXED_HEADER].to_vec();
+        b.extend_from_slice(meta);
+        b.resize(new_io, 0);
+        b.extend_from_slice(&index);
+        b.resize((old_hs as i64 + shift) as usize, 0);
+        b.extend_from_slice(&body);
+        self.bytes = b;
+        self.set_u32(8, new_hs as u32);
+        self.set_u32(12, meta.len() as u32);
+        for i in 0..n {
+            let o = self.entry(i) + 8;
+            let v = self.u64_at(o);
+            self.set_u64(o, (v as i64 + shift) as u64);
+        }
+        self.fix_prefix();
+    }
+    fn metadata(&self) -> serde_json::Value {
+        serde_json::from_slice(&self.bytes[FIXED_HEADER..FIXED_HEADER + self.meta_len()]).unwrap()
+    }
+    fn edit_metadata(&mut self, f: impl FnOnce(&mut serde_json::Value)) {
+        let mut m = self.metadata();
+        f(&mut m);
+        self.set_metadata(&serde_json::to_vec(&m).unwrap());
+    }
+    fn section(&self, i: usize) -> (usize, usize) {
+        let e = self.entry(i);
+        (self.u64_at(e + 8) as usize, self.u64_at(e + 16) as usize)
+    }
+    fn payload(&self, i: usize) -> Vec<u8> {
+        let (o, l) = self.section(i);
+        zstd::bulk::decompress(&self.bytes[o..o + l], 1 << 24).unwrap()
+    }
+    /// Replaces section `i`'s stored bytes (the last section only, so offsets stay valid), with
+    /// `raw_length` and CRC updated.
+    fn set_stored(&mut self, i: usize, stored: &[u8], raw_len: u64) {
+        let (o, l) = self.section(i);
+        assert_eq!(
+            o + l,
+            self.bytes.len(),
+            "only the last section can change size"
+        );
+        self.bytes.truncate(o);
+        self.bytes.extend_from_slice(stored);
+        let e = self.entry(i);
+        self.set_u64(e + 16, stored.len() as u64);
+        self.set_u64(e + 24, raw_len);
+        self.set_u32(e + 32, crc32fast::hash(stored));
+        self.fix_prefix();
+    }
+    fn set_payload(&mut self, i: usize, raw: &[u8]) {
+        let stored = zstd::bulk::compress(raw, 3).unwrap();
+        self.set_stored(i, &stored, raw.len() as u64);
+    }
+}
+
+/// Index position of the last section (a dynamic chunk).
+fn b_last(v: &[u8]) -> usize {
+    u32::from_le_bytes(v[16..20].try_into().unwrap()) as usize - 1
+}
+
+fn corpus() -> Vec<(&'static str, Vec<u8>)> {
+    let v = valid_file();
+    let f = || File { bytes: v.clone() };
+    let mut out: Vec<(&'static str, Vec<u8>)> = Vec::new();
+    let mut add = |name: &'static str, b: Vec<u8>| out.push((name, b));
+
+    add("empty", vec![]);
+    add("short_magic", b"MS".to_vec());
+    let mut b = f();
+    b.bytes[0] = b'X';
+    add("bad_magic", b.bytes);
+    let mut b = f();
+    b.bytes[4] = 2;
+    b.fix_prefix();
+    add("bad_version", b.bytes);
+    let mut b = f();
+    b.bytes[6] = 1;
+    b.fix_prefix();
+    add("nonzero_flags", b.bytes);
+    let mut b = f();
+    b.bytes[22] = 1;
+    b.fix_prefix();
+    add("nonzero_reserved_header", b.bytes);
+    let mut b = f();
+    let hs = b.header_size() as u32;
+    b.set_u32(8, hs + 8);
+    b.fix_prefix();
+    add("header_size_mismatch", b.bytes);
+    let mut b = f();
+    b.bytes[29] ^= 0xff;
+    add("bad_prefix_checksum", b.bytes);
+    let b = f();
+    add(
+        "truncated_in_index",
+        b.bytes[..b.header_size() - 3].to_vec(),
+    );
+    let mut b = f();
+    b.set_metadata(b"{\"model\": [1, 2,");
+    add("invalid_json", b.bytes);
+    let mut b = f();
+    b.edit_metadata(|m| m["surprise"] = serde_json::json!(1));
+    add("unknown_metadata_key", b.bytes);
+    let mut b = f();
+    b.edit_metadata(|m| m["model"]["field"]["encoding"]["grid3"]["levels"] = 0.into());
+    add("invalid_model_config", b.bytes);
+    let mut b = f();
+    b.edit_metadata(|m| {
+        let n = m["param_count"].as_u64().unwrap();
+        m["param_count"] = (n + 1).into();
+    });
+    add("wrong_param_count", b.bytes);
+    let mut b = f();
+    b.edit_metadata(|m| {
+        for g in ["grid3", "grid4"] {
+            let grid = &mut m["model"]["field"]["encoding"][g];
+            grid["levels"] = 32.into();
+            grid["log2_table_size"] = 24.into();
+            grid["features_per_level"] = 8.into();
+        }
+    });
+    add("huge_param_count", b.bytes);
+    let mut b = f();
+    b.set_u32(16, u32::MAX);
+    b.fix_prefix();
+    add("huge_section_count", b.bytes);
+    let mut b = f();
+    let e = b.entry(3);
+    b.set_u64(e + 8, 1 << 40);
+    b.fix_prefix();
+    add("section_past_end", b.bytes);
+    let mut b = f();
+    let (o1, _) = b.section(1);
+    let e = b.entry(2);
+    b.set_u64(e + 8, o1 as u64);
+    b.fix_prefix();
+    add("overlapping_sections", b.bytes);
+    let mut b = f();
+    let e = b.entry(1);
+    let o = b.u64_at(e + 8);
+    b.set_u64(e + 8, o + 1);
+    b.fix_prefix();
+    add("unaligned_section", b.bytes);
+    let mut b = f();
+    let e = b.entry(0);
+    b.set_u64(e + 24, 1 << 40);
+    b.fix_prefix();
+    add("huge_raw_length", b.bytes);
+    let mut b = f();
+    let e = b.entry(0);
+    b.set_u64(e + 24, 1 << 20);
+    b.fix_prefix();
+    add("raw_length_beyond_model", b.bytes);
+    let mut b = f();
+    let e = b.entry(4);
+    b.set_u64(e + 16, 1 << 40);
+    b.fix_prefix();
+    add("huge_section_length", b.bytes);
+    let mut b = f();
+    let (o, _) = b.section(2);
+    b.bytes[o + 3] ^= 0x10;
+    add("bad_section_checksum", b.bytes);
+    let last = b_last(&v);
+    let mut b = f();
+    let (o, l) = b.section(last);
+    let cut = b.bytes[o..o + l / 2].to_vec();
+    let raw_len = b.u64_at(b.entry(last) + 24);
+    b.set_stored(last, &cut, raw_len);
+    add("truncated_zstd", b.bytes);
+    let mut b = f();
+    let raw = b.payload(last);
+    let stored = zstd::bulk::compress(&raw[..raw.len() - 4], 3).unwrap();
+    b.set_stored(last, &stored, raw.len() as u64);
+    add("zstd_shorter_than_claimed", b.bytes);
+    let mut b = f();
+    let stored = zstd::bulk::compress(&[7u8; 4096], 3).unwrap();
+    b.set_stored(last, &stored, 16);
+    add("zstd_longer_than_claimed", b.bytes);
+    let mut b = f();
+    let (_, l) = b.section(last);
+    let garbage: Vec<u8> = (0..l).map(|i| (i * 37 + 11) as u8).collect();
+    b.set_stored(last, &garbage, 64);
+    add("not_zstd", b.bytes);
+    let mut b = f();
+    b.bytes.extend_from_slice(&[0; 8]);
+    add("trailing_bytes", b.bytes);
+    let mut b = f();
+    let e = b.entry(0);
+    b.bytes[e] = 9;
+    b.fix_prefix();
+    add("unknown_section_kind", b.bytes);
+    let mut b = f();
+    let e = b.entry(0);
+    b.bytes[e + 1] = 2;
+    b.fix_prefix();
+    add("unknown_compression", b.bytes);
+    let mut b = f();
+    b.edit_metadata(|m| {
+        m["chunks"][1]["t_start"] = serde_json::json!(-1.0);
+    });
+    add("decreasing_chunk_times", b.bytes);
+    let mut b = f();
+    b.edit_metadata(|m| {
+        m["chunks"].as_array_mut().unwrap().pop();
+    });
+    add("chunk_count_mismatch", b.bytes);
+    let mut b = f();
+    b.edit_metadata(|m| m["frame_rate"] = serde_json::json!(-30.0));
+    add("negative_frame_rate", b.bytes);
+    let mut b = f();
+    let (o1, l1) = b.section(1);
+    let (o2, _) = b.section(2);
+    if o1 + l1 < o2 {
+        b.bytes[o1 + l1] = 1;
+        add("nonzero_padding", b.bytes);
+    } else {
+        // No padding after section 1 in this file: pad the prefix instead.
+        let hs = b.header_size();
+        b.bytes[hs] = 1;
+        add("nonzero_padding", b.bytes);
+    }
+
+    // Payload-level corruption with valid checksums: edit the last section (chunk 1).
+    let (c, _) = tiny_model();
+    let layout = ModelLayout::new(&c);
+    let (g4, _) = layout.field.encoding.h4.clone().unwrap();
+    let feats = g4.features;
+    let chunk_payload = |level0_rows: &[u32], chunk: u32, block: &dyn Fn(&mut Writer, usize)| {
+        let mut w = Writer::default();
+        w.u32(chunk);
+        w.u32(g4.levels.len() as u32);
+        for l in 0..g4.levels.len() {
+            let rows: &[u32] = if l == 0 { level0_rows } else { &[] };
+            w.u32(rows.len() as u32);
+            for &r in rows {
+                w.varint(r);
+            }
+            block(&mut w, rows.len() * feats);
+        }
+        w.bytes
+    };
+    let ok_block = |w: &mut Writer, n: usize| w.block(&vec![0.5; n], BlockEncoding::F32);
+    let mut b = f();
+    b.set_payload(
+        last,
+        &chunk_payload(&[g4.levels[0].rows as u32 + 3], 1, &ok_block),
+    );
+    add("chunk_row_outside_table", b.bytes);
+    let mut b = f();
+    b.set_payload(last, &chunk_payload(&[0], 0, &ok_block));
+    add("chunk_number_mismatch", b.bytes);
+    let mut b = f();
+    let mut raw = chunk_payload(&[], 1, &ok_block);
+    raw[8..12].copy_from_slice(&u32::MAX.to_le_bytes());
+    b.set_payload(last, &raw);
+    add("chunk_huge_row_count", b.bytes);
+    let mut b = f();
+    let mut raw = chunk_payload(&[1], 1, &ok_block);
+    // Replace the one-byte varint by an overlong one.
+    raw.splice(12..13, [0x81, 0x80, 0x80, 0x80, 0x80, 0x00]);
+    b.set_payload(last, &raw);
+    add("chunk_overlong_varint", b.bytes);
+    let mut b = f();
+    b.set_payload(
+        last,
+        &chunk_payload(&[2], 1, &|w: &mut Writer, n: usize| {
+            w.block(&vec![0.5; n + 1], BlockEncoding::F32)
+        }),
+    );
+    add("block_wrong_count", b.bytes);
+    let mut b = f();
+    b.set_payload(
+        last,
+        &chunk_payload(&[2], 1, &|w: &mut Writer, n: usize| {
+            w.block(&vec![f32::NAN; n], BlockEncoding::F32)
+        }),
+    );
+    add("nan_value", b.bytes);
+    let mut b = f();
+    b.set_payload(
+        last,
+        &chunk_payload(&[2], 1, &|w: &mut Writer, n: usize| {
+            let at = w.bytes.len();
+            w.block(&vec![0.5; n], BlockEncoding::Affine { bits: 8 });
+            if n > 0 {
+                w.bytes[at + 12..at + 16].copy_from_slice(&f32::NAN.to_le_bytes());
+            }
+        }),
+    );
+    add("nan_scale", b.bytes);
+    let mut b = f();
+    b.set_payload(
+        last,
+        &chunk_payload(&[2], 1, &|w: &mut Writer, n: usize| {
+            let at = w.bytes.len();
+            w.block(
+                &(0..n).map(|i| i as f32).collect::<Vec<_>>(),
+                BlockEncoding::Affine { bits: 8 },
+            );
+            if n > 0 {
+                w.bytes[at + 1] = 1; // claims 1 bit; codes up to 255 follow
+            }
+        }),
+    );
+    add("code_exceeds_bits", b.bytes);
+    let mut b = f();
+    b.set_payload(
+        last,
+        &chunk_payload(&[2], 1, &|w: &mut Writer, n: usize| {
+            let at = w.bytes.len();
+            w.block(&vec![0.5; n], BlockEncoding::F32);
+            w.bytes[at] = 7;
+        }),
+    );
+    add("unknown_block_encoding", b.bytes);
+    let mut b = f();
+    let mut raw = b.payload(last);
+    raw.extend_from_slice(&[0, 0, 0]);
+    b.set_payload(last, &raw);
+    add("payload_trailing_bytes", b.bytes);
+    out
+}
+
+#[test]
+#[ignore = "writes tests/bad/; run after a format change"]
+fn regenerate_bad_corpus() {
+    let dir = bad_dir();
+    std::fs::create_dir_all(&dir).unwrap();
+    for e in std::fs::read_dir(&dir).unwrap() {
+        let p = e.unwrap().path();
+        if p.extension().is_some_and(|x| x == "msth") {
+            std::fs::remove_file(p).unwrap();
+        }
+    }
+    for (i, (name, bytes)) in corpus().into_iter().enumerate() {
+        std::fs::write(dir.join(format!("{i:02}_{name}.msth")), bytes).unwrap();
+    }
+}
+
+/// The generator's valid base file decodes (so each bad file differs from a good one by its flaw).
+#[test]
+fn corpus_base_file_is_valid() {
+    decode_all(&valid_file()).unwrap();
+}
+
+#[test]
+fn bad_corpus_fails_cleanly() {
+    let mut files: Vec<PathBuf> = std::fs::read_dir(bad_dir())
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|x| x == "msth"))
+        .collect();
+    files.sort();
+    assert!(files.len() >= 20, "only {} files in tests/bad", files.len());
+    for p in &files {
+        let bytes = std::fs::read(p).unwrap();
+        let err = decode_all(&bytes).expect_err(&p.display().to_string());
+        println!("{}: {err}", p.file_name().unwrap().to_string_lossy());
+        // The streaming decoder fails too: at the prefix, or on some section.
+        let streaming = Decoder::new(&bytes).and_then(|mut d| {
+            d.feed(&bytes)?;
+            d.finish()
+        });
+        let name = p.file_name().unwrap().to_string_lossy();
+        // Trailing bytes and padding are outside every section: only whole-file decoding sees them.
+        if !(name.contains("trailing_bytes") && !name.contains("payload")
+            || name.contains("padding"))
+        {
+            assert!(streaming.is_err(), "{name}: streaming decoder accepted it");
+        }
+    }
+}
+
+/// The committed corpus is what the generator writes (so it cannot silently go stale).
+#[test]
+fn bad_corpus_matches_generator() {
+    for (i, (name, bytes)) in corpus().into_iter().enumerate() {
+        let p = bad_dir().join(format!("{i:02}_{name}.msth"));
+        let on_disk = std::fs::read(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+        assert!(
+            on_disk == bytes,
+            "{} differs from the generator",
+            p.display()
+        );
+    }
+}

@@ -1,0 +1,166 @@
+//! The codec end to end on a (briefly) trained model: the lossless mode is bit-exact and renders
+//! the same pixels as the checkpoint with the same unstored 4D rows zeroed; lossy modes stay close;
+//! `msth export` writes a file that decodes.
+
+use msth_codec::{decode_all, encode, EncodeOptions, QuantMode};
+use msth_core::config::Preset;
+use msth_core::field::ModelLayout;
+use msth_tests::{msth, tiny_scene};
+use msth_trainer::checkpoint::Checkpoint;
+use msth_trainer::eval::render_image;
+use msth_trainer::metrics::psnr;
+use msth_trainer::train::{train, TrainSettings};
+
+/// A tiny scene trained for a few steps, saved as a checkpoint in `dir`.
+fn trained(dir: &std::path::Path) -> Checkpoint {
+    let (_, data) = tiny_scene();
+    let mut s = TrainSettings::for_preset(Preset::Fast, &data);
+    s.iters = 30;
+    s.batch_rays = 512;
+    s.anneal_steps = 8;
+    s.checkpoint_every = 0;
+    train(&data, s, dir, None, &mut |_| true).unwrap();
+    Checkpoint::load(&dir.join("model.ckpt")).unwrap()
+}
+
+#[test]
+fn lossless_round_trip_renders_the_checkpoint_pixels() {
+    let dir = tempfile::tempdir().unwrap();
+    let ckpt = trained(dir.path());
+    let model = &ckpt.header.model;
+    let layout = ModelLayout::new(model);
+    let (_, data) = tiny_scene();
+    let camera = data.test[0].camera;
+    for threshold in [0.5, 0.0] {
+        let opts = EncodeOptions {
+            quant: QuantMode::F32,
+            chunk_frames: 2,
+            dynamic_threshold: threshold,
+            ..Default::default()
+        };
+        let (bytes, report) = encode(model, &ckpt.params, &ckpt.header.cameras, &opts).unwrap();
+        let decoded = decode_all(&bytes).unwrap();
+        assert_eq!(&decoded.config, model);
+        assert_eq!(decoded.cameras, ckpt.header.cameras);
+        let h4 = layout.field.encoding.h4.as_ref().unwrap().1.clone();
+        for (i, (&a, &b)) in decoded.params.iter().zip(&ckpt.params).enumerate() {
+            if !(h4.contains(&i) && a == 0.0) {
+                assert_eq!(a.to_bits(), b.to_bits(), "parameter {i}");
+            }
+        }
+        println!(
+            "threshold {threshold}: {} bytes, {} chunks, kept {} of {} 4D values",
+            bytes.len(),
+            report.chunks.len(),
+            report.h4_kept_union,
+            report.h4_values
+        );
+        for (c, chunk) in decoded.chunks().iter().enumerate() {
+            let span = &decoded.metadata.chunks[c];
+            let t = 0.5 * (span.t_start + span.t_end);
+            assert_eq!(decoded.chunk_for_time(t), Some(c));
+            // The checkpoint with every 4D row this chunk does not store set to 0.
+            let mut zeroed = ckpt.params.clone();
+            zeroed[h4.clone()].fill(0.0);
+            let (g, _) = layout.field.encoding.h4.as_ref().unwrap();
+            for part in decoded.shared().into_iter().chain([chunk]) {
+                for ((rows, _), level) in part.levels.iter().zip(&g.levels) {
+                    for &r in rows {
+                        let at = h4.start + level.offset + r as usize * g.features;
+                        zeroed[at..at + g.features]
+                            .copy_from_slice(&ckpt.params[at..at + g.features]);
+                    }
+                }
+            }
+            let from_file = render_image(model, &layout, &decoded.params_for_time(t), &camera, t);
+            let expected = render_image(model, &layout, &zeroed, &camera, t);
+            assert_eq!(from_file.rgb, expected.rgb, "chunk {c}: renders differ");
+            let full = render_image(model, &layout, &ckpt.params, &camera, t);
+            println!(
+                "  chunk {c}: PSNR of the streamed render against the full checkpoint {:.1} dB",
+                psnr(&from_file.rgb, &full.rgb)
+            );
+        }
+    }
+}
+
+#[test]
+fn lossy_modes_render_close_to_the_checkpoint() {
+    let dir = tempfile::tempdir().unwrap();
+    let ckpt = trained(dir.path());
+    let model = &ckpt.header.model;
+    let layout = ModelLayout::new(model);
+    let (_, data) = tiny_scene();
+    let view = &data.test[1];
+    let full = render_image(model, &layout, &ckpt.params, &view.camera, view.time);
+    let mut last_size = usize::MAX;
+    // (mode, PSNR floor of the decoded render against the checkpoint's render, dB)
+    for (mode, floor) in [
+        (QuantMode::F16, 50.0),
+        (QuantMode::Q8, 40.0),
+        (QuantMode::Q6, 32.0),
+        (QuantMode::K4, 28.0),
+        (QuantMode::Q4, 25.0),
+    ] {
+        let opts = EncodeOptions {
+            quant: mode,
+            dynamic_threshold: 0.0,
+            ..Default::default()
+        };
+        let (bytes, _) = encode(model, &ckpt.params, &[], &opts).unwrap();
+        let d = decode_all(&bytes).unwrap();
+        let r = render_image(
+            model,
+            &layout,
+            &d.params_for_time(view.time),
+            &view.camera,
+            view.time,
+        );
+        let p = psnr(&r.rgb, &full.rgb);
+        println!(
+            "{mode}: {} bytes, {p:.1} dB against the checkpoint",
+            bytes.len()
+        );
+        assert!(p >= floor, "{mode}: {p:.1} dB < {floor}");
+        if mode != QuantMode::Q4 {
+            assert!(
+                bytes.len() < last_size,
+                "{mode} is not smaller than the previous mode"
+            );
+            last_size = bytes.len();
+        }
+    }
+}
+
+#[test]
+fn export_command_writes_a_decodable_file() {
+    let dir = tempfile::tempdir().unwrap();
+    trained(dir.path());
+    let ckpt = dir.path().join("model.ckpt");
+    let out = dir.path().join("scene.msth");
+    msth(&[
+        "export",
+        ckpt.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+        "--quant",
+        "q8",
+        "--chunk-frames",
+        "3",
+        "--dynamic-threshold",
+        "0.2",
+    ])
+    .unwrap();
+    let d = decode_all(&std::fs::read(&out).unwrap()).unwrap();
+    assert_eq!(d.metadata.quant, QuantMode::Q8);
+    assert_eq!(d.metadata.chunk_frames, 3);
+    assert!(msth(&[
+        "export",
+        ckpt.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+        "--quant",
+        "q9"
+    ])
+    .is_err());
+}
