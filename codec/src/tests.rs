@@ -16,13 +16,8 @@ fn tiny(blend: BlendMode, frames: usize) -> ModelConfig {
     );
     for enc in [&mut c.field.encoding, &mut c.proposal.encoding] {
         enc.blend = blend;
-        enc.grid3.levels = 4;
-        enc.grid4.levels = 4;
+        enc.resize(4, 14, 64.0, 8);
         enc.grid3.log2_table_size = 10;
-        enc.grid4.log2_table_size = 14;
-        enc.grid3.finest_resolution = vec![64.0; 3];
-        enc.grid4.finest_resolution[..3].copy_from_slice(&[64.0; 3]);
-        enc.mask_resolution = 8;
     }
     c.field.density_hidden = 16;
     c.field.color_hidden = 16;

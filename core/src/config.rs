@@ -47,6 +47,27 @@ pub struct EncodingConfig {
     pub mask_init: f32,
 }
 
+impl EncodingConfig {
+    /// Sets the level count, table size and finest spatial resolution of both grids and the mask
+    /// resolution (time resolutions and the base stay): the quick way to a small model.
+    pub fn resize(
+        &mut self,
+        levels: usize,
+        log2_table_size: u32,
+        finest: f32,
+        mask_resolution: usize,
+    ) {
+        for g in [&mut self.grid3, &mut self.grid4] {
+            g.levels = levels;
+            g.log2_table_size = log2_table_size;
+            for r in g.finest_resolution.iter_mut().take(3) {
+                *r = finest;
+            }
+        }
+        self.mask_resolution = mask_resolution;
+    }
+}
+
 /// The main field: encoding, density MLP (`enc -> hidden -> 1 + geo`), colour MLP
 /// (`SH(16) + geo -> hidden x layers -> 3`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

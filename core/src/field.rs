@@ -551,13 +551,8 @@ mod tests {
         );
         for enc in [&mut c.field.encoding, &mut c.proposal.encoding] {
             enc.blend = blend;
-            enc.grid3.levels = 3;
-            enc.grid4.levels = 3;
-            enc.grid3.log2_table_size = 8;
-            enc.grid4.log2_table_size = 8;
-            enc.grid3.finest_resolution = vec![40.0; 3];
-            enc.grid4.finest_resolution = vec![40.0, 40.0, 40.0, 10.0];
-            enc.mask_resolution = 6;
+            enc.resize(3, 8, 40.0, 6);
+            enc.grid4.finest_resolution[3] = 10.0;
         }
         c.field.density_hidden = 8;
         c.field.color_hidden = 8;

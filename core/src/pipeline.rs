@@ -487,15 +487,10 @@ mod tests {
         );
         for enc in [&mut c.field.encoding, &mut c.proposal.encoding] {
             enc.blend = BlendMode::Mst;
-            enc.grid3.levels = 2;
-            enc.grid4.levels = 2;
-            enc.grid3.log2_table_size = 6;
-            enc.grid4.log2_table_size = 6;
-            enc.grid3.finest_resolution = vec![8.0; 3];
-            enc.grid4.finest_resolution = vec![8.0, 8.0, 8.0, 4.0];
+            enc.resize(2, 6, 8.0, 4);
+            enc.grid4.finest_resolution[3] = 4.0;
             enc.grid3.base_resolution = vec![4.0; 3];
             enc.grid4.base_resolution = vec![4.0, 4.0, 4.0, 2.0];
-            enc.mask_resolution = 4;
         }
         c.field.density_hidden = 8;
         c.field.color_hidden = 8;

@@ -28,13 +28,7 @@ fn tiny_model() -> (ModelConfig, Vec<f32>) {
     );
     for enc in [&mut c.field.encoding, &mut c.proposal.encoding] {
         enc.blend = BlendMode::Mt;
-        enc.grid3.levels = 2;
-        enc.grid4.levels = 2;
-        enc.grid3.log2_table_size = 8;
-        enc.grid4.log2_table_size = 8;
-        enc.grid3.finest_resolution = vec![16.0; 3];
-        enc.grid4.finest_resolution[..3].copy_from_slice(&[16.0; 3]);
-        enc.mask_resolution = 4;
+        enc.resize(2, 8, 16.0, 4);
     }
     c.field.density_hidden = 4;
     c.field.color_hidden = 4;

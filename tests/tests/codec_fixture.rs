@@ -44,13 +44,7 @@ fn regenerate_fixture() {
     let (_, data) = tiny_scene();
     let mut s = TrainSettings::for_preset(Preset::Fast, &data);
     for enc in [&mut s.model.field.encoding, &mut s.model.proposal.encoding] {
-        enc.grid3.levels = 6;
-        enc.grid4.levels = 6;
-        enc.grid3.log2_table_size = 12;
-        enc.grid4.log2_table_size = 12;
-        enc.grid3.finest_resolution = vec![96.0; 3];
-        enc.grid4.finest_resolution[..3].copy_from_slice(&[96.0; 3]);
-        enc.mask_resolution = 16;
+        enc.resize(6, 12, 96.0, 16);
     }
     s.model.proposal.encoding.grid3.log2_table_size = 10;
     s.model.proposal.encoding.grid4.log2_table_size = 10;
