@@ -47,22 +47,22 @@ impl Encodings {
             ),
             QuantMode::Q5 => (
                 BlockEncoding::Affine { bits: 5 },
-                BlockEncoding::Affine { bits: 8 },
+                BlockEncoding::Affine { bits: 6 },
                 BlockEncoding::F16,
             ),
             QuantMode::Q4 => (
                 BlockEncoding::Affine { bits: 4 },
-                BlockEncoding::Affine { bits: 8 },
+                BlockEncoding::Affine { bits: 6 },
                 BlockEncoding::F16,
             ),
             QuantMode::K4 => (
                 BlockEncoding::Codebook { bits: 4 },
-                BlockEncoding::Affine { bits: 8 },
+                BlockEncoding::Affine { bits: 6 },
                 BlockEncoding::F16,
             ),
             QuantMode::K3 => (
                 BlockEncoding::Codebook { bits: 3 },
-                BlockEncoding::Affine { bits: 8 },
+                BlockEncoding::Affine { bits: 6 },
                 BlockEncoding::F16,
             ),
         };
