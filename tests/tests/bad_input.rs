@@ -31,6 +31,19 @@ fn edit_json(path: &Path, f: impl FnOnce(&mut serde_json::Value)) {
     std::fs::write(path, serde_json::to_string(&v).unwrap()).unwrap();
 }
 
+/// The image file of training frame `k`.
+fn training_image(data: &Path, k: usize) -> std::path::PathBuf {
+    let json = data.join("transforms_train.json");
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(json).unwrap()).unwrap();
+    let rel = v["frames"][k]["file_path"].as_str().unwrap();
+    let mut img = data.join(rel.trim_start_matches("./"));
+    if img.extension().is_none() {
+        img.set_extension("png");
+    }
+    img
+}
+
 /// Trains on the broken dataset and checks the error and that no output was written.
 fn expect_failure(root: &Path, data: &Path, needles: &[&str]) {
     let out = root.join("run");
@@ -79,14 +92,7 @@ fn malformed_transforms_file() {
 fn missing_image() {
     let t = tempfile::tempdir().unwrap();
     let d = valid_dataset(t.path());
-    let json = d.join("transforms_train.json");
-    let v: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
-    let first = v["frames"][0]["file_path"].as_str().unwrap().to_string();
-    let mut img = d.join(first.trim_start_matches("./"));
-    if img.extension().is_none() {
-        img.set_extension("png");
-    }
+    let img = training_image(&d, 0);
     std::fs::remove_file(&img).unwrap();
     expect_failure(t.path(), &d, &[img.file_name().unwrap().to_str().unwrap()]);
 }
@@ -96,13 +102,7 @@ fn images_of_mixed_sizes() {
     let t = tempfile::tempdir().unwrap();
     let d = valid_dataset(t.path());
     let json = d.join("transforms_train.json");
-    let v: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
-    let second = v["frames"][1]["file_path"].as_str().unwrap().to_string();
-    let mut img = d.join(second.trim_start_matches("./"));
-    if img.extension().is_none() {
-        img.set_extension("png");
-    }
+    let img = training_image(&d, 1);
     // A valid PNG of another size.
     let small = msth_trainer::dataset::Image8::new(8, 8);
     msth_trainer::imageio::save_png_atomic(&img, &small).unwrap();
