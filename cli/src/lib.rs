@@ -5,6 +5,7 @@ mod bench;
 mod commands;
 mod data;
 mod export;
+mod serve;
 
 use std::ffi::OsString;
 use std::path::PathBuf;
@@ -41,6 +42,8 @@ enum Command {
     Bench(bench::BenchArgs),
     /// Encode a checkpoint into a streamable `.msth` file (or `--measure` the codec's modes).
     Export(export::ExportArgs),
+    /// Serve `.msth` files over HTTP (Range requests) until Ctrl-C.
+    Serve(serve::ServeArgs),
 }
 
 #[derive(Args)]
@@ -179,5 +182,6 @@ where
         Command::Render(a) => commands::render(a),
         Command::Bench(a) => bench::run(a),
         Command::Export(a) => export::export(a),
+        Command::Serve(a) => serve::serve(a),
     }
 }

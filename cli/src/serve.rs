@@ -1,0 +1,61 @@
+//! `msth serve PATH [--addr 127.0.0.1:8080] [--web DIR]`: a thin layer over `msth-server` that
+//! sets up logging and a tokio runtime, prints the URLs served, and runs until Ctrl-C.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+use anyhow::Context;
+use clap::Args;
+
+#[derive(Args)]
+pub struct ServeArgs {
+    /// One `.msth` file, or a folder whose `.msth` files are served.
+    pub path: PathBuf,
+    /// Address to listen on (port 0: any free port).
+    #[arg(long, default_value = msth_server::DEFAULT_ADDR)]
+    pub addr: SocketAddr,
+    /// The web player's folder, served at `/` (default: `web/` if it exists).
+    #[arg(long)]
+    pub web: Option<PathBuf>,
+    /// Most connections open at once.
+    #[arg(long, default_value_t = msth_server::Limits::default().max_connections)]
+    pub max_connections: usize,
+}
+
+pub fn serve(args: ServeArgs) -> anyhow::Result<()> {
+    // Request log lines on stderr; a second call (tests) keeps the first subscriber.
+    let _ = tracing_subscriber::fmt()
+        .with_writer(std::io::stderr)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+        .try_init();
+    let mut config = msth_server::ServerConfig::new(&args.path);
+    config.addr = args.addr;
+    config.web_dir = args
+        .web
+        .or_else(|| Some(PathBuf::from("web")).filter(|p| p.is_dir()));
+    config.limits.max_connections = args.max_connections.max(1);
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("starting the tokio runtime")?;
+    runtime.block_on(async move {
+        let server = msth_server::Server::bind(config).await?;
+        let base = format!("http://{}", server.local_addr());
+        let models = server.models()?;
+        println!(
+            "serving {} model(s) from {} at {base}/ (listing: {base}/models); Ctrl-C stops",
+            models.len(),
+            server.root().display()
+        );
+        for m in &models {
+            println!("  {base}/models/{} ({} bytes)", m.name, m.bytes);
+        }
+        server
+            .run_until(async {
+                let _ = tokio::signal::ctrl_c().await;
+                eprintln!("Ctrl-C: finishing open requests and stopping");
+            })
+            .await?;
+        anyhow::Ok(())
+    })
+}

@@ -1,0 +1,259 @@
+//! `msth-server`: a read-only HTTP server for `.msth` files. It serves bytes and never parses
+//! them, so it links neither wgpu, the field math nor the trainer.
+//!
+//! - `GET/HEAD /models`: JSON `[{"name", "url", "bytes", "modified"}]` (see [`catalog`]).
+//! - `GET/HEAD /models/NAME.msth`: the file, streamed, with RFC 9110 Range (one range -> 206,
+//!   unsatisfiable -> 416 `bytes */LEN`; invalid or multiple ranges -> 200 full body), a strong
+//!   `ETag`, `Last-Modified`, `If-Range`, `If-None-Match`/`If-Modified-Since` -> 304
+//!   ([`range`]). `HEAD` answers what `GET` would, without the body.
+//! - anything else: the web player's static files ([`web`]), or a placeholder page at `/`.
+//! - permissive CORS, request logging with `tracing`, limits ([`Limits`]).
+//!
+//! The main types: [`ServerConfig`] -> [`Server::bind`] -> [`Server::run_until`]; [`serve`] runs
+//! until Ctrl-C; [`BackgroundServer`] runs one on its own thread (tests, the player's tests).
+
+pub mod catalog;
+mod http;
+mod listener;
+pub mod range;
+mod web;
+
+use std::future::Future;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+pub use catalog::{Catalog, ModelEntry};
+pub use http::MSTH_CONTENT_TYPE;
+
+/// What went wrong, grouped by who is at fault: the path given, the address, the runtime.
+#[derive(Debug, thiserror::Error)]
+pub enum ServeError {
+    #[error("{}", path.display())]
+    Path {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("{}: not servable: give a folder or a regular file whose name matches [A-Za-z0-9._-]+.msth (not starting with '.')", path.display())]
+    NotServable { path: PathBuf },
+    #[error("cannot listen on {addr}")]
+    Bind {
+        addr: SocketAddr,
+        source: std::io::Error,
+    },
+    #[error("server: {0}")]
+    Runtime(std::io::Error),
+}
+
+/// Limits on what one client may hold or send.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Limits {
+    /// Open connections at once; more wait in the accept queue.
+    pub max_connections: usize,
+    /// Longest request target, in bytes (else 414).
+    pub max_uri_bytes: usize,
+    /// Total size of the request's header fields, in bytes (else 431).
+    pub max_header_bytes: usize,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Self {
+            max_connections: 512,
+            max_uri_bytes: 2048,
+            max_header_bytes: 16 * 1024,
+        }
+    }
+}
+
+/// Everything [`Server::bind`] needs.
+#[derive(Debug, Clone)]
+pub struct ServerConfig {
+    /// One `.msth` file, or a folder whose `.msth` files are served.
+    pub path: PathBuf,
+    /// Default `127.0.0.1:8080`; port 0 picks a free port (read it back with
+    /// [`Server::local_addr`]).
+    pub addr: SocketAddr,
+    /// The web player's folder, served at `/`; `None`: a placeholder page at `/`.
+    pub web_dir: Option<PathBuf>,
+    pub limits: Limits,
+}
+
+/// The default bind address.
+pub const DEFAULT_ADDR: &str = "127.0.0.1:8080";
+
+impl ServerConfig {
+    /// Defaults for serving `path`: [`DEFAULT_ADDR`], no web folder, default limits.
+    pub fn new(path: impl Into<PathBuf>) -> Self {
+        Self {
+            path: path.into(),
+            addr: SocketAddr::from(([127, 0, 0, 1], 8080)),
+            web_dir: None,
+            limits: Limits::default(),
+        }
+    }
+}
+
+/// A bound, not yet running server.
+pub struct Server {
+    listener: listener::LimitedListener,
+    local_addr: SocketAddr,
+    catalog: Arc<Catalog>,
+    router: axum::Router,
+}
+
+impl Server {
+    /// Checks the path and binds the address; must run inside a tokio runtime.
+    pub async fn bind(config: ServerConfig) -> Result<Self, ServeError> {
+        let catalog = Arc::new(Catalog::open(&config.path)?);
+        let web_dir = match &config.web_dir {
+            Some(dir) => Some(Arc::<Path>::from(std::fs::canonicalize(dir).map_err(
+                |source| ServeError::Path {
+                    path: dir.clone(),
+                    source,
+                },
+            )?)),
+            None => None,
+        };
+        let tcp = tokio::net::TcpListener::bind(config.addr)
+            .await
+            .map_err(|source| ServeError::Bind {
+                addr: config.addr,
+                source,
+            })?;
+        let local_addr = tcp.local_addr().map_err(ServeError::Runtime)?;
+        let router = http::router(http::AppState {
+            catalog: catalog.clone(),
+            web_dir,
+            limits: config.limits,
+        });
+        Ok(Self {
+            listener: listener::LimitedListener::new(tcp, config.limits.max_connections),
+            local_addr,
+            catalog,
+            router,
+        })
+    }
+
+    /// The address actually bound (the port when 0 was asked).
+    pub fn local_addr(&self) -> SocketAddr {
+        self.local_addr
+    }
+
+    /// The models served right now.
+    pub fn models(&self) -> Result<Vec<ModelEntry>, ServeError> {
+        self.catalog.list()
+    }
+
+    /// What is served (canonical folder or file).
+    pub fn root(&self) -> &Path {
+        self.catalog.describe()
+    }
+
+    /// Serves until `shutdown` completes, then stops accepting and lets open requests finish.
+    pub async fn run_until(
+        self,
+        shutdown: impl Future<Output = ()> + Send + 'static,
+    ) -> Result<(), ServeError> {
+        axum::serve(self.listener, self.router)
+            .with_graceful_shutdown(shutdown)
+            .await
+            .map_err(ServeError::Runtime)
+    }
+}
+
+/// Binds and serves until Ctrl-C.
+pub async fn serve(config: ServerConfig) -> Result<(), ServeError> {
+    Server::bind(config)
+        .await?
+        .run_until(async {
+            let _ = tokio::signal::ctrl_c().await;
+        })
+        .await
+}
+
+/// A server on its own thread and tokio runtime; stopped (gracefully) on [`BackgroundServer::stop`]
+/// or drop. For tests and tools that are not async.
+pub struct BackgroundServer {
+    addr: SocketAddr,
+    stop: Option<tokio::sync::oneshot::Sender<()>>,
+    thread: Option<std::thread::JoinHandle<Result<(), ServeError>>>,
+}
+
+impl BackgroundServer {
+    /// Starts serving `config`; returns once the address is bound.
+    pub fn start(config: ServerConfig) -> Result<Self, ServeError> {
+        let (ready_tx, ready_rx) = std::sync::mpsc::channel();
+        let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+        let thread = std::thread::Builder::new()
+            .name("msth-server".into())
+            .spawn(move || {
+                let runtime = tokio::runtime::Builder::new_multi_thread()
+                    .worker_threads(2)
+                    .enable_all()
+                    .build()
+                    .map_err(ServeError::Runtime)?;
+                runtime.block_on(async move {
+                    let server = match Server::bind(config).await {
+                        Ok(s) => s,
+                        Err(e) => {
+                            let _ = ready_tx.send(Err(e));
+                            return Ok(());
+                        }
+                    };
+                    let _ = ready_tx.send(Ok(server.local_addr()));
+                    server
+                        .run_until(async {
+                            let _ = stop_rx.await;
+                        })
+                        .await
+                })
+            })
+            .map_err(ServeError::Runtime)?;
+        match ready_rx.recv() {
+            Ok(Ok(addr)) => Ok(Self {
+                addr,
+                stop: Some(stop_tx),
+                thread: Some(thread),
+            }),
+            Ok(Err(e)) => Err(e),
+            Err(_) => Err(match thread.join() {
+                Ok(Err(e)) => e,
+                _ => ServeError::Runtime(std::io::Error::other("server thread ended early")),
+            }),
+        }
+    }
+
+    pub fn addr(&self) -> SocketAddr {
+        self.addr
+    }
+
+    /// `http://ADDR` + `path` (which starts with `/`).
+    pub fn url(&self, path: &str) -> String {
+        format!("http://{}{path}", self.addr)
+    }
+
+    /// Stops accepting, waits for open requests, joins the thread.
+    pub fn stop(mut self) -> Result<(), ServeError> {
+        self.shutdown()
+    }
+
+    fn shutdown(&mut self) -> Result<(), ServeError> {
+        if let Some(stop) = self.stop.take() {
+            let _ = stop.send(());
+        }
+        match self.thread.take().map(std::thread::JoinHandle::join) {
+            Some(Ok(result)) => result,
+            Some(Err(_)) => Err(ServeError::Runtime(std::io::Error::other(
+                "server thread panicked",
+            ))),
+            None => Ok(()),
+        }
+    }
+}
+
+impl Drop for BackgroundServer {
+    fn drop(&mut self) {
+        let _ = self.shutdown();
+    }
+}
