@@ -43,18 +43,18 @@ pub fn weights_backward(
     d_sigma: &mut [f32],
 ) {
     let n = sigmas.len();
-    // suffix = sum_{i>k} g_i w_i
-    let mut suffix = 0f32;
-    // T_{k+1} = T_k * exp(-tau_k); iterate backwards: T_{k+1} = T_N * exp(sum_{j>k} tau_j)
-    // would overflow, so recompute forward transmittances instead.
-    let mut t_next = vec![0f32; n];
+    // T_{k+1} = exp(-sum_{j<=k} tau_j), computed forwards (backwards from T_N would overflow)
+    // into `d_sigma`, which the backward loop then overwrites entry by entry.
     let mut tau_sum = 0f32;
     for k in 0..n {
         tau_sum += tau_of(sigmas[k], deltas[k]);
-        t_next[k] = (-tau_sum).exp();
+        d_sigma[k] = (-tau_sum).exp();
     }
+    // suffix = sum_{i>k} g_i w_i
+    let mut suffix = 0f32;
     for k in (0..n).rev() {
-        let d_tau = d_w[k] * t_next[k] - suffix - d_t_final * t_final;
+        let t_next = d_sigma[k];
+        let d_tau = d_w[k] * t_next - suffix - d_t_final * t_final;
         let valid = sigmas[k] * deltas[k] >= 0.0 && sigmas[k] * deltas[k] < 1e30;
         d_sigma[k] = if valid { d_tau * deltas[k] } else { 0.0 };
         suffix += d_w[k] * w[k];

@@ -32,15 +32,6 @@ impl Default for AdamConfig {
 }
 
 impl AdamConfig {
-    pub fn lr_at(&self, step: usize, total: usize) -> f32 {
-        let f = if total > 1 {
-            step as f32 / (total - 1) as f32
-        } else {
-            1.0
-        };
-        self.lr_at_fraction(f)
-    }
-
     /// Learning rate at a fraction `f` of the run (0 at the start, 1 at the end).
     pub fn lr_at_fraction(&self, f: f32) -> f32 {
         self.lr * (self.lr_final / self.lr).powf(f.clamp(0.0, 1.0))
@@ -143,7 +134,7 @@ mod tests {
         let mut adam = Adam::new(100);
         for s in 0..600 {
             let g: Vec<f32> = p.iter().zip(&target).map(|(a, b)| 2.0 * (a - b)).collect();
-            adam.update(&cfg, cfg.lr_at(s, 600), &mut p, &g, &[]);
+            adam.update(&cfg, cfg.lr_at_fraction(s as f32 / 599.0), &mut p, &g, &[]);
         }
         for (a, b) in p.iter().zip(&target) {
             assert!((a - b).abs() < 1e-2, "{a} vs {b}");
