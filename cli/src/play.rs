@@ -42,6 +42,12 @@ pub struct PlayArgs {
     /// A ray is static when the mask is at least this along its visible part.
     #[arg(long, default_value_t = RenderSettings::default().static_threshold)]
     pub static_threshold: f32,
+    /// Probe renders (times over [0, 1]) that must agree before a ray is cached as static.
+    #[arg(long, default_value_t = RenderSettings::default().probes)]
+    pub probes: usize,
+    /// Largest colour change (0-1 scale) a static ray may show at a probe.
+    #[arg(long, default_value_t = RenderSettings::default().probe_tolerance)]
+    pub probe_tolerance: f32,
     /// Seconds without data before a request is retried.
     #[arg(long, default_value_t = 15.0)]
     pub timeout: f64,
@@ -105,6 +111,17 @@ pub fn options(a: &PlayArgs) -> Result<PlayOptions> {
     o.video = !a.no_video;
     o.render.incremental = !a.no_incremental;
     o.render.static_threshold = a.static_threshold;
+    if a.probes > 64 {
+        bail!("--probes {}: at most 64", a.probes);
+    }
+    if !(a.probe_tolerance.is_finite() && a.probe_tolerance >= 0.0) {
+        bail!(
+            "--probe-tolerance {}: a non-negative number",
+            a.probe_tolerance
+        );
+    }
+    o.render.probes = a.probes;
+    o.render.probe_tolerance = a.probe_tolerance;
     o.http = HttpOptions {
         read_timeout: Duration::from_secs_f64(a.timeout),
         retries: a.retries,

@@ -78,6 +78,11 @@ pub struct RenderOutput {
     pub visible_depth: Vec<f32>,
 }
 
+/// Rendering (not training) skips the 4D lookup of points whose dynamic weight `1 - m` is below
+/// this: their encoding changes by less than this fraction of `|h4|`
+/// ([`crate::field::EncodingScratch::static_cutoff`]).
+pub const RENDER_STATIC_CUTOFF: f32 = 1e-3;
+
 /// Transmittance below which what lies further along a ray is treated as invisible by
 /// [`RenderOutput::visible_depth`] (it contributes at most this fraction of the pixel).
 pub const VISIBLE_TRANSMITTANCE: f32 = 1e-3;
@@ -324,6 +329,9 @@ pub fn train_chunk(
     let n = rays.len();
     let np = cfg.sampler.num_proposal_samples;
     let nf = cfg.sampler.num_samples;
+    // Training evaluates every point exactly (the gradients need every h4).
+    ws.prop.enc.static_cutoff = 0.0;
+    ws.main.enc.static_cutoff = 0.0;
     forward_chunk(cfg, layout, params, rays, step.anneal, Some(rng), ws);
     let mut out = ChunkLosses {
         rays: n,
@@ -450,6 +458,8 @@ pub fn render_chunk(
 ) {
     let n = rays.len();
     let nf = cfg.sampler.num_samples;
+    ws.prop.enc.static_cutoff = RENDER_STATIC_CUTOFF;
+    ws.main.enc.static_cutoff = RENDER_STATIC_CUTOFF;
     forward_chunk(cfg, layout, params, rays, 1.0, None, ws);
     let enc = &layout.field.encoding;
     for i in 0..n {

@@ -34,14 +34,22 @@ pub struct RenderSettings {
     pub static_threshold: f32,
     /// Mask lookups per ray for the static test, per mask-grid cell along the scene.
     pub mask_steps_per_cell: f32,
+    /// Times (evenly over `[0, 1]`, ends included) at which the rays the mask calls static are
+    /// rendered once more when the cache is built; a ray whose colour changes by more than
+    /// `probe_tolerance` at any of them is re-rendered every frame after all. 0 trusts the mask.
+    pub probes: usize,
+    /// Largest colour change (per channel, `[0, 1]` scale) a probe may show for a static ray.
+    pub probe_tolerance: f32,
 }
 
 impl Default for RenderSettings {
     fn default() -> Self {
         RenderSettings {
             incremental: true,
-            static_threshold: 0.95,
+            static_threshold: 0.9,
             mask_steps_per_cell: 4.0,
+            probes: 5,
+            probe_tolerance: 1.0 / 255.0,
         }
     }
 }
@@ -59,7 +67,11 @@ pub struct FrameStats {
     pub rays_empty: usize,
     /// Whether the frame was rendered in full (first frame or a new camera).
     pub full: bool,
+    /// Wall time of the frame, `cache_seconds` included.
     pub seconds: f64,
+    /// Time spent sorting the first frame's rays into static and dynamic (the second frame of a
+    /// fixed camera pays it, so that the first frame is not delayed).
+    pub cache_seconds: f64,
 }
 
 /// A rendered frame: linear RGB in `[0, 1]`, row-major, 3 floats per pixel.
@@ -89,6 +101,16 @@ struct Cache {
     dynamic: Vec<u32>,
     rays: Vec<TimedRay>,
     empty: usize,
+    /// The first frame's evaluated rays, until the second frame classifies them (so that the
+    /// first frame is shown without waiting for the static test and the probes).
+    pending: Option<Pending>,
+}
+
+struct Pending {
+    pixels: Vec<u32>,
+    rays: Vec<TimedRay>,
+    rgb: Vec<[f32; 3]>,
+    visible_depth: Vec<f32>,
 }
 
 /// Renders frames of one model, keeping the static cache between frames.
@@ -190,6 +212,7 @@ impl Renderer {
     pub fn dynamic_fraction(&self) -> Option<f32> {
         self.cache
             .as_ref()
+            .filter(|c| c.pending.is_none())
             .map(|c| c.dynamic.len() as f32 / (c.rgb.len() / 3).max(1) as f32)
     }
 
@@ -208,7 +231,12 @@ impl Renderer {
             ..Default::default()
         };
         let rgb = if reuse {
-            let cache = self.cache.as_mut().expect("checked above");
+            let mut cache = self.cache.take().expect("checked above");
+            if let Some(p) = cache.pending.take() {
+                let t = Instant::now();
+                self.classify(params, p, &mut cache);
+                stats.cache_seconds = t.elapsed().as_secs_f64();
+            }
             for r in &mut cache.rays {
                 r.time = time;
             }
@@ -220,6 +248,7 @@ impl Renderer {
             stats.rays_rendered = cache.rays.len();
             stats.rays_empty = cache.empty;
             stats.rays_cached = total - cache.rays.len() - cache.empty;
+            self.cache = Some(cache);
             rgb
         } else {
             let (rgb, cache) = self.render_full(camera, time, params);
@@ -277,33 +306,77 @@ impl Renderer {
         for (&p, c) in pixels.iter().zip(&out.rgb) {
             rgb[p as usize * 3..p as usize * 3 + 3].copy_from_slice(c);
         }
-        let mut dynamic = Vec::new();
-        let mut dyn_rays = Vec::new();
-        if self.settings.incremental {
-            let steps = self.mask_steps();
-            let threshold = self.settings.static_threshold;
-            let flags: Vec<bool> = rays
-                .par_iter()
-                .zip(&out.visible_depth)
-                .map(|(r, &end)| {
-                    ray_is_static(&self.cfg, &self.layout, params, r, end, threshold, steps)
-                })
-                .collect();
-            for ((&p, r), is_static) in pixels.iter().zip(&rays).zip(flags) {
-                if !is_static {
-                    dynamic.push(p);
-                    dyn_rays.push(*r);
-                }
-            }
-        }
         let cache = Cache {
             camera: *camera,
             rgb: rgb.clone(),
-            dynamic,
-            rays: dyn_rays,
+            dynamic: Vec::new(),
+            rays: Vec::new(),
             empty,
+            pending: Some(Pending {
+                pixels,
+                rays,
+                rgb: out.rgb,
+                visible_depth: out.visible_depth,
+            }),
         };
         (rgb, cache)
+    }
+
+    /// Sorts the first frame's rays into static (cached) and dynamic (re-rendered): the mask
+    /// test, then the probes.
+    fn classify(&self, params: &[f32], p: Pending, cache: &mut Cache) {
+        let steps = self.mask_steps();
+        let threshold = self.settings.static_threshold;
+        let mut flags: Vec<bool> = p
+            .rays
+            .par_iter()
+            .zip(&p.visible_depth)
+            .map(|(r, &end)| {
+                ray_is_static(&self.cfg, &self.layout, params, r, end, threshold, steps)
+            })
+            .collect();
+        self.verify_with_probes(params, &p.rays, &p.rgb, &mut flags);
+        for ((&px, r), is_static) in p.pixels.iter().zip(&p.rays).zip(flags) {
+            if !is_static {
+                cache.dynamic.push(px);
+                cache.rays.push(*r);
+            }
+        }
+    }
+
+    /// Renders the rays still marked static at the probe times and unmarks those whose colour
+    /// moves by more than the tolerance from `rgb0`.
+    fn verify_with_probes(
+        &self,
+        params: &[f32],
+        rays: &[TimedRay],
+        rgb0: &[[f32; 3]],
+        flags: &mut [bool],
+    ) {
+        let k = self.settings.probes;
+        for j in 0..k {
+            let t = if k > 1 {
+                j as f32 / (k - 1) as f32
+            } else {
+                0.5
+            };
+            let idx: Vec<usize> = (0..rays.len()).filter(|&i| flags[i]).collect();
+            if idx.is_empty() {
+                return;
+            }
+            let probe: Vec<TimedRay> = idx
+                .iter()
+                .map(|&i| TimedRay { time: t, ..rays[i] })
+                .collect();
+            let out = render_rays(&self.cfg, &self.layout, params, &probe);
+            for (&i, c) in idx.iter().zip(&out.rgb) {
+                let moved =
+                    (0..3).any(|ch| (c[ch] - rgb0[i][ch]).abs() > self.settings.probe_tolerance);
+                if moved {
+                    flags[i] = false;
+                }
+            }
+        }
     }
 
     fn mask_steps(&self) -> usize {
@@ -350,7 +423,13 @@ mod tests {
     fn all_static_mask_renders_once_and_matches_full_renders() {
         let (cfg, mut params) = model(msth_core::config::BlendMode::Mt);
         set_mask(&cfg, &mut params, 8.0); // m = 0.9997
-        let mut inc = Renderer::new(&cfg, RenderSettings::default());
+        let mut inc = Renderer::new(
+            &cfg,
+            RenderSettings {
+                probes: 0,
+                ..Default::default()
+            },
+        );
         let mut full = Renderer::new(
             &cfg,
             RenderSettings {
@@ -361,8 +440,9 @@ mod tests {
         let cam = camera();
         let f0 = inc.render(&cam, 0.0, &params);
         assert!(f0.stats.full);
-        assert_eq!(inc.dynamic_fraction(), Some(0.0));
+        assert_eq!(inc.dynamic_fraction(), None, "classified on the second frame");
         let f1 = inc.render(&cam, 0.7, &params);
+        assert_eq!(inc.dynamic_fraction(), Some(0.0));
         assert!(!f1.stats.full);
         assert_eq!(f1.stats.rays_rendered, 0);
         assert_eq!(f1.rgb, f0.rgb);
@@ -403,6 +483,52 @@ mod tests {
         let mut cam2 = cam;
         cam2.world_from_camera.w_axis.x += 0.1;
         assert!(inc.render(&cam2, 0.5, &params).stats.full);
+    }
+
+    #[test]
+    fn probes_catch_rays_a_lenient_mask_calls_static() {
+        let (cfg, mut params) = model(msth_core::config::BlendMode::Mt);
+        let layout = ModelLayout::new(&cfg);
+        set_mask(&cfg, &mut params, 1.0); // m = 0.73: "static" at threshold 0.5
+        let mut rng = msth_core::rng::Rng::new(9);
+        let (_, h4) = layout.field.encoding.h4.clone().unwrap();
+        for v in &mut params[h4] {
+            *v = rng.range_f32(-2.0, 2.0);
+        }
+        let lenient = RenderSettings {
+            static_threshold: 0.5,
+            ..Default::default()
+        };
+        let cam = camera();
+        let mut full = Renderer::new(
+            &cfg,
+            RenderSettings {
+                incremental: false,
+                ..lenient
+            },
+        );
+        for (probes, must_match) in [(0, false), (5, true)] {
+            let mut inc = Renderer::new(&cfg, RenderSettings { probes, ..lenient });
+            inc.render(&cam, 0.0, &params);
+            let f = inc.render(&cam, 0.5, &params);
+            let g = full.render(&cam, 0.5, &params);
+            let max_diff = f
+                .rgb
+                .iter()
+                .zip(&g.rgb)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0f32, f32::max);
+            if must_match {
+                // 0.5 is a probe time: every cached ray is within the tolerance there.
+                assert!(max_diff <= lenient.probe_tolerance + 1e-6, "{max_diff}");
+                assert!(f.stats.rays_rendered > 0);
+            } else {
+                assert!(
+                    max_diff > 0.005,
+                    "the mask alone misses the motion: {max_diff}"
+                );
+            }
+        }
     }
 
     #[test]
