@@ -144,7 +144,7 @@ fn frame_line(r: &FrameRecord, n: usize) -> String {
     )
 }
 
-fn summary(r: &PlayReport) {
+fn summary(r: &PlayReport, threshold: f32) {
     let fps = |v: Option<f64>| v.map_or("-".to_string(), |f| format!("{f:.1}"));
     let n = r.frames.len();
     let rays: usize = r.frames.iter().map(|f| f.stats.rays_rendered).sum();
@@ -164,6 +164,14 @@ fn summary(r: &PlayReport) {
             "static-ray cache: {:.1}% of the fixed camera's pixels re-rendered per frame",
             100.0 * d
         );
+        if d > 0.9 {
+            println!(
+                "  (the model's mask calls few rays static at --static-threshold {}: masks trained \
+                 without the uncertainty term stay soft; --static-threshold 0 leaves the choice to \
+                 the probes, which cache only rays whose colour stays within --probe-tolerance)",
+                threshold
+            );
+        }
     }
     println!(
         "fetched {} of {} bytes in {} requests ({} retries)",
@@ -187,9 +195,8 @@ pub fn run(a: PlayArgs) -> Result<()> {
             let n = opts.frames.unwrap_or(0).max(total);
             println!("{}", frame_line(r, n));
         }
-    })
-    .with_context(|| format!("playing {}", a.source))?;
-    summary(&report);
+    })?;
+    summary(&report, opts.render.static_threshold);
     if let Some(dir) = &a.out {
         println!("frames: {}", dir.join("frame_*.png").display());
     }

@@ -63,11 +63,10 @@ pub enum PlayError {
     Stream(#[from] StreamError),
     #[error("{0}")]
     Options(String),
-    #[error("{path}: {source}")]
+    #[error("{path}: {error}")]
     Io {
         path: PathBuf,
-        #[source]
-        source: std::io::Error,
+        error: std::io::Error,
     },
 }
 
@@ -161,9 +160,9 @@ pub fn play(
         )));
     }
     if let Some(dir) = &opts.out {
-        std::fs::create_dir_all(dir).map_err(|source| PlayError::Io {
+        std::fs::create_dir_all(dir).map_err(|error| PlayError::Io {
             path: dir.clone(),
-            source,
+            error,
         })?;
     }
     stream.seek(t0);
@@ -241,9 +240,9 @@ pub fn play(
 
 /// Writes an 8-bit PNG through a temporary file and a rename.
 pub fn write_png(path: &Path, frame: &Frame) -> Result<(), PlayError> {
-    let io = |source| PlayError::Io {
+    let io = |error| PlayError::Io {
         path: path.to_path_buf(),
-        source,
+        error,
     };
     let tmp = path.with_extension("png.tmp");
     image::save_buffer_with_format(

@@ -26,11 +26,11 @@ use std::time::Duration;
 /// Everything that can go wrong reading bytes.
 #[derive(Debug, thiserror::Error)]
 pub enum SourceError {
-    #[error("{path}: {source}")]
+    /// (The message carries the cause, so it is not also chained as a source.)
+    #[error("{path}: {error}")]
     File {
         path: PathBuf,
-        #[source]
-        source: std::io::Error,
+        error: std::io::Error,
     },
     #[error("{url}: {message}")]
     Http { url: String, message: String },
@@ -129,9 +129,9 @@ pub struct FileSource {
 
 impl FileSource {
     pub fn open(path: &Path) -> Result<Self, SourceError> {
-        let err = |source| SourceError::File {
+        let err = |error| SourceError::File {
             path: path.to_path_buf(),
-            source,
+            error,
         };
         let file = File::open(path).map_err(err)?;
         let meta = file.metadata().map_err(err)?;
@@ -158,9 +158,9 @@ impl ByteSource for FileSource {
         let mut f = self.file.lock().unwrap_or_else(|p| p.into_inner());
         f.seek(SeekFrom::Start(range.start))
             .and_then(|_| f.read_exact(&mut buf))
-            .map_err(|source| SourceError::File {
+            .map_err(|error| SourceError::File {
                 path: self.path.clone(),
-                source,
+                error,
             })?;
         self.counters.requests.fetch_add(1, Ordering::Relaxed);
         self.counters

@@ -26,11 +26,10 @@ use crate::source::{ByteSource, SourceError, TransferStats};
 pub enum StreamError {
     #[error(transparent)]
     Source(#[from] SourceError),
-    #[error("{name}: {source}")]
+    #[error("{name}: {error}")]
     Decode {
         name: String,
-        #[source]
-        source: msth_codec::DecodeError,
+        error: msth_codec::DecodeError,
     },
     #[error("{name}: {what} did not arrive within {waited:?}")]
     Timeout {
@@ -91,9 +90,9 @@ impl ModelStream {
     /// Reads and checks the prefix from `source`, then starts fetching the rest.
     pub fn open(source: Box<dyn ByteSource>, limits: &Limits) -> Result<Self, StreamError> {
         let name = source.name().to_string();
-        let decode_err = |source| StreamError::Decode {
+        let decode_err = |error| StreamError::Decode {
             name: name.clone(),
-            source,
+            error,
         };
         let len = source.len();
         let first = source.read_range(0..(FIXED_HEADER as u64).min(len))?;
@@ -179,9 +178,9 @@ impl ModelStream {
         })?;
         st.decoder
             .params_for_time_into(t, out)
-            .map_err(|source| StreamError::Decode {
+            .map_err(|error| StreamError::Decode {
                 name: self.shared.name.clone(),
-                source,
+                error,
             })?;
         Ok(chunk)
     }
