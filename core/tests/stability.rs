@@ -49,8 +49,10 @@ fn step() -> impl Strategy<Value = f32> {
 }
 
 fn config(cases: u32) -> ProptestConfig {
+    // Failures print their minimal input; regressions are kept as named tests, not files.
     ProptestConfig {
         cases,
+        failure_persistence: None,
         ..ProptestConfig::default()
     }
 }
