@@ -218,8 +218,8 @@ fn midpoint(a: f32, b: f32) -> f64 {
 ///
 /// The error is at most `scale / 2` (plus f32 rounding) for values in `[min, min + (2^bits - 1)
 /// scale]`, which is the block's range `[lo, hi]` except in two extreme cases: a spread `hi - lo`
-/// beyond `f32::MAX` (values of both signs near `±f32::MAX`) is narrowed to `f32::MAX` around the
-/// mid-range, the values outside clamping to its ends; and next to `±f32::MAX` the top of the
+/// beyond `f32::MAX` (values of both signs near `±f32::MAX`) is narrowed to `0.9998 f32::MAX`
+/// around the mid-range, the values outside clamping to its ends; and next to `±f32::MAX` the top of the
 /// range may shrink by a few ulps so that decoding (`min + code * scale` in f32) stays finite.
 pub fn affine_params(values: &[f32], bits: u8) -> (f32, f32) {
     let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
@@ -234,7 +234,8 @@ pub fn affine_params(values: &[f32], bits: u8) -> (f32, f32) {
     // collapse the whole block onto its minimum (stability suite, docs/stability.md).
     if !(hi - lo).is_finite() {
         let mid = 0.5 * lo + 0.5 * hi;
-        let half = 0.5 * f32::MAX;
+        // A little under f32::MAX / 2, so that rounding cannot push the new spread to infinity.
+        let half = 0.4999 * f32::MAX;
         lo = lo.max(mid - half);
         hi = hi.min(mid + half);
     }

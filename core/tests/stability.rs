@@ -49,12 +49,19 @@ fn step() -> impl Strategy<Value = f32> {
 }
 
 fn config(cases: u32) -> ProptestConfig {
-    // Failures print their minimal input; regressions are kept as named tests, not files.
-    ProptestConfig {
-        cases,
+    // `cases` cases from a fixed seed (`PROPTEST_CASES` and `PROPTEST_RNG_SEED=n` explore more); failures print their minimal input
+    // and are kept as named tests rather than regression files.
+    let mut c = ProptestConfig {
         failure_persistence: None,
         ..ProptestConfig::default()
+    };
+    if std::env::var_os("PROPTEST_CASES").is_none() {
+        c.cases = cases;
     }
+    if std::env::var_os("PROPTEST_RNG_SEED").is_none() {
+        c.rng_seed = proptest::test_runner::RngSeed::Fixed(0x5747_2026);
+    }
+    c
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -469,7 +476,11 @@ mod grids {
                 let fr = p - i;
                 let c = i as u64 + (corner >> a & 1) as u64;
                 w *= if corner >> a & 1 == 1 { fr } else { 1.0 - fr };
-                assert!(c <= level.res[a] as u64, "corner {c} beyond res {}", level.res[a]);
+                assert!(
+                    c <= level.res[a] as u64,
+                    "corner {c} beyond res {}",
+                    level.res[a]
+                );
                 idx += c * stride;
                 stride *= level.res[a] as u64 + 1;
                 h ^= (c * PRIMES[a] as u64) & 0xffff_ffff;
@@ -489,7 +500,11 @@ mod grids {
         let mut out = vec![0f32; g.output_dim()];
         for (l, level) in g.levels.iter().enumerate() {
             for (row, w) in rows_u64(g, l, x) {
-                assert!(row < level.rows as u64, "level {l}: row {row} of {}", level.rows);
+                assert!(
+                    row < level.rows as u64,
+                    "level {l}: row {row} of {}",
+                    level.rows
+                );
                 for f in 0..g.features {
                     out[l * g.features + f] +=
                         w * table[level.offset + row as usize * g.features + f];
@@ -693,10 +708,7 @@ mod grids {
                     continue;
                 }
                 let st = level.stride[3] as usize;
-                for (t, expect) in [
-                    (0.0f32, 0u32),
-                    (1.0, (level.scale[3] + 0.5).floor() as u32),
-                ] {
+                for (t, expect) in [(0.0f32, 0u32), (1.0, (level.scale[3] + 0.5).floor() as u32)] {
                     let mut time_corners = Vec::new();
                     g.visit_rows(&[x[0], x[1], x[2], t], |ll, r| {
                         if ll == l {
@@ -705,7 +717,11 @@ mod grids {
                     });
                     time_corners.sort();
                     time_corners.dedup();
-                    assert_eq!(time_corners, vec![expect, expect + 1], "frames {frames} l {l} t {t}");
+                    assert_eq!(
+                        time_corners,
+                        vec![expect, expect + 1],
+                        "frames {frames} l {l} t {t}"
+                    );
                     assert!(expect + 1 <= level.res[3]);
                 }
             }
@@ -857,7 +873,12 @@ mod pipeline {
         p
     }
 
-    fn render(cfg: &ModelConfig, layout: &ModelLayout, p: &[f32], rays: &[TimedRay]) -> RenderOutput {
+    fn render(
+        cfg: &ModelConfig,
+        layout: &ModelLayout,
+        p: &[f32],
+        rays: &[TimedRay],
+    ) -> RenderOutput {
         let mut out = RenderOutput::default();
         render_chunk(cfg, layout, p, rays, &mut Workspace::default(), &mut out);
         out
@@ -1100,7 +1121,10 @@ mod pipeline {
             (Vec3::new(0.0, 0.0, 4.0), Vec3::new(f32::NAN, 0.0, -1.0)),
             (Vec3::new(f32::INFINITY, 0.0, 0.0), -Vec3::X),
             (Vec3::new(0.0, 0.0, 4.0), Vec3::ZERO),
-            (Vec3::new(0.0, 0.0, 4.0), Vec3::new(0.0, 0.0, f32::NEG_INFINITY)),
+            (
+                Vec3::new(0.0, 0.0, 4.0),
+                Vec3::new(0.0, 0.0, f32::NEG_INFINITY),
+            ),
         ]
         .iter()
         .map(|&(origin, dir)| TimedRay {
