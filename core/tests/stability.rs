@@ -828,12 +828,12 @@ mod pipeline {
     const HALF: f32 = 1.5;
 
     fn tiny_cfg(bg: [f32; 3], frames: usize) -> ModelConfig {
-        let mut c = ModelConfig::preset(
-            Preset::Fast,
-            SceneBounds::dnerf_default(),
-            Background::Color { rgb: bg },
-            frames,
-        );
+        tiny_cfg_in(SceneBounds::dnerf_default(), bg, frames)
+    }
+
+    fn tiny_cfg_in(bounds: SceneBounds, bg: [f32; 3], frames: usize) -> ModelConfig {
+        let mut c =
+            ModelConfig::preset(Preset::Fast, bounds, Background::Color { rgb: bg }, frames);
         for enc in [&mut c.field.encoding, &mut c.proposal.encoding] {
             enc.blend = BlendMode::Mt;
             enc.resize(3, 10, 32.0, 6);
@@ -1073,6 +1073,123 @@ mod pipeline {
             let targets = vec![[0.0, 0.0, 0.0]; rays.len()];
             let (_, grad) = train(&cfg, &layout, &p, &rays, &targets);
             prop_assert!(grad.iter().all(|g| g.is_finite()));
+        }
+    }
+
+    proptest! {
+        #![proptest_config(config(64))]
+
+        /// The same with an unbounded (contracted) scene, rays from anywhere up to 1e4 units away:
+        /// the disparity spacing's steps grow to hundreds of units near the far plane (1000
+        /// radii), and the opacity is still `1 - exp(-sigma (far - near))`.
+        #[test]
+        fn contracted_scene_constant_density_gives_the_analytic_opacity(
+            origins in prop::collection::vec((prop::collection::vec(-1.0f32..1.0, 3), log_uniform(1e-3, 1e4)), 1..5),
+            dirs in prop::collection::vec(prop::collection::vec(-1.0f32..1.0, 3), 5),
+            sigma in density(),
+        ) {
+            let bounds = SceneBounds::Contracted { center: Vec3::new(0.2, -0.1, 0.0), radius: 1.5 };
+            let bg = [0.0, 0.0, 0.0];
+            let cfg = tiny_cfg_in(bounds, bg, 10);
+            let layout = ModelLayout::new(&cfg);
+            let log_sigma = if sigma > 0.0 { sigma.ln() } else { -200.0 };
+            let p = constant_density(&layout, log_sigma, 7);
+            let rays: Vec<TimedRay> = origins
+                .iter()
+                .zip(&dirs)
+                .map(|((o, r), d)| TimedRay {
+                    origin: Vec3::new(o[0], o[1], o[2]) * *r,
+                    dir: Vec3::new(d[0], d[1], d[2]).try_normalize().unwrap_or(Vec3::Y),
+                    time: 0.5,
+                })
+                .collect();
+            let o = render(&cfg, &layout, &p, &rays);
+            assert_render_sane(&o, bg);
+            let chord = (cfg.sampler.far - cfg.sampler.near) as f64;
+            let s = trunc_exp(log_sigma) as f64;
+            let expected = -(-(s * chord)).exp_m1();
+            for i in 0..rays.len() {
+                prop_assert!(
+                    (o.opacity[i] as f64 - expected).abs() < 1e-4 + 1e-3 * expected,
+                    "sigma {s}: opacity {} vs {expected}", o.opacity[i]
+                );
+            }
+            let (_, grad) = train(&cfg, &layout, &p, &rays, &vec![[0.5; 3]; rays.len()]);
+            prop_assert!(grad.iter().all(|g| g.is_finite()));
+        }
+    }
+
+    /// Finite differences of the training loss through the whole pipeline at near-saturated
+    /// alpha: a constant main-field density whose optical depth over the box is 13 to 100 (the
+    /// first samples take almost all the weight), differentiated with respect to the density
+    /// MLP's output weight (`log sigma`) and a colour MLP weight. Sample positions come from the
+    /// proposal field, which is left alone, so they are the same for every evaluation.
+    #[test]
+    fn pipeline_gradient_matches_fd_near_saturated_alpha() {
+        let cfg = tiny_cfg([1.0, 1.0, 1.0], 10);
+        let layout = ModelLayout::new(&cfg);
+        let rays: Vec<TimedRay> = (0..6)
+            .map(|i| TimedRay {
+                origin: Vec3::new(0.1 * i as f32 - 0.3, 0.05 * i as f32, 4.0),
+                dir: Vec3::new(0.02 * i as f32, -0.03, -1.0).normalize(),
+                time: i as f32 / 5.0,
+            })
+            .collect();
+        let targets: Vec<[f32; 3]> = (0..6).map(|i| [0.1 * i as f32, 0.7, 0.2]).collect();
+        let step = StepSettings {
+            anneal: 1.0,
+            interlevel_weight: 1.0,
+            distortion_weight: 0.01,
+            loss_scale: 1.0 / rays.len() as f32,
+        };
+        let run = |p: &[f32], grad: &mut [f32]| {
+            let l = train_chunk(
+                &cfg,
+                &layout,
+                p,
+                grad,
+                &rays,
+                &targets,
+                None,
+                &step,
+                &mut Rng::new(11),
+                &mut Workspace::default(),
+            );
+            (l.sq_err + step.distortion_weight as f64 * l.distortion) / rays.len() as f64
+        };
+        let (dm, dr) = &layout.field.density;
+        let cr = &layout.field.color.1;
+        for log_sigma in [1.5f32, 2.5, 3.5] {
+            let mut p = constant_density(&layout, log_sigma, 8);
+            // A colour that depends on the direction encoding, so the colour gradient is not 0.
+            let mut rng = Rng::new(9);
+            for v in &mut p[cr.clone()] {
+                *v = rng.range_f32(-0.5, 0.5);
+            }
+            let mut grad = vec![0f32; p.len()];
+            run(&p, &mut grad);
+            assert!(grad.iter().all(|g| g.is_finite()));
+            // The colour MLP weight with the largest gradient.
+            let colour = cr
+                .clone()
+                .max_by(|&a, &b| grad[a].abs().total_cmp(&grad[b].abs()))
+                .unwrap();
+            assert!(grad[colour] != 0.0);
+            for i in [dr.start + dm.offsets[1], colour] {
+                let h = 1e-3f32;
+                let mut q = p.clone();
+                let mut scratch = vec![0f32; p.len()];
+                q[i] = p[i] + h;
+                let lp = run(&q, &mut scratch);
+                q[i] = p[i] - h;
+                let lm = run(&q, &mut scratch);
+                let fd = (lp - lm) / (2.0 * h as f64);
+                assert!(
+                    (fd - grad[i] as f64).abs() <= 1e-6 + 2e-2 * fd.abs(),
+                    "log sigma {log_sigma}, parameter {i}: backward {} vs fd {fd}",
+                    grad[i]
+                );
+            }
         }
     }
 

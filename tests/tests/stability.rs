@@ -71,9 +71,7 @@ fn write_constant_video(dir: &Path, frames: usize, rgb: [u8; 3]) {
     let n_train = frames.max(8);
     split(
         "train",
-        (0..n_train)
-            .map(|i| (i % 8, time(i % frames)))
-            .collect(),
+        (0..n_train).map(|i| (i % 8, time(i % frames))).collect(),
     );
     split("test", vec![(1, time(0)), (5, time(frames - 1))]);
 }
@@ -201,7 +199,10 @@ fn all_black_video_trains_to_black() {
 #[test]
 fn all_white_video_trains_to_white() {
     let (before, after) = train_constant_video(4, [255, 255, 255], 60);
-    assert!(after < 0.05 && after <= before + 1e-3, "{before} -> {after}");
+    assert!(
+        after < 0.05 && after <= before + 1e-3,
+        "{before} -> {after}"
+    );
 }
 
 /// A constant colour unlike the background.
