@@ -12,7 +12,7 @@ use msth_core::rng::Rng;
 use msth_core::{Camera, SceneBounds};
 use msth_trainer::dataset::dnerf::{load, LoadOptions};
 use msth_trainer::dataset::{Dataset, Image8};
-use msth_trainer::eval::render_image;
+use msth_trainer::eval::{evaluate, render_image};
 use msth_trainer::imageio::encode_png;
 use msth_trainer::train::{sample_batch, train, TrainSettings};
 
@@ -180,6 +180,17 @@ fn train_constant_video(frames: usize, rgb: [u8; 3], iters: usize) -> (f32, f32)
     }
     assert_gradient_finite(&data, &s, &trainer.params);
     let after = render_error(&data, &s, &trainer.layout, &trainer.params, colour);
+    // The evaluation of a constant image (zero variance, possibly zero error) is finite too.
+    let m = evaluate(&data, &s.model, &trainer.layout, &trainer.params, 1, None).unwrap();
+    assert!(
+        m.psnr.is_finite() && m.ssim.is_finite() && m.dssim.is_finite(),
+        "{m:?}"
+    );
+    assert!(
+        m.psnr > 20.0 && m.ssim > 0.5,
+        "{frames} frames of {rgb:?}: {m:?}"
+    );
+    serde_json::to_string(&m).unwrap();
     println!(
         "{frames} frames of {rgb:?}: render error {before:.4} -> {after:.4}, loss {:.5} -> {:.5}",
         losses[0],
@@ -224,4 +235,43 @@ fn one_frame_trains() {
 fn ten_thousand_frames_train() {
     let (before, after) = train_constant_video(10_000, [30, 200, 90], 120);
     assert!(after < 0.1 && after < 0.5 * before, "{before} -> {after}");
+}
+
+/// Adam is invariant to the scale of the gradient: for gradients from 1e-10 to `f32::MAX` a
+/// step moves every parameter by about the learning rate against the gradient's sign, and the
+/// parameters and moments stay finite. (Gradients beyond 1.8e19 used to overflow `g^2` to
+/// infinity, which froze the parameter for good: `m / sqrt(inf) = 0` on every later step.)
+#[test]
+fn adam_steps_by_the_learning_rate_at_any_gradient_scale() {
+    use msth_trainer::adam::{Adam, AdamConfig};
+    let cfg = AdamConfig::default();
+    let scales = [1e-10f32, 1.0, 1e10, 1e19, 1e30, f32::MAX];
+    let n = 2 * scales.len();
+    let mut p = vec![0f32; n];
+    let mut adam = Adam::new(n);
+    let g: Vec<f32> = (0..n)
+        .map(|i| scales[i / 2] * if i % 2 == 0 { 1.0 } else { -1.0 })
+        .collect();
+    let lr = 1e-2;
+    for step in 1..=10 {
+        adam.update(&cfg, lr, &mut p, &g, &[]);
+        for i in 0..n {
+            assert!(
+                p[i].is_finite() && adam.m[i].is_finite() && adam.v[i].is_finite(),
+                "gradient {}: parameter {} m {} v {}",
+                g[i],
+                p[i],
+                adam.m[i],
+                adam.v[i]
+            );
+            // Constant gradient: each bias-corrected step is lr (to eps / sqrt(v) relative).
+            let expected = -(step as f32) * lr * g[i].signum();
+            assert!(
+                (p[i] - expected).abs() <= 1e-3 * step as f32 * lr,
+                "gradient {} after {step} steps: parameter {} (expected {expected})",
+                g[i],
+                p[i]
+            );
+        }
+    }
 }
