@@ -481,8 +481,11 @@ mod grids {
                     "corner {c} beyond res {}",
                     level.res[a]
                 );
-                idx += c * stride;
-                stride *= level.res[a] as u64 + 1;
+                if level.dense {
+                    // prod(res + 1) <= 2^24 here; on hashed levels it can exceed u64.
+                    idx += c * stride;
+                    stride *= level.res[a] as u64 + 1;
+                }
                 h ^= (c * PRIMES[a] as u64) & 0xffff_ffff;
             }
             let row = if level.dense {
