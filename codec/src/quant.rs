@@ -216,11 +216,12 @@ fn midpoint(a: f32, b: f32) -> f64 {
 
 /// `(min, scale)` of the affine quantisation of `values` to `bits` bits.
 ///
-/// The error is at most `scale / 2` (plus f32 rounding) for values in `[min, min + (2^bits - 1)
-/// scale]`, which is the block's range `[lo, hi]` except in two extreme cases: a spread `hi - lo`
-/// beyond `f32::MAX` (values of both signs near `±f32::MAX`) is narrowed to `0.9998 f32::MAX`
-/// around the mid-range, the values outside clamping to its ends; and next to `±f32::MAX` the top of the
-/// range may shrink by a few ulps so that decoding (`min + code * scale` in f32) stays finite.
+/// The error is at most `scale / 2` (plus f32 rounding) for values in
+/// `[min, min + (2^bits - 1) scale]`, which is the block's range `[lo, hi]` except in two extreme
+/// cases: a spread `hi - lo` beyond `f32::MAX` (values of both signs near `±f32::MAX`) is narrowed
+/// to `0.9998 f32::MAX` around the mid-range, the values outside clamping to its ends; and next
+/// to `±f32::MAX` the top of the range may shrink by a few ulps so that decoding
+/// (`min + code * scale` in f32) stays finite.
 pub fn affine_params(values: &[f32], bits: u8) -> (f32, f32) {
     let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
     for &v in values {

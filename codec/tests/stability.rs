@@ -1,22 +1,24 @@
-//! Codec stability at the extremes (issue #8, part 2). Quantisation: f16 and 8-bit (and 1..8-bit affine and
-//! codebook) blocks of huge, tiny, subnormal, constant and widely spread values round-trip to
-//! finite values within their documented error; whole files with such parameters, with 1 frame
-//! and with 10,000 frames, encode and decode.
+//! Codec stability at the extremes (issue #8, part 2). Quantisation: f16 and 8-bit (and 1..8-bit
+//! affine and codebook) blocks of huge, tiny, subnormal, constant and widely spread values
+//! round-trip to finite values within their documented error; whole files with such parameters,
+//! with 1 frame and with 10,000 frames, encode and decode; the rows a chunk keeps at finest
+//! resolution 2^16 include every row its region reads.
 //!
 //! Documented errors (`codec/src/quant.rs`):
 //! - f16: values are clamped to `±65504` (f16's largest finite value), then rounded: relative
 //!   error `<= 2^-11` in f16's normal range, absolute error `<= 2^-25` below it (values under
 //!   `2^-25`, e.g. 1e-8, become 0);
 //! - affine with `b` bits over a block `[lo, hi]`: error `<= (hi - lo) / (2^b - 1) / 2` plus f32
-//!   rounding; a block whose spread exceeds `f32::MAX / 2` (values near `±f32::MAX`) is
-//!   narrowed to `f32::MAX / 2` around its mid-range and the values outside clamp to it;
+//!   rounding; a block whose spread overflows f32 (values of both signs near `±f32::MAX`) is
+//!   narrowed to `0.9998 f32::MAX` around its mid-range and the values outside clamp to it; next
+//!   to `±f32::MAX` the top of the range may lose a few ulps so that decoding stays finite;
 //! - codebook: every value decodes to the codebook entry nearest to it.
 
 use msth_codec::quant::{affine_params, BlockEncoding, Reader, Writer};
 use proptest::prelude::*;
 
-/// `cases` cases from a fixed seed (`PROPTEST_CASES` and `PROPTEST_RNG_SEED=n` explore more); failures print their
-/// minimal input and are kept as named tests rather than regression files.
+/// `cases` cases from a fixed seed (`PROPTEST_CASES` and `PROPTEST_RNG_SEED=n` explore more);
+/// failures print their minimal input and are kept as named tests rather than regression files.
 fn config(cases: u32) -> ProptestConfig {
     let mut c = ProptestConfig {
         failure_persistence: None,

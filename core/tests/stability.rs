@@ -49,8 +49,8 @@ fn step() -> impl Strategy<Value = f32> {
 }
 
 fn config(cases: u32) -> ProptestConfig {
-    // `cases` cases from a fixed seed (`PROPTEST_CASES` and `PROPTEST_RNG_SEED=n` explore more); failures print their minimal input
-    // and are kept as named tests rather than regression files.
+    // `cases` cases from a fixed seed (`PROPTEST_CASES` and `PROPTEST_RNG_SEED=n` explore more);
+    // failures print their minimal input and are kept as named tests, not regression files.
     let mut c = ProptestConfig {
         failure_persistence: None,
         ..ProptestConfig::default()
@@ -140,7 +140,10 @@ mod render {
             let tau: Vec<f64> = sig.iter().zip(&del).map(|(s, d)| *s as f64 * *d as f64).collect();
             let (w_ref, t_ref) = weights_f64(&tau);
             for k in 0..n {
-                prop_assert!((w[k] as f64 - w_ref[k]).abs() < 1e-5, "w[{k}] {} vs {}", w[k], w_ref[k]);
+                prop_assert!(
+                    (w[k] as f64 - w_ref[k]).abs() < 1e-5,
+                    "w[{k}] {} vs {}", w[k], w_ref[k]
+                );
             }
             prop_assert!((t as f64 - t_ref).abs() < 1e-5);
 
@@ -153,7 +156,8 @@ mod render {
                 let tol = 2e-5 * del[k] as f64 + 1e-9;
                 prop_assert!(
                     (d_sigma[k] as f64 - fd[k]).abs() <= tol,
-                    "d_sigma[{k}] {} vs fd {} (sigma {}, delta {})", d_sigma[k], fd[k], sig[k], del[k]
+                    "d_sigma[{k}] {} vs fd {} (sigma {}, delta {})",
+                    d_sigma[k], fd[k], sig[k], del[k]
                 );
             }
         }
@@ -165,7 +169,10 @@ mod render {
             let mut w = [0f32];
             let t = weights(&[s], &[d], &mut w);
             let alpha = -(-(s as f64 * d as f64)).exp_m1();
-            prop_assert!((w[0] as f64 - alpha).abs() <= 1e-6 * alpha + 1e-30, "{} vs {alpha}", w[0]);
+            prop_assert!(
+                (w[0] as f64 - alpha).abs() <= 1e-6 * alpha + 1e-30,
+                "{} vs {alpha}", w[0]
+            );
             prop_assert!((t as f64 - (1.0 - alpha)).abs() <= 1e-6);
             if s as f64 * d as f64 > 104.0 {
                 prop_assert_eq!(w[0], 1.0);
@@ -217,7 +224,10 @@ mod render {
             prop_assert!(d_sigma[k..].iter().all(|&v| v == 0.0), "{:?}", &d_sigma[k..]);
             let fd = d_sigma_fd(&sig, &del, &g, g_t);
             for i in 0..k {
-                prop_assert!((d_sigma[i] as f64 - fd[i]).abs() < 1e-5, "{i}: {} vs {}", d_sigma[i], fd[i]);
+                prop_assert!(
+                    (d_sigma[i] as f64 - fd[i]).abs() < 1e-5,
+                    "{i}: {} vs {}", d_sigma[i], fd[i]
+                );
             }
         }
     }
@@ -361,7 +371,9 @@ mod sampling_and_losses {
         /// Activations and their derivatives are finite for every finite input, and the density
         /// activation never exceeds `f32::MAX`.
         #[test]
-        fn activations_are_finite_for_any_finite_input(x in prop::num::f32::NORMAL | prop::num::f32::ZERO | prop::num::f32::SUBNORMAL) {
+        fn activations_are_finite_for_any_finite_input(
+            x in prop::num::f32::NORMAL | prop::num::f32::ZERO | prop::num::f32::SUBNORMAL
+        ) {
             prop_assert!(sigmoid(x).is_finite() && (0.0..=1.0).contains(&sigmoid(x)));
             prop_assert!(trunc_exp(x).is_finite() && trunc_exp(x) >= 0.0);
             prop_assert!(trunc_exp_grad(x).is_finite() && trunc_exp_grad(x) > 0.0);
@@ -653,7 +665,10 @@ mod grids {
                 SceneBounds::Contracted { center: Vec3::new(0.5, -1.0, 2.0), radius: 3.0 },
             ] {
                 let u = b.to_unit(p);
-                prop_assert!(u.is_finite() && u.cmpge(Vec3::ZERO).all() && u.cmple(Vec3::ONE).all(), "{b:?}: {p} -> {u}");
+                prop_assert!(
+                    u.is_finite() && u.cmpge(Vec3::ZERO).all() && u.cmple(Vec3::ONE).all(),
+                    "{b:?}: {p} -> {u}"
+                );
             }
         }
     }
@@ -1025,7 +1040,8 @@ mod pipeline {
             }
             let targets = vec![[1.0, 0.0, 0.5]; rays.len()];
             let (sq, grad) = train(&cfg, &layout, &p, &rays, &targets);
-            let expect: f64 = (0..3).map(|c| ((bg[c] - targets[0][c]) as f64).powi(2)).sum::<f64>() / 3.0;
+            let expect: f64 =
+                (0..3).map(|c| ((bg[c] - targets[0][c]) as f64).powi(2)).sum::<f64>() / 3.0;
             prop_assert!((sq - expect * rays.len() as f64).abs() < 1e-5);
             prop_assert!(grad.iter().all(|&g| g == 0.0));
         }
@@ -1064,7 +1080,8 @@ mod pipeline {
             let o = render(&cfg, &layout, &p, &rays);
             assert_render_sane(&o, bg);
             for (i, r) in rays.iter().enumerate() {
-                let iv = cfg.bounds.ray_interval(&Ray { origin: r.origin, dir: r.dir }, cfg.sampler.near, cfg.sampler.far);
+                let ray = Ray { origin: r.origin, dir: r.dir };
+                let iv = cfg.bounds.ray_interval(&ray, cfg.sampler.near, cfg.sampler.far);
                 let chord = iv.map(|v| (v.far - v.near) as f64).unwrap_or(0.0);
                 let s = trunc_exp(log_sigma) as f64;
                 let expected = -(-(s * chord)).exp_m1();
@@ -1087,7 +1104,10 @@ mod pipeline {
         /// radii), and the opacity is still `1 - exp(-sigma (far - near))`.
         #[test]
         fn contracted_scene_constant_density_gives_the_analytic_opacity(
-            origins in prop::collection::vec((prop::collection::vec(-1.0f32..1.0, 3), log_uniform(1e-3, 1e4)), 1..5),
+            origins in prop::collection::vec(
+                (prop::collection::vec(-1.0f32..1.0, 3), log_uniform(1e-3, 1e4)),
+                1..5,
+            ),
             dirs in prop::collection::vec(prop::collection::vec(-1.0f32..1.0, 3), 5),
             sigma in density(),
         ) {
