@@ -215,23 +215,40 @@ pub fn encode(
         h4_values = g.num_params as u64;
         if !region.boxes.is_empty() {
             spans = chunk_spans(model.num_frames, opts.chunk_frames);
-            let per_chunk: Vec<Vec<Vec<u32>>> = spans
-                .iter()
-                .map(|span| {
-                    (0..g.levels.len())
-                        .map(|l| reached_rows(g, l, &region, span.t_start, span.t_end))
-                        .collect()
-                })
-                .collect();
-            // How many chunks need each row: rows needed by two or more go to the shared section.
+            // How many chunks need each row (rows needed by two or more go to the shared
+            // section) and which chunk reached it first (its owner when it is the only one).
+            // Rows are counted chunk by chunk and not kept per chunk: with 10,000 frames the
+            // per-chunk row lists took chunks x rows x 4 bytes (1.1 GB for the fast preset,
+            // tens of GB for the paper's), see docs/stability.md.
             let mut users: Vec<Vec<u16>> = g.levels.iter().map(|l| vec![0; l.rows]).collect();
-            for rows in &per_chunk {
-                for (u, r) in users.iter_mut().zip(rows) {
-                    for &row in r {
-                        u[row as usize] = u[row as usize].saturating_add(1);
+            let mut owner: Vec<Vec<u32>> = g.levels.iter().map(|l| vec![0; l.rows]).collect();
+            let mut reached_per_chunk = Vec::with_capacity(spans.len());
+            for (c, span) in spans.iter().enumerate() {
+                let mut reached = 0u64;
+                for (l, (u, o)) in users.iter_mut().zip(&mut owner).enumerate() {
+                    let rows = reached_rows(g, l, &region, span.t_start, span.t_end);
+                    reached += rows.len() as u64;
+                    for row in rows {
+                        let row = row as usize;
+                        if u[row] == 0 {
+                            o[row] = c as u32;
+                        }
+                        u[row] = u[row].saturating_add(1);
+                    }
+                }
+                reached_per_chunk.push(reached);
+            }
+            // Each chunk's own rows (reached by it alone), sorted: at most one list entry per row.
+            let mut own_rows: Vec<Vec<Vec<u32>>> =
+                vec![vec![Vec::new(); g.levels.len()]; spans.len()];
+            for (l, (u, o)) in users.iter().zip(&owner).enumerate() {
+                for row in 0..u.len() {
+                    if u[row] == 1 {
+                        own_rows[o[row] as usize][l].push(row as u32);
                     }
                 }
             }
+            drop(owner);
             let shared: Vec<Vec<u32>> = users
                 .iter()
                 .map(|u| {
@@ -250,18 +267,8 @@ pub fn encode(
                 values: shared_values,
             });
             payloads.push((SectionKind::Shared, 0, raw));
-            for (c, (span, rows)) in spans.iter().zip(&per_chunk).enumerate() {
-                let own: Vec<Vec<u32>> = rows
-                    .iter()
-                    .zip(&users)
-                    .map(|(r, u)| {
-                        r.iter()
-                            .copied()
-                            .filter(|&row| u[row as usize] == 1)
-                            .collect()
-                    })
-                    .collect();
-                let reached: u64 = rows.iter().map(|r| r.len() as u64).sum();
+            for (c, (span, own)) in spans.iter().zip(own_rows).enumerate() {
+                let reached = reached_per_chunk[c];
                 let kept: u64 = own.iter().map(|r| r.len() as u64).sum();
                 let raw = write_chunk(&layout, params, c as u32, &own, enc);
                 chunks.push(ChunkReport {

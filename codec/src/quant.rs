@@ -120,11 +120,13 @@ impl Writer {
             }
             BlockEncoding::Codebook { bits } => {
                 let book = lloyd_max(values, bits);
-                // Decision thresholds: midpoints between neighbouring (sorted) entries.
-                let mids: Vec<f32> = book.windows(2).map(|w| 0.5 * (w[0] + w[1])).collect();
+                // Decision thresholds: midpoints between neighbouring (sorted) entries, in f64:
+                // `0.5 * (a + b)` in f32 overflows to infinity for entries near f32::MAX, which
+                // sent every value to the lower entry (stability suite, docs/stability.md).
+                let mids: Vec<f64> = book.windows(2).map(|w| midpoint(w[0], w[1])).collect();
                 let codes: Vec<u8> = values
                     .iter()
-                    .map(|&v| mids.partition_point(|&m| m < v) as u8)
+                    .map(|&v| mids.partition_point(|&m| m < v as f64) as u8)
                     .collect();
                 let (predictor, stored) = choose_predictor(codes);
                 header(self, ENC_CODEBOOK, bits, predictor);
@@ -193,8 +195,8 @@ pub fn lloyd_max(values: &[f32], bits: u8) -> Vec<f32> {
             let end = if i + 1 == k {
                 n
             } else {
-                let mid = 0.5 * (book[i] + book[i + 1]);
-                sorted.partition_point(|&v| v <= mid).max(start)
+                let mid = midpoint(book[i], book[i + 1]);
+                sorted.partition_point(|&v| v as f64 <= mid).max(start)
             };
             if end > start {
                 book[i] = ((prefix[end] - prefix[start]) / (end - start) as f64) as f32;
@@ -206,7 +208,20 @@ pub fn lloyd_max(values: &[f32], bits: u8) -> Vec<f32> {
     book
 }
 
+/// The midpoint of two codebook entries, exact and without overflow.
+#[inline]
+fn midpoint(a: f32, b: f32) -> f64 {
+    0.5 * (a as f64 + b as f64)
+}
+
 /// `(min, scale)` of the affine quantisation of `values` to `bits` bits.
+///
+/// The error is at most `scale / 2` (plus f32 rounding) for values in
+/// `[min, min + (2^bits - 1) scale]`, which is the block's range `[lo, hi]` except in two extreme
+/// cases: a spread `hi - lo` beyond `f32::MAX` (values of both signs near `±f32::MAX`) is narrowed
+/// to `0.9998 f32::MAX` around the mid-range, the values outside clamping to its ends; and next
+/// to `±f32::MAX` the top of the range may shrink by a few ulps so that decoding
+/// (`min + code * scale` in f32) stays finite.
 pub fn affine_params(values: &[f32], bits: u8) -> (f32, f32) {
     let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
     for &v in values {
@@ -216,9 +231,26 @@ pub fn affine_params(values: &[f32], bits: u8) -> (f32, f32) {
     if !(lo.is_finite() && hi.is_finite()) {
         return (0.0, 0.0);
     }
+    // `hi - lo` can overflow to infinity (e.g. -3e38..3e38), which used to give scale 0 and
+    // collapse the whole block onto its minimum (stability suite, docs/stability.md).
+    if !(hi - lo).is_finite() {
+        let mid = 0.5 * lo + 0.5 * hi;
+        // A little under f32::MAX / 2, so that rounding cannot push the new spread to infinity.
+        let half = 0.4999 * f32::MAX;
+        lo = lo.max(mid - half);
+        hi = hi.min(mid + half);
+    }
     let levels = ((1u32 << bits) - 1) as f32;
-    let scale = (hi - lo) / levels;
-    (lo, if scale.is_finite() { scale } else { 0.0 })
+    let mut scale = (hi - lo) / levels;
+    if !scale.is_finite() {
+        return (lo, 0.0);
+    }
+    // The decoder computes the top code as `lo + levels * scale`; next to f32::MAX the rounding
+    // of `scale` can push it to infinity, which the decoder rejects. Step `scale` down by ulps.
+    while scale > 0.0 && !(lo + levels * scale).is_finite() {
+        scale = f32::from_bits(scale.to_bits() - 1);
+    }
+    (lo, scale)
 }
 
 /// Reads little-endian values from a byte slice; every read is bounds-checked.

@@ -38,6 +38,10 @@ impl AdamConfig {
     }
 }
 
+/// Gradients are clamped to this magnitude before the moments are updated, so that `g^2` stays
+/// finite in f32 (see docs/stability.md). Adam's step does not depend on the gradient's scale.
+pub const MAX_GRADIENT: f32 = 1e18;
+
 /// Optimiser state: first and second moments, one float each per parameter.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Adam {
@@ -106,6 +110,10 @@ impl Adam {
                             }
                         }
                     }
+                    // Adam only sees the gradient's scale through m / sqrt(v); beyond ~1.8e19,
+                    // gi * gi overflows to infinity and froze the parameter for good
+                    // (m / sqrt(inf) = 0 forever). Clamping keeps the direction and the step.
+                    let gi = gi.clamp(-MAX_GRADIENT, MAX_GRADIENT);
                     m[i] = b1 * m[i] + (1.0 - b1) * gi;
                     v[i] = b2 * v[i] + (1.0 - b2) * gi * gi;
                     let denom = v[i].sqrt() * inv_sqrt_bc2 + eps;
