@@ -37,7 +37,8 @@ use rayon::prelude::*;
 use serde::Serialize;
 use serde_json::{Map, Value};
 
-use super::{Dataset, DatasetError, Image8, View};
+use super::undistort::{undistort_image, Distortion, Intrinsics};
+use super::{downscale_rgb, Dataset, DatasetError, Image8, View};
 use crate::imageio;
 
 /// How to load a dataset.
@@ -68,7 +69,7 @@ const MAX_CAMERA_ID: u64 = 1 << 20;
 
 /// Intrinsics fields as written in a file (top level or one frame).
 #[derive(Clone, Copy, Debug, Default)]
-struct IntrinsicFields {
+pub(super) struct IntrinsicFields {
     camera_angle_x: Option<f64>,
     fl_x: Option<f64>,
     fl_y: Option<f64>,
@@ -76,9 +77,21 @@ struct IntrinsicFields {
     cy: Option<f64>,
     w: Option<u32>,
     h: Option<u32>,
+    /// OpenCV distortion `k1, k2, k3, p1, p2` (nerfstudio).
+    distortion: [Option<f64>; 5],
 }
 
+/// Names of the distortion fields, in the order of [`IntrinsicFields::distortion`].
+const DISTORTION_FIELDS: [&str; 5] = ["k1", "k2", "k3", "p1", "p2"];
+
 impl IntrinsicFields {
+    /// The distortion model (absent coefficients are 0); `None` when there is none.
+    pub(super) fn distortion(&self) -> Option<Distortion> {
+        let [k1, k2, k3, p1, p2] = self.distortion.map(|v| v.unwrap_or(0.0));
+        let d = Distortion { k1, k2, k3, p1, p2 };
+        (!d.is_identity()).then_some(d)
+    }
+
     /// `self` with every field present in `over` replaced.
     fn overridden_by(self, over: IntrinsicFields) -> IntrinsicFields {
         IntrinsicFields {
@@ -89,49 +102,53 @@ impl IntrinsicFields {
             cy: over.cy.or(self.cy),
             w: over.w.or(self.w),
             h: over.h.or(self.h),
+            distortion: std::array::from_fn(|i| over.distortion[i].or(self.distortion[i])),
         }
     }
 }
 
 /// One frame of a transforms file, parsed and checked, image not yet read.
 #[derive(Clone, Debug)]
-struct FrameSpec {
+pub(super) struct FrameSpec {
     /// The transforms file it came from.
     json: PathBuf,
     /// `frames[index]` (for messages).
     index: usize,
-    image: PathBuf,
-    time: f32,
-    pose: Mat4,
-    intrinsics: IntrinsicFields,
-    camera_id: Option<usize>,
+    pub(super) image: PathBuf,
+    /// `None` when the frame has no `time` (allowed in nerfstudio files only).
+    pub(super) time: Option<f32>,
+    pub(super) pose: Mat4,
+    pub(super) intrinsics: IntrinsicFields,
+    pub(super) camera_id: Option<usize>,
 }
 
 impl FrameSpec {
-    fn field(&self, name: &str) -> String {
+    pub(super) fn field(&self, name: &str) -> String {
         format!("frames[{}].{name}", self.index)
     }
 }
 
 /// A parsed transforms file.
-struct TransformsFile {
-    frames: Vec<FrameSpec>,
-    scene_box: Option<SceneBounds>,
+pub(super) struct TransformsFile {
+    pub(super) frames: Vec<FrameSpec>,
+    pub(super) scene_box: Option<SceneBounds>,
+    /// The top-level object (for format-specific fields).
+    pub(super) root: Map<String, Value>,
 }
 
 /// An image read and prepared for the dataset.
-struct LoadedImage {
+pub(super) struct LoadedImage {
     /// Size before downscaling.
-    width: u32,
-    height: u32,
-    image: Image8,
+    pub(super) width: u32,
+    pub(super) height: u32,
+    pub(super) image: Image8,
     /// Some pixel had alpha < 255.
-    transparent: bool,
+    pub(super) transparent: bool,
     /// Alpha after downscaling, when the image had transparency.
-    alpha: Option<Vec<u8>>,
+    pub(super) alpha: Option<Vec<u8>>,
 }
 
-fn field_error(path: &Path, field: &str, message: impl Into<String>) -> DatasetError {
+pub(super) fn field_error(path: &Path, field: &str, message: impl Into<String>) -> DatasetError {
     DatasetError::Field {
         path: path.to_path_buf(),
         field: field.to_string(),
@@ -139,7 +156,7 @@ fn field_error(path: &Path, field: &str, message: impl Into<String>) -> DatasetE
     }
 }
 
-fn type_name(v: &Value) -> &'static str {
+pub(super) fn type_name(v: &Value) -> &'static str {
     match v {
         Value::Null => "null",
         Value::Bool(_) => "a boolean",
@@ -238,7 +255,19 @@ fn intrinsic_fields(
             return Err(field_error(path, &format!("{prefix}{k}"), "overflows f32"));
         }
     }
+    let mut distortion = [None; 5];
+    for (slot, k) in distortion.iter_mut().zip(DISTORTION_FIELDS) {
+        *slot = opt_number(obj, k, path, prefix)?;
+        if slot.is_some_and(|x| x.abs() > 1e3) {
+            return Err(field_error(
+                path,
+                &format!("{prefix}{k}"),
+                "is not a plausible distortion coefficient (|value| > 1000)",
+            ));
+        }
+    }
     Ok(IntrinsicFields {
+        distortion,
         camera_angle_x,
         fl_x: opt_positive(obj, "fl_x", path, prefix)?,
         fl_y: opt_positive(obj, "fl_y", path, prefix)?,
@@ -337,7 +366,7 @@ fn transform_matrix(v: &Value, path: &Path, field: &str) -> Result<Mat4, Dataset
 
 /// The image path of `file_path`: relative to `dir`, `.png` appended when there is no extension
 /// (or when only the `.png` variant exists, for names like `r_0.5`).
-fn image_path(dir: &Path, file_path: &str) -> PathBuf {
+pub(super) fn image_path(dir: &Path, file_path: &str) -> PathBuf {
     let p = dir.join(file_path);
     if p.extension().is_none() {
         return PathBuf::from(format!("{}.png", p.display()));
@@ -351,7 +380,13 @@ fn image_path(dir: &Path, file_path: &str) -> PathBuf {
     p
 }
 
-fn parse_transforms(dir: &Path, path: &Path) -> Result<TransformsFile, DatasetError> {
+/// Parses and checks a transforms file; `time_required` is false for nerfstudio files, where
+/// frames may leave out `time`.
+pub(super) fn parse_transforms(
+    dir: &Path,
+    path: &Path,
+    time_required: bool,
+) -> Result<TransformsFile, DatasetError> {
     let bytes = std::fs::read(path).map_err(|source| DatasetError::Io {
         path: path.to_path_buf(),
         source,
@@ -408,10 +443,11 @@ fn parse_transforms(dir: &Path, path: &Path) -> Result<TransformsFile, DatasetEr
             None => return Err(field_error(path, &f("file_path"), "missing")),
         };
         let time = match fo.get("time") {
-            None => return Err(field_error(path, &f("time"), "missing")),
-            Some(v) => number(v, path, &f("time"))?,
+            None if time_required => return Err(field_error(path, &f("time"), "missing")),
+            None => None,
+            Some(v) => Some(number(v, path, &f("time"))?),
         };
-        if !(0.0..=1.0).contains(&time) {
+        if let Some(time) = time.filter(|t| !(0.0..=1.0).contains(t)) {
             return Err(field_error(
                 path,
                 &f("time"),
@@ -450,13 +486,17 @@ fn parse_transforms(dir: &Path, path: &Path) -> Result<TransformsFile, DatasetEr
             json: path.to_path_buf(),
             index,
             image: image_path(dir, file_path),
-            time: time as f32,
+            time: time.map(|t| t as f32),
             pose,
             intrinsics,
             camera_id,
         });
     }
-    Ok(TransformsFile { frames, scene_box })
+    Ok(TransformsFile {
+        frames,
+        scene_box,
+        root: obj.clone(),
+    })
 }
 
 /// Area-filter downscale by an integer factor; the remainder at the right/bottom is cropped.
@@ -464,32 +504,25 @@ fn downscale_box(img: &Image8, factor: u32) -> Image8 {
     if factor <= 1 {
         return img.clone();
     }
-    let (w, h) = (img.width / factor, img.height / factor);
-    let f = factor as usize;
-    let n = (f * f) as u64;
-    let mut out = Image8::new(w, h);
-    for y in 0..h as usize {
-        for x in 0..w as usize {
-            let mut acc = [0u64; 3];
-            for dy in 0..f {
-                let row = (y * f + dy) * img.width as usize;
-                for dx in 0..f {
-                    let i = (row + x * f + dx) * 3;
-                    for c in 0..3 {
-                        acc[c] += img.data[i + c] as u64;
-                    }
-                }
-            }
-            let o = (y * w as usize + x) * 3;
-            for c in 0..3 {
-                out.data[o + c] = ((acc[c] + n / 2) / n) as u8;
-            }
-        }
+    Image8 {
+        width: img.width / factor,
+        height: img.height / factor,
+        data: downscale_rgb(&img.data, img.width, img.height, factor).into(),
     }
-    out
 }
 
-fn load_image(path: &Path, downscale: u32) -> Result<LoadedImage, DatasetError> {
+/// Reads an image file, composites it on white, undistorts it to the pinhole camera when
+/// `undistort` gives the frame's intrinsics fields with a distortion model, and downscales it.
+pub(super) fn load_image(path: &Path, downscale: u32) -> Result<LoadedImage, DatasetError> {
+    load_image_undistorted(path, downscale, None)
+}
+
+/// [`load_image`] with optional undistortion (nerfstudio).
+pub(super) fn load_image_undistorted(
+    path: &Path,
+    downscale: u32,
+    undistort: Option<&IntrinsicFields>,
+) -> Result<LoadedImage, DatasetError> {
     let bytes = std::fs::read(path).map_err(|source| DatasetError::Io {
         path: path.to_path_buf(),
         source,
@@ -514,7 +547,32 @@ fn load_image(path: &Path, downscale: u32) -> Result<LoadedImage, DatasetError> 
         });
     }
     let has_alpha = decoded.color().has_alpha();
-    let rgba = decoded.to_rgba8();
+    let mut rgba = decoded.to_rgba8();
+    if let Some(k) = undistort {
+        if let (Some(d), Some(pin)) = (k.distortion(), pinhole(k, width, height)) {
+            // Undistort RGBA as two RGB images (colour, and alpha replicated).
+            let mut colour = Image8::new(width, height);
+            let mut alpha = Image8::new(width, height);
+            let (cd, ad): (&mut [u8], &mut [u8]) = (&mut colour.data, &mut alpha.data);
+            for ((c, a), p) in cd
+                .chunks_exact_mut(3)
+                .zip(ad.chunks_exact_mut(3))
+                .zip(rgba.pixels())
+            {
+                c.copy_from_slice(&p.0[..3]);
+                a.fill(p.0[3]);
+            }
+            let colour = undistort_image(&colour, &pin, &d);
+            let alpha = undistort_image(&alpha, &pin, &d);
+            for ((p, c), a) in rgba
+                .pixels_mut()
+                .zip(colour.data.chunks_exact(3))
+                .zip(alpha.data.chunks_exact(3))
+            {
+                p.0 = [c[0], c[1], c[2], a[0]];
+            }
+        }
+    }
     let mut image = Image8::new(width, height);
     let mut transparent = false;
     for (dst, src) in image.data.chunks_exact_mut(3).zip(rgba.pixels()) {
@@ -545,6 +603,25 @@ fn load_image(path: &Path, downscale: u32) -> Result<LoadedImage, DatasetError> 
         image: downscale_box(&image, downscale),
         transparent,
         alpha,
+    })
+}
+
+/// Pinhole intrinsics of `k` for an image of `width x height` (`None` without a focal length).
+fn pinhole(k: &IntrinsicFields, width: u32, height: u32) -> Option<Intrinsics> {
+    let (fx, fy) = match (k.fl_x, k.fl_y, k.camera_angle_x) {
+        (Some(fx), fy, _) => (fx, fy.unwrap_or(fx)),
+        (None, Some(fy), _) => (fy, fy),
+        (None, None, Some(a)) => {
+            let f = 0.5 * width as f64 / (0.5 * a).tan();
+            (f, f)
+        }
+        (None, None, None) => return None,
+    };
+    Some(Intrinsics {
+        fx,
+        fy,
+        cx: k.cx.unwrap_or(0.5 * width as f64),
+        cy: k.cy.unwrap_or(0.5 * height as f64),
     })
 }
 
@@ -646,7 +723,10 @@ fn same_pose(a: &Mat4, b: &Mat4) -> bool {
 type CameraIds = (Vec<Option<usize>>, Vec<Option<usize>>);
 
 /// Camera ids from the files, or from grouping identical poses (`None` for monocular data).
-fn camera_ids(train: &[FrameSpec], test: &[FrameSpec]) -> Result<CameraIds, DatasetError> {
+pub(super) fn camera_ids(
+    train: &[FrameSpec],
+    test: &[FrameSpec],
+) -> Result<CameraIds, DatasetError> {
     let all = || train.iter().chain(test);
     if let Some(with) = all().find(|f| f.camera_id.is_some()) {
         if let Some(without) = all().find(|f| f.camera_id.is_none()) {
@@ -701,7 +781,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
         })?;
     }
     let train_path = dir.join("transforms_train.json");
-    let train_file = parse_transforms(dir, &train_path)?;
+    let train_file = parse_transforms(dir, &train_path, true)?;
     let test_path = ["transforms_test.json", "transforms_val.json"]
         .iter()
         .map(|n| dir.join(n))
@@ -710,12 +790,24 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
             path: dir.join("transforms_test.json"),
             message: "missing (and there is no transforms_val.json either)".into(),
         })?;
-    let test_file = parse_transforms(dir, &test_path)?;
+    let test_file = parse_transforms(dir, &test_path, true)?;
+    let scene_box = train_file.scene_box.or(test_file.scene_box);
+    assemble(dir, &train_file.frames, &test_file.frames, scene_box, opts)
+}
 
-    let specs: Vec<&FrameSpec> = train_file.frames.iter().chain(&test_file.frames).collect();
+/// Reads the images of parsed frames and builds the dataset (shared with nerfstudio): camera ids,
+/// bounds, frame count. Frames without a time get time 0.
+pub(super) fn assemble(
+    dir: &Path,
+    train_specs: &[FrameSpec],
+    test_specs: &[FrameSpec],
+    scene_box: Option<SceneBounds>,
+    opts: &LoadOptions,
+) -> Result<Dataset, DatasetError> {
+    let specs: Vec<&FrameSpec> = train_specs.iter().chain(test_specs).collect();
     let loaded: Vec<Result<LoadedImage, DatasetError>> = specs
         .par_iter()
-        .map(|s| load_image(&s.image, opts.downscale))
+        .map(|s| load_image_undistorted(&s.image, opts.downscale, Some(&s.intrinsics)))
         .collect();
     let mut images = Vec::with_capacity(loaded.len());
     for r in loaded {
@@ -746,17 +838,17 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
         }
         views.push(View {
             camera,
-            time: spec.time,
+            time: spec.time.unwrap_or(0.0),
             image: img.image,
             source: spec.image.clone(),
             camera_id: None,
             alpha: img.alpha,
         });
     }
-    let mut test = views.split_off(train_file.frames.len());
+    let mut test = views.split_off(train_specs.len());
     let mut train = views;
 
-    let (train_ids, test_ids) = camera_ids(&train_file.frames, &test_file.frames)?;
+    let (train_ids, test_ids) = camera_ids(train_specs, test_specs)?;
     for (v, id) in train.iter_mut().zip(train_ids) {
         v.camera_id = id;
     }
@@ -766,7 +858,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
 
     let bounds = if let Some(b) = opts.bounds {
         b
-    } else if let Some(b) = train_file.scene_box.or(test_file.scene_box) {
+    } else if let Some(b) = scene_box {
         b
     } else if transparent {
         SceneBounds::dnerf_default()
