@@ -128,10 +128,39 @@ impl Fingerprint {
     }
 }
 
+/// An open cache file: the file (for positional reads) and its read-only mapping.
+#[derive(Debug)]
+pub struct CacheFile {
+    file: File,
+    map: memmap2::Mmap,
+}
+
+impl CacheFile {
+    /// The whole file, mapped.
+    pub fn bytes(&self) -> &[u8] {
+        &self.map
+    }
+
+    /// Reads `buf.len()` bytes at `offset` with a positional read (`pread`), without mapping
+    /// them into the process: the pages stay in the kernel's page cache, which it can drop at
+    /// will, so random access over a file larger than RAM does not grow the resident set.
+    /// Falls back to the mapping where positional reads are unavailable or fail.
+    pub fn read_at(&self, offset: usize, buf: &mut [u8]) {
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::FileExt;
+            if self.file.read_exact_at(buf, offset as u64).is_ok() {
+                return;
+            }
+        }
+        buf.copy_from_slice(&self.map[offset..offset + buf.len()]);
+    }
+}
+
 /// An open, validated frame cache.
 #[derive(Clone, Debug)]
 pub struct FrameCache {
-    map: Arc<memmap2::Mmap>,
+    map: Arc<CacheFile>,
     key: CacheKey,
     path: PathBuf,
 }
@@ -171,11 +200,11 @@ impl FrameCache {
         let map = unsafe { memmap2::Mmap::map(&file) }.map_err(io)?;
         #[cfg(unix)]
         {
-            // Training reads random pixels: no read-ahead.
+            // Whole-frame reads through the mapping are rare; no read-ahead around them.
             let _ = map.advise(memmap2::Advice::Random);
         }
         Ok(Ok(FrameCache {
-            map: Arc::new(map),
+            map: Arc::new(CacheFile { file, map }),
             key: *key,
             path: path.to_path_buf(),
         }))
@@ -185,7 +214,7 @@ impl FrameCache {
     pub fn frame(&self, i: usize) -> Pixels {
         let len = self.key.frame_bytes() as usize;
         Pixels::Mapped {
-            map: self.map.clone(),
+            file: self.map.clone(),
             offset: DATA_OFFSET as usize + i * len,
             len,
         }
@@ -205,7 +234,7 @@ impl FrameCache {
 
     /// Size of the file in bytes.
     pub fn file_bytes(&self) -> u64 {
-        self.map.len() as u64
+        self.map.map.len() as u64
     }
 }
 
@@ -518,6 +547,19 @@ mod tests {
         let data = frames(2, 0);
         let s = store(&FrameStorage::Disk(path.clone()), key(2, 1), &data, &mut 0).unwrap();
         let mut p = s.frames().remove(1);
+        // Positional reads and the mapping agree.
+        for i in (0..36).step_by(3) {
+            assert_eq!(p.rgb_at(i), [data[1][i], data[1][i + 1], data[1][i + 2]]);
+        }
+        assert_eq!(&p.loaded()[..], &data[1][..]);
+        let img = super::super::Image8 {
+            width: 4,
+            height: 3,
+            data: p.clone(),
+        };
+        assert!(!img.loaded().data.is_mapped());
+        assert_eq!(img.loaded().into_owned(), img);
+        assert_eq!(img.get(1, 2)[0], data[1][(2 * 4 + 1) * 3] as f32 / 255.0);
         p[0] = p[0].wrapping_add(1);
         assert!(!p.is_mapped());
         let back = FrameCache::open(&path, &key(2, 1)).unwrap().unwrap();

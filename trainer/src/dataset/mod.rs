@@ -23,23 +23,55 @@ use std::sync::Arc;
 
 use msth_core::{Camera, SceneBounds};
 
-/// The bytes of an image: owned in memory, or a range of a read-only memory-mapped frame cache
-/// ([`cache::FrameCache`]). Both dereference to `[u8]`; writing to a mapped image first copies
-/// it into memory (copy on write), so the cache file is never modified.
+/// The bytes of an image: owned in memory, or a range of a read-only frame cache file
+/// ([`cache::FrameCache`]). Both dereference to `[u8]` (a cached frame through the file's memory
+/// mapping); writing to a cached image first copies it into memory (copy on write), so the cache
+/// file is never modified.
+///
+/// Hot paths read cached pixels with positional reads instead of the mapping
+/// ([`Pixels::rgb_at`], [`Image8::loaded`]): pages touched through a mapping count in the
+/// process's resident set until the kernel reclaims them, and random pixels of a dataset larger
+/// than RAM would touch all of it.
 #[derive(Clone)]
 pub enum Pixels {
     Owned(Vec<u8>),
     Mapped {
-        map: Arc<memmap2::Mmap>,
+        file: Arc<cache::CacheFile>,
         offset: usize,
         len: usize,
     },
 }
 
 impl Pixels {
-    /// Whether the bytes live in a mapped cache file.
+    /// Whether the bytes live in a cache file.
     pub fn is_mapped(&self) -> bool {
         matches!(self, Pixels::Mapped { .. })
+    }
+
+    /// The three bytes at `i..i + 3`.
+    #[inline]
+    pub fn rgb_at(&self, i: usize) -> [u8; 3] {
+        match self {
+            Pixels::Owned(v) => [v[i], v[i + 1], v[i + 2]],
+            Pixels::Mapped { file, offset, len } => {
+                assert!(i + 3 <= *len, "pixel {i} outside a frame of {len} bytes");
+                let mut b = [0u8; 3];
+                file.read_at(offset + i, &mut b);
+                b
+            }
+        }
+    }
+
+    /// The bytes in memory (a positional read of a cached frame; no copy when owned).
+    pub fn loaded(&self) -> std::borrow::Cow<'_, [u8]> {
+        match self {
+            Pixels::Owned(v) => std::borrow::Cow::Borrowed(v),
+            Pixels::Mapped { file, offset, len } => {
+                let mut v = vec![0u8; *len];
+                file.read_at(*offset, &mut v);
+                std::borrow::Cow::Owned(v)
+            }
+        }
     }
 }
 
@@ -49,7 +81,7 @@ impl Deref for Pixels {
     fn deref(&self) -> &[u8] {
         match self {
             Pixels::Owned(v) => v,
-            Pixels::Mapped { map, offset, len } => &map[*offset..*offset + *len],
+            Pixels::Mapped { file, offset, len } => &file.bytes()[*offset..*offset + *len],
         }
     }
 }
@@ -124,15 +156,31 @@ impl Image8 {
         }
     }
 
-    /// Pixel `(x, y)` as linear-in-file floats in `[0, 1]`.
+    /// Pixel `(x, y)` as linear-in-file floats in `[0, 1]` (a positional read for a cached
+    /// frame, see [`Pixels`]).
     #[inline]
     pub fn get(&self, x: u32, y: u32) -> [f32; 3] {
         let i = (y as usize * self.width as usize + x as usize) * 3;
+        let p = self.data.rgb_at(i);
         [
-            self.data[i] as f32 / 255.0,
-            self.data[i + 1] as f32 / 255.0,
-            self.data[i + 2] as f32 / 255.0,
+            p[0] as f32 / 255.0,
+            p[1] as f32 / 255.0,
+            p[2] as f32 / 255.0,
         ]
+    }
+
+    /// The image with its pixels in memory: itself when they are, else a copy read from the
+    /// frame cache (without mapping it, see [`Pixels`]).
+    pub fn loaded(&self) -> std::borrow::Cow<'_, Image8> {
+        if self.data.is_mapped() {
+            std::borrow::Cow::Owned(Image8 {
+                width: self.width,
+                height: self.height,
+                data: Pixels::Owned(self.data.loaded().into_owned()),
+            })
+        } else {
+            std::borrow::Cow::Borrowed(self)
+        }
     }
 
     /// From floats in `[0, 1]` (clamped; NaN becomes 0).
