@@ -187,8 +187,11 @@ fn camera_number(name: &str) -> Option<usize> {
 const VIDEO_EXTENSIONS: [&str; 3] = ["mp4", "mov", "mkv"];
 const IMAGE_EXTENSIONS: [&str; 3] = ["png", "jpg", "jpeg"];
 
+/// Paths by camera number.
+type Numbered = Vec<(usize, PathBuf)>;
+
 /// Videos and image folders by camera number.
-fn discover(dir: &Path) -> Result<(Vec<(usize, PathBuf)>, Vec<(usize, PathBuf)>), DatasetError> {
+fn discover(dir: &Path) -> Result<(Numbered, Numbered), DatasetError> {
     let entries = std::fs::read_dir(dir).map_err(|source| DatasetError::Io {
         path: dir.to_path_buf(),
         source,

@@ -98,6 +98,12 @@ impl DerefMut for Pixels {
     }
 }
 
+impl AsRef<[u8]> for Pixels {
+    fn as_ref(&self) -> &[u8] {
+        self
+    }
+}
+
 impl From<Vec<u8>> for Pixels {
     fn from(v: Vec<u8>) -> Self {
         Pixels::Owned(v)

@@ -155,6 +155,9 @@ pub fn probe(tools: &Tools, path: &Path) -> Result<VideoInfo, DatasetError> {
     })
 }
 
+/// Receives decoded frames: `(index, rgb)`.
+pub type FrameFn<'a> = dyn FnMut(usize, &[u8]) -> Result<(), DatasetError> + 'a;
+
 /// Decodes every frame of `path` (which [`probe`] described as `info`) as 8-bit RGB, row 0 at
 /// the top, calling `each(index, rgb)` in order. Fails when the video yields a different number
 /// of frames than `info.frames`.
@@ -162,7 +165,7 @@ pub fn decode(
     tools: &Tools,
     path: &Path,
     info: &VideoInfo,
-    each: &mut dyn FnMut(usize, &[u8]) -> Result<(), DatasetError>,
+    each: &mut FrameFn<'_>,
 ) -> Result<(), DatasetError> {
     let mut child = Command::new(&tools.ffmpeg)
         .args(["-v", "error", "-nostdin", "-i"])
