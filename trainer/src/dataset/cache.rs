@@ -91,6 +91,7 @@ impl Default for Fingerprint {
 }
 
 impl Fingerprint {
+    /// Adds raw bytes (delimited, so that consecutive parts cannot run together).
     pub fn bytes(&mut self, b: &[u8]) {
         for &x in b {
             self.0 ^= x as u64;
@@ -101,6 +102,7 @@ impl Fingerprint {
         self.0 = self.0.wrapping_mul(0x0100_0000_01b3);
     }
 
+    /// Adds a string.
     pub fn str(&mut self, s: &str) {
         self.bytes(s.as_bytes());
     }
@@ -123,6 +125,7 @@ impl Fingerprint {
         Ok(())
     }
 
+    /// The hash of everything added.
     pub fn finish(&self) -> u64 {
         self.0
     }
@@ -166,8 +169,8 @@ pub struct FrameCache {
 }
 
 impl FrameCache {
-    /// Opens `path` if it exists and matches `key`; `Ok(None)` (with the reason) when it is
-    /// absent or stale, so that the caller rebuilds it.
+    /// Opens `path` if it exists and matches `key`; `Ok(Err(reason))` when it is absent or stale,
+    /// so that the caller rebuilds it; `Err` for I/O errors other than absence.
     pub fn open(path: &Path, key: &CacheKey) -> Result<Result<FrameCache, String>, DatasetError> {
         let io = |source| DatasetError::Io {
             path: path.to_path_buf(),
@@ -220,14 +223,17 @@ impl FrameCache {
         }
     }
 
+    /// The cache file.
     pub fn path(&self) -> &Path {
         &self.path
     }
 
+    /// Number of frames.
     pub fn len(&self) -> usize {
         self.key.count as usize
     }
 
+    /// Whether it holds no frames.
     pub fn is_empty(&self) -> bool {
         self.key.count == 0
     }

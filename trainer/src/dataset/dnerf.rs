@@ -511,13 +511,13 @@ fn downscale_box(img: &Image8, factor: u32) -> Image8 {
     }
 }
 
-/// Reads an image file, composites it on white, undistorts it to the pinhole camera when
-/// `undistort` gives the frame's intrinsics fields with a distortion model, and downscales it.
+/// Reads an image file, composites it on white and downscales it.
 pub(super) fn load_image(path: &Path, downscale: u32) -> Result<LoadedImage, DatasetError> {
     load_image_undistorted(path, downscale, None)
 }
 
-/// [`load_image`] with optional undistortion (nerfstudio).
+/// [`load_image`], undistorting the image to the pinhole camera first when `undistort` gives the
+/// frame's intrinsics fields with a distortion model (nerfstudio).
 pub(super) fn load_image_undistorted(
     path: &Path,
     downscale: u32,

@@ -112,12 +112,14 @@ pub struct Similarity {
 }
 
 impl Similarity {
+    /// The transform that changes nothing.
     pub const IDENTITY: Similarity = Similarity {
         scale: 1.0,
         rotation: Mat3::IDENTITY,
         translation: Vec3::ZERO,
     };
 
+    /// A world point in the new world.
     pub fn apply_point(&self, p: Vec3) -> Vec3 {
         self.scale * (self.rotation * p) + self.translation
     }

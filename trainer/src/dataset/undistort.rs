@@ -21,6 +21,7 @@ pub struct Distortion {
 }
 
 impl Distortion {
+    /// Whether all coefficients are zero (no distortion).
     pub fn is_identity(&self) -> bool {
         *self == Distortion::default()
     }
