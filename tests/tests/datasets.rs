@@ -249,3 +249,41 @@ fn layout_detection_and_dataset_options() {
         "{e}"
     );
 }
+
+/// Prints how long drawing a training batch takes with frames in memory and in a frame cache
+/// (positional reads). Informational, never a pass/fail on time:
+/// `cargo test --release -p msth-tests --test datasets -- --ignored --nocapture`.
+#[test]
+#[ignore]
+fn sampler_speed_memory_vs_cache() {
+    use msth_core::rng::Rng;
+    use msth_trainer::dataset::cache::FrameStorage;
+    use msth_trainer::train::sample_batch;
+    let Some(dir) = stage() else { return };
+    let cache = tempfile::tempdir().unwrap();
+    for storage in [
+        FrameStorage::Memory,
+        FrameStorage::Disk(cache.path().join("stage.frames")),
+    ] {
+        let d = dynerf::load(
+            &dir,
+            &DynerfOptions {
+                frames: FrameSource::Images,
+                storage: storage.clone(),
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        let (mut rays, mut targets) = (Vec::new(), Vec::new());
+        let mut rng = Rng::stream(1, 2);
+        let t = std::time::Instant::now();
+        let n = 200;
+        for _ in 0..n {
+            sample_batch(&d, 2048, &mut rng, &mut rays, &mut targets, None, false);
+        }
+        println!(
+            "{storage:?}: {:.0} us per batch of 2048 rays",
+            t.elapsed().as_secs_f64() * 1e6 / n as f64
+        );
+    }
+}
