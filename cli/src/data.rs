@@ -56,7 +56,8 @@ impl DataArgs {
     }
 }
 
-/// A progress bar that appears on the first report of a frame decode.
+/// A progress bar (a line every 5% when stderr is not a terminal) for decoding frames into
+/// memory or into a frame cache; it appears on the first frame.
 fn decode_progress() -> Arc<msth_trainer::dataset::cache::ProgressFn> {
     let bar: Mutex<Option<ProgressBar>> = Mutex::new(None);
     Arc::new(move |done, total| {
@@ -65,7 +66,7 @@ fn decode_progress() -> Arc<msth_trainer::dataset::cache::ProgressFn> {
             let pb = ProgressBar::new(total);
             pb.set_style(
                 ProgressStyle::with_template(
-                    "building frame cache [{elapsed_precise} / ETA {eta}] {bar:30} {pos}/{len} frames",
+                    "decoding frames [{elapsed_precise} / ETA {eta}] {bar:30} {pos}/{len}",
                 )
                 .unwrap_or_else(|_| ProgressStyle::default_bar()),
             );
@@ -73,7 +74,7 @@ fn decode_progress() -> Arc<msth_trainer::dataset::cache::ProgressFn> {
         });
         pb.set_position(done);
         if pb.is_hidden() && (done % (total / 20).max(1) == 0 || done == total) {
-            eprintln!("building frame cache: {done}/{total} frames");
+            eprintln!("decoding frames: {done}/{total}");
         }
         if done == total {
             pb.finish();

@@ -249,15 +249,19 @@ pub trait FrameSink {
     fn push(&mut self, rgb: &[u8]) -> Result<(), DatasetError>;
 }
 
-struct MemorySink {
+struct MemorySink<'a> {
     frames: Vec<Pixels>,
     key: CacheKey,
+    progress: Option<&'a ProgressFn>,
 }
 
-impl FrameSink for MemorySink {
+impl FrameSink for MemorySink<'_> {
     fn push(&mut self, rgb: &[u8]) -> Result<(), DatasetError> {
         debug_assert_eq!(rgb.len() as u64, self.key.frame_bytes());
         self.frames.push(Pixels::Owned(rgb.to_vec()));
+        if let Some(p) = self.progress {
+            p(self.frames.len() as u64, self.key.count);
+        }
         Ok(())
     }
 }
@@ -342,6 +346,7 @@ pub fn store_frames(
         let mut sink = MemorySink {
             frames: Vec::with_capacity(key.count.min(1 << 20) as usize),
             key,
+            progress,
         };
         produce(&mut sink)?;
         check_count(&sink.frames.len(), key.count, Path::new("(memory)"))?;
