@@ -28,9 +28,10 @@ pub struct DataArgs {
     /// nerfstudio captures.
     #[arg(long)]
     pub test_camera: Option<usize>,
-    /// Folder for the memory-mapped frame cache (DyNeRF). With it, frames always go to
-    /// DIR/NAME-dsF.frames; without it, they stay in memory up to 2 GiB and otherwise go to a
-    /// cache in the output folder's `cache/`. A valid cache is reused without decoding.
+    /// Folder for the frame cache. With it, decoded frames always go to DIR/NAME-dsF.frames;
+    /// without it, they stay in memory up to 2 GiB and otherwise go to a cache in the output
+    /// folder's `cache/`. A valid cache is reused without decoding. Images with transparency
+    /// always stay in memory.
     #[arg(long, value_name = "DIR")]
     pub cache: Option<PathBuf>,
     /// DyNeRF frames from: auto | videos | images (auto: videos when every camera has one).

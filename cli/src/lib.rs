@@ -142,9 +142,10 @@ Datasets (the layout is detected from the folder, first match wins; --format ove
                          (decoded with ffmpeg) or camNN/ image folders; camNN with NN =
                          --test-camera (default 0) is held out. Poses are normalised LLFF-style
                          (--poses none keeps them); --frame-source picks videos or images.
---downscale F reduces every layout's images by F with an area filter. Decoded DyNeRF frames
-larger than 2 GiB go to a memory-mapped cache file (OUT/cache/, or --cache DIR to always use
-one), rebuilt when the sources change, so the dataset is bounded by disk rather than RAM.";
+--downscale F reduces every layout's images by F with an area filter. Decoded frames of more
+than 2 GiB go to a frame cache file (OUT/cache/, or --cache DIR to always use one), rebuilt when
+the sources change, so the dataset is bounded by disk rather than RAM (images with transparency
+stay in memory with their alpha).";
 
 #[derive(Args)]
 pub struct RenderArgs {

@@ -37,6 +37,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 use serde_json::{Map, Value};
 
+use super::cache::{store_frames, CacheKey, Fingerprint, FrameStorage, ProgressFn};
 use super::undistort::{undistort_image, Distortion, Intrinsics};
 use super::{downscale_rgb, Dataset, DatasetError, Image8, View};
 use crate::imageio;
@@ -719,6 +720,80 @@ fn same_pose(a: &Mat4, b: &Mat4) -> bool {
         .all(|(x, y)| (x - y).abs() < SAME_POSE_TOLERANCE)
 }
 
+/// The frames of `specs` through a frame cache (built or reused), as [`LoadedImage`]s without
+/// alpha; fails with the [`TRANSPARENT`] message at the first image with transparency.
+fn cached_images(
+    specs: &[&FrameSpec],
+    downscale: u32,
+    (ref_w, ref_h): (u32, u32),
+    storage: &FrameStorage,
+    progress: Option<&ProgressFn>,
+) -> Result<Vec<LoadedImage>, DatasetError> {
+    let mut fp = Fingerprint::default();
+    fp.str("json-v1");
+    fp.bytes(&downscale.to_le_bytes());
+    let mut jsons: Vec<&Path> = specs.iter().map(|s| s.json.as_path()).collect();
+    jsons.dedup();
+    for p in jsons {
+        fp.file(p)?;
+    }
+    for s in specs {
+        fp.file(&s.image)?;
+    }
+    let (w, h) = (ref_w / downscale, ref_h / downscale);
+    let key = CacheKey {
+        width: w,
+        height: h,
+        count: specs.len() as u64,
+        fingerprint: fp.finish(),
+    };
+    let stored = store_frames(storage, key, progress, &mut |sink| {
+        for batch in specs.chunks(64) {
+            let imgs: Vec<Result<LoadedImage, DatasetError>> = batch
+                .par_iter()
+                .map(|s| load_image_undistorted(&s.image, downscale, Some(&s.intrinsics)))
+                .collect();
+            for (spec, img) in batch.iter().zip(imgs) {
+                let img = img?;
+                if (img.width, img.height) != (ref_w, ref_h) {
+                    return Err(DatasetError::Invalid {
+                        path: spec.image.clone(),
+                        message: format!(
+                            "image is {}x{} but {} is {ref_w}x{ref_h} (all images must have one size)",
+                            img.width,
+                            img.height,
+                            specs[0].image.display()
+                        ),
+                    });
+                }
+                if img.transparent {
+                    return Err(DatasetError::Invalid {
+                        path: spec.image.clone(),
+                        message: TRANSPARENT.into(),
+                    });
+                }
+                sink.push(&img.image.data)?;
+            }
+        }
+        Ok(())
+    })?;
+    Ok(stored
+        .frames()
+        .into_iter()
+        .map(|data| LoadedImage {
+            width: ref_w,
+            height: ref_h,
+            image: Image8 {
+                width: w,
+                height: h,
+                data,
+            },
+            transparent: false,
+            alpha: None,
+        })
+        .collect())
+}
+
 /// Camera ids of the train and test views.
 type CameraIds = (Vec<Option<usize>>, Vec<Option<usize>>);
 
@@ -768,6 +843,17 @@ pub(super) fn camera_ids(
 /// Every problem is reported as a [`DatasetError`] naming the file and, where relevant, the JSON
 /// field; this function does not panic on any input.
 pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
+    load_with_storage(dir, opts, &FrameStorage::Memory, None)
+}
+
+/// [`load`] with the frames in `storage` (see [`assemble_with_storage`] for what goes to a
+/// frame cache) and decoding progress reported to `progress`.
+pub fn load_with_storage(
+    dir: &Path,
+    opts: &LoadOptions,
+    storage: &FrameStorage,
+    progress: Option<&ProgressFn>,
+) -> Result<Dataset, DatasetError> {
     if opts.downscale == 0 {
         return Err(DatasetError::Invalid {
             path: dir.to_path_buf(),
@@ -792,27 +878,77 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
         })?;
     let test_file = parse_transforms(dir, &test_path, true)?;
     let scene_box = train_file.scene_box.or(test_file.scene_box);
-    assemble(dir, &train_file.frames, &test_file.frames, scene_box, opts)
+    assemble_with_storage(
+        dir,
+        &train_file.frames,
+        &test_file.frames,
+        scene_box,
+        opts,
+        storage,
+        progress,
+    )
 }
 
-/// Reads the images of parsed frames and builds the dataset (shared with nerfstudio): camera ids,
-/// bounds, frame count. Frames without a time get time 0.
-pub(super) fn assemble(
+/// The error message that stops a frame cache build at the first transparent image.
+const TRANSPARENT: &str = "transparent image: the frames stay in memory with their alpha";
+
+/// Reads the images of parsed frames and builds the dataset (shared with nerfstudio), with the
+/// frames in `storage`: camera ids, bounds, frame count. Frames without a time get time 0.
+///
+/// A frame cache holds 8-bit RGB only, so it serves opaque datasets: a build that meets an
+/// image with transparency stops, and the dataset is loaded into memory with its alpha (object
+/// captures are small). Its fingerprint covers the transforms files, every image file and the
+/// downscale factor.
+pub(super) fn assemble_with_storage(
     dir: &Path,
     train_specs: &[FrameSpec],
     test_specs: &[FrameSpec],
     scene_box: Option<SceneBounds>,
     opts: &LoadOptions,
+    storage: &FrameStorage,
+    progress: Option<&ProgressFn>,
 ) -> Result<Dataset, DatasetError> {
     let specs: Vec<&FrameSpec> = train_specs.iter().chain(test_specs).collect();
-    let loaded: Vec<Result<LoadedImage, DatasetError>> = specs
-        .par_iter()
-        .map(|s| load_image_undistorted(&s.image, opts.downscale, Some(&s.intrinsics)))
-        .collect();
-    let mut images = Vec::with_capacity(loaded.len());
-    for r in loaded {
-        images.push(r?);
-    }
+    let f = opts.downscale;
+    let images = if *storage == FrameStorage::Memory {
+        None
+    } else {
+        let first = &specs[0].image;
+        let (ref_w, ref_h) = image::image_dimensions(first).map_err(|e| match e {
+            image::ImageError::IoError(source) => DatasetError::Io {
+                path: first.clone(),
+                source,
+            },
+            e => DatasetError::Image {
+                path: first.clone(),
+                message: e.to_string(),
+            },
+        })?;
+        let bytes = specs.len() as u64 * (ref_w / f) as u64 * (ref_h / f) as u64 * 3;
+        match storage.cache_file(bytes) {
+            Some(_) if ref_w >= f && ref_h >= f => {
+                match cached_images(&specs, f, (ref_w, ref_h), storage, progress) {
+                    Err(DatasetError::Invalid { message, .. }) if message == TRANSPARENT => None,
+                    r => Some(r?),
+                }
+            }
+            _ => None,
+        }
+    };
+    let images = match images {
+        Some(i) => i,
+        None => {
+            let loaded: Vec<Result<LoadedImage, DatasetError>> = specs
+                .par_iter()
+                .map(|s| load_image_undistorted(&s.image, f, Some(&s.intrinsics)))
+                .collect();
+            let mut images = Vec::with_capacity(loaded.len());
+            for r in loaded {
+                images.push(r?);
+            }
+            images
+        }
+    };
 
     let (ref_w, ref_h) = (images[0].width, images[0].height);
     let mut transparent = false;
@@ -1206,6 +1342,58 @@ mod tests {
             assert!(msg.contains(n), "`{msg}` does not mention `{n}`");
         }
         msg
+    }
+
+    #[test]
+    fn frame_cache_for_opaque_images_memory_for_transparent_ones() {
+        let (dir, train, test) = fixture();
+        let cache = tempfile::tempdir().unwrap();
+        let file = cache.path().join("d.frames");
+        let disk = FrameStorage::Disk(file.clone());
+        // Transparent (alpha 128): no cache, alpha kept.
+        put(dir.path(), "transforms_train.json", &train);
+        put(dir.path(), "transforms_test.json", &test);
+        let d = load_with_storage(dir.path(), &LoadOptions::default(), &disk, None).unwrap();
+        assert!(d
+            .train
+            .iter()
+            .all(|v| v.alpha.is_some() && !v.image.data.is_mapped()));
+        assert_eq!(d.bounds, SceneBounds::dnerf_default());
+        assert_eq!(std::fs::read_dir(cache.path()).unwrap().count(), 0);
+        // Opaque: the same pixels from the cache, reused on the next load.
+        for name in ["train/r_000", "train/r_001", "test/r_000"] {
+            png(&dir.path().join(format!("{name}.png")), 4, 4, 90, None);
+        }
+        let mem = load(dir.path(), &LoadOptions::default()).unwrap();
+        let opts = LoadOptions {
+            downscale: 2,
+            bounds: None,
+        };
+        let mem2 = load(dir.path(), &opts).unwrap();
+        for (o, m) in [(LoadOptions::default(), &mem), (opts, &mem2)] {
+            let c = load_with_storage(dir.path(), &o, &disk, None).unwrap();
+            for (a, b) in m
+                .train
+                .iter()
+                .chain(&m.test)
+                .zip(c.train.iter().chain(&c.test))
+            {
+                assert!(b.image.data.is_mapped() && b.alpha.is_none());
+                assert_eq!(a.image, b.image);
+                assert_eq!(a.camera, b.camera);
+            }
+            assert_eq!(c.bounds, m.bounds);
+        }
+        let modified = std::fs::metadata(&file).unwrap().modified().unwrap();
+        load_with_storage(dir.path(), &opts, &disk, None).unwrap();
+        assert_eq!(
+            std::fs::metadata(&file).unwrap().modified().unwrap(),
+            modified
+        );
+        // A broken image is still named.
+        std::fs::write(dir.path().join("train/r_001.png"), b"junk").unwrap();
+        let e = load_with_storage(dir.path(), &opts, &disk, None).unwrap_err();
+        assert!(e.to_string().contains("r_001.png"), "{e}");
     }
 
     #[test]

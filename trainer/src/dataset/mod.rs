@@ -347,7 +347,8 @@ pub struct LoadOptions {
     pub bounds: Option<SceneBounds>,
     /// The held-out camera: `camNN` for DyNeRF, the camera index for multi-camera nerfstudio.
     pub test_camera: Option<usize>,
-    /// Where frames live (DyNeRF; the JSON layouts load into memory).
+    /// Where frames live. A frame cache holds opaque RGB: JSON datasets with transparency
+    /// always load into memory (with their alpha).
     pub storage: cache::FrameStorage,
     /// DyNeRF: pose normalisation and video vs image frames.
     pub normalization: dynerf::Normalization,
@@ -388,14 +389,17 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
         downscale: opts.downscale,
         bounds: opts.bounds,
     };
+    let progress = opts.progress.as_deref();
     match format {
-        Format::DNerf => dnerf::load(dir, &json_opts),
-        Format::Nerfstudio => nerfstudio::load(
+        Format::DNerf => dnerf::load_with_storage(dir, &json_opts, &opts.storage, progress),
+        Format::Nerfstudio => nerfstudio::load_with_storage(
             dir,
             &nerfstudio::NerfstudioOptions {
                 json: json_opts,
                 test_camera: opts.test_camera,
             },
+            &opts.storage,
+            progress,
         ),
         Format::DyNerf => dynerf::load(
             dir,

@@ -24,8 +24,9 @@ use std::path::Path;
 
 use serde_json::Value;
 
+use super::cache::{FrameStorage, ProgressFn};
 use super::dnerf::{
-    self, assemble, camera_ids, field_error, image_path, parse_transforms, FrameSpec,
+    self, assemble_with_storage, camera_ids, field_error, image_path, parse_transforms, FrameSpec,
 };
 use super::{Dataset, DatasetError};
 
@@ -144,6 +145,16 @@ fn split(
 
 /// Loads `dir/transforms.json` (see the module docs).
 pub fn load(dir: &Path, opts: &NerfstudioOptions) -> Result<Dataset, DatasetError> {
+    load_with_storage(dir, opts, &FrameStorage::Memory, None)
+}
+
+/// [`load`] with the frames in `storage` (as for [`dnerf::load_with_storage`]).
+pub fn load_with_storage(
+    dir: &Path,
+    opts: &NerfstudioOptions,
+    storage: &FrameStorage,
+    progress: Option<&ProgressFn>,
+) -> Result<Dataset, DatasetError> {
     if opts.json.downscale == 0 {
         return Err(DatasetError::Invalid {
             path: dir.to_path_buf(),
@@ -206,7 +217,15 @@ pub fn load(dir: &Path, opts: &NerfstudioOptions) -> Result<Dataset, DatasetErro
             ),
         });
     }
-    assemble(dir, &train, &test, file.scene_box, &opts.json)
+    assemble_with_storage(
+        dir,
+        &train,
+        &test,
+        file.scene_box,
+        &opts.json,
+        storage,
+        progress,
+    )
 }
 
 #[cfg(test)]
@@ -303,6 +322,17 @@ mod tests {
         };
         let h = load_json(dir.path(), &root, &opts).unwrap();
         assert_eq!((h.train[0].image.width, h.train[0].camera.fx), (4, 3.5));
+    }
+
+    #[test]
+    fn jpeg_frames_load() {
+        let (dir, mut root) = fixture(3, orbit, |_| None);
+        let img = image::RgbImage::from_pixel(8, 6, image::Rgb([200, 100, 50]));
+        img.save(dir.path().join("images/photo.jpg")).unwrap();
+        root["frames"][1]["file_path"] = json!("images/photo.jpg");
+        let d = load_json(dir.path(), &root, &Default::default()).unwrap();
+        let p = d.train[0].image.get(3, 3);
+        assert!((p[0] - 200.0 / 255.0).abs() < 0.05 && (p[2] - 50.0 / 255.0).abs() < 0.05);
     }
 
     #[test]
