@@ -112,7 +112,7 @@ fn progress_bar(iters: usize) -> ProgressBar {
 pub fn train(a: TrainArgs) -> Result<Option<Metrics>> {
     let preset: Preset = a.preset.parse().map_err(anyhow::Error::msg)?;
     let t_load = Instant::now();
-    let data = data::load(&a.data, a.downscale)?;
+    let data = data::load(&a.data, &a.dataset, &a.out)?;
     let load_secs = t_load.elapsed().as_secs_f64();
     let mut settings = TrainSettings::for_preset(preset, &data);
     let mut sets = a.sets.clone();
@@ -242,13 +242,13 @@ fn print_metrics(m: &Metrics, path: &Path) {
 
 pub fn eval(a: EvalArgs) -> Result<()> {
     let ckpt = Checkpoint::load(&a.checkpoint)?;
-    let data = data::load(&a.data, a.downscale)?;
     let out = a.out.clone().unwrap_or_else(|| {
         a.checkpoint
             .parent()
             .map(Path::to_path_buf)
             .unwrap_or_else(|| PathBuf::from("."))
     });
+    let data = data::load(&a.data, &a.dataset, &out)?;
     let layout = ModelLayout::new(&ckpt.header.model);
     let outcome = TrainOutcome {
         checkpoint: a.checkpoint.clone(),

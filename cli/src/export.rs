@@ -58,7 +58,8 @@ pub fn export(a: ExportArgs) -> Result<()> {
         zstd_level: a.zstd_level,
     };
     if let Some(d) = &a.measure {
-        return measure(&ckpt, d, a.stride, &opts);
+        let dir = a.checkpoint.parent().unwrap_or(std::path::Path::new("."));
+        return measure(&ckpt, d, dir, a.stride, &opts);
     }
     let Some(out) = &a.output else {
         bail!("-o OUTPUT is required (or --measure DATA)");
@@ -170,8 +171,14 @@ fn held_out_psnr(
     sum / views.len().max(1) as f64
 }
 
-fn measure(ckpt: &Checkpoint, data_arg: &str, stride: usize, base: &EncodeOptions) -> Result<()> {
-    let data = data::load(data_arg, 1)?;
+fn measure(
+    ckpt: &Checkpoint,
+    data_arg: &str,
+    ckpt_dir: &std::path::Path,
+    stride: usize,
+    base: &EncodeOptions,
+) -> Result<()> {
+    let data = data::load(data_arg, &data::DataArgs::with_downscale(1), ckpt_dir)?;
     let model = &ckpt.header.model;
     let layout = ModelLayout::new(model);
     let reference = held_out_psnr(&data, ckpt, &layout, stride, &|_| ckpt.params.clone());

@@ -4,7 +4,7 @@
 mod bench;
 mod bench_play;
 mod commands;
-mod data;
+pub mod data;
 mod export;
 mod play;
 mod serve;
@@ -80,8 +80,9 @@ pub struct SynthArgs {
 }
 
 #[derive(Args)]
+#[command(after_long_help = DATASETS_HELP)]
 pub struct TrainArgs {
-    /// Dataset folder (D-NeRF / Blender JSON layout), or `builtin`.
+    /// Dataset folder (layout detected, see below), or `builtin`.
     pub data: String,
     #[arg(long)]
     pub out: PathBuf,
@@ -106,9 +107,8 @@ pub struct TrainArgs {
     /// Continue from OUT/model.ckpt.
     #[arg(long)]
     pub resume: bool,
-    /// Downscale images by an integer factor on load.
-    #[arg(long, default_value_t = 1)]
-    pub downscale: u32,
+    #[command(flatten)]
+    pub dataset: data::DataArgs,
     /// Skip the evaluation at the end.
     #[arg(long)]
     pub no_eval: bool,
@@ -129,9 +129,27 @@ pub struct EvalArgs {
     /// Evaluate every N-th test view.
     #[arg(long, default_value_t = 1)]
     pub stride: usize,
-    #[arg(long, default_value_t = 1)]
-    pub downscale: u32,
+    #[command(flatten)]
+    pub dataset: data::DataArgs,
 }
+
+/// The dataset section of `msth train --help`.
+const DATASETS_HELP: &str = "\
+Datasets (the layout is detected from the folder, first match wins; --format overrides):
+  transforms_train.json  D-NeRF / Blender JSON: transforms_{train,test}.json, images per frame
+                         (camera_angle_x or nerfstudio intrinsics fl_x, fl_y, cx, cy, w, h).
+  transforms.json        nerfstudio: one file, intrinsics, optional OpenCV distortion k1 k2 k3
+                         p1 p2 (images are undistorted on load) and per-frame time. Split:
+                         test_filenames/val_filenames if listed; else for multi-camera video the
+                         camera --test-camera (default 0) is held out; else every 8th frame.
+  poses_bounds.npy       Plenoptic Video / DyNeRF: N x 17 LLFF rows with camNN.mp4 videos
+                         (decoded with ffmpeg) or camNN/ image folders; camNN with NN =
+                         --test-camera (default 0) is held out. Poses are normalised LLFF-style
+                         (--poses none keeps them); --frame-source picks videos or images.
+--downscale F reduces every layout's images by F with an area filter. Decoded frames of more
+than 2 GiB go to a frame cache file (OUT/cache/, or --cache DIR to always use one), rebuilt when
+the sources change, so the dataset is bounded by disk rather than RAM (images with transparency
+stay in memory with their alpha).";
 
 #[derive(Args)]
 pub struct RenderArgs {

@@ -119,7 +119,9 @@ pub fn evaluate(
     for (k, &i) in chosen.iter().enumerate() {
         let v = &data.test[i];
         let r = render_image(cfg, layout, params, &v.camera, v.time);
-        let gt = v.image.to_f32();
+        // One frame in memory at a time, whatever the size of the test set.
+        let gt_image = v.image.loaded();
+        let gt = gt_image.to_f32();
         let p = psnr(&r.rgb, &gt);
         let s = ssim(&r.rgb, &gt, r.width as usize, r.height as usize);
         frames.push(FrameMetrics {
@@ -135,9 +137,9 @@ pub fn evaluate(
                     .any(|p: &PathBuf| p.ends_with(format!("view_{i:03}.png")))
             {
                 let pred = Image8::from_f32(r.width, r.height, &r.rgb);
-                let err = error_map(&v.image, &pred);
+                let err = error_map(&gt_image, &pred);
                 let path = d.join(format!("view_{i:03}.png"));
-                save_png_atomic(&path, &panel(&[&v.image, &pred, &err]))?;
+                save_png_atomic(&path, &panel(&[&gt_image, &pred, &err]))?;
                 pictures.push(path);
             }
         }

@@ -145,7 +145,7 @@ pub fn panel(images: &[&Image8]) -> Image8 {
     let mut out = Image8 {
         width,
         height,
-        data: vec![255; width as usize * height as usize * 3],
+        data: vec![255; width as usize * height as usize * 3].into(),
     };
     let mut x0 = 0usize;
     for im in images {
@@ -170,7 +170,7 @@ mod tests {
         Image8 {
             width,
             height,
-            data: vec![v; width as usize * height as usize * 3],
+            data: vec![v; width as usize * height as usize * 3].into(),
         }
     }
 
@@ -196,7 +196,7 @@ mod tests {
         let im = Image8 {
             width: 4,
             height: 4,
-            data: vec![0; 5],
+            data: vec![0; 5].into(),
         };
         let err = save_png_atomic(&path, &im).unwrap_err();
         assert_eq!(err.kind(), io::ErrorKind::InvalidInput);

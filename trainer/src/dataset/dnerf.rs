@@ -37,7 +37,9 @@ use rayon::prelude::*;
 use serde::Serialize;
 use serde_json::{Map, Value};
 
-use super::{Dataset, DatasetError, Image8, View};
+use super::cache::{store_frames, CacheKey, Fingerprint, FrameStorage, ProgressFn};
+use super::undistort::{undistort_image, Distortion, Intrinsics};
+use super::{downscale_rgb, Dataset, DatasetError, Image8, View};
 use crate::imageio;
 
 /// How to load a dataset.
@@ -68,7 +70,7 @@ const MAX_CAMERA_ID: u64 = 1 << 20;
 
 /// Intrinsics fields as written in a file (top level or one frame).
 #[derive(Clone, Copy, Debug, Default)]
-struct IntrinsicFields {
+pub(super) struct IntrinsicFields {
     camera_angle_x: Option<f64>,
     fl_x: Option<f64>,
     fl_y: Option<f64>,
@@ -76,9 +78,21 @@ struct IntrinsicFields {
     cy: Option<f64>,
     w: Option<u32>,
     h: Option<u32>,
+    /// OpenCV distortion `k1, k2, k3, p1, p2` (nerfstudio).
+    distortion: [Option<f64>; 5],
 }
 
+/// Names of the distortion fields, in the order of [`IntrinsicFields::distortion`].
+const DISTORTION_FIELDS: [&str; 5] = ["k1", "k2", "k3", "p1", "p2"];
+
 impl IntrinsicFields {
+    /// The distortion model (absent coefficients are 0); `None` when there is none.
+    pub(super) fn distortion(&self) -> Option<Distortion> {
+        let [k1, k2, k3, p1, p2] = self.distortion.map(|v| v.unwrap_or(0.0));
+        let d = Distortion { k1, k2, k3, p1, p2 };
+        (!d.is_identity()).then_some(d)
+    }
+
     /// `self` with every field present in `over` replaced.
     fn overridden_by(self, over: IntrinsicFields) -> IntrinsicFields {
         IntrinsicFields {
@@ -89,49 +103,53 @@ impl IntrinsicFields {
             cy: over.cy.or(self.cy),
             w: over.w.or(self.w),
             h: over.h.or(self.h),
+            distortion: std::array::from_fn(|i| over.distortion[i].or(self.distortion[i])),
         }
     }
 }
 
 /// One frame of a transforms file, parsed and checked, image not yet read.
 #[derive(Clone, Debug)]
-struct FrameSpec {
+pub(super) struct FrameSpec {
     /// The transforms file it came from.
     json: PathBuf,
     /// `frames[index]` (for messages).
     index: usize,
-    image: PathBuf,
-    time: f32,
-    pose: Mat4,
-    intrinsics: IntrinsicFields,
-    camera_id: Option<usize>,
+    pub(super) image: PathBuf,
+    /// `None` when the frame has no `time` (allowed in nerfstudio files only).
+    pub(super) time: Option<f32>,
+    pub(super) pose: Mat4,
+    pub(super) intrinsics: IntrinsicFields,
+    pub(super) camera_id: Option<usize>,
 }
 
 impl FrameSpec {
-    fn field(&self, name: &str) -> String {
+    pub(super) fn field(&self, name: &str) -> String {
         format!("frames[{}].{name}", self.index)
     }
 }
 
 /// A parsed transforms file.
-struct TransformsFile {
-    frames: Vec<FrameSpec>,
-    scene_box: Option<SceneBounds>,
+pub(super) struct TransformsFile {
+    pub(super) frames: Vec<FrameSpec>,
+    pub(super) scene_box: Option<SceneBounds>,
+    /// The top-level object (for format-specific fields).
+    pub(super) root: Map<String, Value>,
 }
 
 /// An image read and prepared for the dataset.
-struct LoadedImage {
+pub(super) struct LoadedImage {
     /// Size before downscaling.
-    width: u32,
-    height: u32,
-    image: Image8,
+    pub(super) width: u32,
+    pub(super) height: u32,
+    pub(super) image: Image8,
     /// Some pixel had alpha < 255.
-    transparent: bool,
+    pub(super) transparent: bool,
     /// Alpha after downscaling, when the image had transparency.
-    alpha: Option<Vec<u8>>,
+    pub(super) alpha: Option<Vec<u8>>,
 }
 
-fn field_error(path: &Path, field: &str, message: impl Into<String>) -> DatasetError {
+pub(super) fn field_error(path: &Path, field: &str, message: impl Into<String>) -> DatasetError {
     DatasetError::Field {
         path: path.to_path_buf(),
         field: field.to_string(),
@@ -139,7 +157,7 @@ fn field_error(path: &Path, field: &str, message: impl Into<String>) -> DatasetE
     }
 }
 
-fn type_name(v: &Value) -> &'static str {
+pub(super) fn type_name(v: &Value) -> &'static str {
     match v {
         Value::Null => "null",
         Value::Bool(_) => "a boolean",
@@ -238,7 +256,19 @@ fn intrinsic_fields(
             return Err(field_error(path, &format!("{prefix}{k}"), "overflows f32"));
         }
     }
+    let mut distortion = [None; 5];
+    for (slot, k) in distortion.iter_mut().zip(DISTORTION_FIELDS) {
+        *slot = opt_number(obj, k, path, prefix)?;
+        if slot.is_some_and(|x| x.abs() > 1e3) {
+            return Err(field_error(
+                path,
+                &format!("{prefix}{k}"),
+                "is not a plausible distortion coefficient (|value| > 1000)",
+            ));
+        }
+    }
     Ok(IntrinsicFields {
+        distortion,
         camera_angle_x,
         fl_x: opt_positive(obj, "fl_x", path, prefix)?,
         fl_y: opt_positive(obj, "fl_y", path, prefix)?,
@@ -337,7 +367,7 @@ fn transform_matrix(v: &Value, path: &Path, field: &str) -> Result<Mat4, Dataset
 
 /// The image path of `file_path`: relative to `dir`, `.png` appended when there is no extension
 /// (or when only the `.png` variant exists, for names like `r_0.5`).
-fn image_path(dir: &Path, file_path: &str) -> PathBuf {
+pub(super) fn image_path(dir: &Path, file_path: &str) -> PathBuf {
     let p = dir.join(file_path);
     if p.extension().is_none() {
         return PathBuf::from(format!("{}.png", p.display()));
@@ -351,7 +381,13 @@ fn image_path(dir: &Path, file_path: &str) -> PathBuf {
     p
 }
 
-fn parse_transforms(dir: &Path, path: &Path) -> Result<TransformsFile, DatasetError> {
+/// Parses and checks a transforms file; `time_required` is false for nerfstudio files, where
+/// frames may leave out `time`.
+pub(super) fn parse_transforms(
+    dir: &Path,
+    path: &Path,
+    time_required: bool,
+) -> Result<TransformsFile, DatasetError> {
     let bytes = std::fs::read(path).map_err(|source| DatasetError::Io {
         path: path.to_path_buf(),
         source,
@@ -408,10 +444,11 @@ fn parse_transforms(dir: &Path, path: &Path) -> Result<TransformsFile, DatasetEr
             None => return Err(field_error(path, &f("file_path"), "missing")),
         };
         let time = match fo.get("time") {
-            None => return Err(field_error(path, &f("time"), "missing")),
-            Some(v) => number(v, path, &f("time"))?,
+            None if time_required => return Err(field_error(path, &f("time"), "missing")),
+            None => None,
+            Some(v) => Some(number(v, path, &f("time"))?),
         };
-        if !(0.0..=1.0).contains(&time) {
+        if let Some(time) = time.filter(|t| !(0.0..=1.0).contains(t)) {
             return Err(field_error(
                 path,
                 &f("time"),
@@ -450,13 +487,17 @@ fn parse_transforms(dir: &Path, path: &Path) -> Result<TransformsFile, DatasetEr
             json: path.to_path_buf(),
             index,
             image: image_path(dir, file_path),
-            time: time as f32,
+            time: time.map(|t| t as f32),
             pose,
             intrinsics,
             camera_id,
         });
     }
-    Ok(TransformsFile { frames, scene_box })
+    Ok(TransformsFile {
+        frames,
+        scene_box,
+        root: obj.clone(),
+    })
 }
 
 /// Area-filter downscale by an integer factor; the remainder at the right/bottom is cropped.
@@ -464,32 +505,25 @@ fn downscale_box(img: &Image8, factor: u32) -> Image8 {
     if factor <= 1 {
         return img.clone();
     }
-    let (w, h) = (img.width / factor, img.height / factor);
-    let f = factor as usize;
-    let n = (f * f) as u64;
-    let mut out = Image8::new(w, h);
-    for y in 0..h as usize {
-        for x in 0..w as usize {
-            let mut acc = [0u64; 3];
-            for dy in 0..f {
-                let row = (y * f + dy) * img.width as usize;
-                for dx in 0..f {
-                    let i = (row + x * f + dx) * 3;
-                    for c in 0..3 {
-                        acc[c] += img.data[i + c] as u64;
-                    }
-                }
-            }
-            let o = (y * w as usize + x) * 3;
-            for c in 0..3 {
-                out.data[o + c] = ((acc[c] + n / 2) / n) as u8;
-            }
-        }
+    Image8 {
+        width: img.width / factor,
+        height: img.height / factor,
+        data: downscale_rgb(&img.data, img.width, img.height, factor).into(),
     }
-    out
 }
 
-fn load_image(path: &Path, downscale: u32) -> Result<LoadedImage, DatasetError> {
+/// Reads an image file, composites it on white and downscales it.
+pub(super) fn load_image(path: &Path, downscale: u32) -> Result<LoadedImage, DatasetError> {
+    load_image_undistorted(path, downscale, None)
+}
+
+/// [`load_image`], undistorting the image to the pinhole camera first when `undistort` gives the
+/// frame's intrinsics fields with a distortion model (nerfstudio).
+pub(super) fn load_image_undistorted(
+    path: &Path,
+    downscale: u32,
+    undistort: Option<&IntrinsicFields>,
+) -> Result<LoadedImage, DatasetError> {
     let bytes = std::fs::read(path).map_err(|source| DatasetError::Io {
         path: path.to_path_buf(),
         source,
@@ -514,7 +548,32 @@ fn load_image(path: &Path, downscale: u32) -> Result<LoadedImage, DatasetError> 
         });
     }
     let has_alpha = decoded.color().has_alpha();
-    let rgba = decoded.to_rgba8();
+    let mut rgba = decoded.to_rgba8();
+    if let Some(k) = undistort {
+        if let (Some(d), Some(pin)) = (k.distortion(), pinhole(k, width, height)) {
+            // Undistort RGBA as two RGB images (colour, and alpha replicated).
+            let mut colour = Image8::new(width, height);
+            let mut alpha = Image8::new(width, height);
+            let (cd, ad): (&mut [u8], &mut [u8]) = (&mut colour.data, &mut alpha.data);
+            for ((c, a), p) in cd
+                .chunks_exact_mut(3)
+                .zip(ad.chunks_exact_mut(3))
+                .zip(rgba.pixels())
+            {
+                c.copy_from_slice(&p.0[..3]);
+                a.fill(p.0[3]);
+            }
+            let colour = undistort_image(&colour, &pin, &d);
+            let alpha = undistort_image(&alpha, &pin, &d);
+            for ((p, c), a) in rgba
+                .pixels_mut()
+                .zip(colour.data.chunks_exact(3))
+                .zip(alpha.data.chunks_exact(3))
+            {
+                p.0 = [c[0], c[1], c[2], a[0]];
+            }
+        }
+    }
     let mut image = Image8::new(width, height);
     let mut transparent = false;
     for (dst, src) in image.data.chunks_exact_mut(3).zip(rgba.pixels()) {
@@ -545,6 +604,25 @@ fn load_image(path: &Path, downscale: u32) -> Result<LoadedImage, DatasetError> 
         image: downscale_box(&image, downscale),
         transparent,
         alpha,
+    })
+}
+
+/// Pinhole intrinsics of `k` for an image of `width x height` (`None` without a focal length).
+fn pinhole(k: &IntrinsicFields, width: u32, height: u32) -> Option<Intrinsics> {
+    let (fx, fy) = match (k.fl_x, k.fl_y, k.camera_angle_x) {
+        (Some(fx), fy, _) => (fx, fy.unwrap_or(fx)),
+        (None, Some(fy), _) => (fy, fy),
+        (None, None, Some(a)) => {
+            let f = 0.5 * width as f64 / (0.5 * a).tan();
+            (f, f)
+        }
+        (None, None, None) => return None,
+    };
+    Some(Intrinsics {
+        fx,
+        fy,
+        cx: k.cx.unwrap_or(0.5 * width as f64),
+        cy: k.cy.unwrap_or(0.5 * height as f64),
     })
 }
 
@@ -642,11 +720,88 @@ fn same_pose(a: &Mat4, b: &Mat4) -> bool {
         .all(|(x, y)| (x - y).abs() < SAME_POSE_TOLERANCE)
 }
 
+/// The frames of `specs` through a frame cache (built or reused), as [`LoadedImage`]s without
+/// alpha; fails with the [`TRANSPARENT`] message at the first image with transparency.
+fn cached_images(
+    specs: &[&FrameSpec],
+    downscale: u32,
+    (ref_w, ref_h): (u32, u32),
+    storage: &FrameStorage,
+    progress: Option<&ProgressFn>,
+) -> Result<Vec<LoadedImage>, DatasetError> {
+    let mut fp = Fingerprint::default();
+    fp.str("json-v1");
+    fp.bytes(&downscale.to_le_bytes());
+    let mut jsons: Vec<&Path> = specs.iter().map(|s| s.json.as_path()).collect();
+    jsons.dedup();
+    for p in jsons {
+        fp.file(p)?;
+    }
+    for s in specs {
+        fp.file(&s.image)?;
+    }
+    let (w, h) = (ref_w / downscale, ref_h / downscale);
+    let key = CacheKey {
+        width: w,
+        height: h,
+        count: specs.len() as u64,
+        fingerprint: fp.finish(),
+    };
+    let stored = store_frames(storage, key, progress, &mut |sink| {
+        for batch in specs.chunks(64) {
+            let imgs: Vec<Result<LoadedImage, DatasetError>> = batch
+                .par_iter()
+                .map(|s| load_image_undistorted(&s.image, downscale, Some(&s.intrinsics)))
+                .collect();
+            for (spec, img) in batch.iter().zip(imgs) {
+                let img = img?;
+                if (img.width, img.height) != (ref_w, ref_h) {
+                    return Err(DatasetError::Invalid {
+                        path: spec.image.clone(),
+                        message: format!(
+                            "image is {}x{} but {} is {ref_w}x{ref_h} (all images must have one size)",
+                            img.width,
+                            img.height,
+                            specs[0].image.display()
+                        ),
+                    });
+                }
+                if img.transparent {
+                    return Err(DatasetError::Invalid {
+                        path: spec.image.clone(),
+                        message: TRANSPARENT.into(),
+                    });
+                }
+                sink.push(&img.image.data)?;
+            }
+        }
+        Ok(())
+    })?;
+    Ok(stored
+        .frames()
+        .into_iter()
+        .map(|data| LoadedImage {
+            width: ref_w,
+            height: ref_h,
+            image: Image8 {
+                width: w,
+                height: h,
+                data,
+            },
+            transparent: false,
+            alpha: None,
+        })
+        .collect())
+}
+
 /// Camera ids of the train and test views.
 type CameraIds = (Vec<Option<usize>>, Vec<Option<usize>>);
 
 /// Camera ids from the files, or from grouping identical poses (`None` for monocular data).
-fn camera_ids(train: &[FrameSpec], test: &[FrameSpec]) -> Result<CameraIds, DatasetError> {
+pub(super) fn camera_ids(
+    train: &[FrameSpec],
+    test: &[FrameSpec],
+) -> Result<CameraIds, DatasetError> {
     let all = || train.iter().chain(test);
     if let Some(with) = all().find(|f| f.camera_id.is_some()) {
         if let Some(without) = all().find(|f| f.camera_id.is_none()) {
@@ -688,6 +843,17 @@ fn camera_ids(train: &[FrameSpec], test: &[FrameSpec]) -> Result<CameraIds, Data
 /// Every problem is reported as a [`DatasetError`] naming the file and, where relevant, the JSON
 /// field; this function does not panic on any input.
 pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
+    load_with_storage(dir, opts, &FrameStorage::Memory, None)
+}
+
+/// [`load`] with the frames in `storage` (see [`assemble_with_storage`] for what goes to a
+/// frame cache) and decoding progress reported to `progress`.
+pub fn load_with_storage(
+    dir: &Path,
+    opts: &LoadOptions,
+    storage: &FrameStorage,
+    progress: Option<&ProgressFn>,
+) -> Result<Dataset, DatasetError> {
     if opts.downscale == 0 {
         return Err(DatasetError::Invalid {
             path: dir.to_path_buf(),
@@ -701,7 +867,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
         })?;
     }
     let train_path = dir.join("transforms_train.json");
-    let train_file = parse_transforms(dir, &train_path)?;
+    let train_file = parse_transforms(dir, &train_path, true)?;
     let test_path = ["transforms_test.json", "transforms_val.json"]
         .iter()
         .map(|n| dir.join(n))
@@ -710,17 +876,79 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
             path: dir.join("transforms_test.json"),
             message: "missing (and there is no transforms_val.json either)".into(),
         })?;
-    let test_file = parse_transforms(dir, &test_path)?;
+    let test_file = parse_transforms(dir, &test_path, true)?;
+    let scene_box = train_file.scene_box.or(test_file.scene_box);
+    assemble_with_storage(
+        dir,
+        &train_file.frames,
+        &test_file.frames,
+        scene_box,
+        opts,
+        storage,
+        progress,
+    )
+}
 
-    let specs: Vec<&FrameSpec> = train_file.frames.iter().chain(&test_file.frames).collect();
-    let loaded: Vec<Result<LoadedImage, DatasetError>> = specs
-        .par_iter()
-        .map(|s| load_image(&s.image, opts.downscale))
-        .collect();
-    let mut images = Vec::with_capacity(loaded.len());
-    for r in loaded {
-        images.push(r?);
-    }
+/// The error message that stops a frame cache build at the first transparent image.
+const TRANSPARENT: &str = "transparent image: the frames stay in memory with their alpha";
+
+/// Reads the images of parsed frames and builds the dataset (shared with nerfstudio), with the
+/// frames in `storage`: camera ids, bounds, frame count. Frames without a time get time 0.
+///
+/// A frame cache holds 8-bit RGB only, so it serves opaque datasets: a build that meets an
+/// image with transparency stops, and the dataset is loaded into memory with its alpha (object
+/// captures are small). Its fingerprint covers the transforms files, every image file and the
+/// downscale factor.
+pub(super) fn assemble_with_storage(
+    dir: &Path,
+    train_specs: &[FrameSpec],
+    test_specs: &[FrameSpec],
+    scene_box: Option<SceneBounds>,
+    opts: &LoadOptions,
+    storage: &FrameStorage,
+    progress: Option<&ProgressFn>,
+) -> Result<Dataset, DatasetError> {
+    let specs: Vec<&FrameSpec> = train_specs.iter().chain(test_specs).collect();
+    let f = opts.downscale;
+    let images = if *storage == FrameStorage::Memory {
+        None
+    } else {
+        let first = &specs[0].image;
+        let (ref_w, ref_h) = image::image_dimensions(first).map_err(|e| match e {
+            image::ImageError::IoError(source) => DatasetError::Io {
+                path: first.clone(),
+                source,
+            },
+            e => DatasetError::Image {
+                path: first.clone(),
+                message: e.to_string(),
+            },
+        })?;
+        let bytes = specs.len() as u64 * (ref_w / f) as u64 * (ref_h / f) as u64 * 3;
+        match storage.cache_file(bytes) {
+            Some(_) if ref_w >= f && ref_h >= f => {
+                match cached_images(&specs, f, (ref_w, ref_h), storage, progress) {
+                    Err(DatasetError::Invalid { message, .. }) if message == TRANSPARENT => None,
+                    r => Some(r?),
+                }
+            }
+            _ => None,
+        }
+    };
+    let images = match images {
+        Some(i) => i,
+        None => {
+            let loaded: Vec<Result<LoadedImage, DatasetError>> = specs
+                .par_iter()
+                .map(|s| load_image_undistorted(&s.image, f, Some(&s.intrinsics)))
+                .collect();
+            let mut images = Vec::with_capacity(loaded.len());
+            for r in loaded {
+                images.push(r?);
+            }
+            images
+        }
+    };
 
     let (ref_w, ref_h) = (images[0].width, images[0].height);
     let mut transparent = false;
@@ -746,17 +974,17 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
         }
         views.push(View {
             camera,
-            time: spec.time,
+            time: spec.time.unwrap_or(0.0),
             image: img.image,
             source: spec.image.clone(),
             camera_id: None,
             alpha: img.alpha,
         });
     }
-    let mut test = views.split_off(train_file.frames.len());
+    let mut test = views.split_off(train_specs.len());
     let mut train = views;
 
-    let (train_ids, test_ids) = camera_ids(&train_file.frames, &test_file.frames)?;
+    let (train_ids, test_ids) = camera_ids(train_specs, test_specs)?;
     for (v, id) in train.iter_mut().zip(train_ids) {
         v.camera_id = id;
     }
@@ -766,7 +994,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
 
     let bounds = if let Some(b) = opts.bounds {
         b
-    } else if let Some(b) = train_file.scene_box.or(test_file.scene_box) {
+    } else if let Some(b) = scene_box {
         b
     } else if transparent {
         SceneBounds::dnerf_default()
@@ -1114,6 +1342,58 @@ mod tests {
             assert!(msg.contains(n), "`{msg}` does not mention `{n}`");
         }
         msg
+    }
+
+    #[test]
+    fn frame_cache_for_opaque_images_memory_for_transparent_ones() {
+        let (dir, train, test) = fixture();
+        let cache = tempfile::tempdir().unwrap();
+        let file = cache.path().join("d.frames");
+        let disk = FrameStorage::Disk(file.clone());
+        // Transparent (alpha 128): no cache, alpha kept.
+        put(dir.path(), "transforms_train.json", &train);
+        put(dir.path(), "transforms_test.json", &test);
+        let d = load_with_storage(dir.path(), &LoadOptions::default(), &disk, None).unwrap();
+        assert!(d
+            .train
+            .iter()
+            .all(|v| v.alpha.is_some() && !v.image.data.is_mapped()));
+        assert_eq!(d.bounds, SceneBounds::dnerf_default());
+        assert_eq!(std::fs::read_dir(cache.path()).unwrap().count(), 0);
+        // Opaque: the same pixels from the cache, reused on the next load.
+        for name in ["train/r_000", "train/r_001", "test/r_000"] {
+            png(&dir.path().join(format!("{name}.png")), 4, 4, 90, None);
+        }
+        let mem = load(dir.path(), &LoadOptions::default()).unwrap();
+        let opts = LoadOptions {
+            downscale: 2,
+            bounds: None,
+        };
+        let mem2 = load(dir.path(), &opts).unwrap();
+        for (o, m) in [(LoadOptions::default(), &mem), (opts, &mem2)] {
+            let c = load_with_storage(dir.path(), &o, &disk, None).unwrap();
+            for (a, b) in m
+                .train
+                .iter()
+                .chain(&m.test)
+                .zip(c.train.iter().chain(&c.test))
+            {
+                assert!(b.image.data.is_mapped() && b.alpha.is_none());
+                assert_eq!(a.image, b.image);
+                assert_eq!(a.camera, b.camera);
+            }
+            assert_eq!(c.bounds, m.bounds);
+        }
+        let modified = std::fs::metadata(&file).unwrap().modified().unwrap();
+        load_with_storage(dir.path(), &opts, &disk, None).unwrap();
+        assert_eq!(
+            std::fs::metadata(&file).unwrap().modified().unwrap(),
+            modified
+        );
+        // A broken image is still named.
+        std::fs::write(dir.path().join("train/r_001.png"), b"junk").unwrap();
+        let e = load_with_storage(dir.path(), &opts, &disk, None).unwrap_err();
+        assert!(e.to_string().contains("r_001.png"), "{e}");
     }
 
     #[test]
