@@ -440,7 +440,11 @@ mod tests {
         let cam = camera();
         let f0 = inc.render(&cam, 0.0, &params);
         assert!(f0.stats.full);
-        assert_eq!(inc.dynamic_fraction(), None, "classified on the second frame");
+        assert_eq!(
+            inc.dynamic_fraction(),
+            None,
+            "classified on the second frame"
+        );
         let f1 = inc.render(&cam, 0.7, &params);
         assert_eq!(inc.dynamic_fraction(), Some(0.0));
         assert!(!f1.stats.full);
