@@ -1,6 +1,7 @@
 //! `msth serve PATH [--addr 127.0.0.1:8080] [--web DIR]`: a thin layer over `msth-server` that
 //! sets up logging and a tokio runtime, prints the URLs served, and runs until Ctrl-C.
 
+use std::io::Write;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 
@@ -42,18 +43,26 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<()> {
         let server = msth_server::Server::bind(config).await?;
         let base = format!("http://{}", server.local_addr());
         let models = server.models()?;
-        println!(
+        // A closed stdout (`msth serve ... | head -1`) must not stop the server: ignore write
+        // errors instead of panicking as `println!` does.
+        let mut out = std::io::stdout();
+        let _ = writeln!(
+            out,
             "serving {} model(s) from {} at {base}/ (listing: {base}/models); Ctrl-C stops",
             models.len(),
             server.root().display()
         );
         for m in &models {
-            println!("  {base}/models/{} ({} bytes)", m.name, m.bytes);
+            let _ = writeln!(out, "  {base}/models/{} ({} bytes)", m.name, m.bytes);
         }
+        let _ = out.flush();
         server
             .run_until(async {
                 let _ = tokio::signal::ctrl_c().await;
-                eprintln!("Ctrl-C: finishing open requests and stopping");
+                let _ = writeln!(
+                    std::io::stderr(),
+                    "Ctrl-C: finishing open requests and stopping"
+                );
             })
             .await?;
         anyhow::Ok(())

@@ -73,8 +73,11 @@ fn two_hundred_concurrent_clients_stream_without_failures_and_flat_memory() {
         .expect("starting msth serve");
     let stdout = child.stdout.take().unwrap();
     let server = Server(child);
+    let mut reader = BufReader::new(stdout);
     let mut first = String::new();
-    BufReader::new(stdout).read_line(&mut first).unwrap();
+    reader.read_line(&mut first).unwrap();
+    // Keep draining the server's stdout so that it never writes into a closed pipe.
+    std::thread::spawn(move || std::io::copy(&mut reader, &mut std::io::sink()));
     let base = first
         .split_whitespace()
         .find(|w| w.starts_with("http://"))

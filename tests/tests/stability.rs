@@ -34,7 +34,7 @@ fn write_constant_video(dir: &Path, frames: usize, rgb: [u8; 3], scale: f32) {
     let image = Image8 {
         width: SIDE,
         height: SIDE,
-        data: rgb.repeat((SIDE * SIDE) as usize),
+        data: rgb.repeat((SIDE * SIDE) as usize).into(),
     };
     let mut png = Vec::new();
     encode_png(&mut png, &image).unwrap();
