@@ -70,7 +70,7 @@ fn view_bytes<'b>(
         )
     })?;
     let start = view.offset();
-    let end = start.checked_add(view.length()).unwrap_or(usize::MAX);
+    let end = start.saturating_add(view.length());
     buffer.get(start..end).ok_or_else(|| {
         invalid(
             path,

@@ -305,7 +305,7 @@ pub fn joint_matrices(skin: &Skin, world: &[Option<Mat4>]) -> Vec<Mat4> {
 pub fn blend_matrix(joints: [u16; 4], weights: Vec4, joint_mats: &[Mat4]) -> Option<Mat4> {
     let w = weights.to_array();
     let sum: f32 = w.iter().sum();
-    if !(sum > 1e-8) {
+    if sum.is_nan() || sum <= 1e-8 {
         return None;
     }
     let mut acc = [0.0f32; 16];

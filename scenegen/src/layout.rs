@@ -55,6 +55,9 @@ pub const STAGE_FOV_X: f32 = 0.95;
 /// Largest number of pixels a dataset may hold.
 pub const MAX_TOTAL_PIXELS: u64 = 2_000_000_000;
 
+/// A camera and the normalised time it films.
+pub type TimedCamera = (Camera, f32);
+
 /// Which dataset layout to write.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Layout {
@@ -184,8 +187,8 @@ fn hemisphere_camera(rng: &mut Rng, width: u32, height: u32) -> Camera {
 }
 
 /// The object layout's views: `(camera, time)` for training (one per frame) and test.
-pub fn object_views(s: &SynthSettings) -> (Vec<(Camera, f32)>, Vec<(Camera, f32)>) {
-    let mut rng = Rng(s.seed ^ 0x0B1E_C7);
+pub fn object_views(s: &SynthSettings) -> (Vec<TimedCamera>, Vec<TimedCamera>) {
+    let mut rng = Rng(s.seed ^ 0x000B_1EC7);
     let train = (0..s.frames)
         .map(|j| {
             (

@@ -205,10 +205,7 @@ fn resolve_uri(doc_path: &Path, uri: &str, what: &str) -> Result<Vec<u8>> {
 /// Loads a `.gltf` or `.glb` file. See the module docs for what is read.
 pub fn load(path: &Path) -> Result<Model> {
     let bytes = read_file(path)?;
-    let gltf = gltf::Gltf::from_slice(&bytes).map_err(|e| SceneGenError::Format {
-        path: path.to_path_buf(),
-        message: e.to_string(),
-    })?;
+    let gltf = parse(path, &bytes)?;
     let doc = &gltf.document;
     let mut notes = Vec::new();
 
@@ -470,6 +467,38 @@ pub fn load(path: &Path) -> Result<Model> {
     })
 }
 
+/// Parses and validates the document. `gltf-json` 1.4's validation indexes the accessor of
+/// every `POSITION` attribute without a range check (a panic on a bad index), so those indices
+/// are checked first, on the unvalidated JSON.
+fn parse(path: &Path, bytes: &[u8]) -> Result<gltf::Gltf> {
+    let format = |message: String| SceneGenError::Format {
+        path: path.to_path_buf(),
+        message,
+    };
+    let raw =
+        gltf::Gltf::from_slice_without_validation(bytes).map_err(|e| format(e.to_string()))?;
+    let root = raw.document.into_json();
+    let n_accessors = root.accessors.len();
+    for (m, mesh) in root.meshes.iter().enumerate() {
+        for (k, prim) in mesh.primitives.iter().enumerate() {
+            for (semantic, index) in &prim.attributes {
+                if index.value() >= n_accessors {
+                    return Err(format(format!(
+                        "meshes[{m}].primitives[{k}].attributes.{semantic:?}: accessor {} does \
+                         not exist ({n_accessors} accessors)",
+                        index.value()
+                    )));
+                }
+            }
+        }
+    }
+    let document = gltf::Document::from_json(root).map_err(|e| format(e.to_string()))?;
+    Ok(gltf::Gltf {
+        document,
+        blob: raw.blob,
+    })
+}
+
 /// Rejects node graphs that are not forests (cycles, shared children).
 fn check_hierarchy(path: &Path, nodes: &[Node]) -> Result<()> {
     let mut parent = vec![None; nodes.len()];
@@ -515,10 +544,7 @@ fn decode_image(path: &Path, img: &gltf::Image, buffers: &Buffers) -> Result<ima
                 .0
                 .get(view.buffer().index())
                 .ok_or_else(|| invalid(path, &what, "its buffer is missing"))?;
-            let end = view
-                .offset()
-                .checked_add(view.length())
-                .unwrap_or(usize::MAX);
+            let end = view.offset().saturating_add(view.length());
             buf.get(view.offset()..end)
                 .ok_or_else(|| invalid(path, &what, "its bufferView lies outside the buffer"))?
                 .to_vec()
