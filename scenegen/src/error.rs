@@ -10,11 +10,12 @@ use msth_trainer::dataset::DatasetError;
 /// concerns a file names it.
 #[derive(Debug, thiserror::Error)]
 pub enum SceneGenError {
-    #[error("{path}: cannot read: {source}")]
+    /// Reading or writing a file failed (the I/O error is part of the message, not a
+    /// separate source, so that it is printed once).
+    #[error("{path}: {error}")]
     Io {
         path: PathBuf,
-        #[source]
-        source: std::io::Error,
+        error: std::io::Error,
     },
     /// The bytes are not a glTF / GLB document (syntax, truncated, failed validation).
     #[error("{path}: not a valid glTF file: {message}")]
@@ -45,7 +46,7 @@ pub enum SceneGenError {
 impl SceneGenError {
     pub(crate) fn io(path: impl Into<PathBuf>) -> impl FnOnce(std::io::Error) -> SceneGenError {
         let path = path.into();
-        move |source| SceneGenError::Io { path, source }
+        move |error| SceneGenError::Io { path, error }
     }
 }
 

@@ -279,7 +279,7 @@ fn write_rgba_png(path: &Path, img: &RgbaImage8) -> Result<()> {
     out.save_with_format(path, image::ImageFormat::Png)
         .map_err(|e| SceneGenError::Io {
             path: path.to_path_buf(),
-            source: std::io::Error::other(e.to_string()),
+            error: std::io::Error::other(e.to_string()),
         })
 }
 

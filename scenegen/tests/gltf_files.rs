@@ -257,7 +257,7 @@ fn bad_input_gives_clear_errors() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     // Missing file.
-    expect_err(&d.join("nope.gltf"), &["nope.gltf", "cannot read"]);
+    expect_err(&d.join("nope.gltf"), &["nope.gltf", "No such file"]);
     // Not JSON.
     std::fs::write(d.join("junk.gltf"), b"{ not json").unwrap();
     expect_err(&d.join("junk.gltf"), &["not a valid glTF"]);
@@ -331,7 +331,7 @@ fn truncated_and_corrupted_files_never_panic() {
     // Flip bytes across the binary chunk (values, not structure): loads or fails cleanly, and
     // whatever loads can be posed.
     let mut seed = 1u64;
-    for _ in 0..1500 {
+    for _ in 0..3000 {
         let mut g = glb.clone();
         seed = seed
             .wrapping_mul(6364136223846793005)

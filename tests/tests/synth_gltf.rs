@@ -81,7 +81,7 @@ fn bad_gltf_arguments_give_one_clear_error() {
     let missing = tmp.path().join("missing.glb");
     let e = msth(&["synth", "--gltf", missing.to_str().unwrap(), "--out", out]).unwrap_err();
     assert!(
-        e.contains("missing.glb") && e.contains("cannot read"),
+        e.contains("missing.glb") && e.contains("No such file"),
         "{e}"
     );
     let e = msth(&[
