@@ -386,6 +386,13 @@ pub fn generate(
     progress: &(dyn Fn() + Sync),
 ) -> Result<Summary> {
     settings.validate()?;
+    if scene::posed_triangles(model, 0.0, Mat4::IDENTITY, 0).is_empty() {
+        return Err(SceneGenError::Invalid {
+            path: model.source.clone(),
+            what: "scene".into(),
+            message: "the displayed scene holds no triangles (no mesh under its root nodes)".into(),
+        });
+    }
     match settings.layout {
         Layout::Object => generate_object(model, settings, out, progress),
         Layout::Stage => generate_stage(model, settings, out, progress),

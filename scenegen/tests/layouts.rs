@@ -260,6 +260,23 @@ fn refuses_a_non_empty_folder_and_bad_settings_and_leaves_nothing() {
             .to_string();
         assert!(e.contains("invalid settings"), "{e}");
     }
+    // A file whose scene shows no mesh (the mesh node is not under the scene's roots).
+    let mut b = Builder::default();
+    let mesh = quad_mesh(&mut b, false);
+    let hidden = b.write_gltf(
+        dir.path(),
+        "hidden.gltf",
+        json!({"scenes": [{"nodes": [1]}], "nodes": [{"mesh": 0}, {}], "meshes": [mesh], "materials": [{}]}),
+    );
+    let hidden = load(&hidden).unwrap();
+    let e = generate(&hidden, &s, &dir.path().join("new"), &|| {})
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("hidden.gltf") && e.contains("no triangles"),
+        "{e}"
+    );
+    std::fs::remove_file(dir.path().join("hidden.gltf")).unwrap();
     // Only the model file, the busy folder and its file remain: no staging folders.
     let names: Vec<String> = std::fs::read_dir(dir.path())
         .unwrap()
