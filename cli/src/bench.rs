@@ -1,4 +1,4 @@
-//! `msth bench step`: the cost of one full training step (proposal and field, forward, backward
+//! `msth bench step` (and `msth bench play`, in `bench_play.rs`): the cost of one full training step (proposal and field, forward, backward
 //! and Adam) at the demo (fast preset) and paper configurations, reported as field samples per
 //! second, with two same-run baselines: the same step on one worker thread, and the plain
 //! reference hash encoding against the batched one.
@@ -39,6 +39,9 @@ enum BenchKind {
         #[arg(long)]
         json: Option<std::path::PathBuf>,
     },
+    /// Playback of a .msth file over loopback HTTP: time to first frame against the full
+    /// download, incremental against full rendering (FPS and PSNR).
+    Play(crate::bench_play::BenchPlayArgs),
 }
 
 pub fn run(a: BenchArgs) -> Result<()> {
@@ -49,6 +52,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
             only,
             json,
         } => step(reps, batch_rays, only.as_deref(), json),
+        BenchKind::Play(a) => crate::bench_play::run(a),
     }
 }
 

@@ -2,9 +2,11 @@
 //! the library crates. `main.rs` calls [`run`]; the end-to-end tests in `tests/` call it too.
 
 mod bench;
+mod bench_play;
 mod commands;
 mod data;
 mod export;
+mod play;
 mod scenegen;
 mod serve;
 
@@ -46,6 +48,8 @@ enum Command {
     Export(export::ExportArgs),
     /// Serve `.msth` files over HTTP (Range requests) until Ctrl-C.
     Serve(serve::ServeArgs),
+    /// Play a `.msth` file (URL or local) as free-viewpoint video: PNG frames, MP4, FPS.
+    Play(play::PlayArgs),
 }
 
 #[derive(Args)]
@@ -207,5 +211,6 @@ where
         Command::Bench(a) => bench::run(a),
         Command::Export(a) => export::export(a),
         Command::Serve(a) => serve::serve(a),
+        Command::Play(a) => play::run(a),
     }
 }

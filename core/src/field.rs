@@ -33,8 +33,16 @@ pub struct EncodingScratch {
     /// `m = sigmoid(mask logit)` per point (1 where there is no mask).
     pub m: Vec<f32>,
     pub enc: Vec<f32>,
+    /// Inference only: points whose dynamic weight `1 - m` is below this skip the 4D lookup
+    /// (their `h4` is taken as 0, changing the encoding by less than `cutoff * |h4|`). 0, the
+    /// default and what training uses, evaluates every point exactly.
+    pub static_cutoff: f32,
     d_h3: Vec<f32>,
     d_h4: Vec<f32>,
+    /// Points that get a 4D lookup under `static_cutoff`, and their packed inputs and outputs.
+    h4_active: Vec<u32>,
+    h4_points: Vec<f32>,
+    h4_packed: Vec<f32>,
 }
 
 impl EncodingLayout {
@@ -130,14 +138,37 @@ impl EncodingLayout {
             s.h3.resize(n * e, 0.0);
             g.encode(&params[r.clone()], &points[..n * 4], 4, &mut s.h3, e, 0);
         }
-        if let Some((g, r)) = &self.h4 {
-            s.h4.resize(n * e, 0.0);
-            g.encode(&params[r.clone()], &points[..n * 4], 4, &mut s.h4, e, 0);
-        }
         if let Some((d, r)) = &self.mask {
             let vals = &params[r.clone()];
             for i in 0..n {
                 s.m[i] = sigmoid(d.sample(vals, &points[i * 4..i * 4 + 3]));
+            }
+        }
+        if let Some((g, r)) = &self.h4 {
+            s.h4.resize(n * e, 0.0);
+            let skip = s.static_cutoff > 0.0
+                && self.mask.is_some()
+                && matches!(self.blend, BlendMode::Mst | BlendMode::Mt);
+            if skip {
+                // Look up only the points the mask leaves dynamic, packed, then scatter.
+                s.h4_active.clear();
+                s.h4_active
+                    .extend((0..n as u32).filter(|&i| 1.0 - s.m[i as usize] >= s.static_cutoff));
+                s.h4_points.clear();
+                for &i in &s.h4_active {
+                    let i = i as usize;
+                    s.h4_points.extend_from_slice(&points[i * 4..i * 4 + 4]);
+                }
+                let k = s.h4_active.len();
+                s.h4_packed.resize(k * e, 0.0);
+                g.encode(&params[r.clone()], &s.h4_points, 4, &mut s.h4_packed, e, 0);
+                s.h4[..n * e].fill(0.0);
+                for (j, &i) in s.h4_active.iter().enumerate() {
+                    let i = i as usize;
+                    s.h4[i * e..(i + 1) * e].copy_from_slice(&s.h4_packed[j * e..(j + 1) * e]);
+                }
+            } else {
+                g.encode(&params[r.clone()], &points[..n * 4], 4, &mut s.h4, e, 0);
             }
         }
         match self.blend {
@@ -609,6 +640,55 @@ mod tests {
                     assert!((rgb[c] - s.rgb[i * 3 + c]).abs() < 1e-5);
                 }
             }
+        }
+    }
+
+    /// With a static cutoff, points the mask leaves dynamic encode exactly as the reference does,
+    /// and the others as the reference with `h4 = 0`; the cutoff 0 path is the exact one.
+    #[test]
+    fn static_cutoff_skips_only_static_points() {
+        for blend in [BlendMode::Mst, BlendMode::Mt] {
+            let cfg = small_config(blend);
+            let layout = ModelLayout::new(&cfg);
+            let mut p = params(&layout, 3);
+            // A mask that is static on one half of the box and dynamic on the other.
+            let (grid, r) = layout.field.encoding.mask.clone().unwrap();
+            for (k, v) in p[r.clone()].iter_mut().enumerate() {
+                let x = k % grid.res;
+                *v = if x < grid.res / 2 { 12.0 } else { -2.0 };
+            }
+            let enc = &layout.field.encoding;
+            let mut rng = Rng::new(4);
+            let n = 64;
+            let pts: Vec<f32> = (0..n * 4).map(|_| rng.f32()).collect();
+            let mut s = EncodingScratch {
+                static_cutoff: 1e-3,
+                ..Default::default()
+            };
+            enc.forward(&p, &pts, n, &mut s);
+            let mut skipped = 0;
+            for i in 0..n {
+                let x = &pts[i * 4..i * 4 + 4];
+                let (full, m) = enc.encode_point_reference(&p, x);
+                let mut expect = full.clone();
+                if 1.0 - m < 1e-3 {
+                    skipped += 1;
+                    let h3 = enc
+                        .h3
+                        .as_ref()
+                        .map(|(g, r)| g.encode_point_reference(&p[r.clone()], &x[..3]));
+                    for (k, e) in expect.iter_mut().enumerate() {
+                        let a = h3.as_ref().map_or(0.0, |v| v[k]);
+                        *e = if blend == BlendMode::Mst { m * a } else { a };
+                    }
+                }
+                for k in 0..enc.out_dim {
+                    let got = s.enc[i * enc.out_dim + k];
+                    assert!((got - expect[k]).abs() < 1e-5, "{blend:?} point {i}");
+                    assert!((got - full[k]).abs() <= 1e-3 * 0.5 * enc.out_dim as f32 + 1e-5);
+                }
+            }
+            assert!(skipped > 0 && skipped < n, "{skipped} of {n} skipped");
         }
     }
 

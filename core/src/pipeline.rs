@@ -73,7 +73,19 @@ pub struct RenderOutput {
     /// Smallest mask value among samples that carry weight (`w > 1e-4`); 1 for empty rays.
     /// A ray is static for incremental rendering when this is above `1 - eps`.
     pub min_mask: Vec<f32>,
+    /// Distance at which the transmittance falls below [`VISIBLE_TRANSMITTANCE`] (the far end of
+    /// the samples when it never does): nothing behind it can change the pixel visibly.
+    pub visible_depth: Vec<f32>,
 }
+
+/// Rendering (not training) skips the 4D lookup of points whose dynamic weight `1 - m` is below
+/// this: their encoding changes by less than this fraction of `|h4|`
+/// ([`crate::field::EncodingScratch::static_cutoff`]).
+pub const RENDER_STATIC_CUTOFF: f32 = 1e-3;
+
+/// Transmittance below which what lies further along a ray is treated as invisible by
+/// [`RenderOutput::visible_depth`] (it contributes at most this fraction of the pixel).
+pub const VISIBLE_TRANSMITTANCE: f32 = 1e-3;
 
 /// Reusable buffers of one thread.
 #[derive(Clone, Debug, Default)]
@@ -107,15 +119,16 @@ pub struct Workspace {
 pub const HIDDEN_TRANSMITTANCE: f32 = 1e-4;
 
 /// Distance unit of the spacing function (the contraction radius for unbounded scenes).
-fn spacing_unit(bounds: &SceneBounds) -> f32 {
+pub fn spacing_unit(bounds: &SceneBounds) -> f32 {
     match *bounds {
         SceneBounds::Contracted { radius, .. } => radius,
         SceneBounds::Box { .. } => 1.0,
     }
 }
 
-/// Per-ray `[near, far]`; rays that miss the box get an empty interval.
-fn ray_limits(cfg: &ModelConfig, r: &TimedRay) -> (f32, f32) {
+/// Per-ray `[near, far]` the samplers use; rays that miss the box, or are not finite, get an
+/// empty interval (`near == far`).
+pub fn ray_limits(cfg: &ModelConfig, r: &TimedRay) -> (f32, f32) {
     let ray = Ray {
         origin: r.origin,
         dir: r.dir,
@@ -316,6 +329,9 @@ pub fn train_chunk(
     let n = rays.len();
     let np = cfg.sampler.num_proposal_samples;
     let nf = cfg.sampler.num_samples;
+    // Training evaluates every point exactly (the gradients need every h4).
+    ws.prop.enc.static_cutoff = 0.0;
+    ws.main.enc.static_cutoff = 0.0;
     forward_chunk(cfg, layout, params, rays, step.anneal, Some(rng), ws);
     let mut out = ChunkLosses {
         rays: n,
@@ -442,6 +458,8 @@ pub fn render_chunk(
 ) {
     let n = rays.len();
     let nf = cfg.sampler.num_samples;
+    ws.prop.enc.static_cutoff = RENDER_STATIC_CUTOFF;
+    ws.main.enc.static_cutoff = RENDER_STATIC_CUTOFF;
     forward_chunk(cfg, layout, params, rays, 1.0, None, ws);
     let enc = &layout.field.encoding;
     for i in 0..n {
@@ -453,8 +471,15 @@ pub fn render_chunk(
         let mut depth = 0f32;
         let mut mask = 0f32;
         let mut min_mask = 1f32;
+        let edges = &ws.t_main[i * (nf + 1)..(i + 1) * (nf + 1)];
+        let mut visible = None;
+        let mut acc = 0f32;
         for k in 0..nf {
-            let t_mid = 0.5 * (ws.t_main[i * (nf + 1) + k] + ws.t_main[i * (nf + 1) + k + 1]);
+            let t_mid = 0.5 * (edges[k] + edges[k + 1]);
+            acc += w[k];
+            if visible.is_none() && 1.0 - acc < VISIBLE_TRANSMITTANCE {
+                visible = Some(edges[k + 1]);
+            }
             depth += w[k] * t_mid;
             let m = if enc.mask.is_some() {
                 ws.main.enc.m[i * nf + k]
@@ -470,6 +495,7 @@ pub fn render_chunk(
         out.opacity.push(1.0 - t_final);
         out.mask.push(mask);
         out.min_mask.push(min_mask);
+        out.visible_depth.push(visible.unwrap_or(edges[nf]));
     }
 }
 

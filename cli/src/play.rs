@@ -1,0 +1,204 @@
+//! `msth play URL|FILE`: free-viewpoint playback of a `.msth` file, streamed over HTTP or read
+//! locally, through `msth-player`. Prints one line per frame (time, rays re-rendered, render
+//! time) and a summary (time to first frame, frames per second full and incremental, bytes
+//! fetched); writes PNG frames and an MP4 with `--out`.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use msth_player::{play, FrameRecord, HttpOptions, PlayOptions, PlayReport, RenderSettings};
+
+#[derive(Args)]
+pub struct PlayArgs {
+    /// An `http://` URL (e.g. from `msth serve`) or a local `.msth` file.
+    pub source: String,
+    /// Camera path: N (file camera N, fixed), view:AZ,EL,DIST (fixed free viewpoint), orbit,
+    /// spiral, cameras (each file camera in turn) or a JSON file of poses and times.
+    #[arg(long, default_value = "0")]
+    pub path: String,
+    /// Image size WxH (default: the cameras' own).
+    #[arg(long, value_parser = parse_size)]
+    pub size: Option<(u32, u32)>,
+    /// Frames to render (default: the model's frame count).
+    #[arg(long)]
+    pub frames: Option<usize>,
+    /// Normalised time range START:END (END < START plays backwards).
+    #[arg(long, default_value = "0:1", value_parser = parse_range)]
+    pub time: (f32, f32),
+    /// Frame rate of the MP4 (default: the file's, else 30).
+    #[arg(long)]
+    pub fps: Option<f32>,
+    /// Folder for frame_NNNNN.png and video.mp4 (default: render without writing).
+    #[arg(long, short)]
+    pub out: Option<PathBuf>,
+    /// No MP4, PNG frames only.
+    #[arg(long)]
+    pub no_video: bool,
+    /// Render every frame in full (no static-ray cache).
+    #[arg(long)]
+    pub no_incremental: bool,
+    /// A ray is static when the mask is at least this along its visible part.
+    #[arg(long, default_value_t = RenderSettings::default().static_threshold)]
+    pub static_threshold: f32,
+    /// Probe renders (times over [0, 1]) that must agree before a ray is cached as static.
+    #[arg(long, default_value_t = RenderSettings::default().probes)]
+    pub probes: usize,
+    /// Largest colour change (0-1 scale) a static ray may show at a probe.
+    #[arg(long, default_value_t = RenderSettings::default().probe_tolerance)]
+    pub probe_tolerance: f32,
+    /// Seconds without data before a request is retried.
+    #[arg(long, default_value_t = 15.0)]
+    pub timeout: f64,
+    /// Retries per request.
+    #[arg(long, default_value_t = 4)]
+    pub retries: u32,
+    /// Write the playback report (per-frame statistics) as JSON.
+    #[arg(long)]
+    pub report: Option<PathBuf>,
+    /// Print only the summary.
+    #[arg(long, short)]
+    pub quiet: bool,
+}
+
+fn parse_size(s: &str) -> Result<(u32, u32), String> {
+    let (w, h) = s
+        .split_once(['x', 'X'])
+        .ok_or_else(|| format!("`{s}`: expected WxH, e.g. 256x256"))?;
+    let p = |v: &str| {
+        v.trim()
+            .parse::<u32>()
+            .map_err(|_| format!("`{s}`: expected WxH"))
+    };
+    Ok((p(w)?, p(h)?))
+}
+
+fn parse_range(s: &str) -> Result<(f32, f32), String> {
+    let (a, b) = s
+        .split_once(':')
+        .ok_or_else(|| format!("`{s}`: expected START:END, e.g. 0:1"))?;
+    let p = |v: &str| {
+        v.trim()
+            .parse::<f32>()
+            .map_err(|_| format!("`{s}`: expected START:END"))
+    };
+    Ok((p(a)?, p(b)?))
+}
+
+pub fn options(a: &PlayArgs) -> Result<PlayOptions> {
+    if !(a.timeout.is_finite() && a.timeout > 0.0 && a.timeout <= 3600.0) {
+        bail!("--timeout {}: seconds in (0, 3600]", a.timeout);
+    }
+    if !(a.static_threshold.is_finite() && (0.0..=1.0).contains(&a.static_threshold)) {
+        bail!(
+            "--static-threshold {}: must lie in [0, 1]",
+            a.static_threshold
+        );
+    }
+    if let Some(f) = a.fps {
+        if !(f.is_finite() && f > 0.0 && f <= 1000.0) {
+            bail!("--fps {f}: must lie in (0, 1000]");
+        }
+    }
+    let mut o = PlayOptions::new(a.source.clone());
+    o.path = a.path.clone();
+    o.size = a.size;
+    o.frames = a.frames;
+    o.time_range = a.time;
+    o.fps = a.fps;
+    o.out = a.out.clone();
+    o.video = !a.no_video;
+    o.render.incremental = !a.no_incremental;
+    o.render.static_threshold = a.static_threshold;
+    if a.probes > 64 {
+        bail!("--probes {}: at most 64", a.probes);
+    }
+    if !(a.probe_tolerance.is_finite() && a.probe_tolerance >= 0.0) {
+        bail!(
+            "--probe-tolerance {}: a non-negative number",
+            a.probe_tolerance
+        );
+    }
+    o.render.probes = a.probes;
+    o.render.probe_tolerance = a.probe_tolerance;
+    o.http = HttpOptions {
+        read_timeout: Duration::from_secs_f64(a.timeout),
+        retries: a.retries,
+        ..HttpOptions::default()
+    };
+    Ok(o)
+}
+
+fn frame_line(r: &FrameRecord, n: usize) -> String {
+    let s = &r.stats;
+    format!(
+        "frame {:>4}/{n}  t={:.3}  {}  rays {:>7}/{} ({:5.1}%)  {:7.1} ms",
+        r.index + 1,
+        r.time,
+        if s.full { "full" } else { "incr" },
+        s.rays_rendered,
+        s.rays_total,
+        100.0 * s.rays_rendered as f64 / s.rays_total.max(1) as f64,
+        1e3 * s.seconds
+    )
+}
+
+fn summary(r: &PlayReport) {
+    let fps = |v: Option<f64>| v.map_or("-".to_string(), |f| format!("{f:.1}"));
+    let n = r.frames.len();
+    let rays: usize = r.frames.iter().map(|f| f.stats.rays_rendered).sum();
+    println!(
+        "{n} frames in {:.2} s; time to first frame {:.3} s",
+        r.seconds, r.time_to_first_frame
+    );
+    println!(
+        "render FPS: {} overall, {} full frames, {} incremental frames; {:.0} rays/frame on average",
+        fps(r.fps()),
+        fps(r.full_fps()),
+        fps(r.incremental_fps()),
+        rays as f64 / n.max(1) as f64
+    );
+    if let Some(d) = r.dynamic_fraction {
+        println!(
+            "static-ray cache: {:.1}% of the fixed camera's pixels re-rendered per frame",
+            100.0 * d
+        );
+    }
+    println!(
+        "fetched {} of {} bytes in {} requests ({} retries)",
+        r.transfer.bytes, r.file_len, r.transfer.requests, r.transfer.retries
+    );
+    if let Some(v) = &r.video {
+        println!("video: {}", v.display());
+    }
+    if let Some(n) = &r.video_note {
+        println!("no video: {n}");
+    }
+}
+
+pub fn run(a: PlayArgs) -> Result<()> {
+    let opts = options(&a)?;
+    let quiet = a.quiet;
+    let mut total = 0usize;
+    let report = play(&opts, &mut |r, _| {
+        total = total.max(r.index + 1);
+        if !quiet {
+            let n = opts.frames.unwrap_or(0).max(total);
+            println!("{}", frame_line(r, n));
+        }
+    })
+    .with_context(|| format!("playing {}", a.source))?;
+    summary(&report);
+    if let Some(dir) = &a.out {
+        println!("frames: {}", dir.join("frame_*.png").display());
+    }
+    if let Some(p) = &a.report {
+        let json = serde_json::to_vec_pretty(&report)?;
+        let tmp = p.with_extension("json.tmp");
+        std::fs::write(&tmp, json)
+            .and_then(|_| std::fs::rename(&tmp, p))
+            .with_context(|| format!("writing {}", p.display()))?;
+    }
+    Ok(())
+}

@@ -1,0 +1,23 @@
+//! `msth-player`: plays `.msth` files, local or streamed over HTTP, as free-viewpoint video.
+//!
+//! - [`source`]: bytes from a file or an `http://` URL (Range requests, timeouts, retries);
+//! - [`stream`]: the prefix first, then the static sections, then dynamic chunks from the
+//!   playhead on, on a background thread; seek by asking for another time;
+//! - [`render`]: CPU rendering of the decoded model, incremental for a fixed camera (static rays
+//!   cached, dynamic rays re-rendered);
+//! - [`path`]: camera paths (fixed, orbit, spiral, the file's cameras, JSON);
+//! - [`play`]: all of it together, writing PNG frames and an MP4.
+//!
+//! The player links the codec and the field math, never the trainer.
+
+pub mod path;
+pub mod play;
+pub mod render;
+pub mod source;
+pub mod stream;
+
+pub use path::CameraPath;
+pub use play::{play, FrameRecord, PlayError, PlayOptions, PlayReport};
+pub use render::{Frame, FrameStats, RenderSettings, Renderer};
+pub use source::{ByteSource, FileSource, HttpOptions, HttpSource, SourceError};
+pub use stream::{ModelStream, StreamError, StreamProgress};

@@ -1,0 +1,296 @@
+//! Playback: stream a file, walk a camera path over a time range, render each frame (incrementally
+//! while the camera stands still), write PNG frames and an MP4 when `ffmpeg` is installed.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use msth_codec::Limits;
+
+use crate::path::CameraPath;
+use crate::render::{Frame, FrameStats, RenderSettings, Renderer};
+use crate::source::{self, HttpOptions, TransferStats};
+use crate::stream::{ModelStream, StreamError};
+
+/// Everything `msth play` can be told.
+#[derive(Clone, Debug)]
+pub struct PlayOptions {
+    /// An `http://` URL or a local path.
+    pub source: String,
+    /// Camera path spec ([`CameraPath::parse`]).
+    pub path: String,
+    /// Output image size (default: the cameras' own).
+    pub size: Option<(u32, u32)>,
+    /// Frames to render (default: the model's frame count, or the JSON path's).
+    pub frames: Option<usize>,
+    /// Normalised time range, played from the first to the second value.
+    pub time_range: (f32, f32),
+    /// Frame rate of the video (default: the file's, else 30).
+    pub fps: Option<f32>,
+    /// Folder for `frame_00000.png ...` and `video.mp4` (none: render only).
+    pub out: Option<PathBuf>,
+    /// Make an MP4 when `ffmpeg` is installed.
+    pub video: bool,
+    pub render: RenderSettings,
+    pub http: HttpOptions,
+    pub limits: Limits,
+    /// Longest wait for any one section to arrive.
+    pub section_timeout: Duration,
+}
+
+impl PlayOptions {
+    pub fn new(source: impl Into<String>) -> Self {
+        PlayOptions {
+            source: source.into(),
+            path: "0".into(),
+            size: None,
+            frames: None,
+            time_range: (0.0, 1.0),
+            fps: None,
+            out: None,
+            video: true,
+            render: RenderSettings::default(),
+            http: HttpOptions::default(),
+            limits: Limits::default(),
+            section_timeout: Duration::from_secs(120),
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum PlayError {
+    #[error(transparent)]
+    Stream(#[from] StreamError),
+    #[error("{0}")]
+    Options(String),
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+}
+
+/// One rendered frame's record.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct FrameRecord {
+    pub index: usize,
+    pub time: f32,
+    /// The dynamic chunk its parameters came from.
+    pub chunk: Option<usize>,
+    pub stats: FrameStats,
+}
+
+/// What a playback did and how fast.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct PlayReport {
+    pub frames: Vec<FrameRecord>,
+    /// From the start of [`play`] to the first frame rendered (prefix, static sections, the first
+    /// chunk, the full render).
+    pub time_to_first_frame: f64,
+    /// Wall time of the whole playback, writing included.
+    pub seconds: f64,
+    pub file_len: u64,
+    pub transfer: TransferStats,
+    /// Fraction of the first fixed camera's pixels re-rendered each frame.
+    pub dynamic_fraction: Option<f32>,
+    pub video: Option<PathBuf>,
+    /// Why no video was made, when one was asked for.
+    pub video_note: Option<String>,
+}
+
+impl PlayReport {
+    /// Frames per second over `frames` (render time only).
+    fn fps_of<'a>(frames: impl Iterator<Item = &'a FrameRecord>) -> Option<f64> {
+        let (n, s) = frames.fold((0usize, 0f64), |(n, s), f| (n + 1, s + f.stats.seconds));
+        (n > 0 && s > 0.0).then(|| n as f64 / s)
+    }
+    /// Rendering rate of the frames rendered in full.
+    pub fn full_fps(&self) -> Option<f64> {
+        Self::fps_of(self.frames.iter().filter(|f| f.stats.full))
+    }
+    /// Rendering rate of the incremental frames.
+    pub fn incremental_fps(&self) -> Option<f64> {
+        Self::fps_of(self.frames.iter().filter(|f| !f.stats.full))
+    }
+    /// Rendering rate over all frames.
+    pub fn fps(&self) -> Option<f64> {
+        Self::fps_of(self.frames.iter())
+    }
+}
+
+/// Plays `opts`, calling `on_frame` after each frame.
+pub fn play(
+    opts: &PlayOptions,
+    on_frame: &mut dyn FnMut(&FrameRecord, &Frame),
+) -> Result<PlayReport, PlayError> {
+    let start = Instant::now();
+    let (t0, t1) = opts.time_range;
+    if !(t0.is_finite() && t1.is_finite() && (0.0..=1.0).contains(&t0) && (0.0..=1.0).contains(&t1))
+    {
+        return Err(PlayError::Options(format!(
+            "--time {t0}:{t1}: both ends must lie in [0, 1]"
+        )));
+    }
+    if let Some((w, h)) = opts.size {
+        if w == 0 || h == 0 || w > 1 << 14 || h > 1 << 14 {
+            return Err(PlayError::Options(format!(
+                "--size {w}x{h}: sides must lie in 1..16384"
+            )));
+        }
+    }
+    let src = source::open(&opts.source, &opts.http).map_err(StreamError::from)?;
+    let stream = ModelStream::open(src, &opts.limits)?;
+    let meta = stream.index().metadata.clone();
+    let path = CameraPath::parse(&opts.path, &meta.model.bounds, &meta.cameras, opts.size)
+        .map_err(PlayError::Options)?;
+    let n = match (path.frame_count(), opts.frames) {
+        (Some(k), Some(f)) if k != f => {
+            return Err(PlayError::Options(format!(
+                "--frames {f}: the path file defines {k} frames"
+            )))
+        }
+        (Some(k), _) => k,
+        (None, Some(f)) => f,
+        (None, None) => meta.model.num_frames.max(1),
+    };
+    if n == 0 || n > 1 << 20 {
+        return Err(PlayError::Options(format!(
+            "--frames {n}: between 1 and {}",
+            1 << 20
+        )));
+    }
+    if let Some(dir) = &opts.out {
+        std::fs::create_dir_all(dir).map_err(|source| PlayError::Io {
+            path: dir.clone(),
+            source,
+        })?;
+    }
+    stream.seek(t0);
+    let mut renderer = Renderer::new(&meta.model, opts.render);
+    let mut params = Vec::new();
+    let mut loaded: Option<Option<usize>> = None;
+    let mut records = Vec::with_capacity(n);
+    let mut first_frame = None;
+    let mut dynamic_fraction = None;
+    for i in 0..n {
+        let (camera, fixed_time) = path.camera(i, n);
+        let time = fixed_time.unwrap_or_else(|| {
+            if n > 1 {
+                t0 + (t1 - t0) * i as f32 / (n - 1) as f32
+            } else {
+                t0
+            }
+        });
+        // Ask for the next frame's chunk early so it streams while this one renders.
+        let chunk = stream.index().chunk_for_time(time);
+        if loaded != Some(chunk) {
+            stream.params_for_time(time, &mut params, opts.section_timeout)?;
+            loaded = Some(chunk);
+        }
+        if i + 1 < n {
+            let next = path
+                .camera(i + 1, n)
+                .1
+                .unwrap_or(t0 + (t1 - t0) * (i + 1) as f32 / (n - 1).max(1) as f32);
+            if !stream.ready_for(next) {
+                stream.seek(next);
+            }
+        }
+        let frame = renderer.render(&camera, time, &params);
+        if first_frame.is_none() {
+            first_frame = Some(start.elapsed().as_secs_f64());
+        }
+        if dynamic_fraction.is_none() && path.is_fixed() {
+            dynamic_fraction = renderer.dynamic_fraction();
+        }
+        let record = FrameRecord {
+            index: i,
+            time,
+            chunk,
+            stats: frame.stats,
+        };
+        if let Some(dir) = &opts.out {
+            write_png(&dir.join(format!("frame_{i:05}.png")), &frame)?;
+        }
+        on_frame(&record, &frame);
+        records.push(record);
+    }
+    let (video, video_note) = match (&opts.out, opts.video) {
+        (Some(dir), true) => {
+            let fps = opts.fps.or(meta.frame_rate).unwrap_or(30.0);
+            match make_video(dir, fps) {
+                Ok(p) => (Some(p), None),
+                Err(note) => (None, Some(note)),
+            }
+        }
+        _ => (None, None),
+    };
+    let progress = stream.progress();
+    Ok(PlayReport {
+        frames: records,
+        time_to_first_frame: first_frame.unwrap_or(0.0),
+        seconds: start.elapsed().as_secs_f64(),
+        file_len: progress.file_len,
+        transfer: progress.transfer,
+        dynamic_fraction,
+        video,
+        video_note,
+    })
+}
+
+/// Writes an 8-bit PNG through a temporary file and a rename.
+pub fn write_png(path: &Path, frame: &Frame) -> Result<(), PlayError> {
+    let io = |source| PlayError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let tmp = path.with_extension("png.tmp");
+    image::save_buffer_with_format(
+        &tmp,
+        &frame.to_rgb8(),
+        frame.width,
+        frame.height,
+        image::ExtendedColorType::Rgb8,
+        image::ImageFormat::Png,
+    )
+    .map_err(|e| io(std::io::Error::other(e.to_string())))?;
+    std::fs::rename(&tmp, path).map_err(io)
+}
+
+/// Encodes `dir/frame_*.png` into `dir/video.mp4` with ffmpeg (H.264, yuv420p); `Err` says why
+/// not.
+fn make_video(dir: &Path, fps: f32) -> Result<PathBuf, String> {
+    let out = dir.join("video.mp4");
+    let tmp = dir.join("video.tmp.mp4");
+    let status = Command::new("ffmpeg")
+        .args(["-y", "-v", "error", "-framerate"])
+        .arg(format!("{fps}"))
+        .arg("-i")
+        .arg(dir.join("frame_%05d.png"))
+        .args([
+            "-vf",
+            "pad=ceil(iw/2)*2:ceil(ih/2)*2",
+            "-c:v",
+            "libx264",
+            "-pix_fmt",
+            "yuv420p",
+            "-crf",
+            "18",
+        ])
+        .arg(&tmp)
+        .status();
+    match status {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            Err("ffmpeg is not installed: PNG frames only".into())
+        }
+        Err(e) => Err(format!("cannot run ffmpeg: {e}")),
+        Ok(s) if !s.success() => {
+            let _ = std::fs::remove_file(&tmp);
+            Err(format!("ffmpeg failed ({s}): PNG frames only"))
+        }
+        Ok(_) => std::fs::rename(&tmp, &out)
+            .map(|_| out.clone())
+            .map_err(|e| format!("{}: {e}", out.display())),
+    }
+}

@@ -1,0 +1,582 @@
+//! Incremental rendering on the CPU, the paper's playback trick (method.md §5).
+//!
+//! For a fixed camera the first frame is rendered in full. A ray is then *static* when the
+//! learned mask says "static" (`m >= threshold`) everywhere along the part of the ray that can be
+//! seen: from where it enters the scene to where the first frame's transmittance falls below
+//! [`msth_core::pipeline::VISIBLE_TRANSMITTANCE`] (the surface it hits). Static rays keep their first-frame colour;
+//! later frames re-render only the other rays. Checking the whole visible segment, not only the
+//! samples that carried weight in frame 0, matters: empty space that a moving object enters later
+//! is still marked dynamic by the mask, so the ray is re-rendered when the object arrives. A new
+//! camera (or [`Renderer::invalidate`]) renders everything again.
+//!
+//! Empty space is skipped: rays that miss the scene box are never evaluated (they show the
+//! background), the proposal field concentrates the samples of the others on surfaces, and
+//! samples hidden behind them skip the colour decoder ([`msth_core::pipeline`]).
+//!
+//! Everything renders the parameters given, i.e. the decoded (quantised) model as shipped.
+
+use std::time::Instant;
+
+use msth_core::config::{Background, ModelConfig};
+use msth_core::field::ModelLayout;
+use msth_core::pipeline::{
+    ray_limits, render_chunk, spacing_unit, RenderOutput, TimedRay, Workspace,
+};
+use msth_core::Camera;
+use rayon::prelude::*;
+
+/// How frames are rendered.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RenderSettings {
+    /// Re-render only dynamic rays while the camera stays still.
+    pub incremental: bool,
+    /// A ray is static when the mask is at least this along its visible part (1 = static).
+    pub static_threshold: f32,
+    /// Mask lookups per ray for the static test, per mask-grid cell along the scene.
+    pub mask_steps_per_cell: f32,
+    /// Times (evenly over `[0, 1]`, ends included) at which the rays the mask calls static are
+    /// rendered once more when the cache is built; a ray whose colour changes by more than
+    /// `probe_tolerance` at any of them is re-rendered every frame after all. 0 trusts the mask.
+    pub probes: usize,
+    /// Largest colour change (per channel, `[0, 1]` scale) a probe may show for a static ray.
+    pub probe_tolerance: f32,
+}
+
+impl Default for RenderSettings {
+    fn default() -> Self {
+        RenderSettings {
+            incremental: true,
+            static_threshold: 0.9,
+            mask_steps_per_cell: 4.0,
+            probes: 5,
+            probe_tolerance: 1.0 / 255.0,
+        }
+    }
+}
+
+/// What one frame cost.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+pub struct FrameStats {
+    /// Rays evaluated for this frame.
+    pub rays_rendered: usize,
+    /// Pixels in the frame.
+    pub rays_total: usize,
+    /// Pixels served from the static cache.
+    pub rays_cached: usize,
+    /// Pixels that miss the scene (background, never evaluated).
+    pub rays_empty: usize,
+    /// Whether the frame was rendered in full (first frame or a new camera).
+    pub full: bool,
+    /// Wall time of the frame, `cache_seconds` included.
+    pub seconds: f64,
+    /// Time spent sorting the first frame's rays into static and dynamic (the second frame of a
+    /// fixed camera pays it, so that the first frame is not delayed).
+    pub cache_seconds: f64,
+}
+
+/// A rendered frame: linear RGB in `[0, 1]`, row-major, 3 floats per pixel.
+#[derive(Clone, Debug)]
+pub struct Frame {
+    pub width: u32,
+    pub height: u32,
+    pub rgb: Vec<f32>,
+    pub stats: FrameStats,
+}
+
+impl Frame {
+    /// 8-bit RGB, rounded.
+    pub fn to_rgb8(&self) -> Vec<u8> {
+        self.rgb
+            .iter()
+            .map(|&v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8)
+            .collect()
+    }
+}
+
+/// The static cache of one camera.
+struct Cache {
+    camera: Camera,
+    rgb: Vec<f32>,
+    /// Pixels re-rendered every frame, and their rays.
+    dynamic: Vec<u32>,
+    rays: Vec<TimedRay>,
+    empty: usize,
+    /// The first frame's evaluated rays, until the second frame classifies them (so that the
+    /// first frame is shown without waiting for the static test and the probes).
+    pending: Option<Pending>,
+}
+
+struct Pending {
+    pixels: Vec<u32>,
+    rays: Vec<TimedRay>,
+    rgb: Vec<[f32; 3]>,
+    visible_depth: Vec<f32>,
+}
+
+/// Renders frames of one model, keeping the static cache between frames.
+pub struct Renderer {
+    cfg: ModelConfig,
+    layout: ModelLayout,
+    settings: RenderSettings,
+    cache: Option<Cache>,
+}
+
+/// Rays per work item of the parallel loop.
+const CHUNK: usize = 256;
+
+/// Renders `rays` in parallel, in order.
+pub fn render_rays(
+    cfg: &ModelConfig,
+    layout: &ModelLayout,
+    params: &[f32],
+    rays: &[TimedRay],
+) -> RenderOutput {
+    let parts: Vec<RenderOutput> = rays
+        .par_chunks(CHUNK)
+        .map_init(Workspace::default, |ws, c| {
+            let mut out = RenderOutput::default();
+            render_chunk(cfg, layout, params, c, ws, &mut out);
+            out
+        })
+        .collect();
+    let mut out = RenderOutput::default();
+    for p in parts {
+        out.rgb.extend(p.rgb);
+        out.depth.extend(p.depth);
+        out.opacity.extend(p.opacity);
+        out.mask.extend(p.mask);
+        out.min_mask.extend(p.min_mask);
+        out.visible_depth.extend(p.visible_depth);
+    }
+    out
+}
+
+/// Whether `ray` is static: the mask is at least `threshold` at every lookup from its entry into
+/// the scene to `visible_end`. Lookups are uniform in the sampler's spacing coordinate, `steps`
+/// of them over the ray's whole interval. Without a mask, a model is static only when it has no
+/// 4D part.
+pub fn ray_is_static(
+    cfg: &ModelConfig,
+    layout: &ModelLayout,
+    params: &[f32],
+    ray: &TimedRay,
+    visible_end: f32,
+    threshold: f32,
+    steps: usize,
+) -> bool {
+    let enc = &layout.field.encoding;
+    if enc.mask.is_none() {
+        return enc.mask_at(params, &[0.0; 3]) >= threshold;
+    }
+    let (near, far) = ray_limits(cfg, ray);
+    if far <= near {
+        return true;
+    }
+    let unit = spacing_unit(&cfg.bounds);
+    let steps = steps.max(1);
+    for k in 0..=steps {
+        let s = k as f32 / steps as f32;
+        let t = cfg.sampler.spacing.t_of_s(s, near, far, unit);
+        if t > visible_end {
+            break;
+        }
+        let u = cfg.bounds.to_unit(ray.origin + ray.dir * t);
+        if enc.mask_at(params, &[u.x, u.y, u.z]) < threshold {
+            return false;
+        }
+    }
+    true
+}
+
+impl Renderer {
+    pub fn new(cfg: &ModelConfig, settings: RenderSettings) -> Self {
+        Renderer {
+            cfg: cfg.clone(),
+            layout: ModelLayout::new(cfg),
+            settings,
+            cache: None,
+        }
+    }
+
+    pub fn settings(&self) -> &RenderSettings {
+        &self.settings
+    }
+
+    /// Forgets the static cache: the next frame is rendered in full.
+    pub fn invalidate(&mut self) {
+        self.cache = None;
+    }
+
+    /// Fraction of the cached camera's pixels that are re-rendered every frame (`None` before
+    /// the first frame).
+    pub fn dynamic_fraction(&self) -> Option<f32> {
+        self.cache
+            .as_ref()
+            .filter(|c| c.pending.is_none())
+            .map(|c| c.dynamic.len() as f32 / (c.rgb.len() / 3).max(1) as f32)
+    }
+
+    /// Renders `camera` at normalised time `time` with `params` (the flat buffer for that time).
+    pub fn render(&mut self, camera: &Camera, time: f32, params: &[f32]) -> Frame {
+        let start = Instant::now();
+        let (w, h) = (camera.width, camera.height);
+        let total = w as usize * h as usize;
+        let reuse = self.settings.incremental
+            && self
+                .cache
+                .as_ref()
+                .is_some_and(|c| c.camera == *camera && c.rgb.len() == total * 3);
+        let mut stats = FrameStats {
+            rays_total: total,
+            ..Default::default()
+        };
+        let rgb = if reuse {
+            let mut cache = self.cache.take().expect("checked above");
+            if let Some(p) = cache.pending.take() {
+                let t = Instant::now();
+                self.classify(params, p, &mut cache);
+                stats.cache_seconds = t.elapsed().as_secs_f64();
+            }
+            for r in &mut cache.rays {
+                r.time = time;
+            }
+            let out = render_rays(&self.cfg, &self.layout, params, &cache.rays);
+            let mut rgb = cache.rgb.clone();
+            for (&p, c) in cache.dynamic.iter().zip(&out.rgb) {
+                rgb[p as usize * 3..p as usize * 3 + 3].copy_from_slice(c);
+            }
+            stats.rays_rendered = cache.rays.len();
+            stats.rays_empty = cache.empty;
+            stats.rays_cached = total - cache.rays.len() - cache.empty;
+            self.cache = Some(cache);
+            rgb
+        } else {
+            let (rgb, cache) = self.render_full(camera, time, params);
+            stats.full = true;
+            stats.rays_rendered = total - cache.empty;
+            stats.rays_empty = cache.empty;
+            self.cache = self.settings.incremental.then_some(cache);
+            rgb
+        };
+        stats.seconds = start.elapsed().as_secs_f64();
+        Frame {
+            width: w,
+            height: h,
+            rgb,
+            stats,
+        }
+    }
+
+    /// Renders every pixel and builds the static cache.
+    fn render_full(&self, camera: &Camera, time: f32, params: &[f32]) -> (Vec<f32>, Cache) {
+        let (w, h) = (camera.width, camera.height);
+        let total = w as usize * h as usize;
+        let bg = match self.cfg.background {
+            Background::Color { rgb } => Some(rgb),
+            Background::LastSample => None,
+        };
+        let mut rgb = vec![0f32; total * 3];
+        let mut pixels = Vec::with_capacity(total);
+        let mut rays = Vec::with_capacity(total);
+        let mut empty = 0;
+        for y in 0..h {
+            for x in 0..w {
+                let r = camera.pixel_ray(x, y);
+                let ray = TimedRay {
+                    origin: r.origin,
+                    dir: r.dir,
+                    time,
+                };
+                let (near, far) = ray_limits(&self.cfg, &ray);
+                let p = (y * w + x) as usize;
+                match bg {
+                    // Misses the scene: the background, with nothing to evaluate.
+                    Some(c) if far <= near => {
+                        rgb[p * 3..p * 3 + 3].copy_from_slice(&c);
+                        empty += 1;
+                    }
+                    _ => {
+                        pixels.push(p as u32);
+                        rays.push(ray);
+                    }
+                }
+            }
+        }
+        let out = render_rays(&self.cfg, &self.layout, params, &rays);
+        for (&p, c) in pixels.iter().zip(&out.rgb) {
+            rgb[p as usize * 3..p as usize * 3 + 3].copy_from_slice(c);
+        }
+        let cache = Cache {
+            camera: *camera,
+            rgb: rgb.clone(),
+            dynamic: Vec::new(),
+            rays: Vec::new(),
+            empty,
+            pending: Some(Pending {
+                pixels,
+                rays,
+                rgb: out.rgb,
+                visible_depth: out.visible_depth,
+            }),
+        };
+        (rgb, cache)
+    }
+
+    /// Sorts the first frame's rays into static (cached) and dynamic (re-rendered): the mask
+    /// test, then the probes.
+    fn classify(&self, params: &[f32], p: Pending, cache: &mut Cache) {
+        let steps = self.mask_steps();
+        let threshold = self.settings.static_threshold;
+        let mut flags: Vec<bool> = p
+            .rays
+            .par_iter()
+            .zip(&p.visible_depth)
+            .map(|(r, &end)| {
+                ray_is_static(&self.cfg, &self.layout, params, r, end, threshold, steps)
+            })
+            .collect();
+        self.verify_with_probes(params, &p.rays, &p.rgb, &mut flags);
+        for ((&px, r), is_static) in p.pixels.iter().zip(&p.rays).zip(flags) {
+            if !is_static {
+                cache.dynamic.push(px);
+                cache.rays.push(*r);
+            }
+        }
+    }
+
+    /// Renders the rays still marked static at the probe times and unmarks those whose colour
+    /// moves by more than the tolerance from `rgb0`.
+    fn verify_with_probes(
+        &self,
+        params: &[f32],
+        rays: &[TimedRay],
+        rgb0: &[[f32; 3]],
+        flags: &mut [bool],
+    ) {
+        let k = self.settings.probes;
+        for j in 0..k {
+            let t = if k > 1 {
+                j as f32 / (k - 1) as f32
+            } else {
+                0.5
+            };
+            let idx: Vec<usize> = (0..rays.len()).filter(|&i| flags[i]).collect();
+            if idx.is_empty() {
+                return;
+            }
+            let probe: Vec<TimedRay> = idx
+                .iter()
+                .map(|&i| TimedRay { time: t, ..rays[i] })
+                .collect();
+            let out = render_rays(&self.cfg, &self.layout, params, &probe);
+            for (&i, c) in idx.iter().zip(&out.rgb) {
+                let moved =
+                    (0..3).any(|ch| (c[ch] - rgb0[i][ch]).abs() > self.settings.probe_tolerance);
+                if moved {
+                    flags[i] = false;
+                }
+            }
+        }
+    }
+
+    fn mask_steps(&self) -> usize {
+        let cells = self.cfg.field.encoding.mask_resolution.max(1) as f32;
+        // The longest straight path through the unit cube is sqrt(3) long.
+        (cells * 3f32.sqrt() * self.settings.mask_steps_per_cell).ceil() as usize
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3;
+    use msth_core::config::Preset;
+    use msth_core::SceneBounds;
+
+    fn model(blend: msth_core::config::BlendMode) -> (ModelConfig, Vec<f32>) {
+        let mut cfg = ModelConfig::preset(
+            Preset::Fast,
+            SceneBounds::dnerf_default(),
+            Background::Color { rgb: [1.0; 3] },
+            10,
+        );
+        cfg.field.encoding.resize(4, 10, 64.0, 8);
+        cfg.proposal.encoding.resize(3, 10, 32.0, 8);
+        cfg.field.encoding.blend = blend;
+        let layout = ModelLayout::new(&cfg);
+        let params = layout.init_params(7);
+        (cfg, params)
+    }
+
+    fn camera() -> Camera {
+        Camera::look_at(24, 16, 0.9, Vec3::new(0.0, -4.0, 1.0), Vec3::ZERO, Vec3::Z)
+    }
+
+    /// Sets every mask logit of the main field to `logit`.
+    fn set_mask(cfg: &ModelConfig, params: &mut [f32], logit: f32) {
+        let layout = ModelLayout::new(cfg);
+        let (_, r) = layout.field.encoding.mask.clone().expect("mask");
+        params[r].fill(logit);
+    }
+
+    #[test]
+    fn all_static_mask_renders_once_and_matches_full_renders() {
+        let (cfg, mut params) = model(msth_core::config::BlendMode::Mt);
+        set_mask(&cfg, &mut params, 8.0); // m = 0.9997
+        let mut inc = Renderer::new(
+            &cfg,
+            RenderSettings {
+                probes: 0,
+                ..Default::default()
+            },
+        );
+        let mut full = Renderer::new(
+            &cfg,
+            RenderSettings {
+                incremental: false,
+                ..Default::default()
+            },
+        );
+        let cam = camera();
+        let f0 = inc.render(&cam, 0.0, &params);
+        assert!(f0.stats.full);
+        assert_eq!(inc.dynamic_fraction(), None, "classified on the second frame");
+        let f1 = inc.render(&cam, 0.7, &params);
+        assert_eq!(inc.dynamic_fraction(), Some(0.0));
+        assert!(!f1.stats.full);
+        assert_eq!(f1.stats.rays_rendered, 0);
+        assert_eq!(f1.rgb, f0.rgb);
+        // The full render at 0.7 differs from frame 0 only by the (1 - m) h4 term.
+        let g1 = full.render(&cam, 0.7, &params);
+        assert!(g1.stats.full);
+        let max_diff = f1
+            .rgb
+            .iter()
+            .zip(&g1.rgb)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0f32, f32::max);
+        assert!(max_diff < 2e-2, "{max_diff}");
+    }
+
+    #[test]
+    fn dynamic_mask_rerenders_and_equals_full_render() {
+        let (cfg, mut params) = model(msth_core::config::BlendMode::Mt);
+        set_mask(&cfg, &mut params, -3.0);
+        let mut inc = Renderer::new(&cfg, RenderSettings::default());
+        let mut full = Renderer::new(
+            &cfg,
+            RenderSettings {
+                incremental: false,
+                ..Default::default()
+            },
+        );
+        let cam = camera();
+        inc.render(&cam, 0.0, &params);
+        let f1 = inc.render(&cam, 0.5, &params);
+        let g1 = full.render(&cam, 0.5, &params);
+        assert_eq!(
+            f1.stats.rays_rendered + f1.stats.rays_empty,
+            f1.stats.rays_total
+        );
+        assert_eq!(f1.rgb, g1.rgb);
+        // A camera move renders everything again.
+        let mut cam2 = cam;
+        cam2.world_from_camera.w_axis.x += 0.1;
+        assert!(inc.render(&cam2, 0.5, &params).stats.full);
+    }
+
+    #[test]
+    fn probes_catch_rays_a_lenient_mask_calls_static() {
+        let (cfg, mut params) = model(msth_core::config::BlendMode::Mt);
+        let layout = ModelLayout::new(&cfg);
+        set_mask(&cfg, &mut params, 1.0); // m = 0.73: "static" at threshold 0.5
+        let mut rng = msth_core::rng::Rng::new(9);
+        let (_, h4) = layout.field.encoding.h4.clone().unwrap();
+        for v in &mut params[h4] {
+            *v = rng.range_f32(-2.0, 2.0);
+        }
+        let lenient = RenderSettings {
+            static_threshold: 0.5,
+            ..Default::default()
+        };
+        let cam = camera();
+        let mut full = Renderer::new(
+            &cfg,
+            RenderSettings {
+                incremental: false,
+                ..lenient
+            },
+        );
+        for (probes, must_match) in [(0, false), (5, true)] {
+            let mut inc = Renderer::new(&cfg, RenderSettings { probes, ..lenient });
+            inc.render(&cam, 0.0, &params);
+            let f = inc.render(&cam, 0.5, &params);
+            let g = full.render(&cam, 0.5, &params);
+            let max_diff = f
+                .rgb
+                .iter()
+                .zip(&g.rgb)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0f32, f32::max);
+            if must_match {
+                // 0.5 is a probe time: every cached ray is within the tolerance there.
+                assert!(max_diff <= lenient.probe_tolerance + 1e-6, "{max_diff}");
+                assert!(f.stats.rays_rendered > 0);
+            } else {
+                assert!(
+                    max_diff > 0.005,
+                    "the mask alone misses the motion: {max_diff}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn static_test_sees_dynamic_empty_space_in_front_of_a_surface() {
+        let (cfg, mut params) = model(msth_core::config::BlendMode::Mt);
+        set_mask(&cfg, &mut params, 8.0);
+        let layout = ModelLayout::new(&cfg);
+        let (grid, r) = layout.field.encoding.mask.clone().unwrap();
+        // One dynamic vertex near the box centre, on the ray's path.
+        let res = grid.res;
+        let c = res / 2;
+        params[r.start + (c * res + c) * res + c] = -8.0;
+        let v = -1.5 + 3.0 * c as f32 / (res - 1) as f32;
+        let ray = TimedRay {
+            origin: Vec3::new(v, -4.0, v),
+            dir: Vec3::Y,
+            time: 0.0,
+        };
+        let steps = 64;
+        // Visible to the far side: the dynamic vertex is crossed.
+        assert!(!ray_is_static(
+            &cfg, &layout, &params, &ray, 10.0, 0.95, steps
+        ));
+        // A surface before it hides it.
+        assert!(ray_is_static(
+            &cfg, &layout, &params, &ray, 3.5, 0.95, steps
+        ));
+        // A ray that misses the box is static.
+        let miss = TimedRay {
+            origin: Vec3::new(0.0, -4.0, 5.0),
+            dir: Vec3::Y,
+            time: 0.0,
+        };
+        assert!(ray_is_static(
+            &cfg, &layout, &params, &miss, 10.0, 0.95, steps
+        ));
+    }
+
+    #[test]
+    fn models_without_a_mask_are_static_only_without_4d() {
+        use msth_core::config::BlendMode;
+        let cam = camera();
+        for (blend, is_static) in [(BlendMode::Static, true), (BlendMode::FourD, false)] {
+            let (cfg, params) = model(blend);
+            let mut r = Renderer::new(&cfg, RenderSettings::default());
+            r.render(&cam, 0.0, &params);
+            let f = r.render(&cam, 1.0, &params);
+            assert_eq!(f.stats.rays_rendered == 0, is_static, "{blend:?}");
+        }
+    }
+}

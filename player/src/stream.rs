@@ -1,0 +1,345 @@
+//! Streaming a `.msth` file: the prefix first, then the static sections, then dynamic chunks in
+//! playback order from the playhead, on a background thread.
+//!
+//! [`ModelStream::open`] reads and checks the prefix (header, metadata, index) synchronously, so a
+//! bad URL or a corrupt file fails right away. A fetch thread then
+//! 1. reads the sections every frame needs (MLPs, proposal, static tables, shared 4D rows) in one
+//!    Range request when they are contiguous, as they are in files the encoder writes;
+//! 2. reads the chunk the playhead wants ([`ModelStream::seek`] or a blocking
+//!    [`ModelStream::params_for_time`] moves it), then the following chunks in playback order,
+//!    wrapping around, until the whole file is in.
+//!
+//! Sections are decoded on the fetch thread as they arrive; a fetch or decode error stops the
+//! thread and is returned by every later call, and waiting calls give up after their timeout.
+
+use std::ops::Range;
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+use msth_codec::format::{FileIndex, FIRST_CHUNK, FIXED_HEADER};
+use msth_codec::{Decoder, Limits};
+
+use crate::source::{ByteSource, SourceError, TransferStats};
+
+/// Errors of streaming playback.
+#[derive(Debug, thiserror::Error)]
+pub enum StreamError {
+    #[error(transparent)]
+    Source(#[from] SourceError),
+    #[error("{name}: {source}")]
+    Decode {
+        name: String,
+        #[source]
+        source: msth_codec::DecodeError,
+    },
+    #[error("{name}: {what} did not arrive within {waited:?}")]
+    Timeout {
+        name: String,
+        what: String,
+        waited: Duration,
+    },
+    /// An earlier failure of the fetch thread, repeated for every later call.
+    #[error("{0}")]
+    Failed(String),
+}
+
+/// How far the download has got.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct StreamProgress {
+    /// Bytes of the file decoded so far (prefix included).
+    pub bytes_ready: u64,
+    pub file_len: u64,
+    pub sections_ready: usize,
+    pub sections: usize,
+    pub transfer: TransferStats,
+}
+
+struct State {
+    decoder: Decoder,
+    /// The chunk the playhead needs (fetched first), if any.
+    want: Option<usize>,
+    error: Option<String>,
+    bytes_ready: u64,
+    stop: bool,
+}
+
+struct Shared {
+    state: Mutex<State>,
+    changed: Condvar,
+    source: Box<dyn ByteSource>,
+    name: String,
+    index: FileIndex,
+}
+
+impl Shared {
+    fn lock(&self) -> MutexGuard<'_, State> {
+        self.state.lock().unwrap_or_else(|p| p.into_inner())
+    }
+}
+
+/// A `.msth` file being streamed; cheap to query from the render loop.
+pub struct ModelStream {
+    shared: Arc<Shared>,
+}
+
+/// The sections before the first dynamic chunk, as index positions.
+fn static_sections(index: &FileIndex) -> Range<usize> {
+    0..FIRST_CHUNK.min(index.sections.len())
+}
+
+impl ModelStream {
+    /// Reads and checks the prefix from `source`, then starts fetching the rest.
+    pub fn open(source: Box<dyn ByteSource>, limits: &Limits) -> Result<Self, StreamError> {
+        let name = source.name().to_string();
+        let decode_err = |source| StreamError::Decode {
+            name: name.clone(),
+            source,
+        };
+        let len = source.len();
+        let first = source.read_range(0..(FIXED_HEADER as u64).min(len))?;
+        let prefix_len = FileIndex::prefix_len(&first, limits).map_err(decode_err)?;
+        if prefix_len > len {
+            return Err(decode_err(msth_codec::DecodeError::Truncated {
+                what: "header and index".into(),
+                needed: prefix_len,
+                have: len,
+            }));
+        }
+        let prefix = source.read_range(0..prefix_len)?;
+        let decoder = Decoder::with_limits(&prefix, limits).map_err(decode_err)?;
+        let index = decoder.index().clone();
+        if index.file_len() > len {
+            return Err(decode_err(msth_codec::DecodeError::Truncated {
+                what: "file (the index points past its end)".into(),
+                needed: index.file_len(),
+                have: len,
+            }));
+        }
+        let shared = Arc::new(Shared {
+            state: Mutex::new(State {
+                decoder,
+                want: None,
+                error: None,
+                bytes_ready: prefix_len,
+                stop: false,
+            }),
+            changed: Condvar::new(),
+            source,
+            name,
+            index,
+        });
+        let worker = Arc::clone(&shared);
+        std::thread::Builder::new()
+            .name("msth-fetch".into())
+            .spawn(move || fetch_loop(&worker))
+            .map_err(|e| StreamError::Failed(format!("cannot start the fetch thread: {e}")))?;
+        Ok(ModelStream { shared })
+    }
+
+    /// The file's prefix: metadata (model, cameras, chunks) and section index.
+    pub fn index(&self) -> &FileIndex {
+        &self.shared.index
+    }
+
+    /// Moves the playhead: the chunk for normalised time `t` is fetched next.
+    pub fn seek(&self, t: f32) {
+        let want = self.index().chunk_for_time(t);
+        let mut st = self.shared.lock();
+        if st.want != want {
+            st.want = want;
+            self.shared.changed.notify_all();
+        }
+    }
+
+    /// Waits until the static sections are decoded (the first frame needs nothing else when the
+    /// file has no dynamic chunks).
+    pub fn wait_static(&self, timeout: Duration) -> Result<(), StreamError> {
+        self.wait("the static sections", timeout, |st| {
+            st.decoder.static_ready()
+        })
+        .map(|_| ())
+    }
+
+    /// Writes the parameters for time `t` into `out`, waiting up to `timeout` for the sections
+    /// they need; moves the playhead to `t`. Returns the chunk used (`None`: a static file).
+    pub fn params_for_time(
+        &self,
+        t: f32,
+        out: &mut Vec<f32>,
+        timeout: Duration,
+    ) -> Result<Option<usize>, StreamError> {
+        self.seek(t);
+        let chunk = self.index().chunk_for_time(t);
+        let what = match chunk {
+            Some(c) => format!("dynamic chunk {c} (time {t})"),
+            None => "the static sections".into(),
+        };
+        let st = self.wait(&what, timeout, |st| {
+            st.decoder.static_ready() && chunk.is_none_or(|c| st.decoder.chunk(c).is_some())
+        })?;
+        st.decoder
+            .params_for_time_into(t, out)
+            .map_err(|source| StreamError::Decode {
+                name: self.shared.name.clone(),
+                source,
+            })?;
+        Ok(chunk)
+    }
+
+    /// Whether the chunk for time `t` (and the static part) is already decoded.
+    pub fn ready_for(&self, t: f32) -> bool {
+        let st = self.shared.lock();
+        st.decoder.static_ready()
+            && self
+                .index()
+                .chunk_for_time(t)
+                .is_none_or(|c| st.decoder.chunk(c).is_some())
+    }
+
+    /// Waits until every section is decoded.
+    pub fn wait_all(&self, timeout: Duration) -> Result<(), StreamError> {
+        let n = self.index().sections.len();
+        self.wait("the whole file", timeout, |st| {
+            (0..n).all(|i| st.decoder.is_decoded(i))
+        })
+        .map(|_| ())
+    }
+
+    pub fn progress(&self) -> StreamProgress {
+        let st = self.shared.lock();
+        let sections = self.index().sections.len();
+        StreamProgress {
+            bytes_ready: st.bytes_ready,
+            file_len: self.index().file_len(),
+            sections_ready: (0..sections).filter(|&i| st.decoder.is_decoded(i)).count(),
+            sections,
+            transfer: self.shared.source.stats(),
+        }
+    }
+
+    fn wait(
+        &self,
+        what: &str,
+        timeout: Duration,
+        ready: impl Fn(&State) -> bool,
+    ) -> Result<MutexGuard<'_, State>, StreamError> {
+        let deadline = Instant::now() + timeout;
+        let mut st = self.shared.lock();
+        loop {
+            if ready(&st) {
+                return Ok(st);
+            }
+            if let Some(e) = &st.error {
+                return Err(StreamError::Failed(e.clone()));
+            }
+            let now = Instant::now();
+            if now >= deadline {
+                return Err(StreamError::Timeout {
+                    name: self.shared.name.clone(),
+                    what: what.to_string(),
+                    waited: timeout,
+                });
+            }
+            st = self
+                .shared
+                .changed
+                .wait_timeout(st, deadline - now)
+                .unwrap_or_else(|p| p.into_inner())
+                .0;
+        }
+    }
+}
+
+impl Drop for ModelStream {
+    fn drop(&mut self) {
+        // The fetch thread notices after its current request (bounded by the source's timeouts).
+        self.shared.lock().stop = true;
+        self.shared.changed.notify_all();
+    }
+}
+
+/// Largest gap between two sections fetched in one request (the format pads to 8 bytes).
+const MAX_GAP: u64 = 4096;
+
+/// What the fetch thread reads next: index positions of contiguous sections.
+fn next_request(st: &State, index: &FileIndex) -> Option<Range<usize>> {
+    let statics = static_sections(index);
+    let missing: Vec<usize> = statics
+        .clone()
+        .filter(|&i| !st.decoder.is_decoded(i))
+        .collect();
+    if let (Some(&first), Some(&last)) = (missing.first(), missing.last()) {
+        // One request for all of them when only padding lies between them, as in files the
+        // encoder writes.
+        let contiguous = (first..last).all(|i| {
+            let (a, b) = (&index.sections[i], &index.sections[i + 1]);
+            b.offset >= a.offset + a.length && b.offset - (a.offset + a.length) <= MAX_GAP
+        });
+        return Some(if contiguous && missing.len() == last - first + 1 {
+            first..last + 1
+        } else {
+            first..first + 1
+        });
+    }
+    let chunks = index.sections.len() - statics.end;
+    if chunks == 0 {
+        return None;
+    }
+    let start = st.want.unwrap_or(0).min(chunks - 1);
+    (0..chunks)
+        .map(|k| (start + k) % chunks)
+        .find(|&c| st.decoder.chunk(c).is_none())
+        .map(|c| {
+            let i = index
+                .sections
+                .iter()
+                .position(|s| s.kind == msth_codec::SectionKind::Dynamic && s.chunk as usize == c)
+                .unwrap_or(statics.end + c);
+            i..i + 1
+        })
+}
+
+fn fetch_loop(shared: &Shared) {
+    loop {
+        let index = &shared.index;
+        let request = {
+            let st = shared.lock();
+            if st.stop {
+                return;
+            }
+            match next_request(&st, index) {
+                Some(r) => r,
+                None => return,
+            }
+        };
+        let entries = &index.sections[request.clone()];
+        let start = entries[0].offset;
+        let end = entries
+            .iter()
+            .map(|e| e.offset + e.length)
+            .max()
+            .unwrap_or(start);
+        let result = shared.source.read_range(start..end);
+        let mut st = shared.lock();
+        match result {
+            Ok(bytes) => {
+                for (i, e) in request.clone().zip(entries) {
+                    let lo = (e.offset - start) as usize;
+                    let stored = &bytes[lo..lo + e.length as usize];
+                    if let Err(err) = st.decoder.decode_section(i, stored) {
+                        st.error = Some(format!("{}: {err}", shared.name));
+                        shared.changed.notify_all();
+                        return;
+                    }
+                    st.bytes_ready += e.length;
+                }
+            }
+            Err(err) => {
+                st.error = Some(err.to_string());
+                shared.changed.notify_all();
+                return;
+            }
+        }
+        shared.changed.notify_all();
+    }
+}
