@@ -47,22 +47,30 @@ pub enum LocalTransform {
 #[derive(Clone, Debug)]
 pub struct Node {
     pub name: Option<String>,
+    /// Rest-pose local transform (animation overrides its TRS parts).
     pub local: LocalTransform,
+    /// Child node indices (the hierarchy is a forest, checked on load).
     pub children: Vec<usize>,
+    /// Index into [`Model::meshes`].
     pub mesh: Option<usize>,
+    /// Index into [`Model::skins`].
     pub skin: Option<usize>,
 }
 
 /// A triangle list with per-vertex attributes (all the same length as `positions`).
 #[derive(Clone, Debug, Default)]
 pub struct Primitive {
+    /// `POSITION`, in the mesh's local frame.
     pub positions: Vec<Vec3>,
+    /// `NORMAL`, when present (flat face normals are used otherwise).
     pub normals: Option<Vec<Vec3>>,
     /// The texcoord set used by the material's base-colour texture, if any.
     pub uvs: Option<Vec<Vec2>>,
     /// `COLOR_0` as linear RGBA (RGB gets alpha 1).
     pub colors: Option<Vec<Vec4>>,
+    /// `JOINTS_0`: indices into the node's skin joints (checked on load).
     pub joints: Option<Vec<[u16; 4]>>,
+    /// `WEIGHTS_0` (normalised when skinning).
     pub weights: Option<Vec<Vec4>>,
     /// Three vertex indices per triangle, each `< positions.len()`.
     pub triangles: Vec<[u32; 3]>,
@@ -80,7 +88,9 @@ pub struct Mesh {
 /// A skin: joint nodes and their inverse bind matrices (same length).
 #[derive(Clone, Debug)]
 pub struct Skin {
+    /// Joint node indices.
     pub joints: Vec<usize>,
+    /// One per joint (identity when the file has none).
     pub inverse_bind: Vec<Mat4>,
 }
 
@@ -90,7 +100,9 @@ pub struct Material {
     pub name: Option<String>,
     /// Linear RGBA factor.
     pub base_color: Vec4,
+    /// `baseColorTexture`, decoded.
     pub texture: Option<Arc<Texture>>,
+    /// `doubleSided`: back faces are drawn (else culled).
     pub double_sided: bool,
 }
 
@@ -109,6 +121,7 @@ impl Default for Material {
 /// A loaded model.
 #[derive(Clone, Debug)]
 pub struct Model {
+    /// The file it was loaded from (for messages).
     pub source: PathBuf,
     pub nodes: Vec<Node>,
     /// Root nodes of the displayed scene.
