@@ -20,6 +20,21 @@ use msth_trainer::train::{train as run_training, Progress, TrainOutcome, TrainSe
 use crate::{data, DemoArgs, EvalArgs, RenderArgs, SynthArgs, TrainArgs};
 
 pub fn synth(a: SynthArgs) -> Result<()> {
+    if let Some(size) = &a.size {
+        let (w, h) = parse_size(size)?;
+        return synth(SynthArgs {
+            size: None,
+            width: Some(w),
+            height: Some(h),
+            ..a
+        });
+    }
+    if a.gltf.is_some() {
+        return crate::scenegen::synth_gltf(a);
+    }
+    if a.layout != "object" || a.supersample.is_some() || a.no_video {
+        bail!("--layout, --supersample and --no-video apply to --gltf only");
+    }
     let mut cfg = SynthConfig::default();
     if let Some(v) = a.width {
         cfg.width = v;
@@ -59,6 +74,19 @@ pub fn synth(a: SynthArgs) -> Result<()> {
         t.elapsed().as_secs_f64()
     );
     Ok(())
+}
+
+/// Parses `WxH` (e.g. `200x150`).
+fn parse_size(s: &str) -> Result<(u32, u32)> {
+    let (w, h) = s
+        .split_once(['x', 'X'])
+        .with_context(|| format!("--size `{s}`: expected WxH, e.g. 200x150"))?;
+    let parse = |v: &str| -> Result<u32> {
+        v.trim()
+            .parse()
+            .with_context(|| format!("--size `{s}`: `{v}` is not a positive integer"))
+    };
+    Ok((parse(w)?, parse(h)?))
 }
 
 fn read_config_file(path: &Path) -> Result<serde_json::Value> {

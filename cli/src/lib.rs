@@ -7,6 +7,7 @@ mod commands;
 pub mod data;
 mod export;
 mod play;
+mod scenegen;
 mod serve;
 
 use std::ffi::OsString;
@@ -32,7 +33,8 @@ struct Cli {
 enum Command {
     /// Built-in scene -> train (fast preset) -> evaluate, in one go.
     Demo(DemoArgs),
-    /// Write the built-in procedural scene as a D-NeRF-format dataset.
+    /// Write a dataset: the built-in procedural scene (D-NeRF JSON), or with `--gltf` an animated
+    /// glTF model rendered in the object (D-NeRF) or stage (DyNeRF + JSON) layout.
     Synth(SynthArgs),
     /// Train a model on a dataset (a folder, or `builtin`).
     Train(TrainArgs),
@@ -66,15 +68,37 @@ pub struct DemoArgs {
 pub struct SynthArgs {
     #[arg(long)]
     pub out: PathBuf,
+    /// Render this animated glTF model (.gltf or .glb) instead of the built-in scene.
+    #[arg(long)]
+    pub gltf: Option<PathBuf>,
+    /// With --gltf: `object` (D-NeRF: model alone, RGBA, a random camera per time step) or
+    /// `stage` (DyNeRF: model on a set, an arc of fixed cameras, cam00 held out).
+    #[arg(long, default_value = "object")]
+    pub layout: String,
+    /// Image size as WxH (overrides --width / --height).
+    #[arg(long)]
+    pub size: Option<String>,
     #[arg(long)]
     pub width: Option<u32>,
     #[arg(long)]
     pub height: Option<u32>,
+    /// Time steps.
     #[arg(long)]
     pub frames: Option<usize>,
+    /// Training cameras (built-in scene and stage layout; the stage adds the held-out cam00),
+    /// or held-out test views (object layout).
     #[arg(long)]
     pub cameras: Option<usize>,
-    /// Freeze every moving object (a static video).
+    /// With --gltf: samples per pixel along each axis (default 3, i.e. 9 per pixel).
+    #[arg(long)]
+    pub supersample: Option<u32>,
+    /// With --gltf: seed of the random cameras and the stage textures.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// With --gltf --layout stage: do not write the camNN.mp4 videos.
+    #[arg(long)]
+    pub no_video: bool,
+    /// Freeze every moving object (a static video; built-in scene only).
     #[arg(long = "static")]
     pub static_scene: bool,
 }

@@ -1,0 +1,99 @@
+//! `msth synth --gltf`: both layouts from the shared BoxAnimated model through the command,
+//! read back by the trainer's loader, a short training run on the stage, and bad arguments.
+
+use msth_tests::{msth, shared_dataset};
+use msth_trainer::dataset::dnerf::{load, LoadOptions};
+
+#[test]
+fn box_animated_both_layouts_load_and_the_stage_trains() {
+    let Some(gltf_dir) = shared_dataset("gltf") else {
+        return;
+    };
+    let model = gltf_dir.join("BoxAnimated/BoxAnimated.gltf");
+    let model = model.to_str().unwrap();
+    let tmp = tempfile::tempdir().unwrap();
+    let object = tmp.path().join("object");
+    let stage = tmp.path().join("stage");
+    msth(&[
+        "synth",
+        "--gltf",
+        model,
+        "--layout",
+        "object",
+        "--size",
+        "40x40",
+        "--frames",
+        "6",
+        "--cameras",
+        "2",
+        "--out",
+        object.to_str().unwrap(),
+    ])
+    .unwrap();
+    msth(&[
+        "synth",
+        "--gltf",
+        model,
+        "--layout",
+        "stage",
+        "--size",
+        "40x30",
+        "--frames",
+        "5",
+        "--cameras",
+        "4",
+        "--out",
+        stage.to_str().unwrap(),
+    ])
+    .unwrap();
+    let o = load(&object, &LoadOptions::default()).unwrap();
+    assert_eq!((o.train.len(), o.test.len()), (6, 2));
+    assert!(o.train.iter().all(|v| v.alpha.is_some()));
+    let s = load(&stage, &LoadOptions::default()).unwrap();
+    assert_eq!((s.train.len(), s.test.len(), s.num_frames), (20, 5, 5));
+    for c in 0..5 {
+        assert!(stage.join(format!("cam{c:02}/0004.png")).is_file());
+    }
+    assert!(stage.join("poses_bounds.npy").is_file());
+    // A few training steps on the generated stage, then evaluation.
+    let run = tmp.path().join("run");
+    msth(&[
+        "train",
+        stage.to_str().unwrap(),
+        "--out",
+        run.to_str().unwrap(),
+        "--preset",
+        "fast",
+        "--iters",
+        "10",
+    ])
+    .unwrap();
+    let metrics: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(run.join("metrics.json")).unwrap()).unwrap();
+    assert!(metrics["psnr"].as_f64().unwrap() > 5.0, "{metrics}");
+}
+
+#[test]
+fn bad_gltf_arguments_give_one_clear_error() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("out");
+    let out = out.to_str().unwrap();
+    let missing = tmp.path().join("missing.glb");
+    let e = msth(&["synth", "--gltf", missing.to_str().unwrap(), "--out", out]).unwrap_err();
+    assert!(
+        e.contains("missing.glb") && e.contains("No such file"),
+        "{e}"
+    );
+    let e = msth(&[
+        "synth", "--gltf", "x.gltf", "--layout", "ring", "--out", out,
+    ])
+    .unwrap_err();
+    assert!(e.contains("--layout `ring`"), "{e}");
+    let e = msth(&["synth", "--gltf", "x.gltf", "--size", "200", "--out", out]).unwrap_err();
+    assert!(e.contains("expected WxH"), "{e}");
+    let e = msth(&["synth", "--gltf", "x.gltf", "--frames", "0", "--out", out]).unwrap_err();
+    assert!(e.contains("frames"), "{e}");
+    let e = msth(&["synth", "--layout", "stage", "--out", out]).unwrap_err();
+    assert!(e.contains("--gltf only"), "{e}");
+    assert!(!tmp.path().join("out").exists());
+}
