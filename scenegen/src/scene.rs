@@ -140,7 +140,7 @@ impl RgbaImage8 {
             msth_trainer::dataset::Image8 {
                 width: self.width,
                 height: self.height,
-                data: rgb,
+                data: rgb.into(),
             },
             (!opaque).then_some(alpha),
         )
