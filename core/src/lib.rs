@@ -27,6 +27,7 @@ pub mod rng;
 pub mod sampling;
 pub mod scene;
 pub mod sh;
+pub mod uncertainty;
 
 pub use camera::{Camera, Ray};
 pub use scene::SceneBounds;
