@@ -37,6 +37,9 @@ pub struct EncodingScratch {
     /// (their `h4` is taken as 0, changing the encoding by less than `cutoff * |h4|`). 0, the
     /// default and what training uses, evaluates every point exactly.
     pub static_cutoff: f32,
+    /// Training only: an extra `dL/dm` per point added in [`EncodingLayout::backward`] (the
+    /// mutual-information term of mask learning); empty, the default, adds nothing.
+    pub d_m_extra: Vec<f32>,
     d_h3: Vec<f32>,
     d_h4: Vec<f32>,
     /// Points that get a 4D lookup under `static_cutoff`, and their packed inputs and outputs.
@@ -242,6 +245,9 @@ impl EncodingLayout {
                 }
                 BlendMode::FourD => s.d_h4[row.clone()].copy_from_slice(&d_enc[row]),
                 BlendMode::Static => s.d_h3[row.clone()].copy_from_slice(&d_enc[row]),
+            }
+            if !s.d_m_extra.is_empty() {
+                dm += s.d_m_extra[i];
             }
             if let Some((d, r)) = &self.mask {
                 d.backward(
@@ -503,6 +509,27 @@ impl FieldLayout {
         self.backward_density_mlp(params, n, s, grad);
         self.encoding
             .backward(points, n, &mut s.enc, &s.d_enc, grad);
+    }
+}
+
+impl FieldLayout {
+    /// The time-agnostic static branch of mask learning: the same decoders (same parameter
+    /// slices) applied to the 3D encoding `h3` alone. `None` when the encoding has no `h3`.
+    pub fn static_branch(&self) -> Option<FieldLayout> {
+        let h3 = self.encoding.h3.clone()?;
+        Some(FieldLayout {
+            encoding: EncodingLayout {
+                blend: BlendMode::Static,
+                h3: Some(h3),
+                h4: None,
+                mask: None,
+                mask_init: self.encoding.mask_init,
+                out_dim: self.encoding.out_dim,
+            },
+            density: self.density.clone(),
+            color: self.color.clone(),
+            geo_features: self.geo_features,
+        })
     }
 }
 

@@ -16,6 +16,10 @@ use crate::rng::Rng;
 use crate::sampling::{sample_pdf, uniform_edges};
 use crate::scene::SceneBounds;
 use crate::sh::{sh4, SH_COEFFS};
+use crate::uncertainty::{
+    mine_estimate, ray_uncertainty, ray_uncertainty_backward, shuffle, uncertainty_loss, AuxLayout,
+    MaskLearningConfig, MineScratch,
+};
 use crate::Ray;
 
 /// One ray at one time.
@@ -44,6 +48,10 @@ pub struct ChunkLosses {
     pub sq_err: f64,
     pub interlevel: f64,
     pub distortion: f64,
+    /// Sum over rays of the uncertainty loss `L_u` (mask learning; 0 when off).
+    pub uncertainty: f64,
+    /// Sum over chunks of the MINE estimate `I(m, u)` times the chunk's ray count (0 when off).
+    pub mine: f64,
     pub rays: usize,
     pub field_samples: usize,
     pub proposal_samples: usize,
@@ -54,6 +62,8 @@ impl std::ops::AddAssign for ChunkLosses {
         self.sq_err += o.sq_err;
         self.interlevel += o.interlevel;
         self.distortion += o.distortion;
+        self.uncertainty += o.uncertainty;
+        self.mine += o.mine;
         self.rays += o.rays;
         self.field_samples += o.field_samples;
         self.proposal_samples += o.proposal_samples;
@@ -112,6 +122,20 @@ pub struct Workspace {
     active: Vec<u32>,
     prop: FieldScratch,
     main: FieldScratch,
+    // Mask learning (training only, empty otherwise).
+    stat: FieldScratch,
+    w_stat: Vec<f32>,
+    tfinal_stat: Vec<f32>,
+    d_sigma_stat: Vec<f32>,
+    d_rgb_stat: Vec<f32>,
+    u_main: Vec<f32>,
+    d_u_main: Vec<f32>,
+    m_ray: Vec<f32>,
+    u_ray: Vec<f32>,
+    d_m_ray: Vec<f32>,
+    d_u_ray: Vec<f32>,
+    perm: Vec<usize>,
+    mine: MineScratch,
 }
 
 /// Samples whose transmittance has fallen below this get no colour evaluation: their weight,
@@ -326,12 +350,88 @@ pub fn train_chunk(
     rng: &mut Rng,
     ws: &mut Workspace,
 ) -> ChunkLosses {
+    train_chunk_with(
+        cfg,
+        layout,
+        params,
+        grad,
+        rays,
+        targets,
+        backgrounds,
+        step,
+        rng,
+        ws,
+        None,
+    )
+}
+
+/// The training-only parameters of uncertainty-guided mask learning for one chunk
+/// ([`crate::uncertainty`]): settings, layout, values and the gradient buffer they add into.
+pub struct AuxStep<'a> {
+    pub cfg: &'a MaskLearningConfig,
+    pub layout: &'a AuxLayout,
+    pub params: &'a [f32],
+    pub grad: &'a mut [f32],
+}
+
+/// The uncertainty-guided terms of one chunk, computed before the per-ray loop.
+struct AuxForward {
+    lambda: f32,
+    mine: bool,
+}
+
+/// Adds the background's share of `dL/dC` into `d_rgb` (last-sample background) and returns
+/// `dL/dT_N`.
+fn background_backward(
+    background: Background,
+    dc: [f32; 3],
+    rgb: &[f32],
+    t_final: f32,
+    d_rgb: &mut [f32],
+) -> f32 {
+    let nf = rgb.len() / 3;
+    match background {
+        Background::Color { rgb: b } => dc[0] * b[0] + dc[1] * b[1] + dc[2] * b[2],
+        Background::LastSample => {
+            if nf > 0 {
+                for ch in 0..3 {
+                    d_rgb[(nf - 1) * 3 + ch] += dc[ch] * t_final;
+                }
+                dc[0] * rgb[(nf - 1) * 3]
+                    + dc[1] * rgb[(nf - 1) * 3 + 1]
+                    + dc[2] * rgb[(nf - 1) * 3 + 2]
+            } else {
+                0.0
+            }
+        }
+    }
+}
+
+/// [`train_chunk`] with, when `aux` is given, the uncertainty loss `lambda * L_u` (static branch,
+/// uncertainty grid) and the mutual-information term `-gamma * I(m, u)` (per-ray pairs of the
+/// weight-averaged mask `sum w_i m_i` and the ray uncertainty `U`, marginals by shuffling `U`
+/// within the chunk). Without `aux`, or with every term off, it is exactly [`train_chunk`].
+#[allow(clippy::too_many_arguments)]
+pub fn train_chunk_with(
+    cfg: &ModelConfig,
+    layout: &ModelLayout,
+    params: &[f32],
+    grad: &mut [f32],
+    rays: &[TimedRay],
+    targets: &[[f32; 3]],
+    backgrounds: Option<&[[f32; 3]]>,
+    step: &StepSettings,
+    rng: &mut Rng,
+    ws: &mut Workspace,
+    mut aux: Option<AuxStep<'_>>,
+) -> ChunkLosses {
     let n = rays.len();
     let np = cfg.sampler.num_proposal_samples;
     let nf = cfg.sampler.num_samples;
     // Training evaluates every point exactly (the gradients need every h4).
     ws.prop.enc.static_cutoff = 0.0;
     ws.main.enc.static_cutoff = 0.0;
+    ws.main.enc.d_m_extra.clear();
     forward_chunk(cfg, layout, params, rays, step.anneal, Some(rng), ws);
     let mut out = ChunkLosses {
         rays: n,
@@ -345,6 +445,83 @@ pub fn train_chunk(
     ws.d_w_prop.resize(n * np, 0.0);
     ws.d_w.resize(nf, 0.0);
     let scale = step.loss_scale;
+    let static_field = match &aux {
+        Some(a) if a.cfg.uncertainty => layout.field.static_branch(),
+        _ => None,
+    };
+    let ray_background = |i: usize| match backgrounds {
+        Some(b) => Background::Color { rgb: b[i] },
+        None => cfg.background,
+    };
+    let aux_fw = match (&mut aux, &static_field) {
+        (Some(a), Some(sf)) => {
+            // Static branch, per-sample uncertainty, and the per-ray (m, U) pairs.
+            sf.forward_density(params, &ws.pts_main, n * nf, &mut ws.stat);
+            sf.forward_color(params, &ws.sh, &|j| j / nf, None, n * nf, &mut ws.stat);
+            ws.u_main.clear();
+            for k in 0..n * nf {
+                ws.u_main.push(
+                    a.layout
+                        .uncertainty_at(a.params, &ws.pts_main[k * 4..k * 4 + 3]),
+                );
+            }
+            ws.w_stat.resize(n * nf, 0.0);
+            ws.tfinal_stat.resize(n, 0.0);
+            ws.d_sigma_stat.resize(n * nf, 0.0);
+            ws.d_rgb_stat.clear();
+            ws.d_rgb_stat.resize(n * nf * 3, 0.0);
+            ws.d_u_main.clear();
+            ws.d_u_main.resize(n * nf, 0.0);
+            ws.d_u_ray.clear();
+            ws.d_u_ray.resize(n, 0.0);
+            ws.d_m_ray.clear();
+            ws.d_m_ray.resize(n, 0.0);
+            for i in 0..n {
+                let fs = i * nf..(i + 1) * nf;
+                ws.tfinal_stat[i] = render::weights(
+                    &ws.stat.sigma[fs.clone()],
+                    &ws.delta_main[fs.clone()],
+                    &mut ws.w_stat[fs],
+                );
+            }
+            let mine = a.cfg.mine && a.cfg.mine_weight > 0.0 && n > 1;
+            if mine {
+                ws.m_ray.clear();
+                ws.u_ray.clear();
+                for i in 0..n {
+                    let fs = i * nf..(i + 1) * nf;
+                    let w = &mut ws.w_main[fs.clone()];
+                    render::weights(&ws.main.sigma[fs.clone()], &ws.delta_main[fs.clone()], w);
+                    let m: f32 = (0..nf).map(|k| w[k] * ws.main.enc.m[i * nf + k]).sum();
+                    ws.m_ray.push(m);
+                    ws.u_ray.push(ray_uncertainty(w, &ws.u_main[fs]));
+                }
+                shuffle(n, rng, &mut ws.perm);
+                let (mlp, r) = &a.layout.mine;
+                let i_est = mine_estimate(
+                    mlp,
+                    &a.params[r.clone()],
+                    &ws.m_ray,
+                    &ws.u_ray,
+                    &ws.perm,
+                    -a.cfg.mine_weight * n as f32 * scale,
+                    &mut a.grad[r.clone()],
+                    &mut ws.d_m_ray,
+                    &mut ws.d_u_ray,
+                    &mut ws.mine,
+                );
+                out.mine += i_est as f64 * n as f64;
+            }
+            Some(AuxForward {
+                lambda: a.cfg.uncertainty_weight,
+                mine,
+            })
+        }
+        _ => None,
+    };
+    if aux_fw.as_ref().is_some_and(|a| a.mine) {
+        ws.main.enc.d_m_extra.resize(n * nf, 0.0);
+    }
     for i in 0..n {
         let fs = i * nf..(i + 1) * nf;
         let sigma = &ws.main.sigma[fs.clone()];
@@ -352,10 +529,7 @@ pub fn train_chunk(
         let rgb = &ws.main.rgb[i * nf * 3..(i + 1) * nf * 3];
         let w = &mut ws.w_main[fs.clone()];
         let t_final = render::weights(sigma, delta, w);
-        let background = match backgrounds {
-            Some(b) => Background::Color { rgb: b[i] },
-            None => cfg.background,
-        };
+        let background = ray_background(i);
         let c = composite_ray(background, w, rgb, t_final);
         // d(mean sq err)/dC
         let mut dc = [0f32; 3];
@@ -366,6 +540,41 @@ pub fn train_chunk(
             dc[ch] = 2.0 * diff / 3.0 * scale;
         }
         out.sq_err += (se / 3.0) as f64;
+        // The uncertainty loss: its gradients into C, C_s and U.
+        let mut d_u_ray = 0f32;
+        if let Some(af) = &aux_fw {
+            let stat_rgb = &ws.stat.rgb[i * nf * 3..(i + 1) * nf * 3];
+            let w_s = &ws.w_stat[fs.clone()];
+            let cs = composite_ray(background, w_s, stat_rgb, ws.tfinal_stat[i]);
+            let u_ray = ray_uncertainty(w, &ws.u_main[fs.clone()]);
+            let (lu, g) = uncertainty_loss(c, cs, u_ray, af.lambda * scale);
+            out.uncertainty += lu as f64;
+            for ch in 0..3 {
+                dc[ch] += g.d_c[ch];
+            }
+            d_u_ray = g.d_u + ws.d_u_ray[i];
+            // Static branch backward to its densities and colours.
+            let d_rgb_s = &mut ws.d_rgb_stat[i * nf * 3..(i + 1) * nf * 3];
+            for k in 0..nf {
+                ws.d_w[k] = g.d_cs[0] * stat_rgb[k * 3]
+                    + g.d_cs[1] * stat_rgb[k * 3 + 1]
+                    + g.d_cs[2] * stat_rgb[k * 3 + 2];
+                for ch in 0..3 {
+                    d_rgb_s[k * 3 + ch] = g.d_cs[ch] * w_s[k];
+                }
+            }
+            let d_t_s =
+                background_backward(background, g.d_cs, stat_rgb, ws.tfinal_stat[i], d_rgb_s);
+            render::weights_backward(
+                &ws.stat.sigma[fs.clone()],
+                delta,
+                w_s,
+                ws.tfinal_stat[i],
+                &ws.d_w,
+                d_t_s,
+                &mut ws.d_sigma_stat[fs.clone()],
+            );
+        }
         // dL/dw from the colour, and the background's dependence on T_N.
         for k in 0..nf {
             ws.d_w[k] = dc[0] * rgb[k * 3] + dc[1] * rgb[k * 3 + 1] + dc[2] * rgb[k * 3 + 2];
@@ -376,21 +585,25 @@ pub fn train_chunk(
                 d_rgb[k * 3 + ch] = dc[ch] * w[k];
             }
         }
-        let d_t = match background {
-            Background::Color { rgb: b } => dc[0] * b[0] + dc[1] * b[1] + dc[2] * b[2],
-            Background::LastSample => {
-                if nf > 0 {
-                    for ch in 0..3 {
-                        d_rgb[(nf - 1) * 3 + ch] += dc[ch] * t_final;
-                    }
-                    dc[0] * rgb[(nf - 1) * 3]
-                        + dc[1] * rgb[(nf - 1) * 3 + 1]
-                        + dc[2] * rgb[(nf - 1) * 3 + 2]
-                } else {
-                    0.0
+        let d_t = background_backward(background, dc, rgb, t_final, d_rgb);
+        if let Some(af) = &aux_fw {
+            // U = sum w u: into the weights and the per-sample uncertainties.
+            ray_uncertainty_backward(
+                w,
+                &ws.u_main[fs.clone()],
+                d_u_ray,
+                &mut ws.d_w,
+                &mut ws.d_u_main[fs.clone()],
+            );
+            if af.mine {
+                // m(r) = sum w m: into the weights and the per-sample mask values.
+                let d_m = ws.d_m_ray[i];
+                for k in 0..nf {
+                    ws.d_w[k] += d_m * ws.main.enc.m[i * nf + k];
+                    ws.main.enc.d_m_extra[i * nf + k] = d_m * w[k];
                 }
             }
-        };
+        }
         let s_main = &ws.s_main[i * (nf + 1)..(i + 1) * (nf + 1)];
         if step.distortion_weight > 0.0 {
             out.distortion +=
@@ -444,6 +657,24 @@ pub fn train_chunk(
         &ws.d_sigma_prop,
         grad,
     );
+    if let (Some(a), Some(sf)) = (aux.as_mut(), &static_field) {
+        sf.backward(
+            params,
+            &ws.pts_main,
+            n * nf,
+            &mut ws.stat,
+            &ws.d_sigma_stat,
+            &ws.d_rgb_stat,
+            grad,
+        );
+        for k in 0..n * nf {
+            let d = ws.d_u_main[k];
+            if d != 0.0 {
+                a.layout
+                    .uncertainty_backward(a.params, &ws.pts_main[k * 4..k * 4 + 3], d, a.grad);
+            }
+        }
+    }
     out
 }
 
@@ -627,6 +858,230 @@ mod tests {
             }
         }
         assert!(checked >= 20);
+    }
+
+    /// Everything about mask learning the FD test needs: settings with visible weights, the
+    /// auxiliary layout and perturbed auxiliary parameters.
+    fn aux_setup(mine: bool) -> (MaskLearningConfig, AuxLayout, Vec<f32>) {
+        let mc = MaskLearningConfig {
+            uncertainty: true,
+            uncertainty_weight: 0.5,
+            uncertainty_resolution: 4,
+            mine,
+            mine_weight: 0.5,
+            mine_hidden: 6,
+            ..Default::default()
+        };
+        let al = AuxLayout::new(&mc);
+        let mut ap = al.init_params(3);
+        let mut r = Rng::new(9);
+        for v in &mut ap[al.grid.1.clone()] {
+            *v = r.range_f32(-1.0, 1.0);
+        }
+        (mc, al, ap)
+    }
+
+    /// Losses and gradients (model, auxiliary) of one chunk with mask learning.
+    #[allow(clippy::type_complexity)]
+    fn aux_chunk(
+        cfg: &ModelConfig,
+        layout: &ModelLayout,
+        p: &[f32],
+        mc: &MaskLearningConfig,
+        al: &AuxLayout,
+        ap: &[f32],
+    ) -> (f64, Vec<f32>, Vec<f32>) {
+        let (rays, tg) = rays();
+        let step = StepSettings {
+            anneal: 1.0,
+            interlevel_weight: 1.0,
+            distortion_weight: 0.01,
+            loss_scale: 1.0 / rays.len() as f32,
+        };
+        let mut g = vec![0f32; p.len()];
+        let mut ag = vec![0f32; ap.len()];
+        let l = train_chunk_with(
+            cfg,
+            layout,
+            p,
+            &mut g,
+            &rays,
+            &tg,
+            None,
+            &step,
+            &mut Rng::new(5),
+            &mut Workspace::default(),
+            Some(AuxStep {
+                cfg: mc,
+                layout: al,
+                params: ap,
+                grad: &mut ag,
+            }),
+        );
+        let nr = rays.len() as f64;
+        let total = (l.sq_err + step.distortion_weight as f64 * l.distortion) / nr
+            + mc.uncertainty_weight as f64 * l.uncertainty / nr
+            - if mc.mine {
+                mc.mine_weight as f64 * l.mine / nr
+            } else {
+                0.0
+            };
+        (total, g, ag)
+    }
+
+    fn perturbed_params(layout: &ModelLayout) -> Vec<f32> {
+        let mut p = layout.init_params(1);
+        let mut r = Rng::new(2);
+        for v in p.iter_mut() {
+            *v += r.range_f32(-0.3, 0.3);
+        }
+        p
+    }
+
+    /// The whole training step with every mask-learning term on, against finite differences:
+    /// the main field (h3, h4, mask, both MLPs: the static branch shares them), the uncertainty
+    /// grid and the MINE network.
+    #[test]
+    fn train_chunk_with_mask_learning_matches_finite_differences() {
+        let cfg = tiny_cfg();
+        let layout = ModelLayout::new(&cfg);
+        let p = perturbed_params(&layout);
+        let (mc, al, ap) = aux_setup(true);
+        let (_, grad, agrad) = aux_chunk(&cfg, &layout, &p, &mc, &al, &ap);
+        let check = |name: &str, fd: f64, g: f32| {
+            let tol = 1e-4 + 5e-2 * fd.abs();
+            assert!((fd - g as f64).abs() < tol, "{name}: fd {fd} vs {g}");
+        };
+        let mut checked = 0;
+        for e in layout
+            .params
+            .entries
+            .iter()
+            .filter(|e| e.name.starts_with("field"))
+        {
+            let mut idx: Vec<usize> = e.range().collect();
+            idx.sort_by(|&a, &b| grad[b].abs().partial_cmp(&grad[a].abs()).unwrap());
+            for &i in idx.iter().take(6) {
+                let h = 2e-3;
+                let mut q = p.clone();
+                q[i] += h;
+                let lp = aux_chunk(&cfg, &layout, &q, &mc, &al, &ap).0;
+                q[i] -= 2.0 * h;
+                let lm = aux_chunk(&cfg, &layout, &q, &mc, &al, &ap).0;
+                check(&e.name, (lp - lm) / (2.0 * h as f64), grad[i]);
+                checked += 1;
+            }
+        }
+        for e in &al.params.entries {
+            let mut idx: Vec<usize> = e.range().collect();
+            idx.sort_by(|&a, &b| agrad[b].abs().partial_cmp(&agrad[a].abs()).unwrap());
+            assert!(agrad[idx[0]] != 0.0, "{} gets no gradient", e.name);
+            for &i in idx.iter().take(6) {
+                let h = 2e-3;
+                let mut q = ap.clone();
+                q[i] += h;
+                let lp = aux_chunk(&cfg, &layout, &p, &mc, &al, &q).0;
+                q[i] -= 2.0 * h;
+                let lm = aux_chunk(&cfg, &layout, &p, &mc, &al, &q).0;
+                check(&e.name, (lp - lm) / (2.0 * h as f64), agrad[i]);
+                checked += 1;
+            }
+        }
+        assert!(checked >= 30);
+    }
+
+    /// The `-gamma * I` term reaches the mask grid: the mask gradient with MINE on differs from
+    /// the one without by the finite difference of the MINE term alone.
+    #[test]
+    fn mine_gradient_reaches_the_mask_grid() {
+        let cfg = tiny_cfg();
+        let layout = ModelLayout::new(&cfg);
+        let p = perturbed_params(&layout);
+        let (mut mc_on, al, ap) = aux_setup(true);
+        // A large weight, so that the MINE term stands out of the rounding of the total.
+        mc_on.mine_weight = 50.0;
+        let (mc_off, _, _) = aux_setup(false);
+        let (_, g_on, _) = aux_chunk(&cfg, &layout, &p, &mc_on, &al, &ap);
+        let (_, g_off, _) = aux_chunk(&cfg, &layout, &p, &mc_off, &al, &ap);
+        let mine_only = |q: &[f32]| {
+            aux_chunk(&cfg, &layout, q, &mc_on, &al, &ap).0
+                - aux_chunk(&cfg, &layout, q, &mc_off, &al, &ap).0
+        };
+        let mask = layout.params.get("field.mask").unwrap().range();
+        let mut idx: Vec<usize> = mask.collect();
+        let diff = |i: usize| g_on[i] - g_off[i];
+        idx.sort_by(|&a, &b| diff(b).abs().partial_cmp(&diff(a).abs()).unwrap());
+        assert!(diff(idx[0]).abs() > 1e-3, "no MINE gradient on the mask");
+        for &i in idx.iter().take(6) {
+            let h = 1e-2; // the MINE term is summed in f32: smaller steps drown in rounding
+            let mut q = p.clone();
+            q[i] += h;
+            let lp = mine_only(&q);
+            q[i] -= 2.0 * h;
+            let lm = mine_only(&q);
+            let fd = (lp - lm) / (2.0 * h as f64);
+            assert!(
+                (fd - diff(i) as f64).abs() < 1e-4 + 5e-2 * fd.abs(),
+                "mask [{i}]: fd {fd} vs {}",
+                diff(i)
+            );
+        }
+    }
+
+    /// With the mask-learning settings present but every term off, a chunk is bit-for-bit the
+    /// plain [`train_chunk`].
+    #[test]
+    fn mask_learning_off_is_the_plain_step() {
+        let cfg = tiny_cfg();
+        let layout = ModelLayout::new(&cfg);
+        let p = perturbed_params(&layout);
+        let (rays, tg) = rays();
+        let step = StepSettings {
+            anneal: 0.7,
+            interlevel_weight: 1.0,
+            distortion_weight: 0.01,
+            loss_scale: 0.25,
+        };
+        let mc = MaskLearningConfig::default();
+        let al = AuxLayout::new(&mc);
+        let ap = al.init_params(1);
+        let mut ag = vec![0f32; ap.len()];
+        let mut g1 = vec![0f32; p.len()];
+        let mut g2 = vec![0f32; p.len()];
+        let mut ws = Workspace::default();
+        let l1 = train_chunk(
+            &cfg,
+            &layout,
+            &p,
+            &mut g1,
+            &rays,
+            &tg,
+            None,
+            &step,
+            &mut Rng::new(5),
+            &mut ws,
+        );
+        let l2 = train_chunk_with(
+            &cfg,
+            &layout,
+            &p,
+            &mut g2,
+            &rays,
+            &tg,
+            None,
+            &step,
+            &mut Rng::new(5),
+            &mut ws,
+            Some(AuxStep {
+                cfg: &mc,
+                layout: &al,
+                params: &ap,
+                grad: &mut ag,
+            }),
+        );
+        assert_eq!(l1, l2);
+        assert_eq!(g1, g2);
+        assert!(ag.iter().all(|&v| v == 0.0));
     }
 
     #[test]
