@@ -834,4 +834,83 @@ mod tests {
             }
         }
     }
+
+    /// The static branch is the field with `m = 1` everywhere in MST mode (same decoders, h3
+    /// alone), and its backward matches finite differences into h3 and both MLPs.
+    #[test]
+    fn static_branch_is_the_all_static_field_and_fd() {
+        let cfg = small_config(BlendMode::Mst);
+        let layout = ModelLayout::new(&cfg);
+        let mut p = params(&layout, 7);
+        let sf = layout.field.static_branch().unwrap();
+        assert!(sf.encoding.h4.is_none() && sf.encoding.mask.is_none());
+        let mut rng = Rng::new(8);
+        let n = 5;
+        let pts: Vec<f32> = (0..n * 4).map(|_| rng.range_f32(0.05, 0.95)).collect();
+        let mut sh = vec![0f32; SH_COEFFS];
+        crate::sh::sh4([0.0, 0.6, 0.8], &mut sh);
+        let mut s = FieldScratch::default();
+        sf.forward(&p, &pts, &sh, &|_| 0, n, &mut s);
+        // the static branch does not depend on time
+        let mut pts_t = pts.clone();
+        for i in 0..n {
+            pts_t[i * 4 + 3] = 1.0 - pts[i * 4 + 3];
+        }
+        let mut st = FieldScratch::default();
+        sf.forward(&p, &pts_t, &sh, &|_| 0, n, &mut st);
+        assert_eq!(s.sigma, st.sigma);
+        // the full field with a saturated static mask (m = 1 up to rounding)
+        let mask = layout.params.get("field.mask").unwrap().range();
+        p[mask].fill(30.0);
+        for i in 0..n {
+            let (sig, rgb, m) = layout
+                .field
+                .eval_point_reference(&p, &pts[i * 4..i * 4 + 4], &sh);
+            assert_eq!(m, 1.0);
+            assert!((sig - s.sigma[i]).abs() <= 1e-4 * sig.max(1.0));
+            for c in 0..3 {
+                assert!((rgb[c] - s.rgb[i * 3 + c]).abs() < 1e-5);
+            }
+        }
+        let a: Vec<f32> = (0..n).map(|_| rng.range_f32(-1.0, 1.0)).collect();
+        let b: Vec<f32> = (0..n * 3).map(|_| rng.range_f32(-1.0, 1.0)).collect();
+        let mut grad = vec![0f32; p.len()];
+        sf.backward(&p, &pts, n, &mut s, &a, &b, &mut grad);
+        let loss = |q: &[f32]| -> f64 {
+            let mut l = 0f64;
+            for i in 0..n {
+                let (sig, rgb, _) = sf.eval_point_reference(q, &pts[i * 4..i * 4 + 4], &sh);
+                l += a[i] as f64 * sig as f64;
+                for c in 0..3 {
+                    l += b[i * 3 + c] as f64 * rgb[c] as f64;
+                }
+            }
+            l
+        };
+        for name in ["field.h3", "field.density_mlp", "field.color_mlp"] {
+            let e = layout.params.get(name).unwrap();
+            let mut idx: Vec<usize> = e.range().collect();
+            idx.sort_by(|&x, &y| grad[y].abs().partial_cmp(&grad[x].abs()).unwrap());
+            assert!(grad[idx[0]] != 0.0, "{name}");
+            for &i in idx.iter().take(8) {
+                let h = 3e-4f32;
+                let mut q = p.clone();
+                q[i] += h;
+                let lp = loss(&q);
+                q[i] -= 2.0 * h;
+                let lm = loss(&q);
+                let fd = (lp - lm) / (2.0 * h as f64);
+                assert!(
+                    (fd - grad[i] as f64).abs() < 2e-3 + 2e-2 * fd.abs(),
+                    "{name}: fd {fd} vs {}",
+                    grad[i]
+                );
+            }
+        }
+        // h4 and the mask get nothing from the static branch
+        for name in ["field.h4", "field.mask"] {
+            let e = layout.params.get(name).unwrap();
+            assert!(grad[e.range()].iter().all(|&v| v == 0.0), "{name}");
+        }
+    }
 }

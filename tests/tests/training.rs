@@ -182,3 +182,90 @@ fn shared_object_dataset_trains() {
     // An all-white prediction scores about 22.5 dB here; learning the object must beat it.
     assert!(psnr > 25.0, "held-out PSNR {psnr:.2}");
 }
+
+/// Uncertainty-guided mask learning with every term on (paper weights): the run is finite and
+/// repeatable, its auxiliary parameters learn, and none of them reach the checkpoint (whose
+/// parameter buffer is exactly the model's, which is all the codec reads).
+#[test]
+fn mask_learning_trains_repeatably_and_stays_out_of_the_checkpoint() {
+    let (_, data) = tiny_scene();
+    let run = |dir: &std::path::Path| {
+        let mut s = quick_settings(&data, 8);
+        s.batch_rays = 256;
+        s.apply_overrides(
+            None,
+            &[
+                "mask_learning.uncertainty=true".into(),
+                "mask_learning.mine=true".into(),
+                "mask_learning.uncertainty_resolution=16".into(),
+            ],
+        )
+        .unwrap();
+        train(&data, s, dir, None, &mut |p| {
+            assert!(p.loss.is_finite());
+            true
+        })
+        .unwrap()
+    };
+    let a = tempfile::tempdir().unwrap();
+    let b = tempfile::tempdir().unwrap();
+    let (ta, oa) = run(a.path());
+    let (tb, _) = run(b.path());
+    assert!(oa.last_loss.is_finite());
+    assert_eq!(ta.params, tb.params, "same seed must give the same model");
+    let aux = ta.aux.as_ref().expect("mask learning is on");
+    assert_eq!(aux.params, tb.aux.as_ref().unwrap().params);
+    assert!(aux.params.iter().all(|v| v.is_finite()));
+    let init = aux.layout.init_params(ta.settings.seed);
+    for e in &aux.layout.params.entries {
+        assert!(
+            aux.params[e.range()] != init[e.range()],
+            "{} did not learn",
+            e.name
+        );
+    }
+    let ckpt = Checkpoint::load(&a.path().join("model.ckpt")).unwrap();
+    let layout = ModelLayout::new(&ckpt.header.model);
+    assert_eq!(ckpt.params.len(), layout.params.total);
+    assert!(layout
+        .params
+        .entries
+        .iter()
+        .all(|e| !e.name.starts_with("aux")));
+    // The mask learned something different from a run without the new terms.
+    let c = tempfile::tempdir().unwrap();
+    let mut s = quick_settings(&data, 8);
+    s.batch_rays = 256;
+    let (plain, _) = train(&data, s, c.path(), None, &mut |_| true).unwrap();
+    assert!(plain.aux.is_none());
+    let mask = layout.params.get("field.mask").unwrap().range();
+    assert_ne!(plain.params[mask.clone()], ta.params[mask]);
+}
+
+/// The divergence guard: a run driven to non-finite values stops with a message naming the step
+/// and the last good checkpoint, which is left as it was.
+#[test]
+fn divergence_stops_and_keeps_the_last_good_checkpoint() {
+    let (_, data) = tiny_scene();
+    let dir = tempfile::tempdir().unwrap();
+    let mut s = quick_settings(&data, 3);
+    s.batch_rays = 128;
+    train(&data, s.clone(), dir.path(), None, &mut |_| true).unwrap();
+    let ckpt_path = dir.path().join("model.ckpt");
+    let good = std::fs::read(&ckpt_path).unwrap();
+    // Resume with an absurd learning rate: the parameters blow up within a few steps.
+    s.iters = 40;
+    s.adam.lr = 1e30;
+    s.adam.lr_final = 1e30;
+    s.mask_learning.uncertainty = true;
+    s.mask_learning.mine = true;
+    s.mask_learning.uncertainty_resolution = 8;
+    let resume = Checkpoint::load(&ckpt_path).unwrap();
+    let err = match train(&data, s, dir.path(), Some(resume), &mut |_| true) {
+        Err(e) => e.to_string(),
+        Ok(_) => panic!("a learning rate of 1e30 must diverge"),
+    };
+    assert!(err.contains("diverged at step"), "{err}");
+    assert!(err.contains("model.ckpt"), "{err}");
+    assert_eq!(std::fs::read(&ckpt_path).unwrap(), good);
+}

@@ -13,8 +13,11 @@ use serde::{Deserialize, Serialize};
 
 use msth_core::config::{Background, ModelConfig, Preset};
 use msth_core::field::ModelLayout;
-use msth_core::pipeline::{train_chunk, ChunkLosses, StepSettings, TimedRay, Workspace};
+use msth_core::pipeline::{
+    train_chunk, train_chunk_with, AuxStep, ChunkLosses, StepSettings, TimedRay, Workspace,
+};
 use msth_core::rng::Rng;
+use msth_core::uncertainty::{AuxLayout, MaskLearningConfig};
 use msth_core::Camera;
 
 use crate::adam::{Adam, AdamConfig, MaskLossSlice};
@@ -51,6 +54,9 @@ pub struct TrainSettings {
     pub random_background: bool,
     /// Jitter training rays inside their pixel (else through the pixel centre).
     pub pixel_jitter: bool,
+    /// Uncertainty-guided mask learning (paper §3.3): every term off by default.
+    #[serde(default)]
+    pub mask_learning: MaskLearningConfig,
     pub model: ModelConfig,
 }
 
@@ -87,6 +93,7 @@ impl TrainSettings {
             time_limit_secs: 0.0,
             random_background: true,
             pixel_jitter: false,
+            mask_learning: MaskLearningConfig::default(),
             model,
         }
     }
@@ -148,6 +155,13 @@ impl TrainSettings {
         if self.eval_stride == 0 {
             return Err("eval_stride must be at least 1".into());
         }
+        self.mask_learning.validate()?;
+        if self.mask_learning.uncertainty && !self.model.field.encoding.blend.uses_h3() {
+            return Err(
+                "mask_learning.uncertainty needs a 3D grid (its static branch decodes h3 alone)"
+                    .into(),
+            );
+        }
         self.model.validate().map_err(|e| format!("model.{e}"))
     }
 }
@@ -177,6 +191,19 @@ fn merge(dst: &mut serde_json::Value, src: serde_json::Value, path: &str) -> Res
             Ok(())
         }
     }
+}
+
+/// The mask-learning share of a step's loss, `lambda * mean L_u - gamma * I` (0 when off).
+pub fn mask_learning_loss(ml: &MaskLearningConfig, l: &ChunkLosses) -> f64 {
+    let rays = l.rays.max(1) as f64;
+    let mut loss = 0.0;
+    if ml.uncertainty {
+        loss += ml.uncertainty_weight as f64 * l.uncertainty / rays;
+    }
+    if ml.mine {
+        loss -= ml.mine_weight as f64 * l.mine / rays;
+    }
+    loss
 }
 
 /// Reported after each step.
@@ -225,6 +252,9 @@ pub struct Trainer {
     pub adam: Adam,
     pub step: usize,
     mask_slices: Vec<MaskLossSlice>,
+    /// Training-only parameters of mask learning (uncertainty grid, MINE network) with their
+    /// own optimiser state; never exported, not part of the checkpoint.
+    pub aux: Option<AuxState>,
     workers: Vec<Worker>,
     /// Fraction of the time budget used (0 without a time limit); the learning rate follows
     /// whichever of steps and time is further along, so a time-limited run still decays fully.
@@ -234,6 +264,14 @@ pub struct Trainer {
 struct Worker {
     ws: Workspace,
     grad: Vec<f32>,
+    aux_grad: Vec<f32>,
+}
+
+/// The auxiliary parameters of mask learning and their Adam state.
+pub struct AuxState {
+    pub layout: AuxLayout,
+    pub params: Vec<f32>,
+    pub adam: Adam,
 }
 
 impl Trainer {
@@ -268,11 +306,23 @@ impl Trainer {
         adam: Adam,
         step: usize,
     ) -> Self {
+        let aux = settings.mask_learning.enabled().then(|| {
+            let layout = AuxLayout::new(&settings.mask_learning);
+            let params = layout.init_params(settings.seed);
+            let adam = Adam::new(params.len());
+            AuxState {
+                layout,
+                params,
+                adam,
+            }
+        });
+        let aux_len = aux.as_ref().map_or(0, |a| a.params.len());
         let workers_n = rayon::current_num_threads().max(1);
         let workers = (0..workers_n)
             .map(|_| Worker {
                 ws: Workspace::default(),
                 grad: vec![0.0; params.len()],
+                aux_grad: vec![0.0; aux_len],
             })
             .collect();
         let mask_slices = layout
@@ -292,6 +342,7 @@ impl Trainer {
             adam,
             step,
             mask_slices,
+            aux,
             workers,
             time_fraction: 0.0,
         }
@@ -322,29 +373,52 @@ impl Trainer {
             s.seed,
             self.step as u64,
         );
+        let ml = &s.mask_learning;
+        let aux = self.aux.as_ref();
         let losses: Vec<ChunkLosses> = self
             .workers
             .par_iter_mut()
             .enumerate()
             .map(|(w, worker)| {
                 worker.grad.fill(0.0);
+                worker.aux_grad.fill(0.0);
                 let mut acc = ChunkLosses::default();
                 let mut c = w;
                 while c < n_chunks {
                     let r = c * chunk..((c + 1) * chunk).min(rays.len());
                     let mut rng = Rng::stream(seed, (step << 20) | c as u64);
-                    acc += train_chunk(
-                        cfg,
-                        layout,
-                        params,
-                        &mut worker.grad,
-                        &rays[r.clone()],
-                        &targets[r.clone()],
-                        backgrounds.map(|b| &b[r]),
-                        &step_settings,
-                        &mut rng,
-                        &mut worker.ws,
-                    );
+                    acc += match aux {
+                        None => train_chunk(
+                            cfg,
+                            layout,
+                            params,
+                            &mut worker.grad,
+                            &rays[r.clone()],
+                            &targets[r.clone()],
+                            backgrounds.map(|b| &b[r]),
+                            &step_settings,
+                            &mut rng,
+                            &mut worker.ws,
+                        ),
+                        Some(a) => train_chunk_with(
+                            cfg,
+                            layout,
+                            params,
+                            &mut worker.grad,
+                            &rays[r.clone()],
+                            &targets[r.clone()],
+                            backgrounds.map(|b| &b[r]),
+                            &step_settings,
+                            &mut rng,
+                            &mut worker.ws,
+                            Some(AuxStep {
+                                cfg: ml,
+                                layout: &a.layout,
+                                params: &a.params,
+                                grad: &mut worker.aux_grad,
+                            }),
+                        ),
+                    };
                     c += n_workers;
                 }
                 acc
@@ -374,6 +448,15 @@ impl Trainer {
             g0,
             &self.mask_slices,
         );
+        if let Some(aux) = self.aux.as_mut() {
+            let (first, rest) = self.workers.split_at_mut(1);
+            let a0 = &mut first[0].aux_grad;
+            for w in rest.iter() {
+                a0.iter_mut().zip(&w.aux_grad).for_each(|(x, y)| *x += y);
+            }
+            aux.adam
+                .update(&self.settings.adam, lr, &mut aux.params, a0, &[]);
+        }
         self.step += 1;
         total
     }
@@ -532,12 +615,23 @@ pub fn train(
         let mse = l.sq_err / l.rays.max(1) as f64;
         let loss = (mse
             + trainer.settings.interlevel_weight as f64 * l.interlevel / l.rays.max(1) as f64
-            + trainer.settings.distortion_weight as f64 * l.distortion / l.rays.max(1) as f64)
-            as f32;
+            + trainer.settings.distortion_weight as f64 * l.distortion / l.rays.max(1) as f64
+            + mask_learning_loss(&trainer.settings.mask_learning, &l)) as f32;
         if !loss.is_finite() {
             return Err(TrainError::Diverged {
                 step: trainer.step,
                 what: format!("the loss ({loss})"),
+                last_good,
+            });
+        }
+        if let Some(i) = trainer
+            .aux
+            .as_ref()
+            .and_then(|a| a.params.iter().position(|v| !v.is_finite()))
+        {
+            return Err(TrainError::Diverged {
+                step: trainer.step,
+                what: format!("mask-learning parameter {i} (uncertainty grid or MINE network)"),
                 last_good,
             });
         }
