@@ -106,6 +106,21 @@ impl EncodingLayout {
         }
     }
 
+    /// Fractions of mask vertices with `m = sigmoid(logit)` below `lo` and above `hi` (how
+    /// decided the mask is); `None` without a mask.
+    pub fn mask_fractions(&self, params: &[f32], lo: f32, hi: f32) -> Option<(f64, f64)> {
+        let (_, r) = self.mask.as_ref()?;
+        let vals = &params[r.clone()];
+        let (mut below, mut above) = (0usize, 0usize);
+        for &v in vals {
+            let m = sigmoid(v);
+            below += (m < lo) as usize;
+            above += (m > hi) as usize;
+        }
+        let n = vals.len().max(1) as f64;
+        Some((below as f64 / n, above as f64 / n))
+    }
+
     /// Plain reference encoding of one point `(x, y, z, t)`.
     pub fn encode_point_reference(&self, params: &[f32], p: &[f32]) -> (Vec<f32>, f32) {
         let h3 = self
@@ -833,6 +848,31 @@ mod tests {
                 assert!(checked > 0);
             }
         }
+    }
+
+    #[test]
+    fn mask_fractions_count_decided_vertices() {
+        let layout = ModelLayout::new(&small_config(BlendMode::Mst));
+        let mut p = layout.init_params(1);
+        let r = layout.params.get("field.mask").unwrap().range();
+        let n = r.len();
+        for (k, v) in p[r].iter_mut().enumerate() {
+            *v = match k % 4 {
+                0 => -5.0,
+                1 | 2 => 5.0,
+                _ => 0.0,
+            };
+        }
+        let (lo, hi) = layout.field.encoding.mask_fractions(&p, 0.1, 0.9).unwrap();
+        let expect = |c: usize| {
+            (0..n)
+                .filter(|k| c == 0 && k % 4 == 0 || c == 1 && (k % 4 == 1 || k % 4 == 2))
+                .count() as f64
+                / n as f64
+        };
+        assert_eq!((lo, hi), (expect(0), expect(1)));
+        let plain = ModelLayout::new(&small_config(BlendMode::Add));
+        assert!(plain.field.encoding.mask_fractions(&p, 0.1, 0.9).is_none());
     }
 
     /// The static branch is the field with `m = 1` everywhere in MST mode (same decoders, h3
