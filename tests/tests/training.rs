@@ -269,3 +269,27 @@ fn divergence_stops_and_keeps_the_last_good_checkpoint() {
     assert!(err.contains("model.ckpt"), "{err}");
     assert_eq!(std::fs::read(&ckpt_path).unwrap(), good);
 }
+
+/// With mask learning on, the auxiliary state is kept in `model.aux` next to the checkpoint and
+/// a resumed run continues exactly (model and auxiliary parameters).
+#[test]
+fn mask_learning_resume_is_exact() {
+    let (_, data) = tiny_scene();
+    let run = |stop_at: usize, dir: &std::path::Path, resume: bool| {
+        let mut s = quick_settings(&data, 8);
+        s.batch_rays = 256;
+        s.mask_learning.uncertainty = true;
+        s.mask_learning.mine = true;
+        s.mask_learning.uncertainty_resolution = 16;
+        let r = resume.then(|| Checkpoint::load(&dir.join("model.ckpt")).unwrap());
+        let (t, _) = train(&data, s, dir, r, &mut |p| p.step < stop_at).unwrap();
+        (t.params, t.aux.unwrap().params)
+    };
+    let a = tempfile::tempdir().unwrap();
+    let straight = run(8, a.path(), false);
+    let d = tempfile::tempdir().unwrap();
+    run(4, d.path(), false);
+    assert!(d.path().join("model.aux").exists());
+    let resumed = run(8, d.path(), true);
+    assert_eq!(straight, resumed, "resume must continue exactly");
+}

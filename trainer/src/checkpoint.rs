@@ -169,6 +169,92 @@ impl Checkpoint {
     }
 }
 
+const AUX_MAGIC: &[u8; 8] = b"MSTHAUX\0";
+
+/// The training-only mask-learning state next to a checkpoint (`model.aux`): the auxiliary
+/// parameters (uncertainty grid, MINE network) and their Adam moments. Layout (little endian):
+/// `b"MSTHAUX\0"`, `version: u32 = 1`, `step: u64` (the checkpoint step it belongs to),
+/// `n: u64`, `params`, `m`, `v: [f32; n]`, `adam_step: u64`, `crc32: u32` of every preceding byte.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AuxCheckpoint {
+    pub step: u64,
+    pub params: Vec<f32>,
+    pub adam: Adam,
+}
+
+impl AuxCheckpoint {
+    pub fn to_bytes(&self) -> Vec<u8> {
+        let n = self.params.len();
+        let mut b = Vec::with_capacity(40 + n * 12);
+        b.extend_from_slice(AUX_MAGIC);
+        b.extend_from_slice(&VERSION.to_le_bytes());
+        b.extend_from_slice(&self.step.to_le_bytes());
+        b.extend_from_slice(&(n as u64).to_le_bytes());
+        for v in [&self.params, &self.adam.m, &self.adam.v] {
+            for x in v.iter() {
+                b.extend_from_slice(&x.to_le_bytes());
+            }
+        }
+        b.extend_from_slice(&self.adam.step.to_le_bytes());
+        let crc = crc32fast::hash(&b);
+        b.extend_from_slice(&crc.to_le_bytes());
+        b
+    }
+
+    /// Parses a file that must hold `expect` parameters.
+    pub fn from_bytes(b: &[u8], expect: usize) -> Result<Self, String> {
+        if b.len() < 36 || &b[..8] != AUX_MAGIC {
+            return Err("bad magic number".into());
+        }
+        let (body, crc) = b.split_at(b.len() - 4);
+        let crc = u32::from_le_bytes(crc.try_into().map_err(|_| "short file")?);
+        if crc32fast::hash(body) != crc {
+            return Err("checksum mismatch (truncated or corrupted file)".into());
+        }
+        let mut r = Reader { b: body, pos: 8 };
+        let version = r.u32()?;
+        if version != VERSION {
+            return Err(format!("unsupported version {version}"));
+        }
+        let step = r.u64()?;
+        let n = r.u64()?;
+        if n != expect as u64 {
+            return Err(format!(
+                "{n} parameters stored but the mask-learning settings need {expect}"
+            ));
+        }
+        let params = r.f32s(expect)?;
+        let m = r.f32s(expect)?;
+        let v = r.f32s(expect)?;
+        let adam_step = r.u64()?;
+        if r.pos != body.len() {
+            return Err(format!("{} unexpected trailing bytes", body.len() - r.pos));
+        }
+        Ok(AuxCheckpoint {
+            step,
+            params,
+            adam: Adam {
+                m,
+                v,
+                step: adam_step,
+            },
+        })
+    }
+
+    /// Writes atomically.
+    pub fn save(&self, path: &Path) -> Result<(), CheckpointError> {
+        write_atomic(path, &self.to_bytes()).map_err(io(path))
+    }
+
+    pub fn load(path: &Path, expect: usize) -> Result<Self, CheckpointError> {
+        let bytes = std::fs::read(path).map_err(io(path))?;
+        Self::from_bytes(&bytes, expect).map_err(|reason| CheckpointError::Format {
+            path: path.into(),
+            reason,
+        })
+    }
+}
+
 struct Reader<'a> {
     b: &'a [u8],
     pos: usize,
@@ -271,6 +357,32 @@ mod tests {
         let mut e = b.clone();
         e[b.len() / 3] ^= 0x40;
         assert!(Checkpoint::from_bytes(&e).unwrap_err().contains("checksum"));
+    }
+
+    #[test]
+    fn aux_round_trip_and_corruption() {
+        let a = AuxCheckpoint {
+            step: 9,
+            params: vec![1.0, -2.0, 3.5],
+            adam: Adam {
+                m: vec![0.1; 3],
+                v: vec![0.2; 3],
+                step: 9,
+            },
+        };
+        let b = a.to_bytes();
+        assert_eq!(AuxCheckpoint::from_bytes(&b, 3).unwrap(), a);
+        assert!(AuxCheckpoint::from_bytes(&b, 4)
+            .unwrap_err()
+            .contains("need 4"));
+        for cut in [0, 7, 35, b.len() - 1] {
+            assert!(AuxCheckpoint::from_bytes(&b[..cut], 3).is_err());
+        }
+        let mut e = b.clone();
+        e[20] ^= 1;
+        assert!(AuxCheckpoint::from_bytes(&e, 3)
+            .unwrap_err()
+            .contains("checksum"));
     }
 
     #[test]

@@ -21,7 +21,7 @@ use msth_core::uncertainty::{AuxLayout, MaskLearningConfig};
 use msth_core::Camera;
 
 use crate::adam::{Adam, AdamConfig, MaskLossSlice};
-use crate::checkpoint::{Checkpoint, CheckpointError, CheckpointHeader};
+use crate::checkpoint::{AuxCheckpoint, Checkpoint, CheckpointError, CheckpointHeader};
 use crate::dataset::Dataset;
 
 /// Every knob of a training run. Presets fill it; a config file and `--set key=value` override
@@ -576,6 +576,26 @@ pub fn train(
         source,
     })?;
     let ckpt_path = out_dir.join("model.ckpt");
+    // Mask learning's own state lives next to the checkpoint (never in it: the codec reads the
+    // checkpoint's buffer). A resumed run continues it when it belongs to the same step.
+    let aux_path = out_dir.join("model.aux");
+    if let Some(aux) = trainer.aux.as_mut() {
+        if trainer.step > 0 && aux_path.exists() {
+            let a = AuxCheckpoint::load(&aux_path, aux.params.len())?;
+            if a.step != trainer.step as u64 {
+                return Err(CheckpointError::Format {
+                    path: aux_path,
+                    reason: format!(
+                        "it belongs to step {} but the checkpoint is at step {}",
+                        a.step, trainer.step
+                    ),
+                }
+                .into());
+            }
+            aux.params = a.params;
+            aux.adam = a.adam;
+        }
+    }
     let mut last_good = if ckpt_path.exists() {
         ckpt_path.display().to_string()
     } else {
@@ -656,6 +676,14 @@ pub fn train(
                     what: format!("parameter {i}"),
                     last_good,
                 });
+            }
+            if let Some(aux) = &trainer.aux {
+                AuxCheckpoint {
+                    step: trainer.step as u64,
+                    params: aux.params.clone(),
+                    adam: aux.adam.clone(),
+                }
+                .save(&aux_path)?;
             }
             trainer
                 .checkpoint(data, prior_secs + elapsed)
