@@ -1028,6 +1028,35 @@ mod tests {
         }
     }
 
+    /// The whole step with mask learning at its extremes (uncertainty logits at +-60, so `u` at
+    /// its floor or huge; MINE weights scaled up until its statistics saturate; `u_min = 0`):
+    /// finite losses and gradients.
+    #[test]
+    fn mask_learning_step_extremes_stay_finite() {
+        let cfg = tiny_cfg();
+        let layout = ModelLayout::new(&cfg);
+        let p = perturbed_params(&layout);
+        for (logit, mine_scale, u_min) in [
+            (-60.0f32, 1.0f32, 0.0f32),
+            (60.0, 50.0, 0.01),
+            (-60.0, 200.0, 0.0),
+        ] {
+            let (mut mc, mut al, mut ap) = aux_setup(true);
+            mc.uncertainty_min = u_min;
+            al.u_min = u_min;
+            ap[al.grid.1.clone()].fill(logit);
+            for v in &mut ap[al.mine.1.clone()] {
+                *v *= mine_scale;
+            }
+            let (total, g, ag) = aux_chunk(&cfg, &layout, &p, &mc, &al, &ap);
+            assert!(total.is_finite(), "{logit} {mine_scale}: {total}");
+            assert!(
+                g.iter().chain(&ag).all(|v| v.is_finite()),
+                "{logit} {mine_scale}"
+            );
+        }
+    }
+
     /// With the mask-learning settings present but every term off, a chunk is bit-for-bit the
     /// plain [`train_chunk`].
     #[test]
