@@ -14,6 +14,7 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use msth_player::{play, ByteSource, HttpOptions, HttpSource, PlayOptions, PlayReport};
 use msth_server::{BackgroundServer, ServerConfig};
+use msth_trainer::metrics::{mse, psnr, psnr_from_mse};
 
 #[derive(Args)]
 pub struct BenchPlayArgs {
@@ -46,35 +47,21 @@ pub struct BenchPlayArgs {
     pub json: Option<PathBuf>,
 }
 
-fn psnr(a: &[f32], b: &[f32]) -> f64 {
-    let mse = a
-        .iter()
-        .zip(b)
-        .map(|(x, y)| ((x - y) as f64).powi(2))
-        .sum::<f64>()
-        / a.len().max(1) as f64;
-    if mse == 0.0 {
-        f64::INFINITY
-    } else {
-        -10.0 * mse.log10()
-    }
-}
-
 fn run_play(opts: &PlayOptions) -> Result<(PlayReport, Vec<Vec<f32>>)> {
     let mut frames = Vec::new();
     let report = play(opts, &mut |_, f| frames.push(f.rgb.clone()))?;
     Ok((report, frames))
 }
 
-/// Mean PSNR (through the mean squared error) of `frames` against `truth`.
+/// PSNR of the mean squared error of `frames` against `truth`.
 fn mean_psnr(frames: &[Vec<f32>], truth: &[Vec<f32>]) -> f64 {
-    let mse = frames
+    let mean = frames
         .iter()
         .zip(truth)
-        .map(|(a, b)| 10f64.powf(-psnr(a, b) / 10.0))
+        .map(|(a, b)| mse(a, b))
         .sum::<f64>()
         / frames.len().max(1) as f64;
-    -10.0 * mse.log10()
+    psnr_from_mse(mean)
 }
 
 pub fn run(a: BenchPlayArgs) -> Result<()> {

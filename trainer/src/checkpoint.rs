@@ -113,21 +113,7 @@ impl Checkpoint {
     }
 
     pub fn from_bytes(b: &[u8]) -> Result<Self, String> {
-        if b.len() < 28 || &b[..8] != MAGIC {
-            return Err("bad magic number".into());
-        }
-        let (body, crc) = b.split_at(b.len() - 4);
-        let crc = u32::from_le_bytes(crc.try_into().map_err(|_| "short file")?);
-        if crc32fast::hash(body) != crc {
-            return Err("checksum mismatch (truncated or corrupted file)".into());
-        }
-        let mut r = Reader { b: body, pos: 8 };
-        let version = r.u32()?;
-        if version != VERSION {
-            return Err(format!(
-                "unsupported version {version} (this build reads {VERSION})"
-            ));
-        }
+        let mut r = Reader::framed(b, MAGIC, 28)?;
         let flags = r.u32()?;
         if flags & !1 != 0 {
             return Err(format!("reserved flag bits set: {flags:#x}"));
@@ -158,8 +144,8 @@ impl Checkpoint {
         } else {
             None
         };
-        if r.pos != body.len() {
-            return Err(format!("{} unexpected trailing bytes", body.len() - r.pos));
+        if r.pos != r.b.len() {
+            return Err(format!("{} unexpected trailing bytes", r.b.len() - r.pos));
         }
         Ok(Checkpoint {
             header,
@@ -203,19 +189,7 @@ impl AuxCheckpoint {
 
     /// Parses a file that must hold `expect` parameters.
     pub fn from_bytes(b: &[u8], expect: usize) -> Result<Self, String> {
-        if b.len() < 36 || &b[..8] != AUX_MAGIC {
-            return Err("bad magic number".into());
-        }
-        let (body, crc) = b.split_at(b.len() - 4);
-        let crc = u32::from_le_bytes(crc.try_into().map_err(|_| "short file")?);
-        if crc32fast::hash(body) != crc {
-            return Err("checksum mismatch (truncated or corrupted file)".into());
-        }
-        let mut r = Reader { b: body, pos: 8 };
-        let version = r.u32()?;
-        if version != VERSION {
-            return Err(format!("unsupported version {version}"));
-        }
+        let mut r = Reader::framed(b, AUX_MAGIC, 36)?;
         let step = r.u64()?;
         let n = r.u64()?;
         if n != expect as u64 {
@@ -227,8 +201,8 @@ impl AuxCheckpoint {
         let m = r.f32s(expect)?;
         let v = r.f32s(expect)?;
         let adam_step = r.u64()?;
-        if r.pos != body.len() {
-            return Err(format!("{} unexpected trailing bytes", body.len() - r.pos));
+        if r.pos != r.b.len() {
+            return Err(format!("{} unexpected trailing bytes", r.b.len() - r.pos));
         }
         Ok(AuxCheckpoint {
             step,
@@ -261,6 +235,27 @@ struct Reader<'a> {
 }
 
 impl<'a> Reader<'a> {
+    /// Checks a file's frame (`magic`, at least `min_len` bytes, CRC-32 of everything before the
+    /// last 4 bytes, the format version) and returns a reader positioned after the version.
+    fn framed(b: &'a [u8], magic: &[u8], min_len: usize) -> Result<Self, String> {
+        if b.len() < min_len || &b[..8] != magic {
+            return Err("bad magic number".into());
+        }
+        let (body, crc) = b.split_at(b.len() - 4);
+        let crc = u32::from_le_bytes(crc.try_into().map_err(|_| "short file")?);
+        if crc32fast::hash(body) != crc {
+            return Err("checksum mismatch (truncated or corrupted file)".into());
+        }
+        let mut r = Reader { b: body, pos: 8 };
+        let version = r.u32()?;
+        if version != VERSION {
+            return Err(format!(
+                "unsupported version {version} (this build reads {VERSION})"
+            ));
+        }
+        Ok(r)
+    }
+
     fn take(&mut self, n: usize) -> Result<&'a [u8], String> {
         if n > self.b.len() - self.pos {
             return Err(format!(

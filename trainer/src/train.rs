@@ -14,7 +14,7 @@ use serde::{Deserialize, Serialize};
 use msth_core::config::{Background, ModelConfig, Preset};
 use msth_core::field::ModelLayout;
 use msth_core::pipeline::{
-    train_chunk, train_chunk_with, AuxStep, ChunkLosses, StepSettings, TimedRay, Workspace,
+    train_chunk_with, AuxStep, ChunkLosses, StepSettings, TimedRay, Workspace,
 };
 use msth_core::rng::Rng;
 use msth_core::uncertainty::{AuxLayout, MaskLearningConfig};
@@ -387,38 +387,24 @@ impl Trainer {
                 while c < n_chunks {
                     let r = c * chunk..((c + 1) * chunk).min(rays.len());
                     let mut rng = Rng::stream(seed, (step << 20) | c as u64);
-                    acc += match aux {
-                        None => train_chunk(
-                            cfg,
-                            layout,
-                            params,
-                            &mut worker.grad,
-                            &rays[r.clone()],
-                            &targets[r.clone()],
-                            backgrounds.map(|b| &b[r]),
-                            &step_settings,
-                            &mut rng,
-                            &mut worker.ws,
-                        ),
-                        Some(a) => train_chunk_with(
-                            cfg,
-                            layout,
-                            params,
-                            &mut worker.grad,
-                            &rays[r.clone()],
-                            &targets[r.clone()],
-                            backgrounds.map(|b| &b[r]),
-                            &step_settings,
-                            &mut rng,
-                            &mut worker.ws,
-                            Some(AuxStep {
-                                cfg: ml,
-                                layout: &a.layout,
-                                params: &a.params,
-                                grad: &mut worker.aux_grad,
-                            }),
-                        ),
-                    };
+                    acc += train_chunk_with(
+                        cfg,
+                        layout,
+                        params,
+                        &mut worker.grad,
+                        &rays[r.clone()],
+                        &targets[r.clone()],
+                        backgrounds.map(|b| &b[r]),
+                        &step_settings,
+                        &mut rng,
+                        &mut worker.ws,
+                        aux.map(|a| AuxStep {
+                            cfg: ml,
+                            layout: &a.layout,
+                            params: &a.params,
+                            grad: &mut worker.aux_grad,
+                        }),
+                    );
                     c += n_workers;
                 }
                 acc
