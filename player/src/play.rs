@@ -112,6 +112,26 @@ impl PlayReport {
     pub fn incremental_fps(&self) -> Option<f64> {
         Self::fps_of(self.frames.iter().filter(|f| !f.stats.full))
     }
+    /// Rendering rate of the incremental frames once the static cache exists: the one-off cost
+    /// of building it ([`FrameStats::cache_seconds`], paid by the first frame after the camera
+    /// stops) left out.
+    pub fn steady_incremental_fps(&self) -> Option<f64> {
+        let (n, s) =
+            self.frames
+                .iter()
+                .filter(|f| !f.stats.full)
+                .fold((0usize, 0f64), |(n, s), f| {
+                    (
+                        n + 1,
+                        s + (f.stats.seconds - f.stats.cache_seconds).max(0.0),
+                    )
+                });
+        (n > 0 && s > 0.0).then(|| n as f64 / s)
+    }
+    /// Seconds spent building static caches (classification and probe renders).
+    pub fn cache_seconds(&self) -> f64 {
+        self.frames.iter().map(|f| f.stats.cache_seconds).sum()
+    }
     /// Rendering rate over all frames.
     pub fn fps(&self) -> Option<f64> {
         Self::fps_of(self.frames.iter())
