@@ -10,7 +10,8 @@ use indicatif::{ProgressBar, ProgressStyle};
 use msth_core::config::Preset;
 use msth_core::field::ModelLayout;
 use msth_core::{Camera, SceneBounds};
-use msth_trainer::checkpoint::Checkpoint;
+use msth_trainer::autosize::{autosize, setting_paths};
+use msth_trainer::checkpoint::{write_atomic, Checkpoint};
 use msth_trainer::dataset::{dnerf, Dataset, Image8};
 use msth_trainer::eval::{evaluate, render_image, Metrics};
 use msth_trainer::imageio::{colormap, save_png_atomic};
@@ -157,9 +158,24 @@ pub fn train(a: TrainArgs) -> Result<Option<Metrics>> {
         sets.push(format!("time_limit_secs={v}"));
     }
     let file = a.config.as_deref().map(read_config_file).transpose()?;
+    let mut user_keys: Vec<String> = file.as_ref().map(setting_paths).unwrap_or_default();
+    user_keys.extend(
+        sets.iter()
+            .map(|s| s.split('=').next().unwrap_or("").to_string()),
+    );
     settings
         .apply_overrides(file, &sets)
         .map_err(anyhow::Error::msg)?;
+    // Size the model from the data on top of the preset and the user's settings (which win).
+    let sizing = if a.no_autosize || a.resume {
+        None
+    } else {
+        let r = autosize(&data, &mut settings.model, &user_keys);
+        settings.validate().map_err(|e| {
+            anyhow::anyhow!("the sized model is invalid ({e}); --no-autosize trains the preset")
+        })?;
+        Some(r)
+    };
     if a.print_settings {
         println!("{}", serde_json::to_string_pretty(&settings)?);
         return Ok(None);
@@ -171,6 +187,20 @@ pub fn train(a: TrainArgs) -> Result<Option<Metrics>> {
         None
     };
     let layout = ModelLayout::new(&settings.model);
+    match &sizing {
+        Some(r) => {
+            for l in r.lines() {
+                println!("{l}");
+            }
+            std::fs::create_dir_all(&a.out)
+                .with_context(|| format!("creating {}", a.out.display()))?;
+            let path = a.out.join("sizing.json");
+            write_atomic(&path, &serde_json::to_vec_pretty(r)?)
+                .with_context(|| format!("writing {}", path.display()))?;
+        }
+        None if a.resume => println!("autosize: off (resumed: the checkpoint's model is used)"),
+        None => println!("autosize: off (--no-autosize): the preset's model as set"),
+    }
     println!(
         "dataset {}: {} training views, {} test views, {} frames, loaded in {load_secs:.1} s",
         data.name,
