@@ -216,7 +216,8 @@ fn measure(
     stride: usize,
     base: &EncodeOptions,
 ) -> Result<()> {
-    let data = data::load(data_arg, &data::DataArgs::with_downscale(1), ckpt_dir)?;
+    let mut data = data::load(data_arg, &data::DataArgs::with_downscale(1), ckpt_dir)?;
+    data.rescale(ckpt.header.scene_scale());
     let model = &ckpt.header.model;
     let layout = ModelLayout::new(model);
     let reference = held_out_psnr(&data, ckpt, &layout, stride, &|_| ckpt.params.clone());

@@ -34,11 +34,20 @@ use msth_core::config::{BlendMode, EncodingConfig, ModelConfig};
 use msth_core::SceneBounds;
 
 use crate::dataset::{Dataset, View};
+use crate::train::TrainSettings;
 
 /// A pixel is dynamic when the standard deviation of its colour over time (the largest over the
 /// three channels, values in `[0, 1]`) exceeds this: about 5/255, above video noise, far below
 /// what a moving object or shadow does.
 pub const DYNAMIC_PIXEL_STD: f32 = 0.02;
+/// The grid extent the sizing scales a scene to: a box's longest side of 3 units (the D-NeRF
+/// cube), a contraction radius of 1 (the grids then span 4 units).
+pub const CANONICAL_BOX: f32 = 3.0;
+pub const CANONICAL_RADIUS: f32 = 1.0;
+/// Scenes within this factor of the canonical size keep their units (an order of magnitude:
+/// measured scenes at 1/1000 stall, see docs/stability.md, while every shipped dataset lies
+/// within it and keeps its units).
+pub const SCALE_TOLERANCE: f32 = 10.0;
 /// A video whose dynamic fraction is below this (0.2% of the pixels) counts as static.
 pub const STATIC_FRACTION: f64 = 0.002;
 /// Cameras, frames per camera and pixels per frame sampled to measure motion.
@@ -251,6 +260,15 @@ pub fn measure_motion(data: &Dataset) -> Motion {
     }
 }
 
+/// The world extent the grids span along their longest axis (a contracted scene's grids span
+/// 4 radii).
+pub fn grid_extent(bounds: &SceneBounds) -> f32 {
+    match *bounds {
+        SceneBounds::Box { min, max } => (max - min).max_element(),
+        SceneBounds::Contracted { radius, .. } => 4.0 * radius,
+    }
+}
+
 /// Everything [`plan`] needs from the dataset.
 pub fn measure(data: &Dataset) -> Measurements {
     let mut times: Vec<f32> = data.train.iter().map(|v| v.time).collect();
@@ -258,10 +276,7 @@ pub fn measure(data: &Dataset) -> Measurements {
     times.dedup();
     let (lo, hi) = data.bounds.extent();
     let centre = 0.5 * (lo + hi);
-    let grid_extent = match data.bounds {
-        SceneBounds::Box { min, max } => (max - min).max_element(),
-        SceneBounds::Contracted { radius, .. } => 4.0 * radius,
-    };
+    let grid_extent = grid_extent(&data.bounds);
     let mut distinct: Vec<&View> = Vec::new();
     for v in &data.train {
         if !distinct.iter().any(|d| same_camera(d, v)) {
@@ -312,7 +327,7 @@ fn log2_ceil(x: f64) -> u32 {
 /// A planned choice: the report entry and what it does to the model.
 struct Planned {
     choice: Choice,
-    apply: Box<dyn Fn(&mut ModelConfig)>,
+    apply: Box<dyn Fn(&mut TrainSettings)>,
 }
 
 fn planned(
@@ -323,6 +338,20 @@ fn planned(
     statistic: String,
     reason: &str,
     apply: impl Fn(&mut ModelConfig) + 'static,
+) -> Planned {
+    planned_settings(name, keys, preset, chosen, statistic, reason, move |s| {
+        apply(&mut s.model)
+    })
+}
+
+fn planned_settings(
+    name: &str,
+    keys: &[&str],
+    preset: String,
+    chosen: String,
+    statistic: String,
+    reason: &str,
+    apply: impl Fn(&mut TrainSettings) + 'static,
 ) -> Planned {
     Planned {
         choice: Choice {
@@ -342,10 +371,37 @@ const F_GRID3: &str = "model.field.encoding.grid3";
 const F_GRID4: &str = "model.field.encoding.grid4";
 const P_GRID4: &str = "model.proposal.encoding.grid4";
 
-fn plan(preset: &ModelConfig, m: &Measurements) -> Vec<Planned> {
+fn plan(settings: &TrainSettings, m: &Measurements) -> Vec<Planned> {
     let mut out = Vec::new();
+    let preset = &settings.model;
     let f = &preset.field.encoding;
     let frames = m.num_frames;
+
+    // 0. Scene scale: densities are per world unit, so a scene far from unit size trains slowly
+    //    (docs/stability.md); bring it to the canonical size.
+    let (canonical, what) = match preset.bounds {
+        SceneBounds::Box { .. } => (CANONICAL_BOX, "the box's longest side"),
+        SceneBounds::Contracted { .. } => (4.0 * CANONICAL_RADIUS, "4 contraction radii"),
+    };
+    let needed = canonical / m.grid_extent;
+    let scale = if needed.is_finite()
+        && needed > 0.0
+        && !(1.0 / SCALE_TOLERANCE..=SCALE_TOLERANCE).contains(&needed)
+    {
+        needed
+    } else {
+        1.0
+    };
+    let before = settings.scene_scale;
+    out.push(planned_settings(
+        "scene scale",
+        &["scene_scale"],
+        format!("{before}"),
+        format!("{}", before * scale),
+        format!("grid extent {} world units ({what})", m.grid_extent),
+        "densities and sample steps are per world unit: a scene far from unit size starts almost transparent (or opaque) and learns slowly; scenes within 10x of the canonical size (a 3-unit box, a contraction radius of 1) keep their units",
+        move |s| s.scene_scale = before * scale,
+    ));
 
     // 1. Time resolution.
     out.push(planned(
@@ -553,31 +609,41 @@ pub fn setting_paths(v: &serde_json::Value) -> Vec<String> {
 
 /// Measures `data`, applies to `model` every choice none of whose keys the user set
 /// (`user_keys`: dotted paths as `--set` takes them), and reports.
-pub fn autosize(data: &Dataset, model: &mut ModelConfig, user_keys: &[String]) -> SizingReport {
-    let m = measure(data);
-    autosize_with(m, model, user_keys)
+pub fn autosize(
+    data: &Dataset,
+    settings: &mut TrainSettings,
+    user_keys: &[String],
+) -> SizingReport {
+    let mut m = measure(data);
+    // The bounds the model will use (the loader's, or the user's).
+    m.grid_extent = grid_extent(&settings.model.bounds);
+    autosize_with(m, settings, user_keys)
 }
 
 /// [`autosize`] from given measurements.
 pub fn autosize_with(
     m: Measurements,
-    model: &mut ModelConfig,
+    settings: &mut TrainSettings,
     user_keys: &[String],
 ) -> SizingReport {
-    let preset_parameters = msth_core::field::ModelLayout::new(model).params.total;
+    let preset_parameters = msth_core::field::ModelLayout::new(&settings.model)
+        .params
+        .total;
     let mut choices = Vec::new();
-    for p in plan(model, &m) {
+    for p in plan(settings, &m) {
         let mut c = p.choice;
         c.applied = !c
             .keys
             .iter()
             .any(|k| user_keys.iter().any(|u| overlaps(u, k)));
         if c.applied {
-            (p.apply)(model);
+            (p.apply)(settings);
         }
         choices.push(c);
     }
-    let sized_parameters = msth_core::field::ModelLayout::new(model).params.total;
+    let sized_parameters = msth_core::field::ModelLayout::new(&settings.model)
+        .params
+        .total;
     SizingReport {
         measurements: m,
         choices,
@@ -649,20 +715,22 @@ mod tests {
         }
     }
 
-    fn paper(frames: usize) -> ModelConfig {
-        ModelConfig::preset(
+    fn paper(frames: usize) -> TrainSettings {
+        let m = ModelConfig::preset(
             Preset::Paper,
             SceneBounds::dnerf_default(),
             Background::Color { rgb: [1.0; 3] },
             frames,
-        )
+        );
+        TrainSettings::for_model(Preset::Paper, m)
     }
 
     #[test]
     fn static_video_gets_no_4d_table() {
         let d = video(10, 0, true);
-        let mut m = paper(10);
-        let r = autosize(&d, &mut m, &[]);
+        let mut st = paper(10);
+        let r = autosize(&d, &mut st, &[]);
+        let m = &st.model;
         match r.measurements.motion {
             Motion::MultiView {
                 dynamic_fraction, ..
@@ -685,10 +753,11 @@ mod tests {
     fn small_dynamic_region_shrinks_the_4d_table() {
         // 4 of 64 columns move: 6.25% -> 2f = 0.125 -> 2^-3.
         let d = video(10, 4, true);
-        let mut m = paper(10);
+        let mut st = paper(10);
         // Keep the 3D table at the preset's 2^19 (as a user setting) to see the shift whole.
         let keep = ["model.field.encoding.grid3.log2_table_size".to_string()];
-        let r = autosize(&d, &mut m, &keep);
+        let r = autosize(&d, &mut st, &keep);
+        let m = &st.model;
         let Motion::MultiView {
             dynamic_fraction, ..
         } = r.measurements.motion
@@ -706,8 +775,9 @@ mod tests {
         assert_eq!(m.proposal.encoding.grid4.log2_table_size, 15);
         m.validate().unwrap();
         // With the sized 3D table (2^16) the 4D table stops at the 2^14 floor.
-        let mut m = paper(10);
-        autosize(&d, &mut m, &[]);
+        let mut st = paper(10);
+        autosize(&d, &mut st, &[]);
+        let m = &st.model;
         assert_eq!(m.field.encoding.grid3.log2_table_size, 16);
         assert_eq!(m.field.encoding.grid4.log2_table_size, 14);
     }
@@ -715,8 +785,9 @@ mod tests {
     #[test]
     fn fully_dynamic_video_keeps_the_4d_table() {
         let d = video(10, 64, false);
-        let mut m = paper(10);
-        autosize(&d, &mut m, &[]);
+        let mut st = paper(10);
+        autosize(&d, &mut st, &[]);
+        let m = &st.model;
         let e = &m.field.encoding;
         assert_eq!(e.blend, BlendMode::Mt);
         assert_eq!(e.grid4.log2_table_size, e.grid3.log2_table_size);
@@ -728,32 +799,37 @@ mod tests {
         // 64x48 images, 3 cameras: 4 * 3072 * 3 = 36864 cells -> 2^16 rows; footprint about
         // 4.1 / 55 -> 2 * 3 / 0.075 = 80 -> 128.
         let d = video(4, 0, false);
-        let mut m = paper(4);
-        let r = autosize(&d, &mut m, &[]);
+        let mut st = paper(4);
+        let r = autosize(&d, &mut st, &[]);
+        let m = &st.model;
         let e = &m.field.encoding;
         assert_eq!(e.grid3.log2_table_size, 16, "{:#?}", r);
         assert_eq!(e.grid3.finest_resolution, vec![128.0; 3]);
         assert_eq!(&e.grid4.finest_resolution[..3], &[128.0; 3]);
         // Never above the preset: a fast preset keeps its smaller table.
-        let mut fast = ModelConfig::preset(
+        let mut fast = TrainSettings::for_model(
             Preset::Fast,
-            SceneBounds::dnerf_default(),
-            Background::Color { rgb: [1.0; 3] },
-            4,
+            ModelConfig::preset(
+                Preset::Fast,
+                SceneBounds::dnerf_default(),
+                Background::Color { rgb: [1.0; 3] },
+                4,
+            ),
         );
         autosize(&d, &mut fast, &[]);
-        assert_eq!(fast.field.encoding.grid3.log2_table_size, 15);
+        assert_eq!(fast.model.field.encoding.grid3.log2_table_size, 15);
     }
 
     #[test]
     fn user_settings_win() {
         let d = video(10, 0, false);
-        let mut m = paper(10);
+        let mut st = paper(10);
         let keys = vec![
             "model.field.encoding.blend".to_string(),
             "model.field.encoding.grid3".to_string(),
         ];
-        let r = autosize(&d, &mut m, &keys);
+        let r = autosize(&d, &mut st, &keys);
+        let m = &st.model;
         assert_eq!(m.field.encoding.blend, BlendMode::Mt);
         assert_eq!(m.field.encoding.grid3.log2_table_size, 19);
         let applied: Vec<(&str, bool)> = r
@@ -764,6 +840,7 @@ mod tests {
         assert_eq!(
             applied,
             [
+                ("scene scale", true),
                 ("finest time resolution", true),
                 ("finest spatial resolution", false),
                 ("3D table rows", false),
@@ -779,6 +856,41 @@ mod tests {
     }
 
     #[test]
+    fn scene_scale_brings_far_off_scenes_to_unit_size() {
+        // The same video 1000 times smaller: scaled back by 1000; the other choices are the
+        // same as at unit size (they depend on ratios only).
+        let unit = video(10, 4, true);
+        let mut st = paper(10);
+        autosize(&unit, &mut st, &[]);
+        assert_eq!(st.scene_scale, 1.0);
+        let mut tiny = unit.clone();
+        tiny.rescale(1e-3);
+        let mut small = paper(10);
+        small.model.bounds = tiny.bounds;
+        let r = autosize(&tiny, &mut small, &[]);
+        assert!((small.scene_scale - 1e3).abs() < 1e-1, "{r:#?}");
+        assert_eq!(small.model.field, st.model.field);
+        // Applying it gives back the unit scene's world (up to rounding).
+        let mut data = tiny.clone();
+        assert_eq!(small.scale_world(&mut data), small.scene_scale);
+        assert!(small
+            .model
+            .bounds
+            .extent()
+            .1
+            .abs_diff_eq(st.model.bounds.extent().1, 1e-4));
+        let (a, b) = (data.train[5].camera.center(), unit.train[5].camera.center());
+        assert!(a.abs_diff_eq(b, 1e-4), "{a} vs {b}");
+        // A 3x smaller scene is within tolerance: kept as it is.
+        let mut third = unit.clone();
+        third.rescale(1.0 / 3.0);
+        let mut s3 = paper(10);
+        s3.model.bounds = third.bounds;
+        autosize(&third, &mut s3, &[]);
+        assert_eq!(s3.scene_scale, 1.0);
+    }
+
+    #[test]
     fn monocular_and_single_frame() {
         let mut d = video(6, 64, false);
         // Every view its own camera: move each one a little.
@@ -786,13 +898,15 @@ mod tests {
             v.camera_id = None;
             v.camera.world_from_camera.w_axis.x += 0.01 * i as f32;
         }
-        let mut m = paper(6);
-        let r = autosize(&d, &mut m, &[]);
+        let mut st = paper(6);
+        let r = autosize(&d, &mut st, &[]);
+        let m = &st.model;
         assert_eq!(r.measurements.motion, Motion::Monocular);
         assert_eq!(m.field.encoding.blend, BlendMode::Mt);
         let one = video(1, 64, false);
-        let mut m = paper(1);
-        let r = autosize(&one, &mut m, &[]);
+        let mut st = paper(1);
+        let r = autosize(&one, &mut st, &[]);
+        let m = &st.model;
         assert_eq!(r.measurements.motion, Motion::SingleFrame);
         assert_eq!(m.field.encoding.blend, BlendMode::Static);
         m.validate().unwrap();
