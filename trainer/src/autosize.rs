@@ -419,7 +419,7 @@ fn plan(settings: &TrainSettings, m: &Measurements) -> Vec<Planned> {
         format!(
             "{} (proposal {})",
             (frames as f32).max(2.0),
-            (frames as f32).max(2.0).min(150.0)
+            (frames as f32).clamp(2.0, 150.0)
         ),
         format!("{frames} distinct frame times in the training views"),
         "one time cell per frame: a finer grid has cells no frame constrains, a coarser one blurs motion between frames",
@@ -740,7 +740,7 @@ mod tests {
         assert_eq!(m.field.encoding.blend, BlendMode::Static);
         assert_eq!(m.proposal.encoding.blend, BlendMode::Static);
         m.validate().unwrap();
-        let layout = msth_core::field::ModelLayout::new(&m);
+        let layout = msth_core::field::ModelLayout::new(m);
         assert!(layout
             .params
             .entries
