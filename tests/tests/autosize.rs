@@ -193,3 +193,94 @@ fn user_settings_and_no_autosize_win() {
     assert_eq!(ckpt.header.model, preset);
     assert!(!out.join("sizing.json").exists());
 }
+
+/// Multiplies the camera positions and the scene box of a D-NeRF folder's JSON files by `s`.
+fn shrink_json(dir: &Path, s: f64) {
+    for split in ["train", "test", "val"] {
+        let p = dir.join(format!("transforms_{split}.json"));
+        let Ok(text) = std::fs::read_to_string(&p) else {
+            continue;
+        };
+        let mut v: serde_json::Value = serde_json::from_str(&text).unwrap();
+        if let Some(b) = v.get_mut("scene_box") {
+            for k in ["min", "max"] {
+                for x in b[k].as_array_mut().unwrap() {
+                    *x = (x.as_f64().unwrap() * s).into();
+                }
+            }
+        }
+        for f in v["frames"].as_array_mut().unwrap() {
+            for r in 0..3 {
+                let x = &mut f["transform_matrix"][r][3];
+                *x = (x.as_f64().unwrap() * s).into();
+            }
+        }
+        std::fs::write(&p, serde_json::to_vec(&v).unwrap()).unwrap();
+    }
+}
+
+/// A scene 1000 times smaller is trained in a rescaled world; the checkpoint records the scale
+/// and `msth eval` applies it to the dataset it loads, scoring exactly what training scored.
+#[test]
+fn scene_scale_is_recorded_and_applied_by_eval() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("tiny");
+    synth(&data, false);
+    shrink_json(&data, 1e-3);
+    let out = dir.path().join("out");
+    let mut args = vec![
+        "train",
+        data.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--preset",
+        "fast",
+        "--iters",
+        "12",
+        "--batch-rays",
+        "256",
+        "--set",
+        "model.sampler.num_proposal_samples=16",
+        "--set",
+        "model.sampler.num_samples=8",
+    ];
+    msth(&args).unwrap();
+    let s = sizing(&out);
+    let c = s.choices.iter().find(|c| c.name == "scene scale").unwrap();
+    assert!(c.applied && c.chosen != "1", "{c:?}");
+    let ckpt = Checkpoint::load(&out.join("model.ckpt")).unwrap();
+    let scale = ckpt.header.scene_scale();
+    assert!((scale - 1000.0).abs() < 1.0, "{scale}");
+    // The model lives in the scaled world: a box of about 3 units.
+    let (lo, hi) = ckpt.header.model.bounds.extent();
+    assert!(((hi - lo).max_element() - 3.0).abs() < 1e-2);
+    let psnr = |p: &Path| -> f64 {
+        let m: serde_json::Value = serde_json::from_slice(&std::fs::read(p).unwrap()).unwrap();
+        m["psnr"].as_f64().unwrap()
+    };
+    let trained = psnr(&out.join("metrics.json"));
+    let again = dir.path().join("eval");
+    msth(&[
+        "eval",
+        out.join("model.ckpt").to_str().unwrap(),
+        "--data",
+        data.to_str().unwrap(),
+        "--out",
+        again.to_str().unwrap(),
+    ])
+    .unwrap();
+    let evaluated = psnr(&again.join("metrics.json"));
+    assert!(
+        (trained - evaluated).abs() < 1e-6,
+        "{trained} vs {evaluated}"
+    );
+    // `--set scene_scale=1` keeps the dataset's units (the user's value wins).
+    let out1 = dir.path().join("unscaled");
+    args[3] = out1.to_str().unwrap();
+    args.extend_from_slice(&["--set", "scene_scale=1", "--no-eval"]);
+    msth(&args).unwrap();
+    let ckpt = Checkpoint::load(&out1.join("model.ckpt")).unwrap();
+    assert_eq!(ckpt.header.scene_scale(), 1.0);
+    let (lo, hi) = ckpt.header.model.bounds.extent();
+    assert!(((hi - lo).max_element() - 3e-3).abs() < 1e-5);
+}
