@@ -10,8 +10,9 @@ use indicatif::{ProgressBar, ProgressStyle};
 use msth_core::config::Preset;
 use msth_core::field::ModelLayout;
 use msth_core::{Camera, SceneBounds};
-use msth_trainer::checkpoint::Checkpoint;
-use msth_trainer::dataset::{dnerf, Dataset, Image8};
+use msth_trainer::autosize::{autosize, setting_paths};
+use msth_trainer::checkpoint::{write_atomic, Checkpoint};
+use msth_trainer::dataset::{dnerf, scale_camera, Dataset, Image8};
 use msth_trainer::eval::{evaluate, render_image, Metrics};
 use msth_trainer::imageio::{colormap, save_png_atomic};
 use msth_trainer::synth::{generate, SynthConfig};
@@ -140,9 +141,19 @@ fn progress_bar(iters: usize) -> ProgressBar {
 pub fn train(a: TrainArgs) -> Result<Option<Metrics>> {
     let preset: Preset = a.preset.parse().map_err(anyhow::Error::msg)?;
     let t_load = Instant::now();
-    let data = data::load(&a.data, &a.dataset, &a.out)?;
+    let mut data = data::load(&a.data, &a.dataset, &a.out)?;
     let load_secs = t_load.elapsed().as_secs_f64();
     let mut settings = TrainSettings::for_preset(preset, &data);
+    let resume = if a.resume {
+        let p = a.out.join("model.ckpt");
+        let c =
+            Checkpoint::load(&p).with_context(|| format!("--resume: reading {}", p.display()))?;
+        // A resumed run continues in the world scale the checkpoint was trained at.
+        settings.scene_scale = c.header.scene_scale();
+        Some(c)
+    } else {
+        None
+    };
     let mut sets = a.sets.clone();
     if let Some(v) = a.iters {
         sets.push(format!("iters={v}"));
@@ -157,20 +168,44 @@ pub fn train(a: TrainArgs) -> Result<Option<Metrics>> {
         sets.push(format!("time_limit_secs={v}"));
     }
     let file = a.config.as_deref().map(read_config_file).transpose()?;
+    let mut user_keys: Vec<String> = file.as_ref().map(setting_paths).unwrap_or_default();
+    user_keys.extend(
+        sets.iter()
+            .map(|s| s.split('=').next().unwrap_or("").to_string()),
+    );
     settings
         .apply_overrides(file, &sets)
         .map_err(anyhow::Error::msg)?;
+    // Size the model from the data on top of the preset and the user's settings (which win).
+    let sizing = if a.no_autosize || a.resume {
+        None
+    } else {
+        let r = autosize(&data, &mut settings, &user_keys);
+        settings.validate().map_err(|e| {
+            anyhow::anyhow!("the sized model is invalid ({e}); --no-autosize trains the preset")
+        })?;
+        Some(r)
+    };
     if a.print_settings {
         println!("{}", serde_json::to_string_pretty(&settings)?);
         return Ok(None);
     }
-    let resume = if a.resume {
-        let p = a.out.join("model.ckpt");
-        Some(Checkpoint::load(&p).with_context(|| format!("--resume: reading {}", p.display()))?)
-    } else {
-        None
-    };
+    settings.scale_world(&mut data);
     let layout = ModelLayout::new(&settings.model);
+    match &sizing {
+        Some(r) => {
+            for l in r.lines() {
+                println!("{l}");
+            }
+            std::fs::create_dir_all(&a.out)
+                .with_context(|| format!("creating {}", a.out.display()))?;
+            let path = a.out.join("sizing.json");
+            write_atomic(&path, &serde_json::to_vec_pretty(r)?)
+                .with_context(|| format!("writing {}", path.display()))?;
+        }
+        None if a.resume => println!("autosize: off (resumed: the checkpoint's model is used)"),
+        None => println!("autosize: off (--no-autosize): the preset's model as set"),
+    }
     println!(
         "dataset {}: {} training views, {} test views, {} frames, loaded in {load_secs:.1} s",
         data.name,
@@ -276,7 +311,8 @@ pub fn eval(a: EvalArgs) -> Result<()> {
             .map(Path::to_path_buf)
             .unwrap_or_else(|| PathBuf::from("."))
     });
-    let data = data::load(&a.data, &a.dataset, &out)?;
+    let mut data = data::load(&a.data, &a.dataset, &out)?;
+    data.rescale(ckpt.header.scene_scale());
     let layout = ModelLayout::new(&ckpt.header.model);
     let outcome = TrainOutcome {
         checkpoint: a.checkpoint.clone(),
@@ -328,7 +364,8 @@ fn parse_camera(spec: &str, ckpt: &Checkpoint) -> Result<Camera> {
             SceneBounds::Contracted { center, .. } => center,
         };
         let (az, el) = (v[0].to_radians(), v[1].to_radians());
-        let eye = centre + v[2] * Vec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin());
+        let dist = v[2] * ckpt.header.scene_scale();
+        let eye = centre + dist * Vec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin());
         let fov = 2.0 * (0.5 * template.width as f32 / template.fx).atan();
         return Ok(Camera::look_at(
             template.width,
@@ -384,7 +421,8 @@ fn parse_camera(spec: &str, ckpt: &Checkpoint) -> Result<Camera> {
         bail!("{spec}: needs `fl_x` or `camera_angle_x`");
     };
     cam.validate().map_err(|e| anyhow::anyhow!("{spec}: {e}"))?;
-    Ok(cam)
+    // The file is in the dataset's world; the model may live in a scaled one.
+    Ok(scale_camera(cam, ckpt.header.scene_scale()))
 }
 
 pub fn render(a: RenderArgs) -> Result<()> {

@@ -1,5 +1,6 @@
 //! `msth export`: a checkpoint -> a `.msth` file (through `msth-codec`), with a summary of what
-//! went where; `--measure DATA` instead measures every quantisation mode and dynamic threshold
+//! went where (hash-table values no training ray reached are set to 0 first, see
+//! [`msth_trainer::unreached`]); `--measure DATA` instead measures every quantisation mode and dynamic threshold
 //! (size, PSNR drop on the held-out views, speed) and prints markdown tables.
 
 use std::path::PathBuf;
@@ -14,6 +15,7 @@ use msth_trainer::checkpoint::{write_atomic, Checkpoint};
 use msth_trainer::dataset::Dataset;
 use msth_trainer::eval::render_image;
 use msth_trainer::metrics::psnr;
+use msth_trainer::unreached::zero_unreached;
 
 use crate::data;
 
@@ -45,10 +47,14 @@ pub struct ExportArgs {
     /// Evaluate every N-th held-out view when measuring.
     #[arg(long, default_value_t = 3)]
     pub stride: usize,
+    /// Keep hash-table values no training ray reached (by default they are set to 0, which the
+    /// codec stores almost for free; found from the checkpoint's optimiser state).
+    #[arg(long)]
+    pub keep_unreached: bool,
 }
 
 pub fn export(a: ExportArgs) -> Result<()> {
-    let ckpt = Checkpoint::load(&a.checkpoint)?;
+    let mut ckpt = Checkpoint::load(&a.checkpoint)?;
     let quant: QuantMode = a.quant.parse().map_err(anyhow::Error::msg)?;
     let opts = EncodeOptions {
         quant,
@@ -64,6 +70,7 @@ pub fn export(a: ExportArgs) -> Result<()> {
     let Some(out) = &a.output else {
         bail!("-o OUTPUT is required (or --measure DATA)");
     };
+    drop_unreached(&mut ckpt, a.keep_unreached, &a.checkpoint)?;
     let (bytes, report) = encode(
         &ckpt.header.model,
         &ckpt.params,
@@ -73,6 +80,37 @@ pub fn export(a: ExportArgs) -> Result<()> {
     .with_context(|| format!("encoding {}", a.checkpoint.display()))?;
     write_atomic(out, &bytes).with_context(|| format!("writing {}", out.display()))?;
     print_summary(&report, out);
+    Ok(())
+}
+
+/// Zeroes the hash-table values no training ray reached (unless `keep`) and says how many.
+fn drop_unreached(ckpt: &mut Checkpoint, keep: bool, path: &std::path::Path) -> Result<()> {
+    if keep {
+        return Ok(());
+    }
+    let Some(adam) = &ckpt.adam else {
+        println!("unreached table values: kept (the checkpoint has no optimiser state)");
+        return Ok(());
+    };
+    let layout = ModelLayout::new(&ckpt.header.model);
+    let report = zero_unreached(&layout, &mut ckpt.params, adam)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+    let parts: Vec<String> = report
+        .iter()
+        .map(|t| {
+            format!(
+                "{} {} of {} ({:.1}%)",
+                t.name,
+                t.unreached,
+                t.values,
+                100.0 * t.unreached as f64 / t.values.max(1) as f64
+            )
+        })
+        .collect();
+    println!(
+        "unreached table values set to 0 (no training ray read them): {}",
+        parts.join(", ")
+    );
     Ok(())
 }
 
@@ -178,7 +216,8 @@ fn measure(
     stride: usize,
     base: &EncodeOptions,
 ) -> Result<()> {
-    let data = data::load(data_arg, &data::DataArgs::with_downscale(1), ckpt_dir)?;
+    let mut data = data::load(data_arg, &data::DataArgs::with_downscale(1), ckpt_dir)?;
+    data.rescale(ckpt.header.scene_scale());
     let model = &ckpt.header.model;
     let layout = ModelLayout::new(model);
     let reference = held_out_psnr(&data, ckpt, &layout, stride, &|_| ckpt.params.clone());

@@ -139,6 +139,11 @@ pub struct TrainArgs {
     /// Print the resolved settings as JSON and exit.
     #[arg(long)]
     pub print_settings: bool,
+    /// Train the preset's model as set, without sizing it from the data (time resolution,
+    /// spatial resolution, table sizes, 4D table; see docs/sizing.md). Single choices are
+    /// overridden by setting their keys with --set or --config instead.
+    #[arg(long)]
+    pub no_autosize: bool,
 }
 
 #[derive(Args)]

@@ -58,6 +58,20 @@ impl SceneBounds {
         Ok(())
     }
 
+    /// The same bounds in a world scaled by `s` about the origin.
+    pub fn scaled(&self, s: f32) -> Self {
+        match *self {
+            SceneBounds::Box { min, max } => SceneBounds::Box {
+                min: min * s,
+                max: max * s,
+            },
+            SceneBounds::Contracted { center, radius } => SceneBounds::Contracted {
+                center: center * s,
+                radius: radius * s,
+            },
+        }
+    }
+
     /// Maps a world point to the grids' unit cube (clamped to `[0, 1]^3`).
     #[inline]
     pub fn to_unit(&self, p: Vec3) -> Vec3 {

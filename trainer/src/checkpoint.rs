@@ -36,6 +36,19 @@ pub struct CheckpointHeader {
     pub train_seconds: f64,
 }
 
+impl CheckpointHeader {
+    /// The world scale the model was trained at (`train.scene_scale`, 1 when absent): world
+    /// lengths of the dataset are multiplied by it to match the model.
+    pub fn scene_scale(&self) -> f32 {
+        self.train
+            .get("scene_scale")
+            .and_then(|v| v.as_f64())
+            .map(|v| v as f32)
+            .filter(|v| v.is_finite() && *v > 0.0)
+            .unwrap_or(1.0)
+    }
+}
+
 #[derive(Clone, Debug)]
 pub struct Checkpoint {
     pub header: CheckpointHeader,

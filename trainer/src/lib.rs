@@ -3,10 +3,13 @@
 //! - [`dataset`]: dataset types and loaders (one module per format), with validation;
 //! - [`synth`]: the built-in procedural dynamic scene with analytic ground truth;
 //! - [`metrics`], [`imageio`]: PSNR / SSIM / D-SSIM, PNG output and comparison pictures;
+//! - [`autosize`]: sizing the model from the data (scene, frame count, motion);
 //! - [`adam`], [`train`], [`checkpoint`], [`eval`]: the optimiser, the loop, the checkpoint file
-//!   and held-out evaluation.
+//!   and held-out evaluation;
+//! - [`unreached`]: hash-table values no training ray reached (dropped on export).
 
 pub mod adam;
+pub mod autosize;
 pub mod checkpoint;
 pub mod dataset;
 pub mod eval;
@@ -14,3 +17,4 @@ pub mod imageio;
 pub mod metrics;
 pub mod synth;
 pub mod train;
+pub mod unreached;

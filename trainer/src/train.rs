@@ -57,6 +57,12 @@ pub struct TrainSettings {
     /// Uncertainty-guided mask learning (paper §3.3): every term off by default.
     #[serde(default)]
     pub mask_learning: MaskLearningConfig,
+    /// World lengths are multiplied by this before training ([`TrainSettings::scale_world`]):
+    /// the model, its checkpoint cameras and its exported file live in scaled units. Densities
+    /// are per world unit, so a scene far from unit size trains slowly; the sizing
+    /// ([`crate::autosize`]) picks a scale that brings the scene to about 3 units.
+    #[serde(default = "one")]
+    pub scene_scale: f32,
     pub model: ModelConfig,
 }
 
@@ -94,8 +100,24 @@ impl TrainSettings {
             random_background: true,
             pixel_jitter: false,
             mask_learning: MaskLearningConfig::default(),
+            scene_scale: 1.0,
             model,
         }
+    }
+
+    /// Applies [`TrainSettings::scene_scale`] to the dataset and to the world lengths of the
+    /// model (bounds, near and far, all given in the dataset's units). Call it once, after every
+    /// override; the scale stays recorded (the checkpoint's settings carry it, see
+    /// [`crate::checkpoint::CheckpointHeader::scene_scale`]). Returns the scale applied.
+    pub fn scale_world(&mut self, data: &mut Dataset) -> f32 {
+        let s = self.scene_scale;
+        if s != 1.0 {
+            data.rescale(s);
+            self.model.bounds = self.model.bounds.scaled(s);
+            self.model.sampler.near *= s;
+            self.model.sampler.far *= s;
+        }
+        s
     }
 
     /// Applies a JSON object of overrides (e.g. read from a config file) and `key=value` pairs
@@ -152,6 +174,12 @@ impl TrainSettings {
                 return Err(format!("{n} must be finite and >= 0"));
             }
         }
+        if !(self.scene_scale.is_finite() && self.scene_scale > 0.0) {
+            return Err(format!(
+                "scene_scale must be finite and positive (got {})",
+                self.scene_scale
+            ));
+        }
         if self.eval_stride == 0 {
             return Err("eval_stride must be at least 1".into());
         }
@@ -164,6 +192,10 @@ impl TrainSettings {
         }
         self.model.validate().map_err(|e| format!("model.{e}"))
     }
+}
+
+fn one() -> f32 {
+    1.0
 }
 
 fn merge(dst: &mut serde_json::Value, src: serde_json::Value, path: &str) -> Result<(), String> {

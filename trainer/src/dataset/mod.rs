@@ -241,6 +241,26 @@ pub struct Dataset {
     pub num_frames: usize,
 }
 
+impl Dataset {
+    /// Multiplies every world length by `s` (camera positions, scene bounds): the same images of
+    /// a scene `s` times larger. Camera orientations and intrinsics are unchanged.
+    pub fn rescale(&mut self, s: f32) {
+        for v in self.train.iter_mut().chain(self.test.iter_mut()) {
+            v.camera = scale_camera(v.camera, s);
+        }
+        self.bounds = self.bounds.scaled(s);
+    }
+}
+
+/// `camera` in a world scaled by `s` about the origin.
+pub fn scale_camera(mut camera: Camera, s: f32) -> Camera {
+    let w = &mut camera.world_from_camera.w_axis;
+    w.x *= s;
+    w.y *= s;
+    w.z *= s;
+    camera
+}
+
 /// Everything that can be wrong with a dataset on disk. Each variant names the file at fault.
 #[derive(Debug, thiserror::Error)]
 pub enum DatasetError {
