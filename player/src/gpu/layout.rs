@@ -349,6 +349,50 @@ fn encoding_u(
     })
 }
 
+/// Loop iterations one `render` invocation runs for `cfg` (every loop of `render.wgsl`, counted
+/// generously): Mesa's lavapipe stops all loops of an invocation after
+/// [`LAVAPIPE_LOOP_ITERATIONS`] in total, so larger models render wrongly there.
+pub fn loop_iterations_per_ray(cfg: &ModelConfig) -> u64 {
+    let encode = |e: &msth_core::config::EncodingConfig, hidden: usize| -> u64 {
+        let (use3, use4) = (e.blend.uses_h3(), e.blend.uses_h4());
+        let g = if use3 { &e.grid3 } else { &e.grid4 };
+        let (levels, f, h) = (g.levels as u64, g.features_per_level as u64, hidden as u64);
+        let grid = |dims: u64| dims + 1 + (1u64 << dims) * f + 1 + f + 1;
+        let per_level =
+            9 + if use3 { grid(3) } else { 0 } + if use4 { grid(4) } else { 0 } + f + 1 + f * h + 1;
+        8 + 3 + 2 * (h + 1) + levels * per_level + 1
+    };
+    let s = &cfg.sampler;
+    let (np, nf) = (s.num_proposal_samples as u64, s.num_samples as u64);
+    let proposal =
+        encode(&cfg.proposal.encoding, cfg.proposal.hidden) + cfg.proposal.hidden as u64 + 1;
+    let f = &cfg.field;
+    let (hd, g, hc, layers) = (
+        f.density_hidden as u64,
+        f.geo_features as u64,
+        f.color_hidden as u64,
+        f.color_layers as u64,
+    );
+    let dense = |i: u64, o: u64| 3 * (o + 1) + i * o + 1;
+    let density = encode(&f.encoding, f.density_hidden) + dense(hd, 1 + g) + g + 2;
+    let nin = 16 + g;
+    let color = 16
+        + g
+        + nin
+        + 3
+        + dense(nin, hc)
+        + layers.saturating_sub(1) * (hc + 1 + dense(hc, hc) + 1)
+        + hc
+        + 1
+        + dense(hc, 3);
+    let sampling = 3 + np + 1 + np + 1 + 2 * (nf + 2) + np + nf + 1 + 16;
+    np * proposal + nf * (density + color) + sampling
+}
+
+/// Loop iterations Mesa's lavapipe (llvmpipe's `LP_MAX_TGSI_LOOP_ITERATIONS`) runs per
+/// invocation before it ends every loop.
+pub const LAVAPIPE_LOOP_ITERATIONS: u64 = 65535;
+
 /// Workgroup counts `(x, y)` for `count` invocations: `x` at most `max_per_dim`.
 pub fn dispatch_size(count: u32, max_per_dim: u32) -> Option<(u32, u32)> {
     let groups = count.div_ceil(WORKGROUP).max(1);
@@ -368,6 +412,28 @@ mod tests {
         assert_eq!(std::mem::size_of::<EncodingU>(), 112);
         assert_eq!(std::mem::size_of::<ModelU>(), 352 + 48 * LEVEL_SLOTS);
         assert_eq!(std::mem::size_of::<ViewU>(), 112);
+    }
+
+    #[test]
+    fn small_models_fit_lavapipe_and_presets_do_not() {
+        use msth_core::config::Preset;
+        let preset = ModelConfig::preset(
+            Preset::Fast,
+            SceneBounds::dnerf_default(),
+            Background::Color { rgb: [1.0; 3] },
+            10,
+        );
+        assert!(loop_iterations_per_ray(&preset) > LAVAPIPE_LOOP_ITERATIONS);
+        let mut small = preset.clone();
+        small.field.encoding.resize(3, 10, 64.0, 8);
+        small.proposal.encoding.resize(2, 10, 32.0, 8);
+        small.field.density_hidden = 8;
+        small.field.color_hidden = 8;
+        small.field.geo_features = 3;
+        small.proposal.hidden = 4;
+        small.sampler.num_proposal_samples = 12;
+        small.sampler.num_samples = 6;
+        assert!(loop_iterations_per_ray(&small) < LAVAPIPE_LOOP_ITERATIONS);
     }
 
     #[test]

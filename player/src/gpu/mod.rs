@@ -37,10 +37,11 @@ pub enum GpuError {
     NoAdapter(String),
     #[error("GPU adapter {adapter}: could not open a device: {error}")]
     Device { adapter: String, error: String },
-    #[error("{what} needs {bytes} bytes, more than the adapter's {limit} ({max} bytes); use --cpu or a smaller size")]
+    #[error("{what} needs {amount} {unit}, more than the adapter's {limit} ({max} {unit}); use --cpu or a smaller size")]
     Limit {
         what: String,
-        bytes: u64,
+        amount: u64,
+        unit: &'static str,
         limit: &'static str,
         max: u64,
     },
@@ -274,6 +275,12 @@ impl GpuContext {
         self.info.device_type == wgpu::DeviceType::Cpu
     }
 
+    /// Whether the adapter is Mesa's llvmpipe-based Vulkan driver (lavapipe), which ends every loop
+    /// of an invocation after [`layout::LAVAPIPE_LOOP_ITERATIONS`] iterations in total.
+    pub fn is_lavapipe(&self) -> bool {
+        self.is_software() && self.info.name.contains("llvmpipe")
+    }
+
     /// Checks that a storage buffer of `bytes` fits the device's limits.
     pub fn check_storage(&self, what: &str, bytes: u64) -> Result<(), GpuError> {
         let l = &self.limits;
@@ -288,7 +295,8 @@ impl GpuContext {
             if bytes > max {
                 return Err(GpuError::Limit {
                     what: what.to_string(),
-                    bytes,
+                    amount: bytes,
+                    unit: "bytes",
                     limit,
                     max,
                 });
@@ -367,8 +375,9 @@ impl GpuContext {
         }
         let max = self.limits.max_compute_workgroups_per_dimension;
         let (gx, gy) = layout::dispatch_size(count, max).ok_or_else(|| GpuError::Limit {
-            what: format!("{count} invocations"),
-            bytes: count as u64,
+            what: format!("a dispatch of {count} invocations"),
+            amount: count as u64,
+            unit: "invocations",
             limit: "max_compute_workgroups_per_dimension (squared, times 64)",
             max: max as u64 * max as u64 * layout::WORKGROUP as u64,
         })?;

@@ -57,6 +57,18 @@ impl GpuRenderer {
         settings: RenderSettings,
     ) -> Result<Self, GpuError> {
         let gpu_model = GpuModel::new(cfg).map_err(GpuError::Model)?;
+        if ctx.is_lavapipe() {
+            let n = super::layout::loop_iterations_per_ray(cfg);
+            if n > super::layout::LAVAPIPE_LOOP_ITERATIONS {
+                return Err(GpuError::Limit {
+                    what: "one ray of this model".to_string(),
+                    amount: n,
+                    unit: "loop iterations",
+                    limit: "lavapipe loop iterations per invocation (LP_MAX_TGSI_LOOP_ITERATIONS)",
+                    max: super::layout::LAVAPIPE_LOOP_ITERATIONS,
+                });
+            }
+        }
         for (what, bytes) in gpu_model.buffer_sizes() {
             ctx.check_storage(what, bytes)?;
         }
