@@ -128,6 +128,15 @@ fn gpu_and_cpu_renders_of_a_decoded_model_agree() {
             full_report.full_fps().unwrap_or(0.0),
             inc_report.incremental_fps().unwrap_or(0.0),
         );
+        for f in &inc_report.frames {
+            println!(
+                "{kind} incremental playback frame {}: {} rays rendered, {:.1} ms ({:.1} ms of it classifying)",
+                f.index,
+                f.stats.rays_rendered,
+                1e3 * f.stats.seconds,
+                1e3 * f.stats.cache_seconds
+            );
+        }
         assert!(
             cached > 0 && rendered > 0,
             "{cached} cached, {rendered} rendered"
