@@ -45,7 +45,7 @@ enum BenchKind {
     Play(crate::bench_play::BenchPlayArgs),
     /// The accuracy / cost trade-off: a one-factor-at-a-time sweep around a preset, plus the
     /// presets; tables and plots with the Pareto fronts (see `docs/tradeoff.md`).
-    Tradeoff(crate::bench_tradeoff::TradeoffArgs),
+    Tradeoff(Box<crate::bench_tradeoff::TradeoffArgs>),
 }
 
 pub fn run(a: BenchArgs) -> Result<()> {
@@ -57,7 +57,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
             json,
         } => step(reps, batch_rays, only.as_deref(), json),
         BenchKind::Play(a) => crate::bench_play::run(a),
-        BenchKind::Tradeoff(a) => crate::bench_tradeoff::run(a),
+        BenchKind::Tradeoff(a) => crate::bench_tradeoff::run(*a),
     }
 }
 

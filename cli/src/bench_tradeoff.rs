@@ -49,9 +49,14 @@ pub struct TradeoffArgs {
     #[arg(long)]
     pub iters: Option<usize>,
     /// Factors varied one at a time around the base, comma-separated, from: iters, table,
-    /// levels, finest, samples, scale, mask, proposal, quant (default: all).
+    /// levels, finest, samples, scale, mask, proposal, quant (default: all). A trailing `+`
+    /// or `-` keeps only the costlier or the cheaper value (`table+,levels-`).
     #[arg(long)]
     pub factors: Option<String>,
+    /// Which values of each factor: `down` (cheaper), `up` (costlier) or `both` (default;
+    /// `down` with --quick).
+    #[arg(long)]
+    pub direction: Option<String>,
     /// A CI-sized sweep: 30 steps, presets fast and balanced, one value per factor, small FPS
     /// frames (explicit options still win).
     #[arg(long)]
@@ -65,6 +70,11 @@ pub struct TradeoffArgs {
     /// Frames rendered (in full, from a fixed camera) for the FPS measurement.
     #[arg(long)]
     pub fps_frames: Option<usize>,
+    /// An extra variant of the base preset, `LABEL:KEY=VALUE[;KEY=VALUE...]` (keys as in
+    /// `msth train --set`), e.g. `grids 16x2^17:model.field.encoding.grid3.levels=16;...`;
+    /// repeatable. For changes that go together, which one-factor sweeps cannot show.
+    #[arg(long = "variant", value_name = "LABEL:SETS")]
+    pub variants: Vec<String>,
     /// Quantisation of every variant's file (the `quant` factor varies it on the base model).
     #[arg(long, default_value = "q5")]
     pub quant: String,
@@ -80,6 +90,14 @@ pub struct TradeoffArgs {
 pub const FACTORS: [&str; 9] = [
     "iters", "table", "levels", "finest", "samples", "scale", "mask", "proposal", "quant",
 ];
+
+/// Which side of the base each factor is moved to.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Direction {
+    Down,
+    Up,
+    Both,
+}
 
 /// One trained model of the sweep.
 #[derive(Clone, Debug)]
@@ -164,9 +182,9 @@ pub fn pareto_front(points: &[(f64, f64)]) -> Vec<bool> {
         .iter()
         .map(|p| {
             valid(p)
-                && !points.iter().any(|q| {
-                    valid(q) && q.0 >= p.0 && q.1 >= p.1 && (q.0 > p.0 || q.1 > p.1)
-                })
+                && !points
+                    .iter()
+                    .any(|q| valid(q) && q.0 >= p.0 && q.1 >= p.1 && (q.0 > p.0 || q.1 > p.1))
         })
         .collect()
 }
@@ -179,9 +197,18 @@ pub fn mark_fronts(rows: &mut [Row]) {
     let q = |r: &Row| r.factor == "quant";
     let time: Vec<_> = rows
         .iter()
-        .map(|r| if q(r) { nan } else { (-r.train_seconds, r.psnr) })
+        .map(|r| {
+            if q(r) {
+                nan
+            } else {
+                (-r.train_seconds, r.psnr)
+            }
+        })
         .collect();
-    let size: Vec<_> = rows.iter().map(|r| (-(r.file_bytes as f64), r.psnr)).collect();
+    let size: Vec<_> = rows
+        .iter()
+        .map(|r| (-(r.file_bytes as f64), r.psnr))
+        .collect();
     let fps: Vec<_> = rows
         .iter()
         .map(|r| if q(r) { nan } else { (r.psnr, r.fps) })
@@ -209,8 +236,14 @@ fn parse_size(s: &str) -> Result<(u32, u32)> {
     let (w, h) = s
         .split_once(['x', 'X'])
         .with_context(|| format!("--fps-size `{s}`: expected WxH, e.g. 160x120"))?;
-    let w: u32 = w.trim().parse().with_context(|| format!("--fps-size `{s}`"))?;
-    let h: u32 = h.trim().parse().with_context(|| format!("--fps-size `{s}`"))?;
+    let w: u32 = w
+        .trim()
+        .parse()
+        .with_context(|| format!("--fps-size `{s}`"))?;
+    let h: u32 = h
+        .trim()
+        .parse()
+        .with_context(|| format!("--fps-size `{s}`"))?;
     if !(1..=4096).contains(&w) || !(1..=4096).contains(&h) {
         bail!("--fps-size `{s}`: each side must be in 1..=4096");
     }
@@ -236,9 +269,11 @@ fn variants(
     iters: usize,
     default_quant: QuantMode,
     quick: bool,
+    dir: Direction,
+    extra: &[(String, Vec<String>)],
 ) -> Vec<Variant> {
     let bname = preset_name(base);
-    let quant_sweep = factors.iter().any(|f| f == "quant");
+    let quant_sweep = factors.iter().any(|f| split_factor(f, dir).0 == "quant");
     let mut all_quants = vec![default_quant];
     if quant_sweep {
         let modes: &[QuantMode] = if quick {
@@ -271,9 +306,26 @@ fn variants(
     }
     let m = &base_settings.model;
     let enc = &m.field.encoding;
-    let pick = |full: Vec<i64>, q: Vec<i64>| if quick { q } else { full };
+    // Each factor lists its (down, up) values; `dir` keeps one side or both.
+    let pick = |dir: Direction, down: i64, up: i64| -> Vec<i64> {
+        match dir {
+            Direction::Down => vec![down],
+            Direction::Up => vec![up],
+            Direction::Both => vec![down, up],
+        }
+    };
     let mut add = |factor: &str, value: String, label: String, sets: Vec<String>, ds: u32| {
-        let name = format!("{bname}-{factor}-{}", value.replace(['/', ' '], "_"));
+        let safe: String = value
+            .chars()
+            .map(|c| {
+                if c.is_ascii_alphanumeric() || "+-^.".contains(c) {
+                    c
+                } else {
+                    '_'
+                }
+            })
+            .collect();
+        let name = format!("{bname}-{factor}-{safe}");
         out.push(Variant {
             name,
             label,
@@ -285,22 +337,26 @@ fn variants(
             quants: vec![default_quant],
         });
     };
-    for f in factors {
-        match f.as_str() {
+    for spec in factors {
+        let (f, dir) = split_factor(spec, dir);
+        match f {
             "iters" => {
-                for k in pick(vec![-1, 1], vec![1]) {
+                for k in pick(dir, -1, 1) {
                     let n = if k < 0 { (iters / 2).max(1) } else { iters * 2 };
                     add(
                         "iters",
                         n.to_string(),
                         format!("{n} steps"),
-                        vec![format!("iters={n}"), format!("anneal_steps={}", (n / 4).max(1))],
+                        vec![
+                            format!("iters={n}"),
+                            format!("anneal_steps={}", (n / 4).max(1)),
+                        ],
                         1,
                     );
                 }
             }
             "table" => {
-                for d in pick(vec![-2, 2], vec![-2]) {
+                for d in pick(dir, -2, 2) {
                     let l = (enc.grid3.log2_table_size as i64 + d).clamp(10, 24);
                     add(
                         "table",
@@ -315,7 +371,7 @@ fn variants(
                 }
             }
             "levels" => {
-                for d in pick(vec![-4, 4], vec![-4]) {
+                for d in pick(dir, -4, 4) {
                     let l = (enc.grid3.levels as i64 + d).clamp(2, 32);
                     add(
                         "levels",
@@ -330,7 +386,7 @@ fn variants(
                 }
             }
             "finest" => {
-                for k in pick(vec![-1, 1], vec![1]) {
+                for k in pick(dir, -1, 1) {
                     let f0 = enc.grid3.finest_resolution[0];
                     let fr = if k < 0 { f0 / 2.0 } else { f0 * 2.0 };
                     let mut g4 = enc.grid4.finest_resolution.clone();
@@ -342,7 +398,10 @@ fn variants(
                         format!("{fr}"),
                         format!("finest {fr}"),
                         vec![
-                            format!("model.field.encoding.grid3.finest_resolution={}", json!([fr, fr, fr])),
+                            format!(
+                                "model.field.encoding.grid3.finest_resolution={}",
+                                json!([fr, fr, fr])
+                            ),
                             format!("model.field.encoding.grid4.finest_resolution={}", json!(g4)),
                         ],
                         1,
@@ -351,7 +410,7 @@ fn variants(
             }
             "samples" => {
                 let (np, nf) = (m.sampler.num_proposal_samples, m.sampler.num_samples);
-                for k in pick(vec![-1, 1], vec![-1]) {
+                for k in pick(dir, -1, 1) {
                     let (a, b) = if k < 0 {
                         ((np / 2).max(1), (nf / 2).max(1))
                     } else {
@@ -372,7 +431,7 @@ fn variants(
             "scale" => add("scale", "1/2".into(), "images 1/2".into(), vec![], 2),
             "mask" => {
                 let r = enc.mask_resolution;
-                for v in pick(vec![r as i64 / 2, r as i64 * 3 / 2], vec![r as i64 / 2]) {
+                for v in pick(dir, r as i64 / 2, r as i64 * 3 / 2) {
                     add(
                         "mask",
                         v.to_string(),
@@ -384,7 +443,7 @@ fn variants(
             }
             "proposal" => {
                 let l = m.proposal.encoding.grid3.log2_table_size as i64;
-                for d in pick(vec![2], vec![-2]) {
+                for d in pick(dir, -2, 2) {
                     let v = (l + d).clamp(10, 24);
                     add(
                         "proposal",
@@ -401,7 +460,42 @@ fn variants(
             _ => {}
         }
     }
+    for (label, sets) in extra {
+        add("custom", label.clone(), label.clone(), sets.clone(), 1);
+    }
     out
+}
+
+/// `NAME`, `NAME+` (costlier side only) or `NAME-` (cheaper side only) -> the name and the
+/// side (`default` for a bare name).
+fn split_factor(spec: &str, default: Direction) -> (&str, Direction) {
+    if let Some(n) = spec.strip_suffix('+') {
+        (n, Direction::Up)
+    } else if let Some(n) = spec.strip_suffix('-') {
+        (n, Direction::Down)
+    } else {
+        (spec, default)
+    }
+}
+
+/// Parses `--variant LABEL:KEY=VALUE[;KEY=VALUE...]`.
+fn parse_variant(s: &str) -> Result<(String, Vec<String>)> {
+    let (label, sets) = s
+        .split_once(':')
+        .with_context(|| format!("--variant `{s}`: expected LABEL:KEY=VALUE[;KEY=VALUE...]"))?;
+    let label = label.trim();
+    if label.is_empty() || label.len() > 40 {
+        bail!("--variant `{s}`: the label must have 1 to 40 characters");
+    }
+    let sets: Vec<String> = sets
+        .split(';')
+        .map(|x| x.trim().to_string())
+        .filter(|x| !x.is_empty())
+        .collect();
+    if sets.is_empty() || sets.iter().any(|x| !x.contains('=')) {
+        bail!("--variant `{s}`: expected KEY=VALUE pairs after the label");
+    }
+    Ok((label.to_string(), sets))
 }
 
 /// The settings of `v`: its preset's for `data`, the step budget, then its overrides.
@@ -479,13 +573,10 @@ fn measure(
         let (bytes, report) = encode(cfg, &trainer.params, &cameras, &opts)
             .with_context(|| format!("encoding variant {} ({q})", v.name))?;
         let decoded = decode_all(&bytes).with_context(|| format!("decoding variant {}", v.name))?;
-        let psnr = crate::export::held_out_psnr(
-            ctx.eval_data,
-            cfg,
-            &trainer.layout,
-            ctx.stride,
-            &|t| decoded.params_for_time(t),
-        );
+        let psnr =
+            crate::export::held_out_psnr(ctx.eval_data, cfg, &trainer.layout, ctx.stride, &|t| {
+                decoded.params_for_time(t)
+            });
         if k == 0 {
             let file = dir.join("model.msth");
             write_atomic(&file, &bytes).with_context(|| format!("writing {}", file.display()))?;
@@ -544,8 +635,11 @@ pub fn run(a: TradeoffArgs) -> Result<()> {
         None => FACTORS.iter().map(|s| s.to_string()).collect(),
     };
     for f in &factors {
-        if !FACTORS.contains(&f.as_str()) {
-            bail!("--factors: unknown factor `{f}` (known: {})", FACTORS.join(", "));
+        if !FACTORS.contains(&split_factor(f, Direction::Both).0) {
+            bail!(
+                "--factors: unknown factor `{f}` (known: {})",
+                FACTORS.join(", ")
+            );
         }
     }
     let iters = a.iters.unwrap_or(if a.quick { 30 } else { 600 });
@@ -555,19 +649,35 @@ pub fn run(a: TradeoffArgs) -> Result<()> {
     if a.stride == 0 {
         bail!("--stride must be at least 1");
     }
-    let fps_size = parse_size(
-        a.fps_size
-            .as_deref()
-            .unwrap_or(if a.quick { "48x36" } else { "160x120" }),
-    )?;
+    let fps_size =
+        parse_size(
+            a.fps_size
+                .as_deref()
+                .unwrap_or(if a.quick { "48x36" } else { "160x120" }),
+        )?;
     let fps_frames = a.fps_frames.unwrap_or(if a.quick { 2 } else { 4 });
     let default_quant: QuantMode = a.quant.parse().map_err(anyhow::Error::msg)?;
+    let direction = match a.direction.as_deref() {
+        None if a.quick => Direction::Down,
+        None | Some("both") => Direction::Both,
+        Some("down") => Direction::Down,
+        Some("up") => Direction::Up,
+        Some(d) => bail!("--direction {d}: expected down, up or both"),
+    };
+    let extra: Vec<(String, Vec<String>)> = a
+        .variants
+        .iter()
+        .map(|v| parse_variant(v))
+        .collect::<Result<_>>()?;
     std::fs::create_dir_all(a.out.join("runs"))
         .with_context(|| format!("creating {}", a.out.display()))?;
 
     let data = data::load(&a.data, &a.dataset, &a.out)?;
     if data.test.is_empty() {
-        bail!("{}: the dataset has no held-out views to measure on", a.data);
+        bail!(
+            "{}: the dataset has no held-out views to measure on",
+            a.data
+        );
     }
     let base_settings = settings_for(
         &Variant {
@@ -591,7 +701,17 @@ pub fn run(a: TradeoffArgs) -> Result<()> {
         iters,
         default_quant,
         a.quick,
+        direction,
+        &extra,
     );
+    for (i, v) in vs.iter().enumerate() {
+        if vs[..i].iter().any(|w| w.name == v.name) {
+            bail!(
+                "two variants are both named `{}` (check --variant labels)",
+                v.name
+            );
+        }
+    }
     let threads = rayon::current_num_threads();
     println!(
         "msth bench tradeoff: {} ({} training / {} test views), base {}, {} steps per variant, {} variants, {threads} threads",
@@ -1032,7 +1152,8 @@ mod tests {
     #[test]
     fn csv_quotes_fields_with_commas() {
         assert_eq!(csv_field("a,b"), "\"a,b\"");
-        assert_eq!(csv_field("say \"x\""), "say \"x\"");
+        assert_eq!(csv_field("plain"), "plain");
+        assert_eq!(csv_field("say \"x\""), "\"say \"\"x\"\"\"");
         assert_eq!(csv_field("q\"1,2"), "\"q\"\"1,2\"");
     }
 }

@@ -68,11 +68,7 @@ pub fn find_font() -> Option<PathBuf> {
             .iter()
             .any(|w| n.contains(w))
     };
-    found
-        .iter()
-        .find(|p| plain(p))
-        .or(found.first())
-        .cloned()
+    found.iter().find(|p| plain(p)).or(found.first()).cloned()
 }
 
 fn walk(dir: &Path, depth: usize, out: &mut Vec<PathBuf>) {
@@ -83,10 +79,7 @@ fn walk(dir: &Path, depth: usize, out: &mut Vec<PathBuf>) {
         let p = e.path();
         if p.is_dir() && depth > 0 {
             walk(&p, depth - 1, out);
-        } else if p
-            .extension()
-            .is_some_and(|x| x.eq_ignore_ascii_case("ttf"))
-        {
+        } else if p.extension().is_some_and(|x| x.eq_ignore_ascii_case("ttf")) {
             out.push(p);
         }
     }
@@ -152,7 +145,10 @@ fn overlap(a: (i32, i32, i32, i32), b: (i32, i32, i32, i32)) -> i64 {
 /// Label offsets (from the marker's pixel) that overlap other labels and markers least, chosen
 /// greedily point by point.
 fn place_labels(anchors: &[(i32, i32)], labels: &[&str], area: (i32, i32)) -> Vec<(i32, i32)> {
-    let markers: Vec<_> = anchors.iter().map(|&(x, y)| (x - 6, y - 6, 12, 12)).collect();
+    let markers: Vec<_> = anchors
+        .iter()
+        .map(|&(x, y)| (x - 6, y - 6, 12, 12))
+        .collect();
     let mut placed: Vec<(i32, i32, i32, i32)> = Vec::new();
     let mut out = Vec::new();
     for (i, &(x, y)) in anchors.iter().enumerate() {
@@ -265,8 +261,10 @@ pub fn scatter(
                             .map(|p| Circle::new((p.x, p.y), 6, red.filled())),
                     )
                     .map_err(|x| e(&x))?;
-                let anchors: Vec<(i32, i32)> =
-                    pts.iter().map(|p| chart.backend_coord(&(p.x, p.y))).collect();
+                let anchors: Vec<(i32, i32)> = pts
+                    .iter()
+                    .map(|p| chart.backend_coord(&(p.x, p.y)))
+                    .collect();
                 let labels: Vec<&str> = pts.iter().map(|p| p.label.as_str()).collect();
                 let offsets = place_labels(&anchors, &labels, (WIDTH as i32, HEIGHT as i32));
                 chart
@@ -295,7 +293,11 @@ pub fn scatter(
                 .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| {
                     (a.min(p.x), b.max(p.x))
                 });
-            let (lo, hi) = if lo.is_finite() { (lo / 1.25, hi * 1.25) } else { (1.0, 10.0) };
+            let (lo, hi) = if lo.is_finite() {
+                (lo / 1.25, hi * 1.25)
+            } else {
+                (1.0, 10.0)
+            };
             draw!((lo..hi).log_scale());
         } else {
             let (x0, x1) = range(pts.iter().map(|p| p.x));
