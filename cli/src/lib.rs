@@ -11,6 +11,7 @@ mod play;
 mod scenegen;
 mod serve;
 mod tradeoff_plot;
+mod tradeoff_report;
 
 use std::ffi::OsString;
 use std::path::PathBuf;
