@@ -186,6 +186,30 @@ fn place_labels(anchors: &[(i32, i32)], labels: &[&str], area: (i32, i32)) -> Ve
     out
 }
 
+/// The corner of the plot with the fewest points near it (for the legend).
+fn legend_corner(anchors: &[(i32, i32)], area: (i32, i32)) -> SeriesLabelPosition {
+    let (w, h) = (area.0 / 3, area.1 / 4);
+    let corners = [
+        (
+            SeriesLabelPosition::LowerRight,
+            (area.0 - w, area.1 - h - 60),
+        ),
+        (SeriesLabelPosition::UpperRight, (area.0 - w, 40)),
+        (SeriesLabelPosition::LowerLeft, (60, area.1 - h - 60)),
+        (SeriesLabelPosition::UpperLeft, (60, 40)),
+    ];
+    corners
+        .into_iter()
+        .min_by_key(|(_, (x, y))| {
+            anchors
+                .iter()
+                .filter(|a| a.0 >= *x && a.0 <= x + w && a.1 >= *y && a.1 <= y + h)
+                .count()
+        })
+        .map(|c| c.0)
+        .unwrap_or(SeriesLabelPosition::LowerRight)
+}
+
 /// Draws a labelled scatter plot (x on a log axis when `log_x`), the front points filled red
 /// and joined in x order, the others hollow blue, labels placed to avoid each other. Points
 /// with a non-finite coordinate (or x <= 0 on a log axis) are left out. Needs
@@ -279,7 +303,7 @@ pub fn scatter(
                     .map_err(|x| e(&x))?;
                 chart
                     .configure_series_labels()
-                    .position(SeriesLabelPosition::LowerRight)
+                    .position(legend_corner(&anchors, (WIDTH as i32, HEIGHT as i32)))
                     .background_style(WHITE.mix(0.85))
                     .border_style(BLACK)
                     .label_font(("sans-serif", 14))
