@@ -10,6 +10,7 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 
 use msth_codec::{decode_all, encode, EncodeOptions, EncodeReport, QuantMode};
+use msth_core::config::ModelConfig;
 use msth_core::field::ModelLayout;
 use msth_trainer::checkpoint::{write_atomic, Checkpoint};
 use msth_trainer::dataset::Dataset;
@@ -192,9 +193,9 @@ fn print_summary(r: &EncodeReport, out: &std::path::Path) {
 }
 
 /// Mean PSNR over every `stride`-th test view; `params_at(t)` gives the buffer for time `t`.
-fn held_out_psnr(
+pub(crate) fn held_out_psnr(
     data: &Dataset,
-    ckpt: &Checkpoint,
+    model: &ModelConfig,
     layout: &ModelLayout,
     stride: usize,
     params_at: &dyn Fn(f32) -> Vec<f32>,
@@ -203,7 +204,7 @@ fn held_out_psnr(
     let mut sum = 0.0;
     for v in &views {
         let p = params_at(v.time);
-        let r = render_image(&ckpt.header.model, layout, &p, &v.camera, v.time);
+        let r = render_image(model, layout, &p, &v.camera, v.time);
         sum += psnr(&r.rgb, &v.image.to_f32());
     }
     sum / views.len().max(1) as f64
@@ -220,7 +221,7 @@ fn measure(
     data.rescale(ckpt.header.scene_scale());
     let model = &ckpt.header.model;
     let layout = ModelLayout::new(model);
-    let reference = held_out_psnr(&data, ckpt, &layout, stride, &|_| ckpt.params.clone());
+    let reference = held_out_psnr(&data, model, &layout, stride, &|_| ckpt.params.clone());
     let raw = 4 * ckpt.params.len() as u64;
     println!(
         "checkpoint {}: {} parameters ({}), held-out PSNR {reference:.3} dB (every {stride}th test view of {} views)\n",
@@ -240,7 +241,7 @@ fn measure(
         let t = Instant::now();
         let decoded = decode_all(&bytes)?;
         let decode_s = t.elapsed().as_secs_f64();
-        let p = held_out_psnr(&data, ckpt, &layout, stride, &|t| {
+        let p = held_out_psnr(&data, model, &layout, stride, &|t| {
             decoded.params_for_time(t)
         });
         println!(
@@ -265,7 +266,7 @@ fn measure(
         };
         let (bytes, r) = encode(model, &ckpt.params, &ckpt.header.cameras, &opts)?;
         let decoded = decode_all(&bytes)?;
-        let p = held_out_psnr(&data, ckpt, &layout, stride, &|t| {
+        let p = held_out_psnr(&data, model, &layout, stride, &|t| {
             decoded.params_for_time(t)
         });
         let per_chunk = r.chunks.iter().map(|c| c.reached_values).sum::<u64>() as f64

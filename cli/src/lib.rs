@@ -3,12 +3,15 @@
 
 mod bench;
 mod bench_play;
+pub mod bench_tradeoff;
 mod commands;
 pub mod data;
 mod export;
 mod play;
 mod scenegen;
 mod serve;
+mod tradeoff_plot;
+mod tradeoff_report;
 
 use std::ffi::OsString;
 use std::path::PathBuf;

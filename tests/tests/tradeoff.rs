@@ -1,0 +1,246 @@
+//! `msth bench tradeoff` end to end on a tiny built-in scene: the tables and plots are written
+//! and parse, the marked Pareto fronts are exactly the non-dominated rows, and a second run
+//! reuses the cached variants instead of training again.
+
+use std::path::Path;
+
+use msth_tests::msth;
+
+fn f(v: &serde_json::Value, k: &str) -> f64 {
+    v[k].as_f64()
+        .unwrap_or_else(|| panic!("`{k}` is not a number in {v}"))
+}
+
+fn b(v: &serde_json::Value, k: &str) -> bool {
+    v[k].as_bool()
+        .unwrap_or_else(|| panic!("`{k}` is not a bool in {v}"))
+}
+
+/// Whether row `i` is dominated in `(x, y)` (both maximised) by another row.
+fn dominated(pts: &[(f64, f64)], i: usize) -> bool {
+    let p = pts[i];
+    pts.iter()
+        .any(|q| q.0 >= p.0 && q.1 >= p.1 && (q.0 > p.0 || q.1 > p.1))
+}
+
+#[test]
+fn tradeoff_sweep_writes_tables_plots_and_fronts() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    let out = tmp.path().join("out");
+    msth(&[
+        "synth",
+        "--out",
+        data.to_str().unwrap(),
+        "--size",
+        "32x24",
+        "--frames",
+        "3",
+        "--cameras",
+        "3",
+    ])
+    .unwrap();
+    let args = [
+        "--threads",
+        "2",
+        "bench",
+        "tradeoff",
+        data.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--quick",
+        "--iters",
+        "3",
+        "--presets",
+        "fast",
+        "--factors",
+        "samples-,mask-,quant",
+        "--variant",
+        "tiny tables:model.field.encoding.grid3.log2_table_size=12;model.field.encoding.grid4.log2_table_size=12",
+        "--fps-size",
+        "16x12",
+        "--fps-frames",
+        "1",
+        "--stride",
+        "1",
+    ];
+    msth(&args).unwrap();
+    for name in ["tradeoff.md", "tradeoff.csv", "tradeoff.json"] {
+        assert!(out.join(name).is_file(), "{name} missing");
+    }
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("tradeoff.json")).unwrap()).unwrap();
+    let rows = json["rows"].as_array().unwrap();
+    // fast (q5) + its f32 and k3 files, samples-, mask-, the custom variant.
+    assert_eq!(rows.len(), 6, "{json:#}");
+    let names: Vec<&str> = rows.iter().map(|r| r["name"].as_str().unwrap()).collect();
+    for want in [
+        "fast",
+        "fast-f32",
+        "fast-k3",
+        "fast-samples-24+12",
+        "fast-mask-32",
+    ] {
+        assert!(names.contains(&want), "{want} not in {names:?}");
+    }
+    assert!(names.contains(&"fast-custom-tiny_tables"), "{names:?}");
+    for r in rows {
+        assert_eq!(r["steps"].as_u64(), Some(3), "{r}");
+        let psnr = f(r, "psnr");
+        assert!(psnr.is_finite() && psnr > 5.0, "{r}");
+        assert!(f(r, "file_bytes") > 0.0 && f(r, "fps") > 0.0, "{r}");
+        assert!(f(r, "train_seconds") > 0.0, "{r}");
+    }
+    // Lossless f32 files decode to the trained parameters: same PSNR as f32 evaluation.
+    let f32row = rows.iter().find(|r| r["name"] == "fast-f32").unwrap();
+    assert!(
+        (f(f32row, "psnr") - f(f32row, "psnr_f32")).abs() < 0.05,
+        "{f32row}"
+    );
+    // Quantised files are smaller than the lossless one (k3 against q5 depends on the values:
+    // at 3 steps the codebooks can cost more than they save).
+    let size = |n: &str| f(rows.iter().find(|r| r["name"] == n).unwrap(), "file_bytes");
+    assert!(size("fast-k3") < size("fast-f32") && size("fast") < size("fast-f32"));
+    // Fronts: the marked rows are exactly the non-dominated ones (quant rows only take part
+    // in the size front: they share their model's training and rendering).
+    let model_rows: Vec<&serde_json::Value> =
+        rows.iter().filter(|r| r["factor"] != "quant").collect();
+    let time: Vec<(f64, f64)> = model_rows
+        .iter()
+        .map(|r| (-f(r, "train_seconds"), f(r, "psnr")))
+        .collect();
+    let fps: Vec<(f64, f64)> = model_rows
+        .iter()
+        .map(|r| (f(r, "psnr"), f(r, "fps")))
+        .collect();
+    let size_pts: Vec<(f64, f64)> = rows
+        .iter()
+        .map(|r| (-f(r, "file_bytes"), f(r, "psnr")))
+        .collect();
+    for (i, r) in model_rows.iter().enumerate() {
+        assert_eq!(b(r, "front_time"), !dominated(&time, i), "{r}");
+        assert_eq!(b(r, "front_fps"), !dominated(&fps, i), "{r}");
+    }
+    for (i, r) in rows.iter().enumerate() {
+        assert_eq!(b(r, "front_size"), !dominated(&size_pts, i), "{r}");
+        if r["factor"] == "quant" {
+            assert!(!b(r, "front_time") && !b(r, "front_fps"), "{r}");
+        }
+    }
+    assert!(rows.iter().any(|r| b(r, "front_size")));
+    // CSV: a header and one line per row, same names, same column count.
+    let csv = std::fs::read_to_string(out.join("tradeoff.csv")).unwrap();
+    let lines: Vec<&str> = csv.lines().collect();
+    assert_eq!(lines.len(), rows.len() + 1);
+    let cols = lines[0].split(',').count();
+    for (l, r) in lines[1..].iter().zip(rows) {
+        assert_eq!(l.split(',').count(), cols, "{l}");
+        assert!(
+            l.starts_with(&format!("{},", r["name"].as_str().unwrap())),
+            "{l}"
+        );
+    }
+    let md = std::fs::read_to_string(out.join("tradeoff.md")).unwrap();
+    assert_eq!(
+        md.lines().filter(|l| l.starts_with("| ")).count(),
+        rows.len() + 1,
+        "{md}"
+    );
+    // Plots: PNGs of the plot size when a font exists, else a note saying why not.
+    let pngs = ["psnr_vs_time.png", "psnr_vs_size.png", "fps_vs_psnr.png"];
+    if md.contains("Plots skipped") {
+        eprintln!("SKIPPED plot check: no TrueType font on this machine");
+    } else {
+        for p in pngs {
+            let img = image::open(out.join(p)).unwrap_or_else(|e| panic!("{p}: {e}"));
+            assert_eq!((img.width(), img.height()), (960, 640), "{p}");
+        }
+    }
+    // A second run measures nothing again: every result is cached and left untouched.
+    let mtimes = |dir: &Path| -> Vec<_> {
+        let mut v: Vec<_> = std::fs::read_dir(dir.join("runs"))
+            .unwrap()
+            .map(|e| {
+                let p = e.unwrap().path().join("result.json");
+                (
+                    p.clone(),
+                    std::fs::metadata(&p).unwrap().modified().unwrap(),
+                )
+            })
+            .collect();
+        v.sort();
+        v
+    };
+    let before = mtimes(&out);
+    assert_eq!(before.len(), 4, "{before:?}");
+    msth(&args).unwrap();
+    assert_eq!(mtimes(&out), before);
+    let again: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("tradeoff.json")).unwrap()).unwrap();
+    assert_eq!(again["rows"], json["rows"]);
+    // A changed budget is a different variant: not taken from the cache.
+    let mut changed = args.to_vec();
+    changed[9] = "4";
+    changed[13] = "samples-";
+    msth(&changed).unwrap();
+    let third: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("tradeoff.json")).unwrap()).unwrap();
+    assert!(third["rows"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .all(|r| r["steps"].as_u64() == Some(4)));
+}
+
+#[test]
+fn tradeoff_rejects_bad_options() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("out");
+    let o = out.to_str().unwrap();
+    let e = msth(&[
+        "bench",
+        "tradeoff",
+        "builtin",
+        "--out",
+        o,
+        "--factors",
+        "colour",
+    ])
+    .unwrap_err();
+    assert!(e.contains("unknown factor `colour`"), "{e}");
+    let e = msth(&[
+        "bench",
+        "tradeoff",
+        "builtin",
+        "--out",
+        o,
+        "--variant",
+        "nolabel",
+    ])
+    .unwrap_err();
+    assert!(e.contains("--variant"), "{e}");
+    let e = msth(&[
+        "bench",
+        "tradeoff",
+        "builtin",
+        "--out",
+        o,
+        "--fps-size",
+        "0x5",
+    ])
+    .unwrap_err();
+    assert!(e.contains("--fps-size"), "{e}");
+    let e = msth(&[
+        "bench",
+        "tradeoff",
+        "builtin",
+        "--out",
+        o,
+        "--presets",
+        "huge",
+    ])
+    .unwrap_err();
+    assert!(e.contains("unknown preset"), "{e}");
+    let e = msth(&["bench", "tradeoff", "/no/such/dir", "--out", o]).unwrap_err();
+    assert!(e.contains("/no/such/dir"), "{e}");
+}
