@@ -3,6 +3,7 @@
 //! - [`dataset`]: dataset types and loaders (one module per format), with validation;
 //! - [`synth`]: the built-in procedural dynamic scene with analytic ground truth;
 //! - [`metrics`], [`imageio`]: PSNR / SSIM / D-SSIM, PNG output and comparison pictures;
+//! - [`ray_sampling`]: uniform, dynamics-aware (paper §3.4) and static/dynamic batch samplers;
 //! - [`adam`], [`train`], [`checkpoint`], [`eval`]: the optimiser, the loop, the checkpoint file
 //!   and held-out evaluation.
 
@@ -12,5 +13,6 @@ pub mod dataset;
 pub mod eval;
 pub mod imageio;
 pub mod metrics;
+pub mod ray_sampling;
 pub mod synth;
 pub mod train;
