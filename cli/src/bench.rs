@@ -1,4 +1,5 @@
-//! `msth bench step` (and `msth bench play`, in `bench_play.rs`): the cost of one full training step (proposal and field, forward, backward
+//! `msth bench step` (`msth bench play` is in `bench_play.rs`, `msth bench ablation` in
+//! `bench_ablation.rs`): the cost of one full training step (proposal and field, forward, backward
 //! and Adam) at the demo (fast preset) and paper configurations, reported as field samples per
 //! second, with two same-run baselines: the same step on one worker thread, and the plain
 //! reference hash encoding against the batched one.
@@ -42,6 +43,9 @@ enum BenchKind {
     /// Playback of a .msth file over loopback HTTP: time to first frame against the full
     /// download, incremental against full rendering (FPS and PSNR).
     Play(crate::bench_play::BenchPlayArgs),
+    /// The paper's ablation: 4D only, h3 + h4, mt, mst, mst + uncertainty + MINE, each with
+    /// uniform and dynamics-aware sampling; table, JSON and mask pictures.
+    Ablation(crate::bench_ablation::AblationArgs),
 }
 
 pub fn run(a: BenchArgs) -> Result<()> {
@@ -53,6 +57,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
             json,
         } => step(reps, batch_rays, only.as_deref(), json),
         BenchKind::Play(a) => crate::bench_play::run(a),
+        BenchKind::Ablation(a) => crate::bench_ablation::run(a).map(|_| ()),
     }
 }
 

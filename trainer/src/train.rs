@@ -592,7 +592,8 @@ pub fn train(
     // Each step's batch depends only on the seed and the step, so a resumed run sees the same
     // batches as an uninterrupted one.
     let batch_seed = trainer.settings.seed ^ 0xBA7C_0000;
-    let sampler = RaySampler::new(data, &trainer.settings.sampling).map_err(TrainError::Settings)?;
+    let sampler =
+        RaySampler::new(data, &trainer.settings.sampling).map_err(TrainError::Settings)?;
     if let Some(note) = &sampler.note {
         eprintln!("note: {note}");
     }
@@ -662,9 +663,16 @@ pub fn train(
         let at_end = trainer.step >= iters || out_of_time;
         if at_end || (every > 0 && trainer.step % every == 0) {
             if let Some(i) = trainer.params.iter().position(|v| !v.is_finite()) {
+                let name = trainer
+                    .layout
+                    .params
+                    .entries
+                    .iter()
+                    .find(|e| (e.offset..e.offset + e.len).contains(&i))
+                    .map_or("?", |e| e.name.as_str());
                 return Err(TrainError::Diverged {
                     step: trainer.step,
-                    what: format!("parameter {i}"),
+                    what: format!("parameter {i} (of {name})"),
                     last_good,
                 });
             }
