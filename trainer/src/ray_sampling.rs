@@ -822,7 +822,7 @@ mod tests {
     /// `f % (x + 1) == 0`: different temporal std per pixel and non-uniform times.
     fn blinking(c: usize, f: usize, x: u32, _y: u32) -> [u8; 3] {
         let level = (40 * x as usize + 20 * c).min(255) as u8;
-        let on = f % (x as usize + 1) == 0;
+        let on = f.is_multiple_of(x as usize + 1);
         if on {
             [level, level / 2, 0]
         } else {
@@ -1025,7 +1025,7 @@ mod tests {
                 .iter()
                 .filter(|&&[v, x, _]| data.train[v as usize].camera_id == Some(0) && x == 4)
                 .count();
-            let want = (5100.0 / (ratio + 1.0) as f64).round() as usize;
+            let want = (5100.0f64 / (ratio + 1.0)).round() as usize;
             assert_eq!(dynamic, want, "fraction {fraction}");
         }
     }
