@@ -238,8 +238,8 @@ pub fn run(a: AblationArgs) -> Result<Vec<RunResult>> {
     if data.test.is_empty() {
         bail!("{}: the dataset has no held-out views to evaluate", a.data);
     }
-    let test_stats = PixelStats::new(&data.test).map_err(anyhow::Error::msg)?;
-    let train_stats = PixelStats::new(&data.train).map_err(anyhow::Error::msg)?;
+    let test_stats = PixelStats::new(&data.test, false).map_err(anyhow::Error::msg)?;
+    let train_stats = PixelStats::new(&data.train, false).map_err(anyhow::Error::msg)?;
     let threads = rayon::current_num_threads();
 
     let mut specs = Vec::new();

@@ -197,8 +197,10 @@ mod tests {
         for _ in 0..20 {
             adam.update(&cfg, 1e-2, &mut p, &g, &masks);
         }
-        // 20 steps of lr 1e-2 x 10 upwards for the mask, 20 steps of 1e-2 downwards elsewhere.
-        assert!((p[0] - (-1.0 + 2.0)).abs() < 1e-3, "{}", p[0]);
+        // 20 steps of lr 1e-2 x 10 upwards for the mask (about 2: the mask loss gradient
+        // changes a little as the logit moves, so Adam's step is not exactly lr), 20 steps of
+        // exactly 1e-2 downwards for the constant gradient elsewhere.
+        assert!((p[0] - (-1.0 + 2.0)).abs() < 0.05, "{}", p[0]);
         assert!((p[150] - (-1.0 - 0.2)).abs() < 1e-3, "{}", p[150]);
         assert_eq!(p[120], -1.0);
     }

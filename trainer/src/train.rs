@@ -23,7 +23,7 @@ use msth_core::Camera;
 use crate::adam::{Adam, AdamConfig, MaskLossSlice};
 use crate::checkpoint::{AuxCheckpoint, Checkpoint, CheckpointError, CheckpointHeader};
 use crate::dataset::Dataset;
-use crate::ray_sampling::{push_ray, RaySampler, SamplingConfig};
+use crate::ray_sampling::{push_ray, RaySampler, SamplingConfig, SamplingMode};
 
 /// Every knob of a training run. Presets fill it; a config file and `--set key=value` override
 /// any field (see [`TrainSettings::apply_overrides`]).
@@ -102,7 +102,12 @@ impl TrainSettings {
             random_background: true,
             pixel_jitter: false,
             mask_learning: MaskLearningConfig::default(),
-            sampling: SamplingConfig::default(),
+            // The ablation's choice (docs/mask-learning.md): the paper's dynamics-aware sampler
+            // (monocular data falls back to uniform with a note).
+            sampling: SamplingConfig {
+                mode: SamplingMode::Dynamics,
+                ..SamplingConfig::default()
+            },
             mask_lr_scale: 1.0,
             model,
         }
