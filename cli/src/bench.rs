@@ -1,5 +1,5 @@
-//! `msth bench step` (and `msth bench play`, in `bench_play.rs`; `msth bench tradeoff`, in
-//! `bench_tradeoff.rs`): the cost of one full training step (proposal and field, forward, backward
+//! `msth bench step` (`msth bench play` is in `bench_play.rs`, `msth bench tradeoff` in
+//! `bench_tradeoff.rs`, `msth bench ablation` in `bench_ablation.rs`): the cost of one full training step (proposal and field, forward, backward
 //! and Adam) at the demo (fast preset) and paper configurations, reported as field samples per
 //! second, with two same-run baselines: the same step on one worker thread, and the plain
 //! reference hash encoding against the batched one.
@@ -46,6 +46,9 @@ enum BenchKind {
     /// The accuracy / cost trade-off: a one-factor-at-a-time sweep around a preset, plus the
     /// presets; tables and plots with the Pareto fronts (see `docs/tradeoff.md`).
     Tradeoff(Box<crate::bench_tradeoff::TradeoffArgs>),
+    /// The paper's ablation: 4D only, h3 + h4, mt, mst, mst + uncertainty + MINE, each with
+    /// uniform and dynamics-aware sampling; table, JSON and mask pictures.
+    Ablation(crate::bench_ablation::AblationArgs),
 }
 
 pub fn run(a: BenchArgs) -> Result<()> {
@@ -58,6 +61,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
         } => step(reps, batch_rays, only.as_deref(), json),
         BenchKind::Play(a) => crate::bench_play::run(a),
         BenchKind::Tradeoff(a) => crate::bench_tradeoff::run(*a),
+        BenchKind::Ablation(a) => crate::bench_ablation::run(a).map(|_| ()),
     }
 }
 

@@ -2,6 +2,7 @@
 //! the library crates. `main.rs` calls [`run`]; the end-to-end tests in `tests/` call it too.
 
 mod bench;
+mod bench_ablation;
 mod bench_play;
 pub mod bench_tradeoff;
 mod commands;

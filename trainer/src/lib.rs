@@ -4,6 +4,7 @@
 //! - [`synth`]: the built-in procedural dynamic scene with analytic ground truth;
 //! - [`metrics`], [`imageio`]: PSNR / SSIM / D-SSIM, PNG output and comparison pictures;
 //! - [`autosize`]: sizing the model from the data (scene, frame count, motion);
+//! - [`ray_sampling`]: uniform, dynamics-aware (paper §3.4) and static/dynamic batch samplers;
 //! - [`adam`], [`train`], [`checkpoint`], [`eval`]: the optimiser, the loop, the checkpoint file
 //!   and held-out evaluation;
 //! - [`unreached`]: hash-table values no training ray reached (dropped on export).
@@ -15,6 +16,7 @@ pub mod dataset;
 pub mod eval;
 pub mod imageio;
 pub mod metrics;
+pub mod ray_sampling;
 pub mod synth;
 pub mod train;
 pub mod unreached;

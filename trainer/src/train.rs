@@ -23,6 +23,7 @@ use msth_core::Camera;
 use crate::adam::{Adam, AdamConfig, MaskLossSlice};
 use crate::checkpoint::{AuxCheckpoint, Checkpoint, CheckpointError, CheckpointHeader};
 use crate::dataset::Dataset;
+use crate::ray_sampling::{push_ray, RaySampler, SamplingConfig, SamplingMode};
 
 /// Every knob of a training run. Presets fill it; a config file and `--set key=value` override
 /// any field (see [`TrainSettings::apply_overrides`]).
@@ -63,6 +64,13 @@ pub struct TrainSettings {
     /// ([`crate::autosize`]) picks a scale that brings the scene to about 3 units.
     #[serde(default = "one")]
     pub scene_scale: f32,
+    /// Which rays and times a batch draws (paper §3.4; `ray_sampling.rs`).
+    #[serde(default)]
+    pub sampling: SamplingConfig,
+    /// Multiplies the learning rate of the mask grids (see [`MaskLossSlice`]): Adam moves a
+    /// logit by at most about `lr` per step, so this bounds how far the mask can move in a run.
+    #[serde(default = "one")]
+    pub mask_lr_scale: f32,
     pub model: ModelConfig,
 }
 
@@ -101,6 +109,13 @@ impl TrainSettings {
             pixel_jitter: false,
             mask_learning: MaskLearningConfig::default(),
             scene_scale: 1.0,
+            // The ablation's choice (docs/mask-learning.md): the paper's dynamics-aware sampler
+            // (monocular data falls back to uniform with a note).
+            sampling: SamplingConfig {
+                mode: SamplingMode::Dynamics,
+                ..SamplingConfig::default()
+            },
+            mask_lr_scale: 1.0,
             model,
         }
     }
@@ -169,6 +184,7 @@ impl TrainSettings {
             ("interlevel_weight", self.interlevel_weight),
             ("distortion_weight", self.distortion_weight),
             ("mask_loss_weight", self.mask_loss_weight),
+            ("mask_lr_scale", self.mask_lr_scale),
         ] {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(format!("{n} must be finite and >= 0"));
@@ -184,6 +200,7 @@ impl TrainSettings {
             return Err("eval_stride must be at least 1".into());
         }
         self.mask_learning.validate()?;
+        self.sampling.validate()?;
         if self.mask_learning.uncertainty && !self.model.field.encoding.blend.uses_h3() {
             return Err(
                 "mask_learning.uncertainty needs a 3D grid (its static branch decodes h3 alone)"
@@ -365,6 +382,7 @@ impl Trainer {
             .map(|e| MaskLossSlice {
                 range: e.range(),
                 weight: settings.mask_loss_weight,
+                lr_scale: settings.mask_lr_scale,
             })
             .collect();
         Trainer {
@@ -534,37 +552,19 @@ pub fn sample_batch(
     let views = &data.train;
     for _ in 0..n {
         let v = &views[rng.below(views.len() as u64) as usize];
-        let (w, h) = (v.image.width, v.image.height);
-        let px = rng.below(w as u64) as u32;
-        let py = rng.below(h as u64) as u32;
-        // jitter inside the pixel so that the field sees the whole footprint
-        let (ju, jv) = if jitter {
-            (rng.f32(), rng.f32())
-        } else {
-            (0.5, 0.5)
-        };
-        let ray = v.camera.ray_at(px as f32 + ju, py as f32 + jv);
-        rays.push(TimedRay {
-            origin: ray.origin,
-            dir: ray.dir,
-            time: v.time,
-        });
-        let mut target = v.image.get(px, py);
-        if let Some(b) = backgrounds.as_deref_mut() {
-            match &v.alpha {
-                Some(alpha) => {
-                    let bg = [rng.f32(), rng.f32(), rng.f32()];
-                    let a = alpha[(py * w + px) as usize] as f32 / 255.0;
-                    // the image is composited on white: c*a + (1 - a)
-                    for ch in 0..3 {
-                        target[ch] += (bg[ch] - 1.0) * (1.0 - a);
-                    }
-                    b.push(bg);
-                }
-                None => b.push(data.background),
-            }
-        }
-        targets.push(target);
+        let px = rng.below(v.image.width as u64) as u32;
+        let py = rng.below(v.image.height as u64) as u32;
+        push_ray(
+            data,
+            v,
+            px,
+            py,
+            rng,
+            jitter,
+            rays,
+            targets,
+            backgrounds.as_deref_mut(),
+        );
     }
 }
 
@@ -625,6 +625,11 @@ pub fn train(
     // Each step's batch depends only on the seed and the step, so a resumed run sees the same
     // batches as an uninterrupted one.
     let batch_seed = trainer.settings.seed ^ 0xBA7C_0000;
+    let sampler =
+        RaySampler::new(data, &trainer.settings.sampling).map_err(TrainError::Settings)?;
+    if let Some(note) = &sampler.note {
+        eprintln!("note: {note}");
+    }
     let mut rays = Vec::with_capacity(batch);
     let mut targets = Vec::with_capacity(batch);
     let use_bg = trainer.settings.random_background && data.train.iter().any(|v| v.alpha.is_some());
@@ -635,9 +640,11 @@ pub fn train(
     let mut last_loss = f32::NAN;
     while trainer.step < iters {
         let mut step_rng = Rng::stream(batch_seed, trainer.step as u64);
-        sample_batch(
+        let fraction = (trainer.step as f32 / iters.max(1) as f32).max(trainer.time_fraction);
+        sampler.sample_batch(
             data,
             batch,
+            fraction,
             &mut step_rng,
             &mut rays,
             &mut targets,
@@ -689,9 +696,16 @@ pub fn train(
         let at_end = trainer.step >= iters || out_of_time;
         if at_end || (every > 0 && trainer.step % every == 0) {
             if let Some(i) = trainer.params.iter().position(|v| !v.is_finite()) {
+                let name = trainer
+                    .layout
+                    .params
+                    .entries
+                    .iter()
+                    .find(|e| (e.offset..e.offset + e.len).contains(&i))
+                    .map_or("?", |e| e.name.as_str());
                 return Err(TrainError::Diverged {
                     step: trainer.step,
-                    what: format!("parameter {i}"),
+                    what: format!("parameter {i} (of {name})"),
                     last_good,
                 });
             }
