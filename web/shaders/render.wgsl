@@ -171,7 +171,7 @@ fn tau_of(sigma: f32, delta: f32) -> f32 {
 }
 
 fn is_finite(x: f32) -> bool {
-    return x == x && abs(x) <= 3.4028235e38;
+    return x == x && abs(x) <= 3.40282346e38;
 }
 
 fn table(buf: u32, i: u32) -> f32 {
