@@ -212,9 +212,11 @@ async function main() {
   canvas.addEventListener("pointermove", (e) => {
     const p = pointers.get(e.pointerId);
     if (!p) return;
+    // Orbiting turns by screen distance; panning moves by image pixels (so that the scene
+    // follows the pointer whatever the canvas is enlarged by).
+    const sx = e.clientX - p.x;
+    const sy = e.clientY - p.y;
     const k = scale();
-    const dx = (e.clientX - p.x) * k;
-    const dy = (e.clientY - p.y) * k;
     p.x = e.clientX;
     p.y = e.clientY;
     if (pointers.size === 2) {
@@ -222,11 +224,11 @@ async function main() {
       const d = Math.hypot(a.x - b.x, a.y - b.y);
       if (pinch) orbit.zoom(pinch / Math.max(d, 1));
       pinch = d;
-      orbit.panBy(dx / 2, dy / 2);
+      orbit.panBy((sx * k) / 2, (sy * k) / 2);
     } else if (p.button === 2 || p.button === 1 || p.shift) {
-      orbit.panBy(dx, dy);
+      orbit.panBy(sx * k, sy * k);
     } else {
-      orbit.rotate(dx, dy);
+      orbit.rotate(sx, sy);
     }
     state.dirty = true;
   });
@@ -290,7 +292,8 @@ async function main() {
     const dt = (now - last) / 1000;
     last = now;
     if (stream.error && !hooks.error) fail(stream.error);
-    if (state.playing && stream.decoder.staticReady()) {
+    // Playback holds still while the chunk under the playhead is streaming.
+    if (state.playing && stream.readyFor(state.t)) {
       setTime((state.t + dt / duration) % 1);
       scrub.value = String(Math.round(state.t * 1000));
     }

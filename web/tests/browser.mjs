@@ -233,11 +233,12 @@ async function main() {
       console.log(`bench: ${bench.width}x${bench.height}: ${bench.fps.toFixed(2)} frames per second (${bench.frames} frames in ${bench.seconds.toFixed(2)} s), time to first frame ${t.toFixed(0)} ms`);
     }
     if (a.screenshot) {
-      const url = `${a.base}/?model=${encodeURIComponent(a.model)}&size=${a["bench-size"] || "256x256"}&play=1`;
+      // Paused: while SwiftShader renders, the page cannot composite a screenshot.
+      const url = `${a.base}/?model=${encodeURIComponent(a.model)}&t=0.5&play=0`;
       await page.goto(url);
       await waitFirstFrame(page);
-      await page.waitForFunction(() => window.msth.stream.progress().complete && window.msth.frames >= 3, null, { timeout: 300_000 });
-      await page.waitForTimeout(1500);
+      await page.waitForFunction(() => window.msth.stream.progress().complete, null, { timeout: 300_000 });
+      await settled(page);
       await page.screenshot({ path: a.screenshot });
       console.log(`screenshot: ${a.screenshot}`);
     }
