@@ -54,7 +54,12 @@ fn prerequisites() -> Result<PathBuf, String> {
         .ok_or("Chromium is not installed (set MSTH_CHROMIUM or install the `chromium` package)")?;
     let web = repo_root().join("web");
     for dep in ["fzstd", "playwright-core"] {
-        if !web.join("node_modules").join(dep).join("package.json").is_file() {
+        if !web
+            .join("node_modules")
+            .join(dep)
+            .join("package.json")
+            .is_file()
+        {
             return Err(format!(
                 "web/node_modules/{dep} is missing (run `npm ci --prefix web`)"
             ));
@@ -166,7 +171,16 @@ fn web_player_streams_renders_and_matches_native() {
     let mut args = vec!["web/tests/decode.mjs", file.to_str().unwrap()];
     args.extend(refs.iter().map(String::as_str));
     let (ok, out) = run_node(&args, Duration::from_secs(300));
-    assert!(ok, "the JavaScript decoder disagrees with msth-codec:\n{out}");
+    assert!(
+        ok,
+        "the JavaScript decoder disagrees with msth-codec:\n{out}"
+    );
+    // ... and rejects damaged copies of the file with a clear error.
+    let (ok, out) = run_node(
+        &["web/tests/decode_bad.mjs", file.to_str().unwrap()],
+        Duration::from_secs(300),
+    );
+    assert!(ok, "the JavaScript decoder mishandles bad input:\n{out}");
 
     // Native references: `msth play` of the same free viewpoint at t = 0 and t = 1.
     let meta = &decoded.metadata;
@@ -228,8 +242,7 @@ fn web_player_streams_renders_and_matches_native() {
         BROWSER_TIMEOUT,
     );
     assert!(ok, "the browser test failed:\n{out}");
-    let r: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(&results).unwrap()).unwrap();
+    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&results).unwrap()).unwrap();
     let checks = r["checks"].as_array().unwrap();
     assert!(
         checks.len() >= 9 && checks.iter().all(|c| c["ok"] == true),

@@ -520,6 +520,7 @@ export function unpack(entry, stored) {
   if (stored.length !== entry.length) throw new FormatError(what, `${stored.length} bytes given, the index says ${entry.length}`);
   const computed = crc32(stored);
   if (computed !== entry.crc32) throw new FormatError(what, `CRC-32 mismatch (stored ${entry.crc32.toString(16)}, computed ${computed.toString(16)})`);
+  checkZstdFrame(stored, entry.rawLength, what);
   const out = new Uint8Array(entry.rawLength);
   let n = 0;
   let over = false;
@@ -535,6 +536,40 @@ export function unpack(entry, stored) {
   }
   if (over || n !== out.length) throw new FormatError(what, `decompressed to ${n} bytes, the index says ${entry.rawLength}`);
   return out;
+}
+
+/**
+ * Reads the zstd frame header (RFC 8878 §3.1.1.1) before decompressing: the magic, the declared
+ * content size (must equal the index's `raw_length`) and the window size, which bounds what the
+ * decompressor allocates (at most twice `raw_length`, or 8 MiB for small sections).
+ */
+function checkZstdFrame(b, rawLength, what) {
+  const bad = (m) => {
+    throw new FormatError(what, `zstd: ${m}`);
+  };
+  if (b.length < 6 || u32(b, 0) !== 0xfd2fb528) bad("not a zstd frame (bad magic)");
+  const fhd = b[4];
+  const fcsFlag = fhd >> 6;
+  const single = (fhd >> 5) & 1;
+  if (fhd & 0x08) bad("reserved frame header bit set");
+  let o = 5;
+  let window = null;
+  if (!single) {
+    const wd = b[o++];
+    const base = 2 ** (10 + (wd >> 3));
+    window = base + (base / 8) * (wd & 7);
+  }
+  o += [0, 1, 2, 4][fhd & 3]; // dictionary id
+  const fcsBytes = [single ? 1 : 0, 2, 4, 8][fcsFlag];
+  if (b.length < o + fcsBytes) bad("truncated frame header");
+  let fcs = null;
+  if (fcsBytes === 1) fcs = b[o];
+  else if (fcsBytes === 2) fcs = (b[o] | (b[o + 1] << 8)) + 256;
+  else if (fcsBytes === 4) fcs = u32(b, o);
+  else if (fcsBytes === 8) fcs = u32(b, o) + u32(b, o + 4) * 2 ** 32;
+  if (fcs !== null && fcs !== rawLength) bad(`frame content size ${fcs}, the index says ${rawLength}`);
+  if (window === null) window = fcs;
+  if (window > Math.max(2 * rawLength, 8 << 20)) bad(`window of ${window} bytes for ${rawLength} bytes of content`);
 }
 
 /** Decodes a non-chunk section's payload into the flat buffer `params`. */

@@ -13,6 +13,12 @@ const MAX_GAP = 4096;
 /** A server that ignores Range requests: largest file downloaded whole. */
 const MAX_WHOLE = 1 << 30;
 
+/** The error with the file's URL in front (HTTP errors already carry it). */
+function named(url, e) {
+  const msg = String(e && e.message ? e.message : e);
+  return msg.startsWith(url) ? e : new Error(`${url}: ${msg}`);
+}
+
 class HttpSource {
   constructor(url) {
     this.url = url;
@@ -90,6 +96,14 @@ async function readBody(resp, expected, onBytes, fail) {
  */
 export class ModelStream {
   static async open(url) {
+    try {
+      return await ModelStream.#open(url);
+    } catch (e) {
+      throw named(url, e);
+    }
+  }
+
+  static async #open(url) {
     const src = new HttpSource(url);
     const s = new ModelStream(src);
     const first = await src.read(0, FIXED_HEADER, (n) => s.#received(n));
@@ -169,7 +183,7 @@ export class ModelStream {
   /** Runs the fetch loop until the whole file is in, an error, or `stop()`. */
   start() {
     this.done = this.#loop().catch((e) => {
-      this.error = e;
+      this.error = named(this.source.url, e);
       this.#notify();
     });
     return this;
