@@ -245,7 +245,7 @@ fn web_player_streams_renders_and_matches_native() {
     let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&results).unwrap()).unwrap();
     let checks = r["checks"].as_array().unwrap();
     assert!(
-        checks.len() >= 9 && checks.iter().all(|c| c["ok"] == true),
+        checks.len() >= 11 && checks.iter().all(|c| c["ok"] == true),
         "{r:#}"
     );
     assert!(r["figures"]["psnr_vs_native_t0"].as_f64().unwrap() >= 35.0);

@@ -11,7 +11,9 @@
 //  1. the page loads the model from the server and the first frame appears (in the renderer's
 //     output and on the canvas);
 //  2. the first frame matches the native render of the same camera and time (PSNR >= 35 dB);
-//  3. dragging on the canvas orbits the camera (the pixels change);
+//  3. dragging on the canvas orbits the camera (the pixels change); touch orbits (one finger),
+//     pinches and pans (two); the wheel zooms and right-drag pans; back at the URL's view the
+//     first frame comes back;
 //  4. scrubbing the timeline to t = 1 changes the dynamic pixels (those that differ between the
 //     native renders at t = 0 and 1) and not the static ones, and matches the native t = 1 frame;
 //  5. without WebGPU the page says so.
@@ -70,6 +72,7 @@ async function launch(chromiumPath, webgpu) {
     headless: true,
     args: webgpu ? [...BASE_FLAGS, ...WEBGPU_FLAGS] : BASE_FLAGS,
     viewport: { width: 1000, height: 760 },
+    hasTouch: true,
   });
   return { ctx, close: async () => { await ctx.close(); rmSync(dir, { recursive: true, force: true }); } };
 }
@@ -173,6 +176,43 @@ async function main() {
     let changed = 0;
     for (let i = 0; i < n; i++) if (maxDiff(pxDrag, px0, i) > 8) changed++;
     check("dragging orbits the camera", az1 !== az0 && changed >= 0.02 * n, `azimuth ${az0.toFixed(1)} -> ${az1.toFixed(1)} degrees, ${((100 * changed) / n).toFixed(1)}% of pixels changed by more than 8/255`);
+
+    // ---- touch (pointer events from a touch screen): one finger orbits, two pinch and pan
+    const cdp = await gpu.ctx.newCDPSession(page);
+    const touch = (type, pts) => cdp.send("Input.dispatchTouchEvent", { type, touchPoints: pts.map(([x, y], id) => ({ x, y, id })) });
+    const o0 = await page.evaluate(() => ({ az: window.msth.orbit.az, dist: window.msth.orbit.dist }));
+    await touch("touchStart", [[cx, cy]]);
+    for (let k = 1; k <= 6; k++) await touch("touchMove", [[cx - k * 10, cy]]);
+    await touch("touchEnd", []);
+    await settled(page);
+    const pxTouch = await pixels(page);
+    const o1 = await page.evaluate(() => ({ az: window.msth.orbit.az, dist: window.msth.orbit.dist, pan: window.msth.orbit.pan }));
+    await touch("touchStart", [[cx - 20, cy], [cx + 20, cy]]);
+    for (let k = 1; k <= 6; k++) await touch("touchMove", [[cx - 20 - k * 10, cy + k * 3], [cx + 20 + k * 10, cy + k * 3]]);
+    await touch("touchEnd", []);
+    await settled(page);
+    const pxPinch = await pixels(page);
+    const o2 = await page.evaluate(() => ({ az: window.msth.orbit.az, dist: window.msth.orbit.dist, pan: window.msth.orbit.pan }));
+    const frac = (x, y) => {
+      let c = 0;
+      for (let i = 0; i < n; i++) if (maxDiff(x, y, i) > 8) c++;
+      return c / n;
+    };
+    check(
+      "touch orbits, pinches and pans",
+      o1.az !== o0.az && o2.dist < o1.dist && o2.pan.some((v) => v !== 0) && frac(pxTouch, pxDrag) >= 0.02 && frac(pxPinch, pxTouch) >= 0.02,
+      `one finger: azimuth ${o0.az.toFixed(1)} -> ${o1.az.toFixed(1)}; two fingers apart: distance ${o1.dist.toFixed(3)} -> ${o2.dist.toFixed(3)}, target moved by (${o2.pan.map((v) => v.toFixed(3)).join(", ")}); ${(100 * frac(pxTouch, pxDrag)).toFixed(1)}% and ${(100 * frac(pxPinch, pxTouch)).toFixed(1)}% of pixels changed`,
+    );
+    // Mouse wheel: zoom out; right-drag: pan.
+    await page.mouse.move(cx, cy);
+    await page.mouse.wheel(0, 400);
+    await settled(page);
+    await page.mouse.down({ button: "right" });
+    await page.mouse.move(cx + 40, cy + 20, { steps: 4 });
+    await page.mouse.up({ button: "right" });
+    await settled(page);
+    const o3 = await page.evaluate(() => ({ dist: window.msth.orbit.dist, pan: window.msth.orbit.pan }));
+    check("the wheel zooms and right-drag pans", o3.dist > o2.dist && o3.pan.some((v, k) => Math.abs(v - o2.pan[k]) > 1e-6), `distance ${o2.dist.toFixed(3)} -> ${o3.dist.toFixed(3)}, target (${o2.pan.map((v) => v.toFixed(3)).join(", ")}) -> (${o3.pan.map((v) => v.toFixed(3)).join(", ")})`);
 
     // Back to the view: the same frame again.
     const [vaz, vel, vdist] = a.view.split(",").map(Number);
