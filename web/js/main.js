@@ -270,7 +270,8 @@ async function main() {
     }
     const cam = orbit.camera();
     const t0 = performance.now();
-    await gpu.render(cam, state.t);
+    // New input (orbit, zoom, scrub) abandons a frame still in progress.
+    if (!(await gpu.render(cam, state.t, () => state.dirty))) return;
     const t1 = performance.now();
     hooks.frames++;
     hooks.lastFrameMs = t1 - t0;

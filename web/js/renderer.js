@@ -12,6 +12,8 @@ const LEVEL_SLOTS = 128;
 const MODEL_BYTES = 352 + 48 * LEVEL_SLOTS;
 const VIEW_BYTES = 112;
 const WORKGROUP = 64;
+/** `View.size.w` bit: invocation `i` renders pixel `list[i]`. */
+const FLAG_LIST = 1;
 const MAX_PROPOSAL_SAMPLES = 256;
 const MAX_SAMPLES = 128;
 const MAX_HIDDEN = 128;
@@ -202,7 +204,6 @@ class GpuScene {
     this.model = device.createBuffer({ size: modelUniform.byteLength, usage: GPUBufferUsage.UNIFORM | GPUBufferUsage.COPY_DST, label: "Model" });
     device.queue.writeBuffer(this.model, 0, modelUniform);
     this.view = device.createBuffer({ size: VIEW_BYTES, usage: GPUBufferUsage.UNIFORM | GPUBufferUsage.COPY_DST, label: "View" });
-    this.list = device.createBuffer({ size: 4, usage: GPUBufferUsage.STORAGE, label: "list (unused)" });
     this.size = device.createBuffer({ size: 8, usage: GPUBufferUsage.UNIFORM | GPUBufferUsage.COPY_DST, label: "display size" });
     this.context = canvas.getContext("webgpu");
     this.format = navigator.gpu.getPreferredCanvasFormat();
@@ -215,6 +216,8 @@ class GpuScene {
       primitive: { topology: "triangle-list" },
     });
     this.frameSize = null;
+    /** Rays per dispatch (adapted after each). */
+    this.tile = 4096;
   }
 
   #ensureFrame(w, h) {
@@ -225,11 +228,13 @@ class GpuScene {
     const bytes = w * h * 16;
     this.frame = device.createBuffer({ size: bytes, usage: GPUBufferUsage.STORAGE | GPUBufferUsage.COPY_SRC, label: "frame" });
     this.readback = device.createBuffer({ size: bytes, usage: GPUBufferUsage.MAP_READ | GPUBufferUsage.COPY_DST, label: "readback" });
+    this.order?.destroy();
+    // The pixel list of the tiles: 0, 1, ..., w * h - 1 (each tile binds its part).
+    this.order = device.createBuffer({ size: 4 * w * h, usage: GPUBufferUsage.STORAGE, mappedAtCreation: true, label: "pixel order" });
+    const ids = new Uint32Array(this.order.getMappedRange());
+    for (let i = 0; i < ids.length; i++) ids[i] = i;
+    this.order.unmap();
     device.queue.writeBuffer(this.size, 0, new Uint32Array([w, h]));
-    this.bind = device.createBindGroup({
-      layout: this.pipeline.getBindGroupLayout(0),
-      entries: [this.model, this.view, this.tab3, this.tab4, this.rest, this.list, this.frame].map((buffer, binding) => ({ binding, resource: { buffer } })),
-    });
     this.displayBind = device.createBindGroup({
       layout: this.display.getBindGroupLayout(0),
       entries: [
@@ -255,23 +260,58 @@ class GpuScene {
     put(this.rest, this.split.rest);
   }
 
-  /** Renders `cam` at time `t` to the canvas; resolves when the GPU has finished. */
-  async render(cam, t) {
+  /**
+   * Renders `cam` at time `t` to the canvas; resolves when the GPU has finished, to `true`, or
+   * to `false` when `abort()` (checked between tiles) asked to stop early.
+   *
+   * A frame is rendered in tiles of consecutive pixels (the kernel's pixel-list mode, `flags = 1`,
+   * with the list bound at the tile's offset), each its own submission, and the canvas is
+   * updated after each: a slow GPU (SwiftShader) then keeps the page responsive and shows the
+   * frame as it progresses. The tile size adapts to about 50 ms of GPU work; on a real GPU a
+   * frame is one tile.
+   */
+  async render(cam, t, abort = () => false) {
     if (this.r.lost) throw new Error(this.r.lost);
     const { width: w, height: h } = cam;
     this.#ensureFrame(w, h);
-    const count = w * h;
-    const groups = dispatchSize(count, this.device.limits.maxComputeWorkgroupsPerDimension);
-    if (!groups) throw new Error(`${w}x${h} pixels exceed this GPU's dispatch limits`);
+    const n = w * h;
     const device = this.device;
-    device.queue.writeBuffer(this.view, 0, viewUniform(cam, t, count, 0));
-    device.pushErrorScope("validation");
-    const enc = device.createCommandEncoder();
-    const pass = enc.beginComputePass();
-    pass.setPipeline(this.pipeline);
-    pass.setBindGroup(0, this.bind);
-    pass.dispatchWorkgroups(groups[0], groups[1], 1);
-    pass.end();
+    const maxDim = device.limits.maxComputeWorkgroupsPerDimension;
+    for (let start = 0; start < n; ) {
+      const count = Math.min(this.tile, n - start);
+      const groups = dispatchSize(count, maxDim);
+      if (!groups) throw new Error(`${count} rays exceed this GPU's dispatch limits`);
+      device.queue.writeBuffer(this.view, 0, viewUniform(cam, t, count, FLAG_LIST));
+      device.pushErrorScope("validation");
+      const bind = device.createBindGroup({
+        layout: this.pipeline.getBindGroupLayout(0),
+        entries: [this.model, this.view, this.tab3, this.tab4, this.rest, this.order, this.frame].map((buffer, binding) => ({
+          binding,
+          resource: binding === 5 ? { buffer, offset: 4 * start, size: 4 * count } : { buffer },
+        })),
+      });
+      const enc = device.createCommandEncoder();
+      const pass = enc.beginComputePass();
+      pass.setPipeline(this.pipeline);
+      pass.setBindGroup(0, bind);
+      pass.dispatchWorkgroups(groups[0], groups[1], 1);
+      pass.end();
+      this.#present(enc);
+      const t0 = performance.now();
+      device.queue.submit([enc.finish()]);
+      const err = await device.popErrorScope();
+      if (err) throw new Error(`render: ${err.message}`);
+      await device.queue.onSubmittedWorkDone();
+      const ms = Math.max(performance.now() - t0, 0.1);
+      // The next tiles aim at ~50 ms each (multiples of 64 rays: the binding offset alignment).
+      this.tile = Math.min(1 << 22, Math.max(64, Math.round((count * 50) / ms / 64) * 64));
+      start += count;
+      if (start < n && abort()) return false;
+    }
+    return true;
+  }
+
+  #present(enc) {
     const rp = enc.beginRenderPass({
       colorAttachments: [{ view: this.context.getCurrentTexture().createView(), loadOp: "clear", storeOp: "store", clearValue: [0, 0, 0, 1] }],
     });
@@ -279,10 +319,6 @@ class GpuScene {
     rp.setBindGroup(0, this.displayBind);
     rp.draw(3);
     rp.end();
-    device.queue.submit([enc.finish()]);
-    const err = await device.popErrorScope();
-    if (err) throw new Error(`render: ${err.message}`);
-    await device.queue.onSubmittedWorkDone();
   }
 
   /** The last frame as RGBA8, quantised as `msth play` writes PNGs (round to nearest). */
