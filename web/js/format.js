@@ -333,6 +333,11 @@ function checkMetadata(m, limits) {
     prev = c.t_start;
   });
   if (m.frame_rate !== null && !(Number.isFinite(m.frame_rate) && m.frame_rate > 0)) bad("frame_rate must be null or > 0");
+  if (!Array.isArray(m.time_range) || m.time_range.length !== 2 || !m.time_range.every(Number.isFinite)) bad("time_range must be two numbers");
+  if (!["f32", "f16", "q8", "q6", "q5", "q4", "k4", "k3"].includes(m.quant)) bad(`unknown quantisation mode \`${m.quant}\``);
+  if (!(Number.isFinite(m.dynamic_threshold) && m.dynamic_threshold >= 0 && m.dynamic_threshold <= 1)) bad("dynamic_threshold must lie in [0, 1]");
+  if (!(Number.isInteger(m.chunk_frames) && m.chunk_frames >= 1)) bad("chunk_frames must be an integer >= 1");
+  if (typeof m.encoder !== "string") bad("encoder must be a string");
   return layout;
 }
 
