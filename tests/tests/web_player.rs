@@ -33,7 +33,7 @@ fn repo_root() -> PathBuf {
 
 fn find_chromium() -> Option<PathBuf> {
     if let Some(p) = std::env::var_os("MSTH_CHROMIUM") {
-        return Some(PathBuf::from(p));
+        return Some(PathBuf::from(p)).filter(|p| p.is_file());
     }
     let fixed = Path::new("/usr/bin/chromium");
     if fixed.is_file() {
@@ -51,7 +51,7 @@ fn prerequisites() -> Result<PathBuf, String> {
         return Err("`node` is not installed".into());
     }
     let chromium = find_chromium()
-        .ok_or("Chromium is not installed (set MSTH_CHROMIUM or install the `chromium` package)")?;
+        .ok_or("Chromium is not installed (or MSTH_CHROMIUM names no file): install the `chromium` package")?;
     let web = repo_root().join("web");
     for dep in ["fzstd", "playwright-core"] {
         if !web
