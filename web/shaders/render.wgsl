@@ -24,20 +24,15 @@ const TAU_HIDDEN: f32 = 9.210340372; // ln(1 / HIDDEN_TRANSMITTANCE), HIDDEN_TRA
 
 // Hash primes for (x, y, z, t).
 fn prime(a: u32) -> u32 {
-    switch a {
-        case 0u: {
-            return 1u;
-        }
-        case 1u: {
-            return 2654435761u;
-        }
-        case 2u: {
-            return 805459861u;
-        }
-        default: {
-            return 3674653429u;
-        }
+    var p = 3674653429u;
+    if a == 0u {
+        p = 1u;
+    } else if a == 1u {
+        p = 2654435761u;
+    } else if a == 2u {
+        p = 805459861u;
     }
+    return p;
 }
 
 // ---- Uniforms -------------------------------------------------------------------------------
@@ -134,20 +129,20 @@ var<private> sh: array<f32, 16>;
 
 // ---- Small functions --------------------------------------------------------------------------
 
+// Loops are kept flat (one loop over (row, column) pairs rather than two nested ones) and
+// functions return once at their end. Mesa's lavapipe ends every loop of an invocation after
+// 65535 loop iterations in total, which a ray of a preset-sized model exceeds; the native host
+// refuses such models there with an error (player/src/gpu/layout.rs, loop_iterations_per_ray).
+
 fn clamp_unit(x: f32) -> f32 {
     // NaN maps to 0 (as the CPU's `if x >= 0 { min(x, 1) } else { 0 }`).
-    if x >= 0.0 {
-        return min(x, 1.0);
-    }
-    return 0.0;
+    return select(0.0, min(x, 1.0), x >= 0.0);
 }
 
 fn sigmoid(x: f32) -> f32 {
-    if x >= 0.0 {
-        return 1.0 / (1.0 + exp(-min(x, 80.0)));
-    }
-    let e = exp(max(x, -80.0));
-    return e / (1.0 + e);
+    // 1 / (1 + e^-x) for x >= 0, e^x / (1 + e^x) otherwise, as on the CPU.
+    let e = exp(-min(abs(x), 80.0));
+    return select(e / (1.0 + e), 1.0 / (1.0 + e), x >= 0.0);
 }
 
 fn trunc_exp(x: f32) -> f32 {
@@ -156,121 +151,108 @@ fn trunc_exp(x: f32) -> f32 {
 
 // exp(x) - 1 without cancellation for small |x|.
 fn expm1(x: f32) -> f32 {
-    if abs(x) < 1e-3 {
-        return x + x * x * 0.5 + x * x * x * (1.0 / 6.0);
-    }
-    return exp(x) - 1.0;
+    let series = x + x * x * 0.5 + x * x * x * (1.0 / 6.0);
+    return select(exp(x) - 1.0, series, abs(x) < 1e-3);
 }
 
 fn tau_of(sigma: f32, delta: f32) -> f32 {
     let t = sigma * delta;
-    if t >= 0.0 {
-        return min(t, 1e30);
-    }
-    return 0.0;
+    return select(0.0, min(t, 1e30), t >= 0.0);
 }
 
-fn is_finite(x: f32) -> bool {
-    return x == x && abs(x) <= 3.40282346e38;
+// A histogram weight as the CPU's `sanitize`: w when positive and finite, else 0 (NaN fails
+// both comparisons).
+fn sanitize(w: f32) -> f32 {
+    return select(0.0, w, w > 0.0 && w <= 3.4028235e38);
 }
 
 fn table(buf: u32, i: u32) -> f32 {
-    switch buf {
-        case 0u: {
-            return tab3[i];
-        }
-        case 1u: {
-            return tab4[i];
-        }
-        default: {
-            return rest[i];
-        }
+    var v: f32;
+    if buf == 0u {
+        v = tab3[i];
+    } else if buf == 1u {
+        v = tab4[i];
+    } else {
+        v = rest[i];
     }
+    return v;
 }
 
 // Spacing: normalised s in [0, 1] to distance.
 fn g_fwd(t: f32) -> f32 {
-    if t < 1.0 {
-        return 0.5 * t;
-    }
-    return 1.0 - 0.5 / t;
+    return select(1.0 - 0.5 / max(t, 1.0), 0.5 * t, t < 1.0);
 }
 
 fn g_inv(y: f32) -> f32 {
-    if y < 0.5 {
-        return 2.0 * y;
-    }
-    return 0.5 / max(1.0 - y, 1e-7);
+    return select(0.5 / max(1.0 - y, 1e-7), 2.0 * y, y < 0.5);
 }
 
 fn t_of_s(s: f32, near: f32, far: f32) -> f32 {
-    if !(far > near) {
-        return near;
+    var t = near + s * (far - near);
+    if model.sampler.z == 1u {
+        let unit = model.limits.w;
+        let a = g_fwd(near / unit);
+        let b = g_fwd(far / unit);
+        t = unit * g_inv(a + s * (b - a));
     }
-    if model.sampler.z == 0u {
-        return near + s * (far - near);
-    }
-    let unit = model.limits.w;
-    let a = g_fwd(near / unit);
-    let b = g_fwd(far / unit);
-    return unit * g_inv(a + s * (b - a));
+    return select(near, t, far > near);
 }
 
 // World point to the unit cube.
 fn to_unit(p: vec3<f32>) -> vec3<f32> {
+    var u: vec3<f32>;
     if model.sampler.w == 0u {
         let lo = model.bounds_a.xyz;
         let hi = model.bounds_b.xyz;
-        return clamp((p - lo) / (hi - lo), vec3<f32>(0.0), vec3<f32>(1.0));
-    }
-    let y = (p - model.bounds_a.xyz) / model.bounds_a.w;
-    let n = max(max(abs(y.x), abs(y.y)), abs(y.z));
-    var c: vec3<f32>;
-    if !is_finite(n) {
-        c = sign(y) * 2.0;
-    } else if n < 1.0 {
-        c = y;
+        u = (p - lo) / (hi - lo);
     } else {
-        c = (2.0 - 1.0 / n) * (y / n);
+        let y = (p - model.bounds_a.xyz) / model.bounds_a.w;
+        let n = max(max(abs(y.x), abs(y.y)), abs(y.z));
+        var c: vec3<f32>;
+        if !(n <= 3.4028235e38) {
+            c = sign(y) * 2.0;
+        } else if n < 1.0 {
+            c = y;
+        } else {
+            c = (2.0 - 1.0 / n) * (y / n);
+        }
+        u = (c + 2.0) * 0.25;
     }
-    return clamp((c + 2.0) * 0.25, vec3<f32>(0.0), vec3<f32>(1.0));
+    return clamp(u, vec3<f32>(0.0), vec3<f32>(1.0));
 }
 
 // Ray interval [near, far]; empty (near == far == 0) when the ray misses the box.
 fn ray_limits(o: vec3<f32>, d: vec3<f32>) -> vec2<f32> {
-    let near0 = model.limits.x;
-    let far0 = model.limits.y;
-    if model.sampler.w == 1u {
-        return vec2<f32>(near0, far0);
-    }
-    var near = near0;
-    var far = far0;
-    let lo = model.bounds_a.xyz;
-    let hi = model.bounds_b.xyz;
-    for (var a = 0u; a < 3u; a++) {
-        if d[a] == 0.0 {
-            // Parallel to the slab: inside (or on it) leaves the interval alone.
-            if o[a] < lo[a] || o[a] > hi[a] {
-                return vec2<f32>(0.0, 0.0);
+    var near = model.limits.x;
+    var far = model.limits.y;
+    if model.sampler.w == 0u {
+        var miss = false;
+        let lo = model.bounds_a.xyz;
+        let hi = model.bounds_b.xyz;
+        for (var a = 0u; a < 3u; a++) {
+            if d[a] == 0.0 {
+                // Parallel to the slab: inside (or on it) leaves the interval alone.
+                miss = miss || o[a] < lo[a] || o[a] > hi[a];
+            } else {
+                let inv = 1.0 / d[a];
+                let t0 = (lo[a] - o[a]) * inv;
+                let t1 = (hi[a] - o[a]) * inv;
+                let tmin = min(t0, t1);
+                let tmax = max(t0, t1);
+                if tmin > near {
+                    near = tmin;
+                }
+                if tmax < far {
+                    far = tmax;
+                }
             }
-            continue;
         }
-        let inv = 1.0 / d[a];
-        let t0 = (lo[a] - o[a]) * inv;
-        let t1 = (hi[a] - o[a]) * inv;
-        let tmin = min(t0, t1);
-        let tmax = max(t0, t1);
-        if tmin > near {
-            near = tmin;
-        }
-        if tmax < far {
-            far = tmax;
+        if miss || !(far > near) {
+            near = 0.0;
+            far = 0.0;
         }
     }
-    if far > near {
-        return vec2<f32>(near, far);
-    }
-    return vec2<f32>(0.0, 0.0);
+    return vec2<f32>(near, far);
 }
 
 fn sh4(d: vec3<f32>) {
@@ -330,10 +312,11 @@ fn mask_logit(off: u32, res: u32, x: vec3<f32>) -> f32 {
 
 // Mask value m in [0, 1] at a unit-cube point.
 fn mask_at(e: Encoding, x: vec3<f32>) -> f32 {
+    var m = e.consts.x;
     if e.mode.y == 1u {
-        return sigmoid(mask_logit(e.mode.w, e.mode.z, x));
+        m = sigmoid(mask_logit(e.mode.w, e.mode.z, x));
     }
-    return e.consts.x;
+    return m;
 }
 
 // Features of one level of one grid at point p (dims 3 or 4) into `out` (feat3 or feat4):
@@ -343,53 +326,55 @@ fn grid_level(g: Grid, l: u32, p: vec4<f32>, into4: bool) {
     let dims = g.shape.x;
     let nf = g.shape.y;
     let dense = lv.info.y == 1u;
-    var lo: vec4<u32>;
-    var hi: vec4<u32>;
-    var fr: vec4<f32>;
+    // Per-axis values in function-local arrays (no dynamic indexing of vector values).
+    var pa = array<f32, 4>(p.x, p.y, p.z, p.w);
+    var scale = array<f32, 4>(lv.scale.x, lv.scale.y, lv.scale.z, lv.scale.w);
+    var stride = array<u32, 4>(lv.stride.x, lv.stride.y, lv.stride.z, lv.stride.w);
+    var lo = array<u32, 4>(0u, 0u, 0u, 0u);
+    var hi = array<u32, 4>(0u, 0u, 0u, 0u);
+    var fr = array<f32, 4>(0.0, 0.0, 0.0, 0.0);
     for (var a = 0u; a < dims; a++) {
-        let q = clamp_unit(p[a]) * lv.scale[a] + 0.5;
+        let q = clamp_unit(pa[a]) * scale[a] + 0.5;
         let i = u32(q); // q >= 0.5: truncation is floor
         fr[a] = q - f32(i);
         if dense {
-            lo[a] = i * lv.stride[a];
-            hi[a] = lo[a] + lv.stride[a];
+            lo[a] = i * stride[a];
+            hi[a] = lo[a] + stride[a];
         } else {
             lo[a] = i * prime(a);
             hi[a] = (i + 1u) * prime(a);
         }
     }
+    var acc = array<f32, 8>(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+    let corners = 1u << dims;
+    // One flat loop over (corner, feature) pairs.
+    for (var t = 0u; t < corners * nf; t++) {
+        let c = t / nf;
+        let f = t % nf;
+        let u0 = (c & 1u) == 1u;
+        let u1 = (c & 2u) == 2u;
+        let u2 = (c & 4u) == 4u;
+        let u3 = (c & 8u) == 8u && dims == 4u;
+        var w = select(1.0 - fr[0], fr[0], u0) * select(1.0 - fr[1], fr[1], u1)
+            * select(1.0 - fr[2], fr[2], u2);
+        if dims == 4u {
+            w *= select(1.0 - fr[3], fr[3], u3);
+        }
+        let v3 = select(0u, select(lo[3], hi[3], u3), dims == 4u);
+        var row: u32;
+        if dense {
+            row = select(lo[0], hi[0], u0) + select(lo[1], hi[1], u1) + select(lo[2], hi[2], u2) + v3;
+        } else {
+            row = (select(lo[0], hi[0], u0) ^ select(lo[1], hi[1], u1) ^ select(lo[2], hi[2], u2) ^ v3)
+                & g.shape.w;
+        }
+        acc[f] += w * table(g.loc.x, lv.info.x + row * nf + f);
+    }
     for (var f = 0u; f < nf; f++) {
         if into4 {
-            feat4[f] = 0.0;
+            feat4[f] = acc[f];
         } else {
-            feat3[f] = 0.0;
-        }
-    }
-    let corners = 1u << dims;
-    for (var c = 0u; c < corners; c++) {
-        var row = 0u;
-        var w = 1.0;
-        for (var a = 0u; a < dims; a++) {
-            let up = ((c >> a) & 1u) == 1u;
-            let v = select(lo[a], hi[a], up);
-            if dense {
-                row += v;
-            } else {
-                row ^= v;
-            }
-            w *= select(1.0 - fr[a], fr[a], up);
-        }
-        if !dense {
-            row &= g.shape.w;
-        }
-        let base = lv.info.x + row * nf;
-        for (var f = 0u; f < nf; f++) {
-            let t = table(g.loc.x, base + f);
-            if into4 {
-                feat4[f] += w * t;
-            } else {
-                feat3[f] += w * t;
-            }
+            feat3[f] = acc[f];
         }
     }
 }
@@ -415,52 +400,61 @@ fn encode_into_hidden(e: Encoding, p: vec4<f32>, cutoff: f32, w_off: u32, hidden
     for (var j = 0u; j < hidden; j++) {
         hid[j] = 0.0;
     }
+    var venc = array<f32, 8>(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
     for (var l = 0u; l < levels; l++) {
+        for (var f = 0u; f < MAX_FEATURES; f++) {
+            feat3[f] = 0.0;
+            feat4[f] = 0.0;
+        }
         if use3 {
             grid_level(e.h3, l, p, false);
-        } else {
-            for (var f = 0u; f < nf; f++) {
-                feat3[f] = 0.0;
-            }
         }
         if use4 && !skip4 {
             grid_level(e.h4, l, p, true);
-        } else {
-            for (var f = 0u; f < nf; f++) {
-                feat4[f] = 0.0;
-            }
         }
         for (var f = 0u; f < nf; f++) {
             let a = feat3[f];
             let b = feat4[f];
-            var v: f32;
-            switch blend {
-                case 0u: {
-                    v = m * a + (1.0 - m) * b;
-                }
-                case 1u: {
-                    v = a + (1.0 - m) * b;
-                }
-                case 2u: {
-                    v = a + b;
-                }
-                case 3u: {
-                    v = b;
-                }
-                default: {
-                    v = a;
-                }
+            var v = a;
+            if blend == 0u {
+                v = m * a + (1.0 - m) * b;
+            } else if blend == 1u {
+                v = a + (1.0 - m) * b;
+            } else if blend == 2u {
+                v = a + b;
+            } else if blend == 3u {
+                v = b;
             }
-            let row = w_off + (l * nf + f) * hidden;
-            for (var j = 0u; j < hidden; j++) {
-                hid[j] += v * rest[row + j];
-            }
+            venc[f] = v;
+        }
+        // Rows l * nf .. (l + 1) * nf of W, one flat loop over (feature, hidden unit).
+        let row0 = w_off + l * nf * hidden;
+        for (var t = 0u; t < nf * hidden; t++) {
+            let j = t % hidden;
+            hid[j] += venc[t / hidden] * rest[row0 + t];
         }
     }
     for (var j = 0u; j < hidden; j++) {
         hid[j] = max(hid[j], 0.0);
     }
     return m;
+}
+
+// hid2[0..nout] = hid[0..nin] W (W [nin, nout] row-major at `off` in `rest`), ReLU when `relu`.
+// One flat loop over the weights, in the CPU's summation order.
+fn dense_layer(off: u32, nin: u32, nout: u32, relu: bool) {
+    for (var o = 0u; o < nout; o++) {
+        hid2[o] = 0.0;
+    }
+    for (var t = 0u; t < nin * nout; t++) {
+        let o = t % nout;
+        hid2[o] += hid[t / nout] * rest[off + t];
+    }
+    if relu {
+        for (var o = 0u; o < nout; o++) {
+            hid2[o] = max(hid2[o], 0.0);
+        }
+    }
 }
 
 // Proposal density at p.
@@ -485,12 +479,9 @@ fn field_density(p: vec4<f32>, cutoff: f32, m: ptr<function, f32>) -> f32 {
     let nout = d.w;
     *m = encode_into_hidden(model.field, p, cutoff, off, hidden);
     let w2 = off + d.y * hidden;
+    dense_layer(w2, hidden, nout, false);
     for (var o = 0u; o < nout; o++) {
-        var s = 0.0;
-        for (var j = 0u; j < hidden; j++) {
-            s += hid[j] * rest[w2 + j * nout + o];
-        }
-        dout[o] = s;
+        dout[o] = hid2[o];
     }
     return trunc_exp(dout[0]);
 }
@@ -508,47 +499,24 @@ fn field_color() -> vec3<f32> {
     for (var k = 0u; k < geo; k++) {
         cin[16u + k] = dout[1u + k];
     }
-    var off = c.x;
-    // First hidden layer.
-    for (var j = 0u; j < hidden; j++) {
-        var s = 0.0;
-        for (var i = 0u; i < nin; i++) {
-            s += cin[i] * rest[off + i * hidden + j];
-        }
-        hid[j] = max(s, 0.0);
+    for (var i = 0u; i < nin; i++) {
+        hid[i] = cin[i];
     }
+    var off = c.x;
+    dense_layer(off, nin, hidden, true);
     off += nin * hidden;
-    // Further hidden layers, alternating hid -> hid2 -> hid.
     for (var k = 1u; k < layers; k++) {
-        if (k & 1u) == 1u {
-            for (var j = 0u; j < hidden; j++) {
-                var s = 0.0;
-                for (var i = 0u; i < hidden; i++) {
-                    s += hid[i] * rest[off + i * hidden + j];
-                }
-                hid2[j] = max(s, 0.0);
-            }
-        } else {
-            for (var j = 0u; j < hidden; j++) {
-                var s = 0.0;
-                for (var i = 0u; i < hidden; i++) {
-                    s += hid2[i] * rest[off + i * hidden + j];
-                }
-                hid[j] = max(s, 0.0);
-            }
+        for (var j = 0u; j < hidden; j++) {
+            hid[j] = hid2[j];
         }
+        dense_layer(off, hidden, hidden, true);
         off += hidden * hidden;
     }
-    let last_in_hid2 = layers >= 2u && (layers & 1u) == 0u;
-    var rgb: vec3<f32>;
-    for (var o = 0u; o < 3u; o++) {
-        var s = 0.0;
-        for (var i = 0u; i < hidden; i++) {
-            let x = select(hid[i], hid2[i], last_in_hid2);
-            s += x * rest[off + i * 3u + o];
-        }
-        rgb[o] = sigmoid(s);
+    for (var j = 0u; j < hidden; j++) {
+        hid[j] = hid2[j];
     }
+    dense_layer(off, hidden, 3u, false);
+    let rgb = vec3<f32>(sigmoid(hid2[0]), sigmoid(hid2[1]), sigmoid(hid2[2]));
     return rgb;
 }
 
@@ -593,10 +561,9 @@ fn render_ray(o: vec3<f32>, d: vec3<f32>, time_in: f32) -> RayResult {
     let pad = model.limits.z;
     var total = 0.0;
     for (var k = 0u; k < np; k++) {
-        let w = w_prop[k];
-        total += select(0.0, w, w > 0.0 && is_finite(w)) + pad;
+        total += sanitize(w_prop[k]) + pad;
     }
-    if !(total > 0.0 && is_finite(total)) {
+    if !(total > 0.0 && total <= 3.4028235e38) {
         for (var k = 0u; k < m_out; k++) {
             s_main[k] = f32(k) / f32(max(m_out - 1u, 1u));
         }
@@ -604,15 +571,13 @@ fn render_ray(o: vec3<f32>, d: vec3<f32>, time_in: f32) -> RayResult {
         let inv = 1.0 / total;
         var bin = 0u;
         var cdf_lo = 0.0;
-        let w0 = w_prop[0];
-        var cdf_hi = (select(0.0, w0, w0 > 0.0 && is_finite(w0)) + pad) * inv;
+        var cdf_hi = (sanitize(w_prop[0]) + pad) * inv;
         for (var k = 0u; k < m_out; k++) {
             let u = f32(k) / f32(max(m_out - 1u, 1u));
             while u > cdf_hi && bin + 1u < np {
                 bin += 1u;
                 cdf_lo = cdf_hi;
-                let wb = w_prop[bin];
-                cdf_hi += (select(0.0, wb, wb > 0.0 && is_finite(wb)) + pad) * inv;
+                cdf_hi += (sanitize(w_prop[bin]) + pad) * inv;
             }
             let span = cdf_hi - cdf_lo;
             var frac = 0.0;
@@ -692,24 +657,23 @@ fn invocation(gid: vec3<u32>, groups: vec3<u32>) -> u32 {
 @compute @workgroup_size(64)
 fn render(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let i = invocation(gid, groups);
-    if i >= view.size.z {
-        return;
+    if i < view.size.z {
+        let flags = view.size.w;
+        var pixel = i;
+        if (flags & 1u) == 1u {
+            pixel = list[i];
+        }
+        let out = select(pixel, i, (flags & 2u) == 2u);
+        let o = view.c2w[3].xyz;
+        let d = pixel_ray_dir(pixel);
+        let lim = ray_limits(o, d);
+        if !(lim.y > lim.x) && model.background.w == 1.0 {
+            frame[out] = vec4<f32>(model.background.xyz, lim.y);
+        } else {
+            let r = render_ray(o, d, view.time.x);
+            frame[out] = vec4<f32>(r.rgb, r.visible_depth);
+        }
     }
-    let flags = view.size.w;
-    var pixel = i;
-    if (flags & 1u) == 1u {
-        pixel = list[i];
-    }
-    let out = select(pixel, i, (flags & 2u) == 2u);
-    let o = view.c2w[3].xyz;
-    let d = pixel_ray_dir(pixel);
-    let lim = ray_limits(o, d);
-    if !(lim.y > lim.x) && model.background.w == 1.0 {
-        frame[out] = vec4<f32>(model.background.xyz, lim.y);
-        return;
-    }
-    let r = render_ray(o, d, view.time.x);
-    frame[out] = vec4<f32>(r.rgb, r.visible_depth);
 }
 
 // Evaluates the fields at view.size.z points, exactly (no static cutoff). Point j is 8 words of
@@ -719,22 +683,21 @@ fn render(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
 @compute @workgroup_size(64)
 fn eval_points(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let j = invocation(gid, groups);
-    if j >= view.size.z {
-        return;
+    if j < view.size.z {
+        var v: array<f32, 8>;
+        for (var k = 0u; k < 8u; k++) {
+            v[k] = bitcast<f32>(list[j * 8u + k]);
+        }
+        let p = vec4<f32>(v[0], v[1], v[2], v[3]);
+        if v[7] == 1.0 {
+            let sigma = proposal_sigma(p, 0.0);
+            frame[j] = vec4<f32>(mask_at(model.prop, p.xyz), 0.0, 0.0, sigma);
+        } else {
+            sh4(vec3<f32>(v[4], v[5], v[6]));
+            var m = 1.0;
+            let sigma = field_density(p, 0.0, &m);
+            let c = field_color();
+            frame[j] = vec4<f32>(c, sigma);
+        }
     }
-    var v: array<f32, 8>;
-    for (var k = 0u; k < 8u; k++) {
-        v[k] = bitcast<f32>(list[j * 8u + k]);
-    }
-    let p = vec4<f32>(v[0], v[1], v[2], v[3]);
-    if v[7] == 1.0 {
-        let sigma = proposal_sigma(p, 0.0);
-        frame[j] = vec4<f32>(mask_at(model.prop, p.xyz), 0.0, 0.0, sigma);
-        return;
-    }
-    sh4(vec3<f32>(v[4], v[5], v[6]));
-    var m = 1.0;
-    let sigma = field_density(p, 0.0, &m);
-    let c = field_color();
-    frame[j] = vec4<f32>(c, sigma);
 }
