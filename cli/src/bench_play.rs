@@ -42,6 +42,12 @@ pub struct BenchPlayArgs {
     /// playbacks with the scene's exact renders (ground truth) at the same cameras and times.
     #[arg(long)]
     pub builtin_truth: bool,
+    /// Render on the CPU even when a GPU adapter exists.
+    #[arg(long, conflicts_with = "gpu")]
+    pub cpu: bool,
+    /// Render on the GPU (any adapter, lavapipe included); fails when there is none.
+    #[arg(long)]
+    pub gpu: bool,
     /// Write the results as JSON here.
     #[arg(long)]
     pub json: Option<PathBuf>,
@@ -112,6 +118,7 @@ pub fn run(a: BenchPlayArgs) -> Result<()> {
     opts.frames = a.frames;
     opts.video = false;
     opts.section_timeout = Duration::from_secs(600);
+    opts.backend = crate::play::backend_choice(a.cpu, a.gpu);
     if let Some(th) = a.static_threshold {
         opts.render.static_threshold = th;
     }
@@ -122,6 +129,15 @@ pub fn run(a: BenchPlayArgs) -> Result<()> {
         opts.render.probe_tolerance = t;
     }
     let (inc, inc_frames) = run_play(&opts)?;
+    println!(
+        "renderer: {} ({}){}",
+        inc.backend.kind,
+        inc.backend.device,
+        inc.backend
+            .note
+            .as_ref()
+            .map_or(String::new(), |n| format!("; {n}"))
+    );
     let mut full_opts = opts.clone();
     full_opts.render.incremental = false;
     let (full, full_frames) = run_play(&full_opts)?;
@@ -196,6 +212,7 @@ pub fn run(a: BenchPlayArgs) -> Result<()> {
             "psnr_vs_truth_incremental": truth_psnr.map(|t| t.0),
             "psnr_vs_truth_full": truth_psnr.map(|t| t.1),
             "file": a.file, "size": [size.0, size.1], "threads": rayon::current_num_threads(),
+            "backend": inc.backend.kind, "device": inc.backend.device, "backend_note": inc.backend.note,
             "download_seconds": download, "file_bytes": bytes.len(),
             "time_to_first_frame": inc.time_to_first_frame,
             "full_fps": full_fps, "incremental_fps": inc_fps,

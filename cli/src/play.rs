@@ -8,7 +8,9 @@ use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use msth_player::{play, FrameRecord, HttpOptions, PlayOptions, PlayReport, RenderSettings};
+use msth_player::{
+    play, BackendChoice, FrameRecord, HttpOptions, PlayOptions, PlayReport, RenderSettings,
+};
 
 #[derive(Args)]
 pub struct PlayArgs {
@@ -36,6 +38,14 @@ pub struct PlayArgs {
     /// No MP4, PNG frames only.
     #[arg(long)]
     pub no_video: bool,
+    /// Render on the CPU even when a GPU adapter exists.
+    #[arg(long, conflicts_with = "gpu")]
+    pub cpu: bool,
+    /// Render on the GPU (any adapter, software ones such as Mesa's lavapipe included); fails
+    /// when there is none. Default: the GPU when a hardware adapter exists, else the CPU
+    /// (MSTH_GPU_SOFTWARE=1 lets the automatic choice use a software adapter).
+    #[arg(long)]
+    pub gpu: bool,
     /// Render every frame in full (no static-ray cache).
     #[arg(long)]
     pub no_incremental: bool,
@@ -110,6 +120,7 @@ pub fn options(a: &PlayArgs) -> Result<PlayOptions> {
     o.out = a.out.clone();
     o.video = !a.no_video;
     o.render.incremental = !a.no_incremental;
+    o.backend = backend_choice(a.cpu, a.gpu);
     o.render.static_threshold = a.static_threshold;
     if a.probes > 64 {
         bail!("--probes {}: at most 64", a.probes);
@@ -130,6 +141,15 @@ pub fn options(a: &PlayArgs) -> Result<PlayOptions> {
     Ok(o)
 }
 
+/// The backend `--cpu` / `--gpu` ask for.
+pub fn backend_choice(cpu: bool, gpu: bool) -> BackendChoice {
+    match (cpu, gpu) {
+        (true, _) => BackendChoice::Cpu,
+        (false, true) => BackendChoice::Gpu,
+        (false, false) => BackendChoice::Auto,
+    }
+}
+
 fn frame_line(r: &FrameRecord, n: usize) -> String {
     let s = &r.stats;
     format!(
@@ -148,6 +168,15 @@ fn summary(r: &PlayReport, threshold: f32) {
     let fps = |v: Option<f64>| v.map_or("-".to_string(), |f| format!("{f:.1}"));
     let n = r.frames.len();
     let rays: usize = r.frames.iter().map(|f| f.stats.rays_rendered).sum();
+    println!(
+        "renderer: {} ({}){}",
+        r.backend.kind,
+        r.backend.device,
+        r.backend
+            .note
+            .as_ref()
+            .map_or(String::new(), |n| format!("; {n}"))
+    );
     println!(
         "{n} frames in {:.2} s; time to first frame {:.3} s",
         r.seconds, r.time_to_first_frame

@@ -5,17 +5,23 @@
 //!   playhead on, on a background thread; seek by asking for another time;
 //! - [`render`]: CPU rendering of the decoded model, incremental for a fixed camera (static rays
 //!   cached, dynamic rays re-rendered);
+//! - [`gpu`]: the same on a GPU through wgpu, with the WGSL kernels of `web/shaders/`;
+//! - [`backend`]: the choice between the two (automatic, `--cpu`, `--gpu`);
 //! - [`path`]: camera paths (fixed, orbit, spiral, the file's cameras, JSON);
 //! - [`play`]: all of it together, writing PNG frames and an MP4.
 //!
 //! The player links the codec and the field math, never the trainer.
 
+pub mod backend;
+pub mod gpu;
 pub mod path;
 pub mod play;
 pub mod render;
 pub mod source;
 pub mod stream;
 
+pub use backend::{BackendChoice, BackendInfo, FrameRenderer};
+pub use gpu::{GpuError, GpuRenderer};
 pub use path::CameraPath;
 pub use play::{play, FrameRecord, PlayError, PlayOptions, PlayReport};
 pub use render::{Frame, FrameStats, RenderSettings, Renderer};

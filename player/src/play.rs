@@ -7,8 +7,10 @@ use std::time::{Duration, Instant};
 
 use msth_codec::Limits;
 
+use crate::backend::{BackendChoice, BackendInfo, FrameRenderer};
+use crate::gpu::GpuError;
 use crate::path::CameraPath;
-use crate::render::{Frame, FrameStats, RenderSettings, Renderer};
+use crate::render::{Frame, FrameStats, RenderSettings};
 use crate::source::{self, HttpOptions, TransferStats};
 use crate::stream::{ModelStream, StreamError};
 
@@ -32,6 +34,8 @@ pub struct PlayOptions {
     /// Make an MP4 when `ffmpeg` is installed.
     pub video: bool,
     pub render: RenderSettings,
+    /// CPU or GPU renderer ([`BackendChoice::Auto`]: the GPU when a hardware adapter exists).
+    pub backend: BackendChoice,
     pub http: HttpOptions,
     pub limits: Limits,
     /// Longest wait for any one section to arrive.
@@ -50,6 +54,7 @@ impl PlayOptions {
             out: None,
             video: true,
             render: RenderSettings::default(),
+            backend: BackendChoice::Auto,
             http: HttpOptions::default(),
             limits: Limits::default(),
             section_timeout: Duration::from_secs(120),
@@ -63,6 +68,8 @@ pub enum PlayError {
     Stream(#[from] StreamError),
     #[error("{0}")]
     Options(String),
+    #[error(transparent)]
+    Gpu(#[from] GpuError),
     #[error("{path}: {error}")]
     Io {
         path: PathBuf,
@@ -96,6 +103,8 @@ pub struct PlayReport {
     pub video: Option<PathBuf>,
     /// Why no video was made, when one was asked for.
     pub video_note: Option<String>,
+    /// The renderer used (CPU or GPU, and which adapter).
+    pub backend: BackendInfo,
 }
 
 impl PlayReport {
@@ -166,7 +175,7 @@ pub fn play(
         })?;
     }
     stream.seek(t0);
-    let mut renderer = Renderer::new(&meta.model, opts.render);
+    let (mut renderer, backend) = FrameRenderer::new(&meta.model, opts.render, opts.backend)?;
     let mut params = Vec::new();
     let mut loaded: Option<Option<usize>> = None;
     let mut records = Vec::with_capacity(n);
@@ -196,7 +205,7 @@ pub fn play(
                 stream.seek(next);
             }
         }
-        let frame = renderer.render(&camera, time, &params);
+        let frame = renderer.render(&camera, time, &params)?;
         if first_frame.is_none() {
             first_frame = Some(start.elapsed().as_secs_f64());
         }
@@ -235,6 +244,7 @@ pub fn play(
         dynamic_fraction,
         video,
         video_note,
+        backend,
     })
 }
 

@@ -325,17 +325,31 @@ impl Renderer {
     /// Sorts the first frame's rays into static (cached) and dynamic (re-rendered): the mask
     /// test, then the probes.
     fn classify(&self, params: &[f32], p: Pending, cache: &mut Cache) {
-        let steps = self.mask_steps();
-        let threshold = self.settings.static_threshold;
-        let mut flags: Vec<bool> = p
-            .rays
-            .par_iter()
-            .zip(&p.visible_depth)
-            .map(|(r, &end)| {
-                ray_is_static(&self.cfg, &self.layout, params, r, end, threshold, steps)
-            })
-            .collect();
-        self.verify_with_probes(params, &p.rays, &p.rgb, &mut flags);
+        let flags = classify_static(
+            &self.cfg,
+            &self.layout,
+            params,
+            &self.settings,
+            &p.rays,
+            &p.rgb,
+            &p.visible_depth,
+            |idx, t| {
+                let probe: Vec<TimedRay> = idx
+                    .iter()
+                    .map(|&i| TimedRay {
+                        time: t,
+                        ..p.rays[i]
+                    })
+                    .collect();
+                Ok::<_, std::convert::Infallible>(
+                    render_rays(&self.cfg, &self.layout, params, &probe).rgb,
+                )
+            },
+        );
+        let flags = match flags {
+            Ok(f) => f,
+            Err(never) => match never {},
+        };
         for ((&px, r), is_static) in p.pixels.iter().zip(&p.rays).zip(flags) {
             if !is_static {
                 cache.dynamic.push(px);
@@ -343,47 +357,59 @@ impl Renderer {
             }
         }
     }
+}
 
-    /// Renders the rays still marked static at the probe times and unmarks those whose colour
-    /// moves by more than the tolerance from `rgb0`.
-    fn verify_with_probes(
-        &self,
-        params: &[f32],
-        rays: &[TimedRay],
-        rgb0: &[[f32; 3]],
-        flags: &mut [bool],
-    ) {
-        let k = self.settings.probes;
-        for j in 0..k {
-            let t = if k > 1 {
-                j as f32 / (k - 1) as f32
-            } else {
-                0.5
-            };
-            let idx: Vec<usize> = (0..rays.len()).filter(|&i| flags[i]).collect();
-            if idx.is_empty() {
-                return;
-            }
-            let probe: Vec<TimedRay> = idx
-                .iter()
-                .map(|&i| TimedRay { time: t, ..rays[i] })
-                .collect();
-            let out = render_rays(&self.cfg, &self.layout, params, &probe);
-            for (&i, c) in idx.iter().zip(&out.rgb) {
-                let moved =
-                    (0..3).any(|ch| (c[ch] - rgb0[i][ch]).abs() > self.settings.probe_tolerance);
-                if moved {
-                    flags[i] = false;
-                }
+/// Mask lookups per ray for the static test ([`ray_is_static`]) under `settings`.
+pub fn mask_steps(cfg: &ModelConfig, settings: &RenderSettings) -> usize {
+    let cells = cfg.field.encoding.mask_resolution.max(1) as f32;
+    // The longest straight path through the unit cube is sqrt(3) long.
+    (cells * 3f32.sqrt() * settings.mask_steps_per_cell).ceil() as usize
+}
+
+/// Sorts a first frame's rays into static (`true`: cached) and dynamic, as every renderer of the
+/// player does: the mask test along each ray's visible segment ([`ray_is_static`], up to
+/// `visible_depth`), then the probes. `render(indices, time)` renders the rays `rays[i]` for the
+/// given indices at `time` and returns their colours in order (the backend's own renderer);
+/// a ray still marked static whose colour moves by more than the tolerance from `rgb0` at any
+/// probe time becomes dynamic.
+#[allow(clippy::too_many_arguments)]
+pub fn classify_static<E>(
+    cfg: &ModelConfig,
+    layout: &ModelLayout,
+    params: &[f32],
+    settings: &RenderSettings,
+    rays: &[TimedRay],
+    rgb0: &[[f32; 3]],
+    visible_depth: &[f32],
+    mut render: impl FnMut(&[usize], f32) -> Result<Vec<[f32; 3]>, E>,
+) -> Result<Vec<bool>, E> {
+    let steps = mask_steps(cfg, settings);
+    let threshold = settings.static_threshold;
+    let mut flags: Vec<bool> = rays
+        .par_iter()
+        .zip(visible_depth)
+        .map(|(r, &end)| ray_is_static(cfg, layout, params, r, end, threshold, steps))
+        .collect();
+    let k = settings.probes;
+    for j in 0..k {
+        let t = if k > 1 {
+            j as f32 / (k - 1) as f32
+        } else {
+            0.5
+        };
+        let idx: Vec<usize> = (0..rays.len()).filter(|&i| flags[i]).collect();
+        if idx.is_empty() {
+            break;
+        }
+        let out = render(&idx, t)?;
+        for (&i, c) in idx.iter().zip(&out) {
+            let moved = (0..3).any(|ch| (c[ch] - rgb0[i][ch]).abs() > settings.probe_tolerance);
+            if moved {
+                flags[i] = false;
             }
         }
     }
-
-    fn mask_steps(&self) -> usize {
-        let cells = self.cfg.field.encoding.mask_resolution.max(1) as f32;
-        // The longest straight path through the unit cube is sqrt(3) long.
-        (cells * 3f32.sqrt() * self.settings.mask_steps_per_cell).ceil() as usize
-    }
+    Ok(flags)
 }
 
 #[cfg(test)]

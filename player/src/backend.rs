@@ -1,0 +1,114 @@
+//! The choice between the CPU renderer ([`crate::render::Renderer`]) and the GPU renderer
+//! ([`crate::gpu::GpuRenderer`]), behind one [`FrameRenderer`].
+//!
+//! - [`BackendChoice::Auto`] (the default): the GPU when a hardware adapter exists (discrete,
+//!   integrated or virtual GPU), else the CPU. Software adapters (Mesa's lavapipe, WARP) render
+//!   on the CPU cores anyway and are slower than the CPU renderer, so the automatic choice skips
+//!   them unless `MSTH_GPU_SOFTWARE=1`; when the GPU cannot render a model (limits), it falls
+//!   back to the CPU and says why ([`FrameRenderer::note`]).
+//! - [`BackendChoice::Cpu`] (`--cpu`): the CPU renderer.
+//! - [`BackendChoice::Gpu`] (`--gpu`): any adapter, software ones included; an error when there
+//!   is none or it cannot render the model.
+
+use crate::gpu::{AdapterPolicy, GpuContext, GpuError, GpuRenderer};
+use crate::render::{Frame, RenderSettings, Renderer};
+use msth_core::config::ModelConfig;
+use msth_core::Camera;
+
+/// Which renderer to use.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum BackendChoice {
+    #[default]
+    Auto,
+    Cpu,
+    Gpu,
+}
+
+/// A CPU or GPU renderer with the same interface.
+pub enum FrameRenderer {
+    Cpu(Renderer),
+    Gpu(Box<GpuRenderer>),
+}
+
+/// Which backend a playback used, for reports.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct BackendInfo {
+    /// `"cpu"` or `"gpu"`.
+    pub kind: &'static str,
+    /// The GPU adapter (name, API, device type), or the CPU threads.
+    pub device: String,
+    /// Why the automatic choice fell back to the CPU, when it did.
+    pub note: Option<String>,
+}
+
+impl FrameRenderer {
+    /// A renderer of `cfg` on the backend `choice` selects.
+    pub fn new(
+        cfg: &ModelConfig,
+        settings: RenderSettings,
+        choice: BackendChoice,
+    ) -> Result<(Self, BackendInfo), GpuError> {
+        let cpu = |note: Option<String>| {
+            (
+                FrameRenderer::Cpu(Renderer::new(cfg, settings)),
+                BackendInfo {
+                    kind: "cpu",
+                    device: format!("{} threads", rayon::current_num_threads()),
+                    note,
+                },
+            )
+        };
+        let gpu = |policy| -> Result<(Self, BackendInfo), GpuError> {
+            let ctx = GpuContext::open(policy)?;
+            let device = ctx.adapter_name();
+            let r = GpuRenderer::new(ctx, cfg, settings)?;
+            Ok((
+                FrameRenderer::Gpu(Box::new(r)),
+                BackendInfo {
+                    kind: "gpu",
+                    device,
+                    note: None,
+                },
+            ))
+        };
+        match choice {
+            BackendChoice::Cpu => Ok(cpu(None)),
+            BackendChoice::Gpu => gpu(AdapterPolicy::any()),
+            BackendChoice::Auto => match gpu(AdapterPolicy::automatic()) {
+                Ok(r) => Ok(r),
+                Err(GpuError::NoAdapter(_)) => Ok(cpu(None)),
+                Err(e) => Ok(cpu(Some(format!("GPU not used: {e}")))),
+            },
+        }
+    }
+
+    /// Renders one frame (see [`Renderer::render`]).
+    pub fn render(
+        &mut self,
+        camera: &Camera,
+        time: f32,
+        params: &[f32],
+    ) -> Result<Frame, GpuError> {
+        match self {
+            FrameRenderer::Cpu(r) => Ok(r.render(camera, time, params)),
+            FrameRenderer::Gpu(r) => r.render(camera, time, params),
+        }
+    }
+
+    /// Fraction of the cached camera's pixels re-rendered each frame.
+    pub fn dynamic_fraction(&self) -> Option<f32> {
+        match self {
+            FrameRenderer::Cpu(r) => r.dynamic_fraction(),
+            FrameRenderer::Gpu(r) => r.dynamic_fraction(),
+        }
+    }
+
+    /// Forgets the static cache.
+    pub fn invalidate(&mut self) {
+        match self {
+            FrameRenderer::Cpu(r) => r.invalidate(),
+            FrameRenderer::Gpu(r) => r.invalidate(),
+        }
+    }
+}

@@ -1,0 +1,447 @@
+//! The host side of the WGSL kernels' bindings (`web/shaders/render.wgsl`): the `Model` and
+//! `View` uniforms byte for byte, and the split of the flat parameter buffer into the three
+//! storage buffers the kernels read (`tab3`, `tab4`, `rest`). `web/shaders/README.md` documents
+//! the same layout for the browser; keep the two in step.
+
+use std::ops::Range;
+
+use bytemuck::{Pod, Zeroable};
+use msth_core::config::{Background, BlendMode, ModelConfig};
+use msth_core::field::{EncodingLayout, ModelLayout};
+use msth_core::grid::GridLayout;
+use msth_core::pipeline::{spacing_unit, RENDER_STATIC_CUTOFF};
+use msth_core::sampling::Spacing;
+use msth_core::{Camera, SceneBounds};
+
+/// Largest number of proposal samples per ray the kernels hold (`MAX_PROPOSAL_SAMPLES`).
+pub const MAX_PROPOSAL_SAMPLES: usize = 256;
+/// Largest number of main samples per ray (`MAX_SAMPLES`).
+pub const MAX_SAMPLES: usize = 128;
+/// Largest MLP hidden width (`MAX_HIDDEN`).
+pub const MAX_HIDDEN: usize = 128;
+/// Largest number of geometry features passed from the density to the colour decoder.
+pub const MAX_GEO: usize = 31;
+/// Level slots in the `Model` uniform (4 grids of at most 32 levels).
+pub const LEVEL_SLOTS: usize = 128;
+/// Invocations per workgroup of every entry point.
+pub const WORKGROUP: u32 = 64;
+
+/// One grid level (48 bytes): `scale`, dense `stride`, `info = (offset, dense, rows, 0)`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct LevelU {
+    pub scale: [f32; 4],
+    pub stride: [u32; 4],
+    pub info: [u32; 4],
+}
+
+/// One grid (32 bytes): `shape = (dims, features, levels, hash mask)`,
+/// `loc = (buffer, first level slot, present, 0)`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct GridU {
+    pub shape: [u32; 4],
+    pub loc: [u32; 4],
+}
+
+/// One masked encoding (112 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct EncodingU {
+    /// `(blend, has mask, mask resolution, mask offset in rest)`.
+    pub mode: [u32; 4],
+    /// `(output dim, 0, 0, 0)`.
+    pub dims: [u32; 4],
+    /// `(mask value without a mask, static cutoff, 0, 0)`.
+    pub consts: [f32; 4],
+    pub h3: GridU,
+    pub h4: GridU,
+}
+
+/// The `Model` uniform (6496 bytes): everything that is fixed for a model.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+pub struct ModelU {
+    pub sampler: [u32; 4],
+    pub limits: [f32; 4],
+    pub bounds_a: [f32; 4],
+    pub bounds_b: [f32; 4],
+    pub background: [f32; 4],
+    pub density: [u32; 4],
+    pub color: [u32; 4],
+    pub proposal: [u32; 4],
+    pub field: EncodingU,
+    pub prop: EncodingU,
+    pub levels: [LevelU; LEVEL_SLOTS],
+}
+
+/// The `View` uniform (112 bytes): camera, invocation count and flags, time.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct ViewU {
+    pub c2w: [[f32; 4]; 4],
+    pub intr: [f32; 4],
+    pub size: [u32; 4],
+    pub time: [f32; 4],
+}
+
+/// `View.size.w` bit: invocation `i` renders pixel `list[i]` (otherwise pixel `i`).
+pub const FLAG_LIST: u32 = 1;
+/// `View.size.w` bit: the result goes to `frame[i]` (otherwise `frame[pixel]`).
+pub const FLAG_COMPACT: u32 = 2;
+
+impl ViewU {
+    /// The view of `camera` at `time` for `count` invocations with `flags`.
+    pub fn new(camera: &Camera, time: f32, count: u32, flags: u32) -> Self {
+        ViewU {
+            c2w: camera.world_from_camera.to_cols_array_2d(),
+            intr: [camera.fx, camera.fy, camera.cx, camera.cy],
+            size: [camera.width, camera.height, count, flags],
+            time: [time, 0.0, 0.0, 0.0],
+        }
+    }
+}
+
+/// Where the three storage buffers come from in the flat parameter buffer.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ParamSplit {
+    /// `field.h3` (empty: the kernels get a 4-byte placeholder).
+    pub tab3: Range<usize>,
+    /// `field.h4` (empty likewise).
+    pub tab4: Range<usize>,
+    /// Everything after the field's hash tables.
+    pub rest: Range<usize>,
+}
+
+/// The uniforms and buffer split of one model, or why the kernels cannot render it.
+#[derive(Clone, Debug)]
+pub struct GpuModel {
+    pub model: ModelU,
+    pub split: ParamSplit,
+}
+
+fn blend_code(b: BlendMode) -> u32 {
+    match b {
+        BlendMode::Mst => 0,
+        BlendMode::Mt => 1,
+        BlendMode::Add => 2,
+        BlendMode::FourD => 3,
+        BlendMode::Static => 4,
+    }
+}
+
+/// Offsets must fit the kernels' u32 indices.
+fn u32_of(v: usize, what: &str) -> Result<u32, String> {
+    u32::try_from(v)
+        .map_err(|_| format!("{what} ({v}) does not fit the GPU kernels' 32-bit indices"))
+}
+
+impl GpuModel {
+    /// Builds the uniforms of `cfg` (validated) and checks the kernels' limits; the error says
+    /// which limit a model exceeds.
+    pub fn new(cfg: &ModelConfig) -> Result<Self, String> {
+        cfg.validate()?;
+        let layout = ModelLayout::new(cfg);
+        let (np, nf) = (cfg.sampler.num_proposal_samples, cfg.sampler.num_samples);
+        let check = |what: &str, v: usize, max: usize| {
+            if v > max {
+                Err(format!(
+                    "{what} is {v}; the GPU renderer supports at most {max} (use --cpu)"
+                ))
+            } else {
+                Ok(())
+            }
+        };
+        check("sampler.num_proposal_samples", np, MAX_PROPOSAL_SAMPLES)?;
+        check("sampler.num_samples", nf, MAX_SAMPLES)?;
+        check("field.density_hidden", cfg.field.density_hidden, MAX_HIDDEN)?;
+        check("field.color_hidden", cfg.field.color_hidden, MAX_HIDDEN)?;
+        check("proposal.hidden", cfg.proposal.hidden, MAX_HIDDEN)?;
+        check("field.geo_features", cfg.field.geo_features, MAX_GEO)?;
+        if cfg.field.color_layers == 0 {
+            return Err("field.color_layers is 0; the GPU renderer needs at least one hidden colour layer (use --cpu)".into());
+        }
+        let split = Self::split(&layout)?;
+        let mut levels = [LevelU::default(); LEVEL_SLOTS];
+        let mut next_slot = 0usize;
+        let field = encoding_u(
+            &layout.field.encoding,
+            &split,
+            [0, 1],
+            &mut levels,
+            &mut next_slot,
+        )?;
+        let prop = encoding_u(
+            &layout.proposal.field.encoding,
+            &split,
+            [2, 2],
+            &mut levels,
+            &mut next_slot,
+        )?;
+        let rest0 = split.rest.start;
+        let rel = |r: &Range<usize>, what: &str| u32_of(r.start - rest0, what);
+        let (dm, dr) = &layout.field.density;
+        let (cm, cr) = &layout.field.color;
+        let (pm, pr) = &layout.proposal.field.density;
+        let (bounds_kind, bounds_a, bounds_b) = match cfg.bounds {
+            SceneBounds::Box { min, max } => {
+                (0, [min.x, min.y, min.z, 0.0], [max.x, max.y, max.z, 0.0])
+            }
+            SceneBounds::Contracted { center, radius } => {
+                (1, [center.x, center.y, center.z, radius], [0.0; 4])
+            }
+        };
+        let background = match cfg.background {
+            Background::Color { rgb } => [rgb[0], rgb[1], rgb[2], 1.0],
+            Background::LastSample => [0.0; 4],
+        };
+        let model = ModelU {
+            sampler: [
+                np as u32,
+                nf as u32,
+                match cfg.sampler.spacing {
+                    Spacing::Linear => 0,
+                    Spacing::LinDisp => 1,
+                },
+                bounds_kind,
+            ],
+            limits: [
+                cfg.sampler.near,
+                cfg.sampler.far,
+                cfg.sampler.histogram_padding,
+                spacing_unit(&cfg.bounds),
+            ],
+            bounds_a,
+            bounds_b,
+            background,
+            density: [
+                rel(dr, "field.density_mlp offset")?,
+                dm.dims[0] as u32,
+                dm.dims[1] as u32,
+                dm.dims[2] as u32,
+            ],
+            color: [
+                rel(cr, "field.color_mlp offset")?,
+                cfg.field.color_hidden as u32,
+                cfg.field.color_layers as u32,
+                cfg.field.geo_features as u32,
+            ],
+            proposal: [
+                rel(pr, "proposal.density_mlp offset")?,
+                pm.dims[0] as u32,
+                pm.dims[1] as u32,
+                0,
+            ],
+            field,
+            prop,
+            levels,
+        };
+        debug_assert_eq!(cm.dims.len(), cfg.field.color_layers + 2);
+        Ok(GpuModel { model, split })
+    }
+
+    fn split(layout: &ModelLayout) -> Result<ParamSplit, String> {
+        let enc = &layout.field.encoding;
+        let range = |g: &Option<(GridLayout, Range<usize>)>| {
+            g.as_ref().map(|(_, r)| r.clone()).unwrap_or(0..0)
+        };
+        let (tab3, tab4) = (range(&enc.h3), range(&enc.h4));
+        let rest_start = tab3.end.max(tab4.end);
+        // The field's tables come first in the flat buffer (docs/format.md §7); everything the
+        // kernels read from `rest` must lie after them.
+        let others = layout
+            .params
+            .entries
+            .iter()
+            .filter(|e| e.name != "field.h3" && e.name != "field.h4");
+        for e in others {
+            if e.offset < rest_start {
+                return Err(format!(
+                    "parameter `{}` lies before the field's hash tables; the GPU renderer cannot split this layout",
+                    e.name
+                ));
+            }
+        }
+        Ok(ParamSplit {
+            tab3,
+            tab4,
+            rest: rest_start..layout.params.total,
+        })
+    }
+
+    /// Byte sizes of the three parameter buffers (`tab3`, `tab4`, `rest`), placeholders included.
+    pub fn buffer_sizes(&self) -> [(&'static str, u64); 3] {
+        let bytes = |r: &Range<usize>| (r.len().max(1) * 4) as u64;
+        [
+            ("field.h3 table (tab3)", bytes(&self.split.tab3)),
+            ("field.h4 table (tab4)", bytes(&self.split.tab4)),
+            (
+                "decoders, mask and proposal field (rest)",
+                bytes(&self.split.rest),
+            ),
+        ]
+    }
+}
+
+fn encoding_u(
+    e: &EncodingLayout,
+    split: &ParamSplit,
+    buffers: [u32; 2],
+    levels: &mut [LevelU; LEVEL_SLOTS],
+    next_slot: &mut usize,
+) -> Result<EncodingU, String> {
+    let rest0 = split.rest.start;
+    let mut grid = |g: &Option<(GridLayout, Range<usize>)>, buffer: u32| -> Result<GridU, String> {
+        let Some((gl, r)) = g else {
+            return Ok(GridU::default());
+        };
+        // Field tables start their own buffers; proposal tables live in `rest`.
+        let base = if buffer == 2 { r.start - rest0 } else { 0 };
+        let first = *next_slot;
+        if first + gl.levels.len() > LEVEL_SLOTS {
+            return Err("too many grid levels for the GPU renderer".into());
+        }
+        for (k, lv) in gl.levels.iter().enumerate() {
+            levels[first + k] = LevelU {
+                scale: lv.scale,
+                stride: lv.stride,
+                info: [
+                    u32_of(base + lv.offset, "grid table offset")?,
+                    lv.dense as u32,
+                    u32_of(lv.rows, "grid rows")?,
+                    0,
+                ],
+            };
+        }
+        *next_slot += gl.levels.len();
+        Ok(GridU {
+            shape: [
+                gl.dims as u32,
+                gl.features as u32,
+                gl.levels.len() as u32,
+                (gl.table_size - 1) as u32,
+            ],
+            loc: [buffer, first as u32, 1, 0],
+        })
+    };
+    let h3 = grid(&e.h3, buffers[0])?;
+    let h4 = grid(&e.h4, buffers[1])?;
+    if let (Some((a, _)), Some((b, _))) = (&e.h3, &e.h4) {
+        if a.levels.len() != b.levels.len() || a.features != b.features {
+            return Err("3D and 4D grids differ in levels or features".into());
+        }
+    }
+    let (has_mask, mask_res, mask_off) = match &e.mask {
+        Some((d, r)) => (1, d.res as u32, u32_of(r.start - rest0, "mask offset")?),
+        None => (0, 0, 0),
+    };
+    let no_mask_value = match e.blend {
+        BlendMode::Static => 1.0,
+        BlendMode::FourD => 0.0,
+        _ => 0.5,
+    };
+    Ok(EncodingU {
+        mode: [blend_code(e.blend), has_mask, mask_res, mask_off],
+        dims: [e.out_dim as u32, 0, 0, 0],
+        consts: [no_mask_value, RENDER_STATIC_CUTOFF, 0.0, 0.0],
+        h3,
+        h4,
+    })
+}
+
+/// Loop iterations one `render` invocation runs for `cfg` (every loop of `render.wgsl`, counted
+/// generously): Mesa's lavapipe stops all loops of an invocation after
+/// [`LAVAPIPE_LOOP_ITERATIONS`] in total, so larger models render wrongly there.
+pub fn loop_iterations_per_ray(cfg: &ModelConfig) -> u64 {
+    let encode = |e: &msth_core::config::EncodingConfig, hidden: usize| -> u64 {
+        let (use3, use4) = (e.blend.uses_h3(), e.blend.uses_h4());
+        let g = if use3 { &e.grid3 } else { &e.grid4 };
+        let (levels, f, h) = (g.levels as u64, g.features_per_level as u64, hidden as u64);
+        let grid = |dims: u64| dims + 1 + (1u64 << dims) * f + 1 + f + 1;
+        let per_level =
+            9 + if use3 { grid(3) } else { 0 } + if use4 { grid(4) } else { 0 } + f + 1 + f * h + 1;
+        8 + 3 + 2 * (h + 1) + levels * per_level + 1
+    };
+    let s = &cfg.sampler;
+    let (np, nf) = (s.num_proposal_samples as u64, s.num_samples as u64);
+    let proposal =
+        encode(&cfg.proposal.encoding, cfg.proposal.hidden) + cfg.proposal.hidden as u64 + 1;
+    let f = &cfg.field;
+    let (hd, g, hc, layers) = (
+        f.density_hidden as u64,
+        f.geo_features as u64,
+        f.color_hidden as u64,
+        f.color_layers as u64,
+    );
+    let dense = |i: u64, o: u64| 3 * (o + 1) + i * o + 1;
+    let density = encode(&f.encoding, f.density_hidden) + dense(hd, 1 + g) + g + 2;
+    let nin = 16 + g;
+    let color = 16
+        + g
+        + nin
+        + 3
+        + dense(nin, hc)
+        + layers.saturating_sub(1) * (hc + 1 + dense(hc, hc) + 1)
+        + hc
+        + 1
+        + dense(hc, 3);
+    let sampling = 3 + np + 1 + np + 1 + 2 * (nf + 2) + np + nf + 1 + 16;
+    np * proposal + nf * (density + color) + sampling
+}
+
+/// Loop iterations Mesa's lavapipe (llvmpipe's `LP_MAX_TGSI_LOOP_ITERATIONS`) runs per
+/// invocation before it ends every loop.
+pub const LAVAPIPE_LOOP_ITERATIONS: u64 = 65535;
+
+/// Workgroup counts `(x, y)` for `count` invocations: `x` at most `max_per_dim`.
+pub fn dispatch_size(count: u32, max_per_dim: u32) -> Option<(u32, u32)> {
+    let groups = count.div_ceil(WORKGROUP).max(1);
+    let x = groups.min(max_per_dim);
+    let y = groups.div_ceil(x);
+    (y <= max_per_dim).then_some((x, y))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn uniform_sizes_match_the_wgsl_layout() {
+        assert_eq!(std::mem::size_of::<LevelU>(), 48);
+        assert_eq!(std::mem::size_of::<GridU>(), 32);
+        assert_eq!(std::mem::size_of::<EncodingU>(), 112);
+        assert_eq!(std::mem::size_of::<ModelU>(), 352 + 48 * LEVEL_SLOTS);
+        assert_eq!(std::mem::size_of::<ViewU>(), 112);
+    }
+
+    #[test]
+    fn small_models_fit_lavapipe_and_presets_do_not() {
+        use msth_core::config::Preset;
+        let preset = ModelConfig::preset(
+            Preset::Fast,
+            SceneBounds::dnerf_default(),
+            Background::Color { rgb: [1.0; 3] },
+            10,
+        );
+        assert!(loop_iterations_per_ray(&preset) > LAVAPIPE_LOOP_ITERATIONS);
+        let mut small = preset.clone();
+        small.field.encoding.resize(3, 10, 64.0, 8);
+        small.proposal.encoding.resize(2, 10, 32.0, 8);
+        small.field.density_hidden = 8;
+        small.field.color_hidden = 8;
+        small.field.geo_features = 3;
+        small.proposal.hidden = 4;
+        small.sampler.num_proposal_samples = 12;
+        small.sampler.num_samples = 6;
+        assert!(loop_iterations_per_ray(&small) < LAVAPIPE_LOOP_ITERATIONS);
+    }
+
+    #[test]
+    fn dispatch_covers_every_invocation() {
+        assert_eq!(dispatch_size(1, 65535), Some((1, 1)));
+        assert_eq!(dispatch_size(64 * 65535 + 1, 65535), Some((65535, 2)));
+        let (x, y) = dispatch_size(10_000_000, 65535).unwrap();
+        assert!(x as u64 * y as u64 * 64 >= 10_000_000);
+        assert_eq!(dispatch_size(u32::MAX, 10), None);
+    }
+}

@@ -1,0 +1,556 @@
+//! GPU rendering through wgpu (Vulkan, Metal, DX12): the WGSL kernels of
+//! `web/shaders/render.wgsl` (the same source the browser player runs) render exactly what the
+//! CPU renderer ([`crate::render`]) renders from the same parameters, camera and time.
+//!
+//! - [`GpuContext`]: adapter, device, the compiled kernels; [`GpuContext::open`] picks the
+//!   adapter ([`AdapterPolicy`]);
+//! - [`GpuScene`]: one model's uniforms and parameter buffers on the device, re-uploaded when the
+//!   parameters change (a new dynamic chunk);
+//! - [`GpuRenderer`]: full frames, then incremental frames for a fixed camera (only the dynamic
+//!   pixels' rays are re-rendered, on top of the cached frame kept on the device), with the CPU
+//!   renderer's classification ([`crate::render::classify_static`]).
+//!
+//! Errors (no adapter, a model or frame beyond the adapter's limits, a lost device, a failed
+//! dispatch) are [`GpuError`]s, never panics.
+
+pub mod layout;
+mod renderer;
+
+use std::sync::{Arc, Mutex};
+
+use wgpu::util::DeviceExt;
+
+pub use layout::{GpuModel, ViewU, FLAG_COMPACT, FLAG_LIST};
+pub use renderer::GpuRenderer;
+
+/// The kernels' source, shared with the browser player.
+pub const RENDER_WGSL: &str = include_str!("../../../web/shaders/render.wgsl");
+
+/// Environment variable that lets the automatic choice use a software adapter (Mesa lavapipe,
+/// WARP, SwiftShader); `--gpu` always may.
+pub const ALLOW_SOFTWARE_ENV: &str = "MSTH_GPU_SOFTWARE";
+
+/// Why the GPU path is unavailable or failed.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum GpuError {
+    #[error("no GPU adapter found ({0}); install a Vulkan driver (e.g. Mesa's lavapipe: mesa-vulkan-drivers) or use --cpu")]
+    NoAdapter(String),
+    #[error("GPU adapter {adapter}: could not open a device: {error}")]
+    Device { adapter: String, error: String },
+    #[error("{what} needs {amount} {unit}, more than the adapter's {limit} ({max} {unit}); use --cpu or a smaller size")]
+    Limit {
+        what: String,
+        amount: u64,
+        unit: &'static str,
+        limit: &'static str,
+        max: u64,
+    },
+    #[error("the model cannot be rendered on the GPU: {0}")]
+    Model(String),
+    #[error("GPU kernels failed to compile: {0}")]
+    Shader(String),
+    #[error("GPU device lost: {0}")]
+    Lost(String),
+    #[error("GPU error: {0}")]
+    Backend(String),
+}
+
+/// Which adapters [`GpuContext::open`] may use.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct AdapterPolicy {
+    /// Software adapters (device type CPU: lavapipe, WARP) count too.
+    pub allow_software: bool,
+}
+
+impl AdapterPolicy {
+    /// The automatic choice: hardware adapters only, unless [`ALLOW_SOFTWARE_ENV`] is `1`.
+    pub fn automatic() -> Self {
+        AdapterPolicy {
+            allow_software: std::env::var(ALLOW_SOFTWARE_ENV).is_ok_and(|v| v == "1"),
+        }
+    }
+
+    /// `--gpu`: any adapter, hardware preferred.
+    pub fn any() -> Self {
+        AdapterPolicy {
+            allow_software: true,
+        }
+    }
+}
+
+/// Rank of an adapter type, best first; `None` for types the policy excludes.
+fn rank(t: wgpu::DeviceType, policy: AdapterPolicy) -> Option<u8> {
+    match t {
+        wgpu::DeviceType::DiscreteGpu => Some(0),
+        wgpu::DeviceType::IntegratedGpu => Some(1),
+        wgpu::DeviceType::VirtualGpu => Some(2),
+        wgpu::DeviceType::Other => Some(3),
+        wgpu::DeviceType::Cpu => policy.allow_software.then_some(4),
+    }
+}
+
+/// Errors the device reported outside a dispatch's own checks.
+#[derive(Default)]
+struct DeviceState {
+    lost: Option<String>,
+    errors: Vec<String>,
+}
+
+/// An open device with the compiled kernels.
+pub struct GpuContext {
+    device: wgpu::Device,
+    queue: wgpu::Queue,
+    info: wgpu::AdapterInfo,
+    limits: wgpu::Limits,
+    layout: wgpu::BindGroupLayout,
+    render: wgpu::ComputePipeline,
+    eval: wgpu::ComputePipeline,
+    state: Arc<Mutex<DeviceState>>,
+}
+
+impl std::fmt::Debug for GpuContext {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "GpuContext({})", self.adapter_name())
+    }
+}
+
+/// Which kernel a dispatch runs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Kernel {
+    /// `render`: one ray per invocation.
+    Render,
+    /// `eval_points`: one field evaluation per invocation.
+    EvalPoints,
+}
+
+impl GpuContext {
+    /// Opens the best adapter `policy` allows (discrete, integrated, virtual, other, then
+    /// software), or says why none can be used.
+    pub fn open(policy: AdapterPolicy) -> Result<Self, GpuError> {
+        let instance =
+            wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+        let adapters = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::all()));
+        let mut seen = Vec::new();
+        let mut best: Option<(u8, wgpu::Adapter)> = None;
+        for a in adapters {
+            let info = a.get_info();
+            seen.push(format!(
+                "{} ({:?}, {:?})",
+                info.name, info.device_type, info.backend
+            ));
+            if let Some(r) = rank(info.device_type, policy) {
+                if best.as_ref().is_none_or(|(b, _)| r < *b) {
+                    best = Some((r, a));
+                }
+            }
+        }
+        let Some((_, adapter)) = best else {
+            let why = if seen.is_empty() {
+                "no adapters at all".to_string()
+            } else {
+                format!(
+                    "only software adapters, which the automatic choice skips unless {ALLOW_SOFTWARE_ENV}=1 or --gpu: {}",
+                    seen.join(", ")
+                )
+            };
+            return Err(GpuError::NoAdapter(why));
+        };
+        Self::with_adapter(adapter)
+    }
+
+    fn with_adapter(adapter: wgpu::Adapter) -> Result<Self, GpuError> {
+        let info = adapter.get_info();
+        let name = format!("{} ({:?})", info.name, info.backend);
+        // Ask for the adapter's own buffer limits (models and frames can be large), WebGPU
+        // defaults otherwise: the kernels use nothing beyond them.
+        let al = adapter.limits();
+        let limits = wgpu::Limits {
+            max_storage_buffer_binding_size: al.max_storage_buffer_binding_size,
+            max_buffer_size: al.max_buffer_size,
+            ..wgpu::Limits::default()
+        };
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("msth"),
+            required_limits: limits.clone(),
+            ..Default::default()
+        }))
+        .map_err(|e| GpuError::Device {
+            adapter: name.clone(),
+            error: e.to_string(),
+        })?;
+        let state = Arc::new(Mutex::new(DeviceState::default()));
+        {
+            let s = state.clone();
+            device.set_device_lost_callback(move |reason, msg| {
+                if let Ok(mut s) = s.lock() {
+                    s.lost = Some(format!("{reason:?}: {msg}"));
+                }
+            });
+            let s = state.clone();
+            device.on_uncaptured_error(Arc::new(move |e: wgpu::Error| {
+                if let Ok(mut s) = s.lock() {
+                    s.errors.push(e.to_string());
+                }
+            }));
+        }
+        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("render.wgsl"),
+            source: wgpu::ShaderSource::Wgsl(RENDER_WGSL.into()),
+        });
+        let storage = |binding: u32, read_only: bool| wgpu::BindGroupLayoutEntry {
+            binding,
+            visibility: wgpu::ShaderStages::COMPUTE,
+            ty: wgpu::BindingType::Buffer {
+                ty: wgpu::BufferBindingType::Storage { read_only },
+                has_dynamic_offset: false,
+                min_binding_size: None,
+            },
+            count: None,
+        };
+        let uniform = |binding: u32| wgpu::BindGroupLayoutEntry {
+            binding,
+            visibility: wgpu::ShaderStages::COMPUTE,
+            ty: wgpu::BindingType::Buffer {
+                ty: wgpu::BufferBindingType::Uniform,
+                has_dynamic_offset: false,
+                min_binding_size: None,
+            },
+            count: None,
+        };
+        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("msth render bindings"),
+            entries: &[
+                uniform(0),
+                uniform(1),
+                storage(2, true),
+                storage(3, true),
+                storage(4, true),
+                storage(5, true),
+                storage(6, false),
+            ],
+        });
+        let pl = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("msth render"),
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
+        let pipeline = |entry: &str| {
+            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(entry),
+                layout: Some(&pl),
+                module: &module,
+                entry_point: Some(entry),
+                compilation_options: Default::default(),
+                cache: None,
+            })
+        };
+        let render = pipeline("render");
+        let eval = pipeline("eval_points");
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::Shader(e.to_string()));
+        }
+        Ok(GpuContext {
+            device,
+            queue,
+            info,
+            limits,
+            layout,
+            render,
+            eval,
+            state,
+        })
+    }
+
+    /// `name (backend, device type)` of the adapter in use.
+    pub fn adapter_name(&self) -> String {
+        format!(
+            "{} ({:?}, {:?})",
+            self.info.name, self.info.backend, self.info.device_type
+        )
+    }
+
+    /// Whether the adapter is a software rasteriser (lavapipe, WARP).
+    pub fn is_software(&self) -> bool {
+        self.info.device_type == wgpu::DeviceType::Cpu
+    }
+
+    /// Whether the adapter is Mesa's llvmpipe-based Vulkan driver (lavapipe), which ends every loop
+    /// of an invocation after [`layout::LAVAPIPE_LOOP_ITERATIONS`] iterations in total.
+    pub fn is_lavapipe(&self) -> bool {
+        self.is_software() && self.info.name.contains("llvmpipe")
+    }
+
+    /// Checks that a storage buffer of `bytes` fits the device's limits.
+    pub fn check_storage(&self, what: &str, bytes: u64) -> Result<(), GpuError> {
+        let l = &self.limits;
+        let checks = [
+            (
+                "max_storage_buffer_binding_size",
+                l.max_storage_buffer_binding_size,
+            ),
+            ("max_buffer_size", l.max_buffer_size),
+        ];
+        for (limit, max) in checks {
+            if bytes > max {
+                return Err(GpuError::Limit {
+                    what: what.to_string(),
+                    amount: bytes,
+                    unit: "bytes",
+                    limit,
+                    max,
+                });
+            }
+        }
+        Ok(())
+    }
+
+    /// Fails with what the device reported since the last check (lost device, validation).
+    fn check_state(&self) -> Result<(), GpuError> {
+        let mut s = self
+            .state
+            .lock()
+            .map_err(|_| GpuError::Backend("device state poisoned".into()))?;
+        if let Some(l) = &s.lost {
+            return Err(GpuError::Lost(l.clone()));
+        }
+        if !s.errors.is_empty() {
+            let e = s.errors.join("; ");
+            s.errors.clear();
+            return Err(GpuError::Backend(e));
+        }
+        Ok(())
+    }
+
+    /// A storage buffer with `data` (at least 4 bytes: empty data gets a placeholder word).
+    pub fn storage_buffer(
+        &self,
+        what: &str,
+        data: &[u8],
+        writable: bool,
+    ) -> Result<wgpu::Buffer, GpuError> {
+        let bytes = data.len().max(4) as u64;
+        self.check_storage(what, bytes)?;
+        let mut usage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST;
+        if writable {
+            usage |= wgpu::BufferUsages::COPY_SRC;
+        }
+        let contents: &[u8] = if data.is_empty() { &[0; 4] } else { data };
+        Ok(self
+            .device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(what),
+                contents,
+                usage,
+            }))
+    }
+
+    /// An output buffer of `n` `vec4<f32>`.
+    pub fn output_buffer(&self, what: &str, n: usize) -> Result<wgpu::Buffer, GpuError> {
+        let bytes = (n.max(1) * 16) as u64;
+        self.check_storage(what, bytes)?;
+        Ok(self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(what),
+            size: bytes,
+            usage: wgpu::BufferUsages::STORAGE
+                | wgpu::BufferUsages::COPY_SRC
+                | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        }))
+    }
+
+    /// Runs `kernel` for `view.size[2]` invocations over `scene`, reading `list` and writing
+    /// `out`; waits for it to finish.
+    pub fn dispatch(
+        &self,
+        kernel: Kernel,
+        scene: &GpuScene,
+        view: &ViewU,
+        list: &wgpu::Buffer,
+        out: &wgpu::Buffer,
+    ) -> Result<(), GpuError> {
+        let count = view.size[2];
+        if count == 0 {
+            return Ok(());
+        }
+        let max = self.limits.max_compute_workgroups_per_dimension;
+        let (gx, gy) = layout::dispatch_size(count, max).ok_or_else(|| GpuError::Limit {
+            what: format!("a dispatch of {count} invocations"),
+            amount: count as u64,
+            unit: "invocations",
+            limit: "max_compute_workgroups_per_dimension (squared, times 64)",
+            max: max as u64 * max as u64 * layout::WORKGROUP as u64,
+        })?;
+        let view_buf = self
+            .device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("view"),
+                contents: bytemuck::bytes_of(view),
+                usage: wgpu::BufferUsages::UNIFORM,
+            });
+        let entries = [
+            scene.model.as_entire_binding(),
+            view_buf.as_entire_binding(),
+            scene.tab3.as_entire_binding(),
+            scene.tab4.as_entire_binding(),
+            scene.rest.as_entire_binding(),
+            list.as_entire_binding(),
+            out.as_entire_binding(),
+        ];
+        let entries: Vec<wgpu::BindGroupEntry> = entries
+            .into_iter()
+            .enumerate()
+            .map(|(i, resource)| wgpu::BindGroupEntry {
+                binding: i as u32,
+                resource,
+            })
+            .collect();
+        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let bg = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("msth render"),
+            layout: &self.layout,
+            entries: &entries,
+        });
+        let mut enc = self
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor::default());
+            pass.set_pipeline(match kernel {
+                Kernel::Render => &self.render,
+                Kernel::EvalPoints => &self.eval,
+            });
+            pass.set_bind_group(0, &bg, &[]);
+            pass.dispatch_workgroups(gx, gy, 1);
+        }
+        self.queue.submit([enc.finish()]);
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::Backend(e.to_string()));
+        }
+        self.wait()?;
+        self.check_state()
+    }
+
+    fn wait(&self) -> Result<(), GpuError> {
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map(|_| ())
+            .map_err(|e| GpuError::Backend(format!("waiting for the device: {e}")))
+    }
+
+    /// Reads the first `n` `vec4<f32>` of `buf` back.
+    pub fn read_vec4(&self, buf: &wgpu::Buffer, n: usize) -> Result<Vec<[f32; 4]>, GpuError> {
+        if n == 0 {
+            return Ok(Vec::new());
+        }
+        let bytes = (n * 16) as u64;
+        let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("readback"),
+            size: bytes,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let mut enc = self
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
+        enc.copy_buffer_to_buffer(buf, 0, &staging, 0, bytes);
+        self.queue.submit([enc.finish()]);
+        let (tx, rx) = std::sync::mpsc::channel();
+        staging.map_async(wgpu::MapMode::Read, .., move |r| {
+            let _ = tx.send(r);
+        });
+        self.wait()?;
+        match rx.recv() {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => return Err(GpuError::Backend(format!("reading results back: {e}"))),
+            Err(_) => return Err(GpuError::Backend("reading results back: no answer".into())),
+        }
+        self.check_state()?;
+        let out = {
+            let view = staging
+                .get_mapped_range(..)
+                .map_err(|e| GpuError::Backend(format!("reading results back: {e}")))?;
+            bytemuck::cast_slice::<u8, [f32; 4]>(&view).to_vec()
+        };
+        staging.unmap();
+        Ok(out)
+    }
+
+    /// Writes `data` at the start of `buf`.
+    pub fn write(&self, buf: &wgpu::Buffer, data: &[u8]) {
+        if !data.is_empty() {
+            self.queue.write_buffer(buf, 0, data);
+        }
+    }
+}
+
+/// One model on the device: its `Model` uniform and the three parameter buffers.
+pub struct GpuScene {
+    pub gpu_model: GpuModel,
+    model: wgpu::Buffer,
+    tab3: wgpu::Buffer,
+    tab4: wgpu::Buffer,
+    rest: wgpu::Buffer,
+    /// The parameters last uploaded (to notice a new chunk).
+    uploaded: Vec<f32>,
+}
+
+impl GpuScene {
+    /// Uploads `params` (the flat buffer of `gpu_model`'s config).
+    pub fn new(ctx: &GpuContext, gpu_model: GpuModel, params: &[f32]) -> Result<Self, GpuError> {
+        let split = gpu_model.split.clone();
+        if params.len() != split.rest.end {
+            return Err(GpuError::Model(format!(
+                "the parameter buffer holds {} values; the model's layout needs {}",
+                params.len(),
+                split.rest.end
+            )));
+        }
+        let bytes =
+            |r: &std::ops::Range<usize>| bytemuck::cast_slice::<f32, u8>(&params[r.clone()]);
+        let [n3, n4, nr] = gpu_model.buffer_sizes().map(|(n, _)| n);
+        let tab3 = ctx.storage_buffer(n3, bytes(&split.tab3), false)?;
+        let tab4 = ctx.storage_buffer(n4, bytes(&split.tab4), false)?;
+        let rest = ctx.storage_buffer(nr, bytes(&split.rest), false)?;
+        let model = ctx
+            .device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("model"),
+                contents: bytemuck::bytes_of(&gpu_model.model),
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            });
+        ctx.check_state()?;
+        Ok(GpuScene {
+            gpu_model,
+            model,
+            tab3,
+            tab4,
+            rest,
+            uploaded: params.to_vec(),
+        })
+    }
+
+    /// Uploads `params` when they differ from the last upload; `true` when they did.
+    pub fn update(&mut self, ctx: &GpuContext, params: &[f32]) -> Result<bool, GpuError> {
+        if params == self.uploaded.as_slice() {
+            return Ok(false);
+        }
+        if params.len() != self.uploaded.len() {
+            return Err(GpuError::Model(format!(
+                "the parameter buffer changed size from {} to {} values",
+                self.uploaded.len(),
+                params.len()
+            )));
+        }
+        let split = &self.gpu_model.split;
+        for (buf, r) in [
+            (&self.tab3, &split.tab3),
+            (&self.tab4, &split.tab4),
+            (&self.rest, &split.rest),
+        ] {
+            ctx.write(buf, bytemuck::cast_slice(&params[r.clone()]));
+        }
+        self.uploaded.copy_from_slice(params);
+        Ok(true)
+    }
+}

@@ -1,0 +1,290 @@
+//! The GPU counterpart of [`crate::render::Renderer`]: the same frames, the same static-ray cache.
+//!
+//! A full frame renders every pixel on the device into a frame buffer that stays there
+//! (`(r, g, b, visible depth)` per pixel). The second frame of a fixed camera classifies the first
+//! frame's rays with [`classify_static`] (the CPU renderer's mask test, with the probes rendered on
+//! the device), uploads the compacted list of dynamic pixels, and from then on each frame renders
+//! only those pixels' rays into the cached frame buffer, which is read back whole.
+
+use std::time::Instant;
+
+use msth_core::config::{Background, ModelConfig};
+use msth_core::field::ModelLayout;
+use msth_core::pipeline::{ray_limits, TimedRay};
+use msth_core::Camera;
+
+use super::{GpuContext, GpuError, GpuModel, GpuScene, Kernel, ViewU, FLAG_COMPACT, FLAG_LIST};
+use crate::render::{classify_static, Frame, FrameStats, RenderSettings};
+
+struct Pending {
+    pixels: Vec<u32>,
+    rays: Vec<TimedRay>,
+    rgb: Vec<[f32; 3]>,
+    visible_depth: Vec<f32>,
+}
+
+/// The static cache of one camera; the cached frame itself is the device's frame buffer.
+struct Cache {
+    camera: Camera,
+    total: usize,
+    empty: usize,
+    /// Pixels re-rendered every frame, on the host and on the device.
+    dynamic: Vec<u32>,
+    dynamic_buf: Option<wgpu::Buffer>,
+    pending: Option<Pending>,
+}
+
+/// Renders frames of one model on the GPU, keeping the static cache between frames.
+pub struct GpuRenderer {
+    ctx: GpuContext,
+    cfg: ModelConfig,
+    layout: ModelLayout,
+    settings: RenderSettings,
+    gpu_model: GpuModel,
+    scene: Option<GpuScene>,
+    /// Per-pixel output, and how many pixels it holds.
+    frame: Option<(wgpu::Buffer, usize)>,
+    /// Bound as `list` when a dispatch reads none.
+    no_list: wgpu::Buffer,
+    cache: Option<Cache>,
+}
+
+impl GpuRenderer {
+    /// A renderer of `cfg` on `ctx`; fails when the kernels cannot render the model.
+    pub fn new(
+        ctx: GpuContext,
+        cfg: &ModelConfig,
+        settings: RenderSettings,
+    ) -> Result<Self, GpuError> {
+        let gpu_model = GpuModel::new(cfg).map_err(GpuError::Model)?;
+        if ctx.is_lavapipe() {
+            let n = super::layout::loop_iterations_per_ray(cfg);
+            if n > super::layout::LAVAPIPE_LOOP_ITERATIONS {
+                return Err(GpuError::Limit {
+                    what: "one ray of this model".to_string(),
+                    amount: n,
+                    unit: "loop iterations",
+                    limit: "lavapipe loop iterations per invocation (LP_MAX_TGSI_LOOP_ITERATIONS)",
+                    max: super::layout::LAVAPIPE_LOOP_ITERATIONS,
+                });
+            }
+        }
+        for (what, bytes) in gpu_model.buffer_sizes() {
+            ctx.check_storage(what, bytes)?;
+        }
+        let no_list = ctx.storage_buffer("empty list", &[], false)?;
+        Ok(GpuRenderer {
+            ctx,
+            cfg: cfg.clone(),
+            layout: ModelLayout::new(cfg),
+            settings,
+            gpu_model,
+            scene: None,
+            frame: None,
+            no_list,
+            cache: None,
+        })
+    }
+
+    /// The device this renderer uses.
+    pub fn context(&self) -> &GpuContext {
+        &self.ctx
+    }
+
+    pub fn settings(&self) -> &RenderSettings {
+        &self.settings
+    }
+
+    /// Forgets the static cache: the next frame is rendered in full.
+    pub fn invalidate(&mut self) {
+        self.cache = None;
+    }
+
+    /// Fraction of the cached camera's pixels that are re-rendered every frame (`None` before
+    /// the second frame of a fixed camera).
+    pub fn dynamic_fraction(&self) -> Option<f32> {
+        self.cache
+            .as_ref()
+            .filter(|c| c.pending.is_none())
+            .map(|c| c.dynamic.len() as f32 / c.total.max(1) as f32)
+    }
+
+    fn upload(&mut self, params: &[f32]) -> Result<(), GpuError> {
+        match &mut self.scene {
+            Some(s) => {
+                s.update(&self.ctx, params)?;
+            }
+            None => {
+                self.scene = Some(GpuScene::new(&self.ctx, self.gpu_model.clone(), params)?);
+            }
+        }
+        Ok(())
+    }
+
+    /// Renders `camera` at normalised time `time` with `params` (the flat buffer for that time).
+    pub fn render(
+        &mut self,
+        camera: &Camera,
+        time: f32,
+        params: &[f32],
+    ) -> Result<Frame, GpuError> {
+        let start = Instant::now();
+        camera
+            .validate()
+            .map_err(|e| GpuError::Model(format!("camera: {e}")))?;
+        self.upload(params)?;
+        let (w, h) = (camera.width, camera.height);
+        let total = w as usize * h as usize;
+        let pixels32 = u32::try_from(total)
+            .map_err(|_| GpuError::Model(format!("{w}x{h} pixels exceed 32-bit indices")))?;
+        let reuse = self.settings.incremental
+            && self
+                .cache
+                .as_ref()
+                .is_some_and(|c| c.camera == *camera && c.total == total);
+        let mut stats = FrameStats {
+            rays_total: total,
+            ..Default::default()
+        };
+        let scene = self.scene.as_ref().expect("uploaded above");
+        let rgb = if reuse {
+            let mut cache = self.cache.take().expect("checked above");
+            if let Some(p) = cache.pending.take() {
+                let t = Instant::now();
+                let flags = classify_static(
+                    &self.cfg,
+                    &self.layout,
+                    params,
+                    &self.settings,
+                    &p.rays,
+                    &p.rgb,
+                    &p.visible_depth,
+                    |idx, t| {
+                        let px: Vec<u32> = idx.iter().map(|&i| p.pixels[i]).collect();
+                        render_list(&self.ctx, scene, camera, t, &px, None)
+                    },
+                )?;
+                cache.dynamic = p
+                    .pixels
+                    .iter()
+                    .zip(flags)
+                    .filter(|(_, s)| !s)
+                    .map(|(&px, _)| px)
+                    .collect();
+                cache.dynamic_buf = if cache.dynamic.is_empty() {
+                    None
+                } else {
+                    Some(self.ctx.storage_buffer(
+                        "dynamic pixels",
+                        bytemuck::cast_slice(&cache.dynamic),
+                        false,
+                    )?)
+                };
+                stats.cache_seconds = t.elapsed().as_secs_f64();
+            }
+            let (frame, _) = self.frame.as_ref().expect("a full frame came first");
+            if let Some(list) = &cache.dynamic_buf {
+                let view = ViewU::new(camera, time, cache.dynamic.len() as u32, FLAG_LIST);
+                self.ctx
+                    .dispatch(Kernel::Render, scene, &view, list, frame)?;
+            }
+            let out = self.ctx.read_vec4(frame, total)?;
+            stats.rays_rendered = cache.dynamic.len();
+            stats.rays_empty = cache.empty;
+            stats.rays_cached = total - cache.dynamic.len() - cache.empty;
+            self.cache = Some(cache);
+            out.iter().flat_map(|v| [v[0], v[1], v[2]]).collect()
+        } else {
+            if self.frame.as_ref().is_none_or(|(_, n)| *n < total) {
+                self.frame = None;
+                self.frame = Some((self.ctx.output_buffer("frame", total)?, total));
+            }
+            let (frame, _) = self.frame.as_ref().expect("made above");
+            let view = ViewU::new(camera, time, pixels32, 0);
+            self.ctx
+                .dispatch(Kernel::Render, scene, &view, &self.no_list, frame)?;
+            let out = self.ctx.read_vec4(frame, total)?;
+            let cache = self.pending_cache(camera, time, &out);
+            stats.full = true;
+            stats.rays_rendered = total - cache.empty;
+            stats.rays_empty = cache.empty;
+            self.cache = self.settings.incremental.then_some(cache);
+            out.iter().flat_map(|v| [v[0], v[1], v[2]]).collect()
+        };
+        stats.seconds = start.elapsed().as_secs_f64();
+        Ok(Frame {
+            width: w,
+            height: h,
+            rgb,
+            stats,
+        })
+    }
+
+    /// The cache of a full frame: which pixels were evaluated (the others miss the scene under a
+    /// constant background, as in the CPU renderer), their rays, colours and visible depths.
+    fn pending_cache(&self, camera: &Camera, time: f32, out: &[[f32; 4]]) -> Cache {
+        let (w, h) = (camera.width, camera.height);
+        let constant_bg = matches!(self.cfg.background, Background::Color { .. });
+        let mut p = Pending {
+            pixels: Vec::new(),
+            rays: Vec::new(),
+            rgb: Vec::new(),
+            visible_depth: Vec::new(),
+        };
+        let mut empty = 0;
+        for y in 0..h {
+            for x in 0..w {
+                let r = camera.pixel_ray(x, y);
+                let ray = TimedRay {
+                    origin: r.origin,
+                    dir: r.dir,
+                    time,
+                };
+                let (near, far) = ray_limits(&self.cfg, &ray);
+                if constant_bg && far <= near {
+                    empty += 1;
+                    continue;
+                }
+                let px = y * w + x;
+                let v = out[px as usize];
+                p.pixels.push(px);
+                p.rays.push(ray);
+                p.rgb.push([v[0], v[1], v[2]]);
+                p.visible_depth.push(v[3]);
+            }
+        }
+        Cache {
+            camera: *camera,
+            total: w as usize * h as usize,
+            empty,
+            dynamic: Vec::new(),
+            dynamic_buf: None,
+            pending: Some(p),
+        }
+    }
+}
+
+/// Renders the listed pixels of `camera` at `time` into a compact output and reads their colours
+/// back (probes); `visible`, when given, receives the visible depths.
+pub(crate) fn render_list(
+    ctx: &GpuContext,
+    scene: &GpuScene,
+    camera: &Camera,
+    time: f32,
+    pixels: &[u32],
+    visible: Option<&mut Vec<f32>>,
+) -> Result<Vec<[f32; 3]>, GpuError> {
+    if pixels.is_empty() {
+        return Ok(Vec::new());
+    }
+    let list = ctx.storage_buffer("pixel list", bytemuck::cast_slice(pixels), false)?;
+    let out = ctx.output_buffer("probe colours", pixels.len())?;
+    let view = ViewU::new(camera, time, pixels.len() as u32, FLAG_LIST | FLAG_COMPACT);
+    ctx.dispatch(Kernel::Render, scene, &view, &list, &out)?;
+    let v = ctx.read_vec4(&out, pixels.len())?;
+    if let Some(vis) = visible {
+        vis.clear();
+        vis.extend(v.iter().map(|x| x[3]));
+    }
+    Ok(v.iter().map(|x| [x[0], x[1], x[2]]).collect())
+}

@@ -1,0 +1,341 @@
+//! Tests of the GPU renderer against the CPU: the WGSL field evaluation (`eval_points`: hash
+//! lookups 3D/4D with dense and hashed levels, mask, blend, decoders, SH) against the plain CPU
+//! references (`FieldLayout::eval_point_reference`) for every blend mode; whole frames, full and
+//! incremental, of [`GpuRenderer`] against [`Renderer`] for box and contracted scenes, constant
+//! and last-sample backgrounds; limits and bad input.
+//!
+//! They run on whatever adapter exists (Mesa's lavapipe in CI) and skip when there is none,
+//! unless `MSTH_REQUIRE_GPU=1`.
+
+use msth_core::config::{Background, BlendMode, ModelConfig, Preset};
+use msth_core::field::ModelLayout;
+use msth_core::rng::Rng;
+use msth_core::sh::{sh4, SH_COEFFS};
+use msth_core::{Camera, SceneBounds};
+use msth_player::gpu::{
+    AdapterPolicy, GpuContext, GpuError, GpuModel, GpuRenderer, GpuScene, Kernel, ViewU,
+    FLAG_COMPACT,
+};
+use msth_player::{Frame, RenderSettings, Renderer};
+
+/// The device, or `None` (skip) when there is none and `MSTH_REQUIRE_GPU` is not `1`.
+fn context() -> Option<GpuContext> {
+    match GpuContext::open(AdapterPolicy::any()) {
+        Ok(c) => Some(c),
+        Err(e @ GpuError::NoAdapter(_)) => {
+            if std::env::var("MSTH_REQUIRE_GPU").is_ok_and(|v| v == "1") {
+                panic!("MSTH_REQUIRE_GPU=1 but {e}");
+            }
+            eprintln!("skipping GPU test: {e}");
+            None
+        }
+        Err(e) => panic!("{e}"),
+    }
+}
+
+fn config(blend: BlendMode) -> ModelConfig {
+    let mut c = ModelConfig::preset(
+        Preset::Fast,
+        SceneBounds::dnerf_default(),
+        Background::Color { rgb: [1.0; 3] },
+        10,
+    );
+    for enc in [&mut c.field.encoding, &mut c.proposal.encoding] {
+        enc.blend = blend;
+        // Coarse levels dense, fine levels hashed (2^10 rows).
+        enc.resize(4, 10, 64.0, 8);
+        enc.grid4.finest_resolution[3] = 10.0;
+        enc.grid3.base_resolution = vec![4.0; 3];
+        enc.grid4.base_resolution = vec![4.0, 4.0, 4.0, 2.0];
+    }
+    c.field.density_hidden = 16;
+    c.field.color_hidden = 16;
+    c.field.geo_features = 7;
+    c.proposal.hidden = 8;
+    c
+}
+
+/// Shrinks `cfg` to fit one ray within lavapipe's 65535 loop iterations.
+fn small(cfg: &mut ModelConfig) {
+    cfg.field.encoding.resize(3, 10, 64.0, 8);
+    cfg.proposal.encoding.resize(2, 10, 32.0, 8);
+    for enc in [&mut cfg.field.encoding, &mut cfg.proposal.encoding] {
+        enc.grid3.base_resolution = vec![4.0; 3];
+        enc.grid4.base_resolution = vec![4.0, 4.0, 4.0, 2.0];
+    }
+    cfg.field.density_hidden = 8;
+    cfg.field.color_hidden = 8;
+    cfg.field.geo_features = 3;
+    cfg.proposal.hidden = 4;
+    cfg.sampler.num_proposal_samples = 16;
+    cfg.sampler.num_samples = 8;
+    assert!(
+        msth_player::gpu::layout::loop_iterations_per_ray(cfg)
+            < msth_player::gpu::layout::LAVAPIPE_LOOP_ITERATIONS
+    );
+}
+
+fn random_params(layout: &ModelLayout, seed: u64) -> Vec<f32> {
+    let mut p = layout.init_params(seed);
+    let mut rng = Rng::new(seed + 1);
+    for e in &layout.params.entries {
+        let amp = if e.name.ends_with("mask") {
+            3.0
+        } else if e.name.ends_with("h3") || e.name.ends_with("h4") {
+            1.0
+        } else {
+            0.0
+        };
+        if amp > 0.0 {
+            for v in &mut p[e.range()] {
+                *v = rng.range_f32(-amp, amp);
+            }
+        }
+    }
+    p
+}
+
+#[test]
+fn eval_points_matches_the_cpu_reference_for_every_blend() {
+    let Some(ctx) = context() else { return };
+    for blend in [
+        BlendMode::Mst,
+        BlendMode::Mt,
+        BlendMode::Add,
+        BlendMode::FourD,
+        BlendMode::Static,
+    ] {
+        let cfg = config(blend);
+        let layout = ModelLayout::new(&cfg);
+        let (g3, _) = layout
+            .field
+            .encoding
+            .h3
+            .clone()
+            .or(layout.field.encoding.h4.clone())
+            .unwrap();
+        assert!(g3.levels.iter().any(|l| l.dense) && g3.levels.iter().any(|l| !l.dense));
+        let params = random_params(&layout, 3);
+        let gm = GpuModel::new(&cfg).unwrap();
+        let scene = GpuScene::new(&ctx, gm, &params).unwrap();
+        let mut rng = Rng::new(11);
+        let n = 300;
+        let mut words = Vec::with_capacity(n * 8);
+        let mut pts = Vec::new();
+        for j in 0..n {
+            let p = [rng.f32(), rng.f32(), rng.f32(), rng.f32()];
+            // A few points on the cube's faces and corners.
+            let p = if j < 8 {
+                [
+                    (j & 1) as f32,
+                    ((j >> 1) & 1) as f32,
+                    ((j >> 2) & 1) as f32,
+                    (j & 1) as f32,
+                ]
+            } else {
+                p
+            };
+            let d = glam::Vec3::new(rng.f32() - 0.5, rng.f32() - 0.5, rng.f32() - 0.5)
+                .normalize_or(glam::Vec3::Z);
+            let which = (j % 3 == 2) as u32 as f32;
+            for v in [p[0], p[1], p[2], p[3], d.x, d.y, d.z, which] {
+                words.push(v.to_bits());
+            }
+            pts.push((p, d, which));
+        }
+        let list = ctx
+            .storage_buffer("points", bytemuck::cast_slice(&words), false)
+            .unwrap();
+        let out = ctx.output_buffer("values", n).unwrap();
+        let cam = Camera::look_at(
+            1,
+            1,
+            1.0,
+            glam::Vec3::Z * 3.0,
+            glam::Vec3::ZERO,
+            glam::Vec3::Y,
+        );
+        let view = ViewU::new(&cam, 0.0, n as u32, FLAG_COMPACT);
+        ctx.dispatch(Kernel::EvalPoints, &scene, &view, &list, &out)
+            .unwrap();
+        let got = ctx.read_vec4(&out, n).unwrap();
+        for (j, (p, d, which)) in pts.iter().enumerate() {
+            let g = got[j];
+            if *which == 1.0 {
+                let f = &layout.proposal.field;
+                let (enc, m) = f.encoding.encode_point_reference(&params, p);
+                let o = f
+                    .density
+                    .0
+                    .forward_reference(&params[f.density.1.clone()], &enc);
+                let sigma = msth_core::activation::trunc_exp(o[0]);
+                assert!(
+                    (g[3] - sigma).abs() <= 1e-4 * sigma.max(1.0),
+                    "{blend:?} proposal point {j}: sigma {} vs {sigma}",
+                    g[3]
+                );
+                assert!((g[0] - m).abs() < 1e-5, "{blend:?} proposal mask");
+            } else {
+                let mut sh = vec![0f32; SH_COEFFS];
+                sh4([d.x, d.y, d.z], &mut sh);
+                let (sigma, rgb, _) = layout.field.eval_point_reference(&params, p, &sh);
+                assert!(
+                    (g[3] - sigma).abs() <= 1e-4 * sigma.max(1.0),
+                    "{blend:?} point {j} {p:?}: sigma {} vs {sigma}",
+                    g[3]
+                );
+                for c in 0..3 {
+                    assert!(
+                        (g[c] - rgb[c]).abs() < 1e-5,
+                        "{blend:?} point {j}: rgb {g:?} vs {rgb:?}"
+                    );
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn buffers_beyond_the_adapter_limits_are_clear_errors() {
+    let Some(ctx) = context() else { return };
+    let e = ctx
+        .check_storage("a test buffer", u64::MAX / 2)
+        .unwrap_err();
+    let msg = e.to_string();
+    assert!(msg.contains("max_storage_buffer_binding_size"), "{msg}");
+    assert!(msg.contains("a test buffer"), "{msg}");
+    // A frame too large for one output buffer.
+    let e = ctx.output_buffer("frame", usize::MAX / 64).unwrap_err();
+    assert!(matches!(e, GpuError::Limit { .. }), "{e}");
+}
+
+#[test]
+fn models_beyond_lavapipes_loop_budget_are_clear_errors_there() {
+    let Some(ctx) = context() else { return };
+    if !ctx.is_lavapipe() {
+        return;
+    }
+    let cfg = ModelConfig::preset(
+        Preset::Fast,
+        SceneBounds::dnerf_default(),
+        Background::Color { rgb: [1.0; 3] },
+        10,
+    );
+    let e = GpuRenderer::new(ctx, &cfg, RenderSettings::default())
+        .err()
+        .expect("a preset model exceeds lavapipe's loop budget");
+    assert!(e.to_string().contains("loop iterations"), "{e}");
+}
+
+#[test]
+fn models_beyond_the_kernel_limits_are_clear_errors() {
+    let mut cfg = config(BlendMode::Mt);
+    cfg.field.density_hidden = 512;
+    let e = GpuModel::new(&cfg).unwrap_err();
+    assert!(
+        e.contains("field.density_hidden") && e.contains("128"),
+        "{e}"
+    );
+    let mut cfg = config(BlendMode::Mt);
+    cfg.sampler.num_samples = 1000;
+    let e = GpuModel::new(&cfg).unwrap_err();
+    assert!(e.contains("num_samples"), "{e}");
+}
+
+fn max_diff(a: &Frame, b: &Frame) -> f32 {
+    a.rgb
+        .iter()
+        .zip(&b.rgb)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0f32, f32::max)
+}
+
+/// Full and incremental frames of the GPU renderer equal the CPU renderer's to float rounding,
+/// with the same rays cached and re-rendered.
+#[test]
+fn gpu_frames_match_cpu_frames_full_and_incremental() {
+    let Some(_) = context() else { return };
+    let scenes = [
+        (
+            SceneBounds::dnerf_default(),
+            Background::Color { rgb: [1.0; 3] },
+        ),
+        (
+            SceneBounds::Contracted {
+                center: glam::Vec3::ZERO,
+                radius: 1.0,
+            },
+            Background::LastSample,
+        ),
+    ];
+    for (bounds, background) in scenes {
+        let mut cfg = config(BlendMode::Mt);
+        cfg.bounds = bounds;
+        cfg.background = background;
+        let defaults = ModelConfig::preset(Preset::Fast, bounds, background, 10);
+        cfg.sampler = defaults.sampler;
+        // Small enough for lavapipe's loop budget (see `loop_iterations_per_ray`).
+        small(&mut cfg);
+        let layout = ModelLayout::new(&cfg);
+        let mut params = random_params(&layout, 5);
+        // Static everywhere but around the centre of the scene.
+        let (grid, r) = layout.field.encoding.mask.clone().unwrap();
+        let res = grid.res;
+        for (k, v) in params[r].iter_mut().enumerate() {
+            let (x, y, z) = (k % res, (k / res) % res, k / (res * res));
+            let centre = |c: usize| (res / 2 - 1..=res / 2).contains(&c);
+            *v = if centre(x) && centre(y) && centre(z) {
+                -3.0
+            } else {
+                9.0
+            };
+        }
+        // The mask alone decides (the random 4D table moves every colour a probe would see).
+        let settings = RenderSettings {
+            probes: 0,
+            ..Default::default()
+        };
+        let mut cpu = Renderer::new(&cfg, settings);
+        let mut gpu = GpuRenderer::new(context().unwrap(), &cfg, settings).unwrap();
+        let cam = Camera::look_at(
+            40,
+            30,
+            0.9,
+            glam::Vec3::new(0.3, -3.5, 1.2),
+            glam::Vec3::ZERO,
+            glam::Vec3::Z,
+        );
+        for (i, t) in [0.0f32, 0.4, 0.9].into_iter().enumerate() {
+            let a = cpu.render(&cam, t, &params);
+            let b = gpu.render(&cam, t, &params).unwrap();
+            assert_eq!(a.stats.full, b.stats.full);
+            assert_eq!(a.stats.full, i == 0);
+            let d = max_diff(&a, &b);
+            assert!(d < 2e-3, "{bounds:?} frame {i}: max difference {d}");
+            // The classification is the CPU renderer's: the same counts (rays near the static
+            // threshold could flip on rounding; none do here).
+            assert_eq!(a.stats.rays_empty, b.stats.rays_empty, "frame {i}");
+            assert_eq!(a.stats.rays_rendered, b.stats.rays_rendered, "frame {i}");
+        }
+        let (fc, fg) = (
+            cpu.dynamic_fraction().unwrap(),
+            gpu.dynamic_fraction().unwrap(),
+        );
+        assert_eq!(fc, fg);
+        assert!(fc > 0.0 && fc < 1.0, "dynamic fraction {fc}");
+        // A new parameter buffer (a new chunk) is uploaded: frames follow it.
+        let mut p2 = params.clone();
+        let (_, h4) = layout.field.encoding.h4.clone().unwrap();
+        for v in &mut p2[h4] {
+            *v = -*v;
+        }
+        cpu.invalidate();
+        gpu.invalidate();
+        let a = cpu.render(&cam, 0.5, &p2);
+        let b = gpu.render(&cam, 0.5, &p2).unwrap();
+        assert!(max_diff(&a, &b) < 2e-3);
+        // The wrong parameter count is an error, not a panic.
+        let e = gpu.render(&cam, 0.5, &p2[1..]).err().unwrap();
+        assert!(e.to_string().contains("parameter buffer"), "{e}");
+    }
+}

@@ -1,0 +1,122 @@
+//! The GPU renderer against the CPU renderer on a real model: built-in scene -> train (short) ->
+//! `msth export` (quantised, as shipped) -> playback from the file, decoded by the player.
+//!
+//! One test body runs for every backend available (the CPU always; the GPU when an adapter
+//! exists, Mesa's lavapipe in CI): full and incremental playbacks of a fixed camera must match the
+//! CPU renderer's full renders of the same decoded parameters at PSNR >= 40 dB. Without an
+//! adapter the GPU half is skipped, unless `MSTH_REQUIRE_GPU=1` (then it fails).
+
+use msth_core::config::Preset;
+use msth_player::{play, BackendChoice, GpuError, PlayError, PlayOptions, PlayReport};
+use msth_tests::{msth, tiny_scene};
+use msth_trainer::metrics::psnr;
+use msth_trainer::train::{train, TrainSettings};
+
+fn require_gpu() -> bool {
+    std::env::var("MSTH_REQUIRE_GPU").is_ok_and(|v| v == "1")
+}
+
+/// Plays `opts` on `backend`; `None` when the backend is the GPU and there is no adapter.
+fn play_on(opts: &PlayOptions, backend: BackendChoice) -> Option<(PlayReport, Vec<Vec<f32>>)> {
+    let mut o = opts.clone();
+    o.backend = backend;
+    let mut frames = Vec::new();
+    match play(&o, &mut |_, f| frames.push(f.rgb.clone())) {
+        Ok(r) => Some((r, frames)),
+        Err(PlayError::Gpu(e @ GpuError::NoAdapter(_))) if !require_gpu() => {
+            eprintln!("skipping the GPU backend: {e}");
+            None
+        }
+        Err(e) => panic!("{backend:?}: {e}"),
+    }
+}
+
+#[test]
+fn gpu_and_cpu_renders_of_a_decoded_model_agree() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_, data) = tiny_scene();
+    let mut s = TrainSettings::for_preset(Preset::Fast, &data);
+    s.iters = 40;
+    s.batch_rays = 512;
+    s.anneal_steps = 10;
+    s.checkpoint_every = 0;
+    let train_dir = dir.path().join("train");
+    train(&data, s, &train_dir, None, &mut |_| true).unwrap();
+    let file = dir.path().join("tiny.msth");
+    msth(&[
+        "export",
+        train_dir.join("model.ckpt").to_str().unwrap(),
+        "-o",
+        file.to_str().unwrap(),
+        "--chunk-frames",
+        "2",
+    ])
+    .unwrap();
+
+    let mut opts = PlayOptions::new(file.to_str().unwrap());
+    opts.path = "view:30,20,4".into();
+    opts.size = Some((40, 32));
+    opts.frames = Some(6);
+    opts.video = false;
+    // Let the probes decide (the short-trained mask is soft), so that some rays are cached and the
+    // incremental frames mix cached and re-rendered pixels.
+    opts.render.static_threshold = 0.0;
+    let mut full_opts = opts.clone();
+    full_opts.render.incremental = false;
+
+    // The reference: the CPU renderer, every frame in full.
+    let (_, reference) = play_on(&full_opts, BackendChoice::Cpu).unwrap();
+    let mut backends_run = 0;
+    for backend in [BackendChoice::Cpu, BackendChoice::Gpu] {
+        let Some((full_report, full)) = play_on(&full_opts, backend) else {
+            continue;
+        };
+        let (inc_report, inc) = play_on(&opts, backend).unwrap();
+        backends_run += 1;
+        let kind = if backend == BackendChoice::Cpu {
+            "cpu"
+        } else {
+            "gpu"
+        };
+        assert_eq!(full_report.backend.kind, kind);
+        assert_eq!(inc_report.backend.kind, kind);
+        assert!(full_report.frames.iter().all(|f| f.stats.full));
+        assert!(inc_report.frames[0].stats.full);
+        assert!(inc_report.frames[1..].iter().all(|f| !f.stats.full));
+        let cached: usize = inc_report.frames[1..]
+            .iter()
+            .map(|f| f.stats.rays_cached)
+            .sum();
+        let rendered: usize = inc_report.frames[1..]
+            .iter()
+            .map(|f| f.stats.rays_rendered)
+            .sum();
+        println!(
+            "{kind} ({}): full {:.1} FPS, incremental {:.1} FPS; {cached} rays cached, {rendered} re-rendered over the incremental frames",
+            full_report.backend.device,
+            full_report.full_fps().unwrap_or(0.0),
+            inc_report.incremental_fps().unwrap_or(0.0),
+        );
+        assert!(
+            cached > 0 && rendered > 0,
+            "{cached} cached, {rendered} rendered"
+        );
+        for (i, r) in reference.iter().enumerate() {
+            let pf = psnr(&full[i], r);
+            let pi = psnr(&inc[i], r);
+            println!("{kind} frame {i}: full {pf:.2} dB, incremental {pi:.2} dB against the CPU");
+            assert!(pf >= 40.0, "{kind} frame {i}: full render {pf:.2} dB");
+            assert!(
+                pi >= 40.0,
+                "{kind} frame {i}: incremental render {pi:.2} dB"
+            );
+        }
+    }
+    assert!(backends_run >= 1);
+    if require_gpu() {
+        assert_eq!(
+            backends_run, 2,
+            "MSTH_REQUIRE_GPU=1: the GPU backend must run"
+        );
+    }
+}
