@@ -182,7 +182,8 @@ fn web_player_streams_renders_and_matches_native() {
     );
     assert!(ok, "the JavaScript decoder mishandles bad input:\n{out}");
 
-    // Native references: `msth play` of the same free viewpoint at t = 0 and t = 1.
+    // Native references: `msth play` of the same free viewpoint at t = 0 and t = 1, on the CPU
+    // renderer (the reference the GPU kernels are tested against).
     let meta = &decoded.metadata;
     let rig = Rig::new(&meta.model.bounds, &meta.cameras, meta.cameras[0]);
     let view = format!("30,25,{:.3}", 1.4 * rig.radius);
@@ -205,6 +206,7 @@ fn web_player_streams_renders_and_matches_native() {
             out.to_str().unwrap(),
             "--no-video",
             "--quiet",
+            "--cpu",
         ])
         .unwrap();
         natives.push(out.join("frame_00000.png"));
