@@ -27,7 +27,7 @@ pub enum BackendChoice {
 
 /// A CPU or GPU renderer with the same interface.
 pub enum FrameRenderer {
-    Cpu(Renderer),
+    Cpu(Box<Renderer>),
     Gpu(Box<GpuRenderer>),
 }
 
@@ -51,7 +51,7 @@ impl FrameRenderer {
     ) -> Result<(Self, BackendInfo), GpuError> {
         let cpu = |note: Option<String>| {
             (
-                FrameRenderer::Cpu(Renderer::new(cfg, settings)),
+                FrameRenderer::Cpu(Box::new(Renderer::new(cfg, settings))),
                 BackendInfo {
                     kind: "cpu",
                     device: format!("{} threads", rayon::current_num_threads()),

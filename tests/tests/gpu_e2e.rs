@@ -40,6 +40,23 @@ fn gpu_and_cpu_renders_of_a_decoded_model_agree() {
     s.batch_rays = 512;
     s.anneal_steps = 10;
     s.checkpoint_every = 0;
+    // A small model: one ray of it fits Mesa lavapipe's budget of 65535 loop iterations per
+    // invocation (the CI's GPU); presets exceed it and are refused there with an error.
+    let m = &mut s.model;
+    m.field.encoding.resize(4, 12, 128.0, 16);
+    m.proposal.encoding.resize(2, 10, 32.0, 16);
+    m.field.density_hidden = 16;
+    m.field.color_hidden = 16;
+    m.field.geo_features = 7;
+    m.proposal.hidden = 8;
+    m.sampler.num_proposal_samples = 24;
+    m.sampler.num_samples = 12;
+    assert!(
+        msth_player::gpu::layout::loop_iterations_per_ray(m)
+            < msth_player::gpu::layout::LAVAPIPE_LOOP_ITERATIONS,
+        "{}",
+        msth_player::gpu::layout::loop_iterations_per_ray(m)
+    );
     let train_dir = dir.path().join("train");
     train(&data, s, &train_dir, None, &mut |_| true).unwrap();
     let file = dir.path().join("tiny.msth");
@@ -55,8 +72,22 @@ fn gpu_and_cpu_renders_of_a_decoded_model_agree() {
 
     let mut opts = PlayOptions::new(file.to_str().unwrap());
     opts.path = "view:30,20,4".into();
-    opts.size = Some((40, 32));
-    opts.frames = Some(6);
+    // MSTH_GPU_E2E_SIZE=WxH and MSTH_GPU_E2E_FRAMES=N change the size and frame count (for the
+    // printed frame rates; timing never decides the test).
+    let env = |k: &str| std::env::var(k).ok();
+    opts.size = Some(
+        env("MSTH_GPU_E2E_SIZE")
+            .and_then(|v| {
+                let (w, h) = v.split_once('x')?;
+                Some((w.parse().ok()?, h.parse().ok()?))
+            })
+            .unwrap_or((40, 32)),
+    );
+    opts.frames = Some(
+        env("MSTH_GPU_E2E_FRAMES")
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(6),
+    );
     opts.video = false;
     // Let the probes decide (the short-trained mask is soft), so that some rays are cached and the
     // incremental frames mix cached and re-rendered pixels.
