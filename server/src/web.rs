@@ -109,7 +109,7 @@ fn content_type(path: &Path) -> &'static str {
         "png" => "image/png",
         "jpg" | "jpeg" => "image/jpeg",
         "svg" => "image/svg+xml",
-        "txt" | "md" => "text/plain; charset=utf-8",
+        "txt" | "md" | "wgsl" => "text/plain; charset=utf-8",
         _ => "application/octet-stream",
     }
 }

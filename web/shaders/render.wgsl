@@ -163,7 +163,7 @@ fn tau_of(sigma: f32, delta: f32) -> f32 {
 // A histogram weight as the CPU's `sanitize`: w when positive and finite, else 0 (NaN fails
 // both comparisons).
 fn sanitize(w: f32) -> f32 {
-    return select(0.0, w, w > 0.0 && w <= 3.4028235e38);
+    return select(0.0, w, w > 0.0 && w <= 3.40282346e38);
 }
 
 fn table(buf: u32, i: u32) -> f32 {
@@ -209,7 +209,7 @@ fn to_unit(p: vec3<f32>) -> vec3<f32> {
         let y = (p - model.bounds_a.xyz) / model.bounds_a.w;
         let n = max(max(abs(y.x), abs(y.y)), abs(y.z));
         var c: vec3<f32>;
-        if !(n <= 3.4028235e38) {
+        if !(n <= 3.40282346e38) {
             c = sign(y) * 2.0;
         } else if n < 1.0 {
             c = y;
@@ -563,7 +563,7 @@ fn render_ray(o: vec3<f32>, d: vec3<f32>, time_in: f32) -> RayResult {
     for (var k = 0u; k < np; k++) {
         total += sanitize(w_prop[k]) + pad;
     }
-    if !(total > 0.0 && total <= 3.4028235e38) {
+    if !(total > 0.0 && total <= 3.40282346e38) {
         for (var k = 0u; k < m_out; k++) {
             s_main[k] = f32(k) / f32(max(m_out - 1u, 1u));
         }

@@ -1,0 +1,255 @@
+//! The web player (`web/`) end to end: built-in scene -> train (short) -> `msth export` -> the
+//! server `msth serve --web web` runs, on a random loopback port -> headless Chromium (driven by
+//! `web/tests/browser.mjs` through playwright-core) loads the page, which streams the file with
+//! Range requests, decodes it in JavaScript and renders it with WebGPU (SwiftShader) using the
+//! native renderer's WGSL. The page's frames must match `msth play` of the same camera and time
+//! (PSNR >= 35 dB); dragging must orbit; scrubbing must change the dynamic pixels and not the
+//! static ones; without WebGPU the page must say so. The JavaScript decoder is also checked
+//! bit-exactly against msth-codec's flat parameter buffers (`web/tests/decode.mjs`).
+//!
+//! Needs `node`, Chromium (`MSTH_CHROMIUM`, else `/usr/bin/chromium` or `chromium` on `PATH`)
+//! and `npm ci --prefix web`; without them the test prints why and skips, unless
+//! `MSTH_REQUIRE_BROWSER=1` (CI), where it fails.
+
+use std::io::Read;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use msth_core::config::Preset;
+use msth_player::path::Rig;
+use msth_server::{BackgroundServer, ServerConfig};
+use msth_tests::{msth, tiny_scene};
+use msth_trainer::train::{train, TrainSettings};
+
+/// Image size of the compared frames (SwiftShader renders a few thousand rays per second).
+const SIZE: (u32, u32) = (32, 24);
+/// Longest a browser script may run before it is killed.
+const BROWSER_TIMEOUT: Duration = Duration::from_secs(25 * 60);
+
+fn repo_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+fn find_chromium() -> Option<PathBuf> {
+    if let Some(p) = std::env::var_os("MSTH_CHROMIUM") {
+        return Some(PathBuf::from(p)).filter(|p| p.is_file());
+    }
+    let fixed = Path::new("/usr/bin/chromium");
+    if fixed.is_file() {
+        return Some(fixed.to_path_buf());
+    }
+    std::env::split_paths(&std::env::var_os("PATH")?)
+        .flat_map(|d| ["chromium", "chromium-browser"].map(|n| d.join(n)))
+        .find(|p| p.is_file())
+}
+
+/// What the test needs, or why it cannot run.
+fn prerequisites() -> Result<PathBuf, String> {
+    let node = Command::new("node").arg("--version").output();
+    if !node.map(|o| o.status.success()).unwrap_or(false) {
+        return Err("`node` is not installed".into());
+    }
+    let chromium = find_chromium()
+        .ok_or("Chromium is not installed (or MSTH_CHROMIUM names no file): install the `chromium` package")?;
+    let web = repo_root().join("web");
+    for dep in ["fzstd", "playwright-core"] {
+        if !web
+            .join("node_modules")
+            .join(dep)
+            .join("package.json")
+            .is_file()
+        {
+            return Err(format!(
+                "web/node_modules/{dep} is missing (run `npm ci --prefix web`)"
+            ));
+        }
+    }
+    if !web.join("shaders/render.wgsl").is_file() {
+        return Err("web/shaders/render.wgsl is missing".into());
+    }
+    Ok(chromium)
+}
+
+/// Runs a command with a time limit, echoing its output; returns (success, output).
+fn run_node(args: &[&str], timeout: Duration) -> (bool, String) {
+    let mut child = Command::new("node")
+        .args(args)
+        .current_dir(repo_root())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("node starts");
+    let mut out = child.stdout.take().expect("stdout");
+    let mut err = child.stderr.take().expect("stderr");
+    let reader = std::thread::spawn(move || {
+        let mut s = String::new();
+        out.read_to_string(&mut s).ok();
+        let mut e = String::new();
+        err.read_to_string(&mut e).ok();
+        s + &e
+    });
+    let start = Instant::now();
+    let status = loop {
+        if let Some(s) = child.try_wait().expect("wait") {
+            break Some(s);
+        }
+        if start.elapsed() > timeout {
+            child.kill().ok();
+            child.wait().ok();
+            break None;
+        }
+        std::thread::sleep(Duration::from_millis(200));
+    };
+    let text = reader.join().unwrap_or_default();
+    println!("$ node {}\n{text}", args.join(" "));
+    match status {
+        Some(s) => (s.success(), text),
+        None => (false, format!("{text}\n(killed after {timeout:?})")),
+    }
+}
+
+#[test]
+fn web_player_streams_renders_and_matches_native() {
+    let chromium = match prerequisites() {
+        Ok(c) => c,
+        Err(why) => {
+            if std::env::var("MSTH_REQUIRE_BROWSER").as_deref() == Ok("1") {
+                panic!("MSTH_REQUIRE_BROWSER=1 but the browser test cannot run: {why}");
+            }
+            eprintln!("SKIPPED web_player: {why}");
+            return;
+        }
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let (_, data) = tiny_scene();
+    // The settings of the codec fixture (tests/tests/codec_fixture.rs): small tables, trained
+    // long enough for the moving objects to show up as dynamic pixels.
+    let mut s = TrainSettings::for_preset(Preset::Fast, &data);
+    for enc in [&mut s.model.field.encoding, &mut s.model.proposal.encoding] {
+        enc.resize(6, 12, 96.0, 16);
+    }
+    s.model.proposal.encoding.grid3.log2_table_size = 10;
+    s.model.proposal.encoding.grid4.log2_table_size = 10;
+    s.iters = 200;
+    s.batch_rays = 1024;
+    s.anneal_steps = 50;
+    s.checkpoint_every = 0;
+    let train_dir = dir.path().join("train");
+    train(&data, s, &train_dir, None, &mut |_| true).unwrap();
+
+    // A quantised file with several chunks: the page streams and decodes them all.
+    let served = dir.path().join("models");
+    std::fs::create_dir_all(&served).unwrap();
+    let file = served.join("tiny.msth");
+    msth(&[
+        "export",
+        train_dir.join("model.ckpt").to_str().unwrap(),
+        "-o",
+        file.to_str().unwrap(),
+        "--quant",
+        "q8",
+        "--chunk-frames",
+        "2",
+    ])
+    .unwrap();
+
+    // The JavaScript decoder reproduces msth-codec's flat parameter buffers bit for bit.
+    let bytes = std::fs::read(&file).unwrap();
+    let decoded = msth_codec::decode_all(&bytes).unwrap();
+    let mut refs = Vec::new();
+    for t in [0.0f32, 0.5, 1.0] {
+        let p = dir.path().join(format!("params_{t}.f32"));
+        let raw: Vec<u8> = decoded
+            .params_for_time(t)
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
+        std::fs::write(&p, raw).unwrap();
+        refs.push(format!("{t}={}", p.display()));
+    }
+    let mut args = vec!["web/tests/decode.mjs", file.to_str().unwrap()];
+    args.extend(refs.iter().map(String::as_str));
+    let (ok, out) = run_node(&args, Duration::from_secs(300));
+    assert!(
+        ok,
+        "the JavaScript decoder disagrees with msth-codec:\n{out}"
+    );
+    // ... and rejects damaged copies of the file with a clear error.
+    let (ok, out) = run_node(
+        &["web/tests/decode_bad.mjs", file.to_str().unwrap()],
+        Duration::from_secs(300),
+    );
+    assert!(ok, "the JavaScript decoder mishandles bad input:\n{out}");
+
+    // Native references: `msth play` of the same free viewpoint at t = 0 and t = 1, on the CPU
+    // renderer (the reference the GPU kernels are tested against).
+    let meta = &decoded.metadata;
+    let rig = Rig::new(&meta.model.bounds, &meta.cameras, meta.cameras[0]);
+    let view = format!("30,25,{:.3}", 1.4 * rig.radius);
+    let size = format!("{}x{}", SIZE.0, SIZE.1);
+    let mut natives = Vec::new();
+    for t in ["0", "1"] {
+        let out = dir.path().join(format!("native_{t}"));
+        msth(&[
+            "play",
+            file.to_str().unwrap(),
+            "--path",
+            &format!("view:{view}"),
+            "--size",
+            &size,
+            "--frames",
+            "1",
+            "--time",
+            &format!("{t}:{t}"),
+            "--out",
+            out.to_str().unwrap(),
+            "--no-video",
+            "--quiet",
+            "--cpu",
+        ])
+        .unwrap();
+        natives.push(out.join("frame_00000.png"));
+    }
+
+    // The server `msth serve --web web` runs, on a random loopback port.
+    let server = BackgroundServer::start(ServerConfig {
+        addr: "127.0.0.1:0".parse().unwrap(),
+        web_dir: Some(repo_root().join("web")),
+        ..ServerConfig::new(&served)
+    })
+    .unwrap();
+    let base = format!("http://{}", server.addr());
+    let results = dir.path().join("browser.json");
+    let (ok, out) = run_node(
+        &[
+            "web/tests/browser.mjs",
+            "--base",
+            &base,
+            "--model",
+            "tiny.msth",
+            "--view",
+            &view,
+            "--size",
+            &size,
+            "--native0",
+            natives[0].to_str().unwrap(),
+            "--native1",
+            natives[1].to_str().unwrap(),
+            "--chromium",
+            chromium.to_str().unwrap(),
+            "--out",
+            results.to_str().unwrap(),
+        ],
+        BROWSER_TIMEOUT,
+    );
+    assert!(ok, "the browser test failed:\n{out}");
+    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&results).unwrap()).unwrap();
+    let checks = r["checks"].as_array().unwrap();
+    assert!(
+        checks.len() >= 11 && checks.iter().all(|c| c["ok"] == true),
+        "{r:#}"
+    );
+    assert!(r["figures"]["psnr_vs_native_t0"].as_f64().unwrap() >= 35.0);
+    println!("figures: {:#}", r["figures"]);
+}

@@ -1,0 +1,688 @@
+// The `.msth` format (docs/format.md, version 1) for the browser and Node: the prefix (fixed
+// header, metadata JSON, section index), section decoding (CRC-32, zstd through the `fzstd` npm
+// package, blocks f32 / f16 / affine / codebook with the delta predictor, sparse 4D chunks) and
+// the model's flat parameter buffer layout (§7), mirroring msth-codec and msth-core's
+// `ModelLayout`. Every count read from a file is checked before it is used to allocate or index.
+
+import { Decompress } from "fzstd";
+
+export const MAGIC = [0x4d, 0x53, 0x54, 0x48];
+export const VERSION = 1;
+export const FIXED_HEADER = 32;
+export const INDEX_ENTRY = 40;
+/** Index position of dynamic chunk 0 (after MLP, proposal, static and shared). */
+export const FIRST_CHUNK = 4;
+export const KIND = { mlp: 1, proposal: 2, static: 3, dynamic: 4, shared: 5 };
+const KIND_NAME = { 1: "mlp", 2: "proposal", 3: "static", 4: "dynamic", 5: "shared" };
+const SHARED_TAG = 0xffffffff;
+
+/** msth-codec's default limits (format.md §8). */
+export const LIMITS = {
+  maxMetadata: 16 << 20,
+  maxSections: 1 << 16,
+  maxParams: 1 << 27,
+  maxSectionBytes: 2 * 1024 * 1024 * 1024,
+  maxCameras: 4096,
+};
+
+/** A decoding failure: `what` names the part of the file, `truncated` asks for more bytes. */
+export class FormatError extends Error {
+  constructor(what, message, truncated = false) {
+    super(`${what}: ${message}`);
+    this.name = "FormatError";
+    this.what = what;
+    this.truncated = truncated;
+  }
+}
+
+// ---------------------------------------------------------------- CRC-32 (ISO-HDLC, as zlib)
+
+const CRC_TABLE = (() => {
+  const t = new Uint32Array(256);
+  for (let n = 0; n < 256; n++) {
+    let c = n;
+    for (let k = 0; k < 8; k++) c = c & 1 ? 0xedb88320 ^ (c >>> 1) : c >>> 1;
+    t[n] = c >>> 0;
+  }
+  return t;
+})();
+
+/** Continues a CRC-32 over `bytes`; start with `crc = 0`. */
+export function crc32(bytes, crc = 0) {
+  let c = ~crc >>> 0;
+  for (let i = 0; i < bytes.length; i++) c = CRC_TABLE[(c ^ bytes[i]) & 0xff] ^ (c >>> 8);
+  return ~c >>> 0;
+}
+
+// ---------------------------------------------------------------- layout (msth-core)
+
+const PRIMES = [1, 2654435761, 805459861, 3674653429];
+
+// LLVM's powi (compiler-rt __powidf2): repeated squaring, as Rust's f64::powi.
+function powi(a, b) {
+  let r = 1;
+  for (;;) {
+    if (b & 1) r *= a;
+    b = Math.trunc(b / 2);
+    if (b === 0) break;
+    a *= a;
+  }
+  return r;
+}
+
+/** A grid's levels (core/src/grid.rs `GridLayout::new`): scale, res, dense, rows, offset. */
+export function gridLayout(cfg) {
+  const d = cfg.base_resolution.length;
+  const L = cfg.levels;
+  const tableSize = 2 ** cfg.log2_table_size;
+  const levels = [];
+  let offset = 0;
+  for (let l = 0; l < L; l++) {
+    const scale = [];
+    const res = [];
+    let denseSize = 1;
+    for (let a = 0; a < d; a++) {
+      const b = Math.fround(cfg.base_resolution[a]);
+      const f = Math.fround(cfg.finest_resolution[a]);
+      const growth = L > 1 ? Math.exp((Math.log(f) - Math.log(b)) / (L - 1)) : 1;
+      const s = Math.fround(Math.max(b * powi(growth, l) - 1, 0));
+      scale.push(s);
+      res.push(Math.ceil(s) + 1);
+      denseSize *= res[a] + 1;
+    }
+    const dense = denseSize <= tableSize;
+    const rows = dense ? Math.ceil(denseSize / 8) * 8 : tableSize;
+    const stride = [0, 0, 0, 0];
+    if (dense) {
+      let s = 1;
+      for (let a = 0; a < d; a++) {
+        stride[a] = s;
+        s *= res[a] + 1;
+      }
+    }
+    levels.push({ scale, res, stride, rows, offset, dense });
+    offset += rows * cfg.features_per_level;
+  }
+  return { dims: d, features: cfg.features_per_level, levels, numParams: offset, tableSize };
+}
+
+export { PRIMES as HASH_PRIMES };
+
+const usesH3 = (blend) => blend !== "four_d";
+const usesH4 = (blend) => blend !== "static";
+const usesMask = (blend) => blend === "mst" || blend === "mt";
+const SH_COEFFS = 16;
+
+function mlpLayout(dims) {
+  const offsets = [];
+  let off = 0;
+  for (let k = 0; k < dims.length - 1; k++) {
+    offsets.push(off);
+    off += dims[k] * dims[k + 1];
+  }
+  return { dims, offsets, numParams: off };
+}
+
+/**
+ * The flat parameter buffer's slices (format.md §7, msth-core `ModelLayout`): for the field and
+ * the proposal `{ h3, h4, mask, density, color }` each `{ ..., start, end }` or null, and
+ * `total` (= `param_count`).
+ */
+export function modelLayout(model) {
+  let total = 0;
+  const push = (len) => {
+    const start = Math.ceil(total / 16) * 16;
+    total = start + len;
+    return { start, end: start + len };
+  };
+  const encoding = (cfg) => {
+    const e = { blend: cfg.blend, h3: null, h4: null, mask: null };
+    if (usesH3(cfg.blend)) {
+      const g = gridLayout(cfg.grid3);
+      e.h3 = { ...g, ...push(g.numParams) };
+    }
+    if (usesH4(cfg.blend)) {
+      const g = gridLayout(cfg.grid4);
+      e.h4 = { ...g, ...push(g.numParams) };
+    }
+    if (usesMask(cfg.blend)) {
+      const res = cfg.mask_resolution;
+      e.mask = { res, ...push(res * res * res) };
+    }
+    const g = e.h3 || e.h4;
+    e.outDim = g ? g.levels.length * g.features : 0;
+    return e;
+  };
+  const f = model.field;
+  const fieldEnc = encoding(f.encoding);
+  const dm = mlpLayout([fieldEnc.outDim, f.density_hidden, 1 + f.geo_features]);
+  const density = { ...dm, ...push(dm.numParams) };
+  const colorDims = [SH_COEFFS + f.geo_features];
+  for (let i = 0; i < f.color_layers; i++) colorDims.push(f.color_hidden);
+  colorDims.push(3);
+  const cm = mlpLayout(colorDims);
+  const color = { ...cm, ...push(cm.numParams) };
+  const p = model.proposal;
+  const propEnc = encoding(p.encoding);
+  const pm = mlpLayout([propEnc.outDim, p.hidden, 1]);
+  const pdensity = { ...pm, ...push(pm.numParams) };
+  return {
+    field: { encoding: fieldEnc, density, color },
+    proposal: { encoding: propEnc, density: pdensity },
+    total,
+  };
+}
+
+// ---------------------------------------------------------------- model validation
+
+function checkModel(m) {
+  const bad = (msg) => {
+    throw new FormatError("metadata model", msg);
+  };
+  const int = (v, lo, hi, name) => {
+    if (!Number.isInteger(v) || v < lo || v > hi) bad(`${name} = ${v} outside ${lo}..=${hi}`);
+  };
+  const finite = (v, name) => {
+    if (typeof v !== "number" || !Number.isFinite(v)) bad(`${name} is not a finite number`);
+  };
+  const grid = (g, dims, name) => {
+    if (!g || typeof g !== "object") bad(`${name} is missing`);
+    int(g.levels, 1, 32, `${name}.levels`);
+    if (![1, 2, 4, 8].includes(g.features_per_level)) bad(`${name}.features_per_level must be 1, 2, 4 or 8`);
+    int(g.log2_table_size, 3, 24, `${name}.log2_table_size`);
+    for (const k of ["base_resolution", "finest_resolution"]) {
+      if (!Array.isArray(g[k]) || g[k].length !== dims) bad(`${name}.${k} needs ${dims} numbers`);
+      g[k].forEach((v, a) => {
+        finite(v, `${name}.${k}[${a}]`);
+        if (v < 1 || v > 2 ** 20) bad(`${name}.${k}[${a}] = ${v} outside [1, 2^20]`);
+      });
+    }
+    g.base_resolution.forEach((b, a) => {
+      if (g.finest_resolution[a] < b) bad(`${name}: finest resolution below base on axis ${a}`);
+    });
+  };
+  const encoding = (e, name) => {
+    if (!e || typeof e !== "object") bad(`${name} is missing`);
+    if (!["mst", "mt", "add", "four_d", "static"].includes(e.blend)) bad(`${name}.blend \`${e.blend}\` unknown`);
+    if (usesH3(e.blend)) grid(e.grid3, 3, `${name}.grid3`);
+    if (usesH4(e.blend)) grid(e.grid4, 4, `${name}.grid4`);
+    if (usesH3(e.blend) && usesH4(e.blend)) {
+      const a = e.grid3.levels * e.grid3.features_per_level;
+      const b = e.grid4.levels * e.grid4.features_per_level;
+      if (a !== b) bad(`${name}: grid3 and grid4 output ${a} vs ${b} features`);
+    }
+    if (usesMask(e.blend)) int(e.mask_resolution, 2, 1024, `${name}.mask_resolution`);
+  };
+  if (!m || typeof m !== "object") bad("missing");
+  encoding(m.field?.encoding, "field.encoding");
+  encoding(m.proposal?.encoding, "proposal.encoding");
+  int(m.field.density_hidden, 1, 1024, "field.density_hidden");
+  int(m.field.geo_features, 1, 1024, "field.geo_features");
+  int(m.field.color_hidden, 1, 1024, "field.color_hidden");
+  int(m.field.color_layers, 1, 8, "field.color_layers");
+  int(m.proposal.hidden, 1, 1024, "proposal.hidden");
+  int(m.num_frames, 1, 2 ** 31, "num_frames");
+  const b = m.bounds;
+  if (b?.kind === "box") {
+    [...b.min, ...b.max].forEach((v, i) => finite(v, `bounds[${i}]`));
+  } else if (b?.kind === "contracted") {
+    [...b.center, b.radius].forEach((v, i) => finite(v, `bounds[${i}]`));
+  } else bad("bounds.kind must be box or contracted");
+}
+
+// ---------------------------------------------------------------- prefix
+
+const u16 = (b, o) => b[o] | (b[o + 1] << 8);
+const u32 = (b, o) => (b[o] | (b[o + 1] << 8) | (b[o + 2] << 16) | (b[o + 3] << 24)) >>> 0;
+const u64 = (b, o, what) => {
+  const lo = u32(b, o);
+  const hi = u32(b, o + 4);
+  if (hi >= 2 ** 21) throw new FormatError(what, "a 64-bit value exceeds 2^53");
+  return hi * 2 ** 32 + lo;
+};
+const align8 = (x) => Math.ceil(x / 8) * 8;
+
+/** `header_size` from the first 32 bytes (the prefix a client fetches next). */
+export function prefixLength(first, limits = LIMITS) {
+  const n = Math.min(first.length, 4);
+  for (let i = 0; i < n; i++) {
+    if (first[i] !== MAGIC[i]) throw new FormatError("header", 'bad magic (expected "MSTH")');
+  }
+  if (first.length < FIXED_HEADER) throw new FormatError("fixed header", `needs ${FIXED_HEADER} bytes, have ${first.length}`, true);
+  const version = u16(first, 4);
+  if (version !== VERSION) throw new FormatError("version", `file is version ${version}, this decoder reads ${VERSION}`);
+  if (u16(first, 6) !== 0) throw new FormatError("header", "reserved flag bits set");
+  for (let i = 20; i < 28; i++) if (first[i] !== 0) throw new FormatError("header", "reserved bytes 20..28 must be zero");
+  const headerSize = u32(first, 8);
+  const metadataLength = u32(first, 12);
+  const sectionCount = u32(first, 16);
+  if (metadataLength > limits.maxMetadata) throw new FormatError("metadata length", `${metadataLength} exceeds the limit ${limits.maxMetadata}`);
+  if (sectionCount > limits.maxSections) throw new FormatError("section count", `${sectionCount} exceeds the limit ${limits.maxSections}`);
+  const expected = align8(FIXED_HEADER + metadataLength) + INDEX_ENTRY * sectionCount;
+  if (headerSize !== expected) throw new FormatError("header", `header_size ${headerSize} disagrees with the metadata length and section count (expected ${expected})`);
+  return headerSize;
+}
+
+/** Parses and checks the prefix: `{ metadata, sections, layout, headerSize, fileLength }`. */
+export function parsePrefix(bytes, limits = LIMITS) {
+  const headerSize = prefixLength(bytes, limits);
+  if (bytes.length < headerSize) throw new FormatError("header and index", `needs ${headerSize} bytes, have ${bytes.length}`, true);
+  const stored = u32(bytes, 28);
+  const computed = crc32(bytes.subarray(FIXED_HEADER, headerSize), crc32(bytes.subarray(0, 28)));
+  if (stored !== computed) throw new FormatError("header and index", `CRC-32 mismatch (stored ${stored.toString(16)}, computed ${computed.toString(16)})`);
+  const ml = u32(bytes, 12);
+  const io = align8(FIXED_HEADER + ml);
+  for (let i = FIXED_HEADER + ml; i < io; i++) if (bytes[i] !== 0) throw new FormatError("metadata", "padding must be zero");
+  let metadata;
+  try {
+    metadata = JSON.parse(new TextDecoder("utf-8", { fatal: true }).decode(bytes.subarray(FIXED_HEADER, FIXED_HEADER + ml)));
+  } catch (e) {
+    throw new FormatError("metadata JSON", e.message);
+  }
+  const layout = checkMetadata(metadata, limits);
+  const count = u32(bytes, 16);
+  const sections = [];
+  for (let i = 0; i < count; i++) {
+    const o = io + i * INDEX_ENTRY;
+    const what = `index entry ${i}`;
+    const kind = bytes[o];
+    if (!KIND_NAME[kind]) throw new FormatError(what, `unsupported section kind ${kind}`);
+    if (bytes[o + 1] !== 1) throw new FormatError(what, `unsupported compression ${bytes[o + 1]} (version 1 has zstd = 1 only)`);
+    if (bytes[o + 2] || bytes[o + 3] || u32(bytes, o + 36)) throw new FormatError(what, "reserved fields must be zero");
+    sections.push({
+      kind,
+      chunk: u32(bytes, o + 4),
+      offset: u64(bytes, o + 8, what),
+      length: u64(bytes, o + 16, what),
+      rawLength: u64(bytes, o + 24, what),
+      crc32: u32(bytes, o + 32),
+    });
+  }
+  checkSections(sections, metadata, layout, headerSize, limits);
+  const fileLength = sections.reduce((m, s) => Math.max(m, s.offset + s.length), headerSize);
+  return { metadata, sections, layout, headerSize, fileLength };
+}
+
+const TOP_KEYS = ["model", "param_count", "frame_rate", "time_range", "cameras", "quant", "dynamic_threshold", "chunk_frames", "chunks", "encoder"];
+
+function checkMetadata(m, limits) {
+  const bad = (msg) => {
+    throw new FormatError("metadata", msg);
+  };
+  if (!m || typeof m !== "object" || Array.isArray(m)) bad("not a JSON object");
+  for (const k of Object.keys(m)) if (!TOP_KEYS.includes(k)) bad(`unknown key \`${k}\``);
+  for (const k of TOP_KEYS) if (!(k in m)) bad(`missing key \`${k}\``);
+  checkModel(m.model);
+  const layout = modelLayout(m.model);
+  if (layout.total > limits.maxParams) bad(`${layout.total} parameters exceed the limit ${limits.maxParams}`);
+  if (m.param_count !== layout.total) bad(`param_count ${m.param_count} disagrees with the model (${layout.total})`);
+  if (!Array.isArray(m.cameras)) bad("cameras must be an array");
+  if (m.cameras.length > limits.maxCameras) bad(`${m.cameras.length} cameras exceed the limit ${limits.maxCameras}`);
+  m.cameras.forEach((c, i) => {
+    const ok =
+      Number.isInteger(c?.width) && c.width >= 1 && Number.isInteger(c.height) && c.height >= 1 &&
+      [c.fx, c.fy].every((v) => Number.isFinite(v) && v > 0) && [c.cx, c.cy].every(Number.isFinite) &&
+      Array.isArray(c.world_from_camera) && c.world_from_camera.length === 16 && c.world_from_camera.every(Number.isFinite);
+    if (!ok) bad(`cameras[${i}] is not a valid pinhole camera`);
+  });
+  if (!Array.isArray(m.chunks)) bad("chunks must be an array");
+  let prev = -Infinity;
+  m.chunks.forEach((c, i) => {
+    const ok = [c?.t_start, c?.t_end].every(Number.isFinite) && c.t_start <= c.t_end && c.t_start >= prev && c.frame_start <= c.frame_end;
+    if (!ok) bad(`chunks[${i}] is not a valid span`);
+    prev = c.t_start;
+  });
+  if (m.frame_rate !== null && !(Number.isFinite(m.frame_rate) && m.frame_rate > 0)) bad("frame_rate must be null or > 0");
+  if (!Array.isArray(m.time_range) || m.time_range.length !== 2 || !m.time_range.every(Number.isFinite)) bad("time_range must be two numbers");
+  if (!["f32", "f16", "q8", "q6", "q5", "q4", "k4", "k3"].includes(m.quant)) bad(`unknown quantisation mode \`${m.quant}\``);
+  if (!(Number.isFinite(m.dynamic_threshold) && m.dynamic_threshold >= 0 && m.dynamic_threshold <= 1)) bad("dynamic_threshold must lie in [0, 1]");
+  if (!(Number.isInteger(m.chunk_frames) && m.chunk_frames >= 1)) bad("chunk_frames must be an integer >= 1");
+  if (typeof m.encoder !== "string") bad("encoder must be a string");
+  return layout;
+}
+
+function checkSections(sections, metadata, layout, headerSize, limits) {
+  const chunks = metadata.chunks.length;
+  const expected = chunks ? FIRST_CHUNK + chunks : 3;
+  if (sections.length !== expected) throw new FormatError("index", `${sections.length} sections, the metadata implies ${expected}`);
+  const order = [KIND.mlp, KIND.proposal, KIND.static, KIND.shared];
+  let end = headerSize;
+  sections.forEach((s, i) => {
+    const what = `index entry ${i}`;
+    const kind = i < FIRST_CHUNK ? order[i] : KIND.dynamic;
+    const chunk = i < FIRST_CHUNK ? 0 : i - FIRST_CHUNK;
+    if (s.kind !== kind || s.chunk !== chunk) throw new FormatError(what, `expected a ${KIND_NAME[kind]} section${kind === KIND.dynamic ? ` for chunk ${chunk}` : ""}`);
+    if (s.length > limits.maxSectionBytes || s.rawLength > limits.maxSectionBytes) throw new FormatError(what, "section exceeds the 2 GiB limit");
+    if (s.rawLength > maxPayload(layout, s.kind)) throw new FormatError(what, `raw length ${s.rawLength} exceeds what the model allows`);
+    if (s.offset % 8 !== 0) throw new FormatError(what, "offset is not a multiple of 8");
+    if (s.offset < end) throw new FormatError(what, "sections overlap");
+    end = s.offset + s.length;
+  });
+}
+
+// ---------------------------------------------------------------- blocks and payloads
+
+const maxBlockBytes = (count) => 8 + 4 * 256 + 4 * count;
+
+function staticRanges(layout, kind) {
+  const out = [];
+  const table = (name, g) => g.levels.forEach((lv, l) => {
+    const start = g.start + lv.offset;
+    out.push([`${name} level ${l}`, start, start + lv.rows * g.features]);
+  });
+  const encoding = (prefix, e, withH4) => {
+    if (e.h3) table(`${prefix}.h3`, e.h3);
+    if (withH4 && e.h4) table(`${prefix}.h4`, e.h4);
+    if (e.mask) out.push([`${prefix}.mask`, e.mask.start, e.mask.end]);
+  };
+  if (kind === KIND.mlp) {
+    out.push(["field.density_mlp", layout.field.density.start, layout.field.density.end]);
+    out.push(["field.color_mlp", layout.field.color.start, layout.field.color.end]);
+    out.push(["proposal.density_mlp", layout.proposal.density.start, layout.proposal.density.end]);
+  } else if (kind === KIND.proposal) {
+    encoding("proposal", layout.proposal.encoding, true);
+  } else {
+    encoding("field", layout.field.encoding, false);
+  }
+  return out;
+}
+
+function maxPayload(layout, kind) {
+  if (kind === KIND.dynamic || kind === KIND.shared) {
+    const g = layout.field.encoding.h4;
+    if (!g) return 0;
+    return 8 + g.levels.reduce((s, l) => s + 4 + 5 * l.rows + maxBlockBytes(l.rows * g.features), 0);
+  }
+  return staticRanges(layout, kind).reduce((s, [, a, b]) => s + maxBlockBytes(b - a), 0);
+}
+
+class Reader {
+  constructor(bytes, what) {
+    this.b = bytes;
+    this.pos = 0;
+    this.what = what;
+    this.view = new DataView(bytes.buffer, bytes.byteOffset, bytes.byteLength);
+  }
+  take(n) {
+    if (n > this.b.length - this.pos) throw new FormatError(this.what, `payload ends early (needs ${n} more bytes, ${this.b.length - this.pos} left)`);
+    const s = this.b.subarray(this.pos, this.pos + n);
+    this.pos += n;
+    return s;
+  }
+  u8() {
+    return this.take(1)[0];
+  }
+  u32() {
+    const s = this.take(4);
+    return u32(s, 0);
+  }
+  f32() {
+    this.take(4);
+    return this.view.getFloat32(this.pos - 4, true);
+  }
+  remaining() {
+    return this.b.length - this.pos;
+  }
+  varint() {
+    let v = 0;
+    for (let i = 0; i < 5; i++) {
+      const byte = this.u8();
+      v += (byte & 0x7f) * 2 ** (7 * i);
+      if (!(byte & 0x80)) {
+        if (v > 0xffffffff) throw new FormatError(this.what, "varint above 2^32 - 1");
+        return v;
+      }
+    }
+    throw new FormatError(this.what, "varint longer than 5 bytes");
+  }
+  finish() {
+    if (this.pos !== this.b.length) throw new FormatError(this.what, `${this.b.length - this.pos} trailing bytes`);
+  }
+
+  /** Reads one block (format.md §5.2) into `out` (a Float32Array of the expected length). */
+  blockInto(out, name) {
+    const bad = (m) => {
+      throw new FormatError(`${this.what} (${name})`, m);
+    };
+    const enc = this.u8();
+    const bits = this.u8();
+    const predictor = this.u8();
+    const reserved = this.u8();
+    const count = this.u32();
+    if (reserved !== 0) bad("reserved block byte must be 0");
+    if (count !== out.length) bad(`block holds ${count} values, the model needs ${out.length}`);
+    const quantised = enc === 2 || enc === 3;
+    if (quantised && !(bits >= 1 && bits <= 8)) bad(`bits must be in 1..=8 (got ${bits})`);
+    if (!quantised && enc <= 1 && (bits !== 0 || predictor !== 0)) bad("bits and predictor must be 0 for float blocks");
+    if (predictor > 1) bad(`unsupported predictor ${predictor}`);
+    if (enc === 0) {
+      const b = this.take(4 * count);
+      const word = new Uint8Array(4);
+      const wv = new DataView(word.buffer);
+      for (let i = 0; i < count; i++) {
+        word[0] = b[i];
+        word[1] = b[count + i];
+        word[2] = b[2 * count + i];
+        word[3] = b[3 * count + i];
+        out[i] = wv.getFloat32(0, true);
+      }
+    } else if (enc === 1) {
+      const b = this.take(2 * count);
+      for (let i = 0; i < count; i++) out[i] = f16ToF32(b[i] | (b[count + i] << 8));
+    } else if (quantised) {
+      const k = 1 << bits;
+      const book = new Float32Array(k);
+      if (enc === 2) {
+        const min = this.f32();
+        const scale = this.f32();
+        if (!(Number.isFinite(min) && Number.isFinite(scale) && scale >= 0)) bad(`affine min ${min} / scale ${scale} must be finite, scale >= 0`);
+        for (let c = 0; c < k; c++) book[c] = Math.fround(min + Math.fround(c * scale));
+      } else {
+        for (let c = 0; c < k; c++) {
+          book[c] = this.f32();
+          if (!Number.isFinite(book[c])) bad(`codebook entry ${c} is not finite`);
+        }
+      }
+      const b = this.take(count);
+      let prev = 0;
+      for (let i = 0; i < count; i++) {
+        let code = b[i];
+        if (predictor === 1) {
+          prev = (prev + code) & 0xff;
+          code = prev;
+        }
+        if (code >= k) bad(`code ${code} of value ${i} exceeds ${bits} bits`);
+        out[i] = book[code];
+      }
+    } else {
+      bad(`unsupported block encoding ${enc}`);
+    }
+    for (let i = 0; i < count; i++) if (!Number.isFinite(out[i])) bad(`value ${i} is not finite`);
+  }
+}
+
+/** IEEE binary16 bits to a number (exact). */
+export function f16ToF32(h) {
+  const s = h & 0x8000 ? -1 : 1;
+  const e = (h >> 10) & 0x1f;
+  const m = h & 0x3ff;
+  if (e === 0) return s * m * 2 ** -24;
+  if (e === 31) return m ? NaN : s * Infinity;
+  return s * (1 + m / 1024) * 2 ** (e - 15);
+}
+
+/** A section's label as msth-codec names it in errors. */
+export function sectionLabel(s) {
+  if (s.kind === KIND.dynamic) return `dynamic chunk ${s.chunk}`;
+  if (s.kind === KIND.shared) return "shared dynamic section";
+  return `${KIND_NAME[s.kind]} section`;
+}
+
+/** Checks the stored bytes' length and CRC-32 and decompresses into exactly `rawLength` bytes. */
+export function unpack(entry, stored) {
+  const what = sectionLabel(entry);
+  if (stored.length < entry.length) throw new FormatError(what, `needs ${entry.length} bytes, have ${stored.length}`, true);
+  if (stored.length !== entry.length) throw new FormatError(what, `${stored.length} bytes given, the index says ${entry.length}`);
+  const computed = crc32(stored);
+  if (computed !== entry.crc32) throw new FormatError(what, `CRC-32 mismatch (stored ${entry.crc32.toString(16)}, computed ${computed.toString(16)})`);
+  checkZstdFrame(stored, entry.rawLength, what);
+  const out = new Uint8Array(entry.rawLength);
+  let n = 0;
+  let over = false;
+  const d = new Decompress((chunk) => {
+    if (n + chunk.length > out.length) over = true;
+    else out.set(chunk, n);
+    n += chunk.length;
+  });
+  try {
+    d.push(stored, true);
+  } catch (e) {
+    throw new FormatError(what, `zstd: ${e.message || e}`);
+  }
+  if (over || n !== out.length) throw new FormatError(what, `decompressed to ${n} bytes, the index says ${entry.rawLength}`);
+  return out;
+}
+
+/**
+ * Reads the zstd frame header (RFC 8878 §3.1.1.1) before decompressing: the magic, the declared
+ * content size (must equal the index's `raw_length`) and the window size, which bounds what the
+ * decompressor allocates (at most twice `raw_length`, or 8 MiB for small sections).
+ */
+function checkZstdFrame(b, rawLength, what) {
+  const bad = (m) => {
+    throw new FormatError(what, `zstd: ${m}`);
+  };
+  if (b.length < 6 || u32(b, 0) !== 0xfd2fb528) bad("not a zstd frame (bad magic)");
+  const fhd = b[4];
+  const fcsFlag = fhd >> 6;
+  const single = (fhd >> 5) & 1;
+  if (fhd & 0x08) bad("reserved frame header bit set");
+  let o = 5;
+  let window = null;
+  if (!single) {
+    const wd = b[o++];
+    const base = 2 ** (10 + (wd >> 3));
+    window = base + (base / 8) * (wd & 7);
+  }
+  o += [0, 1, 2, 4][fhd & 3]; // dictionary id
+  const fcsBytes = [single ? 1 : 0, 2, 4, 8][fcsFlag];
+  if (b.length < o + fcsBytes) bad("truncated frame header");
+  let fcs = null;
+  if (fcsBytes === 1) fcs = b[o];
+  else if (fcsBytes === 2) fcs = (b[o] | (b[o + 1] << 8)) + 256;
+  else if (fcsBytes === 4) fcs = u32(b, o);
+  else if (fcsBytes === 8) fcs = u32(b, o) + u32(b, o + 4) * 2 ** 32;
+  if (fcs !== null && fcs !== rawLength) bad(`frame content size ${fcs}, the index says ${rawLength}`);
+  if (window === null) window = fcs;
+  if (window > Math.max(2 * rawLength, 8 << 20)) bad(`window of ${window} bytes for ${rawLength} bytes of content`);
+}
+
+/** Decodes a non-chunk section's payload into the flat buffer `params`. */
+export function readStatic(layout, payload, entry, params) {
+  const r = new Reader(payload, sectionLabel(entry));
+  for (const [name, a, b] of staticRanges(layout, entry.kind)) r.blockInto(params.subarray(a, b), name);
+  r.finish();
+}
+
+/** Decodes a shared or chunk payload: per 4D level `{ rows: Uint32Array, values: Float32Array }`. */
+export function readChunk(layout, payload, entry) {
+  const what = sectionLabel(entry);
+  const g = layout.field.encoding.h4;
+  if (!g) throw new FormatError(what, "the model has no 4D table");
+  const r = new Reader(payload, what);
+  const tag = r.u32();
+  const want = entry.kind === KIND.shared ? SHARED_TAG : entry.chunk;
+  if (tag !== want) throw new FormatError(what, `payload is tagged ${tag.toString(16)}, expected ${want.toString(16)}`);
+  const n = r.u32();
+  if (n !== g.levels.length) throw new FormatError(what, `${n} levels, the 4D grid has ${g.levels.length}`);
+  const levels = [];
+  g.levels.forEach((level, l) => {
+    const count = r.u32();
+    if (count > level.rows) throw new FormatError(what, `level ${l}: ${count} rows stored, the table has ${level.rows}`);
+    if (count > r.remaining()) throw new FormatError(what, `level ${l}: ${count} rows but ${r.remaining()} bytes left`);
+    const rows = new Uint32Array(count);
+    let next = 0;
+    for (let k = 0; k < count; k++) {
+      const row = next + r.varint();
+      if (row >= level.rows) throw new FormatError(what, `level ${l}: row ${row} outside the table (${level.rows} rows)`);
+      rows[k] = row;
+      next = row + 1;
+    }
+    const values = new Float32Array(count * g.features);
+    r.blockInto(values, `field.h4 level ${l}`);
+    levels.push({ rows, values });
+  });
+  r.finish();
+  return levels;
+}
+
+/** Writes a sparse chunk's rows into the field's 4D table in `params`. */
+export function applyChunk(layout, levels, params) {
+  const g = layout.field.encoding.h4;
+  if (!g) return;
+  const f = g.features;
+  levels.forEach(({ rows, values }, l) => {
+    const base = g.start + g.levels[l].offset;
+    for (let k = 0; k < rows.length; k++) params.set(values.subarray(k * f, (k + 1) * f), base + rows[k] * f);
+  });
+}
+
+/** The chunk for normalised time `t` (format.md §3.3), or null without chunks. */
+export function chunkForTime(metadata, t) {
+  const spans = metadata.chunks;
+  if (!spans.length) return null;
+  const tf = Math.fround(t);
+  for (let c = spans.length - 1; c >= 0; c--) if (Math.fround(spans[c].t_start) <= tf) return c;
+  return 0;
+}
+
+/**
+ * A streaming decoder: the prefix first, then sections in any order from their own bytes
+ * (as msth-codec's `Decoder`). `paramsForTime` assembles the flat buffer for a time.
+ */
+export class Decoder {
+  constructor(prefix, limits = LIMITS) {
+    Object.assign(this, parsePrefix(prefix, limits));
+    this.base = new Float32Array(this.layout.total);
+    this.decoded = new Array(this.sections.length).fill(false);
+    this.shared = null;
+    this.chunks = new Array(Math.max(0, this.sections.length - FIRST_CHUNK)).fill(null);
+  }
+
+  /** Decodes index entry `i` from its stored bytes. */
+  decodeSection(i, stored) {
+    const e = this.sections[i];
+    const payload = unpack(e, stored);
+    if (e.kind === KIND.shared) this.shared = readChunk(this.layout, payload, e);
+    else if (e.kind === KIND.dynamic) this.chunks[e.chunk] = readChunk(this.layout, payload, e);
+    else readStatic(this.layout, payload, e, this.base);
+    this.decoded[i] = true;
+  }
+
+  /** Whether the sections every frame needs are decoded. */
+  staticReady() {
+    return this.decoded.slice(0, Math.min(FIRST_CHUNK, this.sections.length)).every(Boolean);
+  }
+
+  chunkForTime(t) {
+    return chunkForTime(this.metadata, t);
+  }
+
+  /** Whether the parameters for time `t` can be assembled now. */
+  readyFor(t) {
+    const c = this.chunkForTime(t);
+    return this.staticReady() && (c === null || this.chunks[c] !== null);
+  }
+
+  /** The flat parameter buffer for time `t` (into `out` when given). */
+  paramsForTime(t, out = new Float32Array(this.layout.total)) {
+    if (!this.readyFor(t)) throw new FormatError("decoder", `the sections for time ${t} are not loaded`);
+    out.set(this.base);
+    const c = this.chunkForTime(t);
+    if (c !== null) {
+      if (this.shared) applyChunk(this.layout, this.shared, out);
+      applyChunk(this.layout, this.chunks[c], out);
+    }
+    return out;
+  }
+}

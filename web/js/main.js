@@ -1,0 +1,341 @@
+// The web player's page: picks a model from `/models`, streams it (stream.js), keeps the
+// decoded flat parameter buffer on the GPU (renderer.js, the native renderer's WGSL) and drives
+// the UI: orbit / pan / zoom with mouse and touch, a timeline with play/pause and scrubbing, a
+// loading bar of the streamed byte ranges and a frames-per-second counter.
+//
+// URL parameters: `model=NAME` (a name from /models), `view=AZ,EL,DIST` (degrees, degrees,
+// distance: the same viewpoint as `msth play --path view:AZ,EL,DIST`), `t=T` (normalised time,
+// starts paused there), `size=WxH` (render size, as `msth play --size`), `play=0|1`.
+//
+// `window.msth` exposes the player's state to tests and to the console (see `hooks` below).
+
+import { ModelStream } from "./stream.js";
+import { cameraFromJson, makeRig, Orbit, templateCamera } from "./camera.js";
+import { Renderer, NoWebGpu } from "./renderer.js";
+
+const $ = (id) => document.getElementById(id);
+const params = new URLSearchParams(location.search);
+
+const hooks = {
+  /** Set once the first frame has been rendered (ms since navigation start). */
+  firstFrameMs: null,
+  /** Frames rendered so far. */
+  frames: 0,
+  error: null,
+  state: null,
+  /** Milestones in ms since navigation start: adapter, prefix, pipeline, params, firstFrame. */
+  timings: {},
+  noWebGpu: false,
+};
+window.msth = hooks;
+
+function showMessage(text) {
+  const m = $("message");
+  m.textContent = text;
+  m.hidden = false;
+}
+
+function fail(e) {
+  console.error(e);
+  hooks.error = String(e && e.message ? e.message : e);
+  showMessage(hooks.error);
+}
+
+function parseSize(s) {
+  const m = /^(\d+)[xX](\d+)$/.exec(s || "");
+  if (!m) return null;
+  const [w, h] = [Number(m[1]), Number(m[2])];
+  return w >= 1 && h >= 1 && w <= 4096 && h <= 4096 ? [w, h] : null;
+}
+
+function parseView(s) {
+  if (!s) return null;
+  const v = s.split(",").map(Number);
+  return v.length === 3 && v.every(Number.isFinite) && v[2] > 0 ? v : null;
+}
+
+async function listModels() {
+  const sel = $("model");
+  try {
+    const resp = await fetch("models", { cache: "no-store" });
+    if (!resp.ok) throw new Error(`/models: HTTP ${resp.status}`);
+    const rows = await resp.json();
+    sel.innerHTML = "";
+    if (!rows.length) sel.append(new Option("no models served", ""));
+    for (const r of rows) sel.append(new Option(`${r.name} (${(r.bytes / 1e6).toFixed(2)} MB)`, r.name));
+    return rows;
+  } catch (e) {
+    sel.innerHTML = "";
+    sel.append(new Option("cannot list models", ""));
+    throw e;
+  }
+}
+
+function formatBytes(n) {
+  return n >= 1e6 ? `${(n / 1e6).toFixed(2)} MB` : `${(n / 1e3).toFixed(1)} kB`;
+}
+
+function drawLoading(stream) {
+  const p = stream.progress();
+  const box = $("loading-ranges");
+  const spans = stream.ranges.map(([a, b]) => [a, b, ""]);
+  if (stream.inflight) {
+    const { start, end, got } = stream.inflight;
+    spans.push([start, Math.min(end, start + got), "inflight"]);
+  }
+  box.replaceChildren(
+    ...spans.map(([a, b, cls]) => {
+      const s = document.createElement("span");
+      s.style.left = `${(100 * a) / p.fileLength}%`;
+      s.style.width = `${Math.max((100 * (b - a)) / p.fileLength, 0.2)}%`;
+      if (cls) s.className = cls;
+      return s;
+    }),
+  );
+  $("loading-text").textContent = `${formatBytes(p.bytesReady)} / ${formatBytes(p.fileLength)} · ${p.sectionsReady}/${p.sections} sections`;
+  $("loading").dataset.complete = p.complete ? "1" : "0";
+}
+
+async function main() {
+  const models = listModels().catch((e) => {
+    fail(e);
+    return [];
+  });
+  let renderer;
+  try {
+    renderer = await Renderer.adapter();
+    hooks.timings.adapter = performance.now();
+  } catch (e) {
+    if (e instanceof NoWebGpu) {
+      hooks.noWebGpu = true;
+      showMessage(`This browser has no WebGPU (${e.message}). The msth player needs it: use a recent Chrome, Edge or Safari, or Firefox with WebGPU enabled.`);
+      $("loading").hidden = true;
+      await models;
+      return;
+    }
+    throw e;
+  }
+  const rows = await models;
+  let name = params.get("model");
+  if (!name && rows.length) {
+    name = (rows.find((r) => /demo/.test(r.name)) || rows[0]).name;
+  }
+  if (!name) {
+    showMessage("No model is served here: start `msth serve DIR` with a folder of .msth files.");
+    return;
+  }
+  const sel = $("model");
+  if (![...sel.options].some((o) => o.value === name)) sel.append(new Option(name, name));
+  sel.value = name;
+  sel.onchange = () => {
+    const q = new URLSearchParams(location.search);
+    q.set("model", sel.value);
+    location.search = q.toString();
+  };
+  const url = `models/${encodeURIComponent(name)}`;
+  $("status").textContent = "loading…";
+  const stream = await ModelStream.open(url);
+  hooks.timings.prefix = performance.now();
+  const meta = stream.metadata;
+  const size = parseSize(params.get("size"));
+  const cameras = meta.cameras.map(cameraFromJson);
+  const template = templateCamera(cameras, size);
+  const rig = makeRig(meta.model.bounds, cameras, template);
+  const view = parseView(params.get("view"));
+  const orbit = view ? new Orbit(rig, view[0], view[1], view[2]) : new Orbit(rig);
+  const canvas = $("view");
+  canvas.width = template.width;
+  canvas.height = template.height;
+  // Small renders are shown enlarged (pixelated) so that they can be handled.
+  const shown = Math.max(1, Math.floor(Math.min(640 / template.width, 480 / template.height)));
+  canvas.style.width = `${template.width * shown}px`;
+  canvas.style.height = `${template.height * shown}px`;
+  $("info").textContent = `${name}: ${meta.model.num_frames} frames, ${meta.param_count.toLocaleString()} parameters, ${meta.quant}, ${meta.chunks.length} chunks`;
+
+  const tParam = params.get("t");
+  const state = {
+    t: tParam !== null && Number.isFinite(Number(tParam)) ? Math.min(1, Math.max(0, Number(tParam))) : 0,
+    playing: params.get("play") === "1" || (tParam === null && params.get("play") !== "0"),
+    dirty: true,
+    loadedChunk: undefined,
+    rendering: false,
+  };
+  hooks.state = state;
+  hooks.orbit = orbit;
+  hooks.stream = stream;
+  stream.seek(state.t);
+  stream.onChange(drawLoading);
+  stream.start();
+  drawLoading(stream);
+
+  const gpu = await renderer.create(canvas, meta.model, stream.decoder.layout);
+  hooks.renderer = gpu;
+  hooks.timings.pipeline = performance.now();
+  const paramBuf = new Float32Array(stream.decoder.layout.total);
+
+  // ---- timeline
+  const scrub = $("scrub");
+  const playBtn = $("play");
+  const frames = meta.model.num_frames;
+  const fps = meta.frame_rate || 24;
+  const duration = Math.max(frames, 2) / fps;
+  const setPlaying = (p) => {
+    state.playing = p;
+    playBtn.textContent = p ? "❚❚" : "▶";
+    playBtn.setAttribute("aria-label", p ? "pause" : "play");
+  };
+  setPlaying(state.playing);
+  playBtn.onclick = () => setPlaying(!state.playing);
+  const setTime = (t) => {
+    state.t = Math.min(1, Math.max(0, t));
+    stream.seek(state.t);
+    state.dirty = true;
+  };
+  scrub.addEventListener("input", () => {
+    setPlaying(false);
+    setTime(Number(scrub.value) / 1000);
+  });
+  hooks.setTime = (t) => {
+    setPlaying(false);
+    setTime(t);
+  };
+
+  // ---- orbit / pan / zoom: mouse, wheel, touch (one finger orbits, two pan and pinch)
+  const pointers = new Map();
+  let pinch = null;
+  canvas.addEventListener("contextmenu", (e) => e.preventDefault());
+  canvas.addEventListener("pointerdown", (e) => {
+    canvas.setPointerCapture(e.pointerId);
+    pointers.set(e.pointerId, { x: e.clientX, y: e.clientY, button: e.button, shift: e.shiftKey });
+  });
+  const scale = () => canvas.width / canvas.getBoundingClientRect().width;
+  canvas.addEventListener("pointermove", (e) => {
+    const p = pointers.get(e.pointerId);
+    if (!p) return;
+    // Orbiting turns by screen distance; panning moves by image pixels (so that the scene
+    // follows the pointer whatever the canvas is enlarged by).
+    const sx = e.clientX - p.x;
+    const sy = e.clientY - p.y;
+    const k = scale();
+    p.x = e.clientX;
+    p.y = e.clientY;
+    if (pointers.size === 2) {
+      const [a, b] = [...pointers.values()];
+      const d = Math.hypot(a.x - b.x, a.y - b.y);
+      if (pinch) orbit.zoom(pinch / Math.max(d, 1));
+      pinch = d;
+      orbit.panBy((sx * k) / 2, (sy * k) / 2);
+    } else if (p.button === 2 || p.button === 1 || p.shift) {
+      orbit.panBy(sx * k, sy * k);
+    } else {
+      orbit.rotate(sx, sy);
+    }
+    state.dirty = true;
+  });
+  const up = (e) => {
+    pointers.delete(e.pointerId);
+    if (pointers.size < 2) pinch = null;
+  };
+  canvas.addEventListener("pointerup", up);
+  canvas.addEventListener("pointercancel", up);
+  canvas.addEventListener(
+    "wheel",
+    (e) => {
+      e.preventDefault();
+      orbit.zoom(Math.exp(e.deltaY * 0.001));
+      state.dirty = true;
+    },
+    { passive: false },
+  );
+  hooks.setView = (az, el, dist) => {
+    orbit.az = az;
+    orbit.el = el;
+    orbit.dist = dist;
+    orbit.pan = [0, 0, 0];
+    state.dirty = true;
+  };
+
+  // ---- frame loop
+  let last = performance.now();
+  const recent = [];
+  const frameDone = [];
+  async function renderNow() {
+    const chunk = stream.decoder.chunkForTime(state.t);
+    if (chunk !== state.loadedChunk || state.paramsStale) {
+      stream.decoder.paramsForTime(state.t, paramBuf);
+      gpu.setParams(paramBuf);
+      state.loadedChunk = chunk;
+      state.paramsStale = false;
+      hooks.timings.params ??= performance.now();
+    }
+    const cam = orbit.camera();
+    const t0 = performance.now();
+    // New input (orbit, zoom, scrub) abandons a frame still in progress.
+    if (!(await gpu.render(cam, state.t, () => state.dirty))) return;
+    const t1 = performance.now();
+    hooks.frames++;
+    hooks.lastFrameMs = t1 - t0;
+    hooks.lastTime = state.t;
+    hooks.lastCamera = cam;
+    if (hooks.firstFrameMs === null) {
+      hooks.firstFrameMs = t1;
+      hooks.timings.firstFrame = t1;
+      console.log(`first frame after ${t1.toFixed(0)} ms`);
+    }
+    recent.push(t1);
+    while (recent.length && recent[0] < t1 - 1000) recent.shift();
+    for (const f of frameDone.splice(0)) f();
+  }
+  // Resolves after the next frame that starts after this call.
+  hooks.nextFrame = () => new Promise((r) => frameDone.push(r));
+
+  async function tick(now) {
+    const dt = (now - last) / 1000;
+    last = now;
+    if (stream.error && !hooks.error) fail(stream.error);
+    // Playback holds still while the chunk under the playhead is streaming.
+    if (state.playing && stream.readyFor(state.t)) {
+      setTime((state.t + dt / duration) % 1);
+      scrub.value = String(Math.round(state.t * 1000));
+    }
+    $("time").textContent = `t = ${state.t.toFixed(3)} · frame ${Math.round(state.t * (frames - 1))}`;
+    if (!state.rendering && (state.dirty || state.playing || frameDone.length)) {
+      if (stream.readyFor(state.t)) {
+        state.rendering = true;
+        state.dirty = false;
+        try {
+          await renderNow();
+          $("status").textContent = "";
+        } catch (e) {
+          fail(e);
+        }
+        state.rendering = false;
+      } else {
+        $("status").textContent = "buffering…";
+      }
+    }
+    const n = recent.length;
+    $("fps").textContent = n > 1 ? `${n} fps · ${hooks.lastFrameMs.toFixed(1)} ms/frame` : hooks.lastFrameMs ? `${hooks.lastFrameMs.toFixed(1)} ms/frame` : "– fps";
+    if (performance.now() - (recent[n - 1] ?? 0) > 1000) recent.length = 0;
+    if (!hooks.error) requestAnimationFrame(tick);
+  }
+  scrub.value = String(Math.round(state.t * 1000));
+  requestAnimationFrame(tick);
+
+  /** Renders `n` frames back to back at the current view: frames per second (GPU complete). */
+  hooks.benchmark = async (n = 30) => {
+    setPlaying(false);
+    while (state.rendering) await new Promise((r) => setTimeout(r, 5));
+    state.rendering = true;
+    const cam = orbit.camera();
+    const t0 = performance.now();
+    for (let i = 0; i < n; i++) await gpu.render(cam, state.t);
+    const s = (performance.now() - t0) / 1000;
+    state.rendering = false;
+    return { frames: n, seconds: s, fps: n / s, width: canvas.width, height: canvas.height };
+  };
+  /** The last rendered frame's RGBA8 pixels (the renderer's own output, not a screenshot). */
+  hooks.readPixels = async () => Array.from(await gpu.readPixels());
+}
+
+main().catch(fail);

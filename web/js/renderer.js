@@ -1,0 +1,343 @@
+// WebGPU rendering with the native renderer's kernels: `shaders/render.wgsl` is the very file the
+// wgpu player compiles (one source of truth, served to the page by `msth serve`). This module is
+// the browser's host side of its bindings, a port of `player/src/gpu/layout.rs` as documented in
+// `shaders/README.md`: the `Model` uniform (6496 bytes), the `View` uniform (112 bytes), the
+// split of the flat parameter buffer into `tab3` (field.h3), `tab4` (field.h4) and `rest`
+// (everything after them), and the `render` entry point's 2D dispatch of 64-wide workgroups.
+//
+// The kernel writes (r, g, b, depth) per pixel to a storage buffer; a small display pass (below,
+// not part of the renderer: it only copies that buffer to the canvas, clamped to [0, 1]) draws it.
+
+const LEVEL_SLOTS = 128;
+const MODEL_BYTES = 352 + 48 * LEVEL_SLOTS;
+const VIEW_BYTES = 112;
+const WORKGROUP = 64;
+/** `View.size.w` bit: invocation `i` renders pixel `list[i]`. */
+const FLAG_LIST = 1;
+const MAX_PROPOSAL_SAMPLES = 256;
+const MAX_SAMPLES = 128;
+const MAX_HIDDEN = 128;
+const MAX_GEO = 31;
+/** msth-core `pipeline::RENDER_STATIC_CUTOFF`. */
+const RENDER_STATIC_CUTOFF = 1e-3;
+const BLEND = { mst: 0, mt: 1, add: 2, four_d: 3, static: 4 };
+
+/** The browser has no usable WebGPU (the page says so instead of rendering). */
+export class NoWebGpu extends Error {}
+
+const DISPLAY_WGSL = `
+struct Size { w: u32, h: u32 }
+@group(0) @binding(0) var<storage, read> frame: array<vec4<f32>>;
+@group(0) @binding(1) var<uniform> size: Size;
+@vertex fn vs(@builtin(vertex_index) i: u32) -> @builtin(position) vec4<f32> {
+  let p = vec2<f32>(f32((i << 1u) & 2u), f32(i & 2u));
+  return vec4<f32>(p * 2.0 - 1.0, 0.0, 1.0);
+}
+@fragment fn fs(@builtin(position) pos: vec4<f32>) -> @location(0) vec4<f32> {
+  let x = min(u32(pos.x), size.w - 1u);
+  let y = min(u32(pos.y), size.h - 1u);
+  return vec4<f32>(clamp(frame[y * size.w + x].rgb, vec3<f32>(0.0), vec3<f32>(1.0)), 1.0);
+}`;
+
+/**
+ * The `Model` uniform and the parameter split of a model (layout.rs `GpuModel::new`). `layout`
+ * is format.js's `modelLayout(model)`. Throws with the limit a model exceeds.
+ */
+export function gpuModel(cfg, layout) {
+  const check = (what, v, max) => {
+    if (v > max) throw new Error(`${what} is ${v}; the GPU renderer supports at most ${max}`);
+  };
+  check("sampler.num_proposal_samples", cfg.sampler.num_proposal_samples, MAX_PROPOSAL_SAMPLES);
+  check("sampler.num_samples", cfg.sampler.num_samples, MAX_SAMPLES);
+  check("field.density_hidden", cfg.field.density_hidden, MAX_HIDDEN);
+  check("field.color_hidden", cfg.field.color_hidden, MAX_HIDDEN);
+  check("proposal.hidden", cfg.proposal.hidden, MAX_HIDDEN);
+  check("field.geo_features", cfg.field.geo_features, MAX_GEO);
+  const fe = layout.field.encoding;
+  const tab3 = fe.h3 ? [fe.h3.start, fe.h3.end] : [0, 0];
+  const tab4 = fe.h4 ? [fe.h4.start, fe.h4.end] : [0, 0];
+  const rest0 = Math.max(tab3[1], tab4[1]);
+  const split = { tab3, tab4, rest: [rest0, layout.total] };
+  for (const s of [fe.mask, layout.field.density, layout.field.color, layout.proposal.density, layout.proposal.encoding.h3, layout.proposal.encoding.h4, layout.proposal.encoding.mask]) {
+    if (s && s.start < rest0) throw new Error("a parameter lies before the field's hash tables; the GPU renderer cannot split this layout");
+  }
+
+  const buf = new ArrayBuffer(MODEL_BYTES);
+  const u = new Uint32Array(buf);
+  const f = new Float32Array(buf);
+  // Word offsets of the struct members.
+  const SAMPLER = 0, LIMITS = 4, BOUNDS_A = 8, BOUNDS_B = 12, BACKGROUND = 16, DENSITY = 20, COLOR = 24, PROPOSAL = 28;
+  const FIELD = 32, PROP = 60, LEVELS = 88;
+  const s = cfg.sampler;
+  const b = cfg.bounds;
+  u.set([s.num_proposal_samples, s.num_samples, s.spacing === "lin_disp" ? 1 : 0, b.kind === "contracted" ? 1 : 0], SAMPLER);
+  f.set([s.near, s.far, s.histogram_padding, b.kind === "contracted" ? b.radius : 1], LIMITS);
+  if (b.kind === "box") {
+    f.set([...b.min, 0], BOUNDS_A);
+    f.set([...b.max, 0], BOUNDS_B);
+  } else {
+    f.set([...b.center, b.radius], BOUNDS_A);
+  }
+  const bg = cfg.background;
+  f.set(bg.kind === "color" ? [...bg.rgb, 1] : [0, 0, 0, 0], BACKGROUND);
+  const rel = (r) => r.start - rest0;
+  const d = layout.field.density;
+  u.set([rel(d), d.dims[0], d.dims[1], d.dims[2]], DENSITY);
+  u.set([rel(layout.field.color), cfg.field.color_hidden, cfg.field.color_layers, cfg.field.geo_features], COLOR);
+  const p = layout.proposal.density;
+  u.set([rel(p), p.dims[0], p.dims[1], 0], PROPOSAL);
+
+  let nextSlot = 0;
+  const grid = (g, buffer, at) => {
+    if (!g) return; // zeros: not present
+    const base = buffer === 2 ? g.start - rest0 : 0;
+    const first = nextSlot;
+    if (first + g.levels.length > LEVEL_SLOTS) throw new Error("too many grid levels for the GPU renderer");
+    g.levels.forEach((lv, k) => {
+      const o = LEVELS + 12 * (first + k);
+      f.set([...lv.scale, 0, 0, 0, 0].slice(0, 4), o);
+      u.set(lv.stride.slice(0, 4), o + 4);
+      u.set([base + lv.offset, lv.dense ? 1 : 0, lv.rows, 0], o + 8);
+    });
+    nextSlot += g.levels.length;
+    u.set([g.dims, g.features, g.levels.length, g.tableSize - 1], at);
+    u.set([buffer, first, 1, 0], at + 4);
+  };
+  const encoding = (e, buffers, at) => {
+    grid(e.h3, buffers[0], at + 12);
+    grid(e.h4, buffers[1], at + 20);
+    u.set(e.mask ? [BLEND[e.blend], 1, e.mask.res, e.mask.start - rest0] : [BLEND[e.blend], 0, 0, 0], at);
+    u.set([e.outDim, 0, 0, 0], at + 4);
+    const noMask = e.blend === "static" ? 1 : e.blend === "four_d" ? 0 : 0.5;
+    f.set([noMask, RENDER_STATIC_CUTOFF, 0, 0], at + 8);
+  };
+  encoding(fe, [0, 1], FIELD);
+  encoding(layout.proposal.encoding, [2, 2], PROP);
+  return { uniform: buf, split };
+}
+
+/** The `View` uniform for `cam` (camera.js) at time `t`, `count` invocations, `flags`. */
+export function viewUniform(cam, t, count, flags = 0) {
+  const buf = new ArrayBuffer(VIEW_BYTES);
+  const f = new Float32Array(buf);
+  const u = new Uint32Array(buf);
+  f.set(cam.m, 0);
+  f.set([cam.fx, cam.fy, cam.cx, cam.cy], 16);
+  u.set([cam.width, cam.height, count, flags], 20);
+  f.set([t, 0, 0, 0], 24);
+  return buf;
+}
+
+/** Workgroups `[x, y]` for `count` invocations, `x` at most `maxPerDim` (layout.rs). */
+export function dispatchSize(count, maxPerDim) {
+  const groups = Math.max(1, Math.ceil(count / WORKGROUP));
+  const x = Math.min(groups, maxPerDim);
+  const y = Math.ceil(groups / x);
+  return y <= maxPerDim ? [x, y] : null;
+}
+
+/** A WebGPU device and the compiled kernels; `create` binds them to a canvas and a model. */
+export class Renderer {
+  /** Requests an adapter and device and fetches the WGSL; throws `NoWebGpu` without WebGPU. */
+  static async adapter() {
+    if (!("gpu" in navigator) || !navigator.gpu) throw new NoWebGpu("navigator.gpu is missing");
+    let adapter = null;
+    try {
+      adapter = await navigator.gpu.requestAdapter();
+    } catch (e) {
+      throw new NoWebGpu(`requestAdapter failed: ${e.message}`);
+    }
+    if (!adapter) throw new NoWebGpu("no WebGPU adapter is available");
+    const al = adapter.limits;
+    const device = await adapter.requestDevice({
+      requiredLimits: { maxStorageBufferBindingSize: al.maxStorageBufferBindingSize, maxBufferSize: al.maxBufferSize },
+    });
+    const resp = await fetch("shaders/render.wgsl", { cache: "no-store" });
+    if (!resp.ok) throw new Error(`shaders/render.wgsl: HTTP ${resp.status}`);
+    return new Renderer(adapter, device, await resp.text());
+  }
+
+  constructor(adapter, device, source) {
+    this.adapter = adapter;
+    this.device = device;
+    this.source = source;
+    this.lost = null;
+    device.lost.then((info) => {
+      this.lost = `the GPU device was lost: ${info.message || info.reason}`;
+    });
+  }
+
+  /** Binds the kernels to `canvas` for a model (`cfg` its config, `layout` format.js's). */
+  async create(canvas, cfg, layout) {
+    const device = this.device;
+    const { uniform, split } = gpuModel(cfg, layout);
+    device.pushErrorScope("validation");
+    const module = device.createShaderModule({ code: this.source, label: "render.wgsl" });
+    const info = await module.getCompilationInfo();
+    const errors = info.messages.filter((m) => m.type === "error");
+    if (errors.length) throw new Error(`render.wgsl: ${errors.map((m) => `${m.lineNum}:${m.linePos} ${m.message}`).join("; ")}`);
+    const pipeline = await device.createComputePipelineAsync({ layout: "auto", compute: { module, entryPoint: "render" } });
+    const err = await device.popErrorScope();
+    if (err) throw new Error(`render.wgsl: ${err.message}`);
+    return new GpuScene(this, canvas, pipeline, uniform, split);
+  }
+}
+
+class GpuScene {
+  constructor(r, canvas, pipeline, modelUniform, split) {
+    const device = r.device;
+    this.r = r;
+    this.device = device;
+    this.canvas = canvas;
+    this.pipeline = pipeline;
+    this.split = split;
+    const limit = device.limits.maxStorageBufferBindingSize;
+    const buffer = (bytes, usage, label) => {
+      if (bytes > limit) throw new Error(`${label} needs ${bytes} bytes, more than this GPU's storage buffer limit ${limit}`);
+      return device.createBuffer({ size: Math.max(4, Math.ceil(bytes / 4) * 4), usage, label });
+    };
+    const len = (r) => r[1] - r[0];
+    const S = GPUBufferUsage.STORAGE | GPUBufferUsage.COPY_DST;
+    this.tab3 = buffer(4 * len(split.tab3), S, "field.h3 table (tab3)");
+    this.tab4 = buffer(4 * len(split.tab4), S, "field.h4 table (tab4)");
+    this.rest = buffer(4 * len(split.rest), S, "decoders, mask and proposal field (rest)");
+    this.model = device.createBuffer({ size: modelUniform.byteLength, usage: GPUBufferUsage.UNIFORM | GPUBufferUsage.COPY_DST, label: "Model" });
+    device.queue.writeBuffer(this.model, 0, modelUniform);
+    this.view = device.createBuffer({ size: VIEW_BYTES, usage: GPUBufferUsage.UNIFORM | GPUBufferUsage.COPY_DST, label: "View" });
+    this.size = device.createBuffer({ size: 8, usage: GPUBufferUsage.UNIFORM | GPUBufferUsage.COPY_DST, label: "display size" });
+    this.context = canvas.getContext("webgpu");
+    this.format = navigator.gpu.getPreferredCanvasFormat();
+    this.context.configure({ device, format: this.format, alphaMode: "opaque" });
+    const dmod = device.createShaderModule({ code: DISPLAY_WGSL, label: "display" });
+    this.display = device.createRenderPipeline({
+      layout: "auto",
+      vertex: { module: dmod, entryPoint: "vs" },
+      fragment: { module: dmod, entryPoint: "fs", targets: [{ format: this.format }] },
+      primitive: { topology: "triangle-list" },
+    });
+    this.frameSize = null;
+    /** Rays per dispatch (adapted after each). */
+    this.tile = 4096;
+  }
+
+  #ensureFrame(w, h) {
+    if (this.frameSize && this.frameSize[0] === w && this.frameSize[1] === h) return;
+    const device = this.device;
+    this.frame?.destroy();
+    this.readback?.destroy();
+    const bytes = w * h * 16;
+    this.frame = device.createBuffer({ size: bytes, usage: GPUBufferUsage.STORAGE | GPUBufferUsage.COPY_SRC, label: "frame" });
+    this.readback = device.createBuffer({ size: bytes, usage: GPUBufferUsage.MAP_READ | GPUBufferUsage.COPY_DST, label: "readback" });
+    this.order?.destroy();
+    // The pixel list of the tiles: 0, 1, ..., w * h - 1 (each tile binds its part).
+    this.order = device.createBuffer({ size: 4 * w * h, usage: GPUBufferUsage.STORAGE, mappedAtCreation: true, label: "pixel order" });
+    const ids = new Uint32Array(this.order.getMappedRange());
+    for (let i = 0; i < ids.length; i++) ids[i] = i;
+    this.order.unmap();
+    device.queue.writeBuffer(this.size, 0, new Uint32Array([w, h]));
+    this.displayBind = device.createBindGroup({
+      layout: this.display.getBindGroupLayout(0),
+      entries: [
+        { binding: 0, resource: { buffer: this.frame } },
+        { binding: 1, resource: { buffer: this.size } },
+      ],
+    });
+    this.frameSize = [w, h];
+    if (this.canvas.width !== w || this.canvas.height !== h) {
+      this.canvas.width = w;
+      this.canvas.height = h;
+    }
+  }
+
+  /** Uploads the flat parameter buffer (a Float32Array of `param_count` values). */
+  setParams(params) {
+    const q = this.device.queue;
+    const put = (buf, [a, b]) => {
+      if (b > a) q.writeBuffer(buf, 0, params.buffer, params.byteOffset + 4 * a, 4 * (b - a));
+    };
+    put(this.tab3, this.split.tab3);
+    put(this.tab4, this.split.tab4);
+    put(this.rest, this.split.rest);
+  }
+
+  /**
+   * Renders `cam` at time `t` to the canvas; resolves when the GPU has finished, to `true`, or
+   * to `false` when `abort()` (checked between tiles) asked to stop early.
+   *
+   * A frame is rendered in tiles of consecutive pixels (the kernel's pixel-list mode, `flags = 1`,
+   * with the list bound at the tile's offset), each its own submission, and the canvas is
+   * updated after each: a slow GPU (SwiftShader) then keeps the page responsive and shows the
+   * frame as it progresses. The tile size adapts to about 50 ms of GPU work; on a real GPU a
+   * frame is one tile.
+   */
+  async render(cam, t, abort = () => false) {
+    if (this.r.lost) throw new Error(this.r.lost);
+    const { width: w, height: h } = cam;
+    this.#ensureFrame(w, h);
+    const n = w * h;
+    const device = this.device;
+    const maxDim = device.limits.maxComputeWorkgroupsPerDimension;
+    for (let start = 0; start < n; ) {
+      const count = Math.min(this.tile, n - start);
+      const groups = dispatchSize(count, maxDim);
+      if (!groups) throw new Error(`${count} rays exceed this GPU's dispatch limits`);
+      device.queue.writeBuffer(this.view, 0, viewUniform(cam, t, count, FLAG_LIST));
+      device.pushErrorScope("validation");
+      const bind = device.createBindGroup({
+        layout: this.pipeline.getBindGroupLayout(0),
+        entries: [this.model, this.view, this.tab3, this.tab4, this.rest, this.order, this.frame].map((buffer, binding) => ({
+          binding,
+          resource: binding === 5 ? { buffer, offset: 4 * start, size: 4 * count } : { buffer },
+        })),
+      });
+      const enc = device.createCommandEncoder();
+      const pass = enc.beginComputePass();
+      pass.setPipeline(this.pipeline);
+      pass.setBindGroup(0, bind);
+      pass.dispatchWorkgroups(groups[0], groups[1], 1);
+      pass.end();
+      this.#present(enc);
+      const t0 = performance.now();
+      device.queue.submit([enc.finish()]);
+      const err = await device.popErrorScope();
+      if (err) throw new Error(`render: ${err.message}`);
+      await device.queue.onSubmittedWorkDone();
+      const ms = Math.max(performance.now() - t0, 0.1);
+      // The next tiles aim at ~50 ms each (multiples of 64 rays: the binding offset alignment).
+      this.tile = Math.min(1 << 22, Math.max(64, Math.round((count * 50) / ms / 64) * 64));
+      start += count;
+      if (start < n && abort()) return false;
+    }
+    return true;
+  }
+
+  #present(enc) {
+    const rp = enc.beginRenderPass({
+      colorAttachments: [{ view: this.context.getCurrentTexture().createView(), loadOp: "clear", storeOp: "store", clearValue: [0, 0, 0, 1] }],
+    });
+    rp.setPipeline(this.display);
+    rp.setBindGroup(0, this.displayBind);
+    rp.draw(3);
+    rp.end();
+  }
+
+  /** The last frame as RGBA8, quantised as `msth play` writes PNGs (round to nearest). */
+  async readPixels() {
+    const [w, h] = this.frameSize;
+    const enc = this.device.createCommandEncoder();
+    enc.copyBufferToBuffer(this.frame, 0, this.readback, 0, w * h * 16);
+    this.device.queue.submit([enc.finish()]);
+    await this.readback.mapAsync(GPUMapMode.READ);
+    const src = new Float32Array(this.readback.getMappedRange().slice(0));
+    this.readback.unmap();
+    const out = new Uint8Array(w * h * 4);
+    for (let i = 0; i < w * h; i++) {
+      for (let c = 0; c < 3; c++) {
+        const v = src[4 * i + c];
+        out[4 * i + c] = Math.floor(Math.min(1, Math.max(0, v >= 0 ? v : 0)) * 255 + 0.5);
+      }
+      out[4 * i + 3] = 255;
+    }
+    return out;
+  }
+}

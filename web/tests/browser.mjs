@@ -1,0 +1,315 @@
+// Browser test of the web player: headless Chromium driven by playwright-core against a real
+// `msth serve`. Started by tests/tests/web_player.rs (which trains and exports the model, starts
+// the server and renders the native references with `msth play`), or by hand:
+//
+//   node web/tests/browser.mjs --base http://127.0.0.1:8080 --model demo.msth \
+//     --view 30,25,4 --size 64x48 --native0 t0.png --native1 t1.png [--screenshot page.png] \
+//     [--bench-size 256x256] [--out results.json] [--chromium /usr/bin/chromium]
+//
+// `--native0` / `--native1` are `msth play FILE --path view:VIEW --size SIZE --frames 1
+// --time T:T` frames at t = 0 and t = 1. Checks, each printed as PASS/FAIL with its figures:
+//  1. the page loads the model from the server and the first frame appears (in the renderer's
+//     output and on the canvas);
+//  2. the first frame matches the native render of the same camera and time (PSNR >= 35 dB);
+//  3. dragging on the canvas orbits the camera (the pixels change); touch orbits (one finger),
+//     pinches and pans (two); the wheel zooms and right-drag pans; back at the URL's view the
+//     first frame comes back;
+//  4. scrubbing the timeline to t = 1 changes the dynamic pixels (those that differ between the
+//     native renders at t = 0 and 1) and not the static ones, and matches the native t = 1 frame;
+//  5. without WebGPU the page says so.
+// Also reports time to first frame and frames per second at `--bench-size` (for the record:
+// timing decides nothing). Exit status 1 when a check fails, 2 on a usage or setup error.
+
+import { mkdtempSync, readFileSync, writeFileSync, rmSync } from "node:fs";
+import { tmpdir } from "node:os";
+import { join } from "node:path";
+import { chromium } from "playwright-core";
+
+const BASE_FLAGS = ["--no-sandbox", "--disable-background-networking", "--disable-component-update", "--disable-sync", "--no-first-run", "--disable-gpu-sandbox"];
+const WEBGPU_FLAGS = ["--enable-unsafe-webgpu", "--enable-features=Vulkan", "--use-vulkan=swiftshader", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--use-webgpu-adapter=swiftshader"];
+const PSNR_MIN = 35;
+
+function parseArgs(argv) {
+  const a = {};
+  for (let i = 0; i < argv.length; i++) {
+    const k = argv[i];
+    if (!k.startsWith("--")) usage(`unexpected argument ${k}`);
+    a[k.slice(2)] = argv[++i];
+  }
+  for (const k of ["base", "model", "view", "size", "native0", "native1"]) if (!a[k]) usage(`--${k} is required`);
+  a.chromium ||= process.env.MSTH_CHROMIUM || "/usr/bin/chromium";
+  return a;
+}
+
+function usage(msg) {
+  console.error(`browser.mjs: ${msg}\nusage: node web/tests/browser.mjs --base URL --model NAME --view AZ,EL,DIST --size WxH --native0 PNG --native1 PNG [--screenshot PNG] [--bench-size WxH] [--out JSON] [--chromium PATH]`);
+  process.exit(2);
+}
+
+const results = { checks: [], figures: {} };
+let failed = false;
+function check(name, ok, detail) {
+  results.checks.push({ name, ok, detail });
+  console.log(`${ok ? "PASS" : "FAIL"} ${name}: ${detail}`);
+  if (!ok) failed = true;
+}
+
+function psnr(a, b, n) {
+  // a, b: RGBA8 arrays of n pixels; RGB only, as msth's metrics (0..1 scale).
+  let se = 0;
+  for (let i = 0; i < n; i++) for (let c = 0; c < 3; c++) se += ((a[4 * i + c] - b[4 * i + c]) / 255) ** 2;
+  const mse = se / (3 * n);
+  return mse === 0 ? Infinity : -10 * Math.log10(mse);
+}
+
+const maxDiff = (a, b, i) => Math.max(...[0, 1, 2].map((c) => Math.abs(a[4 * i + c] - b[4 * i + c])));
+const meanDiff = (a, b, i) => [0, 1, 2].reduce((s, c) => s + Math.abs(a[4 * i + c] - b[4 * i + c]), 0) / 3;
+
+async function launch(chromiumPath, webgpu) {
+  const dir = mkdtempSync(join(tmpdir(), "msth-chromium-"));
+  const ctx = await chromium.launchPersistentContext(dir, {
+    executablePath: chromiumPath,
+    headless: true,
+    args: webgpu ? [...BASE_FLAGS, ...WEBGPU_FLAGS] : BASE_FLAGS,
+    viewport: { width: 1000, height: 760 },
+    hasTouch: true,
+  });
+  return { ctx, close: async () => { await ctx.close(); rmSync(dir, { recursive: true, force: true }); } };
+}
+
+/** Decodes a PNG into RGBA8 with the browser's own decoder (no extra npm package). */
+async function decodePng(page, path) {
+  const b64 = readFileSync(path).toString("base64");
+  return page.evaluate(async (b64) => {
+    const img = new Image();
+    img.src = `data:image/png;base64,${b64}`;
+    await img.decode();
+    const c = document.createElement("canvas");
+    c.width = img.naturalWidth;
+    c.height = img.naturalHeight;
+    const g = c.getContext("2d", { colorSpace: "srgb" });
+    g.drawImage(img, 0, 0);
+    return { w: c.width, h: c.height, px: Array.from(g.getImageData(0, 0, c.width, c.height).data) };
+  }, b64);
+}
+
+async function waitFirstFrame(page, timeout = 300_000) {
+  await page.waitForFunction(() => window.msth && (window.msth.firstFrameMs !== null || window.msth.error || window.msth.noWebGpu), null, { timeout, polling: 100 });
+  const st = await page.evaluate(() => ({ ttff: window.msth.firstFrameMs, error: window.msth.error, noWebGpu: window.msth.noWebGpu }));
+  if (st.error || st.noWebGpu) throw new Error(`the page failed before its first frame: ${st.error || "no WebGPU"}`);
+  return st.ttff;
+}
+
+/** Waits until a frame has been rendered after this call with nothing left to render. */
+async function settled(page) {
+  await page.evaluate(() => window.msth.nextFrame());
+  await page.waitForFunction(() => !window.msth.state.dirty && !window.msth.state.rendering, null, { timeout: 120_000, polling: 50 });
+}
+
+const pixels = (page) => page.evaluate(() => window.msth.readPixels());
+
+async function main() {
+  const a = parseArgs(process.argv.slice(2));
+  const [w, h] = a.size.split("x").map(Number);
+  const n = w * h;
+  const pageUrl = `${a.base}/?model=${encodeURIComponent(a.model)}&view=${a.view}&t=0&size=${a.size}`;
+
+  // ---- with WebGPU (SwiftShader)
+  const gpu = await launch(a.chromium, true);
+  try {
+    const page = await gpu.ctx.newPage();
+    const logs = [];
+    page.on("console", (m) => logs.push(m.text()));
+    page.on("pageerror", (e) => logs.push(`pageerror: ${e.message}`));
+    await page.goto(pageUrl);
+    let ttff;
+    try {
+      ttff = await waitFirstFrame(page);
+    } catch (e) {
+      check("first frame", false, `${e.message}\npage log:\n${logs.join("\n")}`);
+      throw e;
+    }
+    results.figures.time_to_first_frame_ms = Math.round(ttff);
+    const net = await page.evaluate(() => window.msth.stream.progress());
+    results.figures.first_load = net;
+    const nat0 = await decodePng(page, a.native0);
+    const nat1 = await decodePng(page, a.native1);
+    if (nat0.w !== w || nat0.h !== h || nat1.w !== w || nat1.h !== h) throw new Error(`native frames are ${nat0.w}x${nat0.h}, expected ${a.size}`);
+    const px0 = await pixels(page);
+    const nonBackground = px0.length === 4 * n;
+    // The canvas shows the frame: the element's screenshot, sampled at pixel centres.
+    // (The HUD and the loading bar overlap the canvas: hide them for this one screenshot.)
+    await page.evaluate(() => ["hud", "loading"].forEach((id) => (document.getElementById(id).style.visibility = "hidden")));
+    const shot = await page.locator("#view").screenshot();
+    await page.evaluate(() => ["hud", "loading"].forEach((id) => (document.getElementById(id).style.visibility = "")));
+    const shown = await page.evaluate(async (b64) => {
+      const img = new Image();
+      img.src = `data:image/png;base64,${b64}`;
+      await img.decode();
+      const c = document.createElement("canvas");
+      const cv = document.getElementById("view");
+      c.width = cv.width;
+      c.height = cv.height;
+      const g = c.getContext("2d");
+      g.imageSmoothingEnabled = false;
+      g.drawImage(img, 0, 0, c.width, c.height);
+      return Array.from(g.getImageData(0, 0, c.width, c.height).data);
+    }, shot.toString("base64"));
+    const pShown = psnr(shown, px0, n);
+    check("first frame appears", nonBackground && pShown >= 30, `after ${ttff.toFixed(0)} ms (navigation to frame), ${net.requests} Range requests, ${net.bytesReceived} bytes; the canvas on screen matches the renderer's output at ${pShown.toFixed(1)} dB`);
+    const p0 = psnr(px0, nat0.px, n);
+    results.figures.psnr_vs_native_t0 = Math.min(p0, 99);
+    check("first frame matches the native render", p0 >= PSNR_MIN, `PSNR ${p0.toFixed(2)} dB against msth play at view:${a.view} t=0 (>= ${PSNR_MIN})`);
+
+    // ---- drag to orbit
+    const box = await page.locator("#view").boundingBox();
+    const cx = box.x + box.width / 2;
+    const cy = box.y + box.height / 2;
+    const az0 = await page.evaluate(() => window.msth.orbit.az);
+    await page.mouse.move(cx, cy);
+    await page.mouse.down();
+    for (let k = 1; k <= 8; k++) await page.mouse.move(cx + k * 12, cy + k * 2);
+    await page.mouse.up();
+    await settled(page);
+    const pxDrag = await pixels(page);
+    const az1 = await page.evaluate(() => window.msth.orbit.az);
+    let changed = 0;
+    for (let i = 0; i < n; i++) if (maxDiff(pxDrag, px0, i) > 8) changed++;
+    check("dragging orbits the camera", az1 !== az0 && changed >= 0.02 * n, `azimuth ${az0.toFixed(1)} -> ${az1.toFixed(1)} degrees, ${((100 * changed) / n).toFixed(1)}% of pixels changed by more than 8/255`);
+
+    // ---- touch (pointer events from a touch screen): one finger orbits, two pinch and pan
+    const cdp = await gpu.ctx.newCDPSession(page);
+    const touch = (type, pts) => cdp.send("Input.dispatchTouchEvent", { type, touchPoints: pts.map(([x, y], id) => ({ x, y, id })) });
+    const o0 = await page.evaluate(() => ({ az: window.msth.orbit.az, dist: window.msth.orbit.dist }));
+    await touch("touchStart", [[cx, cy]]);
+    for (let k = 1; k <= 6; k++) await touch("touchMove", [[cx - k * 10, cy]]);
+    await touch("touchEnd", []);
+    await settled(page);
+    const pxTouch = await pixels(page);
+    const o1 = await page.evaluate(() => ({ az: window.msth.orbit.az, dist: window.msth.orbit.dist, pan: window.msth.orbit.pan }));
+    await touch("touchStart", [[cx - 20, cy], [cx + 20, cy]]);
+    for (let k = 1; k <= 6; k++) await touch("touchMove", [[cx - 20 - k * 10, cy + k * 3], [cx + 20 + k * 10, cy + k * 3]]);
+    await touch("touchEnd", []);
+    await settled(page);
+    const pxPinch = await pixels(page);
+    const o2 = await page.evaluate(() => ({ az: window.msth.orbit.az, dist: window.msth.orbit.dist, pan: window.msth.orbit.pan }));
+    const frac = (x, y) => {
+      let c = 0;
+      for (let i = 0; i < n; i++) if (maxDiff(x, y, i) > 8) c++;
+      return c / n;
+    };
+    check(
+      "touch orbits, pinches and pans",
+      o1.az !== o0.az && o2.dist < o1.dist && o2.pan.some((v) => v !== 0) && frac(pxTouch, pxDrag) >= 0.02 && frac(pxPinch, pxTouch) >= 0.02,
+      `one finger: azimuth ${o0.az.toFixed(1)} -> ${o1.az.toFixed(1)}; two fingers apart: distance ${o1.dist.toFixed(3)} -> ${o2.dist.toFixed(3)}, target moved by (${o2.pan.map((v) => v.toFixed(3)).join(", ")}); ${(100 * frac(pxTouch, pxDrag)).toFixed(1)}% and ${(100 * frac(pxPinch, pxTouch)).toFixed(1)}% of pixels changed`,
+    );
+    // Mouse wheel: zoom out; right-drag: pan.
+    await page.mouse.move(cx, cy);
+    await page.mouse.wheel(0, 400);
+    await settled(page);
+    await page.mouse.down({ button: "right" });
+    await page.mouse.move(cx + 40, cy + 20, { steps: 4 });
+    await page.mouse.up({ button: "right" });
+    await settled(page);
+    const o3 = await page.evaluate(() => ({ dist: window.msth.orbit.dist, pan: window.msth.orbit.pan }));
+    check("the wheel zooms and right-drag pans", o3.dist > o2.dist && o3.pan.some((v, k) => Math.abs(v - o2.pan[k]) > 1e-6), `distance ${o2.dist.toFixed(3)} -> ${o3.dist.toFixed(3)}, target (${o2.pan.map((v) => v.toFixed(3)).join(", ")}) -> (${o3.pan.map((v) => v.toFixed(3)).join(", ")})`);
+
+    // Back to the view: the same frame again.
+    const [vaz, vel, vdist] = a.view.split(",").map(Number);
+    await page.evaluate(([x, y, z]) => window.msth.setView(x, y, z), [vaz, vel, vdist]);
+    await settled(page);
+    const pxBack = await pixels(page);
+    const pBack = psnr(pxBack, px0, n);
+    check("returning to the view reproduces the first frame", pBack >= 50, `PSNR ${pBack === Infinity ? "inf" : pBack.toFixed(1)} dB`);
+
+    // ---- scrub the timeline: drag its thumb, then End (t = 1) with the keyboard
+    const slider = page.locator("#scrub");
+    const sb = await slider.boundingBox();
+    await page.mouse.move(sb.x + 4, sb.y + sb.height / 2);
+    await page.mouse.down();
+    await page.mouse.move(sb.x + sb.width * 0.5, sb.y + sb.height / 2, { steps: 5 });
+    await page.mouse.up();
+    await settled(page);
+    const tMid = await page.evaluate(() => window.msth.state.t);
+    await slider.focus();
+    await page.keyboard.press("End");
+    await settled(page);
+    const st1 = await page.evaluate(() => ({ t: window.msth.state.t, playing: window.msth.state.playing, last: window.msth.lastTime }));
+    const px1 = await pixels(page);
+    check("the timeline scrubs", tMid > 0.2 && tMid < 0.8 && st1.t === 1 && st1.last === 1 && !st1.playing, `dragging the slider to its middle gave t = ${tMid.toFixed(3)}; End gave t = ${st1.t}`);
+    const p1 = psnr(px1, nat1.px, n);
+    results.figures.psnr_vs_native_t1 = Math.min(p1, 99);
+    check("the frame at t = 1 matches the native render", p1 >= PSNR_MIN, `PSNR ${p1.toFixed(2)} dB (>= ${PSNR_MIN})`);
+    // Static pixels: equal in the native renders at t = 0 and t = 1; dynamic: clearly different.
+    const stat = [];
+    const dyn = [];
+    for (let i = 0; i < n; i++) {
+      const d = maxDiff(nat0.px, nat1.px, i);
+      if (d <= 1) stat.push(i);
+      else if (d >= 24) dyn.push(i);
+    }
+    const mean = (idx, x, y) => idx.reduce((s, i) => s + meanDiff(x, y, i), 0) / Math.max(idx.length, 1);
+    const pct = (idx, q) => {
+      const v = idx.map((i) => maxDiff(px0, px1, i)).sort((x, y) => x - y);
+      return v.length ? v[Math.min(v.length - 1, Math.floor(q * v.length))] : 0;
+    };
+    const enough = stat.length >= 0.01 * n && dyn.length >= 0.005 * n;
+    const sMean = mean(stat, px0, px1);
+    const s99 = pct(stat, 0.99);
+    const dMean = mean(dyn, px0, px1);
+    const dNative = mean(dyn, nat0.px, nat1.px);
+    results.figures.scrub = { static_pixels: stat.length, dynamic_pixels: dyn.length, static_mean_change: sMean, static_p99_change: s99, dynamic_mean_change: dMean, dynamic_native_mean_change: dNative };
+    check("scrubbing leaves static pixels alone", enough && sMean <= 1 && s99 <= 3, `${stat.length} static pixels (native t=0 vs t=1 within 1/255): mean change ${sMean.toFixed(3)}/255, 99th percentile ${s99}/255`);
+    check("scrubbing changes dynamic pixels", enough && dMean >= 0.5 * dNative, `${dyn.length} dynamic pixels (native change >= 24/255): mean change ${dMean.toFixed(1)}/255 in the page, ${dNative.toFixed(1)}/255 natively`);
+
+    // ---- for the record: frames per second at the bench size, and the README screenshot
+    if (a["bench-size"]) {
+      const url = `${a.base}/?model=${encodeURIComponent(a.model)}&size=${a["bench-size"]}&play=0&t=0.5`;
+      await page.goto(url);
+      const t = await waitFirstFrame(page);
+      await settled(page);
+      const bench = await page.evaluate(() => window.msth.benchmark(10));
+      results.figures.bench = { ...bench, time_to_first_frame_ms: Math.round(t) };
+      console.log(`bench: ${bench.width}x${bench.height}: ${bench.fps.toFixed(2)} frames per second (${bench.frames} frames in ${bench.seconds.toFixed(2)} s), time to first frame ${t.toFixed(0)} ms`);
+    }
+    if (a.screenshot) {
+      // Paused: while SwiftShader renders, the page cannot composite a screenshot.
+      const url = `${a.base}/?model=${encodeURIComponent(a.model)}&t=0.5&play=0`;
+      await page.goto(url);
+      await waitFirstFrame(page);
+      await page.waitForFunction(() => window.msth.stream.progress().complete, null, { timeout: 300_000 });
+      await settled(page);
+      await page.screenshot({ path: a.screenshot });
+      console.log(`screenshot: ${a.screenshot}`);
+    }
+  } finally {
+    await gpu.close();
+  }
+
+  // ---- without WebGPU
+  const plain = await launch(a.chromium, false);
+  try {
+    const page = await plain.ctx.newPage();
+    await page.goto(pageUrl);
+    await page.waitForFunction(() => window.msth && (window.msth.noWebGpu || window.msth.firstFrameMs !== null || window.msth.error), null, { timeout: 60_000 });
+    const st = await page.evaluate(() => ({ no: window.msth.noWebGpu, visible: !document.getElementById("message").hidden, text: document.getElementById("message").textContent }));
+    check("a clear message without WebGPU", st.no && st.visible && /WebGPU/.test(st.text), `"${st.text}"`);
+  } finally {
+    await plain.close();
+  }
+
+  if (a.out) writeFileSync(a.out, JSON.stringify(results, null, 2));
+  console.log(failed ? "browser test FAILED" : "browser test passed");
+  process.exit(failed ? 1 : 0);
+}
+
+main().catch((e) => {
+  console.error(`browser test error: ${e.stack || e}`);
+  if (a_out()) writeFileSync(a_out(), JSON.stringify({ ...results, error: String(e) }, null, 2));
+  process.exit(1);
+});
+
+function a_out() {
+  const i = process.argv.indexOf("--out");
+  return i > 0 ? process.argv[i + 1] : null;
+}
