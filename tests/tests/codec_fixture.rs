@@ -10,13 +10,12 @@
 use std::path::{Path, PathBuf};
 
 use msth_codec::{decode_all, encode, EncodeOptions, QuantMode};
-use msth_core::config::Preset;
 use msth_core::field::ModelLayout;
-use msth_tests::tiny_scene;
+use msth_tests::{fixture_run, tiny_scene};
 use msth_trainer::dataset::Image8;
 use msth_trainer::eval::render_image;
 use msth_trainer::imageio::save_png_atomic;
-use msth_trainer::train::{train, TrainSettings};
+use msth_trainer::train::train;
 
 const TIME: f32 = 0.7;
 
@@ -42,16 +41,7 @@ fn render(bytes: &[u8]) -> Image8 {
 #[ignore = "rewrites tests/fixtures/v1.*; run only after an intended change"]
 fn regenerate_fixture() {
     let (_, data) = tiny_scene();
-    let mut s = TrainSettings::for_preset(Preset::Fast, &data);
-    for enc in [&mut s.model.field.encoding, &mut s.model.proposal.encoding] {
-        enc.resize(6, 12, 96.0, 16);
-    }
-    s.model.proposal.encoding.grid3.log2_table_size = 10;
-    s.model.proposal.encoding.grid4.log2_table_size = 10;
-    s.iters = 200;
-    s.batch_rays = 1024;
-    s.anneal_steps = 50;
-    s.checkpoint_every = 0;
+    let s = fixture_run(&data);
     let dir = tempfile::tempdir().unwrap();
     let (trainer, _) = train(&data, s, dir.path(), None, &mut |_| true).unwrap();
     let cameras = vec![data.test[0].camera];

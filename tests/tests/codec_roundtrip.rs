@@ -3,22 +3,17 @@
 //! `msth export` writes a file that decodes.
 
 use msth_codec::{decode_all, encode, EncodeOptions, QuantMode};
-use msth_core::config::Preset;
 use msth_core::field::ModelLayout;
-use msth_tests::{msth, tiny_scene};
+use msth_tests::{msth, short_run, tiny_scene};
 use msth_trainer::checkpoint::Checkpoint;
 use msth_trainer::eval::render_image;
 use msth_trainer::metrics::psnr;
-use msth_trainer::train::{train, TrainSettings};
+use msth_trainer::train::train;
 
 /// A tiny scene trained for a few steps, saved as a checkpoint in `dir`.
 fn trained(dir: &std::path::Path) -> Checkpoint {
     let (_, data) = tiny_scene();
-    let mut s = TrainSettings::for_preset(Preset::Fast, &data);
-    s.iters = 30;
-    s.batch_rays = 512;
-    s.anneal_steps = 8;
-    s.checkpoint_every = 0;
+    let s = short_run(&data, 30);
     train(&data, s, dir, None, &mut |_| true).unwrap();
     Checkpoint::load(&dir.join("model.ckpt")).unwrap()
 }

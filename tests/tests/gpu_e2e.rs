@@ -6,12 +6,10 @@
 //! CPU renderer's full renders of the same decoded parameters at PSNR >= 40 dB. Without an
 //! adapter the GPU half is skipped, unless `MSTH_REQUIRE_GPU=1` (then it fails).
 
-use msth_core::config::Preset;
 use msth_player::{play, BackendChoice, GpuError, PlayError, PlayOptions, PlayReport};
-use msth_tests::{msth, tiny_scene};
+use msth_tests::{msth, short_run, tiny_scene};
 use msth_trainer::metrics::psnr;
-use msth_trainer::train::{train, TrainSettings};
-
+use msth_trainer::train::train;
 fn require_gpu() -> bool {
     std::env::var("MSTH_REQUIRE_GPU").is_ok_and(|v| v == "1")
 }
@@ -35,11 +33,7 @@ fn play_on(opts: &PlayOptions, backend: BackendChoice) -> Option<(PlayReport, Ve
 fn gpu_and_cpu_renders_of_a_decoded_model_agree() {
     let dir = tempfile::tempdir().unwrap();
     let (_, data) = tiny_scene();
-    let mut s = TrainSettings::for_preset(Preset::Fast, &data);
-    s.iters = 40;
-    s.batch_rays = 512;
-    s.anneal_steps = 10;
-    s.checkpoint_every = 0;
+    let mut s = short_run(&data, 40);
     // A small model: one ray of it fits Mesa lavapipe's budget of 65535 loop iterations per
     // invocation (the CI's GPU); presets exceed it and are refused there with an error.
     let m = &mut s.model;

@@ -4,14 +4,13 @@
 
 use std::path::Path;
 
-use msth_core::config::Preset;
 use msth_core::field::ModelLayout;
 use msth_server::{BackgroundServer, ServerConfig};
-use msth_tests::{msth, tiny_scene};
+use msth_tests::{msth, short_run, tiny_scene};
 use msth_trainer::checkpoint::Checkpoint;
 use msth_trainer::eval::render_image;
 use msth_trainer::metrics::psnr;
-use msth_trainer::train::{train, TrainSettings};
+use msth_trainer::train::train;
 
 fn read_png(p: &Path) -> (u32, u32, Vec<f32>) {
     let img = image::open(p)
@@ -35,11 +34,7 @@ fn quantise(v: &[f32]) -> Vec<f32> {
 fn train_export_serve_play_matches_the_checkpoint() {
     let dir = tempfile::tempdir().unwrap();
     let (_, data) = tiny_scene();
-    let mut s = TrainSettings::for_preset(Preset::Fast, &data);
-    s.iters = 40;
-    s.batch_rays = 512;
-    s.anneal_steps = 10;
-    s.checkpoint_every = 0;
+    let s = short_run(&data, 40);
     let train_dir = dir.path().join("train");
     train(&data, s, &train_dir, None, &mut |_| true).unwrap();
     let ckpt_path = train_dir.join("model.ckpt");

@@ -16,11 +16,10 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use msth_core::config::Preset;
 use msth_player::path::Rig;
 use msth_server::{BackgroundServer, ServerConfig};
-use msth_tests::{msth, tiny_scene};
-use msth_trainer::train::{train, TrainSettings};
+use msth_tests::{fixture_run, msth, tiny_scene};
+use msth_trainer::train::train;
 
 /// Image size of the compared frames (SwiftShader renders a few thousand rays per second).
 const SIZE: (u32, u32) = (32, 24);
@@ -123,18 +122,7 @@ fn web_player_streams_renders_and_matches_native() {
     };
     let dir = tempfile::tempdir().unwrap();
     let (_, data) = tiny_scene();
-    // The settings of the codec fixture (tests/tests/codec_fixture.rs): small tables, trained
-    // long enough for the moving objects to show up as dynamic pixels.
-    let mut s = TrainSettings::for_preset(Preset::Fast, &data);
-    for enc in [&mut s.model.field.encoding, &mut s.model.proposal.encoding] {
-        enc.resize(6, 12, 96.0, 16);
-    }
-    s.model.proposal.encoding.grid3.log2_table_size = 10;
-    s.model.proposal.encoding.grid4.log2_table_size = 10;
-    s.iters = 200;
-    s.batch_rays = 1024;
-    s.anneal_steps = 50;
-    s.checkpoint_every = 0;
+    let s = fixture_run(&data);
     let train_dir = dir.path().join("train");
     train(&data, s, &train_dir, None, &mut |_| true).unwrap();
 
