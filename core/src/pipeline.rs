@@ -39,6 +39,10 @@ pub struct StepSettings {
     pub distortion_weight: f32,
     /// `1 / rays in the whole batch`: losses are means over the batch.
     pub loss_scale: f32,
+    /// Weight of the per-sample mask loss `mean_r sum_i w_i (1 - m_i)` (the rendering weights
+    /// `w_i` held constant): pushes the mask toward static where rays see matter, scaled like
+    /// the image loss, so a voxel stays dynamic only where the 4D grid pays for itself. 0: off.
+    pub sample_mask_weight: f32,
 }
 
 /// Loss sums of one chunk (divide by the batch's ray count for means).
@@ -48,6 +52,8 @@ pub struct ChunkLosses {
     pub sq_err: f64,
     pub interlevel: f64,
     pub distortion: f64,
+    /// Sum over rays of the per-sample mask loss, its weight included.
+    pub sample_mask: f64,
     /// Sum over rays of the uncertainty loss `L_u` (mask learning; 0 when off).
     pub uncertainty: f64,
     /// Sum over chunks of the MINE estimate `I(m, u)` times the chunk's ray count (0 when off).
@@ -62,6 +68,7 @@ impl std::ops::AddAssign for ChunkLosses {
         self.sq_err += o.sq_err;
         self.interlevel += o.interlevel;
         self.distortion += o.distortion;
+        self.sample_mask += o.sample_mask;
         self.uncertainty += o.uncertainty;
         self.mine += o.mine;
         self.rays += o.rays;
@@ -519,7 +526,8 @@ pub fn train_chunk_with(
         }
         _ => None,
     };
-    if aux_fw.as_ref().is_some_and(|a| a.mine) {
+    let sample_mask = step.sample_mask_weight > 0.0 && layout.field.encoding.mask.is_some();
+    if aux_fw.as_ref().is_some_and(|a| a.mine) || sample_mask {
         ws.main.enc.d_m_extra.resize(n * nf, 0.0);
     }
     for i in 0..n {
@@ -602,6 +610,14 @@ pub fn train_chunk_with(
                     ws.d_w[k] += d_m * ws.main.enc.m[i * nf + k];
                     ws.main.enc.d_m_extra[i * nf + k] = d_m * w[k];
                 }
+            }
+        }
+        if sample_mask {
+            let lam = step.sample_mask_weight * scale;
+            for k in 0..nf {
+                let m = ws.main.enc.m[i * nf + k];
+                out.sample_mask += (w[k] * (1.0 - m)) as f64 * step.sample_mask_weight as f64;
+                ws.main.enc.d_m_extra[i * nf + k] -= lam * w[k];
             }
         }
         let s_main = &ws.s_main[i * (nf + 1)..(i + 1) * (nf + 1)];
@@ -796,6 +812,7 @@ mod tests {
             interlevel_weight: 1.0,
             distortion_weight: 0.01,
             loss_scale: 1.0 / rays.len() as f32,
+            sample_mask_weight: 0.0,
         };
         let total = |p: &[f32]| -> f64 {
             let mut ws = Workspace::default();
@@ -897,6 +914,7 @@ mod tests {
             interlevel_weight: 1.0,
             distortion_weight: 0.01,
             loss_scale: 1.0 / rays.len() as f32,
+            sample_mask_weight: 0.0,
         };
         let mut g = vec![0f32; p.len()];
         let mut ag = vec![0f32; ap.len()];
@@ -1028,6 +1046,93 @@ mod tests {
         }
     }
 
+    /// The per-sample mask loss: its gradient is that of `lambda * mean_r sum_i w_i (1 - m_i)`
+    /// with the rendering weights held constant (finite differences over the mask logits), it
+    /// reaches nothing but the mask, and weight 0 is the plain step.
+    #[test]
+    fn sample_mask_loss_matches_finite_differences() {
+        let cfg = tiny_cfg();
+        let layout = ModelLayout::new(&cfg);
+        let p = perturbed_params(&layout);
+        let (rays, tg) = rays();
+        let lam = 0.5f32;
+        let run = |lam: f32, ws: &mut Workspace| {
+            let step = StepSettings {
+                anneal: 1.0,
+                interlevel_weight: 1.0,
+                distortion_weight: 0.01,
+                loss_scale: 1.0 / rays.len() as f32,
+                sample_mask_weight: lam,
+            };
+            let mut g = vec![0f32; p.len()];
+            let l = train_chunk_with(
+                &cfg,
+                &layout,
+                &p,
+                &mut g,
+                &rays,
+                &tg,
+                None,
+                &step,
+                &mut Rng::new(5),
+                ws,
+                None,
+            );
+            (l, g)
+        };
+        let mut ws = Workspace::default();
+        let (l_on, g_on) = run(lam, &mut ws);
+        let (l_off, g_off) = run(0.0, &mut Workspace::default());
+        assert_eq!(l_off.sample_mask, 0.0);
+        assert_eq!(l_on.sq_err, l_off.sq_err);
+        let mask = layout.params.get("field.mask").unwrap().range();
+        for i in 0..p.len() {
+            if !mask.contains(&i) {
+                assert_eq!(g_on[i], g_off[i], "parameter {i} outside the mask moved");
+            }
+        }
+        // The run's weights and sample points, held fixed.
+        let w = ws.w_main.clone();
+        let pts = ws.pts_main.clone();
+        let stride = pts.len() / w.len();
+        let enc = &layout.field.encoding;
+        let scale = 1.0 / rays.len() as f64;
+        let term = |q: &[f32]| -> f64 {
+            (0..w.len())
+                .map(|j| {
+                    let m = enc.mask_at(q, &pts[j * stride..j * stride + 3]) as f64;
+                    w[j] as f64 * (1.0 - m)
+                })
+                .sum::<f64>()
+                * lam as f64
+                * scale
+        };
+        let t0 = term(&p);
+        assert!(
+            (t0 - l_on.sample_mask * scale).abs() < 1e-5 * t0.abs().max(1e-3),
+            "loss {} vs {t0}",
+            l_on.sample_mask * scale
+        );
+        let mut idx: Vec<usize> = mask.collect();
+        let diff = |i: usize| (g_on[i] - g_off[i]) as f64;
+        idx.sort_by(|&a, &b| diff(b).abs().partial_cmp(&diff(a).abs()).unwrap());
+        assert!(diff(idx[0]).abs() > 1e-4, "no gradient on the mask");
+        for &i in idx.iter().take(8) {
+            let h = 1e-3f32;
+            let mut q = p.clone();
+            q[i] += h;
+            let lp = term(&q);
+            q[i] -= 2.0 * h;
+            let lm = term(&q);
+            let fd = (lp - lm) / (2.0 * h as f64);
+            assert!(
+                (fd - diff(i)).abs() < 1e-6 + 1e-2 * fd.abs(),
+                "mask [{i}]: fd {fd} vs {}",
+                diff(i)
+            );
+        }
+    }
+
     /// The whole step with mask learning at its extremes (uncertainty logits at +-60, so `u` at
     /// its floor or huge; MINE weights scaled up until its statistics saturate; `u_min = 0`):
     /// finite losses and gradients.
@@ -1070,6 +1175,7 @@ mod tests {
             interlevel_weight: 1.0,
             distortion_weight: 0.01,
             loss_scale: 0.25,
+            sample_mask_weight: 0.0,
         };
         let mc = MaskLearningConfig::default();
         let al = AuxLayout::new(&mc);

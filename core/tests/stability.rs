@@ -915,6 +915,7 @@ mod pipeline {
             interlevel_weight: 1.0,
             distortion_weight: 0.01,
             loss_scale: 1.0 / rays.len() as f32,
+            sample_mask_weight: 0.0,
         };
         let l = train_chunk(
             cfg,
@@ -1164,6 +1165,7 @@ mod pipeline {
             interlevel_weight: 1.0,
             distortion_weight: 0.01,
             loss_scale: 1.0 / rays.len() as f32,
+            sample_mask_weight: 0.0,
         };
         let run = |p: &[f32], grad: &mut [f32]| {
             let l = train_chunk(

@@ -71,6 +71,9 @@ pub struct TrainSettings {
     /// logit by at most about `lr` per step, so this bounds how far the mask can move in a run.
     #[serde(default = "one")]
     pub mask_lr_scale: f32,
+    /// Weight of the per-sample mask loss (`StepSettings::sample_mask_weight`); 0: off.
+    #[serde(default)]
+    pub sample_mask_weight: f32,
     pub model: ModelConfig,
 }
 
@@ -116,6 +119,7 @@ impl TrainSettings {
                 ..SamplingConfig::default()
             },
             mask_lr_scale: 1.0,
+            sample_mask_weight: 0.0,
             model,
         }
     }
@@ -185,6 +189,7 @@ impl TrainSettings {
             ("distortion_weight", self.distortion_weight),
             ("mask_loss_weight", self.mask_loss_weight),
             ("mask_lr_scale", self.mask_lr_scale),
+            ("sample_mask_weight", self.sample_mask_weight),
         ] {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(format!("{n} must be finite and >= 0"));
@@ -412,6 +417,7 @@ impl Trainer {
             interlevel_weight: s.interlevel_weight,
             distortion_weight: s.distortion_weight,
             loss_scale: 1.0 / rays.len().max(1) as f32,
+            sample_mask_weight: s.sample_mask_weight,
         };
         let chunk = s.chunk_rays;
         let n_chunks = rays.len().div_ceil(chunk);
@@ -661,6 +667,7 @@ pub fn train(
         let loss = (mse
             + trainer.settings.interlevel_weight as f64 * l.interlevel / l.rays.max(1) as f64
             + trainer.settings.distortion_weight as f64 * l.distortion / l.rays.max(1) as f64
+            + l.sample_mask / l.rays.max(1) as f64
             + mask_learning_loss(&trainer.settings.mask_learning, &l)) as f32;
         if !loss.is_finite() {
             return Err(TrainError::Diverged {
