@@ -947,6 +947,49 @@ mod tests {
         (total, g, ag)
     }
 
+    /// A central-difference check of the parameters with the largest analytic gradient.
+    struct FdCheck {
+        /// How many parameters to check.
+        count: usize,
+        h: f32,
+        tol_abs: f64,
+        tol_rel: f64,
+        /// The largest gradient must exceed this (the term must reach the parameters at all).
+        min_grad: f64,
+    }
+
+    impl FdCheck {
+        /// Checks `grad(i)` against central differences of `loss` for the `count` parameters of
+        /// `range` with the largest `|grad|`: `|fd - grad| < tol_abs + tol_rel * |fd|`.
+        fn largest(
+            &self,
+            p: &[f32],
+            range: std::ops::Range<usize>,
+            grad: impl Fn(usize) -> f64,
+            loss: impl Fn(&[f32]) -> f64,
+        ) {
+            let mut idx: Vec<usize> = range.collect();
+            idx.sort_by(|&a, &b| grad(b).abs().partial_cmp(&grad(a).abs()).unwrap());
+            assert!(
+                grad(idx[0]).abs() > self.min_grad,
+                "no gradient reaches these parameters"
+            );
+            for &i in idx.iter().take(self.count) {
+                let mut q = p.to_vec();
+                q[i] += self.h;
+                let lp = loss(&q);
+                q[i] -= 2.0 * self.h;
+                let lm = loss(&q);
+                let fd = (lp - lm) / (2.0 * self.h as f64);
+                assert!(
+                    (fd - grad(i)).abs() < self.tol_abs + self.tol_rel * fd.abs(),
+                    "[{i}]: fd {fd} vs {}",
+                    grad(i)
+                );
+            }
+        }
+    }
+
     fn perturbed_params(layout: &ModelLayout) -> Vec<f32> {
         let mut p = layout.init_params(1);
         let mut r = Rng::new(2);
@@ -1026,24 +1069,15 @@ mod tests {
                 - aux_chunk(&cfg, &layout, q, &mc_off, &al, &ap).0
         };
         let mask = layout.params.get("field.mask").unwrap().range();
-        let mut idx: Vec<usize> = mask.collect();
-        let diff = |i: usize| g_on[i] - g_off[i];
-        idx.sort_by(|&a, &b| diff(b).abs().partial_cmp(&diff(a).abs()).unwrap());
-        assert!(diff(idx[0]).abs() > 1e-3, "no MINE gradient on the mask");
-        for &i in idx.iter().take(6) {
-            let h = 1e-2; // the MINE term is summed in f32: smaller steps drown in rounding
-            let mut q = p.clone();
-            q[i] += h;
-            let lp = mine_only(&q);
-            q[i] -= 2.0 * h;
-            let lm = mine_only(&q);
-            let fd = (lp - lm) / (2.0 * h as f64);
-            assert!(
-                (fd - diff(i) as f64).abs() < 1e-4 + 5e-2 * fd.abs(),
-                "mask [{i}]: fd {fd} vs {}",
-                diff(i)
-            );
-        }
+        // The MINE term is summed in f32: steps below 1e-2 drown in rounding.
+        let fd = FdCheck {
+            count: 6,
+            h: 1e-2,
+            tol_abs: 1e-4,
+            tol_rel: 5e-2,
+            min_grad: 1e-3,
+        };
+        fd.largest(&p, mask, |i| (g_on[i] - g_off[i]) as f64, mine_only);
     }
 
     /// The per-sample mask loss: its gradient is that of `lambda * mean_r sum_i w_i (1 - m_i)`
@@ -1113,24 +1147,14 @@ mod tests {
             "loss {} vs {t0}",
             l_on.sample_mask * scale
         );
-        let mut idx: Vec<usize> = mask.collect();
-        let diff = |i: usize| (g_on[i] - g_off[i]) as f64;
-        idx.sort_by(|&a, &b| diff(b).abs().partial_cmp(&diff(a).abs()).unwrap());
-        assert!(diff(idx[0]).abs() > 1e-4, "no gradient on the mask");
-        for &i in idx.iter().take(8) {
-            let h = 1e-3f32;
-            let mut q = p.clone();
-            q[i] += h;
-            let lp = term(&q);
-            q[i] -= 2.0 * h;
-            let lm = term(&q);
-            let fd = (lp - lm) / (2.0 * h as f64);
-            assert!(
-                (fd - diff(i)).abs() < 1e-6 + 1e-2 * fd.abs(),
-                "mask [{i}]: fd {fd} vs {}",
-                diff(i)
-            );
-        }
+        let fd = FdCheck {
+            count: 8,
+            h: 1e-3,
+            tol_abs: 1e-6,
+            tol_rel: 1e-2,
+            min_grad: 1e-4,
+        };
+        fd.largest(&p, mask, |i| (g_on[i] - g_off[i]) as f64, term);
     }
 
     /// The whole step with mask learning at its extremes (uncertainty logits at +-60, so `u` at

@@ -108,10 +108,17 @@ pub struct PlayReport {
 }
 
 impl PlayReport {
+    /// Frames per second over `frames`, each costing `seconds(frame)`.
+    fn rate<'a>(
+        frames: impl Iterator<Item = &'a FrameRecord>,
+        seconds: impl Fn(&FrameStats) -> f64,
+    ) -> Option<f64> {
+        let (n, s) = frames.fold((0usize, 0f64), |(n, s), f| (n + 1, s + seconds(&f.stats)));
+        (n > 0 && s > 0.0).then(|| n as f64 / s)
+    }
     /// Frames per second over `frames` (render time only).
     fn fps_of<'a>(frames: impl Iterator<Item = &'a FrameRecord>) -> Option<f64> {
-        let (n, s) = frames.fold((0usize, 0f64), |(n, s), f| (n + 1, s + f.stats.seconds));
-        (n > 0 && s > 0.0).then(|| n as f64 / s)
+        Self::rate(frames, |s| s.seconds)
     }
     /// Rendering rate of the frames rendered in full.
     pub fn full_fps(&self) -> Option<f64> {
@@ -125,17 +132,9 @@ impl PlayReport {
     /// of building it ([`FrameStats::cache_seconds`], paid by the first frame after the camera
     /// stops) left out.
     pub fn steady_incremental_fps(&self) -> Option<f64> {
-        let (n, s) =
-            self.frames
-                .iter()
-                .filter(|f| !f.stats.full)
-                .fold((0usize, 0f64), |(n, s), f| {
-                    (
-                        n + 1,
-                        s + (f.stats.seconds - f.stats.cache_seconds).max(0.0),
-                    )
-                });
-        (n > 0 && s > 0.0).then(|| n as f64 / s)
+        Self::rate(self.frames.iter().filter(|f| !f.stats.full), |s| {
+            (s.seconds - s.cache_seconds).max(0.0)
+        })
     }
     /// Seconds spent building static caches (classification and probe renders).
     pub fn cache_seconds(&self) -> f64 {
