@@ -38,6 +38,8 @@ pub struct BenchPlayArgs {
     /// Largest colour change (0-1 scale) a static ray may show at a probe.
     #[arg(long)]
     pub probe_tolerance: Option<f32>,
+    #[command(flatten)]
+    pub reuse: crate::play::ReuseArgs,
     /// The file is a model of the built-in scene (default settings): also compare both
     /// playbacks with the scene's exact renders (ground truth) at the same cameras and times.
     #[arg(long)]
@@ -148,6 +150,7 @@ pub fn run(a: BenchPlayArgs) -> Result<()> {
     if let Some(t) = a.probe_tolerance {
         opts.render.probe_tolerance = t;
     }
+    a.reuse.apply(&mut opts.render)?;
     let (inc, inc_frames) = run_play(&opts)?;
     println!(
         "renderer: {} ({}){}",
@@ -212,6 +215,20 @@ pub fn run(a: BenchPlayArgs) -> Result<()> {
         inc.cache_seconds(),
         100.0 * dynamic
     );
+    let evaluated: Vec<_> = inc.frames.iter().filter(|f| !f.stats.full).collect();
+    let samples_per_ray = evaluated
+        .iter()
+        .map(|f| f.stats.samples_evaluated as f64 / f.stats.rays_rendered.max(1) as f64)
+        .sum::<f64>()
+        / evaluated.len().max(1) as f64;
+    let reuse = if inc.backend.kind == "cpu" && samples_per_ray > 0.0 {
+        format!(
+            "samples: {samples_per_ray:.1} samples evaluated per re-rendered ray, no proposal pass"
+        )
+    } else {
+        "rays: re-rendered rays are rendered in full".to_string()
+    };
+    println!("reuse on the re-rendered rays: {reuse}");
     println!(
         "the full renders change by more than 1/255 at {:.1}% of the pixels, by more than 8/255 at {:.1}%: the least a perfect static/dynamic split would re-render at those tolerances",
         100.0 * ideal,
@@ -255,6 +272,9 @@ pub fn run(a: BenchPlayArgs) -> Result<()> {
             "steady_incremental_fps": steady_fps, "steady_speedup": steady_fps / full_fps.max(1e-9),
             "cache_seconds": inc.cache_seconds(), "changing_fraction_full": ideal, "changing_fraction_full_8": ideal_coarse,
             "static_threshold": opts.render.static_threshold, "probes": opts.render.probes, "probe_tolerance": opts.render.probe_tolerance,
+            "reuse": opts.render.reuse, "samples_per_rerendered_ray": samples_per_ray,
+            "partition_times": opts.render.partition_times, "partition_samples": opts.render.partition_samples,
+            "sample_cutoff": opts.render.sample_cutoff,
             "psnr_incremental_vs_full_mean": mean_vs_full, "psnr_incremental_vs_full_min": min_psnr,
         });
         std::fs::write(&p, serde_json::to_vec_pretty(&v)?)?;

@@ -8,8 +8,9 @@ use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
+use msth_player::render::MAX_PARTITION_TIMES;
 use msth_player::{
-    play, BackendChoice, FrameRecord, HttpOptions, PlayOptions, PlayReport, RenderSettings,
+    play, BackendChoice, FrameRecord, HttpOptions, PlayOptions, PlayReport, RenderSettings, Reuse,
 };
 
 #[derive(Args)]
@@ -58,6 +59,8 @@ pub struct PlayArgs {
     /// Largest colour change (0-1 scale) a static ray may show at a probe.
     #[arg(long, default_value_t = RenderSettings::default().probe_tolerance)]
     pub probe_tolerance: f32,
+    #[command(flatten)]
+    pub reuse: ReuseArgs,
     /// Seconds without data before a request is retried.
     #[arg(long, default_value_t = 15.0)]
     pub timeout: f64,
@@ -70,6 +73,58 @@ pub struct PlayArgs {
     /// Print only the summary.
     #[arg(long, short)]
     pub quiet: bool,
+}
+
+/// How incremental frames reuse work on the rays they re-render (`msth play`, `msth bench play`).
+#[derive(Args, Clone, Debug, Default)]
+pub struct ReuseArgs {
+    /// What incremental frames re-evaluate on dynamic rays: `samples` (fixed samples per ray,
+    /// only those the mask leaves dynamic; the default) or `rays` (the whole ray as a full frame
+    /// does: frames equal full renders). The GPU renderer always re-renders rays.
+    #[arg(long, value_parser = ["rays", "samples"])]
+    pub reuse: Option<String>,
+    /// With `--reuse samples`: times at which the fixed samples are placed (default: the
+    /// model's frame count, at most 32).
+    #[arg(long)]
+    pub partition_times: Option<usize>,
+    /// With `--reuse samples`: fixed samples per dynamic ray (default: the model's main samples).
+    #[arg(long)]
+    pub partition_samples: Option<usize>,
+    /// With `--reuse samples`: samples whose dynamic weight 1 - m is below this are evaluated
+    /// once (default 0.05; 0.001 is what full rendering treats as static).
+    #[arg(long)]
+    pub sample_cutoff: Option<f32>,
+}
+
+impl ReuseArgs {
+    /// Writes the given options into `r`, checking them.
+    pub fn apply(&self, r: &mut RenderSettings) -> Result<()> {
+        match self.reuse.as_deref() {
+            Some("rays") => r.reuse = Reuse::Rays,
+            Some("samples") => r.reuse = Reuse::Samples,
+            Some(other) => bail!("--reuse {other}: rays or samples"),
+            None => {}
+        }
+        if let Some(k) = self.partition_times {
+            if !(1..=MAX_PARTITION_TIMES).contains(&k) {
+                bail!("--partition-times {k}: must lie in 1..={MAX_PARTITION_TIMES}");
+            }
+            r.partition_times = k;
+        }
+        if let Some(n) = self.partition_samples {
+            if !(1..=1024).contains(&n) {
+                bail!("--partition-samples {n}: must lie in 1..=1024");
+            }
+            r.partition_samples = n;
+        }
+        if let Some(c) = self.sample_cutoff {
+            if !(c.is_finite() && (0.0..=1.0).contains(&c)) {
+                bail!("--sample-cutoff {c}: must lie in [0, 1]");
+            }
+            r.sample_cutoff = c;
+        }
+        Ok(())
+    }
 }
 
 fn parse_size(s: &str) -> Result<(u32, u32), String> {
@@ -132,6 +187,7 @@ pub fn options(a: &PlayArgs) -> Result<PlayOptions> {
         );
     }
     o.render.probes = a.probes;
+    a.reuse.apply(&mut o.render)?;
     o.render.probe_tolerance = a.probe_tolerance;
     o.http = HttpOptions {
         read_timeout: Duration::from_secs_f64(a.timeout),

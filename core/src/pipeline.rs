@@ -326,7 +326,9 @@ fn forward_chunk(
     ws.w_main.resize(n * nf, 0.0);
 }
 
-fn composite_ray(bg: Background, w: &[f32], rgb: &[f32], t_final: f32) -> [f32; 3] {
+/// Composites one ray: `C = sum w_i c_i + T_N * bg`, the background being the configured colour
+/// or the last sample's colour.
+pub fn composite_ray(bg: Background, w: &[f32], rgb: &[f32], t_final: f32) -> [f32; 3] {
     let n = w.len();
     let bg_rgb = match bg {
         Background::Color { rgb } => rgb,
@@ -690,6 +692,111 @@ pub fn train_chunk_with(
                     .uncertainty_backward(a.params, &ws.pts_main[k * 4..k * 4 + 3], d, a.grad);
             }
         }
+    }
+    out
+}
+
+/// Fixed sample positions for playback with sample-level reuse (see the player's
+/// `samples` module): `samples` per ray, the same at every time.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Partition {
+    /// Samples per ray.
+    pub samples: usize,
+    /// `[rays * samples * 4]`: each sample's unit-cube point, and time 0.
+    pub points: Vec<f32>,
+    /// `[rays * samples]`: interval lengths (world units).
+    pub deltas: Vec<f32>,
+}
+
+/// Builds a [`Partition`] of `rays` that serves every time in `times`: the proposal field is
+/// evaluated at its (deterministic, time-independent) samples at each of `times`, the weights of
+/// each bin are combined by their maximum over the times, and `samples` intervals are drawn
+/// from that histogram as rendering draws them from one time's. A surface that is anywhere
+/// along the ray at one of `times` thus gets samples; a static one gets the same as in a frame.
+pub fn playback_partition(
+    cfg: &ModelConfig,
+    layout: &ModelLayout,
+    params: &[f32],
+    rays: &[TimedRay],
+    times: &[f32],
+    samples: usize,
+    ws: &mut Workspace,
+) -> Partition {
+    let n = rays.len();
+    let np = cfg.sampler.num_proposal_samples;
+    let samples = samples.max(1);
+    ws.prop.enc.static_cutoff = RENDER_STATIC_CUTOFF;
+    ws.near_far.clear();
+    ws.near_far.extend(rays.iter().map(|r| ray_limits(cfg, r)));
+    ws.s_prop.resize(n * (np + 1), 0.0);
+    ws.t_prop.resize(n * (np + 1), 0.0);
+    ws.pts_prop.resize(n * np * 4, 0.0);
+    ws.delta_prop.resize(n * np, 0.0);
+    for i in 0..n {
+        uniform_edges(np, None, &mut ws.s_prop[i * (np + 1)..(i + 1) * (np + 1)]);
+        place_samples(
+            cfg,
+            &rays[i],
+            ws.near_far[i],
+            &ws.s_prop[i * (np + 1)..(i + 1) * (np + 1)],
+            &mut ws.t_prop[i * (np + 1)..(i + 1) * (np + 1)],
+            &mut ws.pts_prop[i * np * 4..(i + 1) * np * 4],
+            &mut ws.delta_prop[i * np..(i + 1) * np],
+        );
+    }
+    // Per-bin maximum of the proposal weights over the times.
+    ws.annealed.clear();
+    ws.annealed.resize(n * np, 0.0);
+    ws.w_prop.resize(n * np, 0.0);
+    for &t in times {
+        let t = if t >= 0.0 { t.min(1.0) } else { 0.0 };
+        for k in 0..n * np {
+            ws.pts_prop[k * 4 + 3] = t;
+        }
+        layout
+            .proposal
+            .field
+            .forward_density(params, &ws.pts_prop, n * np, &mut ws.prop);
+        for i in 0..n {
+            let r = i * np..(i + 1) * np;
+            render::weights(
+                &ws.prop.sigma[r.clone()],
+                &ws.delta_prop[r.clone()],
+                &mut ws.w_prop[r.clone()],
+            );
+            for k in r {
+                ws.annealed[k] = ws.annealed[k].max(ws.w_prop[k]);
+            }
+        }
+    }
+    let mut out = Partition {
+        samples,
+        points: vec![0.0; n * samples * 4],
+        deltas: vec![0.0; n * samples],
+    };
+    ws.s_main.resize(samples + 1, 0.0);
+    ws.t_main.resize(samples + 1, 0.0);
+    for i in 0..n {
+        sample_pdf(
+            &ws.s_prop[i * (np + 1)..(i + 1) * (np + 1)],
+            &ws.annealed[i * np..(i + 1) * np],
+            cfg.sampler.histogram_padding,
+            None,
+            &mut ws.s_main[..samples + 1],
+        );
+        let r0 = TimedRay {
+            time: 0.0,
+            ..rays[i]
+        };
+        place_samples(
+            cfg,
+            &r0,
+            ws.near_far[i],
+            &ws.s_main[..samples + 1],
+            &mut ws.t_main[..samples + 1],
+            &mut out.points[i * samples * 4..(i + 1) * samples * 4],
+            &mut out.deltas[i * samples..(i + 1) * samples],
+        );
     }
     out
 }
@@ -1264,5 +1371,41 @@ mod tests {
         let mut m = RenderOutput::default();
         render_chunk(&cfg, &layout, &p, &miss, &mut Workspace::default(), &mut m);
         assert_eq!(m.rgb[0], [1.0, 1.0, 1.0]);
+    }
+
+    #[test]
+    fn playback_partition_at_one_time_is_the_render_samples() {
+        let cfg = tiny_cfg();
+        let layout = ModelLayout::new(&cfg);
+        let p = perturbed_params(&layout);
+        let (rays, _) = rays();
+        let nf = cfg.sampler.num_samples;
+        for r in &rays {
+            let mut ws = Workspace::default();
+            render_chunk(
+                &cfg,
+                &layout,
+                &p,
+                &[*r],
+                &mut ws,
+                &mut RenderOutput::default(),
+            );
+            let rendered = ws.pts_main.clone();
+            let deltas = ws.delta_main.clone();
+            let part = playback_partition(&cfg, &layout, &p, &[*r], &[r.time], nf, &mut ws);
+            assert_eq!(part.samples, nf);
+            assert_eq!(part.deltas, deltas[..nf]);
+            for k in 0..nf {
+                assert_eq!(part.points[k * 4..k * 4 + 3], rendered[k * 4..k * 4 + 3]);
+                assert_eq!(part.points[k * 4 + 3], 0.0);
+            }
+            // Weights combine by their maximum: a repeated time changes nothing.
+            let twice = playback_partition(&cfg, &layout, &p, &[*r], &[r.time; 2], nf, &mut ws);
+            assert_eq!(twice, part);
+            let other = (r.time + 0.5) % 1.0;
+            let both = playback_partition(&cfg, &layout, &p, &[*r], &[r.time, other], nf, &mut ws);
+            assert!(both.points.iter().all(|v| v.is_finite()));
+            assert!(both.deltas.iter().all(|&d| d >= 0.0));
+        }
     }
 }

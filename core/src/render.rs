@@ -23,7 +23,7 @@ pub fn weights(sigmas: &[f32], deltas: &[f32], w: &mut [f32]) -> f32 {
 
 /// `sigma * delta`, made safe: negative or NaN inputs count as 0, infinite as a wall.
 #[inline]
-pub(crate) fn tau_of(sigma: f32, delta: f32) -> f32 {
+pub fn tau_of(sigma: f32, delta: f32) -> f32 {
     let t = sigma * delta;
     if t >= 0.0 {
         t.min(1e30)

@@ -11,7 +11,7 @@
 //!   is none or it cannot render the model.
 
 use crate::gpu::{AdapterPolicy, GpuContext, GpuError, GpuRenderer};
-use crate::render::{Frame, RenderSettings, Renderer};
+use crate::render::{Frame, RenderSettings, Renderer, Reuse};
 use msth_core::config::ModelConfig;
 use msth_core::Camera;
 
@@ -38,7 +38,8 @@ pub struct BackendInfo {
     pub kind: &'static str,
     /// The GPU adapter (name, API, device type), or the CPU threads.
     pub device: String,
-    /// Why the automatic choice fell back to the CPU, when it did.
+    /// Why the automatic choice fell back to the CPU, when it did, or what the chosen backend
+    /// does differently from the settings.
     pub note: Option<String>,
 }
 
@@ -63,12 +64,15 @@ impl FrameRenderer {
             let ctx = GpuContext::open(policy)?;
             let device = ctx.adapter_name();
             let r = GpuRenderer::new(ctx, cfg, settings)?;
+            let note = (settings.incremental && settings.reuse == Reuse::Samples).then(|| {
+                "the GPU re-renders whole dynamic rays (sample-level reuse is CPU-only)".to_string()
+            });
             Ok((
                 FrameRenderer::Gpu(Box::new(r)),
                 BackendInfo {
                     kind: "gpu",
                     device,
-                    note: None,
+                    note,
                 },
             ))
         };

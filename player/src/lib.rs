@@ -5,6 +5,8 @@
 //!   playhead on, on a background thread; seek by asking for another time;
 //! - [`render`]: CPU rendering of the decoded model, incremental for a fixed camera (static rays
 //!   cached, dynamic rays re-rendered);
+//! - [`samples`]: sample-level reuse on the dynamic rays (fixed samples, only dynamic ones
+//!   evaluated per frame);
 //! - [`gpu`]: the same on a GPU through wgpu, with the WGSL kernels of `web/shaders/`;
 //! - [`backend`]: the choice between the two (automatic, `--cpu`, `--gpu`);
 //! - [`path`]: camera paths (fixed, orbit, spiral, the file's cameras, JSON);
@@ -17,6 +19,7 @@ pub mod gpu;
 pub mod path;
 pub mod play;
 pub mod render;
+pub mod samples;
 pub mod source;
 pub mod stream;
 
@@ -24,6 +27,6 @@ pub use backend::{BackendChoice, BackendInfo, FrameRenderer};
 pub use gpu::{GpuError, GpuRenderer};
 pub use path::CameraPath;
 pub use play::{play, FrameRecord, PlayError, PlayOptions, PlayReport};
-pub use render::{Frame, FrameStats, RenderSettings, Renderer};
+pub use render::{Frame, FrameStats, RenderSettings, Renderer, Reuse};
 pub use source::{ByteSource, FileSource, HttpOptions, HttpSource, SourceError};
 pub use stream::{ModelStream, StreamError, StreamProgress};

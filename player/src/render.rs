@@ -22,6 +22,8 @@ use msth_core::field::ModelLayout;
 use msth_core::pipeline::{
     ray_limits, render_chunk, spacing_unit, RenderOutput, TimedRay, Workspace,
 };
+
+use crate::samples::{cache_bytes_bound, SampleCache};
 use msth_core::Camera;
 use rayon::prelude::*;
 
@@ -40,7 +42,39 @@ pub struct RenderSettings {
     pub probes: usize,
     /// Largest colour change (per channel, `[0, 1]` scale) a probe may show for a static ray.
     pub probe_tolerance: f32,
+    /// What a frame re-evaluates on the dynamic rays (CPU renderer; the GPU re-renders rays).
+    pub reuse: Reuse,
+    /// [`Reuse::Samples`]: times at which the proposal field places the fixed samples, evenly
+    /// over `[0, 1]` (0: the model's frame count, at most [`MAX_PARTITION_TIMES`]).
+    pub partition_times: usize,
+    /// [`Reuse::Samples`]: fixed samples per dynamic ray (0: the model's main samples).
+    pub partition_samples: usize,
+    /// [`Reuse::Samples`]: samples whose dynamic weight `1 - m` is below this are evaluated once.
+    pub sample_cutoff: f32,
+    /// [`Reuse::Samples`]: the most memory the sample cache may take; a larger one falls back
+    /// to [`Reuse::Rays`] for that camera.
+    pub max_sample_cache_bytes: u64,
 }
+
+/// What incremental frames re-evaluate on the rays that are not cached whole.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Reuse {
+    /// The whole ray, as a full frame does (proposal, resampling, every sample): frames equal
+    /// full renders.
+    Rays,
+    /// Fixed samples per ray ([`crate::samples`]); only the samples the mask leaves dynamic are
+    /// evaluated, without a proposal pass.
+    #[default]
+    Samples,
+}
+
+/// Default of [`RenderSettings::sample_cutoff`]: a sample whose dynamic weight `1 - m` is below
+/// 5% is evaluated once (chosen on the built-in scene; `msth bench play` measures the effect).
+pub const DEFAULT_SAMPLE_CUTOFF: f32 = 0.05;
+
+/// Upper bound of [`RenderSettings::partition_times`].
+pub const MAX_PARTITION_TIMES: usize = 32;
 
 impl Default for RenderSettings {
     fn default() -> Self {
@@ -50,6 +84,11 @@ impl Default for RenderSettings {
             mask_steps_per_cell: 4.0,
             probes: 5,
             probe_tolerance: 1.0 / 255.0,
+            reuse: Reuse::default(),
+            partition_times: 0,
+            partition_samples: 0,
+            sample_cutoff: DEFAULT_SAMPLE_CUTOFF,
+            max_sample_cache_bytes: 2 << 30,
         }
     }
 }
@@ -70,8 +109,11 @@ pub struct FrameStats {
     /// Wall time of the frame, `cache_seconds` included.
     pub seconds: f64,
     /// Time spent sorting the first frame's rays into static and dynamic (the second frame of a
-    /// fixed camera pays it, so that the first frame is not delayed).
+    /// fixed camera pays it, so that the first frame is not delayed), and building the sample
+    /// cache.
     pub cache_seconds: f64,
+    /// Samples evaluated at this frame on rays with sample-level reuse (0 otherwise).
+    pub samples_evaluated: usize,
 }
 
 /// A rendered frame: linear RGB in `[0, 1]`, row-major, 3 floats per pixel.
@@ -100,6 +142,8 @@ struct Cache {
     /// Pixels re-rendered every frame, and their rays.
     dynamic: Vec<u32>,
     rays: Vec<TimedRay>,
+    /// Sample-level reuse of `rays` ([`Reuse::Samples`]).
+    samples: Option<SampleCache>,
     empty: usize,
     /// The first frame's evaluated rays, until the second frame classifies them (so that the
     /// first frame is shown without waiting for the static test and the probes).
@@ -237,12 +281,20 @@ impl Renderer {
                 self.classify(params, p, &mut cache);
                 stats.cache_seconds = t.elapsed().as_secs_f64();
             }
-            for r in &mut cache.rays {
-                r.time = time;
-            }
-            let out = render_rays(&self.cfg, &self.layout, params, &cache.rays);
+            let colours = match &cache.samples {
+                Some(sc) => {
+                    stats.samples_evaluated = sc.dynamic_samples();
+                    sc.render(&self.cfg, &self.layout, params, time)
+                }
+                None => {
+                    for r in &mut cache.rays {
+                        r.time = time;
+                    }
+                    render_rays(&self.cfg, &self.layout, params, &cache.rays).rgb
+                }
+            };
             let mut rgb = cache.rgb.clone();
-            for (&p, c) in cache.dynamic.iter().zip(&out.rgb) {
+            for (&p, c) in cache.dynamic.iter().zip(&colours) {
                 rgb[p as usize * 3..p as usize * 3 + 3].copy_from_slice(c);
             }
             stats.rays_rendered = cache.rays.len();
@@ -311,6 +363,7 @@ impl Renderer {
             rgb: rgb.clone(),
             dynamic: Vec::new(),
             rays: Vec::new(),
+            samples: None,
             empty,
             pending: Some(Pending {
                 pixels,
@@ -356,7 +409,46 @@ impl Renderer {
                 cache.rays.push(*r);
             }
         }
+        if self.settings.reuse == Reuse::Samples && !cache.rays.is_empty() {
+            let samples = partition_samples(&self.cfg, &self.settings);
+            let bound = cache_bytes_bound(&self.layout, cache.rays.len(), samples);
+            if bound <= self.settings.max_sample_cache_bytes {
+                let times = partition_times(&self.cfg, &self.settings);
+                cache.samples = Some(SampleCache::build(
+                    &self.cfg,
+                    &self.layout,
+                    params,
+                    &cache.rays,
+                    &times,
+                    samples,
+                    self.settings.sample_cutoff,
+                ));
+            }
+        }
     }
+}
+
+/// Fixed samples per dynamic ray under `settings` ([`Reuse::Samples`]).
+pub fn partition_samples(cfg: &ModelConfig, settings: &RenderSettings) -> usize {
+    match settings.partition_samples {
+        0 => cfg.sampler.num_samples,
+        n => n,
+    }
+    .clamp(1, u16::MAX as usize)
+}
+
+/// Times at which the proposal field places the fixed samples ([`Reuse::Samples`]): evenly over
+/// `[0, 1]`, ends included.
+pub fn partition_times(cfg: &ModelConfig, settings: &RenderSettings) -> Vec<f32> {
+    let k = match settings.partition_times {
+        0 => cfg.num_frames,
+        k => k,
+    }
+    .clamp(1, MAX_PARTITION_TIMES);
+    if k == 1 {
+        return vec![0.5];
+    }
+    (0..k).map(|j| j as f32 / (k - 1) as f32).collect()
 }
 
 /// Mask lookups per ray for the static test ([`ray_is_static`]) under `settings`.
@@ -397,6 +489,10 @@ pub fn classify_static<E>(
         } else {
             0.5
         };
+        // The first frame itself is a probe at its own time: rendering it again changes nothing.
+        if rays.iter().all(|r| r.time == t) {
+            continue;
+        }
         let idx: Vec<usize> = (0..rays.len()).filter(|&i| flags[i]).collect();
         if idx.is_empty() {
             break;
@@ -492,7 +588,13 @@ mod tests {
     fn dynamic_mask_rerenders_and_equals_full_render() {
         let (cfg, mut params) = model(msth_core::config::BlendMode::Mt);
         set_mask(&cfg, &mut params, -3.0);
-        let mut inc = Renderer::new(&cfg, RenderSettings::default());
+        let mut inc = Renderer::new(
+            &cfg,
+            RenderSettings {
+                reuse: Reuse::Rays,
+                ..Default::default()
+            },
+        );
         let mut full = Renderer::new(
             &cfg,
             RenderSettings {
@@ -608,5 +710,117 @@ mod tests {
             let f = r.render(&cam, 1.0, &params);
             assert_eq!(f.stats.rays_rendered == 0, is_static, "{blend:?}");
         }
+    }
+
+    /// Largest per-channel difference and PSNR of two frames.
+    fn compare(a: &Frame, b: &Frame) -> (f32, f64) {
+        let max = a
+            .rgb
+            .iter()
+            .zip(&b.rgb)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0f32, f32::max);
+        let mse = a
+            .rgb
+            .iter()
+            .zip(&b.rgb)
+            .map(|(x, y)| ((x - y) as f64).powi(2))
+            .sum::<f64>()
+            / a.rgb.len() as f64;
+        (max, -10.0 * mse.max(1e-20).log10())
+    }
+
+    #[test]
+    fn sample_reuse_evaluates_only_dynamic_samples_and_follows_full_renders() {
+        // Dynamic in a slab through the middle of the scene, static elsewhere.
+        let (cfg, mut params) = model(msth_core::config::BlendMode::Mt);
+        let layout = ModelLayout::new(&cfg);
+        // Grid values of order 1, so that densities and colours vary and change with time.
+        let mut rng = msth_core::rng::Rng::new(5);
+        for name in ["field.h3", "field.h4", "proposal.h3", "proposal.h4"] {
+            let e = layout.params.get(name).expect(name).range();
+            for v in &mut params[e] {
+                *v = rng.range_f32(-1.0, 1.0);
+            }
+        }
+        let (d, r) = layout.field.encoding.mask.clone().expect("mask");
+        for (k, v) in params[r].iter_mut().enumerate() {
+            let x = k % d.res;
+            *v = if (d.res / 3..2 * d.res / 3).contains(&x) {
+                -3.0
+            } else {
+                12.0
+            };
+        }
+        let settings = RenderSettings {
+            probes: 0,
+            static_threshold: 0.99,
+            ..Default::default()
+        };
+        assert_eq!(settings.reuse, Reuse::Samples);
+        let mut inc = Renderer::new(&cfg, settings);
+        let mut full = Renderer::new(
+            &cfg,
+            RenderSettings {
+                incremental: false,
+                ..Default::default()
+            },
+        );
+        let cam = camera();
+        inc.render(&cam, 0.0, &params);
+        let first = full.render(&cam, 0.0, &params);
+        for t in [0.3, 0.9] {
+            let f = inc.render(&cam, t, &params);
+            let g = full.render(&cam, t, &params);
+            // The frames do change with time (else any cache would pass).
+            let (moved, _) = compare(&first, &g);
+            assert!(
+                moved > 5e-3,
+                "t = {t}: the full render moved by {moved} only"
+            );
+            assert!(!f.stats.full && f.stats.rays_rendered > 0);
+            let fixed = f.stats.rays_rendered * partition_samples(&cfg, &settings);
+            assert!(
+                f.stats.samples_evaluated > 0 && f.stats.samples_evaluated < fixed,
+                "{} of {fixed} samples evaluated",
+                f.stats.samples_evaluated
+            );
+            // The same field over other sample positions: close, not equal.
+            let (max, psnr) = compare(&f, &g);
+            println!(
+                "t = {t}: {} of {fixed} samples evaluated, {psnr:.1} dB against the full render",
+                f.stats.samples_evaluated
+            );
+            assert!(
+                psnr > 45.0 && max < moved,
+                "t = {t}: {psnr:.1} dB, largest difference {max} (the frame moved by {moved})"
+            );
+        }
+    }
+
+    #[test]
+    fn sample_cache_over_budget_falls_back_to_whole_rays() {
+        let (cfg, mut params) = model(msth_core::config::BlendMode::Mt);
+        set_mask(&cfg, &mut params, -3.0);
+        let mut inc = Renderer::new(
+            &cfg,
+            RenderSettings {
+                max_sample_cache_bytes: 0,
+                ..Default::default()
+            },
+        );
+        let mut full = Renderer::new(
+            &cfg,
+            RenderSettings {
+                incremental: false,
+                ..Default::default()
+            },
+        );
+        let cam = camera();
+        inc.render(&cam, 0.0, &params);
+        let f = inc.render(&cam, 0.5, &params);
+        assert!(f.stats.rays_rendered > 0);
+        assert_eq!(f.stats.samples_evaluated, 0);
+        assert_eq!(f.rgb, full.render(&cam, 0.5, &params).rgb);
     }
 }

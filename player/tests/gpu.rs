@@ -16,7 +16,7 @@ use msth_player::gpu::{
     AdapterPolicy, GpuContext, GpuError, GpuModel, GpuRenderer, GpuScene, Kernel, ViewU,
     FLAG_COMPACT,
 };
-use msth_player::{Frame, RenderSettings, Renderer};
+use msth_player::{Frame, RenderSettings, Renderer, Reuse};
 
 /// The device, or `None` (skip) when there is none and `MSTH_REQUIRE_GPU` is not `1`.
 fn context() -> Option<GpuContext> {
@@ -291,8 +291,10 @@ fn gpu_frames_match_cpu_frames_full_and_incremental() {
             };
         }
         // The mask alone decides (the random 4D table moves every colour a probe would see).
+        // Whole dynamic rays on the CPU too (the GPU has no sample-level reuse).
         let settings = RenderSettings {
             probes: 0,
+            reuse: Reuse::Rays,
             ..Default::default()
         };
         let mut cpu = Renderer::new(&cfg, settings);

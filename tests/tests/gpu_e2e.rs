@@ -86,6 +86,9 @@ fn gpu_and_cpu_renders_of_a_decoded_model_agree() {
     // Let the probes decide (the short-trained mask is soft), so that some rays are cached and the
     // incremental frames mix cached and re-rendered pixels.
     opts.render.static_threshold = 0.0;
+    // Whole dynamic rays on both backends (the GPU has no sample-level reuse), so that every
+    // frame can be held to the full render.
+    opts.render.reuse = msth_player::Reuse::Rays;
     let mut full_opts = opts.clone();
     full_opts.render.incremental = false;
 

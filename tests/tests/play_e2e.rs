@@ -1,6 +1,7 @@
 //! The user's flow end to end: built-in scene -> train (short) -> `msth export` -> `msth serve` on
 //! a random loopback port -> `msth play` of that URL. The frames written must match direct renders
 //! of the checkpoint (PSNR >= 40 dB at f32), and playing the local file gives the same frames.
+//! Playback uses the default incremental mode (sample-level reuse after the first frame).
 
 use std::path::Path;
 
@@ -92,6 +93,14 @@ fn train_export_serve_play_matches_the_checkpoint() {
     let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
     assert_eq!(r["frames"].as_array().unwrap().len(), frames);
     assert_eq!(r["frames"][0]["stats"]["full"], true);
+    // The default incremental playback reuses samples on the re-rendered rays (fixed samples,
+    // only the dynamic ones evaluated): the frames below hold it to the checkpoint's renders.
+    let evaluated: Vec<u64> = r["frames"].as_array().unwrap()[1..]
+        .iter()
+        .map(|f| f["stats"]["samples_evaluated"].as_u64().unwrap())
+        .collect();
+    println!("samples evaluated per incremental frame: {evaluated:?}");
+    assert!(evaluated.iter().all(|&n| n > 0), "{evaluated:?}");
     for i in 0..frames {
         let name = format!("frame_{i:05}.png");
         let (w, h, played) = read_png(&http_out.join(&name));
