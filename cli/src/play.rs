@@ -84,7 +84,7 @@ pub struct ReuseArgs {
     #[arg(long, value_parser = ["rays", "samples"])]
     pub reuse: Option<String>,
     /// With `--reuse samples`: times at which the fixed samples are placed (default: the
-    /// model's frame count, at most 32).
+    /// model's frame count, at most 8; at most 32).
     #[arg(long)]
     pub partition_times: Option<usize>,
     /// With `--reuse samples`: fixed samples per dynamic ray (default: the model's main samples).
