@@ -89,6 +89,9 @@ fn gpu_and_cpu_renders_of_a_decoded_model_agree() {
     // Whole dynamic rays on both backends (the GPU has no sample-level reuse), so that every
     // frame can be held to the full render.
     opts.render.reuse = msth_player::Reuse::Rays;
+    // Strict probes (five, within 1/255), so that the soft mask leaves rays of both kinds.
+    opts.render.probes = 5;
+    opts.render.probe_tolerance = 1.0 / 255.0;
     let mut full_opts = opts.clone();
     full_opts.render.incremental = false;
 
