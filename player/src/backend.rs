@@ -94,8 +94,20 @@ impl FrameRenderer {
         time: f32,
         params: &[f32],
     ) -> Result<Frame, GpuError> {
+        self.render_probing(camera, time, params, &mut |_| None)
+    }
+
+    /// Renders one frame, the probes of the static test using `params_at` (see
+    /// [`Renderer::render_probing`]). The GPU renderer's probes use `params`.
+    pub fn render_probing(
+        &mut self,
+        camera: &Camera,
+        time: f32,
+        params: &[f32],
+        params_at: &mut dyn FnMut(f32) -> Option<Vec<f32>>,
+    ) -> Result<Frame, GpuError> {
         match self {
-            FrameRenderer::Cpu(r) => Ok(r.render(camera, time, params)),
+            FrameRenderer::Cpu(r) => Ok(r.render_probing(camera, time, params, params_at)),
             FrameRenderer::Gpu(r) => r.render(camera, time, params),
         }
     }

@@ -224,7 +224,17 @@ pub fn play(
                 stream.seek(next);
             }
         }
-        let frame = renderer.render(&camera, time, &params)?;
+        // Probes of the static test at other times need those times' 4D rows: a time in
+        // another chunk waits for that chunk (fetched in playback order; the playhead stays).
+        let timeout = opts.section_timeout;
+        let mut params_at = |t: f32| {
+            if stream.index().chunk_for_time(t) == chunk {
+                return None;
+            }
+            let mut v = Vec::new();
+            stream.params_at(t, &mut v, timeout).ok().map(|_| v)
+        };
+        let frame = renderer.render_probing(&camera, time, &params, &mut params_at)?;
         if first_frame.is_none() {
             first_frame = Some(start.elapsed().as_secs_f64());
         }

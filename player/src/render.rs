@@ -273,7 +273,22 @@ impl Renderer {
     }
 
     /// Renders `camera` at normalised time `time` with `params` (the flat buffer for that time).
+    /// The probes of the static test render other times with `params` too: right for a model
+    /// decoded whole, not for one streamed in time chunks ([`Renderer::render_probing`]).
     pub fn render(&mut self, camera: &Camera, time: f32, params: &[f32]) -> Frame {
+        self.render_probing(camera, time, params, &mut |_| None)
+    }
+
+    /// [`Renderer::render`], with `params_at(t)` giving the flat buffer for a probe time `t`
+    /// when it differs from `params` (a file streamed in time chunks holds only the current
+    /// chunk's 4D rows); `None` means `params` serves.
+    pub fn render_probing(
+        &mut self,
+        camera: &Camera,
+        time: f32,
+        params: &[f32],
+        params_at: &mut dyn FnMut(f32) -> Option<Vec<f32>>,
+    ) -> Frame {
         let start = Instant::now();
         let (w, h) = (camera.width, camera.height);
         let total = w as usize * h as usize;
@@ -290,7 +305,7 @@ impl Renderer {
             let mut cache = self.cache.take().expect("checked above");
             if let Some(p) = cache.pending.take() {
                 let t = Instant::now();
-                self.classify(params, p, &mut cache);
+                self.classify(params, params_at, p, &mut cache);
                 stats.cache_seconds = t.elapsed().as_secs_f64();
             }
             let colours = match &cache.samples {
@@ -389,7 +404,13 @@ impl Renderer {
 
     /// Sorts the first frame's rays into static (cached) and dynamic (re-rendered): the mask
     /// test, then the probes.
-    fn classify(&self, params: &[f32], p: Pending, cache: &mut Cache) {
+    fn classify(
+        &self,
+        params: &[f32],
+        params_at: &mut dyn FnMut(f32) -> Option<Vec<f32>>,
+        p: Pending,
+        cache: &mut Cache,
+    ) {
         let flags = classify_static(
             &self.cfg,
             &self.layout,
@@ -406,8 +427,10 @@ impl Renderer {
                         ..p.rays[i]
                     })
                     .collect();
+                let owned = params_at(t);
+                let at_t = owned.as_deref().unwrap_or(params);
                 Ok::<_, std::convert::Infallible>(
-                    render_rays(&self.cfg, &self.layout, params, &probe).rgb,
+                    render_rays(&self.cfg, &self.layout, at_t, &probe).rgb,
                 )
             },
         );
@@ -836,5 +859,46 @@ mod tests {
         assert!(f.stats.rays_rendered > 0);
         assert_eq!(f.stats.samples_evaluated, 0);
         assert_eq!(f.rgb, full.render(&cam, 0.5, &params).rgb);
+    }
+
+    #[test]
+    fn probes_render_with_the_parameters_of_their_time() {
+        // m = 0.95 everywhere: every ray passes the mask test at 0.9, and the 4D table still
+        // counts (weight 0.05). With a zero 4D table nothing moves; the table "of another chunk"
+        // is random, so probes made with it must see change.
+        let (cfg, mut params) = model(msth_core::config::BlendMode::Mt);
+        let layout = ModelLayout::new(&cfg);
+        set_mask(&cfg, &mut params, 3.0);
+        let (_, h4) = layout.field.encoding.h4.clone().unwrap();
+        params[h4.clone()].fill(0.0);
+        let mut other = params.clone();
+        let mut rng = msth_core::rng::Rng::new(4);
+        for v in &mut other[h4] {
+            *v = rng.range_f32(-3.0, 3.0);
+        }
+        let settings = RenderSettings {
+            reuse: Reuse::Rays,
+            probe_tolerance: 1.0 / 255.0,
+            ..Default::default()
+        };
+        let cam = camera();
+        let second = |provider: &mut dyn FnMut(f32) -> Option<Vec<f32>>| {
+            let mut r = Renderer::new(&cfg, settings);
+            r.render(&cam, 0.0, &params);
+            r.render_probing(&cam, 0.0, &params, provider).stats
+        };
+        let same = second(&mut |_| None);
+        assert_eq!(same.rays_rendered, 0, "a still model caches every ray");
+        let mut asked = Vec::new();
+        let chunked = second(&mut |t| {
+            asked.push(t);
+            (t > 0.0).then(|| other.clone())
+        });
+        assert!(
+            chunked.rays_rendered > 0,
+            "probes ignored the other chunk's rows"
+        );
+        assert!(asked.iter().all(|&t| t > 0.0), "{asked:?}");
+        assert!(!asked.is_empty());
     }
 }

@@ -168,6 +168,18 @@ impl ModelStream {
         timeout: Duration,
     ) -> Result<Option<usize>, StreamError> {
         self.seek(t);
+        self.params_at(t, out, timeout)
+    }
+
+    /// [`ModelStream::params_for_time`] without moving the playhead: waits for the sections as
+    /// the fetch thread brings them in playback order (the incremental renderer's probes at other
+    /// times use it, so that they do not disturb the order frames are fetched in).
+    pub fn params_at(
+        &self,
+        t: f32,
+        out: &mut Vec<f32>,
+        timeout: Duration,
+    ) -> Result<Option<usize>, StreamError> {
         let chunk = self.index().chunk_for_time(t);
         let what = match chunk {
             Some(c) => format!("dynamic chunk {c} (time {t})"),
