@@ -194,21 +194,30 @@ pub fn play(
         })?;
     }
     stream.seek(t0);
-    let (mut renderer, backend) = FrameRenderer::new(&meta.model, opts.render, opts.backend)?;
+    // The incremental renderer probes and places its fixed samples over the times shown.
+    let frame_time = |i: usize| {
+        path.camera(i, n).1.unwrap_or_else(|| {
+            if n > 1 {
+                t0 + (t1 - t0) * i as f32 / (n - 1) as f32
+            } else {
+                t0
+            }
+        })
+    };
+    let mut render_settings = opts.render;
+    render_settings.time_range = (0..n).map(frame_time).fold((1f32, 0f32), |(lo, hi), t| {
+        let t = t.clamp(0.0, 1.0);
+        (lo.min(t), hi.max(t))
+    });
+    let (mut renderer, backend) = FrameRenderer::new(&meta.model, render_settings, opts.backend)?;
     let mut params = Vec::new();
     let mut loaded: Option<Option<usize>> = None;
     let mut records = Vec::with_capacity(n);
     let mut first_frame = None;
     let mut dynamic_fraction = None;
     for i in 0..n {
-        let (camera, fixed_time) = path.camera(i, n);
-        let time = fixed_time.unwrap_or_else(|| {
-            if n > 1 {
-                t0 + (t1 - t0) * i as f32 / (n - 1) as f32
-            } else {
-                t0
-            }
-        });
+        let (camera, _) = path.camera(i, n);
+        let time = frame_time(i);
         // Ask for the next frame's chunk early so it streams while this one renders.
         let chunk = stream.index().chunk_for_time(time);
         if loaded != Some(chunk) {

@@ -36,7 +36,7 @@ pub struct RenderSettings {
     pub static_threshold: f32,
     /// Mask lookups per ray for the static test, per mask-grid cell along the scene.
     pub mask_steps_per_cell: f32,
-    /// Times (evenly over `[0, 1]`, ends included) at which the rays the mask calls static are
+    /// Times (evenly over `time_range`, ends included) at which the rays the mask calls static are
     /// rendered once more when the cache is built; a ray whose colour changes by more than
     /// `probe_tolerance` at any of them is re-rendered every frame after all. 0 trusts the mask.
     pub probes: usize,
@@ -45,7 +45,7 @@ pub struct RenderSettings {
     /// What a frame re-evaluates on the dynamic rays (CPU renderer; the GPU re-renders rays).
     pub reuse: Reuse,
     /// [`Reuse::Samples`]: times at which the proposal field places the fixed samples, evenly
-    /// over `[0, 1]` (0: the model's frame count, at most [`DEFAULT_PARTITION_TIMES`]).
+    /// over `time_range` (0: the model's frame count, at most [`DEFAULT_PARTITION_TIMES`]).
     pub partition_times: usize,
     /// [`Reuse::Samples`]: fixed samples per dynamic ray (0: the model's main samples).
     pub partition_samples: usize,
@@ -54,6 +54,29 @@ pub struct RenderSettings {
     /// [`Reuse::Samples`]: the most memory the sample cache may take; a larger one falls back
     /// to [`Reuse::Rays`] for that camera.
     pub max_sample_cache_bytes: u64,
+    /// The times the playback will show (`[a, b]`, normalised): probes and the fixed samples
+    /// cover this range.
+    pub time_range: (f32, f32),
+}
+
+impl RenderSettings {
+    /// The `j`-th of `k` times spread evenly over [`RenderSettings::time_range`], ends
+    /// included (its middle when `k` is 1); a range that is not within `[0, 1]` counts as
+    /// `[0, 1]`.
+    pub fn clip_time(&self, j: usize, k: usize) -> f32 {
+        let (a, b) = self.time_range;
+        let ok = |v: f32| (0.0..=1.0).contains(&v);
+        let (a, b) = if ok(a) && ok(b) {
+            (a.min(b), a.max(b))
+        } else {
+            (0.0, 1.0)
+        };
+        if k > 1 {
+            a + (b - a) * j as f32 / (k - 1) as f32
+        } else {
+            0.5 * (a + b)
+        }
+    }
 }
 
 /// What incremental frames re-evaluate on the rays that are not cached whole.
@@ -101,6 +124,7 @@ impl Default for RenderSettings {
             partition_samples: 0,
             sample_cutoff: DEFAULT_SAMPLE_CUTOFF,
             max_sample_cache_bytes: 2 << 30,
+            time_range: (0.0, 1.0),
         }
     }
 }
@@ -473,17 +497,14 @@ pub fn partition_samples(cfg: &ModelConfig, settings: &RenderSettings) -> usize 
 }
 
 /// Times at which the proposal field places the fixed samples ([`Reuse::Samples`]): evenly over
-/// `[0, 1]`, ends included.
+/// the settings' time range, ends included.
 pub fn partition_times(cfg: &ModelConfig, settings: &RenderSettings) -> Vec<f32> {
     let k = match settings.partition_times {
         0 => cfg.num_frames.min(DEFAULT_PARTITION_TIMES),
         k => k,
     }
     .clamp(1, MAX_PARTITION_TIMES);
-    if k == 1 {
-        return vec![0.5];
-    }
-    (0..k).map(|j| j as f32 / (k - 1) as f32).collect()
+    (0..k).map(|j| settings.clip_time(j, k)).collect()
 }
 
 /// Mask lookups per ray for the static test ([`ray_is_static`]) under `settings`.
@@ -519,11 +540,7 @@ pub fn classify_static<E>(
         .collect();
     let k = settings.probes;
     for j in 0..k {
-        let t = if k > 1 {
-            j as f32 / (k - 1) as f32
-        } else {
-            0.5
-        };
+        let t = settings.clip_time(j, k);
         // The first frame itself is a probe at its own time: rendering it again changes nothing.
         if rays.iter().all(|r| r.time == t) {
             continue;
@@ -900,5 +917,41 @@ mod tests {
         );
         assert!(asked.iter().all(|&t| t > 0.0), "{asked:?}");
         assert!(!asked.is_empty());
+    }
+
+    #[test]
+    fn probes_and_fixed_samples_cover_the_time_range_played() {
+        let s = RenderSettings {
+            time_range: (0.4, 0.2),
+            ..Default::default()
+        };
+        let times: Vec<f32> = (0..3).map(|j| s.clip_time(j, 3)).collect();
+        assert_eq!(times, [0.2, 0.3, 0.4]);
+        assert_eq!(s.clip_time(0, 1), 0.3);
+        let bad = RenderSettings {
+            time_range: (f32::NAN, 2.0),
+            ..Default::default()
+        };
+        assert_eq!(bad.clip_time(2, 3), 1.0);
+        // The probes ask for the parameters of times within the range only (and never of the
+        // first frame's own time).
+        let (cfg, mut params) = model(msth_core::config::BlendMode::Mt);
+        set_mask(&cfg, &mut params, 3.0);
+        let mut r = Renderer::new(&cfg, s);
+        let cam = camera();
+        r.render(&cam, 0.2, &params);
+        let mut asked = Vec::new();
+        r.render_probing(&cam, 0.2, &params, &mut |t| {
+            asked.push(t);
+            None
+        });
+        assert_eq!(asked, [0.3, 0.4]);
+        let cfg10 = ModelConfig {
+            num_frames: 10,
+            ..cfg.clone()
+        };
+        let p = partition_times(&cfg10, &s);
+        assert_eq!(p.len(), DEFAULT_PARTITION_TIMES);
+        assert!(p.iter().all(|t| (0.2..=0.4).contains(t)), "{p:?}");
     }
 }
