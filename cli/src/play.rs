@@ -249,6 +249,20 @@ fn summary(r: &PlayReport, threshold: f32) {
             "static-ray cache: {:.1}% of the fixed camera's pixels re-rendered per frame",
             100.0 * d
         );
+        let reused: Vec<_> = r
+            .frames
+            .iter()
+            .filter(|f| !f.stats.full && f.stats.samples_evaluated > 0)
+            .collect();
+        if !reused.is_empty() {
+            let samples: usize = reused.iter().map(|f| f.stats.samples_evaluated).sum();
+            let rays: usize = reused.iter().map(|f| f.stats.rays_rendered).sum();
+            println!(
+                "sample reuse: {:.1} samples evaluated per re-rendered ray (fixed samples, no \
+                 proposal pass; --reuse rays renders them in full)",
+                samples as f64 / rays.max(1) as f64
+            );
+        }
         if d > 0.9 {
             println!(
                 "  (the model's mask calls few rays static at --static-threshold {}: masks trained \
