@@ -207,34 +207,31 @@ fn place_samples(
     }
 }
 
-/// Forward of proposal and main fields for a chunk; leaves everything in `ws`.
-fn forward_chunk(
-    cfg: &ModelConfig,
-    layout: &ModelLayout,
-    params: &[f32],
-    rays: &[TimedRay],
-    anneal: f32,
-    mut rng: Option<&mut Rng>,
-    ws: &mut Workspace,
-) {
-    let n = rays.len();
-    let np = cfg.sampler.num_proposal_samples;
-    let nf = cfg.sampler.num_samples;
-    ws.near_far.clear();
-    ws.near_far.extend(rays.iter().map(|r| ray_limits(cfg, r)));
-    ws.sh.resize(n * SH_COEFFS, 0.0);
-    for (i, r) in rays.iter().enumerate() {
+/// Direction encodings (`SH_COEFFS` per ray) of `rays` into `out`; a direction that is not
+/// finite encodes as zero.
+pub fn direction_encodings(rays: &[TimedRay], out: &mut Vec<f32>) {
+    out.resize(rays.len() * SH_COEFFS, 0.0);
+    for (r, sh) in rays.iter().zip(out.chunks_exact_mut(SH_COEFFS)) {
         let d = if r.dir.is_finite() {
             r.dir.normalize_or_zero()
         } else {
             Vec3::ZERO
         };
-        sh4(
-            [d.x, d.y, d.z],
-            &mut ws.sh[i * SH_COEFFS..(i + 1) * SH_COEFFS],
-        );
+        sh4([d.x, d.y, d.z], sh);
     }
-    // Proposal samples.
+}
+
+/// Ray limits and the proposal samples of `rays` (uniform edges, jittered with `rng`) into `ws`.
+fn place_proposal_samples(
+    cfg: &ModelConfig,
+    rays: &[TimedRay],
+    mut rng: Option<&mut Rng>,
+    ws: &mut Workspace,
+) {
+    let n = rays.len();
+    let np = cfg.sampler.num_proposal_samples;
+    ws.near_far.clear();
+    ws.near_far.extend(rays.iter().map(|r| ray_limits(cfg, r)));
     ws.s_prop.resize(n * (np + 1), 0.0);
     ws.t_prop.resize(n * (np + 1), 0.0);
     ws.pts_prop.resize(n * np * 4, 0.0);
@@ -252,6 +249,23 @@ fn forward_chunk(
             &mut ws.delta_prop[i * np..(i + 1) * np],
         );
     }
+}
+
+/// Forward of proposal and main fields for a chunk; leaves everything in `ws`.
+fn forward_chunk(
+    cfg: &ModelConfig,
+    layout: &ModelLayout,
+    params: &[f32],
+    rays: &[TimedRay],
+    anneal: f32,
+    mut rng: Option<&mut Rng>,
+    ws: &mut Workspace,
+) {
+    let n = rays.len();
+    let np = cfg.sampler.num_proposal_samples;
+    let nf = cfg.sampler.num_samples;
+    direction_encodings(rays, &mut ws.sh);
+    place_proposal_samples(cfg, rays, rng.as_deref_mut(), ws);
     layout
         .proposal
         .field
@@ -726,24 +740,7 @@ pub fn playback_partition(
     let np = cfg.sampler.num_proposal_samples;
     let samples = samples.max(1);
     ws.prop.enc.static_cutoff = RENDER_STATIC_CUTOFF;
-    ws.near_far.clear();
-    ws.near_far.extend(rays.iter().map(|r| ray_limits(cfg, r)));
-    ws.s_prop.resize(n * (np + 1), 0.0);
-    ws.t_prop.resize(n * (np + 1), 0.0);
-    ws.pts_prop.resize(n * np * 4, 0.0);
-    ws.delta_prop.resize(n * np, 0.0);
-    for i in 0..n {
-        uniform_edges(np, None, &mut ws.s_prop[i * (np + 1)..(i + 1) * (np + 1)]);
-        place_samples(
-            cfg,
-            &rays[i],
-            ws.near_far[i],
-            &ws.s_prop[i * (np + 1)..(i + 1) * (np + 1)],
-            &mut ws.t_prop[i * (np + 1)..(i + 1) * (np + 1)],
-            &mut ws.pts_prop[i * np * 4..(i + 1) * np * 4],
-            &mut ws.delta_prop[i * np..(i + 1) * np],
-        );
-    }
+    place_proposal_samples(cfg, rays, None, ws);
     // Per-bin maximum of the proposal weights over the times.
     ws.annealed.clear();
     ws.annealed.resize(n * np, 0.0);

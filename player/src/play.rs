@@ -225,10 +225,7 @@ pub fn play(
             loaded = Some(chunk);
         }
         if i + 1 < n {
-            let next = path
-                .camera(i + 1, n)
-                .1
-                .unwrap_or(t0 + (t1 - t0) * (i + 1) as f32 / (n - 1).max(1) as f32);
+            let next = frame_time(i + 1);
             if !stream.ready_for(next) {
                 stream.seek(next);
             }

@@ -22,10 +22,10 @@ use msth_core::field::ModelLayout;
 use msth_core::pipeline::{
     ray_limits, render_chunk, spacing_unit, RenderOutput, TimedRay, Workspace,
 };
-
-use crate::samples::{cache_bytes_bound, SampleCache};
 use msth_core::Camera;
 use rayon::prelude::*;
+
+use crate::samples::{cache_bytes_bound, SampleCache};
 
 /// How frames are rendered.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -604,13 +604,7 @@ mod tests {
                 ..Default::default()
             },
         );
-        let mut full = Renderer::new(
-            &cfg,
-            RenderSettings {
-                incremental: false,
-                ..Default::default()
-            },
-        );
+        let mut full = full_renderer(&cfg);
         let cam = camera();
         let f0 = inc.render(&cam, 0.0, &params);
         assert!(f0.stats.full);
@@ -627,12 +621,7 @@ mod tests {
         // The full render at 0.7 differs from frame 0 only by the (1 - m) h4 term.
         let g1 = full.render(&cam, 0.7, &params);
         assert!(g1.stats.full);
-        let max_diff = f1
-            .rgb
-            .iter()
-            .zip(&g1.rgb)
-            .map(|(a, b)| (a - b).abs())
-            .fold(0f32, f32::max);
+        let (max_diff, _) = compare(&f1, &g1);
         assert!(max_diff < 2e-2, "{max_diff}");
     }
 
@@ -647,13 +636,7 @@ mod tests {
                 ..Default::default()
             },
         );
-        let mut full = Renderer::new(
-            &cfg,
-            RenderSettings {
-                incremental: false,
-                ..Default::default()
-            },
-        );
+        let mut full = full_renderer(&cfg);
         let cam = camera();
         inc.render(&cam, 0.0, &params);
         let f1 = inc.render(&cam, 0.5, &params);
@@ -698,12 +681,7 @@ mod tests {
             inc.render(&cam, 0.0, &params);
             let f = inc.render(&cam, 0.5, &params);
             let g = full.render(&cam, 0.5, &params);
-            let max_diff = f
-                .rgb
-                .iter()
-                .zip(&g.rgb)
-                .map(|(a, b)| (a - b).abs())
-                .fold(0f32, f32::max);
+            let (max_diff, _) = compare(&f, &g);
             if must_match {
                 // 0.5 is a probe time: every cached ray is within the tolerance there.
                 assert!(max_diff <= lenient.probe_tolerance + 1e-6, "{max_diff}");
@@ -766,6 +744,17 @@ mod tests {
         }
     }
 
+    /// A renderer that renders every frame in full (the reference of incremental playback).
+    fn full_renderer(cfg: &ModelConfig) -> Renderer {
+        Renderer::new(
+            cfg,
+            RenderSettings {
+                incremental: false,
+                ..Default::default()
+            },
+        )
+    }
+
     /// Largest per-channel difference and PSNR of two frames.
     fn compare(a: &Frame, b: &Frame) -> (f32, f64) {
         let max = a
@@ -813,13 +802,7 @@ mod tests {
         };
         assert_eq!(settings.reuse, Reuse::Samples);
         let mut inc = Renderer::new(&cfg, settings);
-        let mut full = Renderer::new(
-            &cfg,
-            RenderSettings {
-                incremental: false,
-                ..Default::default()
-            },
-        );
+        let mut full = full_renderer(&cfg);
         let cam = camera();
         inc.render(&cam, 0.0, &params);
         let first = full.render(&cam, 0.0, &params);
@@ -863,13 +846,7 @@ mod tests {
                 ..Default::default()
             },
         );
-        let mut full = Renderer::new(
-            &cfg,
-            RenderSettings {
-                incremental: false,
-                ..Default::default()
-            },
-        );
+        let mut full = full_renderer(&cfg);
         let cam = camera();
         inc.render(&cam, 0.0, &params);
         let f = inc.render(&cam, 0.5, &params);

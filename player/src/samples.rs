@@ -26,10 +26,11 @@ use msth_core::config::{BlendMode, ModelConfig};
 use msth_core::field::{FieldScratch, ModelLayout};
 use msth_core::mlp::MlpActivations;
 use msth_core::pipeline::{
-    composite_ray, playback_partition, Partition, TimedRay, Workspace, HIDDEN_TRANSMITTANCE,
+    composite_ray, direction_encodings, playback_partition, Partition, TimedRay, Workspace,
+    HIDDEN_TRANSMITTANCE,
 };
 use msth_core::render;
-use msth_core::sh::{sh4, SH_COEFFS};
+use msth_core::sh::SH_COEFFS;
 use rayon::prelude::*;
 
 /// Rays per work item when building and rendering.
@@ -70,7 +71,10 @@ struct Scratch {
     density: MlpActivations,
     color: MlpActivations,
     color_in: Vec<f32>,
+    /// Visible dynamic samples (index from the chunk's first) and their rays (from the chunk's
+    /// first).
     active: Vec<u32>,
+    active_ray: Vec<u32>,
     sigma: Vec<f32>,
     w: Vec<f32>,
     rgb: Vec<f32>,
@@ -162,15 +166,8 @@ impl SampleCache {
         let e = enc.out_dim;
         let h3_dim = if enc.h3.is_some() { e } else { 0 };
         let has_mask = enc.mask.is_some();
-        let mut sh = vec![0f32; n * SH_COEFFS];
-        for (i, r) in rays.iter().enumerate() {
-            let d = if r.dir.is_finite() {
-                r.dir.normalize_or_zero()
-            } else {
-                glam::Vec3::ZERO
-            };
-            sh4([d.x, d.y, d.z], &mut sh[i * SH_COEFFS..(i + 1) * SH_COEFFS]);
-        }
+        let mut sh = Vec::new();
+        direction_encodings(rays, &mut sh);
         // Static samples as the full renderer evaluates them: the 4D lookup skipped below the
         // cutoff (a cutoff of 0 skips nothing, and then no sample is static).
         fs.enc.static_cutoff = cutoff;
@@ -321,6 +318,7 @@ impl SampleCache {
         sc.sigma
             .extend_from_slice(&self.sigma[rays.start * s..rays.end * s]);
         sc.active.clear();
+        sc.active_ray.clear();
         for (li, ri) in rays.clone().enumerate() {
             let (a, b) = (self.dyn_start[ri] as usize, self.dyn_start[ri + 1] as usize);
             for j in a..b {
@@ -337,6 +335,7 @@ impl SampleCache {
                 }
                 if next < b && self.dyn_slot[next] as usize == k {
                     sc.active.push((next - d0) as u32);
+                    sc.active_ray.push(li as u32);
                     next += 1;
                 }
                 tau += render::tau_of(sc.sigma[li * s + k], self.deltas[ri * s + k]);
@@ -349,9 +348,9 @@ impl SampleCache {
         let na = sc.active.len();
         if na > 0 {
             sc.color_in.resize(na * cw, 0.0);
-            for (k, &j) in sc.active.iter().enumerate() {
+            for (k, (&j, &li)) in sc.active.iter().zip(&sc.active_ray).enumerate() {
                 let j = j as usize;
-                let ray = self.ray_of(d0 + j, rays.clone());
+                let ray = rays.start + li as usize;
                 sc.color_in[k * cw..k * cw + SH_COEFFS]
                     .copy_from_slice(&self.sh[ray * SH_COEFFS..(ray + 1) * SH_COEFFS]);
                 sc.color_in[k * cw + SH_COEFFS..(k + 1) * cw]
@@ -367,12 +366,10 @@ impl SampleCache {
         sc.rgb.clear();
         sc.rgb
             .extend_from_slice(&self.rgb[rays.start * s * 3..rays.end * s * 3]);
-        for (k, &j) in sc.active.iter().enumerate() {
-            let j = j as usize;
-            let ray = self.ray_of(d0 + j, rays.clone()) - rays.start;
-            let slot = self.dyn_slot[d0 + j] as usize;
+        for (k, (&j, &li)) in sc.active.iter().zip(&sc.active_ray).enumerate() {
+            let slot = self.dyn_slot[d0 + j as usize] as usize;
             for ch in 0..3 {
-                sc.rgb[(ray * s + slot) * 3 + ch] = sigmoid(cout[k * 3 + ch]);
+                sc.rgb[(li as usize * s + slot) * 3 + ch] = sigmoid(cout[k * 3 + ch]);
             }
         }
         sc.w.resize(s, 0.0);
@@ -393,13 +390,6 @@ impl SampleCache {
         }
         out
     }
-
-    /// The ray (index into the cache) that dynamic sample `j` belongs to, searched in `rays`.
-    fn ray_of(&self, j: usize, rays: std::ops::Range<usize>) -> usize {
-        let starts = &self.dyn_start[rays.start..=rays.end];
-        // The last start <= j.
-        rays.start + starts.partition_point(|&st| st as usize <= j) - 1
-    }
 }
 
 /// Plain reference of a frame over the fixed partition: every sample through the per-point
@@ -417,9 +407,8 @@ pub fn reference_render(
     rays.iter()
         .enumerate()
         .map(|(i, r)| {
-            let d = r.dir.normalize_or_zero();
-            let mut sh = [0f32; SH_COEFFS];
-            sh4([d.x, d.y, d.z], &mut sh);
+            let mut sh = Vec::new();
+            direction_encodings(std::slice::from_ref(r), &mut sh);
             let mut sigma = vec![0f32; s];
             let mut rgb = vec![0f32; s * 3];
             for k in 0..s {
