@@ -11,7 +11,7 @@ mod export;
 mod play;
 mod scenegen;
 mod serve;
-mod tradeoff_plot;
+pub mod tradeoff_plot;
 mod tradeoff_report;
 
 use std::ffi::OsString;

@@ -348,45 +348,4 @@ mod tests {
         assert_eq!(sig3(20.0), "20");
         assert_eq!(sig3(0.0), "0");
     }
-
-    #[test]
-    fn scatter_draws_points_and_front() {
-        if ensure_font().is_none() {
-            eprintln!("SKIPPED: no TrueType font on this machine");
-            return;
-        }
-        let pts = vec![
-            PlotPoint {
-                x: 10.0,
-                y: 20.0,
-                label: "a".into(),
-                front: true,
-            },
-            PlotPoint {
-                x: 100.0,
-                y: 25.0,
-                label: "b".into(),
-                front: true,
-            },
-            PlotPoint {
-                x: 50.0,
-                y: 18.0,
-                label: "c".into(),
-                front: false,
-            },
-            PlotPoint {
-                x: f64::NAN,
-                y: 1.0,
-                label: "nan".into(),
-                front: false,
-            },
-        ];
-        let img = scatter("t", "x", "y", true, &pts).unwrap();
-        let px = img.data.loaded();
-        assert_eq!(px.len(), (WIDTH * HEIGHT * 3) as usize);
-        // Some pure-ish red (front markers) and blue (dominated markers) pixels were drawn.
-        let has = |f: &dyn Fn(&[u8]) -> bool| px.chunks(3).any(f);
-        assert!(has(&|p| p[0] > 180 && p[1] < 60 && p[2] < 60));
-        assert!(has(&|p| p[2] > 150 && p[0] < 80));
-    }
 }

@@ -4,8 +4,9 @@
 //! incremental, of [`GpuRenderer`] against [`Renderer`] for box and contracted scenes, constant
 //! and last-sample backgrounds; limits and bad input.
 //!
-//! They run on whatever adapter exists (Mesa's lavapipe in CI) and skip when there is none,
-//! unless `MSTH_REQUIRE_GPU=1`.
+//! They run on whatever adapter exists (Mesa's lavapipe in CI). Without one they are reported
+//! as ignored, with the reason, unless `MSTH_REQUIRE_GPU=1` (then they fail): this binary runs
+//! on `msth-testkit`'s harness (`harness = false`), and [`main`] lists every test.
 
 use msth_core::config::{Background, BlendMode, ModelConfig, Preset};
 use msth_core::field::ModelLayout;
@@ -17,20 +18,46 @@ use msth_player::gpu::{
     FLAG_COMPACT,
 };
 use msth_player::{Frame, RenderSettings, Renderer, Reuse};
+use msth_testkit::{Need, Skip, Tests};
 
-/// The device, or `None` (skip) when there is none and `MSTH_REQUIRE_GPU` is not `1`.
-fn context() -> Option<GpuContext> {
-    match GpuContext::open(AdapterPolicy::any()) {
-        Ok(c) => Some(c),
-        Err(e @ GpuError::NoAdapter(_)) => {
-            if std::env::var("MSTH_REQUIRE_GPU").is_ok_and(|v| v == "1") {
-                panic!("MSTH_REQUIRE_GPU=1 but {e}");
-            }
-            eprintln!("skipping GPU test: {e}");
-            None
-        }
+fn main() -> std::process::ExitCode {
+    // "No adapter" is a missing need; any other error opening one fails the test.
+    let gpu = Need::new("gpu", || match GpuContext::open(AdapterPolicy::any()) {
+        Ok(_) => Ok(()),
+        Err(e @ GpuError::NoAdapter(_)) => Err(e.to_string()),
         Err(e) => panic!("{e}"),
-    }
+    });
+    Tests::new(file!())
+        .needs(
+            &[&gpu],
+            "eval_points_matches_the_cpu_reference_for_every_blend",
+            eval_points_matches_the_cpu_reference_for_every_blend,
+        )
+        .needs(
+            &[&gpu],
+            "buffers_beyond_the_adapter_limits_are_clear_errors",
+            buffers_beyond_the_adapter_limits_are_clear_errors,
+        )
+        .needs(
+            &[&gpu],
+            "models_beyond_lavapipes_loop_budget_are_clear_errors_there",
+            models_beyond_lavapipes_loop_budget_are_clear_errors_there,
+        )
+        .test(
+            "models_beyond_the_kernel_limits_are_clear_errors",
+            models_beyond_the_kernel_limits_are_clear_errors,
+        )
+        .needs(
+            &[&gpu],
+            "gpu_frames_match_cpu_frames_full_and_incremental",
+            gpu_frames_match_cpu_frames_full_and_incremental,
+        )
+        .run()
+}
+
+/// The device (the tests that call this run only where one exists).
+fn context() -> GpuContext {
+    GpuContext::open(AdapterPolicy::any()).unwrap()
 }
 
 fn config(blend: BlendMode) -> ModelConfig {
@@ -95,9 +122,8 @@ fn random_params(layout: &ModelLayout, seed: u64) -> Vec<f32> {
     p
 }
 
-#[test]
 fn eval_points_matches_the_cpu_reference_for_every_blend() {
-    let Some(ctx) = context() else { return };
+    let ctx = context();
     for blend in [
         BlendMode::Mst,
         BlendMode::Mt,
@@ -195,9 +221,8 @@ fn eval_points_matches_the_cpu_reference_for_every_blend() {
     }
 }
 
-#[test]
 fn buffers_beyond_the_adapter_limits_are_clear_errors() {
-    let Some(ctx) = context() else { return };
+    let ctx = context();
     let e = ctx
         .check_storage("a test buffer", u64::MAX / 2)
         .unwrap_err();
@@ -209,11 +234,10 @@ fn buffers_beyond_the_adapter_limits_are_clear_errors() {
     assert!(matches!(e, GpuError::Limit { .. }), "{e}");
 }
 
-#[test]
-fn models_beyond_lavapipes_loop_budget_are_clear_errors_there() {
-    let Some(ctx) = context() else { return };
+fn models_beyond_lavapipes_loop_budget_are_clear_errors_there() -> Result<(), Skip> {
+    let ctx = context();
     if !ctx.is_lavapipe() {
-        return;
+        return Err(Skip::new("the adapter is not lavapipe"));
     }
     let cfg = ModelConfig::preset(
         Preset::Fast,
@@ -225,9 +249,9 @@ fn models_beyond_lavapipes_loop_budget_are_clear_errors_there() {
         .err()
         .expect("a preset model exceeds lavapipe's loop budget");
     assert!(e.to_string().contains("loop iterations"), "{e}");
+    Ok(())
 }
 
-#[test]
 fn models_beyond_the_kernel_limits_are_clear_errors() {
     let mut cfg = config(BlendMode::Mt);
     cfg.field.density_hidden = 512;
@@ -252,9 +276,7 @@ fn max_diff(a: &Frame, b: &Frame) -> f32 {
 
 /// Full and incremental frames of the GPU renderer equal the CPU renderer's to float rounding,
 /// with the same rays cached and re-rendered.
-#[test]
 fn gpu_frames_match_cpu_frames_full_and_incremental() {
-    let Some(_) = context() else { return };
     let scenes = [
         (
             SceneBounds::dnerf_default(),
@@ -298,7 +320,7 @@ fn gpu_frames_match_cpu_frames_full_and_incremental() {
             ..Default::default()
         };
         let mut cpu = Renderer::new(&cfg, settings);
-        let mut gpu = GpuRenderer::new(context().unwrap(), &cfg, settings).unwrap();
+        let mut gpu = GpuRenderer::new(context(), &cfg, settings).unwrap();
         let cam = Camera::look_at(
             40,
             30,

@@ -1,6 +1,10 @@
 //! The object and stage layouts end to end on a small animated model built by the test:
 //! files on disk, read back through the trainer's D-NeRF loader, LLFF rows, videos, and the
 //! model's projection found in the images.
+//!
+//! This binary runs on `msth-testkit`'s harness (`harness = false`): [`main`] lists its tests.
+//! The video test needs `ffmpeg`/`ffprobe`; without them it is reported as ignored with the
+//! reason, unless `MSTH_REQUIRE_FFMPEG=1` (then it fails).
 
 mod common;
 
@@ -12,8 +16,36 @@ use msth_scenegen::dynerf::{c2w_from_llff_row, read_npy};
 use msth_scenegen::layout::{frame_time, OBJECT_MODEL_RADIUS, STAGE_MODEL_RADIUS};
 use msth_scenegen::scene::{posed_triangles, Normalisation, Placement};
 use msth_scenegen::{generate, load, Layout, Model, SynthSettings};
+use msth_testkit::{Need, Tests};
 use msth_trainer::dataset::dnerf::{load as load_dnerf, LoadOptions};
 use serde_json::{json, Value};
+
+fn main() -> std::process::ExitCode {
+    let ffmpeg = Need::ffmpeg();
+    Tests::new(file!())
+        .test(
+            "object_layout_is_rgba_dnerf_and_alpha_covers_the_model",
+            object_layout_is_rgba_dnerf_and_alpha_covers_the_model,
+        )
+        .test(
+            "stage_layout_follows_the_dynerf_conventions",
+            stage_layout_follows_the_dynerf_conventions,
+        )
+        .needs(
+            &[&ffmpeg],
+            "stage_videos_are_h264_with_one_frame_per_time",
+            stage_videos_are_h264_with_one_frame_per_time,
+        )
+        .test(
+            "missing_ffmpeg_is_a_note_not_a_failure",
+            missing_ffmpeg_is_a_note_not_a_failure,
+        )
+        .test(
+            "refuses_a_non_empty_folder_and_bad_settings_and_leaves_nothing",
+            refuses_a_non_empty_folder_and_bad_settings_and_leaves_nothing,
+        )
+        .run()
+}
 
 /// A quad sliding along glTF +X over 1 s while spinning about +Z (LINEAR).
 fn moving_quad(dir: &Path) -> Model {
@@ -55,7 +87,6 @@ fn centroids(model: &Model, norm: &Normalisation, t: f32) -> Vec<Vec3> {
         .collect()
 }
 
-#[test]
 fn object_layout_is_rgba_dnerf_and_alpha_covers_the_model() {
     let dir = tempfile::tempdir().unwrap();
     let model = moving_quad(dir.path());
@@ -107,12 +138,12 @@ fn object_layout_is_rgba_dnerf_and_alpha_covers_the_model() {
     }
 }
 
-#[test]
 fn stage_layout_follows_the_dynerf_conventions() {
     let dir = tempfile::tempdir().unwrap();
     let model = moving_quad(dir.path());
     let mut s = SynthSettings::new(Layout::Stage);
     (s.width, s.height, s.frames, s.cameras, s.supersample) = (40, 30, 4, 3, 1);
+    s.ffmpeg = None;
     let out = dir.path().join("stage");
     let summary = generate(&model, &s, &out, &|| {}).unwrap();
     assert_eq!(summary.images, 16);
@@ -175,37 +206,49 @@ fn stage_layout_follows_the_dynerf_conventions() {
             assert!(u > 0.0 && u < 40.0 && w > 0.0 && w < 30.0, "{u} {w}");
         }
     }
-    // Videos when ffmpeg runs; a note otherwise.
-    match summary.videos_skipped {
-        None => {
-            for c in 0..4 {
-                let mp4 = out.join(format!("cam{c:02}.mp4"));
-                assert!(std::fs::metadata(&mp4).unwrap().len() > 0);
-                if let Ok(o) = std::process::Command::new("ffprobe")
-                    .args([
-                        "-v",
-                        "error",
-                        "-select_streams",
-                        "v:0",
-                        "-count_frames",
-                        "-show_entries",
-                        "stream=codec_name,pix_fmt,nb_read_frames",
-                        "-of",
-                        "csv=p=0",
-                    ])
-                    .arg(&mp4)
-                    .output()
-                {
-                    let text = String::from_utf8_lossy(&o.stdout);
-                    assert_eq!(text.trim(), "h264,yuv420p,4", "{}", mp4.display());
-                }
-            }
-        }
-        Some(why) => eprintln!("SKIPPED video checks: {why}"),
+    // No videos were asked for: a note says so, and no camNN.mp4 exists (the videos are
+    // `stage_videos_are_h264_with_one_frame_per_time`, which needs ffmpeg).
+    assert_eq!(
+        summary.videos_skipped.as_deref(),
+        Some("videos not requested")
+    );
+    assert!(!out.join("cam00.mp4").exists());
+}
+
+/// The stage layout's `camNN.mp4`: H.264, yuv420p, one frame per time, checked by `ffprobe`.
+fn stage_videos_are_h264_with_one_frame_per_time() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = moving_quad(dir.path());
+    let mut s = SynthSettings::new(Layout::Stage);
+    (s.width, s.height, s.frames, s.cameras, s.supersample) = (40, 30, 4, 3, 1);
+    s.ffmpeg = Some(std::env::var_os("MSTH_FFMPEG").map_or("ffmpeg".into(), Into::into));
+    let out = dir.path().join("stage");
+    let summary = generate(&model, &s, &out, &|| {}).unwrap();
+    assert_eq!(summary.videos_skipped, None);
+    let ffprobe = std::env::var_os("MSTH_FFPROBE").unwrap_or("ffprobe".into());
+    for c in 0..4 {
+        let mp4 = out.join(format!("cam{c:02}.mp4"));
+        assert!(std::fs::metadata(&mp4).unwrap().len() > 0);
+        let o = std::process::Command::new(&ffprobe)
+            .args([
+                "-v",
+                "error",
+                "-select_streams",
+                "v:0",
+                "-count_frames",
+                "-show_entries",
+                "stream=codec_name,pix_fmt,nb_read_frames",
+                "-of",
+                "csv=p=0",
+            ])
+            .arg(&mp4)
+            .output()
+            .unwrap();
+        let text = String::from_utf8_lossy(&o.stdout);
+        assert_eq!(text.trim(), "h264,yuv420p,4", "{}", mp4.display());
     }
 }
 
-#[test]
 fn missing_ffmpeg_is_a_note_not_a_failure() {
     let dir = tempfile::tempdir().unwrap();
     let model = moving_quad(dir.path());
@@ -224,7 +267,6 @@ fn missing_ffmpeg_is_a_note_not_a_failure() {
     assert!(meta["videos"].as_str().unwrap().starts_with("skipped"));
 }
 
-#[test]
 fn refuses_a_non_empty_folder_and_bad_settings_and_leaves_nothing() {
     let dir = tempfile::tempdir().unwrap();
     let model = moving_quad(dir.path());
