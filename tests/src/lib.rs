@@ -1,27 +1,31 @@
-//! Helpers shared by the end-to-end tests in `tests/tests/`: where the shared datasets are, small
-//! built-in scenes, and running the `msth` command in-process.
+//! Helpers shared by the end-to-end tests in `tests/tests/`: where the shared datasets are and the
+//! needs of the tests that use outside things (for `msth-testkit`'s harness, see
+//! testkit/src/lib.rs), small built-in scenes, and running the `msth` command in-process.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use msth_core::config::Preset;
+use msth_testkit::Need;
 use msth_trainer::dataset::Dataset;
 use msth_trainer::synth::{generate, SynthConfig};
 use msth_trainer::train::TrainSettings;
 
-/// `../shared/data/NAME` next to the repository, if present.
-pub fn shared_dataset(name: &str) -> Option<PathBuf> {
-    let p = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../shared/data")
-        .join(name);
-    if p.is_dir() {
-        Some(p)
-    } else {
-        eprintln!(
-            "SKIPPED: {} is not present (CI and developer machines have it)",
-            p.display()
-        );
-        None
-    }
+/// `../shared/data/NAME` next to the repository (whether or not it exists: tests that read it
+/// declare [`msth_testkit::Need::shared_data`]`(NAME)`).
+pub fn shared_dataset(name: &str) -> PathBuf {
+    msth_testkit::shared_data(name)
+}
+
+/// A GPU adapter of any kind (software ones included), as `msth play --gpu` takes it. "No
+/// adapter" is a missing need (`MSTH_REQUIRE_GPU=1` makes it a failure); any other error opening
+/// one panics, failing the test.
+pub fn gpu_need() -> Need {
+    use msth_player::gpu::{AdapterPolicy, GpuContext, GpuError};
+    Need::new("gpu", || match GpuContext::open(AdapterPolicy::any()) {
+        Ok(_) => Ok(()),
+        Err(e @ GpuError::NoAdapter(_)) => Err(e.to_string()),
+        Err(e) => panic!("{e}"),
+    })
 }
 
 /// A small version of the built-in scene that trains in seconds.

@@ -1,30 +1,62 @@
 //! The dataset layouts end to end: the shared stage scene read as Blender JSON and as DyNeRF
 //! (same cameras, same times; mp4 frames close to the PNGs), layout detection and the dataset
-//! options of `msth train`.
+//! options of `msth train`; the shared object and stage scenes read by the D-NeRF loader.
+//!
+//! Tests that read `../shared/data` or run `ffmpeg` are reported as ignored (with the reason)
+//! where those are missing, unless `MSTH_REQUIRE_DATA=1` / `MSTH_REQUIRE_FFMPEG=1`: this binary
+//! runs on `msth-testkit`'s harness (`harness = false`), and [`main`] lists its tests.
 
 use std::path::Path;
 
 use glam::Vec3;
-use msth_core::Camera;
+use msth_core::{Camera, SceneBounds};
+use msth_testkit::{Need, Tests};
 use msth_tests::{msth, shared_dataset};
 use msth_trainer::dataset::dynerf::{self, DynerfOptions, FrameSource, Normalization};
-use msth_trainer::dataset::{dnerf, video, Dataset, View};
+use msth_trainer::dataset::{dnerf, Dataset, View};
 
-fn stage() -> Option<std::path::PathBuf> {
-    let d = shared_dataset("box_animated_stage")?;
-    if !d.join("poses_bounds.npy").exists() {
-        eprintln!("SKIPPED: {} has no poses_bounds.npy", d.display());
-        return None;
-    }
-    Some(d)
+fn main() -> std::process::ExitCode {
+    // The stage scene in both layouts (the JSON files and poses_bounds.npy).
+    let stage_both = Need::shared_data("box_animated_stage/poses_bounds.npy");
+    let stage_json = Need::shared_data("box_animated_stage/transforms_train.json");
+    let object_json = Need::shared_data("box_animated_object/transforms_train.json");
+    let ffmpeg = Need::ffmpeg();
+    Tests::new(file!())
+        .needs(
+            &[&stage_both, &stage_json],
+            "stage_dynerf_cameras_equal_the_json_cameras",
+            stage_dynerf_cameras_equal_the_json_cameras,
+        )
+        .needs(
+            &[&stage_both, &ffmpeg],
+            "stage_mp4_frames_are_close_to_the_pngs",
+            stage_mp4_frames_are_close_to_the_pngs,
+        )
+        .test(
+            "layout_detection_and_dataset_options",
+            layout_detection_and_dataset_options,
+        )
+        .needs(
+            &[&object_json],
+            "shared_object_dataset_loads",
+            shared_object_dataset_loads,
+        )
+        .needs(
+            &[&stage_json],
+            "shared_stage_dataset_loads",
+            shared_stage_dataset_loads,
+        )
+        .on_request(
+            &[&stage_both],
+            "sampler_speed_memory_vs_cache",
+            sampler_speed_memory_vs_cache,
+        )
+        .run()
 }
 
-fn ffmpeg_present() -> bool {
-    let ok = video::Tools::default().available();
-    if !ok {
-        eprintln!("SKIPPED: ffmpeg/ffprobe are not installed (apt-get install ffmpeg)");
-    }
-    ok
+/// The shared stage scene (the tests that call this declare the need).
+fn stage() -> std::path::PathBuf {
+    shared_dataset("box_animated_stage")
 }
 
 fn same_camera(a: &Camera, b: &Camera, tol: f32) -> bool {
@@ -59,9 +91,8 @@ fn load_dynerf(dir: &Path, normalization: Normalization, frames: FrameSource) ->
     .unwrap()
 }
 
-#[test]
 fn stage_dynerf_cameras_equal_the_json_cameras() {
-    let Some(dir) = stage() else { return };
+    let dir = stage();
     let json = dnerf::load(&dir, &dnerf::LoadOptions::default()).unwrap();
     // The frame folders need no ffmpeg.
     let raw = load_dynerf(&dir, Normalization::None, FrameSource::Images);
@@ -91,11 +122,11 @@ fn stage_dynerf_cameras_equal_the_json_cameras() {
     // The contraction centres agree (the same construction, in both worlds).
     match (norm.bounds, json.bounds) {
         (
-            msth_core::SceneBounds::Contracted {
+            SceneBounds::Contracted {
                 center: a,
                 radius: ra,
             },
-            msth_core::SceneBounds::Contracted {
+            SceneBounds::Contracted {
                 center: b,
                 radius: rb,
             },
@@ -120,12 +151,8 @@ fn psnr8(a: &[u8], b: &[u8]) -> f64 {
     10.0 * (255.0f64.powi(2) / (se / a.len() as f64).max(1e-12)).log10()
 }
 
-#[test]
 fn stage_mp4_frames_are_close_to_the_pngs() {
-    let Some(dir) = stage() else { return };
-    if !ffmpeg_present() {
-        return;
-    }
+    let dir = stage();
     let videos = load_dynerf(&dir, Normalization::None, FrameSource::Videos);
     let images = load_dynerf(&dir, Normalization::None, FrameSource::Images);
     assert!(videos.test[0]
@@ -155,7 +182,6 @@ fn stage_mp4_frames_are_close_to_the_pngs() {
     assert!(min > 30.0, "an mp4 frame is far from its PNG: {min} dB");
 }
 
-#[test]
 fn layout_detection_and_dataset_options() {
     let root = tempfile::tempdir().unwrap();
     // A tiny DyNeRF folder with frame folders (no ffmpeg needed).
@@ -252,14 +278,12 @@ fn layout_detection_and_dataset_options() {
 
 /// Prints how long drawing a training batch takes with frames in memory and in a frame cache
 /// (positional reads). Informational, never a pass/fail on time:
-/// `cargo test --release -p msth-tests --test datasets -- --ignored --nocapture`.
-#[test]
-#[ignore]
+/// `cargo test --release -p msth-tests --test datasets -- --ignored`.
 fn sampler_speed_memory_vs_cache() {
     use msth_core::rng::Rng;
     use msth_trainer::dataset::cache::FrameStorage;
     use msth_trainer::train::sample_batch;
-    let Some(dir) = stage() else { return };
+    let dir = stage();
     let cache = tempfile::tempdir().unwrap();
     for storage in [
         FrameStorage::Memory,
@@ -285,5 +309,48 @@ fn sampler_speed_memory_vs_cache() {
             "{storage:?}: {:.0} us per batch of 2048 rays",
             t.elapsed().as_secs_f64() * 1e6 / n as f64
         );
+    }
+}
+
+/// The shared object scene (D-NeRF layout): 100 training and 20 test views of 200x200, one per
+/// frame, in a box.
+fn shared_object_dataset_loads() {
+    let dir = shared_dataset("box_animated_object");
+    let d = dnerf::load(&dir, &dnerf::LoadOptions::default()).unwrap();
+    assert_eq!((d.train.len(), d.test.len()), (100, 20));
+    assert_eq!(
+        (d.train[0].image.width, d.train[0].image.height),
+        (200, 200)
+    );
+    assert!(matches!(d.bounds, SceneBounds::Box { .. }));
+    assert_eq!(d.num_frames, 100);
+    assert!(d.train.iter().all(|v| v.camera_id.is_none()));
+    assert_eq!(d.name, "box_animated_object");
+}
+
+/// The shared stage scene read as D-NeRF JSON: 8 training cameras and a test camera over 30
+/// frames of 200x150, contracted around the look-at point.
+fn shared_stage_dataset_loads() {
+    let dir = stage();
+    let d = dnerf::load(&dir, &dnerf::LoadOptions::default()).unwrap();
+    assert_eq!((d.train.len(), d.test.len()), (240, 30));
+    assert_eq!(
+        (d.train[0].image.width, d.train[0].image.height),
+        (200, 150)
+    );
+    assert_eq!(d.num_frames, 30);
+    let mut ids: Vec<usize> = d.train.iter().filter_map(|v| v.camera_id).collect();
+    ids.sort();
+    ids.dedup();
+    assert_eq!(ids, (0..8).collect::<Vec<_>>());
+    assert!(d.test.iter().all(|v| v.camera_id == Some(8)));
+    match d.bounds {
+        SceneBounds::Contracted { center, radius } => {
+            println!("stage bounds: centre {center}, radius {radius}");
+            let look_at = Vec3::new(0.0, 0.3, 0.9);
+            assert!((center - look_at).length() < 0.5, "centre {center}");
+            assert!(radius > 3.0 && radius < 6.0, "radius {radius}");
+        }
+        b => panic!("expected contraction, got {b:?}"),
     }
 }

@@ -1,14 +1,31 @@
 //! `msth synth --gltf`: both layouts from the shared BoxAnimated model through the command,
 //! read back by the trainer's loader, a short training run on the stage, and bad arguments.
+//!
+//! This binary runs on `msth-testkit`'s harness (`harness = false`): [`main`] lists its tests,
+//! and a test whose need is missing is reported as ignored with the reason (the shared data:
+//! `MSTH_REQUIRE_DATA=1` makes that a failure).
 
+use msth_testkit::{Need, Tests};
 use msth_tests::{msth, shared_dataset};
 use msth_trainer::dataset::dnerf::{load, LoadOptions};
 
-#[test]
+fn main() -> std::process::ExitCode {
+    let gltf = Need::shared_data("gltf/BoxAnimated/BoxAnimated.gltf");
+    Tests::new(file!())
+        .needs(
+            &[&gltf],
+            "box_animated_both_layouts_load_and_the_stage_trains",
+            box_animated_both_layouts_load_and_the_stage_trains,
+        )
+        .test(
+            "bad_gltf_arguments_give_one_clear_error",
+            bad_gltf_arguments_give_one_clear_error,
+        )
+        .run()
+}
+
 fn box_animated_both_layouts_load_and_the_stage_trains() {
-    let Some(gltf_dir) = shared_dataset("gltf") else {
-        return;
-    };
+    let gltf_dir = shared_dataset("gltf");
     let model = gltf_dir.join("BoxAnimated/BoxAnimated.gltf");
     let model = model.to_str().unwrap();
     let tmp = tempfile::tempdir().unwrap();
@@ -73,7 +90,6 @@ fn box_animated_both_layouts_load_and_the_stage_trains() {
     assert!(metrics["psnr"].as_f64().unwrap() > 5.0, "{metrics}");
 }
 
-#[test]
 fn bad_gltf_arguments_give_one_clear_error() {
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("out");

@@ -1,10 +1,36 @@
 //! `msth bench tradeoff` end to end on a tiny built-in scene: the tables and plots are written
 //! and parse, the marked Pareto fronts are exactly the non-dominated rows, and a second run
 //! reuses the cached variants instead of training again.
+//!
+//! This binary runs on `msth-testkit`'s harness (`harness = false`): [`main`] lists its tests.
+//! Drawing needs a TrueType font; without one the plot test is reported as ignored with the
+//! reason, unless `MSTH_REQUIRE_FONT=1` (then it fails).
 
 use std::path::Path;
 
+use msth_cli::tradeoff_plot::{self, PlotPoint};
+use msth_testkit::{Need, Tests};
 use msth_tests::msth;
+
+fn main() -> std::process::ExitCode {
+    let font = Need::new("font", || {
+        tradeoff_plot::ensure_font().map(drop).ok_or_else(|| {
+            "no TrueType font (MSTH_FONT, /usr/share/fonts): install fonts-dejavu-core".into()
+        })
+    });
+    Tests::new(file!())
+        .test(
+            "tradeoff_sweep_writes_tables_plots_and_fronts",
+            tradeoff_sweep_writes_tables_plots_and_fronts,
+        )
+        .test("tradeoff_rejects_bad_options", tradeoff_rejects_bad_options)
+        .needs(
+            &[&font],
+            "scatter_draws_points_and_front",
+            scatter_draws_points_and_front,
+        )
+        .run()
+}
 
 fn f(v: &serde_json::Value, k: &str) -> f64 {
     v[k].as_f64()
@@ -23,7 +49,6 @@ fn dominated(pts: &[(f64, f64)], i: usize) -> bool {
         .any(|q| q.0 >= p.0 && q.1 >= p.1 && (q.0 > p.0 || q.1 > p.1))
 }
 
-#[test]
 fn tradeoff_sweep_writes_tables_plots_and_fronts() {
     let tmp = tempfile::tempdir().unwrap();
     let data = tmp.path().join("data");
@@ -146,11 +171,16 @@ fn tradeoff_sweep_writes_tables_plots_and_fronts() {
         rows.len() + 1,
         "{md}"
     );
-    // Plots: PNGs of the plot size when a font exists, else a note saying why not.
+    // Plots: PNGs of the plot size when a font exists, else a note saying why not (drawing
+    // itself is `scatter_draws_points_and_front`, which needs a font).
     let pngs = ["psnr_vs_time.png", "psnr_vs_size.png", "fps_vs_psnr.png"];
-    if md.contains("Plots skipped") {
-        eprintln!("SKIPPED plot check: no TrueType font on this machine");
-    } else {
+    let font = tradeoff_plot::ensure_font();
+    assert_eq!(
+        md.contains("Plots skipped"),
+        font.is_none(),
+        "font {font:?}: {md}"
+    );
+    if font.is_some() {
         for p in pngs {
             let img = image::open(out.join(p)).unwrap_or_else(|e| panic!("{p}: {e}"));
             assert_eq!((img.width(), img.height()), (960, 640), "{p}");
@@ -192,7 +222,6 @@ fn tradeoff_sweep_writes_tables_plots_and_fronts() {
         .all(|r| r["steps"].as_u64() == Some(4)));
 }
 
-#[test]
 fn tradeoff_rejects_bad_options() {
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("out");
@@ -243,4 +272,29 @@ fn tradeoff_rejects_bad_options() {
     assert!(e.contains("unknown preset"), "{e}");
     let e = msth(&["bench", "tradeoff", "/no/such/dir", "--out", o]).unwrap_err();
     assert!(e.contains("/no/such/dir"), "{e}");
+}
+
+/// A scatter plot with a front: red (front) and blue (dominated) markers are drawn, a NaN point
+/// is left out.
+fn scatter_draws_points_and_front() {
+    let point = |x: f64, y: f64, label: &str, front: bool| PlotPoint {
+        x,
+        y,
+        label: label.into(),
+        front,
+    };
+    let pts = vec![
+        point(10.0, 20.0, "a", true),
+        point(100.0, 25.0, "b", true),
+        point(50.0, 18.0, "c", false),
+        point(f64::NAN, 1.0, "nan", false),
+    ];
+    let img = tradeoff_plot::scatter("t", "x", "y", true, &pts).unwrap();
+    let px = img.data.loaded();
+    let (w, h) = (tradeoff_plot::WIDTH, tradeoff_plot::HEIGHT);
+    assert_eq!(px.len(), (w * h * 3) as usize);
+    // Some pure-ish red (front markers) and blue (dominated markers) pixels were drawn.
+    let has = |f: &dyn Fn(&[u8]) -> bool| px.chunks(3).any(f);
+    assert!(has(&|p| p[0] > 180 && p[1] < 60 && p[2] < 60));
+    assert!(has(&|p| p[2] > 150 && p[0] < 80));
 }

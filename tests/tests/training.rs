@@ -1,12 +1,52 @@
 //! Training behaviour end to end: it learns, it is repeatable for a seed, `--resume` continues
 //! exactly, and the demo leaves the files later stages start from.
+//!
+//! This binary runs on `msth-testkit`'s harness (`harness = false`): [`main`] lists its tests,
+//! and a test whose need is missing is reported as ignored with the reason (the shared data:
+//! `MSTH_REQUIRE_DATA=1` makes that a failure).
 
 use msth_core::config::Preset;
 use msth_core::field::ModelLayout;
+use msth_testkit::{Need, Tests};
 use msth_tests::{msth, shared_dataset, tiny_scene};
 use msth_trainer::checkpoint::Checkpoint;
 use msth_trainer::eval::evaluate;
 use msth_trainer::train::{train, TrainSettings};
+
+fn main() -> std::process::ExitCode {
+    let object = Need::shared_data("box_animated_object/transforms_train.json");
+    Tests::new(file!())
+        .test(
+            "training_improves_held_out_psnr",
+            training_improves_held_out_psnr,
+        )
+        .test(
+            "same_seed_same_model_and_resume_is_exact",
+            same_seed_same_model_and_resume_is_exact,
+        )
+        .test(
+            "demo_leaves_checkpoint_and_metrics",
+            demo_leaves_checkpoint_and_metrics,
+        )
+        .needs(
+            &[&object],
+            "shared_object_dataset_trains",
+            shared_object_dataset_trains,
+        )
+        .test(
+            "mask_learning_trains_repeatably_and_stays_out_of_the_checkpoint",
+            mask_learning_trains_repeatably_and_stays_out_of_the_checkpoint,
+        )
+        .test(
+            "divergence_stops_and_keeps_the_last_good_checkpoint",
+            divergence_stops_and_keeps_the_last_good_checkpoint,
+        )
+        .test(
+            "mask_learning_resume_is_exact",
+            mask_learning_resume_is_exact,
+        )
+        .run()
+}
 
 fn quick_settings(data: &msth_trainer::dataset::Dataset, iters: usize) -> TrainSettings {
     let mut s = TrainSettings::for_preset(Preset::Fast, data);
@@ -17,7 +57,6 @@ fn quick_settings(data: &msth_trainer::dataset::Dataset, iters: usize) -> TrainS
     s
 }
 
-#[test]
 fn training_improves_held_out_psnr() {
     let (_, data) = tiny_scene();
     let s = quick_settings(&data, 150);
@@ -49,7 +88,6 @@ fn training_improves_held_out_psnr() {
     assert!(after.ssim > before.ssim);
 }
 
-#[test]
 fn same_seed_same_model_and_resume_is_exact() {
     let (_, data) = tiny_scene();
     // Runs a 12-step schedule, stopping after `stop_at` steps (the callback's `false`).
@@ -91,7 +129,6 @@ fn same_seed_same_model_and_resume_is_exact() {
     assert_eq!(names, vec!["model.ckpt".to_string()]);
 }
 
-#[test]
 fn demo_leaves_checkpoint_and_metrics() {
     let t = tempfile::tempdir().unwrap();
     let out = t.path().join("demo");
@@ -154,11 +191,8 @@ fn demo_leaves_checkpoint_and_metrics() {
 }
 
 /// The shared D-NeRF-style object scene trains on random backgrounds and gets the object right.
-#[test]
 fn shared_object_dataset_trains() {
-    let Some(dir) = shared_dataset("box_animated_object") else {
-        return;
-    };
+    let dir = shared_dataset("box_animated_object");
     let t = tempfile::tempdir().unwrap();
     let out = t.path().join("obj");
     msth(&[
@@ -186,7 +220,6 @@ fn shared_object_dataset_trains() {
 /// Uncertainty-guided mask learning with every term on (paper weights): the run is finite and
 /// repeatable, its auxiliary parameters learn, and none of them reach the checkpoint (whose
 /// parameter buffer is exactly the model's, which is all the codec reads).
-#[test]
 fn mask_learning_trains_repeatably_and_stays_out_of_the_checkpoint() {
     let (_, data) = tiny_scene();
     let run = |dir: &std::path::Path| {
@@ -244,7 +277,6 @@ fn mask_learning_trains_repeatably_and_stays_out_of_the_checkpoint() {
 
 /// The divergence guard: a run driven to non-finite values stops with a message naming the step
 /// and the last good checkpoint, which is left as it was.
-#[test]
 fn divergence_stops_and_keeps_the_last_good_checkpoint() {
     let (_, data) = tiny_scene();
     let dir = tempfile::tempdir().unwrap();
@@ -272,7 +304,6 @@ fn divergence_stops_and_keeps_the_last_good_checkpoint() {
 
 /// With mask learning on, the auxiliary state is kept in `model.aux` next to the checkpoint and
 /// a resumed run continues exactly (model and auxiliary parameters).
-#[test]
 fn mask_learning_resume_is_exact() {
     let (_, data) = tiny_scene();
     let run = |stop_at: usize, dir: &std::path::Path, resume: bool| {

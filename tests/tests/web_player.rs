@@ -8,8 +8,9 @@
 //! bit-exactly against msth-codec's flat parameter buffers (`web/tests/decode.mjs`).
 //!
 //! Needs `node`, Chromium (`MSTH_CHROMIUM`, else `/usr/bin/chromium` or `chromium` on `PATH`)
-//! and `npm ci --prefix web`; without them the test prints why and skips, unless
-//! `MSTH_REQUIRE_BROWSER=1` (CI), where it fails.
+//! and `npm ci --prefix web`; without them the test is reported as ignored with the reason,
+//! unless `MSTH_REQUIRE_BROWSER=1` (CI), where it fails. This binary runs on `msth-testkit`'s
+//! harness (`harness = false`), and [`main`] lists its tests.
 
 use std::io::Read;
 use std::path::{Path, PathBuf};
@@ -18,8 +19,20 @@ use std::time::{Duration, Instant};
 
 use msth_player::path::Rig;
 use msth_server::{BackgroundServer, ServerConfig};
+use msth_testkit::{Need, Tests};
 use msth_tests::{fixture_run, msth, tiny_scene};
 use msth_trainer::train::train;
+
+fn main() -> std::process::ExitCode {
+    let browser = Need::new("browser", || prerequisites().map(drop));
+    Tests::new(file!())
+        .needs(
+            &[&browser],
+            "web_player_streams_renders_and_matches_native",
+            web_player_streams_renders_and_matches_native,
+        )
+        .run()
+}
 
 /// Image size of the compared frames (SwiftShader renders a few thousand rays per second).
 const SIZE: (u32, u32) = (32, 24);
@@ -108,18 +121,8 @@ fn run_node(args: &[&str], timeout: Duration) -> (bool, String) {
     }
 }
 
-#[test]
 fn web_player_streams_renders_and_matches_native() {
-    let chromium = match prerequisites() {
-        Ok(c) => c,
-        Err(why) => {
-            if std::env::var("MSTH_REQUIRE_BROWSER").as_deref() == Ok("1") {
-                panic!("MSTH_REQUIRE_BROWSER=1 but the browser test cannot run: {why}");
-            }
-            eprintln!("SKIPPED web_player: {why}");
-            return;
-        }
-    };
+    let chromium = prerequisites().unwrap();
     let dir = tempfile::tempdir().unwrap();
     let (_, data) = tiny_scene();
     let s = fixture_run(&data);
