@@ -219,6 +219,32 @@ impl TestOutcome for Result<(), Skip> {
     }
 }
 
+/// Runs `f` when every one of `needs` is present; else ignores it with the reason, or fails
+/// when that need is required.
+fn run_with_needs<R: TestOutcome>(
+    needs: &[Need],
+    f: impl FnOnce() -> R,
+) -> Result<Completion, Failed> {
+    for need in needs {
+        if let Err(why) = need.check() {
+            return if need.required() {
+                Err(Failed::from(format!(
+                    "{} is set but this test cannot run: no {}: {why}",
+                    need.require_var(),
+                    need.kind()
+                )))
+            } else {
+                Ok(Completion::ignored_with(format!(
+                    "no {}: {why}; {}=1 makes this a failure",
+                    need.kind(),
+                    need.require_var()
+                )))
+            };
+        }
+    }
+    Ok(f().completion())
+}
+
 /// The list of a binary's tests; [`Tests::run`] runs them as cargo's harness would.
 pub struct Tests {
     trials: Vec<Trial>,
@@ -270,24 +296,7 @@ impl Tests {
     ) -> Tests {
         let needs: Vec<Need> = needs.iter().map(|&n| n.clone()).collect();
         self.trials.push(Trial::ignorable_test(name, move || {
-            for need in &needs {
-                if let Err(why) = need.check() {
-                    return if need.required() {
-                        Err(Failed::from(format!(
-                            "{} is set but this test cannot run: no {}: {why}",
-                            need.require_var(),
-                            need.kind()
-                        )))
-                    } else {
-                        Ok(Completion::ignored_with(format!(
-                            "no {}: {why}; {}=1 makes this a failure",
-                            need.kind(),
-                            need.require_var()
-                        )))
-                    };
-                }
-            }
-            Ok(f().completion())
+            run_with_needs(&needs, f)
         }));
         self
     }
@@ -311,5 +320,90 @@ impl Tests {
     /// fixtures, temporary folders) is dropped first.
     pub fn run(self) -> ExitCode {
         libtest_mimic::run(&Arguments::from_args(), self.trials).exit_code()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// "ran", "ignored: REASON" or "failed: MESSAGE".
+    fn outcome(needs: &[&Need], f: impl FnOnce() -> Result<(), Skip>) -> String {
+        let needs: Vec<Need> = needs.iter().map(|&n| n.clone()).collect();
+        match run_with_needs(&needs, f) {
+            Ok(Completion::Completed) => "ran".into(),
+            Ok(Completion::Ignored { reason }) => format!("ignored: {}", reason.unwrap()),
+            Err(e) => format!("failed: {}", e.message().unwrap()),
+        }
+    }
+
+    fn set(var: &str, value: &str) {
+        // Each test uses its own kinds, so no two tests touch the same variable.
+        std::env::set_var(var, value);
+    }
+
+    #[test]
+    fn a_missing_need_is_ignored_or_with_its_variable_a_failure() {
+        let missing = Need::new("testkitmissing", || Err("not here".into()));
+        let present = Need::new("testkitpresent", || Ok(()));
+        assert_eq!(outcome(&[], || Ok(())), "ran");
+        assert_eq!(outcome(&[&present], || Ok(())), "ran");
+        assert_eq!(
+            outcome(&[], || Err(Skip::new("not lavapipe"))),
+            "ignored: not lavapipe"
+        );
+        set("MSTH_REQUIRE_TESTKITMISSING", "0");
+        assert_eq!(
+            outcome(&[&present, &missing], || panic!("must not run")),
+            "ignored: no testkitmissing: not here; MSTH_REQUIRE_TESTKITMISSING=1 makes this a failure"
+        );
+        set("MSTH_REQUIRE_TESTKITMISSING", "1");
+        assert_eq!(
+            outcome(&[&present, &missing], || panic!("must not run")),
+            "failed: MSTH_REQUIRE_TESTKITMISSING is set but this test cannot run: no testkitmissing: not here"
+        );
+    }
+
+    #[test]
+    fn require_all_is_overridden_per_kind() {
+        let n = Need::new("testkitall", || Ok(()));
+        set("MSTH_REQUIRE_TESTKITALL", "0");
+        assert!(!n.required());
+        set("MSTH_REQUIRE_TESTKITALL", "1");
+        assert!(n.required());
+    }
+
+    #[test]
+    fn the_probe_runs_once() {
+        let count = Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        let c = Arc::clone(&count);
+        let n = Need::new("testkitonce", move || {
+            c.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+            Err("absent".into())
+        });
+        for _ in 0..3 {
+            assert_eq!(n.clone().check(), Err("absent".to_string()));
+        }
+        assert_eq!(count.load(std::sync::atomic::Ordering::SeqCst), 1);
+    }
+
+    #[test]
+    fn programs_that_do_not_run_are_missing() {
+        let n = Need::program("testkitprog", None, "/nonexistent/program", &["-version"]);
+        let why = n.check().unwrap_err();
+        assert!(why.contains("/nonexistent/program"), "{why}");
+        assert!(Need::shared_data("no/such/file").check().is_err());
+    }
+
+    #[test]
+    fn a_test_attribute_left_in_the_file_is_a_failing_test() {
+        let path = std::env::temp_dir().join(format!("testkit-{}.rs", std::process::id()));
+        std::fs::write(&path, "fn main() {}\n\n#[test]\nfn forgotten() {}\n").unwrap();
+        let t = Tests::new(path.to_str().unwrap()).test("listed", || ());
+        std::fs::remove_file(&path).unwrap();
+        let names: Vec<&str> = t.trials.iter().map(|t| t.name()).collect();
+        assert_eq!(names, ["unlisted_test_functions", "listed"]);
+        // A file without one adds nothing.
+        assert!(Tests::new("testkit/Cargo.toml").trials.is_empty());
     }
 }
