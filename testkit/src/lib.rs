@@ -229,9 +229,9 @@ fn run_with_needs<R: TestOutcome>(
         if let Err(why) = need.check() {
             return if need.required() {
                 Err(Failed::from(format!(
-                    "{} is set but this test cannot run: no {}: {why}",
-                    need.require_var(),
-                    need.kind()
+                    "no {}: {why} (required by {}=1 or MSTH_REQUIRE_ALL=1)",
+                    need.kind(),
+                    need.require_var()
                 )))
             } else {
                 Ok(Completion::ignored_with(format!(
@@ -360,7 +360,7 @@ mod tests {
         set("MSTH_REQUIRE_TESTKITMISSING", "1");
         assert_eq!(
             outcome(&[&present, &missing], || panic!("must not run")),
-            "failed: MSTH_REQUIRE_TESTKITMISSING is set but this test cannot run: no testkitmissing: not here"
+            "failed: no testkitmissing: not here (required by MSTH_REQUIRE_TESTKITMISSING=1 or MSTH_REQUIRE_ALL=1)"
         );
     }
 
