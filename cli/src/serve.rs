@@ -1,4 +1,4 @@
-//! `msth serve PATH [--addr 127.0.0.1:8080] [--web DIR]`: a thin layer over `msth-server` that
+//! `msth serve PATH [--addr 127.0.0.1:8080] [--web DIR] [limits]`: a thin layer over `msth-server` that
 //! sets up logging and a tokio runtime, prints the URLs served, and runs until Ctrl-C.
 
 use std::io::Write;
@@ -18,9 +18,17 @@ pub struct ServeArgs {
     /// The web player's folder, served at `/` (default: `web/` if it exists).
     #[arg(long)]
     pub web: Option<PathBuf>,
-    /// Most connections open at once.
+    /// Most connections open at once (when all are taken, the oldest one without a request in
+    /// progress is closed to make room for a new client).
     #[arg(long, default_value_t = msth_server::Limits::default().max_connections)]
     pub max_connections: usize,
+    /// Most connections open at once from one client IP address.
+    #[arg(long, default_value_t = msth_server::Limits::default().max_connections_per_ip)]
+    pub max_connections_per_ip: usize,
+    /// Seconds a connection may take to send a request's headers, counted from accept or from
+    /// the end of the previous response (so also the idle keep-alive timeout).
+    #[arg(long, default_value_t = msth_server::Limits::default().header_read_timeout.as_secs_f64())]
+    pub header_timeout_secs: f64,
 }
 
 pub fn serve(args: ServeArgs) -> anyhow::Result<()> {
@@ -35,6 +43,12 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<()> {
         .web
         .or_else(|| Some(PathBuf::from("web")).filter(|p| p.is_dir()));
     config.limits.max_connections = args.max_connections.max(1);
+    config.limits.max_connections_per_ip = args.max_connections_per_ip.max(1);
+    config.limits.header_read_timeout =
+        std::time::Duration::try_from_secs_f64(args.header_timeout_secs)
+            .ok()
+            .filter(|d| !d.is_zero())
+            .context("--header-timeout-secs must be a positive number of seconds")?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()

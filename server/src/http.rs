@@ -1,11 +1,11 @@
 //! The routes and the middleware: `GET/HEAD /models` (JSON listing), `GET/HEAD /models/NAME`
-//! (the file, with Range, conditional requests and validators), the static web files for
+//! (the file, with Range and multipart byte ranges, preconditions and validators), the static web files for
 //! everything else, and one middleware for limits, CORS and request logging.
 
 use std::sync::Arc;
 use std::time::Instant;
 
-use axum::body::Body;
+use axum::body::{Body, Bytes};
 use axum::extract::{Path as UrlPath, Request, State};
 use axum::http::{header, HeaderMap, HeaderValue, Method, StatusCode};
 use axum::middleware::Next;
@@ -17,7 +17,7 @@ use tokio::io::{AsyncReadExt, AsyncSeekExt};
 use tokio_util::io::ReaderStream;
 
 use crate::catalog::Catalog;
-use crate::range;
+use crate::range::{self, Precondition, RangePlan};
 use crate::{web, Limits};
 
 /// Media type of a `.msth` body.
@@ -95,46 +95,61 @@ async fn model_file(
     let modified = meta.modified().unwrap_or(std::time::SystemTime::UNIX_EPOCH);
     let etag = range::etag_for(len, modified);
     let last_modified = httpdate::fmt_http_date(modified);
-    let text = |name: header::HeaderName| headers.get(name).and_then(|v| v.to_str().ok());
-
-    let not_modified = match text(header::IF_NONE_MATCH) {
-        Some(v) => range::none_match_hits(v, &etag),
-        None => {
-            text(header::IF_MODIFIED_SINCE).is_some_and(|v| range::not_modified_since(v, modified))
-        }
-    };
     let validators = [
         (header::ETAG, etag.clone()),
         (header::LAST_MODIFIED, last_modified),
         (header::ACCEPT_RANGES, "bytes".to_string()),
     ];
-    if not_modified {
-        return (StatusCode::NOT_MODIFIED, validators).into_response();
+
+    let if_match = list_field(&headers, header::IF_MATCH);
+    let if_none_match = list_field(&headers, header::IF_NONE_MATCH);
+    let conditions = range::Conditions {
+        if_match: if_match.as_deref(),
+        if_unmodified_since: single_field(&headers, header::IF_UNMODIFIED_SINCE),
+        if_none_match: if_none_match.as_deref(),
+        if_modified_since: single_field(&headers, header::IF_MODIFIED_SINCE),
+    };
+    match range::evaluate_preconditions(&conditions, &etag, modified) {
+        Precondition::Failed => {
+            return (StatusCode::PRECONDITION_FAILED, validators).into_response();
+        }
+        Precondition::NotModified => return (StatusCode::NOT_MODIFIED, validators).into_response(),
+        Precondition::Proceed => {}
     }
 
-    let spec = text(header::RANGE)
+    // RFC 9110 §13.2.2 step 5: If-Range decides whether Range applies; a Range sent twice, or
+    // an If-Range that cannot be read, leaves the Range ignored.
+    let if_range_holds = match headers.get_all(header::IF_RANGE).iter().count() {
+        0 => true,
+        _ => single_field(&headers, header::IF_RANGE)
+            .is_some_and(|v| range::if_range_matches(v, &etag, modified)),
+    };
+    let specs = single_field(&headers, header::RANGE)
         .and_then(range::parse_range)
-        .filter(|_| {
-            text(header::IF_RANGE).is_none_or(|v| range::if_range_matches(v, &etag, modified))
-        });
-    let (status, first, count) = match spec {
+        .filter(|_| if_range_holds);
+    let (status, first, count) = match specs.map(|s| range::plan_ranges(&s, len)) {
         None => (StatusCode::OK, 0, len),
-        Some(spec) => match range::resolve(spec, len) {
-            Some((a, b)) => (StatusCode::PARTIAL_CONTENT, a, b - a + 1),
-            None => {
-                return (
-                    StatusCode::RANGE_NOT_SATISFIABLE,
-                    validators,
-                    [(header::CONTENT_RANGE, format!("bytes */{len}"))],
-                )
-                    .into_response()
+        Some(RangePlan::Single(a, b)) => (StatusCode::PARTIAL_CONTENT, a, b - a + 1),
+        Some(RangePlan::Multi(parts)) => match multipart(file, &parts, len, validators.clone()) {
+            Ok(response) => return response,
+            Err(back) => {
+                file = back;
+                (StatusCode::OK, 0, len)
             }
         },
+        Some(RangePlan::Unsatisfiable) => {
+            return (
+                StatusCode::RANGE_NOT_SATISFIABLE,
+                validators,
+                [(header::CONTENT_RANGE, format!("bytes */{len}"))],
+            )
+                .into_response()
+        }
     };
     if first > 0 && file.seek(std::io::SeekFrom::Start(first)).await.is_err() {
         return StatusCode::INTERNAL_SERVER_ERROR.into_response();
     }
-    let body = Body::from_stream(ReaderStream::with_capacity(file.take(count), 64 * 1024));
+    let body = Body::from_stream(ReaderStream::with_capacity(file.take(count), CHUNK_BYTES));
     let mut response = (
         status,
         validators,
@@ -152,6 +167,180 @@ async fn model_file(
         }
     }
     response
+}
+
+/// Bytes read from the file per body chunk.
+const CHUNK_BYTES: usize = 64 * 1024;
+
+/// A list-valued field (`#entity-tag`), its lines joined with `", "` (RFC 9110 §5.3). A line
+/// that is not visible ASCII makes the whole value empty, hence malformed.
+fn list_field(headers: &HeaderMap, name: header::HeaderName) -> Option<String> {
+    let lines: Vec<&HeaderValue> = headers.get_all(name).iter().collect();
+    if lines.is_empty() {
+        return None;
+    }
+    let texts: Option<Vec<&str>> = lines.iter().map(|v| v.to_str().ok()).collect();
+    Some(texts.map(|t| t.join(", ")).unwrap_or_default())
+}
+
+/// A field that must appear once: its text, or `None` when absent, repeated or not ASCII.
+fn single_field(headers: &HeaderMap, name: header::HeaderName) -> Option<&str> {
+    let mut values = headers.get_all(name).iter();
+    match (values.next(), values.next()) {
+        (Some(v), None) => v.to_str().ok(),
+        _ => None,
+    }
+}
+
+/// A 206 `multipart/byteranges` (RFC 9110 §14.6) of `parts` (ascending, disjoint, inclusive):
+/// each part with its `Content-Type` and `Content-Range`, streamed from the open file, with an
+/// exact `Content-Length`.
+///
+/// Gives the file back (`Err`) when that body would be longer than the whole file: the caller
+/// then sends the file with 200 instead, so no `Range` makes a response larger than the file.
+fn multipart(
+    file: tokio::fs::File,
+    parts: &[(u64, u64)],
+    len: u64,
+    validators: [(header::HeaderName, String); 3],
+) -> Result<Response, tokio::fs::File> {
+    let boundary = boundary();
+    let heads: Vec<Bytes> = parts
+        .iter()
+        .enumerate()
+        .map(|(i, (a, b))| {
+            let lead = if i == 0 { "" } else { "\r\n" };
+            Bytes::from(format!(
+                "{lead}--{boundary}\r\nContent-Type: {MSTH_CONTENT_TYPE}\r\nContent-Range: bytes {a}-{b}/{len}\r\n\r\n"
+            ))
+        })
+        .collect();
+    let tail = Bytes::from(format!("\r\n--{boundary}--\r\n"));
+    let total: u64 = heads.iter().map(|h| h.len() as u64).sum::<u64>()
+        + parts.iter().map(|(a, b)| b - a + 1).sum::<u64>()
+        + tail.len() as u64;
+    if total > len {
+        return Err(file);
+    }
+    let state = PartsState {
+        file,
+        parts: parts.to_vec(),
+        heads,
+        tail,
+        phase: Phase::Head(0),
+    };
+    let body = Body::from_stream(futures_util::stream::unfold(state, next_chunk));
+    Ok((
+        StatusCode::PARTIAL_CONTENT,
+        validators,
+        [
+            (
+                header::CONTENT_TYPE,
+                format!("multipart/byteranges; boundary={boundary}"),
+            ),
+            (header::CONTENT_LENGTH, total.to_string()),
+        ],
+        body,
+    )
+        .into_response())
+}
+
+/// 32 hex digits from a randomly keyed hash (std's `RandomState`) of the time and a counter:
+/// unpredictable, so a file cannot be crafted to contain the delimiter of its own response.
+fn boundary() -> String {
+    use std::hash::{BuildHasher, Hasher};
+    static COUNTER: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let n = COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let word = |salt: u64| {
+        let mut h = std::collections::hash_map::RandomState::new().build_hasher();
+        h.write_u64(n);
+        h.write_u64(salt);
+        h.write_u128(
+            std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map(|d| d.as_nanos())
+                .unwrap_or(0),
+        );
+        h.finish()
+    };
+    format!("{:016x}{:016x}", word(1), word(2))
+}
+
+enum Phase {
+    Head(usize),
+    Data { part: usize, left: u64 },
+    Tail,
+    Done,
+}
+
+struct PartsState {
+    file: tokio::fs::File,
+    parts: Vec<(u64, u64)>,
+    heads: Vec<Bytes>,
+    tail: Bytes,
+    phase: Phase,
+}
+
+/// The next chunk of a multipart body: a part's header, up to [`CHUNK_BYTES`] of its bytes, or
+/// the closing delimiter. A read error or a file that shrank ends the body with an error (hyper
+/// then closes the connection, so the client sees a truncated response, not a wrong one).
+async fn next_chunk(mut st: PartsState) -> Option<(std::io::Result<Bytes>, PartsState)> {
+    loop {
+        match st.phase {
+            Phase::Head(i) => {
+                let (a, b) = st.parts[i];
+                if let Err(e) = st.file.seek(std::io::SeekFrom::Start(a)).await {
+                    st.phase = Phase::Done;
+                    return Some((Err(e), st));
+                }
+                st.phase = Phase::Data {
+                    part: i,
+                    left: b - a + 1,
+                };
+                let head = st.heads[i].clone();
+                return Some((Ok(head), st));
+            }
+            Phase::Data { part, left: 0 } => {
+                st.phase = if part + 1 < st.parts.len() {
+                    Phase::Head(part + 1)
+                } else {
+                    Phase::Tail
+                };
+            }
+            Phase::Data { part, left } => {
+                let want = usize::try_from(left).map_or(CHUNK_BYTES, |l| l.min(CHUNK_BYTES));
+                let mut buf = vec![0u8; want];
+                match st.file.read(&mut buf).await {
+                    Ok(0) => {
+                        st.phase = Phase::Done;
+                        let e = std::io::Error::new(
+                            std::io::ErrorKind::UnexpectedEof,
+                            "the file shrank while it was being sent",
+                        );
+                        return Some((Err(e), st));
+                    }
+                    Ok(n) => {
+                        buf.truncate(n);
+                        st.phase = Phase::Data {
+                            part,
+                            left: left - n as u64,
+                        };
+                        return Some((Ok(Bytes::from(buf)), st));
+                    }
+                    Err(e) => {
+                        st.phase = Phase::Done;
+                        return Some((Err(e), st));
+                    }
+                }
+            }
+            Phase::Tail => {
+                st.phase = Phase::Done;
+                let tail = st.tail.clone();
+                return Some((Ok(tail), st));
+            }
+            Phase::Done => return None,
+        }
+    }
 }
 
 async fn static_files(State(state): State<AppState>, request: Request) -> Response {
@@ -219,7 +408,7 @@ fn preflight() -> Response {
             (header::ACCESS_CONTROL_ALLOW_METHODS, "GET, HEAD, OPTIONS"),
             (
                 header::ACCESS_CONTROL_ALLOW_HEADERS,
-                "Range, If-Range, If-None-Match, If-Modified-Since",
+                "Range, If-Range, If-Match, If-None-Match, If-Modified-Since, If-Unmodified-Since",
             ),
             (header::ACCESS_CONTROL_MAX_AGE, "86400"),
         ],

@@ -3,18 +3,22 @@
 //!
 //! - `GET/HEAD /models`: JSON `[{"name", "url", "bytes", "modified"}]` (see [`catalog`]).
 //! - `GET/HEAD /models/NAME.msth`: the file, streamed, with RFC 9110 Range (one range -> 206,
-//!   unsatisfiable -> 416 `bytes */LEN`; invalid or multiple ranges -> 200 full body), a strong
-//!   `ETag`, `Last-Modified`, `If-Range`, `If-None-Match`/`If-Modified-Since` -> 304
-//!   ([`range`]). `HEAD` answers what `GET` would, without the body.
+//!   several -> 206 `multipart/byteranges` after merging overlaps, unsatisfiable -> 416
+//!   `bytes */LEN`; invalid or more than [`range::MAX_RANGE_SPECS`] ranges -> 200 full body), a
+//!   strong `ETag`, `Last-Modified`, and the preconditions in RFC 9110 §13.2.2 order:
+//!   `If-Match`/`If-Unmodified-Since` -> 412, `If-None-Match`/`If-Modified-Since` -> 304, then
+//!   `If-Range` ([`range`]). `HEAD` answers what `GET` would, without the body.
 //! - anything else: the web player's static files ([`web`]), or a placeholder page at `/`.
-//! - permissive CORS, request logging with `tracing`, limits ([`Limits`]).
+//! - permissive CORS, request logging with `tracing`, limits ([`Limits`]) against slow or greedy
+//!   clients: a header deadline that is also the keep-alive idle timeout, connection slots, a
+//!   per-address cap, and shedding of idle connections when full ([`listener`]).
 //!
 //! The main types: [`ServerConfig`] -> [`Server::bind`] -> [`Server::run_until`]; [`serve`] runs
 //! until Ctrl-C; [`BackgroundServer`] runs one on its own thread (tests, the player's tests).
 
 pub mod catalog;
 mod http;
-mod listener;
+pub mod listener;
 pub mod range;
 mod web;
 
@@ -22,9 +26,11 @@ use std::future::Future;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
+use std::time::Duration;
 
 pub use catalog::{Catalog, ModelEntry};
 pub use http::MSTH_CONTENT_TYPE;
+pub use listener::{ConnectionCounts, ConnectionStats};
 
 /// What went wrong, grouped by who is at fault: the path given, the address, the runtime.
 #[derive(Debug, thiserror::Error)]
@@ -45,11 +51,21 @@ pub enum ServeError {
     Runtime(std::io::Error),
 }
 
-/// Limits on what one client may hold or send.
+/// Limits on what one client may hold or send (see [`listener`] for how they act together).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Limits {
-    /// Open connections at once; more wait in the accept queue.
+    /// Open connections at once (slots); more wait in the accept queue, and when all are taken
+    /// a new client takes the slot of the oldest connection without a request in progress.
+    /// Default 512.
     pub max_connections: usize,
+    /// Open connections from one client IP address; more are closed at accept. Default 64
+    /// (a browser opens at most 6 per host; room is left for several users behind one NAT).
+    pub max_connections_per_ip: usize,
+    /// Deadline for a request head (request line and header fields) to arrive complete,
+    /// counted from the moment the connection waits for it: at accept, and after each response
+    /// on a keep-alive connection, so it is also the idle keep-alive timeout. hyper's
+    /// `header_read_timeout`. Default 10 s.
+    pub header_read_timeout: Duration,
     /// Longest request target, in bytes (else 414).
     pub max_uri_bytes: usize,
     /// Total size of the request's header fields, in bytes (else 431).
@@ -60,6 +76,8 @@ impl Default for Limits {
     fn default() -> Self {
         Self {
             max_connections: 512,
+            max_connections_per_ip: 64,
+            header_read_timeout: Duration::from_secs(10),
             max_uri_bytes: 2048,
             max_header_bytes: 16 * 1024,
         }
@@ -96,7 +114,9 @@ impl ServerConfig {
 
 /// A bound, not yet running server.
 pub struct Server {
-    listener: listener::LimitedListener,
+    tcp: tokio::net::TcpListener,
+    limits: Limits,
+    stats: Arc<ConnectionStats>,
     local_addr: SocketAddr,
     catalog: Arc<Catalog>,
     router: axum::Router,
@@ -128,7 +148,9 @@ impl Server {
             limits: config.limits,
         });
         Ok(Self {
-            listener: listener::LimitedListener::new(tcp, config.limits.max_connections),
+            tcp,
+            limits: config.limits,
+            stats: Arc::new(ConnectionStats::default()),
             local_addr,
             catalog,
             router,
@@ -138,6 +160,11 @@ impl Server {
     /// The address actually bound (the port when 0 was asked).
     pub fn local_addr(&self) -> SocketAddr {
         self.local_addr
+    }
+
+    /// What the accept loop has done so far (open connections, refusals, shedding, timeouts).
+    pub fn stats(&self) -> Arc<ConnectionStats> {
+        self.stats.clone()
     }
 
     /// The models served right now.
@@ -150,13 +177,13 @@ impl Server {
         self.catalog.describe()
     }
 
-    /// Serves until `shutdown` completes, then stops accepting and lets open requests finish.
+    /// Serves until `shutdown` completes, then stops accepting, closes connections that have no
+    /// request in progress and lets open responses finish.
     pub async fn run_until(
         self,
         shutdown: impl Future<Output = ()> + Send + 'static,
     ) -> Result<(), ServeError> {
-        axum::serve(self.listener, self.router)
-            .with_graceful_shutdown(shutdown)
+        listener::serve(self.tcp, self.router, self.limits, self.stats, shutdown)
             .await
             .map_err(ServeError::Runtime)
     }
@@ -176,6 +203,7 @@ pub async fn serve(config: ServerConfig) -> Result<(), ServeError> {
 /// or drop. For tests and tools that are not async.
 pub struct BackgroundServer {
     addr: SocketAddr,
+    stats: Arc<ConnectionStats>,
     stop: Option<tokio::sync::oneshot::Sender<()>>,
     thread: Option<std::thread::JoinHandle<Result<(), ServeError>>>,
 }
@@ -201,7 +229,7 @@ impl BackgroundServer {
                             return Ok(());
                         }
                     };
-                    let _ = ready_tx.send(Ok(server.local_addr()));
+                    let _ = ready_tx.send(Ok((server.local_addr(), server.stats())));
                     server
                         .run_until(async {
                             let _ = stop_rx.await;
@@ -211,8 +239,9 @@ impl BackgroundServer {
             })
             .map_err(ServeError::Runtime)?;
         match ready_rx.recv() {
-            Ok(Ok(addr)) => Ok(Self {
+            Ok(Ok((addr, stats))) => Ok(Self {
                 addr,
+                stats,
                 stop: Some(stop_tx),
                 thread: Some(thread),
             }),
@@ -226,6 +255,11 @@ impl BackgroundServer {
 
     pub fn addr(&self) -> SocketAddr {
         self.addr
+    }
+
+    /// What the accept loop has done so far.
+    pub fn connections(&self) -> ConnectionCounts {
+        self.stats.snapshot()
     }
 
     /// `http://ADDR` + `path` (which starts with `/`).
