@@ -363,15 +363,21 @@ fn describe(e: &ureq::Error, tls: &TlsContext) -> Attempt {
 fn tls_message(e: &rustls::Error, tls: &TlsContext) -> String {
     use rustls::{CertificateError as C, Error as R};
     let host = &tls.host;
-    let roots = match &tls.ca_cert_file {
-        Some(p) => format!("the certificates in {}", p.display()),
-        None => "the bundled Mozilla roots".to_string(),
+    let (roots, hint) = match &tls.ca_cert_file {
+        Some(p) => (
+            format!("the certificates in {}", p.display()),
+            "is that the CA (or the self-signed certificate) this server uses?",
+        ),
+        None => (
+            "the bundled Mozilla roots".to_string(),
+            "for a private CA or a self-signed server, give that certificate as a PEM file: \
+             `msth play --ca-cert FILE` or SSL_CERT_FILE",
+        ),
     };
     match e {
         R::InvalidCertificate(C::UnknownIssuer) => format!(
             "TLS: the certificate of {host} is not trusted: its issuer is not among {roots} \
-             (unknown issuer; for a private CA or a self-signed server, give that certificate as \
-             a PEM file: `msth play --ca-cert FILE` or SSL_CERT_FILE)"
+             (unknown issuer; {hint})"
         ),
         R::InvalidCertificate(C::BadSignature) => format!(
             "TLS: the certificate of {host} is not trusted: its signature does not verify \
