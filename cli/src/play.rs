@@ -1,8 +1,10 @@
 //! `msth play URL|FILE`: free-viewpoint playback of a `.msth` file, streamed over HTTP or read
 //! locally, through `msth-player`. Prints one line per frame (time, rays re-rendered, render
 //! time) and a summary (time to first frame, frames per second full and incremental, bytes
-//! fetched); writes PNG frames and an MP4 with `--out`.
+//! fetched); writes PNG frames and an MP4 with `--out`. `https://` URLs are checked against the
+//! bundled Mozilla roots, or the certificates of `--ca-cert FILE` / `SSL_CERT_FILE`.
 
+use std::ffi::OsString;
 use std::path::PathBuf;
 use std::time::Duration;
 
@@ -15,7 +17,7 @@ use msth_player::{
 
 #[derive(Args)]
 pub struct PlayArgs {
-    /// An `http://` URL (e.g. from `msth serve`) or a local `.msth` file.
+    /// An `http://` or `https://` URL (e.g. from `msth serve`) or a local `.msth` file.
     pub source: String,
     /// Camera path: N (file camera N, fixed), view:AZ,EL,DIST (fixed free viewpoint), orbit,
     /// spiral, cameras (each file camera in turn) or a JSON file of poses and times.
@@ -67,6 +69,11 @@ pub struct PlayArgs {
     /// Retries per request.
     #[arg(long, default_value_t = 4)]
     pub retries: u32,
+    /// PEM file of the certificates to trust for https:// instead of the bundled Mozilla roots
+    /// (a private CA, or a self-signed server's own certificate). Default: $SSL_CERT_FILE when
+    /// set, else the bundled roots.
+    #[arg(long, value_name = "FILE.pem")]
+    pub ca_cert: Option<PathBuf>,
     /// Write the playback report (per-frame statistics) as JSON.
     #[arg(long)]
     pub report: Option<PathBuf>,
@@ -189,12 +196,34 @@ pub fn options(a: &PlayArgs) -> Result<PlayOptions> {
     o.render.probes = a.probes;
     a.reuse.apply(&mut o.render)?;
     o.render.probe_tolerance = a.probe_tolerance;
+    // SSL_CERT_FILE matters (and is checked) only where TLS is spoken.
+    let ssl_cert_file = if a.source.starts_with("https://") {
+        std::env::var_os("SSL_CERT_FILE")
+    } else {
+        None
+    };
     o.http = HttpOptions {
         read_timeout: Duration::from_secs_f64(a.timeout),
         retries: a.retries,
+        ca_cert_file: ca_cert_file(a.ca_cert.clone(), ssl_cert_file)?,
         ..HttpOptions::default()
     };
     Ok(o)
+}
+
+/// The certificate file for https: `--ca-cert`, else a non-empty `SSL_CERT_FILE` (which must name
+/// a file: a stale variable is reported as such, not as a missing `--ca-cert`), else none.
+pub fn ca_cert_file(flag: Option<PathBuf>, env: Option<OsString>) -> Result<Option<PathBuf>> {
+    if flag.is_some() {
+        return Ok(flag);
+    }
+    match env.filter(|v| !v.is_empty()).map(PathBuf::from) {
+        Some(p) if !p.is_file() => bail!(
+            "SSL_CERT_FILE={}: not a file (unset it, or give --ca-cert FILE.pem)",
+            p.display()
+        ),
+        p => Ok(p),
+    }
 }
 
 /// The backend `--cpu` / `--gpu` ask for.
@@ -307,4 +336,31 @@ pub fn run(a: PlayArgs) -> Result<()> {
             .with_context(|| format!("writing {}", p.display()))?;
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ca_cert_flag_then_ssl_cert_file() {
+        let dir = std::env::temp_dir();
+        let flag = PathBuf::from("/flag.pem");
+        let file = std::env::current_exe().unwrap(); // any existing file
+        assert_eq!(
+            ca_cert_file(Some(flag.clone()), Some(file.clone().into())).unwrap(),
+            Some(flag)
+        );
+        assert_eq!(
+            ca_cert_file(None, Some(file.clone().into())).unwrap(),
+            Some(file)
+        );
+        assert_eq!(ca_cert_file(None, Some(OsString::new())).unwrap(), None);
+        assert_eq!(ca_cert_file(None, None).unwrap(), None);
+        let stale = dir.join("msth-no-such-ca-file.pem");
+        let e = ca_cert_file(None, Some(stale.into()))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("SSL_CERT_FILE="), "{e}");
+    }
 }

@@ -1,12 +1,12 @@
-//! Where a `.msth` file's bytes come from: a local file or an HTTP URL read with Range requests.
+//! Where a `.msth` file's bytes come from: a local file or an HTTP(S) URL read with Range requests.
 //!
 //! [`ByteSource`] is the one interface the streaming layer needs: the total length and "give me
-//! bytes `a..b`". [`HttpSource`] implements it with RFC 9110 Range requests over plain HTTP/1.1
-//! (`ureq`, no TLS stack: an `https://` URL is refused with a clear message), with
+//! bytes `a..b`". [`HttpSource`] implements it with RFC 9110 Range requests over HTTP/1.1, plain
+//! (`http://`) or over TLS (`https://`), with `ureq`, and
 //! - timeouts on connecting and on every read, so a stalled server cannot hang the player;
 //! - retries with exponential back-off for failures that can heal (connection errors, timeouts,
-//!   truncated bodies, 5xx, 429), none for those that cannot (4xx, a server that ignores ranges
-//!   after promising them, a file that changed on the server);
+//!   truncated bodies, 5xx, 429), none for those that cannot (4xx, a certificate refused, a
+//!   server that ignores ranges after promising them, a file that changed on the server);
 //! - `If-Range` with the first response's validator on every later request, so a file replaced
 //!   on the server mid-stream is detected (the server answers 200 instead of 206) instead of
 //!   splicing two files;
@@ -14,13 +14,24 @@
 //!
 //! A server that does not do ranges at all (200 to the first request) still works: the whole file
 //! is downloaded once (bounded by [`HttpOptions::max_file_bytes`]) and served from memory.
+//!
+//! TLS is rustls with the `ring` crypto provider (it builds with a C compiler alone; aws-lc-rs
+//! would need cmake). Server certificates are checked against a bundled root set, Mozilla's
+//! (`webpki-roots`), not the operating system's store: the same roots on every platform and in
+//! minimal containers that ship no `/etc/ssl`, no extra crates, and a build that behaves the same
+//! in CI as on a laptop. Hosts with publicly trusted certificates (object stores, CDNs, GitHub
+//! Pages) need nothing more. A private CA or a self-signed server is trusted through
+//! [`HttpOptions::ca_cert_file`], a PEM file whose certificates then *replace* the bundled roots
+//! (as `curl --cacert` and OpenSSL's `SSL_CERT_FILE` do); pointing it at the system bundle
+//! (`/etc/ssl/certs/ca-certificates.crt`) gives the platform's roots. A refused certificate is a
+//! fatal (not retried) error naming the host and the reason.
 
 use std::fs::File;
 use std::io::{Read, Seek, SeekFrom};
 use std::ops::Range;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 /// Everything that can go wrong reading bytes.
@@ -34,6 +45,10 @@ pub enum SourceError {
     },
     #[error("{url}: {message}")]
     Http { url: String, message: String },
+    /// The certificate file of [`HttpOptions::ca_cert_file`] is unreadable or holds no usable
+    /// certificate.
+    #[error("CA certificate file {}: {message}", path.display())]
+    CaCerts { path: PathBuf, message: String },
     #[error("{url}: {message} (gave up after {attempts} attempts)")]
     GaveUp {
         url: String,
@@ -193,6 +208,9 @@ pub struct HttpOptions {
     pub probe_bytes: u64,
     /// Largest file accepted from a server that ignores ranges (downloaded whole).
     pub max_file_bytes: u64,
+    /// PEM file of the certificates trusted for `https://` instead of the bundled Mozilla roots:
+    /// a private CA's certificate, or a self-signed server's own. `None`: the bundled roots.
+    pub ca_cert_file: Option<PathBuf>,
 }
 
 impl Default for HttpOptions {
@@ -205,13 +223,70 @@ impl Default for HttpOptions {
             backoff: Duration::from_millis(200),
             probe_bytes: 64 << 10,
             max_file_bytes: 4 << 30,
+            ca_cert_file: None,
         }
     }
 }
 
-/// A `.msth` file behind an `http://` URL.
+/// Largest CA certificate file read (a full system bundle is about 200 KiB).
+const MAX_CA_FILE_BYTES: u64 = 16 << 20;
+
+/// The certificates of a PEM file, each checked to be usable as a trust anchor.
+fn load_ca_certs(path: &Path) -> Result<Vec<ureq::tls::Certificate<'static>>, SourceError> {
+    let err = |message: String| SourceError::CaCerts {
+        path: path.to_path_buf(),
+        message,
+    };
+    let file = File::open(path).map_err(|e| err(e.to_string()))?;
+    let len = file.metadata().map_err(|e| err(e.to_string()))?.len();
+    if len > MAX_CA_FILE_BYTES {
+        return Err(err(format!(
+            "{len} bytes, more than the {MAX_CA_FILE_BYTES} a certificate file may have"
+        )));
+    }
+    let mut pem = Vec::with_capacity(len as usize);
+    file.take(MAX_CA_FILE_BYTES)
+        .read_to_end(&mut pem)
+        .map_err(|e| err(e.to_string()))?;
+    let mut certs = Vec::new();
+    for item in ureq::tls::parse_pem(&pem) {
+        match item {
+            Ok(ureq::tls::PemItem::Certificate(c)) => certs.push(c.to_owned()),
+            Ok(_) => {} // private keys and the like: not trust anchors
+            Err(e) => return Err(err(format!("malformed PEM: {e}"))),
+        }
+    }
+    if certs.is_empty() {
+        return Err(err(
+            "no certificate in it (expected PEM blocks `-----BEGIN CERTIFICATE-----`)".into(),
+        ));
+    }
+    let mut store = rustls::RootCertStore::empty();
+    for (i, c) in certs.iter().enumerate() {
+        let der = rustls::pki_types::CertificateDer::from(c.der());
+        store
+            .add(der)
+            .map_err(|e| err(format!("certificate {} of {}: {e}", i + 1, certs.len())))?;
+    }
+    Ok(certs)
+}
+
+/// The host of `url` (no scheme, user, port or path), for messages.
+fn url_host(url: &str) -> &str {
+    let rest = url.split_once("://").map_or(url, |(_, r)| r);
+    let authority = rest.split(['/', '?', '#']).next().unwrap_or_default();
+    let host_port = authority.rsplit_once('@').map_or(authority, |(_, h)| h);
+    if let Some(v6) = host_port.strip_prefix('[') {
+        return v6.split_once(']').map_or(v6, |(h, _)| h);
+    }
+    host_port.split_once(':').map_or(host_port, |(h, _)| h)
+}
+
+/// A `.msth` file behind an `http://` or `https://` URL.
 pub struct HttpSource {
     url: String,
+    /// What [`describe`] needs to explain a TLS failure.
+    tls: TlsContext,
     agent: ureq::Agent,
     opts: HttpOptions,
     len: u64,
@@ -230,6 +305,13 @@ struct Probe {
     validator: Option<String>,
     head: Vec<u8>,
     ranges: bool,
+}
+
+/// The host and the roots its certificate was checked against, for messages.
+struct TlsContext {
+    host: String,
+    /// `None`: the bundled Mozilla roots.
+    ca_cert_file: Option<PathBuf>,
 }
 
 /// A failed attempt and whether trying again can help.
@@ -253,17 +335,63 @@ impl Attempt {
     }
 }
 
-fn describe(e: &ureq::Error) -> Attempt {
+fn describe(e: &ureq::Error, tls: &TlsContext) -> Attempt {
     use ureq::Error as E;
     match e {
         E::Timeout(t) => Attempt::transient(format!("timed out ({t})")),
-        E::Io(io) => Attempt::transient(format!("connection error: {io}")),
+        E::Io(io) => match io
+            .get_ref()
+            .and_then(|inner| inner.downcast_ref::<rustls::Error>())
+        {
+            // rustls reports handshake failures (a refused certificate) as I/O errors.
+            Some(t) => Attempt::fatal(tls_message(t, tls)),
+            None => Attempt::transient(format!("connection error: {io}")),
+        },
+        E::Rustls(t) => Attempt::fatal(tls_message(t, tls)),
+        E::Tls(m) => Attempt::fatal(format!("TLS with {}: {m}", tls.host)),
         E::ConnectionFailed => Attempt::transient("connection failed"),
         E::HostNotFound => Attempt::fatal("host not found"),
         E::Protocol(p) => Attempt::transient(format!("HTTP protocol error: {p}")),
         E::BodyExceedsLimit(n) => Attempt::fatal(format!("response body larger than {n} bytes")),
         E::BadUri(u) => Attempt::fatal(format!("bad URL: {u}")),
         other => Attempt::fatal(other.to_string()),
+    }
+}
+
+/// A TLS failure in words: the host, what was wrong, and for an untrusted certificate how to
+/// trust it.
+fn tls_message(e: &rustls::Error, tls: &TlsContext) -> String {
+    use rustls::{CertificateError as C, Error as R};
+    let host = &tls.host;
+    let (roots, hint) = match &tls.ca_cert_file {
+        Some(p) => (
+            format!("the certificates in {}", p.display()),
+            "is that the CA (or the self-signed certificate) this server uses?",
+        ),
+        None => (
+            "the bundled Mozilla roots".to_string(),
+            "for a private CA or a self-signed server, give that certificate as a PEM file: \
+             `msth play --ca-cert FILE` or SSL_CERT_FILE",
+        ),
+    };
+    match e {
+        R::InvalidCertificate(C::UnknownIssuer) => format!(
+            "TLS: the certificate of {host} is not trusted: its issuer is not among {roots} \
+             (unknown issuer; {hint})"
+        ),
+        R::InvalidCertificate(C::BadSignature) => format!(
+            "TLS: the certificate of {host} is not trusted: its signature does not verify \
+             against {roots} (bad signature)"
+        ),
+        R::InvalidCertificate(c) => {
+            format!("TLS: the certificate of {host} is refused: {c}")
+        }
+        R::InvalidMessage(_) | R::InappropriateMessage { .. } => format!(
+            "TLS handshake with {host} failed: {e} (does the server speak https on this port? \
+             plain-HTTP servers need an http:// URL)"
+        ),
+        R::AlertReceived(a) => format!("TLS handshake with {host} failed: the server sent {a:?}"),
+        other => format!("TLS with {host} failed: {other}"),
     }
 }
 
@@ -308,17 +436,21 @@ impl HttpSource {
             url: url.to_string(),
             message,
         };
-        if url.starts_with("https://") {
-            return Err(http_err(
-                "https is not supported by this build (plain http only); download the file and \
-                 play it locally, or serve it over http"
-                    .into(),
-            ));
+        if !(url.starts_with("http://") || url.starts_with("https://")) {
+            return Err(http_err("not an http:// or https:// URL".into()));
         }
-        if !url.starts_with("http://") {
-            return Err(http_err("not an http:// URL".into()));
-        }
+        let roots = match &opts.ca_cert_file {
+            Some(p) if url.starts_with("https://") => ureq::tls::RootCerts::from(load_ca_certs(p)?),
+            _ => ureq::tls::RootCerts::WebPki,
+        };
+        let tls_config = ureq::tls::TlsConfig::builder()
+            .provider(ureq::tls::TlsProvider::Rustls)
+            .root_certs(roots)
+            // ring, whatever provider another part of the process may have made the default.
+            .unversioned_rustls_crypto_provider(Arc::new(rustls::crypto::ring::default_provider()))
+            .build();
         let config = ureq::Agent::config_builder()
+            .tls_config(tls_config)
             .http_status_as_error(false)
             .timeout_connect(Some(opts.connect_timeout))
             .timeout_per_read(Some(opts.read_timeout))
@@ -328,6 +460,10 @@ impl HttpSource {
             .build();
         let mut src = HttpSource {
             url: url.to_string(),
+            tls: TlsContext {
+                host: url_host(url).to_string(),
+                ca_cert_file: opts.ca_cert_file.clone(),
+            },
             agent: ureq::Agent::new_with_config(config),
             opts,
             len: 0,
@@ -391,7 +527,7 @@ impl HttpSource {
             .get(&self.url)
             .header("Range", format!("bytes=0-{}", probe - 1))
             .call()
-            .map_err(|e| describe(&e))?;
+            .map_err(|e| describe(&e, &self.tls))?;
         let status = resp.status().as_u16();
         let header = |name: &str| {
             resp.headers()
@@ -441,7 +577,7 @@ impl HttpSource {
                     .with_config()
                     .limit(self.opts.max_file_bytes.saturating_add(1))
                     .read_to_vec()
-                    .map_err(|e| describe(&e))?;
+                    .map_err(|e| describe(&e, &self.tls))?;
                 if let Some(n) = declared {
                     if body.len() as u64 != n {
                         return Err(Attempt::transient(format!(
@@ -481,7 +617,7 @@ impl HttpSource {
                 ureq::Error::BodyExceedsLimit(_) => {
                     Attempt::fatal(format!("body longer than the {want} bytes announced"))
                 }
-                e => describe(&e),
+                e => describe(&e, &self.tls),
             })?;
         self.counters
             .bytes
@@ -508,7 +644,7 @@ impl HttpSource {
         if let Some(v) = &self.validator {
             req = req.header("If-Range", v.as_str());
         }
-        let mut resp = req.call().map_err(|e| describe(&e))?;
+        let mut resp = req.call().map_err(|e| describe(&e, &self.tls))?;
         match resp.status().as_u16() {
             206 => {}
             200 => {
@@ -566,7 +702,7 @@ impl ByteSource for HttpSource {
     }
 }
 
-/// Opens `location`: an `http://` URL or a local path.
+/// Opens `location`: an `http://` or `https://` URL, or a local path.
 pub fn open(location: &str, http: &HttpOptions) -> Result<Box<dyn ByteSource>, SourceError> {
     if location.starts_with("http://") || location.starts_with("https://") {
         Ok(Box::new(HttpSource::open(location, http.clone())?))
@@ -590,6 +726,49 @@ mod tests {
         assert_eq!(parse_content_range("bytes 0-100/100"), None);
         assert_eq!(parse_content_range("items 0-1/2"), None);
         assert_eq!(parse_content_range("bytes 0-x/2"), None);
+    }
+
+    #[test]
+    fn url_hosts() {
+        assert_eq!(
+            url_host("https://127.0.0.1:8443/models/a.msth"),
+            "127.0.0.1"
+        );
+        assert_eq!(url_host("https://example.org/a.msth?x=1"), "example.org");
+        assert_eq!(url_host("http://user:pw@host.example:80/x"), "host.example");
+        assert_eq!(url_host("https://[::1]:8443/x"), "::1");
+        assert_eq!(url_host("https://cdn.example#frag"), "cdn.example");
+    }
+
+    #[test]
+    fn ca_cert_files_are_checked() {
+        let dir = tempfile::tempdir().unwrap();
+        let missing = dir.path().join("missing.pem");
+        let e = load_ca_certs(&missing).unwrap_err().to_string();
+        assert!(e.contains("missing.pem"), "{e}");
+        let empty = dir.path().join("empty.pem");
+        std::fs::write(&empty, "not a certificate\n").unwrap();
+        let e = load_ca_certs(&empty).unwrap_err().to_string();
+        assert!(e.contains("no certificate"), "{e}");
+        // A well-formed PEM block whose contents are not a certificate.
+        let junk = dir.path().join("junk.pem");
+        std::fs::write(
+            &junk,
+            "-----BEGIN CERTIFICATE-----\nAAECAwQFBgcICQ==\n-----END CERTIFICATE-----\n",
+        )
+        .unwrap();
+        let e = load_ca_certs(&junk).unwrap_err().to_string();
+        assert!(e.contains("certificate 1 of 1"), "{e}");
+        // And HttpSource::open reports it before any connection.
+        let opts = HttpOptions {
+            ca_cert_file: Some(junk.clone()),
+            ..HttpOptions::default()
+        };
+        let e = HttpSource::open("https://127.0.0.1:9/x.msth", opts)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(e.contains("junk.pem"), "{e}");
     }
 
     #[test]
