@@ -1,30 +1,26 @@
-//! GPU rendering through wgpu (Vulkan, Metal, DX12): the WGSL kernels of
-//! `web/shaders/render.wgsl` (the same source the browser player runs) render exactly what the
-//! CPU renderer ([`crate::render`]) renders from the same parameters, camera and time.
+//! The renderer's kernels (`shaders/render.wgsl`, the same source the browser player runs)
+//! and their host code: they render exactly what the CPU renderer of `msth-player` renders from
+//! the same parameters, camera and time.
 //!
 //! - [`GpuContext`]: adapter, device, the compiled kernels; [`GpuContext::open`] picks the
 //!   adapter ([`AdapterPolicy`]);
 //! - [`GpuScene`]: one model's uniforms and parameter buffers on the device, re-uploaded when the
 //!   parameters change (a new dynamic chunk);
-//! - [`GpuRenderer`]: full frames, then incremental frames for a fixed camera (only the dynamic
-//!   pixels' rays are re-rendered, on top of the cached frame kept on the device), with the CPU
-//!   renderer's classification ([`crate::render::classify_static`]).
+//! - [`GpuContext::dispatch`]: one `render` or `eval_points` pass. The frame-level policy (full
+//!   frames, then incremental frames for a fixed camera with the CPU renderer's classification)
+//!   is `msth_player::gpu::GpuRenderer`, built on these.
 //!
 //! Errors (no adapter, a model or frame beyond the adapter's limits, a lost device, a failed
 //! dispatch) are [`GpuError`]s, never panics.
-
-pub mod layout;
-mod renderer;
 
 use std::sync::{Arc, Mutex};
 
 use wgpu::util::DeviceExt;
 
-pub use layout::{GpuModel, ViewU, FLAG_COMPACT, FLAG_LIST};
-pub use renderer::GpuRenderer;
+use crate::layout::{self, GpuModel, ViewU};
 
 /// The kernels' source, shared with the browser player.
-pub const RENDER_WGSL: &str = include_str!("../../../web/shaders/render.wgsl");
+pub const RENDER_WGSL: &str = include_str!("../shaders/render.wgsl");
 
 /// Environment variable that lets the automatic choice use a software adapter (Mesa lavapipe,
 /// WARP, SwiftShader); `--gpu` always may.
