@@ -9,7 +9,9 @@
 // out[i * L * F + l * F + f].
 //
 // This prelude is shared by `hashgrid_forward.wgsl` and `hashgrid_backward.wgsl` (the host
-// concatenates them). Loops are bounded by 2^D * F <= 128 iterations per invocation.
+// concatenates them). Loops are bounded by 2^D * 8 <= 128 iterations per invocation; the
+// feature loops run to the constant 8 (guarded by F) so that compilers unroll them and keep the
+// accumulators in registers.
 
 struct Level {
     scale: vec4<f32>,
@@ -37,82 +39,55 @@ fn invocation(gid: vec3<u32>, groups: vec3<u32>) -> u32 {
     return gid.x + gid.y * groups.x * WORKGROUP;
 }
 
-fn clamp_unit(x: f32) -> f32 {
-    // NaN maps to 0 (as the CPU's `if x >= 0 { min(x, 1) } else { 0 }`).
-    return select(0.0, min(x, 1.0), x >= 0.0);
-}
-
-fn prime(a: u32) -> u32 {
-    var p = 1u;
-    if a == 1u {
-        p = 2654435761u;
-    } else if a == 2u {
-        p = 805459861u;
-    } else if a == 3u {
-        p = 3674653429u;
-    }
-    return p;
-}
-
-// The cell of one sample on one level: per axis the lower corner's index term (dense: i * stride,
-// hashed: i * prime), the upper corner's, and the fraction.
+// The cell of one sample on one level, per axis (x, y, z, t): the lower corner's index term
+// (dense: i * stride, hashed: i * prime), the upper corner's, and the fraction. Vector
+// operations, no per-axis loop: private arrays with dynamic indices are slow on some drivers
+// (lavapipe spills them). For a 3D grid the t terms are 0 and corners never set bit 3.
 struct Cell {
-    lo: array<u32, 4>,
-    hi: array<u32, 4>,
-    fr: array<f32, 4>,
+    lo: vec4<u32>,
+    hi: vec4<u32>,
+    fr: vec4<f32>,
 }
 
 fn cell(lv: Level, p: vec4<f32>, dims: u32) -> Cell {
-    let dense = lv.info.y == 1u;
-    var pa = array<f32, 4>(p.x, p.y, p.z, p.w);
-    var scale = array<f32, 4>(lv.scale.x, lv.scale.y, lv.scale.z, lv.scale.w);
-    var stride = array<u32, 4>(lv.stride.x, lv.stride.y, lv.stride.z, lv.stride.w);
+    // clamp01 per axis, NaN to 0 (as the CPU's `if x >= 0 { min(x, 1) } else { 0 }`).
+    let x = select(vec4<f32>(0.0), min(p, vec4<f32>(1.0)), p >= vec4<f32>(0.0));
+    let q = x * lv.scale + vec4<f32>(0.5);
+    let i = floor(q);
     var c: Cell;
-    for (var a = 0u; a < 4u; a++) {
-        c.lo[a] = 0u;
-        c.hi[a] = 0u;
-        c.fr[a] = 0.0;
-        if a < dims {
-            let q = clamp_unit(pa[a]) * scale[a] + 0.5;
-            let i = floor(q);
-            c.fr[a] = q - i;
-            let iu = u32(i);
-            if dense {
-                c.lo[a] = iu * stride[a];
-                c.hi[a] = c.lo[a] + stride[a];
-            } else {
-                c.lo[a] = iu * prime(a);
-                c.hi[a] = (iu + 1u) * prime(a);
-            }
-        }
+    c.fr = q - i;
+    let iu = vec4<u32>(i);
+    if lv.info.y == 1u {
+        c.lo = iu * lv.stride;
+        c.hi = c.lo + lv.stride;
+    } else {
+        let primes = vec4<u32>(1u, 2654435761u, 805459861u, 3674653429u);
+        c.lo = iu * primes;
+        c.hi = (iu + vec4<u32>(1u)) * primes;
+    }
+    if dims == 3u {
+        c.lo.w = 0u;
+        c.hi.w = 0u;
+        c.fr.w = 0.0;
     }
     return c;
 }
 
 // Row (within the level) and weight of corner `k` (bit a set: upper corner on axis a). The
-// weight is the product over axes in axis order, as on the CPU.
+// weight is the product over axes in axis order, as on the CPU (times an exact 1 on t in 3D).
 struct Corner {
     row: u32,
     w: f32,
 }
 
-fn corner(c_in: Cell, k: u32, dims: u32, dense: bool, hash_mask: u32) -> Corner {
-    // Dynamic indices into a function-local copy (not into a value).
-    var c = c_in;
-    var row = 0u;
-    var w = 1.0;
-    for (var a = 0u; a < dims; a++) {
-        let up = ((k >> a) & 1u) == 1u;
-        let term = select(c.lo[a], c.hi[a], up);
-        w = w * select(1.0 - c.fr[a], c.fr[a], up);
-        if dense {
-            row = row + term;
-        } else {
-            row = row ^ term;
-        }
-    }
-    if !dense {
-        row = row & hash_mask;
+fn corner(c: Cell, k: u32, dense: bool, hash_mask: u32) -> Corner {
+    let up = vec4<bool>((k & 1u) != 0u, (k & 2u) != 0u, (k & 4u) != 0u, (k & 8u) != 0u);
+    let t = select(c.lo, c.hi, up);
+    let wv = select(vec4<f32>(1.0) - c.fr, c.fr, up);
+    let w = ((wv.x * wv.y) * wv.z) * wv.w;
+    var row = (t.x ^ t.y ^ t.z ^ t.w) & hash_mask;
+    if dense {
+        row = t.x + t.y + t.z + t.w;
     }
     return Corner(row, w);
 }

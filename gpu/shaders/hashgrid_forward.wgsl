@@ -18,15 +18,19 @@ fn encode_forward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wo
         var acc = array<f32, 8>(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
         let base = grid.run.y + lv.info.x;
         for (var k = 0u; k < (1u << dims); k++) {
-            let cr = corner(c, k, dims, dense, grid.shape.w);
+            let cr = corner(c, k, dense, grid.shape.w);
             let at = base + cr.row * nf;
-            for (var f = 0u; f < nf; f++) {
-                acc[f] = acc[f] + cr.w * table[at + f];
+            for (var f = 0u; f < 8u; f++) {
+                if f < nf {
+                    acc[f] = acc[f] + cr.w * table[at + f];
+                }
             }
         }
         let o = (i * nl + l) * nf;
-        for (var f = 0u; f < nf; f++) {
-            features[o + f] = acc[f];
+        for (var f = 0u; f < 8u; f++) {
+            if f < nf {
+                features[o + f] = acc[f];
+            }
         }
     }
 }
