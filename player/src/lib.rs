@@ -7,7 +7,7 @@
 //!   cached, dynamic rays re-rendered);
 //! - [`samples`]: sample-level reuse on the dynamic rays (fixed samples, only dynamic ones
 //!   evaluated per frame);
-//! - [`gpu`]: the same on a GPU through wgpu, with the WGSL kernels of `web/shaders/`;
+//! - [`gpu`]: the same on a GPU through wgpu, with the WGSL kernels of `msth-gpu`;
 //! - [`backend`]: the choice between the two (automatic, `--cpu`, `--gpu`);
 //! - [`path`]: camera paths (fixed, orbit, spiral, the file's cameras, JSON);
 //! - [`play`]: all of it together, writing PNG frames and an MP4.

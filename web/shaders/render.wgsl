@@ -4,7 +4,7 @@
 // main samples, masked space-time encoding (3D hash grid, 4D hash grid, dense mask), density and
 // colour decoders, SH direction encoding, volume compositing and background.
 //
-// Shared by the native player (wgpu, `player/src/gpu/`) and the browser (WebGPU, `web/`): WebGPU
+// Shared by the native player (wgpu, `msth-gpu`: `gpu/`) and the browser (WebGPU, `web/`): WebGPU
 // core only (no push constants, no f64, no optional features, default limits). Bindings, struct
 // layouts and dispatch sizes: `web/shaders/README.md`.
 
@@ -132,7 +132,7 @@ var<private> sh: array<f32, 16>;
 // Loops are kept flat (one loop over (row, column) pairs rather than two nested ones) and
 // functions return once at their end. Mesa's lavapipe ends every loop of an invocation after
 // 65535 loop iterations in total, which a ray of a preset-sized model exceeds; the native host
-// refuses such models there with an error (player/src/gpu/layout.rs, loop_iterations_per_ray).
+// refuses such models there with an error (gpu/src/layout.rs, loop_iterations_per_ray).
 
 fn clamp_unit(x: f32) -> f32 {
     // NaN maps to 0 (as the CPU's `if x >= 0 { min(x, 1) } else { 0 }`).

@@ -1,30 +1,26 @@
-//! GPU rendering through wgpu (Vulkan, Metal, DX12): the WGSL kernels of
-//! `web/shaders/render.wgsl` (the same source the browser player runs) render exactly what the
-//! CPU renderer ([`crate::render`]) renders from the same parameters, camera and time.
+//! The renderer's kernels (`shaders/render.wgsl`, the same source the browser player runs)
+//! and their host code: they render exactly what the CPU renderer of `msth-player` renders from
+//! the same parameters, camera and time.
 //!
 //! - [`GpuContext`]: adapter, device, the compiled kernels; [`GpuContext::open`] picks the
 //!   adapter ([`AdapterPolicy`]);
 //! - [`GpuScene`]: one model's uniforms and parameter buffers on the device, re-uploaded when the
 //!   parameters change (a new dynamic chunk);
-//! - [`GpuRenderer`]: full frames, then incremental frames for a fixed camera (only the dynamic
-//!   pixels' rays are re-rendered, on top of the cached frame kept on the device), with the CPU
-//!   renderer's classification ([`crate::render::classify_static`]).
+//! - [`GpuContext::dispatch`]: one `render` or `eval_points` pass. The frame-level policy (full
+//!   frames, then incremental frames for a fixed camera with the CPU renderer's classification)
+//!   is `msth_player::gpu::GpuRenderer`, built on these.
 //!
 //! Errors (no adapter, a model or frame beyond the adapter's limits, a lost device, a failed
 //! dispatch) are [`GpuError`]s, never panics.
-
-pub mod layout;
-mod renderer;
 
 use std::sync::{Arc, Mutex};
 
 use wgpu::util::DeviceExt;
 
-pub use layout::{GpuModel, ViewU, FLAG_COMPACT, FLAG_LIST};
-pub use renderer::GpuRenderer;
+use crate::layout::{self, GpuModel, ViewU};
 
 /// The kernels' source, shared with the browser player.
-pub const RENDER_WGSL: &str = include_str!("../../../web/shaders/render.wgsl");
+pub const RENDER_WGSL: &str = include_str!("../shaders/render.wgsl");
 
 /// Environment variable that lets the automatic choice use a software adapter (Mesa lavapipe,
 /// WARP, SwiftShader); `--gpu` always may.
@@ -53,6 +49,10 @@ pub enum GpuError {
     Lost(String),
     #[error("GPU error: {0}")]
     Backend(String),
+    #[error("the GPU adapter cannot run this kernel: {0}")]
+    MissingFeature(String),
+    #[error("bad input to a GPU kernel: {0}")]
+    Input(String),
 }
 
 /// Which adapters [`GpuContext::open`] may use.
@@ -91,9 +91,79 @@ fn rank(t: wgpu::DeviceType, policy: AdapterPolicy) -> Option<u8> {
 
 /// Errors the device reported outside a dispatch's own checks.
 #[derive(Default)]
-struct DeviceState {
+pub(crate) struct DeviceState {
     lost: Option<String>,
     errors: Vec<String>,
+}
+
+/// Records `device`'s loss and uncaptured errors into a [`DeviceState`].
+pub(crate) fn watch(device: &wgpu::Device) -> Arc<Mutex<DeviceState>> {
+    let state = Arc::new(Mutex::new(DeviceState::default()));
+    let s = state.clone();
+    device.set_device_lost_callback(move |reason, msg| {
+        if let Ok(mut s) = s.lock() {
+            s.lost = Some(format!("{reason:?}: {msg}"));
+        }
+    });
+    let s = state.clone();
+    device.on_uncaptured_error(Arc::new(move |e: wgpu::Error| {
+        if let Ok(mut s) = s.lock() {
+            s.errors.push(e.to_string());
+        }
+    }));
+    state
+}
+
+/// Fails with what the device reported since the last check (lost device, validation).
+pub(crate) fn check_state(state: &Mutex<DeviceState>) -> Result<(), GpuError> {
+    let mut s = state
+        .lock()
+        .map_err(|_| GpuError::Backend("device state poisoned".into()))?;
+    if let Some(l) = &s.lost {
+        return Err(GpuError::Lost(l.clone()));
+    }
+    if !s.errors.is_empty() {
+        let e = s.errors.join("; ");
+        s.errors.clear();
+        return Err(GpuError::Backend(e));
+    }
+    Ok(())
+}
+
+/// The best adapter `policy` allows (discrete, integrated, virtual, other, then software), or
+/// why there is none.
+pub(crate) fn pick_adapter(policy: AdapterPolicy) -> Result<wgpu::Adapter, GpuError> {
+    let instance =
+        wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+    let adapters = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::all()));
+    let mut seen = Vec::new();
+    let mut best: Option<(u8, wgpu::Adapter)> = None;
+    for a in adapters {
+        let info = a.get_info();
+        seen.push(format!(
+            "{} ({:?}, {:?})",
+            info.name, info.device_type, info.backend
+        ));
+        if let Some(r) = rank(info.device_type, policy) {
+            if best.as_ref().is_none_or(|(b, _)| r < *b) {
+                best = Some((r, a));
+            }
+        }
+    }
+    match best {
+        Some((_, adapter)) => Ok(adapter),
+        None => {
+            let why = if seen.is_empty() {
+                "no adapters at all".to_string()
+            } else {
+                format!(
+                    "only software adapters, which the automatic choice skips unless {ALLOW_SOFTWARE_ENV}=1 or --gpu: {}",
+                    seen.join(", ")
+                )
+            };
+            Err(GpuError::NoAdapter(why))
+        }
+    }
 }
 
 /// An open device with the compiled kernels.
@@ -127,35 +197,7 @@ impl GpuContext {
     /// Opens the best adapter `policy` allows (discrete, integrated, virtual, other, then
     /// software), or says why none can be used.
     pub fn open(policy: AdapterPolicy) -> Result<Self, GpuError> {
-        let instance =
-            wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
-        let adapters = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::all()));
-        let mut seen = Vec::new();
-        let mut best: Option<(u8, wgpu::Adapter)> = None;
-        for a in adapters {
-            let info = a.get_info();
-            seen.push(format!(
-                "{} ({:?}, {:?})",
-                info.name, info.device_type, info.backend
-            ));
-            if let Some(r) = rank(info.device_type, policy) {
-                if best.as_ref().is_none_or(|(b, _)| r < *b) {
-                    best = Some((r, a));
-                }
-            }
-        }
-        let Some((_, adapter)) = best else {
-            let why = if seen.is_empty() {
-                "no adapters at all".to_string()
-            } else {
-                format!(
-                    "only software adapters, which the automatic choice skips unless {ALLOW_SOFTWARE_ENV}=1 or --gpu: {}",
-                    seen.join(", ")
-                )
-            };
-            return Err(GpuError::NoAdapter(why));
-        };
-        Self::with_adapter(adapter)
+        Self::with_adapter(pick_adapter(policy)?)
     }
 
     fn with_adapter(adapter: wgpu::Adapter) -> Result<Self, GpuError> {
@@ -178,21 +220,7 @@ impl GpuContext {
             adapter: name.clone(),
             error: e.to_string(),
         })?;
-        let state = Arc::new(Mutex::new(DeviceState::default()));
-        {
-            let s = state.clone();
-            device.set_device_lost_callback(move |reason, msg| {
-                if let Ok(mut s) = s.lock() {
-                    s.lost = Some(format!("{reason:?}: {msg}"));
-                }
-            });
-            let s = state.clone();
-            device.on_uncaptured_error(Arc::new(move |e: wgpu::Error| {
-                if let Ok(mut s) = s.lock() {
-                    s.errors.push(e.to_string());
-                }
-            }));
-        }
+        let state = watch(&device);
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
         let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("render.wgsl"),
@@ -307,19 +335,7 @@ impl GpuContext {
 
     /// Fails with what the device reported since the last check (lost device, validation).
     fn check_state(&self) -> Result<(), GpuError> {
-        let mut s = self
-            .state
-            .lock()
-            .map_err(|_| GpuError::Backend("device state poisoned".into()))?;
-        if let Some(l) = &s.lost {
-            return Err(GpuError::Lost(l.clone()));
-        }
-        if !s.errors.is_empty() {
-            let e = s.errors.join("; ");
-            s.errors.clear();
-            return Err(GpuError::Backend(e));
-        }
-        Ok(())
+        check_state(&self.state)
     }
 
     /// A storage buffer with `data` (at least 4 bytes: empty data gets a placeholder word).

@@ -1,0 +1,703 @@
+// MSTH renderer kernels: one invocation renders one ray (or evaluates one point), exactly as the
+// CPU renderer does at render time (msth-core `pipeline::render_chunk`): ray limits against the
+// scene box (or contraction), proposal samples, proposal field density, proposal resampling,
+// main samples, masked space-time encoding (3D hash grid, 4D hash grid, dense mask), density and
+// colour decoders, SH direction encoding, volume compositing and background.
+//
+// Shared by the native player (wgpu, `msth-gpu`: `gpu/`) and the browser (WebGPU, `web/`): WebGPU
+// core only (no push constants, no f64, no optional features, default limits). Bindings, struct
+// layouts and dispatch sizes: `web/shaders/README.md`.
+
+// ---- Limits (the host rejects models beyond them with a clear error) ----------------------
+
+const MAX_PROPOSAL_SAMPLES: u32 = 256u;
+const MAX_SAMPLES: u32 = 128u;
+const MAX_HIDDEN: u32 = 128u;
+const MAX_GEO: u32 = 31u;
+const MAX_LEVELS: u32 = 32u;
+const MAX_FEATURES: u32 = 8u;
+const WORKGROUP: u32 = 64u;
+
+// Rendering constants of msth-core (pipeline.rs).
+const VISIBLE_TRANSMITTANCE: f32 = 1e-3;
+const TAU_HIDDEN: f32 = 9.210340372; // ln(1 / HIDDEN_TRANSMITTANCE), HIDDEN_TRANSMITTANCE = 1e-4
+
+// Hash primes for (x, y, z, t).
+fn prime(a: u32) -> u32 {
+    var p = 3674653429u;
+    if a == 0u {
+        p = 1u;
+    } else if a == 1u {
+        p = 2654435761u;
+    } else if a == 2u {
+        p = 805459861u;
+    }
+    return p;
+}
+
+// ---- Uniforms -------------------------------------------------------------------------------
+
+struct Level {
+    // scale_a per axis (unused axes 0).
+    scale: vec4<f32>,
+    // Dense strides per axis (dense levels only).
+    stride: vec4<u32>,
+    // x: offset of this level's table in floats inside the grid's buffer; y: 1 = dense;
+    // z: rows; w: unused.
+    info: vec4<u32>,
+}
+
+struct Grid {
+    // x: dims (3 or 4), y: features per level, z: levels, w: hash mask (table size - 1).
+    shape: vec4<u32>,
+    // x: buffer (0 = tab3, 1 = tab4, 2 = rest), y: index of level 0 in Model.levels,
+    // z: 1 = present, w: unused.
+    loc: vec4<u32>,
+}
+
+struct Encoding {
+    // x: blend (0 mst, 1 mt, 2 add, 3 4d, 4 static), y: 1 = has mask, z: mask resolution,
+    // w: mask offset (floats) in `rest`.
+    mode: vec4<u32>,
+    // x: output dim (levels * features), yzw: unused.
+    dims: vec4<u32>,
+    // x: mask value when there is no mask, y: static cutoff (skip h4 when 1 - m < cutoff), zw: 0.
+    consts: vec4<f32>,
+    h3: Grid,
+    h4: Grid,
+}
+
+struct Model {
+    // x: proposal samples, y: samples, z: spacing (0 linear, 1 lindisp), w: bounds (0 box, 1 contracted).
+    sampler: vec4<u32>,
+    // x: near, y: far, z: histogram padding, w: spacing unit.
+    limits: vec4<f32>,
+    // Box: min (xyz). Contracted: centre (xyz), radius (w).
+    bounds_a: vec4<f32>,
+    // Box: max (xyz).
+    bounds_b: vec4<f32>,
+    // rgb, w: 1 = constant colour, 0 = last sample's colour.
+    background: vec4<f32>,
+    // Field density MLP: x offset in `rest`, y input dim, z hidden, w output dim (1 + geo).
+    density: vec4<u32>,
+    // Field colour MLP: x offset in `rest`, y hidden width, z hidden layers, w geo features.
+    color: vec4<u32>,
+    // Proposal density MLP: x offset in `rest`, y input dim, z hidden, w unused.
+    proposal: vec4<u32>,
+    field: Encoding,
+    prop: Encoding,
+    levels: array<Level, 128>,
+}
+
+struct View {
+    // Camera-to-world (OpenGL camera axes: looks down -Z), column-major.
+    c2w: mat4x4<f32>,
+    // fx, fy, cx, cy (pixels).
+    intr: vec4<f32>,
+    // x: width, y: height, z: invocations (rays or points), w: flags
+    // (bit 0: ray i renders pixel list[i], otherwise pixel i;
+    //  bit 1: write frame[i], otherwise frame[pixel]).
+    size: vec4<u32>,
+    // x: normalised time, yzw: unused.
+    time: vec4<f32>,
+}
+
+@group(0) @binding(0) var<uniform> model: Model;
+@group(0) @binding(1) var<uniform> view: View;
+// Field 3D hash table (params range `field.h3`).
+@group(0) @binding(2) var<storage, read> tab3: array<f32>;
+// Field 4D hash table (params range `field.h4`).
+@group(0) @binding(3) var<storage, read> tab4: array<f32>;
+// Everything after the field tables: mask, decoders, proposal field.
+@group(0) @binding(4) var<storage, read> rest: array<f32>;
+// Pixel list (render) or packed points (eval_points).
+@group(0) @binding(5) var<storage, read> list: array<u32>;
+// Output: (r, g, b, visible depth) per pixel (render) or (r, g, b, sigma) per point.
+@group(0) @binding(6) var<storage, read_write> frame: array<vec4<f32>>;
+
+// ---- Per-invocation scratch -------------------------------------------------------------------
+
+var<private> w_prop: array<f32, MAX_PROPOSAL_SAMPLES>;
+var<private> s_main: array<f32, 129>; // MAX_SAMPLES + 1
+var<private> hid: array<f32, MAX_HIDDEN>;
+var<private> hid2: array<f32, MAX_HIDDEN>;
+var<private> dout: array<f32, 32>; // 1 + MAX_GEO
+var<private> cin: array<f32, 47>; // 16 + MAX_GEO
+var<private> feat3: array<f32, MAX_FEATURES>;
+var<private> feat4: array<f32, MAX_FEATURES>;
+var<private> sh: array<f32, 16>;
+
+// ---- Small functions --------------------------------------------------------------------------
+
+// Loops are kept flat (one loop over (row, column) pairs rather than two nested ones) and
+// functions return once at their end. Mesa's lavapipe ends every loop of an invocation after
+// 65535 loop iterations in total, which a ray of a preset-sized model exceeds; the native host
+// refuses such models there with an error (gpu/src/layout.rs, loop_iterations_per_ray).
+
+fn clamp_unit(x: f32) -> f32 {
+    // NaN maps to 0 (as the CPU's `if x >= 0 { min(x, 1) } else { 0 }`).
+    return select(0.0, min(x, 1.0), x >= 0.0);
+}
+
+fn sigmoid(x: f32) -> f32 {
+    // 1 / (1 + e^-x) for x >= 0, e^x / (1 + e^x) otherwise, as on the CPU.
+    let e = exp(-min(abs(x), 80.0));
+    return select(e / (1.0 + e), 1.0 / (1.0 + e), x >= 0.0);
+}
+
+fn trunc_exp(x: f32) -> f32 {
+    return exp(min(x, 88.0));
+}
+
+// exp(x) - 1 without cancellation for small |x|.
+fn expm1(x: f32) -> f32 {
+    let series = x + x * x * 0.5 + x * x * x * (1.0 / 6.0);
+    return select(exp(x) - 1.0, series, abs(x) < 1e-3);
+}
+
+fn tau_of(sigma: f32, delta: f32) -> f32 {
+    let t = sigma * delta;
+    return select(0.0, min(t, 1e30), t >= 0.0);
+}
+
+// A histogram weight as the CPU's `sanitize`: w when positive and finite, else 0 (NaN fails
+// both comparisons).
+fn sanitize(w: f32) -> f32 {
+    return select(0.0, w, w > 0.0 && w <= 3.40282346e38);
+}
+
+fn table(buf: u32, i: u32) -> f32 {
+    var v: f32;
+    if buf == 0u {
+        v = tab3[i];
+    } else if buf == 1u {
+        v = tab4[i];
+    } else {
+        v = rest[i];
+    }
+    return v;
+}
+
+// Spacing: normalised s in [0, 1] to distance.
+fn g_fwd(t: f32) -> f32 {
+    return select(1.0 - 0.5 / max(t, 1.0), 0.5 * t, t < 1.0);
+}
+
+fn g_inv(y: f32) -> f32 {
+    return select(0.5 / max(1.0 - y, 1e-7), 2.0 * y, y < 0.5);
+}
+
+fn t_of_s(s: f32, near: f32, far: f32) -> f32 {
+    var t = near + s * (far - near);
+    if model.sampler.z == 1u {
+        let unit = model.limits.w;
+        let a = g_fwd(near / unit);
+        let b = g_fwd(far / unit);
+        t = unit * g_inv(a + s * (b - a));
+    }
+    return select(near, t, far > near);
+}
+
+// World point to the unit cube.
+fn to_unit(p: vec3<f32>) -> vec3<f32> {
+    var u: vec3<f32>;
+    if model.sampler.w == 0u {
+        let lo = model.bounds_a.xyz;
+        let hi = model.bounds_b.xyz;
+        u = (p - lo) / (hi - lo);
+    } else {
+        let y = (p - model.bounds_a.xyz) / model.bounds_a.w;
+        let n = max(max(abs(y.x), abs(y.y)), abs(y.z));
+        var c: vec3<f32>;
+        if !(n <= 3.40282346e38) {
+            c = sign(y) * 2.0;
+        } else if n < 1.0 {
+            c = y;
+        } else {
+            c = (2.0 - 1.0 / n) * (y / n);
+        }
+        u = (c + 2.0) * 0.25;
+    }
+    return clamp(u, vec3<f32>(0.0), vec3<f32>(1.0));
+}
+
+// Ray interval [near, far]; empty (near == far == 0) when the ray misses the box.
+fn ray_limits(o: vec3<f32>, d: vec3<f32>) -> vec2<f32> {
+    var near = model.limits.x;
+    var far = model.limits.y;
+    if model.sampler.w == 0u {
+        var miss = false;
+        let lo = model.bounds_a.xyz;
+        let hi = model.bounds_b.xyz;
+        for (var a = 0u; a < 3u; a++) {
+            if d[a] == 0.0 {
+                // Parallel to the slab: inside (or on it) leaves the interval alone.
+                miss = miss || o[a] < lo[a] || o[a] > hi[a];
+            } else {
+                let inv = 1.0 / d[a];
+                let t0 = (lo[a] - o[a]) * inv;
+                let t1 = (hi[a] - o[a]) * inv;
+                let tmin = min(t0, t1);
+                let tmax = max(t0, t1);
+                if tmin > near {
+                    near = tmin;
+                }
+                if tmax < far {
+                    far = tmax;
+                }
+            }
+        }
+        if miss || !(far > near) {
+            near = 0.0;
+            far = 0.0;
+        }
+    }
+    return vec2<f32>(near, far);
+}
+
+fn sh4(d: vec3<f32>) {
+    let x = d.x;
+    let y = d.y;
+    let z = d.z;
+    let xx = x * x;
+    let yy = y * y;
+    let zz = z * z;
+    let xy = x * y;
+    let yz = y * z;
+    let xz = x * z;
+    sh[0] = 0.2820948;
+    sh[1] = -0.48860252 * y;
+    sh[2] = 0.48860252 * z;
+    sh[3] = -0.48860252 * x;
+    sh[4] = 1.0925484 * xy;
+    sh[5] = -1.0925484 * yz;
+    sh[6] = 0.9461747 * zz - 0.31539157;
+    sh[7] = -1.0925484 * xz;
+    sh[8] = 0.5462742 * (xx - yy);
+    sh[9] = 0.5900436 * y * (-3.0 * xx + yy);
+    sh[10] = 2.8906114 * xy * z;
+    sh[11] = 0.4570458 * y * (1.0 - 5.0 * zz);
+    sh[12] = 0.37317633 * z * (5.0 * zz - 3.0);
+    sh[13] = 0.4570458 * x * (1.0 - 5.0 * zz);
+    sh[14] = 1.4453057 * z * (xx - yy);
+    sh[15] = 0.5900436 * x * (-xx + 3.0 * yy);
+}
+
+// ---- Encoding ---------------------------------------------------------------------------------
+
+// Trilinear read of the dense mask grid (logit), `res^3` values at `off` in `rest`.
+fn mask_logit(off: u32, res: u32, x: vec3<f32>) -> f32 {
+    var base: vec3<u32>;
+    var fr: vec3<f32>;
+    let rm1 = f32(res - 1u);
+    for (var a = 0u; a < 3u; a++) {
+        let p = clamp_unit(x[a]) * rm1;
+        let i = min(u32(p), res - 2u);
+        base[a] = i;
+        fr[a] = p - f32(i);
+    }
+    var v = 0.0;
+    for (var c = 0u; c < 8u; c++) {
+        let bx = c & 1u;
+        let by = (c >> 1u) & 1u;
+        let bz = (c >> 2u) & 1u;
+        let idx = (base.x + bx) + res * ((base.y + by) + res * (base.z + bz));
+        var w = select(1.0 - fr.x, fr.x, bx == 1u);
+        w *= select(1.0 - fr.y, fr.y, by == 1u);
+        w *= select(1.0 - fr.z, fr.z, bz == 1u);
+        v += w * rest[off + idx];
+    }
+    return v;
+}
+
+// Mask value m in [0, 1] at a unit-cube point.
+fn mask_at(e: Encoding, x: vec3<f32>) -> f32 {
+    var m = e.consts.x;
+    if e.mode.y == 1u {
+        m = sigmoid(mask_logit(e.mode.w, e.mode.z, x));
+    }
+    return m;
+}
+
+// Features of one level of one grid at point p (dims 3 or 4) into `out` (feat3 or feat4):
+// multilinear interpolation of the 2^D corners, dense or hashed indexing.
+fn grid_level(g: Grid, l: u32, p: vec4<f32>, into4: bool) {
+    let lv = model.levels[g.loc.y + l];
+    let dims = g.shape.x;
+    let nf = g.shape.y;
+    let dense = lv.info.y == 1u;
+    // Per-axis values in function-local arrays (no dynamic indexing of vector values).
+    var pa = array<f32, 4>(p.x, p.y, p.z, p.w);
+    var scale = array<f32, 4>(lv.scale.x, lv.scale.y, lv.scale.z, lv.scale.w);
+    var stride = array<u32, 4>(lv.stride.x, lv.stride.y, lv.stride.z, lv.stride.w);
+    var lo = array<u32, 4>(0u, 0u, 0u, 0u);
+    var hi = array<u32, 4>(0u, 0u, 0u, 0u);
+    var fr = array<f32, 4>(0.0, 0.0, 0.0, 0.0);
+    for (var a = 0u; a < dims; a++) {
+        let q = clamp_unit(pa[a]) * scale[a] + 0.5;
+        let i = u32(q); // q >= 0.5: truncation is floor
+        fr[a] = q - f32(i);
+        if dense {
+            lo[a] = i * stride[a];
+            hi[a] = lo[a] + stride[a];
+        } else {
+            lo[a] = i * prime(a);
+            hi[a] = (i + 1u) * prime(a);
+        }
+    }
+    var acc = array<f32, 8>(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+    let corners = 1u << dims;
+    // One flat loop over (corner, feature) pairs.
+    for (var t = 0u; t < corners * nf; t++) {
+        let c = t / nf;
+        let f = t % nf;
+        let u0 = (c & 1u) == 1u;
+        let u1 = (c & 2u) == 2u;
+        let u2 = (c & 4u) == 4u;
+        let u3 = (c & 8u) == 8u && dims == 4u;
+        var w = select(1.0 - fr[0], fr[0], u0) * select(1.0 - fr[1], fr[1], u1)
+            * select(1.0 - fr[2], fr[2], u2);
+        if dims == 4u {
+            w *= select(1.0 - fr[3], fr[3], u3);
+        }
+        let v3 = select(0u, select(lo[3], hi[3], u3), dims == 4u);
+        var row: u32;
+        if dense {
+            row = select(lo[0], hi[0], u0) + select(lo[1], hi[1], u1) + select(lo[2], hi[2], u2) + v3;
+        } else {
+            row = (select(lo[0], hi[0], u0) ^ select(lo[1], hi[1], u1) ^ select(lo[2], hi[2], u2) ^ v3)
+                & g.shape.w;
+        }
+        acc[f] += w * table(g.loc.x, lv.info.x + row * nf + f);
+    }
+    for (var f = 0u; f < nf; f++) {
+        if into4 {
+            feat4[f] = acc[f];
+        } else {
+            feat3[f] = acc[f];
+        }
+    }
+}
+
+// Masked encoding at point p fused into the first layer of an MLP: hid[j] = relu(sum_k enc_k W[k, j])
+// with W ([in, hidden], row-major) at `w_off` in `rest`. Returns the mask value m.
+fn encode_into_hidden(e: Encoding, p: vec4<f32>, cutoff: f32, w_off: u32, hidden: u32) -> f32 {
+    let m = mask_at(e, p.xyz);
+    let blend = e.mode.x;
+    let use3 = e.h3.loc.z == 1u;
+    let use4 = e.h4.loc.z == 1u;
+    // Skip the 4D lookup where the mask leaves (almost) nothing dynamic (Mst/Mt with a mask).
+    let skip4 = cutoff > 0.0 && e.mode.y == 1u && blend <= 1u && (1.0 - m) < cutoff;
+    var levels = 0u;
+    var nf = 1u;
+    if use3 {
+        levels = e.h3.shape.z;
+        nf = e.h3.shape.y;
+    } else {
+        levels = e.h4.shape.z;
+        nf = e.h4.shape.y;
+    }
+    for (var j = 0u; j < hidden; j++) {
+        hid[j] = 0.0;
+    }
+    var venc = array<f32, 8>(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+    for (var l = 0u; l < levels; l++) {
+        for (var f = 0u; f < MAX_FEATURES; f++) {
+            feat3[f] = 0.0;
+            feat4[f] = 0.0;
+        }
+        if use3 {
+            grid_level(e.h3, l, p, false);
+        }
+        if use4 && !skip4 {
+            grid_level(e.h4, l, p, true);
+        }
+        for (var f = 0u; f < nf; f++) {
+            let a = feat3[f];
+            let b = feat4[f];
+            var v = a;
+            if blend == 0u {
+                v = m * a + (1.0 - m) * b;
+            } else if blend == 1u {
+                v = a + (1.0 - m) * b;
+            } else if blend == 2u {
+                v = a + b;
+            } else if blend == 3u {
+                v = b;
+            }
+            venc[f] = v;
+        }
+        // Rows l * nf .. (l + 1) * nf of W, one flat loop over (feature, hidden unit).
+        let row0 = w_off + l * nf * hidden;
+        for (var t = 0u; t < nf * hidden; t++) {
+            let j = t % hidden;
+            hid[j] += venc[t / hidden] * rest[row0 + t];
+        }
+    }
+    for (var j = 0u; j < hidden; j++) {
+        hid[j] = max(hid[j], 0.0);
+    }
+    return m;
+}
+
+// hid2[0..nout] = hid[0..nin] W (W [nin, nout] row-major at `off` in `rest`), ReLU when `relu`.
+// One flat loop over the weights, in the CPU's summation order.
+fn dense_layer(off: u32, nin: u32, nout: u32, relu: bool) {
+    for (var o = 0u; o < nout; o++) {
+        hid2[o] = 0.0;
+    }
+    for (var t = 0u; t < nin * nout; t++) {
+        let o = t % nout;
+        hid2[o] += hid[t / nout] * rest[off + t];
+    }
+    if relu {
+        for (var o = 0u; o < nout; o++) {
+            hid2[o] = max(hid2[o], 0.0);
+        }
+    }
+}
+
+// Proposal density at p.
+fn proposal_sigma(p: vec4<f32>, cutoff: f32) -> f32 {
+    let d = model.proposal;
+    let off = d.x;
+    let hidden = d.z;
+    encode_into_hidden(model.prop, p, cutoff, off, hidden);
+    let w2 = off + d.y * hidden;
+    var s = 0.0;
+    for (var j = 0u; j < hidden; j++) {
+        s += hid[j] * rest[w2 + j];
+    }
+    return trunc_exp(s);
+}
+
+// Main-field density at p: returns sigma; geo features in dout[1..=geo]; mask value in *m.
+fn field_density(p: vec4<f32>, cutoff: f32, m: ptr<function, f32>) -> f32 {
+    let d = model.density;
+    let off = d.x;
+    let hidden = d.z;
+    let nout = d.w;
+    *m = encode_into_hidden(model.field, p, cutoff, off, hidden);
+    let w2 = off + d.y * hidden;
+    dense_layer(w2, hidden, nout, false);
+    for (var o = 0u; o < nout; o++) {
+        dout[o] = hid2[o];
+    }
+    return trunc_exp(dout[0]);
+}
+
+// Main-field colour from `sh` and the geo features of the last field_density call.
+fn field_color() -> vec3<f32> {
+    let c = model.color;
+    let geo = c.w;
+    let hidden = c.y;
+    let layers = c.z;
+    let nin = 16u + geo;
+    for (var k = 0u; k < 16u; k++) {
+        cin[k] = sh[k];
+    }
+    for (var k = 0u; k < geo; k++) {
+        cin[16u + k] = dout[1u + k];
+    }
+    for (var i = 0u; i < nin; i++) {
+        hid[i] = cin[i];
+    }
+    var off = c.x;
+    dense_layer(off, nin, hidden, true);
+    off += nin * hidden;
+    for (var k = 1u; k < layers; k++) {
+        for (var j = 0u; j < hidden; j++) {
+            hid[j] = hid2[j];
+        }
+        dense_layer(off, hidden, hidden, true);
+        off += hidden * hidden;
+    }
+    for (var j = 0u; j < hidden; j++) {
+        hid[j] = hid2[j];
+    }
+    dense_layer(off, hidden, 3u, false);
+    let rgb = vec3<f32>(sigmoid(hid2[0]), sigmoid(hid2[1]), sigmoid(hid2[2]));
+    return rgb;
+}
+
+// ---- One ray ----------------------------------------------------------------------------------
+
+struct RayResult {
+    rgb: vec3<f32>,
+    visible_depth: f32,
+}
+
+fn sample_point(o: vec3<f32>, d: vec3<f32>, t0: f32, t1: f32, time: f32) -> vec4<f32> {
+    let u = to_unit(o + d * (0.5 * (t0 + t1)));
+    return vec4<f32>(u, time);
+}
+
+fn render_ray(o: vec3<f32>, d: vec3<f32>, time_in: f32) -> RayResult {
+    let np = model.sampler.x;
+    let nf = model.sampler.y;
+    let lim = ray_limits(o, d);
+    let near = lim.x;
+    let far = lim.y;
+    let time = select(0.0, min(time_in, 1.0), time_in >= 0.0);
+    let cutoff3 = model.field.consts.y;
+    let cutoff_p = model.prop.consts.y;
+    sh4(normalize(d));
+
+    // Proposal samples: uniform in s, midpoints in distance; weights by volume rendering.
+    var tau_sum = 0.0;
+    var t_prev = t_of_s(0.0, near, far);
+    for (var k = 0u; k < np; k++) {
+        let t_next = t_of_s(f32(k + 1u) / f32(np), near, far);
+        let delta = max(t_next - t_prev, 0.0);
+        let sigma = proposal_sigma(sample_point(o, d, t_prev, t_next, time), cutoff_p);
+        let tau = tau_of(sigma, delta);
+        w_prop[k] = exp(-tau_sum) * -expm1(-tau);
+        tau_sum += tau;
+        t_prev = t_next;
+    }
+
+    // Resample (deterministic inverse-CDF of the padded histogram), nf + 1 edges in s.
+    let m_out = nf + 1u;
+    let pad = model.limits.z;
+    var total = 0.0;
+    for (var k = 0u; k < np; k++) {
+        total += sanitize(w_prop[k]) + pad;
+    }
+    if !(total > 0.0 && total <= 3.40282346e38) {
+        for (var k = 0u; k < m_out; k++) {
+            s_main[k] = f32(k) / f32(max(m_out - 1u, 1u));
+        }
+    } else {
+        let inv = 1.0 / total;
+        var bin = 0u;
+        var cdf_lo = 0.0;
+        var cdf_hi = (sanitize(w_prop[0]) + pad) * inv;
+        for (var k = 0u; k < m_out; k++) {
+            let u = f32(k) / f32(max(m_out - 1u, 1u));
+            while u > cdf_hi && bin + 1u < np {
+                bin += 1u;
+                cdf_lo = cdf_hi;
+                cdf_hi += (sanitize(w_prop[bin]) + pad) * inv;
+            }
+            let span = cdf_hi - cdf_lo;
+            var frac = 0.0;
+            if span > 0.0 {
+                frac = clamp((u - cdf_lo) / span, 0.0, 1.0);
+            }
+            let e0 = f32(bin) / f32(np);
+            let e1 = f32(bin + 1u) / f32(np);
+            s_main[k] = e0 + frac * (e1 - e0);
+        }
+        for (var k = 1u; k < m_out; k++) {
+            if s_main[k] < s_main[k - 1u] {
+                s_main[k] = s_main[k - 1u];
+            }
+        }
+    }
+
+    // Main samples: density everywhere, colour where light still arrives; composite in order.
+    var rgb = vec3<f32>(0.0);
+    var last_rgb = vec3<f32>(0.0);
+    tau_sum = 0.0;
+    var acc = 0.0;
+    var visible = -1.0;
+    var t0 = t_of_s(s_main[0], near, far);
+    var t1 = t0;
+    for (var k = 0u; k < nf; k++) {
+        t1 = t_of_s(s_main[k + 1u], near, far);
+        let delta = max(t1 - t0, 0.0);
+        var m = 1.0;
+        let sigma = field_density(sample_point(o, d, t0, t1, time), cutoff3, &m);
+        var c = vec3<f32>(0.0);
+        if tau_sum <= TAU_HIDDEN {
+            c = field_color();
+        }
+        let tau = tau_of(sigma, delta);
+        let w = exp(-tau_sum) * -expm1(-tau);
+        tau_sum += tau;
+        rgb += w * c;
+        last_rgb = c;
+        acc += w;
+        if visible < 0.0 && 1.0 - acc < VISIBLE_TRANSMITTANCE {
+            visible = t1;
+        }
+        t0 = t1;
+    }
+    let t_final = exp(-tau_sum);
+    var bg = model.background.xyz;
+    if model.background.w == 0.0 {
+        bg = select(vec3<f32>(0.0), last_rgb, nf > 0u);
+    }
+    rgb += t_final * bg;
+    if visible < 0.0 {
+        visible = t1;
+    }
+    return RayResult(rgb, visible);
+}
+
+// The ray through the centre of pixel `pixel` (row-major).
+fn pixel_ray_dir(pixel: u32) -> vec3<f32> {
+    let w = view.size.x;
+    let px = f32(pixel % w) + 0.5;
+    let py = f32(pixel / w) + 0.5;
+    let d_cam = vec3<f32>((px - view.intr.z) / view.intr.x, -(py - view.intr.w) / view.intr.y, -1.0);
+    let r = mat3x3<f32>(view.c2w[0].xyz, view.c2w[1].xyz, view.c2w[2].xyz);
+    return normalize(r * d_cam);
+}
+
+fn invocation(gid: vec3<u32>, groups: vec3<u32>) -> u32 {
+    return gid.x + gid.y * groups.x * WORKGROUP;
+}
+
+// ---- Entry points -----------------------------------------------------------------------------
+
+// Renders view.size.z rays: pixel i, or pixel list[i] with flag bit 0. Writes
+// (r, g, b, visible depth) to frame[pixel], or frame[i] with flag bit 1. Rays that miss the scene
+// box under a constant background get the background without evaluation.
+@compute @workgroup_size(64)
+fn render(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let i = invocation(gid, groups);
+    if i < view.size.z {
+        let flags = view.size.w;
+        var pixel = i;
+        if (flags & 1u) == 1u {
+            pixel = list[i];
+        }
+        let out = select(pixel, i, (flags & 2u) == 2u);
+        let o = view.c2w[3].xyz;
+        let d = pixel_ray_dir(pixel);
+        let lim = ray_limits(o, d);
+        if !(lim.y > lim.x) && model.background.w == 1.0 {
+            frame[out] = vec4<f32>(model.background.xyz, lim.y);
+        } else {
+            let r = render_ray(o, d, view.time.x);
+            frame[out] = vec4<f32>(r.rgb, r.visible_depth);
+        }
+    }
+}
+
+// Evaluates the fields at view.size.z points, exactly (no static cutoff). Point j is 8 words of
+// `list` read as f32: (x, y, z, t) in the unit cube / unit time, direction (dx, dy, dz) for the
+// SH encoding, and 0 = main field or 1 = proposal field. Writes frame[j] = (r, g, b, sigma)
+// (proposal: (m, 0, 0, sigma) with the proposal's mask value m; main: rgb, sigma).
+@compute @workgroup_size(64)
+fn eval_points(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let j = invocation(gid, groups);
+    if j < view.size.z {
+        var v: array<f32, 8>;
+        for (var k = 0u; k < 8u; k++) {
+            v[k] = bitcast<f32>(list[j * 8u + k]);
+        }
+        let p = vec4<f32>(v[0], v[1], v[2], v[3]);
+        if v[7] == 1.0 {
+            let sigma = proposal_sigma(p, 0.0);
+            frame[j] = vec4<f32>(mask_at(model.prop, p.xyz), 0.0, 0.0, sigma);
+        } else {
+            sh4(vec3<f32>(v[4], v[5], v[6]));
+            var m = 1.0;
+            let sigma = field_density(p, 0.0, &m);
+            let c = field_color();
+            frame[j] = vec4<f32>(c, sigma);
+        }
+    }
+}

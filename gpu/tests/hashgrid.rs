@@ -1,0 +1,309 @@
+//! The hash-grid kernels against `msth_core::grid`'s CPU reference on whatever adapter exists
+//! (Mesa's lavapipe in CI): forward features for 3D and 4D grids with dense and hashed levels
+//! and per-axis resolutions, inputs on vertices and outside the unit cube; backward gradients
+//! through both atomic paths (native f32 atomics where the adapter has them, the
+//! compare-exchange loop always, forced), under heavy contention, and against central finite
+//! differences of a loss computed through the CPU reference.
+//!
+//! Tolerances (tables and gradients of magnitude <= 1):
+//! - forward: |gpu - cpu| <= 2e-6 per feature (same operation order; the GPU may fuse
+//!   multiply-adds, the lower corner can differ at a cell boundary where both cells give the
+//!   same value);
+//! - backward: |gpu - cpu| <= 1e-5 * sum|contributions| + 1e-6 per entry (atomics add in any
+//!   order; f32 rounding grows with the number and size of the terms summed);
+//! - finite differences: |gpu - fd| <= 1e-3 per entry (the loss is linear in the table, so
+//!   the difference quotient is exact up to f64-summed f32 rounding).
+//!
+//! They skip (saying so) when there is no adapter, unless `MSTH_REQUIRE_GPU=1`.
+
+use msth_core::grid::{GridConfig, GridLayout};
+use msth_core::rng::Rng;
+use msth_gpu::device::ComputeDevice;
+use msth_gpu::hashgrid::{AtomicMode, HashGridKernels};
+use msth_gpu::{AdapterPolicy, GpuError};
+
+/// The device, or `None` (skip) when there is none and `MSTH_REQUIRE_GPU` is not `1`.
+fn device() -> Option<ComputeDevice> {
+    match ComputeDevice::open(AdapterPolicy::any()) {
+        Ok(d) => Some(d),
+        Err(e @ GpuError::NoAdapter(_)) => {
+            if std::env::var("MSTH_REQUIRE_GPU").is_ok_and(|v| v == "1") {
+                panic!("MSTH_REQUIRE_GPU=1 but {e}");
+            }
+            eprintln!("skipping GPU test: {e}");
+            None
+        }
+        Err(e) => panic!("{e}"),
+    }
+}
+
+/// The atomic paths this device can run: the compare-exchange loop always (forced even where
+/// native atomics exist), native f32 atomics where the adapter has them.
+fn modes(dev: &ComputeDevice) -> Vec<AtomicMode> {
+    let mut m = vec![AtomicMode::CompareExchange];
+    if dev.has_float_atomics() {
+        m.push(AtomicMode::NativeF32);
+    } else {
+        eprintln!(
+            "SKIPPED native f32 atomics path: {} lacks SHADER_FLOAT32_ATOMIC (the compare-exchange path is tested)",
+            dev.adapter_name()
+        );
+    }
+    m
+}
+
+/// Grids with coarse dense levels, fine hashed ones, and different resolutions per axis.
+fn grids() -> Vec<GridLayout> {
+    let shapes = [
+        (3, 2, vec![4.0, 6.0, 3.0], vec![64.0, 90.0, 40.0]),
+        (4, 2, vec![4.0, 4.0, 4.0, 2.0], vec![64.0, 64.0, 64.0, 10.0]),
+        (3, 8, vec![4.0; 3], vec![48.0; 3]),
+        (4, 1, vec![3.0, 4.0, 5.0, 2.0], vec![40.0, 50.0, 60.0, 30.0]),
+        (4, 4, vec![4.0, 4.0, 4.0, 3.0], vec![32.0, 32.0, 32.0, 12.0]),
+    ];
+    shapes
+        .into_iter()
+        .map(|(dims, f, base, finest)| {
+            let c = GridConfig {
+                levels: 6,
+                features_per_level: f,
+                log2_table_size: 10,
+                base_resolution: base,
+                finest_resolution: finest,
+            };
+            assert_eq!(c.dims(), dims);
+            c.validate("test grid").unwrap();
+            let g = GridLayout::new(&c);
+            assert!(g.levels.iter().any(|l| l.dense) && g.levels.iter().any(|l| !l.dense));
+            g
+        })
+        .collect()
+}
+
+/// Random points plus the awkward ones: vertices of a level, the cube's corners, outside it,
+/// NaN and infinities (clamped as on the CPU).
+fn points(g: &GridLayout, n: usize, rng: &mut Rng) -> Vec<[f32; 4]> {
+    let mut p: Vec<[f32; 4]> = (0..n)
+        .map(|_| [rng.f32(), rng.f32(), rng.f32(), rng.f32()])
+        .collect();
+    let s = g.levels[1].scale;
+    p.push([
+        (2.0 - 0.5) / s[0],
+        (3.0 - 0.5) / s[1],
+        (1.0 - 0.5) / s[2],
+        0.5,
+    ]);
+    p.push([0.0; 4]);
+    p.push([1.0; 4]);
+    p.push([-0.25, 1.5, 0.5, 2.0]);
+    p.push([f32::NAN, 0.5, f32::INFINITY, f32::NEG_INFINITY]);
+    p
+}
+
+fn random_table(g: &GridLayout, rng: &mut Rng) -> Vec<f32> {
+    (0..g.num_params)
+        .map(|_| rng.range_f32(-1.0, 1.0))
+        .collect()
+}
+
+fn reference_backward(g: &GridLayout, pts: &[[f32; 4]], d: &[f32]) -> Vec<f32> {
+    let k = g.output_dim();
+    let mut grad = vec![0f32; g.num_params];
+    for (i, p) in pts.iter().enumerate() {
+        g.backward_point_reference(p, &d[i * k..(i + 1) * k], &mut grad);
+    }
+    grad
+}
+
+#[test]
+fn forward_matches_the_cpu_reference() {
+    let Some(dev) = device() else { return };
+    let k = HashGridKernels::new(&dev, AtomicMode::CompareExchange).unwrap();
+    let mut rng = Rng::new(7);
+    for g in grids() {
+        let table = random_table(&g, &mut rng);
+        let pts = points(&g, 2000, &mut rng);
+        let gpu = k.forward_host(&dev, &g, &table, &pts).unwrap();
+        let dim = g.output_dim();
+        assert_eq!(gpu.len(), pts.len() * dim);
+        let mut worst = 0f32;
+        for (i, p) in pts.iter().enumerate() {
+            let cpu = g.encode_point_reference(&table, p);
+            for (j, (a, b)) in gpu[i * dim..(i + 1) * dim].iter().zip(&cpu).enumerate() {
+                let e = (a - b).abs();
+                assert!(
+                    e <= 2e-6,
+                    "dims {} F {}: point {i} {p:?} feature {j}: gpu {a} cpu {b}",
+                    g.dims,
+                    g.features
+                );
+                worst = worst.max(e);
+            }
+        }
+        println!(
+            "forward dims {} F {}: {} points, worst |gpu - cpu| {worst:.2e}",
+            g.dims,
+            g.features,
+            pts.len()
+        );
+    }
+}
+
+fn check_grad(g: &GridLayout, gpu: &[f32], cpu: &[f32], abs_sum: &[f32], what: &str) -> f32 {
+    let mut worst = 0f32;
+    for e in 0..g.num_params {
+        let err = (gpu[e] - cpu[e]).abs();
+        let tol = 1e-5 * abs_sum[e] + 1e-6;
+        assert!(
+            err <= tol,
+            "{what}: entry {e}: gpu {} cpu {} (sum of |terms| {})",
+            gpu[e],
+            cpu[e],
+            abs_sum[e]
+        );
+        worst = worst.max(err / tol);
+    }
+    worst
+}
+
+#[test]
+fn backward_matches_the_cpu_reference_on_both_atomic_paths() {
+    let Some(dev) = device() else { return };
+    for mode in modes(&dev) {
+        let k = HashGridKernels::new(&dev, mode).unwrap();
+        let mut rng = Rng::new(11);
+        for g in grids() {
+            let pts = points(&g, 3000, &mut rng);
+            let d: Vec<f32> = (0..pts.len() * g.output_dim())
+                .map(|_| rng.range_f32(-1.0, 1.0))
+                .collect();
+            let gpu = k.backward_host(&dev, &g, &pts, &d).unwrap();
+            let cpu = reference_backward(&g, &pts, &d);
+            let abs: Vec<f32> = d.iter().map(|v| v.abs()).collect();
+            let abs_sum = reference_backward(&g, &pts, &abs);
+            assert!(cpu.iter().filter(|v| **v != 0.0).count() > 100);
+            let worst = check_grad(&g, &gpu, &cpu, &abs_sum, &format!("{mode:?}"));
+            println!(
+                "backward {mode:?} dims {} F {}: worst error / tolerance {worst:.3}",
+                g.dims, g.features
+            );
+        }
+    }
+}
+
+#[test]
+fn backward_under_contention_loses_no_update() {
+    // 20,000 samples at one point: every invocation of a level adds into the same 2^D rows.
+    let Some(dev) = device() else { return };
+    let g = &grids()[1];
+    let n = 20_000;
+    let pts = vec![[0.3, 0.6, 0.2, 0.7]; n];
+    let d = vec![1.0f32; n * g.output_dim()];
+    let cpu_one = reference_backward(g, &pts[..1], &d[..g.output_dim()]);
+    for mode in modes(&dev) {
+        let k = HashGridKernels::new(&dev, mode).unwrap();
+        let gpu = k.backward_host(&dev, g, &pts, &d).unwrap();
+        for e in 0..g.num_params {
+            let want = cpu_one[e] as f64 * n as f64;
+            let err = (gpu[e] as f64 - want).abs();
+            // n additions of a value <= 1 in f32: relative rounding at most about n * 2^-24.
+            assert!(
+                err <= 2e-3 * want.abs() + 1e-6,
+                "{mode:?}: entry {e}: gpu {} expected {want}",
+                gpu[e]
+            );
+        }
+    }
+}
+
+#[test]
+fn backward_matches_finite_differences_of_the_cpu_reference() {
+    let Some(dev) = device() else { return };
+    let mut rng = Rng::new(23);
+    for g in grids() {
+        let table = random_table(&g, &mut rng);
+        let pts = points(&g, 40, &mut rng);
+        let dim = g.output_dim();
+        let weights: Vec<f32> = (0..pts.len() * dim)
+            .map(|_| rng.range_f32(-1.0, 1.0))
+            .collect();
+        // loss = sum_i sum_k weights_ik * features_ik(table), through the CPU reference.
+        let loss = |t: &[f32]| -> f64 {
+            let mut s = 0f64;
+            for (i, p) in pts.iter().enumerate() {
+                let f = g.encode_point_reference(t, p);
+                for j in 0..dim {
+                    s += weights[i * dim + j] as f64 * f[j] as f64;
+                }
+            }
+            s
+        };
+        for mode in modes(&dev) {
+            let k = HashGridKernels::new(&dev, mode).unwrap();
+            let gpu = k.backward_host(&dev, &g, &pts, &weights).unwrap();
+            let touched: Vec<usize> = (0..g.num_params).filter(|&e| gpu[e] != 0.0).collect();
+            assert!(touched.len() > 50);
+            let mut picks: Vec<usize> = (0..24)
+                .map(|_| touched[rng.below(touched.len() as u64) as usize])
+                .collect();
+            // and a few entries no sample reached (gradient exactly 0)
+            picks.extend((0..4).map(|_| rng.below(g.num_params as u64) as usize));
+            let h = 0.25f32;
+            let mut worst = 0f64;
+            for e in picks {
+                let mut t = table.clone();
+                t[e] = table[e] + h;
+                let up = loss(&t);
+                t[e] = table[e] - h;
+                let down = loss(&t);
+                let fd = (up - down) / (2.0 * h as f64);
+                let err = (gpu[e] as f64 - fd).abs();
+                assert!(
+                    err <= 1e-3,
+                    "{mode:?} dims {} F {}: entry {e}: gpu {} finite difference {fd}",
+                    g.dims,
+                    g.features,
+                    gpu[e]
+                );
+                worst = worst.max(err);
+            }
+            println!(
+                "finite differences {mode:?} dims {} F {}: worst |gpu - fd| {worst:.2e}",
+                g.dims, g.features
+            );
+        }
+    }
+}
+
+#[test]
+fn bad_input_is_an_error_not_a_panic() {
+    let Some(dev) = device() else { return };
+    let k = HashGridKernels::new(&dev, AtomicMode::CompareExchange).unwrap();
+    let g = &grids()[0];
+    let short = vec![0f32; g.num_params - 1];
+    let e = k.forward_host(&dev, g, &short, &[[0.5; 4]]).unwrap_err();
+    assert!(matches!(e, GpuError::Input(_)), "{e}");
+    let e = k
+        .backward_host(&dev, g, &[[0.5; 4]; 2], &[0.0; 3])
+        .unwrap_err();
+    assert!(matches!(e, GpuError::Input(_)), "{e}");
+    // A points buffer too small for the sample count.
+    let grid = msth_gpu::hashgrid::GpuGrid::new(g, 0).unwrap();
+    let t = dev.zeros_f32("table", g.num_params).unwrap();
+    let p = dev.zeros_f32("points", 4).unwrap();
+    let out = dev.zeros_f32("features", 10 * g.output_dim()).unwrap();
+    let e = k.forward(&dev, &grid, &t, &p, 10, &out).unwrap_err();
+    assert!(matches!(e, GpuError::Input(_)), "{e}");
+    // Native atomics where the device lacks them.
+    if !dev.has_float_atomics() {
+        let e = HashGridKernels::new(&dev, AtomicMode::NativeF32)
+            .err()
+            .expect("refused");
+        assert!(matches!(e, GpuError::MissingFeature(_)), "{e}");
+    }
+    // No samples: nothing to do, no error.
+    assert!(k
+        .forward_host(&dev, g, &vec![0.0; g.num_params], &[])
+        .unwrap()
+        .is_empty());
+}

@@ -1,0 +1,11 @@
+//! GPU playback: the kernels and their host code live in `msth-gpu` (re-exported here, so that
+//! users of the player need no second dependency); this module adds [`GpuRenderer`], the GPU
+//! counterpart of [`crate::render::Renderer`] with the same static-ray cache.
+
+mod renderer;
+
+pub use msth_gpu::{
+    layout, AdapterPolicy, GpuContext, GpuError, GpuModel, GpuScene, Kernel, ViewU,
+    ALLOW_SOFTWARE_ENV, FLAG_COMPACT, FLAG_LIST, RENDER_WGSL,
+};
+pub use renderer::GpuRenderer;
