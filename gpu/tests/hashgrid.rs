@@ -14,27 +14,56 @@
 //! - finite differences: |gpu - fd| <= 1e-3 per entry (the loss is linear in the table, so
 //!   the difference quotient is exact up to f64-summed f32 rounding).
 //!
-//! They skip (saying so) when there is no adapter, unless `MSTH_REQUIRE_GPU=1`.
+//! Without an adapter they are reported as ignored, with the reason, unless `MSTH_REQUIRE_GPU=1`
+//! (then they fail): this binary runs on `msth-testkit`'s harness (`harness = false`), and
+//! [`main`] lists every test.
 
 use msth_core::grid::{GridConfig, GridLayout};
 use msth_core::rng::Rng;
 use msth_gpu::device::ComputeDevice;
 use msth_gpu::hashgrid::{AtomicMode, HashGridKernels};
 use msth_gpu::{AdapterPolicy, GpuError};
+use msth_testkit::{Need, Tests};
 
-/// The device, or `None` (skip) when there is none and `MSTH_REQUIRE_GPU` is not `1`.
-fn device() -> Option<ComputeDevice> {
-    match ComputeDevice::open(AdapterPolicy::any()) {
-        Ok(d) => Some(d),
-        Err(e @ GpuError::NoAdapter(_)) => {
-            if std::env::var("MSTH_REQUIRE_GPU").is_ok_and(|v| v == "1") {
-                panic!("MSTH_REQUIRE_GPU=1 but {e}");
-            }
-            eprintln!("skipping GPU test: {e}");
-            None
-        }
+/// The device (the tests that call this run only where one exists: see [`main`]).
+fn device() -> ComputeDevice {
+    ComputeDevice::open(AdapterPolicy::any()).expect("the adapter the gpu need found")
+}
+
+fn main() -> std::process::ExitCode {
+    // "No adapter" is a missing need; any other error opening one fails the test.
+    let gpu = Need::new("gpu", || match ComputeDevice::open(AdapterPolicy::any()) {
+        Ok(_) => Ok(()),
+        Err(e @ GpuError::NoAdapter(_)) => Err(e.to_string()),
         Err(e) => panic!("{e}"),
-    }
+    });
+    Tests::new(file!())
+        .needs(
+            &[&gpu],
+            "forward_matches_the_cpu_reference",
+            forward_matches_the_cpu_reference,
+        )
+        .needs(
+            &[&gpu],
+            "backward_matches_the_cpu_reference_on_both_atomic_paths",
+            backward_matches_the_cpu_reference_on_both_atomic_paths,
+        )
+        .needs(
+            &[&gpu],
+            "backward_under_contention_loses_no_update",
+            backward_under_contention_loses_no_update,
+        )
+        .needs(
+            &[&gpu],
+            "backward_matches_finite_differences_of_the_cpu_reference",
+            backward_matches_finite_differences_of_the_cpu_reference,
+        )
+        .needs(
+            &[&gpu],
+            "bad_input_is_an_error_not_a_panic",
+            bad_input_is_an_error_not_a_panic,
+        )
+        .run()
 }
 
 /// The atomic paths this device can run: the compare-exchange loop always (forced even where
@@ -115,9 +144,8 @@ fn reference_backward(g: &GridLayout, pts: &[[f32; 4]], d: &[f32]) -> Vec<f32> {
     grad
 }
 
-#[test]
 fn forward_matches_the_cpu_reference() {
-    let Some(dev) = device() else { return };
+    let dev = device();
     let k = HashGridKernels::new(&dev, AtomicMode::CompareExchange).unwrap();
     let mut rng = Rng::new(7);
     for g in grids() {
@@ -166,9 +194,8 @@ fn check_grad(g: &GridLayout, gpu: &[f32], cpu: &[f32], abs_sum: &[f32], what: &
     worst
 }
 
-#[test]
 fn backward_matches_the_cpu_reference_on_both_atomic_paths() {
-    let Some(dev) = device() else { return };
+    let dev = device();
     for mode in modes(&dev) {
         let k = HashGridKernels::new(&dev, mode).unwrap();
         let mut rng = Rng::new(11);
@@ -191,10 +218,9 @@ fn backward_matches_the_cpu_reference_on_both_atomic_paths() {
     }
 }
 
-#[test]
 fn backward_under_contention_loses_no_update() {
     // 20,000 samples at one point: every invocation of a level adds into the same 2^D rows.
-    let Some(dev) = device() else { return };
+    let dev = device();
     let g = &grids()[1];
     let n = 20_000;
     let pts = vec![[0.3, 0.6, 0.2, 0.7]; n];
@@ -216,9 +242,8 @@ fn backward_under_contention_loses_no_update() {
     }
 }
 
-#[test]
 fn backward_matches_finite_differences_of_the_cpu_reference() {
-    let Some(dev) = device() else { return };
+    let dev = device();
     let mut rng = Rng::new(23);
     for g in grids() {
         let table = random_table(&g, &mut rng);
@@ -275,9 +300,8 @@ fn backward_matches_finite_differences_of_the_cpu_reference() {
     }
 }
 
-#[test]
 fn bad_input_is_an_error_not_a_panic() {
-    let Some(dev) = device() else { return };
+    let dev = device();
     let k = HashGridKernels::new(&dev, AtomicMode::CompareExchange).unwrap();
     let g = &grids()[0];
     let short = vec![0f32; g.num_params - 1];
