@@ -23,18 +23,27 @@ pub struct ServeArgs {
     pub max_connections: usize,
 }
 
+/// The server `msth serve` starts for `args` (`msth demo` starts the same one in-process).
+pub(crate) fn server_config(args: &ServeArgs) -> msth_server::ServerConfig {
+    let mut config = msth_server::ServerConfig::new(&args.path);
+    config.addr = args.addr;
+    config.web_dir = args.web.clone().or_else(default_web_dir);
+    config.limits.max_connections = args.max_connections.max(1);
+    config
+}
+
+/// The web player's folder when `--web` is not given: `web/` in the current directory, if any.
+pub(crate) fn default_web_dir() -> Option<PathBuf> {
+    Some(PathBuf::from("web")).filter(|p| p.is_dir())
+}
+
 pub fn serve(args: ServeArgs) -> anyhow::Result<()> {
     // Request log lines on stderr; a second call (tests) keeps the first subscriber.
     let _ = tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
         .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .try_init();
-    let mut config = msth_server::ServerConfig::new(&args.path);
-    config.addr = args.addr;
-    config.web_dir = args
-        .web
-        .or_else(|| Some(PathBuf::from("web")).filter(|p| p.is_dir()));
-    config.limits.max_connections = args.max_connections.max(1);
+    let config = server_config(&args);
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
