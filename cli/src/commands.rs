@@ -18,7 +18,7 @@ use msth_trainer::imageio::{colormap, save_png_atomic};
 use msth_trainer::synth::{generate, SynthConfig};
 use msth_trainer::train::{train as run_training, Progress, TrainOutcome, TrainSettings, Trainer};
 
-use crate::{data, DemoArgs, EvalArgs, RenderArgs, SynthArgs, TrainArgs};
+use crate::{data, EvalArgs, RenderArgs, SynthArgs, TrainArgs};
 
 pub fn synth(a: SynthArgs) -> Result<()> {
     if let Some(size) = &a.size {
@@ -104,7 +104,7 @@ fn read_config_file(path: &Path) -> Result<serde_json::Value> {
 }
 
 /// Shows training progress: a bar with ETA on a terminal, a log line every 5% otherwise.
-fn report(pb: &ProgressBar, p: &Progress) -> bool {
+pub(crate) fn report(pb: &ProgressBar, p: &Progress) -> bool {
     pb.set_position(p.step as u64);
     let msg = format!(
         "loss {:.5}  psnr {:.2} dB  {:.0}k samples/s",
@@ -126,7 +126,7 @@ fn report(pb: &ProgressBar, p: &Progress) -> bool {
     true
 }
 
-fn progress_bar(iters: usize) -> ProgressBar {
+pub(crate) fn progress_bar(iters: usize) -> ProgressBar {
     let pb = ProgressBar::new(iters as u64);
     pb.set_style(
         ProgressStyle::with_template(
@@ -233,6 +233,7 @@ pub fn train(a: TrainArgs) -> Result<Option<Metrics>> {
         return Ok(None);
     }
     let m = eval_trained(&data, &trainer, stride, &a.out, &outcome)?;
+    print_metrics(&m, &a.out.join("metrics.json"));
     Ok(Some(m))
 }
 
@@ -247,7 +248,9 @@ fn print_outcome(o: &TrainOutcome) {
     );
 }
 
-fn eval_trained(
+/// Evaluates a trained model on the held-out views, writing `out/metrics.json` and the pictures
+/// in `out/eval/` (printing nothing).
+pub(crate) fn eval_trained(
     data: &Dataset,
     trainer: &Trainer,
     stride: usize,
@@ -284,7 +287,6 @@ fn eval_and_save(
     let path = out.join("metrics.json");
     m.save(&path)
         .with_context(|| format!("writing {}", path.display()))?;
-    print_metrics(&m, &path);
     Ok(m)
 }
 
@@ -322,7 +324,7 @@ pub fn eval(a: EvalArgs) -> Result<()> {
         rays_per_sec: 0.0,
         last_loss: f32::NAN,
     };
-    eval_and_save(
+    let m = eval_and_save(
         &data,
         &ckpt.header.model,
         &layout,
@@ -331,6 +333,7 @@ pub fn eval(a: EvalArgs) -> Result<()> {
         &out,
         &outcome,
     )?;
+    print_metrics(&m, &out.join("metrics.json"));
     Ok(())
 }
 
@@ -488,46 +491,5 @@ pub fn render(a: RenderArgs) -> Result<()> {
             mp.display()
         );
     }
-    Ok(())
-}
-
-/// Training-time budget of `msth demo` (the whole demo must end within 3 minutes).
-const DEMO_TRAIN_SECONDS: f64 = 162.0;
-
-pub fn demo(a: DemoArgs) -> Result<()> {
-    let t0 = Instant::now();
-    println!("msth demo: built-in scene -> train (fast preset) -> evaluate");
-    let cfg = SynthConfig::default();
-    let data = generate(&cfg);
-    println!(
-        "built-in scene: {} cameras x {} frames of {}x{} + a held-out camera, generated in {:.1} s",
-        cfg.num_train_cams,
-        cfg.num_frames,
-        cfg.width,
-        cfg.height,
-        t0.elapsed().as_secs_f64()
-    );
-    let mut settings = TrainSettings::for_preset(Preset::Fast, &data);
-    settings.seed = a.seed;
-    // The demo promises an answer within three minutes on a 2-core machine: cap training time.
-    settings.time_limit_secs = DEMO_TRAIN_SECONDS;
-    if let Some(i) = a.iters {
-        settings.iters = i;
-        settings.anneal_steps = (i / 4).max(1);
-    }
-    settings.validate().map_err(anyhow::Error::msg)?;
-    let pb = progress_bar(settings.iters);
-    let stride = settings.eval_stride;
-    let (trainer, outcome) = run_training(&data, settings, &a.out, None, &mut |p| report(&pb, p))?;
-    pb.finish();
-    print_outcome(&outcome);
-    let m = eval_trained(&data, &trainer, stride, &a.out, &outcome)?;
-    println!(
-        "demo done in {:.1} s: held-out PSNR {:.2} dB. Model: {}, metrics: {}",
-        t0.elapsed().as_secs_f64(),
-        m.psnr,
-        a.out.join("model.ckpt").display(),
-        a.out.join("metrics.json").display()
-    );
     Ok(())
 }

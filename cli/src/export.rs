@@ -3,7 +3,7 @@
 //! [`msth_trainer::unreached`]); `--measure DATA` instead measures every quantisation mode and dynamic threshold
 //! (size, PSNR drop on the held-out views, speed) and prints markdown tables.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
@@ -71,27 +71,41 @@ pub fn export(a: ExportArgs) -> Result<()> {
     let Some(out) = &a.output else {
         bail!("-o OUTPUT is required (or --measure DATA)");
     };
-    drop_unreached(&mut ckpt, a.keep_unreached, &a.checkpoint)?;
-    let (bytes, report) = encode(
-        &ckpt.header.model,
-        &ckpt.params,
-        &ckpt.header.cameras,
-        &opts,
-    )
-    .with_context(|| format!("encoding {}", a.checkpoint.display()))?;
-    write_atomic(out, &bytes).with_context(|| format!("writing {}", out.display()))?;
+    let (report, unreached) = write_msth(&mut ckpt, &a.checkpoint, out, &opts, a.keep_unreached)?;
+    if let Some(line) = unreached {
+        println!("{line}");
+    }
     print_summary(&report, out);
     Ok(())
 }
 
-/// Zeroes the hash-table values no training ray reached (unless `keep`) and says how many.
-fn drop_unreached(ckpt: &mut Checkpoint, keep: bool, path: &std::path::Path) -> Result<()> {
+/// What `msth export CKPT -o OUT` does, without printing: zeroes the table values no training ray
+/// reached (unless `keep_unreached`), encodes `ckpt` (read from `ckpt_path`) with `opts` and
+/// writes `out` atomically. Returns the encoder's report and a line saying what was zeroed.
+pub(crate) fn write_msth(
+    ckpt: &mut Checkpoint,
+    ckpt_path: &Path,
+    out: &Path,
+    opts: &EncodeOptions,
+    keep_unreached: bool,
+) -> Result<(EncodeReport, Option<String>)> {
+    let unreached = drop_unreached(ckpt, keep_unreached, ckpt_path)?;
+    let (bytes, report) = encode(&ckpt.header.model, &ckpt.params, &ckpt.header.cameras, opts)
+        .with_context(|| format!("encoding {}", ckpt_path.display()))?;
+    write_atomic(out, &bytes).with_context(|| format!("writing {}", out.display()))?;
+    Ok((report, unreached))
+}
+
+/// Zeroes the hash-table values no training ray reached (unless `keep`); the line saying how
+/// many.
+fn drop_unreached(ckpt: &mut Checkpoint, keep: bool, path: &Path) -> Result<Option<String>> {
     if keep {
-        return Ok(());
+        return Ok(None);
     }
     let Some(adam) = &ckpt.adam else {
-        println!("unreached table values: kept (the checkpoint has no optimiser state)");
-        return Ok(());
+        return Ok(Some(
+            "unreached table values: kept (the checkpoint has no optimiser state)".into(),
+        ));
     };
     let layout = ModelLayout::new(&ckpt.header.model);
     let report = zero_unreached(&layout, &mut ckpt.params, adam)
@@ -108,14 +122,14 @@ fn drop_unreached(ckpt: &mut Checkpoint, keep: bool, path: &std::path::Path) -> 
             )
         })
         .collect();
-    println!(
+    Ok(Some(format!(
         "unreached table values set to 0 (no training ray read them): {}",
         parts.join(", ")
-    );
-    Ok(())
+    )))
 }
 
-fn mb(b: u64) -> String {
+/// A byte count in KiB or MiB.
+pub(crate) fn mb(b: u64) -> String {
     if b >= 1 << 20 {
         format!("{:.2} MiB", b as f64 / (1 << 20) as f64)
     } else {

@@ -7,6 +7,7 @@ mod bench_play;
 pub mod bench_tradeoff;
 mod commands;
 pub mod data;
+mod demo;
 mod export;
 mod play;
 mod scenegen;
@@ -35,8 +36,10 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Built-in scene -> train (fast preset) -> evaluate, in one go.
-    Demo(DemoArgs),
+    /// The whole flow on the built-in scene: train (fast preset, time-capped) -> evaluate ->
+    /// export a `.msth` file -> serve it on loopback -> play a free-viewpoint path through the
+    /// server -> MP4 and a strip picture; then the command and URL that show it in a browser.
+    Demo(demo::DemoArgs),
     /// Write a dataset: the built-in procedural scene (D-NeRF JSON), or with `--gltf` an animated
     /// glTF model rendered in the object (D-NeRF) or stage (DyNeRF + JSON) layout.
     Synth(SynthArgs),
@@ -54,18 +57,6 @@ enum Command {
     Serve(serve::ServeArgs),
     /// Play a `.msth` file (URL or local) as free-viewpoint video: PNG frames, MP4, FPS.
     Play(play::PlayArgs),
-}
-
-#[derive(Args)]
-pub struct DemoArgs {
-    /// Output folder.
-    #[arg(long, default_value = "out/demo")]
-    pub out: PathBuf,
-    /// Override the number of iterations of the fast preset.
-    #[arg(long)]
-    pub iters: Option<usize>,
-    #[arg(long, default_value_t = 0)]
-    pub seed: u64,
 }
 
 #[derive(Args)]
@@ -230,7 +221,7 @@ where
             .build_global();
     }
     match cli.command {
-        Command::Demo(a) => commands::demo(a),
+        Command::Demo(a) => demo::run(a),
         Command::Synth(a) => commands::synth(a),
         Command::Train(a) => commands::train(a).map(|_| ()),
         Command::Eval(a) => commands::eval(a),

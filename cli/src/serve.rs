@@ -31,17 +31,11 @@ pub struct ServeArgs {
     pub header_timeout_secs: f64,
 }
 
-pub fn serve(args: ServeArgs) -> anyhow::Result<()> {
-    // Request log lines on stderr; a second call (tests) keeps the first subscriber.
-    let _ = tracing_subscriber::fmt()
-        .with_writer(std::io::stderr)
-        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
-        .try_init();
+/// The server `msth serve` starts for `args` (`msth demo` starts the same one in-process).
+pub(crate) fn server_config(args: &ServeArgs) -> anyhow::Result<msth_server::ServerConfig> {
     let mut config = msth_server::ServerConfig::new(&args.path);
     config.addr = args.addr;
-    config.web_dir = args
-        .web
-        .or_else(|| Some(PathBuf::from("web")).filter(|p| p.is_dir()));
+    config.web_dir = args.web.clone().or_else(default_web_dir);
     config.limits.max_connections = args.max_connections.max(1);
     config.limits.max_connections_per_ip = args.max_connections_per_ip.max(1);
     config.limits.header_read_timeout =
@@ -49,6 +43,21 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<()> {
             .ok()
             .filter(|d| !d.is_zero())
             .context("--header-timeout-secs must be a positive number of seconds")?;
+    Ok(config)
+}
+
+/// The web player's folder when `--web` is not given: `web/` in the current directory, if any.
+pub(crate) fn default_web_dir() -> Option<PathBuf> {
+    Some(PathBuf::from("web")).filter(|p| p.is_dir())
+}
+
+pub fn serve(args: ServeArgs) -> anyhow::Result<()> {
+    // Request log lines on stderr; a second call (tests) keeps the first subscriber.
+    let _ = tracing_subscriber::fmt()
+        .with_writer(std::io::stderr)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+        .try_init();
+    let config = server_config(&args)?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()

@@ -303,8 +303,8 @@ pub fn write_png(path: &Path, frame: &Frame) -> Result<(), PlayError> {
 }
 
 /// Encodes `dir/frame_*.png` into `dir/video.mp4` with ffmpeg (H.264, yuv420p); `Err` says why
-/// not.
-fn make_video(dir: &Path, fps: f32) -> Result<PathBuf, String> {
+/// not (`msth demo` calls it to time the video on its own).
+pub fn make_video(dir: &Path, fps: f32) -> Result<PathBuf, String> {
     let out = dir.join("video.mp4");
     let tmp = dir.join("video.tmp.mp4");
     let status = Command::new("ffmpeg")

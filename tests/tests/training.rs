@@ -132,7 +132,18 @@ fn same_seed_same_model_and_resume_is_exact() {
 fn demo_leaves_checkpoint_and_metrics() {
     let t = tempfile::tempdir().unwrap();
     let out = t.path().join("demo");
-    msth(&["demo", "--out", out.to_str().unwrap(), "--iters", "20"]).unwrap();
+    msth(&[
+        "demo",
+        "--out",
+        out.to_str().unwrap(),
+        "--iters",
+        "20",
+        "--play-size",
+        "48x36",
+        "--play-frames",
+        "7",
+    ])
+    .unwrap();
     let m: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap()).unwrap();
     for k in [
