@@ -20,18 +20,35 @@ use msth_gpu::mask::MaskKernels;
 use msth_gpu::{AdapterPolicy, GpuError};
 use msth_testkit::{Need, Tests};
 
-fn device() -> Option<ComputeDevice> {
-    match ComputeDevice::open(AdapterPolicy::any()) {
-        Ok(d) => Some(d),
-        Err(e @ GpuError::NoAdapter(_)) => {
-            if std::env::var("MSTH_REQUIRE_GPU").is_ok_and(|v| v == "1") {
-                panic!("MSTH_REQUIRE_GPU=1 but {e}");
-            }
-            eprintln!("skipping GPU test: {e}");
-            None
-        }
+/// The device (the tests that call this run only where one exists: see [`main`]).
+fn device() -> ComputeDevice {
+    ComputeDevice::open(AdapterPolicy::any()).expect("the adapter the gpu need found")
+}
+
+fn main() -> std::process::ExitCode {
+    // "No adapter" is a missing need; any other error opening one fails the test.
+    let gpu = Need::new("gpu", || match ComputeDevice::open(AdapterPolicy::any()) {
+        Ok(_) => Ok(()),
+        Err(e @ GpuError::NoAdapter(_)) => Err(e.to_string()),
         Err(e) => panic!("{e}"),
-    }
+    });
+    Tests::new(file!())
+        .needs(
+            &[&gpu],
+            "mask_forward_and_backward_match_the_cpu",
+            mask_forward_and_backward_match_the_cpu,
+        )
+        .needs(
+            &[&gpu],
+            "mask_backward_matches_finite_differences_of_the_cpu_reference",
+            mask_backward_matches_finite_differences_of_the_cpu_reference,
+        )
+        .needs(
+            &[&gpu],
+            "mask_bad_input_is_an_error",
+            mask_bad_input_is_an_error,
+        )
+        .run()
 }
 
 fn modes(dev: &ComputeDevice) -> Vec<AtomicMode> {
