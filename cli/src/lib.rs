@@ -8,6 +8,7 @@ pub mod bench_tradeoff;
 mod commands;
 pub mod data;
 mod export;
+mod inspect;
 mod play;
 mod scenegen;
 mod serve;
@@ -54,6 +55,8 @@ enum Command {
     Serve(serve::ServeArgs),
     /// Play a `.msth` file (URL or local) as free-viewpoint video: PNG frames, MP4, FPS.
     Play(play::PlayArgs),
+    /// Describe a `.msth` file (local or URL) and validate it against docs/format.md.
+    Inspect(inspect::InspectArgs),
 }
 
 #[derive(Args)]
@@ -239,5 +242,6 @@ where
         Command::Export(a) => export::export(a),
         Command::Serve(a) => serve::serve(a),
         Command::Play(a) => play::run(a),
+        Command::Inspect(a) => inspect::run(a),
     }
 }

@@ -951,7 +951,7 @@ mod tests {
             cfg.sampler.num_proposal_samples = np;
             cfg.sampler.num_samples = nf;
             let n = rays_per_batch(&cfg, CHUNK);
-            assert!(n >= 1 && n < CHUNK, "{np} + {nf}: {n} rays");
+            assert!((1..CHUNK).contains(&n), "{np} + {nf}: {n} rays");
             assert!(n as u64 * scratch_bytes_per_ray(&cfg) <= BATCH_SCRATCH_BYTES);
         }
     }
