@@ -9,6 +9,7 @@ mod commands;
 pub mod data;
 mod demo;
 mod export;
+mod inspect;
 mod play;
 mod scenegen;
 mod serve;
@@ -57,6 +58,8 @@ enum Command {
     Serve(serve::ServeArgs),
     /// Play a `.msth` file (URL or local) as free-viewpoint video: PNG frames, MP4, FPS.
     Play(play::PlayArgs),
+    /// Describe a `.msth` file (local or URL) and validate it against docs/format.md.
+    Inspect(inspect::InspectArgs),
 }
 
 #[derive(Args)]
@@ -230,5 +233,6 @@ where
         Command::Export(a) => export::export(a),
         Command::Serve(a) => serve::serve(a),
         Command::Play(a) => play::run(a),
+        Command::Inspect(a) => inspect::run(a),
     }
 }

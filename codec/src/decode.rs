@@ -47,6 +47,7 @@ fn unpack(entry: &SectionEntry, stored: &[u8], max_raw: u64) -> Result<Vec<u8>, 
             max_raw,
         ));
     }
+    check_single_frame(stored, &what)?;
     // The output buffer is bounded by raw_length: zstd fails rather than grow it.
     let raw = zstd::bulk::decompress(stored, entry.raw_length as usize).map_err(|e| {
         DecodeError::Zstd {
@@ -65,6 +66,39 @@ fn unpack(entry: &SectionEntry, stored: &[u8], max_raw: u64) -> Result<Vec<u8>, 
         ));
     }
     Ok(raw)
+}
+
+/// The magic number that opens a zstd frame (RFC 8878 §3.1.1), little-endian.
+const ZSTD_MAGIC: [u8; 4] = [0x28, 0xb5, 0x2f, 0xfd];
+
+/// format.md §1.1: a section's stored bytes are exactly one zstd frame. zstd itself would
+/// decompress concatenated frames (and skip skippable ones) one after another, so a second frame
+/// or any byte after the first would go unnoticed by it; a decoder written from the spec that
+/// reads one frame would then disagree with this one.
+fn check_single_frame(stored: &[u8], what: &str) -> Result<(), DecodeError> {
+    if stored.len() < 4 || stored[..4] != ZSTD_MAGIC {
+        return Err(DecodeError::Zstd {
+            what: what.into(),
+            message: "not a zstd frame (bad magic)".into(),
+        });
+    }
+    // Walks the frame header and block headers only (no decompression, no allocation).
+    let frame =
+        zstd::zstd_safe::find_frame_compressed_size(stored).map_err(|code| DecodeError::Zstd {
+            what: what.into(),
+            message: zstd::zstd_safe::get_error_name(code).to_string(),
+        })?;
+    if frame != stored.len() {
+        return Err(DecodeError::malformed(
+            what,
+            format!(
+                "{} bytes after the zstd frame ({frame} of {} stored bytes): a section is exactly one frame",
+                stored.len() - frame,
+                stored.len()
+            ),
+        ));
+    }
+    Ok(())
 }
 
 /// A streaming decoder: built from the file's prefix, fed sections as their bytes arrive.

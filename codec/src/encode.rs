@@ -144,6 +144,11 @@ pub fn encode(
 ) -> Result<(Vec<u8>, EncodeReport), EncodeError> {
     let start = Instant::now();
     model.validate().map_err(EncodeError::InvalidConfig)?;
+    // Never write a file the decoder's default limits refuse.
+    let limits = crate::Limits::default();
+    limits
+        .check_model(model)
+        .map_err(|e| EncodeError::InvalidConfig(e.to_string()))?;
     let layout = ModelLayout::new(model);
     if params.len() != layout.params.total {
         return Err(EncodeError::ParamCount {
@@ -186,6 +191,12 @@ pub fn encode(
     for (index, c) in cameras.iter().enumerate() {
         c.validate()
             .map_err(|message| EncodeError::InvalidCamera { index, message })?;
+        limits
+            .check_image(&format!("cameras[{index}]"), c.width, c.height)
+            .map_err(|e| EncodeError::InvalidCamera {
+                index,
+                message: e.to_string(),
+            })?;
     }
     let enc = Encodings::for_mode(opts.quant);
 

@@ -198,7 +198,9 @@ pub struct Metadata {
     pub encoder: String,
 }
 
-/// Sizes the decoder accepts; everything is checked before anything is allocated.
+/// Sizes the decoder accepts; everything is checked before anything is allocated. Besides the
+/// sizes the decoder itself allocates from, the limits bound every size a file declares that
+/// drives a player's allocations (format.md §8): pixels per camera image and samples per ray.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Limits {
     /// Largest metadata JSON, bytes.
@@ -211,7 +213,27 @@ pub struct Limits {
     pub max_section_bytes: u64,
     /// Most playback cameras.
     pub max_cameras: u64,
+    /// Longest side of a camera image, pixels.
+    pub max_image_side: u64,
+    /// Most pixels of one camera image (width x height).
+    pub max_image_pixels: u64,
+    /// Most proposal samples per ray (`model.sampler.num_proposal_samples`).
+    pub max_proposal_samples: u64,
+    /// Most main samples per ray (`model.sampler.num_samples`).
+    pub max_samples: u64,
 }
+
+/// [`Limits::max_image_side`]'s default: 16384 pixels (the largest `msth play --size` side).
+pub const MAX_IMAGE_SIDE: u64 = 1 << 14;
+/// [`Limits::max_image_pixels`]'s default: 2^24 = 16.8 million pixels (4096 x 4096). A 4K UHD
+/// frame (3840 x 2160) is 8.3 million, the Plenoptic Video cameras (2704 x 2028) 5.5 million and
+/// their half-resolution training images (1352 x 1014) 1.4 million.
+pub const MAX_IMAGE_PIXELS: u64 = 1 << 24;
+/// [`Limits::max_proposal_samples`]'s default: 8x the paper's 128 proposal samples per ray (and
+/// 4x the largest real proposal stage we know, 2 x 128 or 256 samples).
+pub const MAX_PROPOSAL_SAMPLES: u64 = 1024;
+/// [`Limits::max_samples`]'s default: more than 10x the paper's 48 main samples per ray.
+pub const MAX_SAMPLES: u64 = 512;
 
 impl Default for Limits {
     fn default() -> Self {
@@ -221,7 +243,59 @@ impl Default for Limits {
             max_params: 1 << 27,
             max_section_bytes: 2 << 30,
             max_cameras: 4096,
+            max_image_side: MAX_IMAGE_SIDE,
+            max_image_pixels: MAX_IMAGE_PIXELS,
+            max_proposal_samples: MAX_PROPOSAL_SAMPLES,
+            max_samples: MAX_SAMPLES,
         }
+    }
+}
+
+impl Limits {
+    /// Checks an image size against [`Limits::max_image_side`] and
+    /// [`Limits::max_image_pixels`]; `what` names where it comes from (`cameras[0]`, `--size`).
+    pub fn check_image(&self, what: &str, width: u32, height: u32) -> Result<(), DecodeError> {
+        for (side, v) in [("width", width), ("height", height)] {
+            if v as u64 > self.max_image_side {
+                return Err(DecodeError::limit(
+                    format!("{what} {side} (pixels)"),
+                    v as u64,
+                    self.max_image_side,
+                ));
+            }
+        }
+        let pixels = width as u64 * height as u64;
+        if pixels > self.max_image_pixels {
+            return Err(DecodeError::limit(
+                format!("{what} pixels ({width} x {height})"),
+                pixels,
+                self.max_image_pixels,
+            ));
+        }
+        Ok(())
+    }
+
+    /// Checks the sizes of a model configuration that drive a renderer's memory: samples per
+    /// ray (the parameter count is checked against [`Limits::max_params`] separately).
+    pub fn check_model(&self, model: &ModelConfig) -> Result<(), DecodeError> {
+        let s = &model.sampler;
+        for (what, v, limit) in [
+            (
+                "model.sampler.num_proposal_samples",
+                s.num_proposal_samples as u64,
+                self.max_proposal_samples,
+            ),
+            (
+                "model.sampler.num_samples",
+                s.num_samples as u64,
+                self.max_samples,
+            ),
+        ] {
+            if v > limit {
+                return Err(DecodeError::limit(what, v, limit));
+            }
+        }
+        Ok(())
     }
 }
 
@@ -461,6 +535,37 @@ impl FileIndex {
             .find(|s| s.kind == SectionKind::Dynamic && s.chunk as usize == chunk)
     }
 
+    /// The rules format.md puts on writers that a decoder need not enforce, for validators
+    /// (`msth inspect`): chunk spans are contiguous in time, the first starts at 0 and the last
+    /// ends at 1 (§3.3).
+    pub fn check_writer_rules(&self) -> Result<(), DecodeError> {
+        let spans = &self.metadata.chunks;
+        let bad = |m: String| Err(DecodeError::malformed("metadata (writer rule, §3.3)", m));
+        if let (Some(first), Some(last)) = (spans.first(), spans.last()) {
+            if first.t_start != 0.0 {
+                return bad(format!("chunk 0 starts at t = {}, not 0", first.t_start));
+            }
+            if last.t_end != 1.0 {
+                return bad(format!(
+                    "the last chunk ({}) ends at t = {}, not 1",
+                    spans.len() - 1,
+                    last.t_end
+                ));
+            }
+        }
+        for (c, w) in spans.windows(2).enumerate() {
+            if w[0].t_end != w[1].t_start {
+                return bad(format!(
+                    "chunk {c} ends at t = {} but chunk {} starts at t = {}: spans must be contiguous",
+                    w[0].t_end,
+                    c + 1,
+                    w[1].t_start
+                ));
+            }
+        }
+        Ok(())
+    }
+
     /// The chunk a player uses at normalised time `t`: the last chunk whose `t_start <= t`
     /// (chunk 0 before the first); `None` when the file has no dynamic chunks.
     pub fn chunk_for_time(&self, t: f32) -> Option<usize> {
@@ -474,6 +579,7 @@ impl FileIndex {
 
 fn check_metadata(m: &Metadata, limits: &Limits) -> Result<ModelLayout, DecodeError> {
     m.model.validate().map_err(DecodeError::Model)?;
+    limits.check_model(&m.model)?;
     // Bound the layout's size before building it: the parameter count of every grid is at most
     // levels * table rows * features, and ModelLayout::new allocates nothing per row.
     let layout = ModelLayout::new(&m.model);
@@ -501,6 +607,7 @@ fn check_metadata(m: &Metadata, limits: &Limits) -> Result<ModelLayout, DecodeEr
     for (i, c) in m.cameras.iter().enumerate() {
         c.validate()
             .map_err(|e| DecodeError::malformed("metadata", format!("camera {i}: {e}")))?;
+        limits.check_image(&format!("cameras[{i}]"), c.width, c.height)?;
     }
     if let Some(r) = m.frame_rate {
         if !(r.is_finite() && r > 0.0) {
@@ -516,9 +623,16 @@ fn check_metadata(m: &Metadata, limits: &Limits) -> Result<ModelLayout, DecodeEr
             "dynamic_threshold must be in [0, 1]",
         ));
     }
-    let [t0, t1] = m.time_range;
-    if !(t0.is_finite() && t1.is_finite() && t0 <= t1) {
-        return Err(DecodeError::malformed("metadata", "bad time_range"));
+    // Version 1 covers normalised time [0, 1] only (format.md §3): another range would mean
+    // something a version-1 player cannot show, so it needs a new version.
+    if m.time_range != [0.0, 1.0] {
+        return Err(DecodeError::malformed(
+            "metadata",
+            format!(
+                "time_range is [{}, {}], version 1 allows only [0, 1]",
+                m.time_range[0], m.time_range[1]
+            ),
+        ));
     }
     if m.chunk_frames == 0 {
         return Err(DecodeError::malformed(

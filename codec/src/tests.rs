@@ -212,3 +212,54 @@ fn encoder_rejects_bad_input() {
     p[5] = f32::NAN;
     assert!(encode(&c, &p, &[], &EncodeOptions::default()).is_err());
 }
+
+#[test]
+fn encoder_output_follows_the_writer_rules() {
+    // format.md §3.3: spans contiguous, the first from 0, the last to 1 (any frame count).
+    for (frames, chunk_frames) in [(4, 2), (7, 3), (1, 1), (10, 4)] {
+        let c = tiny(BlendMode::Mt, frames);
+        let p = params_for(&c);
+        let opts = EncodeOptions {
+            chunk_frames,
+            ..Default::default()
+        };
+        let (bytes, _) = encode(&c, &p, &[], &opts).unwrap();
+        let index = FileIndex::parse(&bytes, &Limits::default()).unwrap();
+        index.check_writer_rules().unwrap();
+        if index.metadata.chunks.len() > 1 {
+            let mut gap = index.clone();
+            gap.metadata.chunks[1].t_start += 0.01;
+            let err = gap.check_writer_rules().unwrap_err().to_string();
+            assert!(err.contains("contiguous"), "{err}");
+            let mut late = index.clone();
+            late.metadata.chunks[0].t_start = 0.1;
+            assert!(late.check_writer_rules().is_err());
+        }
+    }
+}
+
+#[test]
+fn encoder_refuses_what_the_decoder_limits_refuse() {
+    let mut c = tiny(BlendMode::Mt, 4);
+    let p = params_for(&c);
+    c.sampler.num_samples = crate::format::MAX_SAMPLES as usize + 1;
+    let err = encode(&c, &p, &[], &EncodeOptions::default())
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("model.sampler.num_samples"), "{err}");
+    let c = tiny(BlendMode::Mt, 4);
+    let big: msth_core::Camera = serde_json::from_value(serde_json::json!({
+        "width": 5000, "height": 5000, "fx": 4000.0, "fy": 4000.0, "cx": 2500.0, "cy": 2500.0,
+        "world_from_camera": [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 4, 1]
+    }))
+    .unwrap();
+    let err = encode(&c, &p, &[big], &EncodeOptions::default())
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("cameras[0] pixels (5000 x 5000)"), "{err}");
+    // 4K UHD and the Plenoptic Video sizes are within the limits.
+    let limits = Limits::default();
+    for (w, h) in [(3840, 2160), (4096, 2160), (2704, 2028), (1352, 1014)] {
+        limits.check_image("camera", w, h).unwrap();
+    }
+}

@@ -160,11 +160,16 @@ pub fn play(
         )));
     }
     if let Some((w, h)) = opts.size {
-        if w == 0 || h == 0 || w > 1 << 14 || h > 1 << 14 {
+        if w == 0 || h == 0 {
             return Err(PlayError::Options(format!(
-                "--size {w}x{h}: sides must lie in 1..16384"
+                "--size {w}x{h}: sides must be at least 1"
             )));
         }
+        // The same bound as the file's own cameras (format.md §8): the frame, the static cache
+        // and the rays all grow with the pixel count.
+        opts.limits
+            .check_image("--size", w, h)
+            .map_err(|e| PlayError::Options(e.to_string()))?;
     }
     let src = source::open(&opts.source, &opts.http).map_err(StreamError::from)?;
     let stream = ModelStream::open(src, &opts.limits)?;

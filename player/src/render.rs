@@ -201,10 +201,47 @@ pub struct Renderer {
     cache: Option<Cache>,
 }
 
-/// Rays per work item of the parallel loop.
+/// Most rays per work item of the parallel loop.
 const CHUNK: usize = 256;
 
-/// Renders `rays` in parallel, in order.
+/// Scratch memory one rendering thread may use for one batch of rays, bytes. The scratch grows
+/// with rays x samples x the floats kept per sample; batches are sized to stay near this, so
+/// that a file asking for many samples per ray gets smaller batches, not more memory (the
+/// paper's 128 + 48 samples give whole batches of 256 rays at about 30 MiB).
+pub const BATCH_SCRATCH_BYTES: u64 = 64 << 20;
+
+/// Bytes of rendering scratch one ray of `cfg` takes (an upper estimate of what
+/// `msth_core::pipeline`'s `Workspace` keeps per sample: points, intervals, weights, both
+/// encodings' 3D/4D/blended features and mask, every MLP activation, colours; doubled for the
+/// buffers packed and copied along the way).
+pub fn scratch_bytes_per_ray(cfg: &ModelConfig) -> u64 {
+    let enc_dim = |e: &msth_core::config::EncodingConfig| {
+        let g3 = e.grid3.levels as u64 * e.grid3.features_per_level as u64;
+        let g4 = e.grid4.levels as u64 * e.grid4.features_per_level as u64;
+        3 * g3.max(g4) + 2
+    };
+    let f = &cfg.field;
+    let per_proposal = 12 + enc_dim(&cfg.proposal.encoding) + cfg.proposal.hidden as u64 + 2;
+    let color_in = msth_core::sh::SH_COEFFS as u64 + f.geo_features as u64;
+    let per_main = 16
+        + enc_dim(&f.encoding)
+        + f.density_hidden as u64
+        + 1
+        + f.geo_features as u64
+        + color_in
+        + f.color_hidden as u64 * f.color_layers as u64
+        + 8;
+    let s = &cfg.sampler;
+    2 * 4 * (s.num_proposal_samples as u64 * per_proposal + s.num_samples as u64 * per_main)
+}
+
+/// Rays per batch for `cfg`: as many as fit [`BATCH_SCRATCH_BYTES`], between 1 and `most`.
+pub fn rays_per_batch(cfg: &ModelConfig, most: usize) -> usize {
+    let per_ray = scratch_bytes_per_ray(cfg).max(1);
+    ((BATCH_SCRATCH_BYTES / per_ray) as usize).clamp(1, most.max(1))
+}
+
+/// Renders `rays` in parallel, in order, in batches of [`rays_per_batch`] rays.
 pub fn render_rays(
     cfg: &ModelConfig,
     layout: &ModelLayout,
@@ -212,7 +249,7 @@ pub fn render_rays(
     rays: &[TimedRay],
 ) -> RenderOutput {
     let parts: Vec<RenderOutput> = rays
-        .par_chunks(CHUNK)
+        .par_chunks(rays_per_batch(cfg, CHUNK))
         .map_init(Workspace::default, |ws, c| {
             let mut out = RenderOutput::default();
             render_chunk(cfg, layout, params, c, ws, &mut out);
@@ -894,6 +931,29 @@ mod tests {
         );
         assert!(asked.iter().all(|&t| t > 0.0), "{asked:?}");
         assert!(!asked.is_empty());
+    }
+
+    #[test]
+    fn batches_keep_scratch_memory_bounded_whatever_the_sampler() {
+        let paper = ModelConfig::preset(
+            Preset::Paper,
+            SceneBounds::dnerf_default(),
+            Background::Color { rgb: [1.0; 3] },
+            300,
+        );
+        // The paper's 128 + 48 samples: whole batches.
+        assert_eq!(rays_per_batch(&paper, CHUNK), CHUNK);
+        assert!(CHUNK as u64 * scratch_bytes_per_ray(&paper) <= BATCH_SCRATCH_BYTES);
+        // The decoder's largest sampler and far beyond it: smaller batches, never over budget
+        // (unless a single ray is), never empty.
+        for (np, nf) in [(1024, 512), (4096, 4096)] {
+            let mut cfg = paper.clone();
+            cfg.sampler.num_proposal_samples = np;
+            cfg.sampler.num_samples = nf;
+            let n = rays_per_batch(&cfg, CHUNK);
+            assert!((1..CHUNK).contains(&n), "{np} + {nf}: {n} rays");
+            assert!(n as u64 * scratch_bytes_per_ray(&cfg) <= BATCH_SCRATCH_BYTES);
+        }
     }
 
     #[test]

@@ -121,7 +121,7 @@ impl SampleCache {
     ) -> SampleCache {
         let samples = samples.clamp(1, u16::MAX as usize);
         let parts: Vec<SampleCache> = rays
-            .par_chunks(CHUNK)
+            .par_chunks(crate::render::rays_per_batch(cfg, CHUNK))
             .map_init(
                 || (Workspace::default(), FieldScratch::default()),
                 |(ws, fs), c| {
@@ -249,12 +249,13 @@ impl SampleCache {
         time: f32,
     ) -> Vec<[f32; 3]> {
         let time = if time >= 0.0 { time.min(1.0) } else { 0.0 };
-        let chunks = self.rays.div_ceil(CHUNK);
+        let batch = crate::render::rays_per_batch(cfg, CHUNK);
+        let chunks = self.rays.div_ceil(batch);
         let parts: Vec<Vec<[f32; 3]>> = (0..chunks)
             .into_par_iter()
             .map_init(Scratch::default, |sc, c| {
-                let r0 = c * CHUNK;
-                let r1 = (r0 + CHUNK).min(self.rays);
+                let r0 = c * batch;
+                let r1 = (r0 + batch).min(self.rays);
                 self.render_chunk(cfg, layout, params, time, r0..r1, sc)
             })
             .collect();

@@ -23,6 +23,10 @@ export const LIMITS = {
   maxParams: 1 << 27,
   maxSectionBytes: 2 * 1024 * 1024 * 1024,
   maxCameras: 4096,
+  maxImageSide: 16384,
+  maxImagePixels: 2 ** 24,
+  maxProposalSamples: 1024,
+  maxSamples: 512,
 };
 
 /** A decoding failure: `what` names the part of the file, `truncated` asks for more bytes. */
@@ -312,7 +316,15 @@ function checkMetadata(m, limits) {
   if (!m || typeof m !== "object" || Array.isArray(m)) bad("not a JSON object");
   for (const k of Object.keys(m)) if (!TOP_KEYS.includes(k)) bad(`unknown key \`${k}\``);
   for (const k of TOP_KEYS) if (!(k in m)) bad(`missing key \`${k}\``);
+  // msth-codec reads every number as binary32 or an integer: one that overflows binary32 is out
+  // of range (JSON has no infinity, so this is how a non-finite value would arrive).
+  const outOfRange = (v) => (typeof v === "number" ? !Number.isFinite(Math.fround(v)) : v && typeof v === "object" && Object.values(v).some(outOfRange));
+  if (outOfRange(m)) bad("a number is out of range (overflows binary32)");
   checkModel(m.model);
+  const sampler = m.model.sampler;
+  for (const [name, v, max] of [["model.sampler.num_proposal_samples", sampler.num_proposal_samples, limits.maxProposalSamples], ["model.sampler.num_samples", sampler.num_samples, limits.maxSamples]]) {
+    if (v > max) bad(`${name} is ${v}, the limit is ${max}`);
+  }
   const layout = modelLayout(m.model);
   if (layout.total > limits.maxParams) bad(`${layout.total} parameters exceed the limit ${limits.maxParams}`);
   if (m.param_count !== layout.total) bad(`param_count ${m.param_count} disagrees with the model (${layout.total})`);
@@ -324,6 +336,8 @@ function checkMetadata(m, limits) {
       [c.fx, c.fy].every((v) => Number.isFinite(v) && v > 0) && [c.cx, c.cy].every(Number.isFinite) &&
       Array.isArray(c.world_from_camera) && c.world_from_camera.length === 16 && c.world_from_camera.every(Number.isFinite);
     if (!ok) bad(`cameras[${i}] is not a valid pinhole camera`);
+    if (c.width > limits.maxImageSide || c.height > limits.maxImageSide) bad(`cameras[${i}] is ${c.width} x ${c.height} pixels, the limit per side is ${limits.maxImageSide}`);
+    if (c.width * c.height > limits.maxImagePixels) bad(`cameras[${i}] has ${c.width} x ${c.height} pixels, the limit is ${limits.maxImagePixels}`);
   });
   if (!Array.isArray(m.chunks)) bad("chunks must be an array");
   let prev = -Infinity;
@@ -334,6 +348,7 @@ function checkMetadata(m, limits) {
   });
   if (m.frame_rate !== null && !(Number.isFinite(m.frame_rate) && m.frame_rate > 0)) bad("frame_rate must be null or > 0");
   if (!Array.isArray(m.time_range) || m.time_range.length !== 2 || !m.time_range.every(Number.isFinite)) bad("time_range must be two numbers");
+  if (m.time_range[0] !== 0 || m.time_range[1] !== 1) bad(`time_range is [${m.time_range[0]}, ${m.time_range[1]}], version 1 allows only [0, 1]`);
   if (!["f32", "f16", "q8", "q6", "q5", "q4", "k4", "k3"].includes(m.quant)) bad(`unknown quantisation mode \`${m.quant}\``);
   if (!(Number.isFinite(m.dynamic_threshold) && m.dynamic_threshold >= 0 && m.dynamic_threshold <= 1)) bad("dynamic_threshold must lie in [0, 1]");
   if (!(Number.isInteger(m.chunk_frames) && m.chunk_frames >= 1)) bad("chunk_frames must be an integer >= 1");
@@ -575,6 +590,20 @@ function checkZstdFrame(b, rawLength, what) {
   if (fcs !== null && fcs !== rawLength) bad(`frame content size ${fcs}, the index says ${rawLength}`);
   if (window === null) window = fcs;
   if (window > Math.max(2 * rawLength, 8 << 20)) bad(`window of ${window} bytes for ${rawLength} bytes of content`);
+  // format.md §1.1: a section is exactly one frame. Walk the block headers (§3.1.1.2) to the
+  // frame's end: a second frame or any trailing byte is rejected, as msth-codec does.
+  o += fcsBytes;
+  for (;;) {
+    if (o + 3 > b.length) bad("truncated block header");
+    const h = b[o] | (b[o + 1] << 8) | (b[o + 2] << 16);
+    const type = (h >> 1) & 3;
+    if (type === 3) bad("reserved block type");
+    o += 3 + (type === 1 ? 1 : h >>> 3);
+    if (h & 1) break;
+  }
+  if (fhd & 0x04) o += 4; // content checksum
+  if (o > b.length) bad("truncated frame");
+  if (o < b.length) throw new FormatError(what, `${b.length - o} bytes after the zstd frame (${o} of ${b.length} stored bytes): a section is exactly one frame`);
 }
 
 /** Decodes a non-chunk section's payload into the flat buffer `params`. */

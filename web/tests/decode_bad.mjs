@@ -114,5 +114,43 @@ for (const [what, at, x] of [["frame magic", 0, 0xff], ["frame header descriptor
   );
 }
 
+// format.md §1.1: a section is exactly one zstd frame. Append to the last section, with its
+// length, its CRC-32 and the prefix CRC fixed, so that only the extra bytes are wrong: an empty
+// second frame (decoding both frames still gives exactly `raw_length` bytes), a skippable
+// frame, and plain trailing bytes.
+const EMPTY_FRAME = [0x28, 0xb5, 0x2f, 0xfd, 0x20, 0x00, 0x01, 0x00, 0x00];
+const SKIPPABLE_FRAME = [0x50, 0x2a, 0x4d, 0x18, 4, 0, 0, 0, 1, 2, 3, 4];
+for (const [what, extra] of [["a second (empty) zstd frame", EMPTY_FRAME], ["a skippable frame", SKIPPABLE_FRAME], ["trailing bytes", [0, 0, 0]]]) {
+  const last = d.sections.length - 1;
+  const s = d.sections[last];
+  expectError(
+    `last section followed by ${what}`,
+    (() => {
+      const b = new Uint8Array(good.length + extra.length);
+      b.set(good);
+      b.set(extra, good.length);
+      const io = Math.ceil((32 + view(b).getUint32(12, true)) / 8) * 8;
+      view(b).setUint32(io + last * 40 + 16, s.length + extra.length, true);
+      view(b).setUint32(io + last * 40 + 32, crcOf(b.subarray(s.offset, s.offset + s.length + extra.length)), true);
+      fixCrc(b);
+      return b;
+    })(),
+    /after the zstd frame/,
+  );
+}
+// format.md §3: time_range is [0, 1] in version 1.
+expectError(
+  "time_range [0, 2]",
+  edit((b) => {
+    const ml = view(b).getUint32(12, true);
+    const text = new TextDecoder().decode(b.subarray(32, 32 + ml));
+    const bad = text.replace(/"time_range":\[0(\.0)?,1(\.0)?\]/, (m) => m.replace(/,1/, ",2"));
+    if (bad === text) throw new Error("no time_range [0, 1] in the metadata");
+    b.set(new TextEncoder().encode(bad), 32);
+    fixCrc(b);
+  }),
+  /time_range is \[0, 2\]/,
+);
+
 console.log(failed ? "bad-input test FAILED" : "bad-input test passed");
 process.exit(failed ? 1 : 0);

@@ -1,0 +1,196 @@
+//! `msth inspect` as a separate process: on a trained and exported model (the codec fixture,
+//! `tests/fixtures/v1.msth`), on files of the bad corpus (non-zero exit, the message names the
+//! violation), and over HTTP against a real `msth serve` on loopback, where it reads only the
+//! prefix unless `--validate` asks for every section.
+
+use std::io::{BufRead, BufReader};
+use std::path::PathBuf;
+use std::process::{Child, Command, Stdio};
+
+fn repo(path: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("..")
+        .join(path)
+}
+
+/// Runs `msth ARGS`; returns (success, stdout, stderr).
+fn msth(args: &[&str]) -> (bool, String, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_msth"))
+        .args(args)
+        .output()
+        .expect("msth runs");
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stdout).into(),
+        String::from_utf8_lossy(&out.stderr).into(),
+    )
+}
+
+fn inspect_json(args: &[&str]) -> serde_json::Value {
+    let mut a = vec!["inspect", "--json"];
+    a.extend_from_slice(args);
+    let (ok, out, err) = msth(&a);
+    assert!(ok, "msth {a:?} failed: {err}");
+    serde_json::from_str(&out).unwrap_or_else(|e| panic!("{e}: {out}"))
+}
+
+#[test]
+fn inspect_describes_and_validates_an_exported_model() {
+    let file = repo("tests/fixtures/v1.msth");
+    let f = file.to_str().unwrap();
+    let bytes = std::fs::read(&file).unwrap();
+    let decoded = msth_codec::decode_all(&bytes).unwrap();
+    let v = inspect_json(&[f]);
+    assert_eq!(v["valid"], true);
+    assert_eq!(v["validated"], true);
+    assert_eq!(v["file_bytes"], bytes.len() as u64);
+    assert_eq!(v["header"]["version"], 1);
+    let sections = v["sections"].as_array().unwrap();
+    let chunks = decoded.metadata.chunks.len();
+    assert_eq!(sections.len(), if chunks == 0 { 3 } else { 4 + chunks });
+    // Section sizes add up to the file (prefix, sections, padding below 8 bytes each).
+    let stored: u64 = sections
+        .iter()
+        .map(|s| s["stored_bytes"].as_u64().unwrap())
+        .sum();
+    let hs = v["header"]["header_size"].as_u64().unwrap();
+    let n = sections.len() as u64;
+    assert!(stored + hs <= bytes.len() as u64 && bytes.len() as u64 <= stored + hs + 8 * n);
+    assert_eq!(sections[0]["kind"], "mlp");
+    assert!(sections.iter().all(|s| s["ratio"].as_f64().unwrap() > 0.0));
+    assert_eq!(v["chunks"].as_array().unwrap().len(), chunks);
+    assert_eq!(v["param_count"], decoded.params.len() as u64);
+    // The shares are computed from the decoded sections: within (0, 1].
+    let share = v["h4_rows_stored_share"].as_f64().unwrap();
+    assert!(share > 0.0 && share <= 1.0, "{share}");
+    let dynamic = v["dynamic_voxels"]["share"].as_f64().unwrap();
+    assert!(dynamic > 0.0 && dynamic <= 1.0, "{dynamic}");
+    assert_eq!(
+        v["cameras"].as_array().unwrap().len(),
+        decoded.cameras.len()
+    );
+    // The text form says the same in lines.
+    let (ok, text, _) = msth(&["inspect", f]);
+    assert!(ok);
+    println!("{text}");
+    for needle in [
+        "version 1",
+        "valid",
+        "sections",
+        "chunk 0",
+        "4D rows",
+        "dynamic",
+        "cameras",
+    ] {
+        assert!(text.contains(needle), "`{needle}` missing:\n{text}");
+    }
+}
+
+#[test]
+fn inspect_exits_non_zero_with_the_first_violation() {
+    for (file, needles) in [
+        (
+            "43_zstd_two_frames.msth",
+            &["dynamic chunk 1", "zstd frame"][..],
+        ),
+        ("46_time_range_not_unit.msth", &["time_range", "[0, 1]"]),
+        (
+            "47_huge_camera.msth",
+            &["cameras[0] width", "100000", "16384"],
+        ),
+        (
+            "48_huge_sampler.msth",
+            &["model.sampler.num_proposal_samples", "4096", "1024"],
+        ),
+        ("26_trailing_bytes.msth", &["trailing bytes"]),
+        ("32_nonzero_padding.msth", &["padding"]),
+        (
+            "21_bad_section_checksum.msth",
+            &["checksum", "static section"],
+        ),
+    ] {
+        let p = repo("tests/bad").join(file);
+        let (ok, _, err) = msth(&["inspect", p.to_str().unwrap()]);
+        assert!(!ok, "{file}: accepted");
+        println!("{file}: {}", err.trim());
+        assert!(err.contains("not a valid .msth file"), "{file}: {err}");
+        for n in needles {
+            assert!(err.contains(n), "{file}: `{err}` should mention `{n}`");
+        }
+    }
+}
+
+struct Server(Child);
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// `msth serve DIR` on a free loopback port; returns the server and its base URL.
+fn serve(dir: &std::path::Path) -> (Server, String) {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_msth"))
+        .args(["serve", dir.to_str().unwrap(), "--addr", "127.0.0.1:0"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("starting msth serve");
+    let stdout = child.stdout.take().unwrap();
+    let server = Server(child);
+    let mut reader = BufReader::new(stdout);
+    let mut first = String::new();
+    reader.read_line(&mut first).unwrap();
+    std::thread::spawn(move || std::io::copy(&mut reader, &mut std::io::sink()));
+    let base = first
+        .split_whitespace()
+        .find(|w| w.starts_with("http://"))
+        .unwrap_or_else(|| panic!("no URL in `{first}`"))
+        .trim_end_matches('/')
+        .to_string();
+    (server, base)
+}
+
+#[test]
+fn inspect_over_http_reads_the_prefix_unless_asked_to_validate() {
+    let dir = tempfile::tempdir().unwrap();
+    let good = std::fs::read(repo("tests/fixtures/v1.msth")).unwrap();
+    // The fixture (137 KB) is well above the first request's 16 KiB.
+    std::fs::write(dir.path().join("good.msth"), &good).unwrap();
+    std::fs::copy(
+        repo("tests/bad/43_zstd_two_frames.msth"),
+        dir.path().join("two_frames.msth"),
+    )
+    .unwrap();
+    let (_server, base) = serve(dir.path());
+    let url = format!("{base}/models/good.msth");
+    let local = inspect_json(&[repo("tests/fixtures/v1.msth").to_str().unwrap()]);
+    let v = inspect_json(&[&url]);
+    assert_eq!(v["valid"], true);
+    assert_eq!(v["validated"], false);
+    assert_eq!(v["sections"], local["sections"]);
+    assert_eq!(v["metadata"], local["metadata"]);
+    assert!(v["h4_rows_stored_share"].is_null());
+    let read = v["bytes_read"].as_u64().unwrap();
+    let hs = v["header"]["header_size"].as_u64().unwrap();
+    assert!(
+        read >= hs && read <= hs.max(16 << 10),
+        "read {read} bytes for a {hs}-byte prefix"
+    );
+    if good.len() > 16 << 10 {
+        assert!(read < good.len() as u64, "read the whole file: {read}");
+    }
+    // --validate fetches and checks everything: the same report as the local file.
+    let all = inspect_json(&[&url, "--validate"]);
+    assert_eq!(all["validated"], true);
+    assert_eq!(all["h4_rows_stored_share"], local["h4_rows_stored_share"]);
+    assert_eq!(all["dynamic_voxels"], local["dynamic_voxels"]);
+    assert!(all["bytes_read"].as_u64().unwrap() >= good.len() as u64);
+    // A file whose fault is in a section: the prefix alone passes, --validate finds it.
+    let bad = format!("{base}/models/two_frames.msth");
+    let (ok, _, _) = msth(&["inspect", &bad]);
+    assert!(ok, "the prefix of two_frames.msth is valid");
+    let (ok, _, err) = msth(&["inspect", &bad, "--validate"]);
+    assert!(!ok && err.contains("zstd frame"), "{err}");
+}
