@@ -8,6 +8,7 @@ pub mod bench_tradeoff;
 mod commands;
 pub mod data;
 mod export;
+mod import;
 mod play;
 mod scenegen;
 mod serve;
@@ -54,6 +55,8 @@ enum Command {
     Serve(serve::ServeArgs),
     /// Play a `.msth` file (URL or local) as free-viewpoint video: PNG frames, MP4, FPS.
     Play(play::PlayArgs),
+    /// Turn your own videos into a dataset: frames by ffmpeg, camera poses by COLMAP.
+    Import(import::ImportArgs),
 }
 
 #[derive(Args)]
@@ -239,5 +242,6 @@ where
         Command::Export(a) => export::export(a),
         Command::Serve(a) => serve::serve(a),
         Command::Play(a) => play::run(a),
+        Command::Import(a) => import::run(a),
     }
 }
