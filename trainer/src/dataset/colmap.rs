@@ -602,6 +602,10 @@ impl Colmap {
                 s(&sparse),
                 "--Mapper.num_threads".into(),
                 threads,
+                // Run the global bundle adjustments to convergence (as nerfstudio does): the
+                // default stops early, which costs accuracy on small captures.
+                "--Mapper.ba_global_function_tolerance".into(),
+                "1e-6".into(),
             ],
             &map_log,
         );
