@@ -157,27 +157,34 @@ fn align_errors(found: &[(DMat3, DVec3)], truth: &[(DMat3, DVec3)]) -> Errors {
     }
 }
 
-/// The accepted errors: the aim (0.5 degree mean) with a margin for COLMAP's run-to-run
-/// variation on this small capture (measured figures: docs/import.md), positions within 2% of the
-/// scene size, and the centre-fitted rotation within 2.5 degrees.
-fn check(e: &Errors) {
+/// Accepted errors: mean and max orientation error (degrees), mean rotation error after the
+/// centre fit (degrees), mean position error (fraction of the scene size).
+struct Bounds(f64, f64, f64, f64);
+
+/// The rig: the aim (0.5 degree mean) with a margin for COLMAP's run-to-run variation
+/// on this small capture (measured: 0.24-0.38 degree, docs/import.md).
+const RIG: Bounds = Bounds(0.6, 1.5, 1.5, 0.02);
+/// The moving camera: every frame registered on its own, from 13 frames (measured: 0.79).
+const MOVING: Bounds = Bounds(1.5, 3.0, 4.0, 0.03);
+
+fn check(e: &Errors, b: &Bounds) {
     assert!(
-        e.rot_mean_deg < 0.75,
+        e.rot_mean_deg < b.0,
         "mean rotation error {} deg",
         e.rot_mean_deg
     );
     assert!(
-        e.rot_max_deg < 2.0,
+        e.rot_max_deg < b.1,
         "max rotation error {} deg",
         e.rot_max_deg
     );
     assert!(
-        e.rot_centres_mean_deg < 2.5,
+        e.rot_centres_mean_deg < b.2,
         "mean rotation error after the centre fit {} deg",
         e.rot_centres_mean_deg
     );
     assert!(
-        e.pos_mean_rel < 0.02,
+        e.pos_mean_rel < b.3,
         "mean position error {}",
         e.pos_mean_rel
     );
@@ -263,7 +270,7 @@ fn stage_imports_as_a_rig_and_as_a_moving_camera() {
         tf["k1"].as_f64().unwrap(),
     );
     assert_eq!(report["cameras_registered"], 13);
-    check(&e);
+    check(&e, &RIG);
     assert!(
         (focal / truth[0].2 - 1.0).abs() < 0.05,
         "focal {focal} vs {}",
@@ -341,7 +348,7 @@ fn moving_camera(st: &Path, tmp: &Path, steps: usize) {
         e.pos_max_rel,
     );
     assert_eq!(report["cameras_registered"], 13);
-    check(&e);
+    check(&e, &MOVING);
     let d = msth_trainer::dataset::load(&out, &Default::default()).unwrap();
     assert_eq!(d.train.len() + d.test.len(), 13);
 }
