@@ -9,6 +9,7 @@ mod commands;
 pub mod data;
 mod demo;
 mod export;
+mod import;
 mod inspect;
 mod play;
 mod scenegen;
@@ -60,6 +61,8 @@ enum Command {
     Play(play::PlayArgs),
     /// Describe a `.msth` file (local or URL) and validate it against docs/format.md.
     Inspect(inspect::InspectArgs),
+    /// Turn your own videos into a dataset: frames by ffmpeg, camera poses by COLMAP.
+    Import(import::ImportArgs),
 }
 
 #[derive(Args)]
@@ -234,5 +237,6 @@ where
         Command::Serve(a) => serve::serve(a),
         Command::Play(a) => play::run(a),
         Command::Inspect(a) => inspect::run(a),
+        Command::Import(a) => import::run(a),
     }
 }

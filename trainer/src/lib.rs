@@ -7,6 +7,7 @@
 //! - [`ray_sampling`]: uniform, dynamics-aware (paper §3.4) and static/dynamic batch samplers;
 //! - [`adam`], [`train`], [`checkpoint`], [`eval`]: the optimiser, the loop, the checkpoint file
 //!   and held-out evaluation;
+//! - [`import`]: `msth import`, videos to a dataset with COLMAP's camera poses;
 //! - [`unreached`]: hash-table values no training ray reached (dropped on export).
 
 pub mod adam;
@@ -15,6 +16,7 @@ pub mod checkpoint;
 pub mod dataset;
 pub mod eval;
 pub mod imageio;
+pub mod import;
 pub mod metrics;
 pub mod ray_sampling;
 pub mod synth;

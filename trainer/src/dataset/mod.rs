@@ -3,13 +3,15 @@
 //! One module per on-disk format: [`dnerf`] (Blender / D-NeRF JSON), [`nerfstudio`] (a single
 //! `transforms.json`), [`dynerf`] (Plenoptic Video / DyNeRF: `poses_bounds.npy` + videos or frame
 //! folders); [`detect`] picks one from a folder's contents. Every loader validates what it reads
-//! and reports the file and the field at fault ([`DatasetError`]).
+//! and reports the file and the field at fault ([`DatasetError`]). [`colmap`] runs COLMAP and
+//! reads its sparse models (for `msth import`, [`crate::import`]).
 //!
 //! Images are stored as 8-bit RGB already composited on the dataset's background colour. Their
 //! pixels ([`Pixels`]) live either in memory or in a memory-mapped frame cache on disk
 //! ([`cache`]), so that a dataset larger than RAM is bounded by disk instead.
 
 pub mod cache;
+pub mod colmap;
 pub mod dnerf;
 pub mod dynerf;
 pub mod nerfstudio;

@@ -1,0 +1,806 @@
+//! COLMAP: the structure-from-motion program that `msth import` runs, and a reader for the
+//! sparse models it writes.
+//!
+//! [`Colmap`] drives the `colmap` command line (feature extraction, matching, mapping and the
+//! conversion of the largest model to text), on the CPU, one log file per step. [`read_text_model`]
+//! reads the text model (`cameras.txt`, `images.txt`, `points3D.txt`, as written by
+//! `colmap model_converter --output_type TXT`), checking every line, into a [`Model`] whose image
+//! poses [`Model::world_from_camera`] turns into the OpenGL camera-to-world matrices the rest of
+//! `msth` uses.
+//!
+//! COLMAP conventions: an image's `QW QX QY QZ TX TY TZ` is the world-to-camera rotation and
+//! translation of an OpenCV camera (+X right, +Y down, looking down +Z); pixel `(0, 0)`'s centre
+//! is at `(0.5, 0.5)`, as in the nerfstudio files this crate reads.
+
+use std::collections::BTreeMap;
+use std::fs::File;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use glam::{DMat3, DMat4, DQuat, DVec3, DVec4};
+
+use super::DatasetError;
+
+/// Largest accepted line count per model file (a reconstruction of a long video has a few
+/// hundred thousand points; anything beyond is certainly not a COLMAP model).
+const MAX_ENTRIES: usize = 20_000_000;
+
+/// A COLMAP camera model with the parameter layout of `cameras.txt`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum CameraModel {
+    /// `f, cx, cy`.
+    SimplePinhole,
+    /// `fx, fy, cx, cy`.
+    Pinhole,
+    /// `f, cx, cy, k1`.
+    SimpleRadial,
+    /// `f, cx, cy, k1, k2`.
+    Radial,
+    /// `fx, fy, cx, cy, k1, k2, p1, p2` (nerfstudio's default for phone videos).
+    Opencv,
+}
+
+impl CameraModel {
+    /// The name COLMAP uses.
+    pub fn name(self) -> &'static str {
+        match self {
+            CameraModel::SimplePinhole => "SIMPLE_PINHOLE",
+            CameraModel::Pinhole => "PINHOLE",
+            CameraModel::SimpleRadial => "SIMPLE_RADIAL",
+            CameraModel::Radial => "RADIAL",
+            CameraModel::Opencv => "OPENCV",
+        }
+    }
+
+    fn num_params(self) -> usize {
+        match self {
+            CameraModel::SimplePinhole => 3,
+            CameraModel::Pinhole => 4,
+            CameraModel::SimpleRadial => 4,
+            CameraModel::Radial => 5,
+            CameraModel::Opencv => 8,
+        }
+    }
+}
+
+impl std::str::FromStr for CameraModel {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s.to_ascii_uppercase().replace('-', "_").as_str() {
+            "SIMPLE_PINHOLE" => Ok(CameraModel::SimplePinhole),
+            "PINHOLE" => Ok(CameraModel::Pinhole),
+            "SIMPLE_RADIAL" => Ok(CameraModel::SimpleRadial),
+            "RADIAL" => Ok(CameraModel::Radial),
+            "OPENCV" => Ok(CameraModel::Opencv),
+            _ => Err(format!(
+                "unknown camera model `{s}` (expected opencv, radial, simple_radial, pinhole or simple_pinhole)"
+            )),
+        }
+    }
+}
+
+/// Pinhole intrinsics in pixels plus the OpenCV distortion `k1, k2, p1, p2`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Intrinsics {
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    pub k1: f64,
+    pub k2: f64,
+    pub p1: f64,
+    pub p2: f64,
+}
+
+/// One line of `cameras.txt`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ColmapCamera {
+    pub model: CameraModel,
+    pub width: u32,
+    pub height: u32,
+    pub params: Vec<f64>,
+}
+
+impl ColmapCamera {
+    /// The intrinsics in the OpenCV model (every supported model is a special case of it).
+    pub fn intrinsics(&self) -> Intrinsics {
+        let p = &self.params;
+        let (fx, fy, cx, cy, rest) = match self.model {
+            CameraModel::SimplePinhole | CameraModel::SimpleRadial | CameraModel::Radial => {
+                (p[0], p[0], p[1], p[2], &p[3..])
+            }
+            CameraModel::Pinhole | CameraModel::Opencv => (p[0], p[1], p[2], p[3], &p[4..]),
+        };
+        let at = |i: usize| rest.get(i).copied().unwrap_or(0.0);
+        Intrinsics {
+            fx,
+            fy,
+            cx,
+            cy,
+            k1: at(0),
+            k2: at(1),
+            p1: at(2),
+            p2: at(3),
+        }
+    }
+}
+
+/// One registered image of `images.txt`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ColmapImage {
+    /// World-to-camera rotation `(w, x, y, z)` and translation (OpenCV camera axes).
+    pub qvec: [f64; 4],
+    pub tvec: [f64; 3],
+    pub camera_id: u32,
+    /// The file name relative to the image folder COLMAP read (with `/` separators).
+    pub name: String,
+    /// Ids of the 3D points this image observes (each once).
+    pub point_ids: Vec<u64>,
+}
+
+/// One line of `points3D.txt`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ColmapPoint {
+    pub position: DVec3,
+    /// Mean reprojection error of the point's observations, pixels.
+    pub error_px: f64,
+    pub track_len: usize,
+}
+
+/// A sparse reconstruction.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Model {
+    pub cameras: BTreeMap<u32, ColmapCamera>,
+    pub images: Vec<ColmapImage>,
+    pub points: BTreeMap<u64, ColmapPoint>,
+}
+
+impl Model {
+    /// The mean over points of their reprojection error, pixels (COLMAP's "mean reprojection
+    /// error"); 0 without points.
+    pub fn mean_reprojection_error_px(&self) -> f64 {
+        if self.points.is_empty() {
+            return 0.0;
+        }
+        self.points.values().map(|p| p.error_px).sum::<f64>() / self.points.len() as f64
+    }
+
+    /// The OpenGL camera-to-world matrix (+X right, +Y up, looking down -Z) of `image`.
+    pub fn world_from_camera(image: &ColmapImage) -> DMat4 {
+        let [w, x, y, z] = image.qvec;
+        let camera_from_world = DMat3::from_quat(DQuat::from_xyzw(x, y, z, w).normalize());
+        let r = camera_from_world.transpose();
+        let center = -(r * DVec3::from_array(image.tvec));
+        DMat4::from_cols(
+            r.x_axis.extend(0.0),
+            (-r.y_axis).extend(0.0),
+            (-r.z_axis).extend(0.0),
+            DVec4::new(center.x, center.y, center.z, 1.0),
+        )
+    }
+}
+
+fn bad(path: &Path, message: impl Into<String>) -> DatasetError {
+    DatasetError::Invalid {
+        path: path.to_path_buf(),
+        message: message.into(),
+    }
+}
+
+/// The non-comment, non-empty lines of a model file with their 1-based line numbers.
+fn data_lines(path: &Path) -> Result<Vec<(usize, String)>, DatasetError> {
+    let text = std::fs::read_to_string(path).map_err(|source| DatasetError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let lines: Vec<(usize, String)> = text
+        .lines()
+        .enumerate()
+        .map(|(i, l)| (i + 1, l.trim().to_string()))
+        .filter(|(_, l)| !l.starts_with('#'))
+        .collect();
+    if lines.len() > MAX_ENTRIES {
+        return Err(bad(path, format!("more than {MAX_ENTRIES} lines")));
+    }
+    Ok(lines)
+}
+
+fn parse<T: std::str::FromStr>(
+    path: &Path,
+    line: usize,
+    what: &str,
+    s: &str,
+) -> Result<T, DatasetError> {
+    s.parse::<T>()
+        .map_err(|_| bad(path, format!("line {line}: {what} `{s}` is not valid")))
+}
+
+fn finite(path: &Path, line: usize, what: &str, s: &str) -> Result<f64, DatasetError> {
+    let v: f64 = parse(path, line, what, s)?;
+    if v.is_finite() {
+        Ok(v)
+    } else {
+        Err(bad(
+            path,
+            format!("line {line}: {what} `{s}` is not finite"),
+        ))
+    }
+}
+
+/// Reads `cameras.txt`, `images.txt` and `points3D.txt` from `dir`.
+pub fn read_text_model(dir: &Path) -> Result<Model, DatasetError> {
+    let mut model = Model::default();
+    let path = dir.join("cameras.txt");
+    for (n, line) in data_lines(&path)? {
+        if line.is_empty() {
+            continue;
+        }
+        let f: Vec<&str> = line.split_whitespace().collect();
+        if f.len() < 4 {
+            return Err(bad(
+                &path,
+                format!("line {n}: expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS..."),
+            ));
+        }
+        let id: u32 = parse(&path, n, "camera id", f[0])?;
+        let model_kind: CameraModel = f[1].parse().map_err(|m: String| {
+            bad(
+                &path,
+                format!("line {n}: {m}; import with --camera-model opencv"),
+            )
+        })?;
+        let width: u32 = parse(&path, n, "width", f[2])?;
+        let height: u32 = parse(&path, n, "height", f[3])?;
+        let params = f[4..]
+            .iter()
+            .map(|s| finite(&path, n, "parameter", s))
+            .collect::<Result<Vec<_>, _>>()?;
+        if params.len() != model_kind.num_params() {
+            return Err(bad(
+                &path,
+                format!(
+                    "line {n}: {} takes {} parameters, found {}",
+                    model_kind.name(),
+                    model_kind.num_params(),
+                    params.len()
+                ),
+            ));
+        }
+        if width == 0 || height == 0 || params[0] <= 0.0 {
+            return Err(bad(
+                &path,
+                format!("line {n}: empty image or non-positive focal length"),
+            ));
+        }
+        let camera = ColmapCamera {
+            model: model_kind,
+            width,
+            height,
+            params,
+        };
+        if model.cameras.insert(id, camera).is_some() {
+            return Err(bad(&path, format!("line {n}: camera {id} appears twice")));
+        }
+    }
+    let path = dir.join("images.txt");
+    let lines = data_lines(&path)?;
+    let mut i = 0;
+    while i < lines.len() {
+        let (n, ref line) = lines[i];
+        if line.is_empty() {
+            i += 1;
+            continue;
+        }
+        let f: Vec<&str> = line.split_whitespace().collect();
+        if f.len() < 10 {
+            return Err(bad(
+                &path,
+                format!("line {n}: expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME"),
+            ));
+        }
+        let mut q = [0.0; 4];
+        for (k, s) in f[1..5].iter().enumerate() {
+            q[k] = finite(&path, n, "quaternion", s)?;
+        }
+        let mut t = [0.0; 3];
+        for (k, s) in f[5..8].iter().enumerate() {
+            t[k] = finite(&path, n, "translation", s)?;
+        }
+        let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+        if !(0.5..=2.0).contains(&norm) {
+            return Err(bad(
+                &path,
+                format!("line {n}: the quaternion is not a rotation (norm {norm})"),
+            ));
+        }
+        let camera_id: u32 = parse(&path, n, "camera id", f[8])?;
+        if !model.cameras.contains_key(&camera_id) {
+            return Err(bad(
+                &path,
+                format!("line {n}: camera {camera_id} is not in cameras.txt"),
+            ));
+        }
+        let name = f[9..].join(" ");
+        // The observations line (may be empty, or missing at the very end of the file).
+        let mut point_ids = Vec::new();
+        if let Some((m, obs)) = lines.get(i + 1) {
+            let o: Vec<&str> = obs.split_whitespace().collect();
+            if !o.len().is_multiple_of(3) {
+                return Err(bad(
+                    &path,
+                    format!("line {m}: observations come in X Y POINT3D_ID triples"),
+                ));
+            }
+            for tri in o.chunks_exact(3) {
+                let id: i64 = parse(&path, *m, "point id", tri[2])?;
+                if id >= 0 {
+                    point_ids.push(id as u64);
+                }
+            }
+            point_ids.sort_unstable();
+            point_ids.dedup();
+        }
+        model.images.push(ColmapImage {
+            qvec: q,
+            tvec: t,
+            camera_id,
+            name,
+            point_ids,
+        });
+        i += 2;
+    }
+    let path = dir.join("points3D.txt");
+    for (n, line) in data_lines(&path)? {
+        if line.is_empty() {
+            continue;
+        }
+        let f: Vec<&str> = line.split_whitespace().collect();
+        if f.len() < 8 || !(f.len() - 8).is_multiple_of(2) {
+            return Err(bad(
+                &path,
+                format!("line {n}: expected POINT3D_ID X Y Z R G B ERROR TRACK[] (pairs)"),
+            ));
+        }
+        let id: u64 = parse(&path, n, "point id", f[0])?;
+        let p = DVec3::new(
+            finite(&path, n, "x", f[1])?,
+            finite(&path, n, "y", f[2])?,
+            finite(&path, n, "z", f[3])?,
+        );
+        let error_px = finite(&path, n, "error", f[7])?;
+        let point = ColmapPoint {
+            position: p,
+            error_px,
+            track_len: (f.len() - 8) / 2,
+        };
+        if model.points.insert(id, point).is_some() {
+            return Err(bad(&path, format!("line {n}: point {id} appears twice")));
+        }
+    }
+    Ok(model)
+}
+
+/// How images share intrinsics (`colmap feature_extractor`'s image reader options).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Sharing {
+    /// One camera for all images (videos from one device type at one size).
+    All,
+    /// One camera per sub-folder of the image folder (one folder per video).
+    PerFolder,
+}
+
+/// How to match features.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Matching {
+    /// Every pair of images (small sets: rig time steps, short videos).
+    Exhaustive,
+    /// Each image with its neighbours in name order (long monocular videos).
+    Sequential { overlap: usize },
+}
+
+/// What to run.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RunOptions {
+    pub camera_model: CameraModel,
+    pub sharing: Sharing,
+    pub matching: Matching,
+    /// CPU threads for every step.
+    pub threads: usize,
+}
+
+/// The `colmap` program: `colmap` from `PATH`, or the path in `MSTH_COLMAP`. Runs headless
+/// (`QT_QPA_PLATFORM=offscreen`, CPU SIFT).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Colmap {
+    pub program: PathBuf,
+}
+
+impl Default for Colmap {
+    fn default() -> Self {
+        Colmap {
+            program: std::env::var_os("MSTH_COLMAP")
+                .map(PathBuf::from)
+                .unwrap_or_else(|| PathBuf::from("colmap")),
+        }
+    }
+}
+
+/// What a COLMAP run produced.
+#[derive(Clone, Debug, Default)]
+pub struct Reconstruction {
+    /// The largest model (most registered images).
+    pub model: Model,
+    /// Number of models COLMAP made (more than one: the images fell apart into groups).
+    pub num_models: usize,
+    /// Wall time of the four steps.
+    pub wall: Duration,
+}
+
+/// Why running COLMAP failed.
+#[derive(Debug, thiserror::Error)]
+pub enum ColmapError {
+    #[error("`{program}` was not found: install COLMAP (Debian/Ubuntu: `apt-get install colmap`, or see https://colmap.github.io/install.html) or set MSTH_COLMAP to its path")]
+    Missing { program: String },
+    #[error("COLMAP's {step} failed ({message}); its output is in {log}")]
+    Failed {
+        step: &'static str,
+        message: String,
+        log: PathBuf,
+    },
+    #[error("COLMAP registered no images: {why}; its output is in {log}")]
+    NoModel { why: String, log: PathBuf },
+    #[error(transparent)]
+    Dataset(#[from] DatasetError),
+}
+
+impl Colmap {
+    fn command(&self) -> Command {
+        let mut c = Command::new(&self.program);
+        c.env("QT_QPA_PLATFORM", "offscreen").stdin(Stdio::null());
+        c
+    }
+
+    /// Whether the program starts (`colmap help`).
+    pub fn check(&self) -> Result<(), ColmapError> {
+        let missing = || ColmapError::Missing {
+            program: self.program.display().to_string(),
+        };
+        let status = self
+            .command()
+            .arg("help")
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .status()
+            .map_err(|_| missing())?;
+        if status.success() {
+            Ok(())
+        } else {
+            Err(missing())
+        }
+    }
+
+    /// Runs `colmap ARGS`, output into `log`.
+    fn step(&self, step: &'static str, args: &[String], log: &Path) -> Result<(), ColmapError> {
+        let file = File::create(log).map_err(|source| DatasetError::Io {
+            path: log.to_path_buf(),
+            source,
+        })?;
+        let err_file = file.try_clone().map_err(|source| DatasetError::Io {
+            path: log.to_path_buf(),
+            source,
+        })?;
+        let status = self
+            .command()
+            .args(args)
+            .stdout(file)
+            .stderr(err_file)
+            .status();
+        let status = match status {
+            Ok(s) => s,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                return Err(ColmapError::Missing {
+                    program: self.program.display().to_string(),
+                })
+            }
+            Err(e) => {
+                return Err(ColmapError::Failed {
+                    step,
+                    message: format!("cannot start it: {e}"),
+                    log: log.to_path_buf(),
+                })
+            }
+        };
+        if !status.success() {
+            return Err(ColmapError::Failed {
+                step,
+                message: format!("{status}: {}", last_line(log)),
+                log: log.to_path_buf(),
+            });
+        }
+        Ok(())
+    }
+
+    /// Reconstructs the images under `images` (sub-folders allowed) in `work` (which must exist):
+    /// `database.db`, `sparse/N/`, `model/` (the largest model as text) and one log per step.
+    /// `progress` receives a line before each step.
+    pub fn reconstruct(
+        &self,
+        images: &Path,
+        work: &Path,
+        opts: &RunOptions,
+        progress: &mut dyn FnMut(&str),
+    ) -> Result<Reconstruction, ColmapError> {
+        self.check()?;
+        let start = Instant::now();
+        let s = |p: &Path| p.display().to_string();
+        let db = work.join("database.db");
+        let sparse = work.join("sparse");
+        let text = work.join("model");
+        for d in [&sparse, &text] {
+            std::fs::create_dir_all(d).map_err(|source| DatasetError::Io {
+                path: d.to_path_buf(),
+                source,
+            })?;
+        }
+        let threads = opts.threads.max(1).to_string();
+        let mut args: Vec<String> = vec![
+            "feature_extractor".into(),
+            "--database_path".into(),
+            s(&db),
+            "--image_path".into(),
+            s(images),
+            "--ImageReader.camera_model".into(),
+            opts.camera_model.name().into(),
+            "--SiftExtraction.use_gpu".into(),
+            "0".into(),
+            "--SiftExtraction.num_threads".into(),
+            threads.clone(),
+        ];
+        match opts.sharing {
+            Sharing::All => args.extend(["--ImageReader.single_camera".into(), "1".into()]),
+            Sharing::PerFolder => {
+                args.extend(["--ImageReader.single_camera_per_folder".into(), "1".into()])
+            }
+        }
+        progress("COLMAP: extracting SIFT features (CPU)");
+        self.step("feature extraction", &args, &work.join("features.log"))?;
+        let mut args: Vec<String> = match opts.matching {
+            Matching::Exhaustive => vec!["exhaustive_matcher".into()],
+            Matching::Sequential { overlap } => vec![
+                "sequential_matcher".into(),
+                "--SequentialMatching.overlap".into(),
+                overlap.max(1).to_string(),
+            ],
+        };
+        // Guided matching (re-matching under the estimated two-view geometry) finds the
+        // matches that the ratio test drops on repetitive texture (bricks, checkers); without it
+        // small frames of such scenes often give no initial pair.
+        args.extend([
+            "--database_path".into(),
+            s(&db),
+            "--SiftMatching.guided_matching".into(),
+            "1".into(),
+            "--SiftMatching.use_gpu".into(),
+            "0".into(),
+            "--SiftMatching.num_threads".into(),
+            threads.clone(),
+        ]);
+        progress("COLMAP: matching features");
+        self.step("matching", &args, &work.join("matching.log"))?;
+        progress("COLMAP: mapping (incremental structure from motion)");
+        let map_log = work.join("mapper.log");
+        let mapped = self.step(
+            "mapping",
+            &[
+                "mapper".into(),
+                "--database_path".into(),
+                s(&db),
+                "--image_path".into(),
+                s(images),
+                "--output_path".into(),
+                s(&sparse),
+                "--Mapper.num_threads".into(),
+                threads,
+                // Run the global bundle adjustments to convergence (as nerfstudio does): the
+                // default stops early, which costs accuracy on small captures.
+                "--Mapper.ba_global_function_tolerance".into(),
+                "1e-6".into(),
+            ],
+            &map_log,
+        );
+        if let Err(ColmapError::Failed { message, .. }) = &mapped {
+            if message.contains("failed to create sparse model") {
+                return Err(ColmapError::NoModel {
+                    why: "the mapper found no pair of images with enough matches to start from"
+                        .into(),
+                    log: map_log,
+                });
+            }
+        }
+        mapped?;
+        // The largest model: the one with the most images (binary `images.bin`: a u64 count first).
+        let mut best: Option<(u64, PathBuf)> = None;
+        let mut num_models = 0;
+        let entries = std::fs::read_dir(&sparse).map_err(|source| DatasetError::Io {
+            path: sparse.clone(),
+            source,
+        })?;
+        for e in entries.flatten() {
+            let p = e.path();
+            let Ok(bytes) = std::fs::read(p.join("images.bin")) else {
+                continue;
+            };
+            let Some(count) = bytes
+                .get(0..8)
+                .map(|b| u64::from_le_bytes(b.try_into().unwrap_or([0; 8])))
+            else {
+                continue;
+            };
+            num_models += 1;
+            if best.as_ref().is_none_or(|(c, _)| count > *c) {
+                best = Some((count, p));
+            }
+        }
+        let Some((_, best)) = best else {
+            return Err(ColmapError::NoModel {
+                why: "the mapper found no pair of images to start from (too little texture or overlap?)".into(),
+                log: map_log,
+            });
+        };
+        self.step(
+            "model conversion",
+            &[
+                "model_converter".into(),
+                "--input_path".into(),
+                s(&best),
+                "--output_path".into(),
+                s(&text),
+                "--output_type".into(),
+                "TXT".into(),
+            ],
+            &work.join("convert.log"),
+        )?;
+        let model = read_text_model(&text)?;
+        Ok(Reconstruction {
+            model,
+            num_models,
+            wall: start.elapsed(),
+        })
+    }
+}
+
+/// The last non-empty line of a log file (for messages).
+fn last_line(log: &Path) -> String {
+    std::fs::read(log)
+        .map(|b| {
+            String::from_utf8_lossy(&b)
+                .lines()
+                .map(str::trim)
+                .rfind(|l| !l.is_empty())
+                .unwrap_or("(no output)")
+                .chars()
+                .take(300)
+                .collect()
+        })
+        .unwrap_or_else(|_| "(no output)".into())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn write_model(dir: &Path, cameras: &str, images: &str, points: &str) {
+        std::fs::write(dir.join("cameras.txt"), cameras).unwrap();
+        std::fs::write(dir.join("images.txt"), images).unwrap();
+        std::fs::write(dir.join("points3D.txt"), points).unwrap();
+    }
+
+    const CAMERAS: &str = "# Camera list\n1 OPENCV 200 150 180 170 100 75 -0.1 0.02 0.001 -0.002\n2 SIMPLE_RADIAL 64 48 50 32 24 0.05\n";
+    // Image 1: identity rotation, camera at the origin; image 2: rotated 90 degrees about Y.
+    const IMAGES: &str = "# Image list\n1 1 0 0 0 0 0 0 1 cam00/t0000.png\n10 20 7 30 40 -1 50 60 7\n2 0.7071067811865476 0 0.7071067811865476 0 0 0 2 2 cam01/t0000.png\n\n";
+    const POINTS: &str = "7 0 0 2 255 0 0 0.5 1 0 2 0\n30 1 1 3 0 255 0 0.25 1 1\n";
+
+    #[test]
+    fn reads_a_text_model_and_converts_poses() {
+        let dir = tempfile::tempdir().unwrap();
+        write_model(dir.path(), CAMERAS, IMAGES, POINTS);
+        let m = read_text_model(dir.path()).unwrap();
+        assert_eq!(m.cameras.len(), 2);
+        let k = m.cameras[&1].intrinsics();
+        assert_eq!(
+            (k.fx, k.fy, k.cx, k.cy, k.k1, k.p2),
+            (180.0, 170.0, 100.0, 75.0, -0.1, -0.002)
+        );
+        let k = m.cameras[&2].intrinsics();
+        assert_eq!((k.fx, k.fy, k.k1, k.k2), (50.0, 50.0, 0.05, 0.0));
+        assert_eq!(m.images.len(), 2);
+        assert_eq!(m.images[0].name, "cam00/t0000.png");
+        assert_eq!(m.images[0].point_ids, [7]);
+        assert!(m.images[1].point_ids.is_empty());
+        assert_eq!(m.points.len(), 2);
+        assert_eq!(m.points[&7].track_len, 2);
+        assert!((m.mean_reprojection_error_px() - 0.375).abs() < 1e-12);
+        // Identity: OpenCV looks down +Z, so the OpenGL camera's -Z is world +Z and +Y is world -Y.
+        let p = Model::world_from_camera(&m.images[0]);
+        assert!((p.z_axis.truncate() - DVec3::new(0.0, 0.0, -1.0)).length() < 1e-12);
+        assert!((p.y_axis.truncate() - DVec3::new(0.0, -1.0, 0.0)).length() < 1e-12);
+        let c = Model::world_from_camera(&m.images[1]);
+        // x_cam = R x_world + t must map the camera centre to 0.
+        let center = c.w_axis.truncate();
+        let h = std::f64::consts::FRAC_1_SQRT_2;
+        let r = DMat3::from_quat(DQuat::from_xyzw(0.0, h, 0.0, h));
+        assert!((r * center + DVec3::new(0.0, 0.0, 2.0)).length() < 1e-9);
+        // Looking direction: OpenCV +Z of the camera in the world = R^T e_z = -(OpenGL z axis).
+        assert!((r.transpose() * DVec3::Z + c.z_axis.truncate()).length() < 1e-9);
+    }
+
+    #[test]
+    fn broken_models_are_named() {
+        let dir = tempfile::tempdir().unwrap();
+        let cases: Vec<(String, String, String, &str)> = vec![
+            (
+                CAMERAS.replace("OPENCV", "FISHEYE"),
+                IMAGES.into(),
+                POINTS.into(),
+                "cameras.txt",
+            ),
+            (
+                CAMERAS.replace(" 0.05", ""),
+                IMAGES.into(),
+                POINTS.into(),
+                "takes 4 parameters",
+            ),
+            (
+                CAMERAS.into(),
+                IMAGES.replace("0.7071067811865476 0 0.7071", "9 0 0.7071"),
+                POINTS.into(),
+                "not a rotation",
+            ),
+            (
+                CAMERAS.into(),
+                IMAGES.replace(" 2 cam01", " 5 cam01"),
+                POINTS.into(),
+                "camera 5 is not",
+            ),
+            (
+                CAMERAS.into(),
+                IMAGES.replace("-1 50 60 7", "-1 50 60"),
+                POINTS.into(),
+                "triples",
+            ),
+            (
+                CAMERAS.into(),
+                IMAGES.into(),
+                POINTS.replace("0.25", "nan"),
+                "not finite",
+            ),
+            (
+                CAMERAS.into(),
+                IMAGES.into(),
+                POINTS.replace("1 1\n", "1\n"),
+                "points3D.txt",
+            ),
+        ];
+        for (c, i, p, needle) in cases {
+            write_model(dir.path(), &c, &i, &p);
+            let e = read_text_model(dir.path()).unwrap_err().to_string();
+            assert!(e.contains(needle), "`{e}` should mention `{needle}`");
+        }
+        std::fs::remove_file(dir.path().join("images.txt")).unwrap();
+        let e = read_text_model(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("images.txt"), "{e}");
+    }
+
+    #[test]
+    fn a_missing_program_is_named() {
+        let c = Colmap {
+            program: PathBuf::from("/nonexistent/colmap-for-msth-test"),
+        };
+        let e = c.check().unwrap_err().to_string();
+        assert!(
+            e.contains("apt-get install colmap") && e.contains("MSTH_COLMAP"),
+            "{e}"
+        );
+    }
+}
