@@ -5,6 +5,7 @@
 //! recomputed wherever a deeper check is the target. Regenerate with
 //! `cargo test --release -p msth-tests --test codec_bad -- --ignored regenerate_bad_corpus`.
 
+use msth_testkit::{Need, Tests};
 use std::path::{Path, PathBuf};
 
 use msth_codec::format::{index_offset, FIXED_HEADER, INDEX_ENTRY};
@@ -646,8 +647,8 @@ fn corpus() -> Vec<(&'static str, Vec<u8>)> {
     out
 }
 
-#[test]
-#[ignore = "writes tests/bad/; run after a format change"]
+/// Run on request (`-- --ignored regenerate_bad_corpus`): writes tests/bad/; run after a
+/// format change.
 fn regenerate_bad_corpus() {
     let dir = bad_dir();
     std::fs::create_dir_all(&dir).unwrap();
@@ -663,12 +664,10 @@ fn regenerate_bad_corpus() {
 }
 
 /// The generator's valid base file decodes (so each bad file differs from a good one by its flaw).
-#[test]
 fn corpus_base_file_is_valid() {
     decode_all(&valid_file()).unwrap();
 }
 
-#[test]
 fn bad_corpus_fails_cleanly() {
     let mut files: Vec<PathBuf> = std::fs::read_dir(bad_dir())
         .unwrap()
@@ -696,7 +695,6 @@ fn bad_corpus_fails_cleanly() {
 }
 
 /// The committed corpus is what the generator writes (so it cannot silently go stale).
-#[test]
 fn bad_corpus_matches_generator() {
     for (i, (name, bytes)) in corpus().into_iter().enumerate() {
         let p = bad_dir().join(format!("{i:02}_{name}.msth"));
@@ -711,7 +709,6 @@ fn bad_corpus_matches_generator() {
 
 /// Each fault added for issue #22 (and each MUST of format.md without a file before) fails with
 /// an error that names what is wrong: the field, and for limits its value and the limit.
-#[test]
 fn each_fault_names_its_violation() {
     let expect: &[(&str, &[&str])] = &[
         (
@@ -791,7 +788,6 @@ fn one_row_payload(tag: u32, row: u32, value: f32) -> Vec<u8> {
 /// format.md §6.4: decoders MUST NOT rely on the writer's split of rows between the shared
 /// section and the chunks: a row stored in both takes the chunk's values (later writes win), in
 /// the whole-file and the streaming decoder.
-#[test]
 fn a_row_in_shared_and_chunk_takes_the_chunks_values() {
     let mut b = File {
         bytes: valid_file(),
@@ -823,29 +819,10 @@ fn a_row_in_shared_and_chunk_takes_the_chunks_values() {
 }
 
 /// The web player's decoder rejects the same files (`web/tests/decode_corpus.mjs`), so that a
-/// page and `msth play` agree on what a valid file is. Needs `node` and `npm ci --prefix web`;
-/// without them the test says why and skips, unless `MSTH_REQUIRE_BROWSER=1` (CI).
-#[test]
+/// page and `msth play` agree on what a valid file is. Needs `node` and `npm ci --prefix web`
+/// (the `browser` need of [`main`]).
 fn web_decoder_rejects_the_bad_corpus() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-    let node_ok = std::process::Command::new("node")
-        .arg("--version")
-        .output()
-        .is_ok_and(|o| o.status.success());
-    let why = if !node_ok {
-        Some("`node` is not installed")
-    } else if !root.join("web/node_modules/fzstd/package.json").is_file() {
-        Some("web/node_modules/fzstd is missing (run `npm ci --prefix web`)")
-    } else {
-        None
-    };
-    if let Some(why) = why {
-        if std::env::var("MSTH_REQUIRE_BROWSER").as_deref() == Ok("1") {
-            panic!("MSTH_REQUIRE_BROWSER=1 but the web decoder test cannot run: {why}");
-        }
-        eprintln!("SKIPPED web_decoder_rejects_the_bad_corpus: {why}");
-        return;
-    }
     // What only a whole-file decoder sees (bad_corpus_fails_cleanly lets these through the
     // streaming decoder too).
     let out = std::process::Command::new("node")
@@ -862,4 +839,41 @@ fn web_decoder_rejects_the_bad_corpus() {
         String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr);
     println!("{text}");
     assert!(out.status.success(), "the web decoder disagrees:\n{text}");
+}
+
+fn main() -> std::process::ExitCode {
+    // The web decoder runs in Node with the page's npm packages.
+    let node = Need::new("browser", || {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+        let node_ok = std::process::Command::new("node")
+            .arg("--version")
+            .output()
+            .is_ok_and(|o| o.status.success());
+        if !node_ok {
+            Err("`node` is not installed".into())
+        } else if !root.join("web/node_modules/fzstd/package.json").is_file() {
+            Err("web/node_modules/fzstd is missing (run `npm ci --prefix web`)".into())
+        } else {
+            Ok(())
+        }
+    });
+    Tests::new(file!())
+        .test("corpus_base_file_is_valid", corpus_base_file_is_valid)
+        .test("bad_corpus_fails_cleanly", bad_corpus_fails_cleanly)
+        .test("bad_corpus_matches_generator", bad_corpus_matches_generator)
+        .test(
+            "each_fault_names_its_violation",
+            each_fault_names_its_violation,
+        )
+        .test(
+            "a_row_in_shared_and_chunk_takes_the_chunks_values",
+            a_row_in_shared_and_chunk_takes_the_chunks_values,
+        )
+        .needs(
+            &[&node],
+            "web_decoder_rejects_the_bad_corpus",
+            web_decoder_rejects_the_bad_corpus,
+        )
+        .on_request(&[], "regenerate_bad_corpus", regenerate_bad_corpus)
+        .run()
 }

@@ -7,14 +7,17 @@
 //! - a moving camera: one video whose frame `i` is camera `i`'s view at a time step that
 //!   advances along the video (the monocular layout, every frame registered on its own).
 //!
-//! Needs `colmap`, `ffmpeg` and `../shared/data/gltf`; without them the tests print `SKIPPED`
-//! and return, unless `MSTH_REQUIRE_COLMAP=1`, where they fail. `import_then_train_*` (ignored:
+//! Needs `colmap`, `ffmpeg` and `../shared/data/gltf`; without them the tests are reported as
+//! ignored with the reason (msth-testkit's harness, `harness = false`: [`main`] lists the
+//! tests), unless `MSTH_REQUIRE_COLMAP=1` (or `_ALL`), where they fail. `import_then_train_*`
+//! (run on request:
 //! minutes of training) compares held-out PSNR after the same run on imported and true poses.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use glam::{DMat3, DMat4, DVec3};
+use msth_testkit::{Need, Tests};
 use msth_tests::{msth, shared_dataset};
 use msth_trainer::dataset::colmap::Colmap;
 use msth_trainer::dataset::npy;
@@ -25,29 +28,32 @@ use serde_json::Value;
 /// Time steps of the generated stage.
 const STEPS: usize = 4;
 
-/// The BoxAnimated model, or why the test cannot run (panics under `MSTH_REQUIRE_COLMAP=1`).
-fn prerequisites(test: &str) -> Option<PathBuf> {
-    let why = if Colmap::default().check().is_err() {
-        Some("`colmap` is not installed (apt-get install colmap)".to_string())
-    } else if !Tools::default().available() {
-        Some("`ffmpeg` / `ffprobe` are not installed".to_string())
-    } else {
-        None
-    };
-    let model = shared_dataset("gltf").map(|d| d.join("BoxAnimated/BoxAnimated.gltf"));
-    let why = why.or_else(|| {
-        model
-            .is_none()
-            .then(|| "../shared/data/gltf is not present".to_string())
-    });
-    if let Some(why) = why {
-        if std::env::var("MSTH_REQUIRE_COLMAP").as_deref() == Ok("1") {
-            panic!("MSTH_REQUIRE_COLMAP=1 but {test} cannot run: {why}");
-        }
-        eprintln!("SKIPPED {test}: {why}");
-        return None;
-    }
-    model
+/// The BoxAnimated model (the tests that call this run only where their needs are present:
+/// see [`main`]).
+fn box_animated() -> PathBuf {
+    shared_dataset("gltf").join("BoxAnimated/BoxAnimated.gltf")
+}
+
+fn main() -> std::process::ExitCode {
+    let needs = [Need::colmap(), Need::ffmpeg(), Need::shared_data("gltf")];
+    let needs: Vec<&Need> = needs.iter().collect();
+    Tests::new(file!())
+        .needs(
+            &needs,
+            "stage_imports_as_a_rig_and_as_a_moving_camera",
+            stage_imports_as_a_rig_and_as_a_moving_camera,
+        )
+        .needs(
+            &needs,
+            "too_little_texture_fails_naming_the_count",
+            too_little_texture_fails_naming_the_count,
+        )
+        .on_request(
+            &needs,
+            "import_then_train_matches_true_poses",
+            import_then_train_matches_true_poses,
+        )
+        .run()
 }
 
 /// Renders the stage layout: `cameras` + the held-out cam00, `frames` time steps, 400x300
@@ -210,11 +216,8 @@ fn videos_only(stage: &Path, dir: &Path) -> usize {
 
 /// The stage's 13 videos imported as a rig, then a sweep along its cameras as a moving camera
 /// (one rendering for both).
-#[test]
 fn stage_imports_as_a_rig_and_as_a_moving_camera() {
-    let Some(model) = prerequisites("stage_imports_as_a_rig_and_as_a_moving_camera") else {
-        return;
-    };
+    let model = box_animated();
     let tmp = tempfile::tempdir().unwrap();
     let st = tmp.path().join("stage");
     stage(&model, &st, STEPS, 12);
@@ -353,11 +356,7 @@ fn moving_camera(st: &Path, tmp: &Path, steps: usize) {
     assert_eq!(d.train.len() + d.test.len(), 13);
 }
 
-#[test]
 fn too_little_texture_fails_naming_the_count() {
-    let Some(_) = prerequisites("too_little_texture_fails_naming_the_count") else {
-        return;
-    };
     // Three flat grey videos: nothing for SIFT to find.
     let tmp = tempfile::tempdir().unwrap();
     let mut videos = Vec::new();
@@ -389,12 +388,8 @@ fn too_little_texture_fails_naming_the_count() {
 /// the true cameras (same frames, same split: cam00 held out). Minutes of CPU: run with
 /// `cargo test --release -p msth-tests --test import_colmap -- --ignored --nocapture`
 /// (`MSTH_IMPORT_TRAIN_ITERS`, default 400 steps of the balanced preset).
-#[test]
-#[ignore]
 fn import_then_train_matches_true_poses() {
-    let Some(model) = prerequisites("import_then_train_matches_true_poses") else {
-        return;
-    };
+    let model = box_animated();
     let iters = std::env::var("MSTH_IMPORT_TRAIN_ITERS").unwrap_or_else(|_| "400".into());
     let tmp = tempfile::tempdir().unwrap();
     let st = tmp.path().join("stage");
