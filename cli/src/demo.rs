@@ -45,7 +45,7 @@ use crate::serve::{server_config, ServeArgs};
 
 /// Training-time budget of `msth demo` in seconds: with the other stages (about 25 s on 2 cores)
 /// the whole demo ends within about 3.5 minutes.
-pub const DEMO_TRAIN_SECONDS: f64 = 150.0;
+pub const DEMO_TRAIN_SECONDS: f64 = 140.0;
 
 /// Frame rate of `orbit.mp4`: one model frame per output frame, so the built-in scene's 20
 /// frames take 1.6 s.
@@ -78,10 +78,10 @@ pub struct DemoArgs {
     #[arg(long)]
     pub cpu: bool,
     /// Playback image size WxH.
-    #[arg(long, value_parser = parse_size, default_value = "192x144")]
+    #[arg(long, value_parser = parse_size, default_value = "160x120")]
     pub play_size: (u32, u32),
     /// Frames of the tour (three stops and the moves between them).
-    #[arg(long, default_value_t = 80)]
+    #[arg(long, default_value_t = 40)]
     pub play_frames: usize,
     /// Built-in scene image size WxH (tests run a shortened demo).
     #[arg(long, hide = true, value_parser = parse_size)]

@@ -19,7 +19,6 @@ use std::time::Instant;
 use glam::{DMat3, DMat4, DVec3};
 use msth_testkit::{Need, Tests};
 use msth_tests::{msth, shared_dataset};
-use msth_trainer::dataset::colmap::Colmap;
 use msth_trainer::dataset::npy;
 use msth_trainer::dataset::video::{self, Tools};
 use msth_trainer::import::{average_pose, fit_similarity, rotation_angle_deg};
