@@ -167,12 +167,15 @@ fn align_errors(found: &[(DMat3, DVec3)], truth: &[(DMat3, DVec3)]) -> Errors {
 struct Bounds(f64, f64, f64, f64);
 
 /// The rig. COLMAP's multi-threaded matching and bundle adjustment are not repeatable run to
-/// run: on this small capture the mean orientation error measured 0.24, 0.38 and 0.68 degree
-/// in three runs (docs/import.md), around the issue's aim of 0.5. The bound is a regression
-/// check with room for that spread, not the aim.
-const RIG: Bounds = Bounds(1.0, 1.5, 1.5, 0.02);
-/// The moving camera: every frame registered on its own, from 13 frames (measured: 0.79).
-const MOVING: Bounds = Bounds(1.5, 3.0, 4.0, 0.03);
+/// run: on this small capture four runs measured a mean orientation error of 0.24-0.68 degree
+/// (max 0.72-1.29), 0.61-2.41 degrees after the centre-only fit (camera centres on a shallow
+/// arc pin that fit's rotation poorly) and 0.8-1.1% position error (docs/import.md). The issue
+/// aims at 0.5 degree; these bounds are regression checks at about twice the spread seen (a
+/// wrong reconstruction is off by tens of degrees), not the aim.
+const RIG: Bounds = Bounds(1.5, 3.0, 5.0, 0.03);
+/// The moving camera: every frame registered on its own, from 13 frames (measured once: 0.79
+/// degree mean, 1.44 max, 2.2 after the centre fit, 1% position), bounds likewise.
+const MOVING: Bounds = Bounds(2.0, 4.0, 6.0, 0.04);
 
 fn check(e: &Errors, b: &Bounds) {
     assert!(
