@@ -173,9 +173,9 @@ struct Bounds(f64, f64, f64, f64);
 /// aims at 0.5 degree; these bounds are regression checks at about twice the spread seen (a
 /// wrong reconstruction is off by tens of degrees), not the aim.
 const RIG: Bounds = Bounds(1.5, 3.0, 5.0, 0.03);
-/// The moving camera: every frame registered on its own, from 13 frames (measured once: 0.79
-/// degree mean, 1.44 max, 2.2 after the centre fit, 1% position), bounds likewise.
-const MOVING: Bounds = Bounds(2.0, 4.0, 6.0, 0.04);
+/// The moving camera: every frame registered on its own, from 13 frames (measured: 0.79-1.01
+/// degree mean, 1.44-1.72 max, 2.2-4.1 after the centre fit, 1.0-1.3% position), bounds likewise.
+const MOVING: Bounds = Bounds(2.0, 4.0, 8.0, 0.04);
 
 fn check(e: &Errors, b: &Bounds) {
     assert!(
@@ -279,7 +279,9 @@ fn stage_imports_as_a_rig_and_as_a_moving_camera() {
     assert_eq!(report["cameras_registered"], 13);
     check(&e, &RIG);
     assert!(
-        (focal / truth[0].2 - 1.0).abs() < 0.05,
+        // Four runs measured -6.2% to +3.9% (COLMAP trades focal length against distortion on
+        // this shallow rig); 12% is a regression check at twice that spread.
+        (focal / truth[0].2 - 1.0).abs() < 0.12,
         "focal {focal} vs {}",
         truth[0].2
     );
