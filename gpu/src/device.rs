@@ -7,6 +7,7 @@ use std::sync::{Arc, Mutex};
 
 use wgpu::util::DeviceExt;
 
+use crate::hashgrid::AtomicMode;
 use crate::layout::{dispatch_size, WORKGROUP};
 use crate::render::{check_state, pick_adapter, watch, DeviceState};
 use crate::{AdapterPolicy, GpuError};
@@ -348,5 +349,80 @@ impl ComputeDevice {
             .poll(wgpu::PollType::wait_indefinitely())
             .map(|_| ())
             .map_err(|e| GpuError::Backend(format!("waiting for the device: {e}")))
+    }
+}
+
+/// A forward kernel and its backward, compiled for one device over one bind layout (uniform at
+/// binding 0, then two read-only storage buffers and one read-write): the shape every training
+/// kernel of this crate has. The backward's gradient additions use `mode`.
+pub(crate) struct KernelPair {
+    layout: wgpu::BindGroupLayout,
+    forward: wgpu::ComputePipeline,
+    backward: wgpu::ComputePipeline,
+    pub(crate) mode: AtomicMode,
+}
+
+/// The WGSL and entry points of a [`KernelPair`]: `common` is prepended to both, and the
+/// backward gets the `add_grad` of its [`AtomicMode`] between `common` and its own source.
+pub(crate) struct PairSource<'a> {
+    pub label: &'a str,
+    pub common: &'a str,
+    pub forward: (&'a str, &'a str),
+    pub backward: (&'a str, &'a str),
+}
+
+impl KernelPair {
+    /// Compiles both kernels; [`AtomicMode::NativeF32`] on a device without f32 atomics is a
+    /// [`GpuError::MissingFeature`].
+    pub(crate) fn new(
+        dev: &ComputeDevice,
+        mode: AtomicMode,
+        src: PairSource,
+    ) -> Result<Self, GpuError> {
+        if mode == AtomicMode::NativeF32 && !dev.has_float_atomics() {
+            return Err(GpuError::MissingFeature(format!(
+                "{} has no f32 atomics (wgpu::Features::SHADER_FLOAT32_ATOMIC)",
+                dev.adapter_name()
+            )));
+        }
+        let layout = dev.bind_layout(src.label, &[true, true, false]);
+        let (fwd_wgsl, fwd_entry) = src.forward;
+        let (bwd_wgsl, bwd_entry) = src.backward;
+        let forward = dev.pipeline(
+            &format!("{} forward", src.label),
+            &format!("{}\n{fwd_wgsl}", src.common),
+            fwd_entry,
+            &layout,
+        )?;
+        let backward = dev.pipeline(
+            &format!("{} backward", src.label),
+            &format!("{}\n{}\n{bwd_wgsl}", src.common, mode.wgsl()),
+            bwd_entry,
+            &layout,
+        )?;
+        Ok(KernelPair {
+            layout,
+            forward,
+            backward,
+            mode,
+        })
+    }
+
+    /// Runs the forward (`backward: false`) or the backward over `invocations` invocations with
+    /// `uniform` at binding 0 and `buffers` at bindings 1-3.
+    pub(crate) fn run(
+        &self,
+        dev: &ComputeDevice,
+        backward: bool,
+        uniform: &[u8],
+        buffers: &[&wgpu::Buffer; 3],
+        invocations: u64,
+    ) -> Result<(), GpuError> {
+        let pipeline = if backward {
+            &self.backward
+        } else {
+            &self.forward
+        };
+        dev.run(pipeline, &self.layout, uniform, buffers, invocations)
     }
 }

@@ -11,7 +11,7 @@
 use bytemuck::{Pod, Zeroable};
 use msth_core::grid::{GridLayout, MAX_LEVELS};
 
-use crate::device::ComputeDevice;
+use crate::device::{ComputeDevice, KernelPair, PairSource};
 use crate::layout::LevelU;
 use crate::GpuError;
 
@@ -183,46 +183,29 @@ impl GpuGrid {
 
 /// The compiled hash-grid kernels of one device.
 pub struct HashGridKernels {
-    layout: wgpu::BindGroupLayout,
-    forward: wgpu::ComputePipeline,
-    backward: wgpu::ComputePipeline,
-    mode: AtomicMode,
+    kernels: KernelPair,
 }
 
 impl HashGridKernels {
     /// Compiles forward and backward, the backward with `mode`; [`AtomicMode::NativeF32`] on a
     /// device without f32 atomics is a [`GpuError::MissingFeature`].
     pub fn new(dev: &ComputeDevice, mode: AtomicMode) -> Result<Self, GpuError> {
-        if mode == AtomicMode::NativeF32 && !dev.has_float_atomics() {
-            return Err(GpuError::MissingFeature(format!(
-                "{} has no f32 atomics (wgpu::Features::SHADER_FLOAT32_ATOMIC)",
-                dev.adapter_name()
-            )));
-        }
         // Binding 1 points, 2 table (forward) or d_features (backward), 3 features or grad.
-        let layout = dev.bind_layout("hash grid", &[true, true, false]);
-        let forward = dev.pipeline(
-            "hashgrid forward",
-            &format!("{HASHGRID_WGSL}\n{HASHGRID_FORWARD_WGSL}"),
-            "encode_forward",
-            &layout,
-        )?;
-        let backward = dev.pipeline(
-            "hashgrid backward",
-            &format!("{HASHGRID_WGSL}\n{}\n{HASHGRID_BACKWARD_WGSL}", mode.wgsl()),
-            "encode_backward",
-            &layout,
-        )?;
-        Ok(HashGridKernels {
-            layout,
-            forward,
-            backward,
+        let kernels = KernelPair::new(
+            dev,
             mode,
-        })
+            PairSource {
+                label: "hashgrid",
+                common: HASHGRID_WGSL,
+                forward: (HASHGRID_FORWARD_WGSL, "encode_forward"),
+                backward: (HASHGRID_BACKWARD_WGSL, "encode_backward"),
+            },
+        )?;
+        Ok(HashGridKernels { kernels })
     }
 
     pub fn mode(&self) -> AtomicMode {
-        self.mode
+        self.kernels.mode
     }
 
     /// Features of `n` samples: `points` holds `(x, y, z, t)` per sample (3D grids ignore `t`),
@@ -238,9 +221,9 @@ impl HashGridKernels {
         features: &wgpu::Buffer,
     ) -> Result<(), GpuError> {
         let (u, inv) = grid.uniform(n, table, points, features)?;
-        dev.run(
-            &self.forward,
-            &self.layout,
+        self.kernels.run(
+            dev,
+            false,
             bytemuck::bytes_of(&u),
             &[points, table, features],
             inv,
@@ -260,9 +243,9 @@ impl HashGridKernels {
         grad: &wgpu::Buffer,
     ) -> Result<(), GpuError> {
         let (u, inv) = grid.uniform(n, grad, points, d_features)?;
-        dev.run(
-            &self.backward,
-            &self.layout,
+        self.kernels.run(
+            dev,
+            true,
             bytemuck::bytes_of(&u),
             &[points, d_features, grad],
             inv,

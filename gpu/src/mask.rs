@@ -5,7 +5,7 @@
 use bytemuck::{Pod, Zeroable};
 use msth_core::grid::DenseGrid3;
 
-use crate::device::ComputeDevice;
+use crate::device::{ComputeDevice, KernelPair, PairSource};
 use crate::hashgrid::AtomicMode;
 use crate::GpuError;
 
@@ -86,46 +86,29 @@ impl GpuMask {
 
 /// The compiled mask kernels of one device.
 pub struct MaskKernels {
-    layout: wgpu::BindGroupLayout,
-    forward: wgpu::ComputePipeline,
-    backward: wgpu::ComputePipeline,
-    mode: AtomicMode,
+    kernels: KernelPair,
 }
 
 impl MaskKernels {
     /// Compiles forward and backward, the backward with `mode` (see
     /// [`crate::hashgrid::HashGridKernels::new`]).
     pub fn new(dev: &ComputeDevice, mode: AtomicMode) -> Result<Self, GpuError> {
-        if mode == AtomicMode::NativeF32 && !dev.has_float_atomics() {
-            return Err(GpuError::MissingFeature(format!(
-                "{} has no f32 atomics (wgpu::Features::SHADER_FLOAT32_ATOMIC)",
-                dev.adapter_name()
-            )));
-        }
         // Binding 1 points, 2 logits (forward) or (m, d m) pairs (backward), 3 m or grad.
-        let layout = dev.bind_layout("mask", &[true, true, false]);
-        let forward = dev.pipeline(
-            "mask forward",
-            &format!("{MASK_WGSL}\n{MASK_FORWARD_WGSL}"),
-            "mask_forward",
-            &layout,
-        )?;
-        let backward = dev.pipeline(
-            "mask backward",
-            &format!("{MASK_WGSL}\n{}\n{MASK_BACKWARD_WGSL}", mode.wgsl()),
-            "mask_backward",
-            &layout,
-        )?;
-        Ok(MaskKernels {
-            layout,
-            forward,
-            backward,
+        let kernels = KernelPair::new(
+            dev,
             mode,
-        })
+            PairSource {
+                label: "mask",
+                common: MASK_WGSL,
+                forward: (MASK_FORWARD_WGSL, "mask_forward"),
+                backward: (MASK_BACKWARD_WGSL, "mask_backward"),
+            },
+        )?;
+        Ok(MaskKernels { kernels })
     }
 
     pub fn mode(&self) -> AtomicMode {
-        self.mode
+        self.kernels.mode
     }
 
     /// `m = sigmoid(trilinear logit)` of `n` samples (`points`: `(x, y, z, t)`, `t` unused) into
@@ -140,9 +123,9 @@ impl MaskKernels {
         m_out: &wgpu::Buffer,
     ) -> Result<(), GpuError> {
         let u = mask.uniform(n, logits, points, (m_out, 1))?;
-        dev.run(
-            &self.forward,
-            &self.layout,
+        self.kernels.run(
+            dev,
+            false,
             bytemuck::bytes_of(&u),
             &[points, logits, m_out],
             n as u64,
@@ -162,9 +145,9 @@ impl MaskKernels {
         grad: &wgpu::Buffer,
     ) -> Result<(), GpuError> {
         let u = mask.uniform(n, grad, points, (m_dm, 2))?;
-        dev.run(
-            &self.backward,
-            &self.layout,
+        self.kernels.run(
+            dev,
+            true,
             bytemuck::bytes_of(&u),
             &[points, m_dm, grad],
             n as u64,
