@@ -5,63 +5,15 @@
 //! are reported as ignored with the reason (msth-testkit's harness, `harness = false`: [`main`]
 //! lists the tests), unless `MSTH_REQUIRE_CURL=1` (or `_ALL`).
 
-use std::process::Command;
 use std::time::Duration;
 
 use msth_server::range::MAX_RANGE_SPECS;
 use msth_server::{BackgroundServer, ServerConfig};
+use msth_testkit::curl::{curl, header_in, Reply};
 use msth_testkit::{Need, Tests};
 
-const CURL: &str = "/usr/bin/curl";
-
-struct Reply {
-    status: u16,
-    headers: String,
-    body: Vec<u8>,
-}
-
-impl Reply {
-    fn header(&self, name: &str) -> Option<String> {
-        header_in(&self.headers, name)
-    }
-}
-
-fn header_in(block: &str, name: &str) -> Option<String> {
-    block.lines().find_map(|l| {
-        let (k, v) = l.split_once(':')?;
-        k.trim()
-            .eq_ignore_ascii_case(name)
-            .then(|| v.trim().to_string())
-    })
-}
-
-/// Runs curl with `args` + the URL; headers go to a temp file, the body to stdout.
-fn curl(url: &str, args: &[&str]) -> Reply {
-    let dir = tempfile::tempdir().unwrap();
-    let head = dir.path().join("headers");
-    let out = Command::new(CURL)
-        .args(["-s", "--max-time", "10", "-D"])
-        .arg(&head)
-        .args(args)
-        .arg(url)
-        .output()
-        .expect("curl runs");
-    let headers = std::fs::read_to_string(&head).unwrap_or_default();
-    let status = headers
-        .lines()
-        .next()
-        .and_then(|l| l.split_whitespace().nth(1))
-        .and_then(|s| s.parse().ok())
-        .unwrap_or_else(|| panic!("no status from curl {args:?} {url}: {headers:?}"));
-    Reply {
-        status,
-        headers,
-        body: out.stdout,
-    }
-}
-
 fn main() -> std::process::ExitCode {
-    let curl = Need::program("curl", None, CURL, &["--version"]);
+    let curl = Need::curl();
     Tests::new(file!())
         .needs(&[&curl], "multipart_byteranges", multipart_byteranges)
         .needs(

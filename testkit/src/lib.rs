@@ -63,6 +63,8 @@
 //! Unlike the built-in harness, this one does not capture what tests print (it shows up as the
 //! tests run); failures show their panic message as usual.
 
+pub mod curl;
+
 use std::path::{Path, PathBuf};
 use std::process::{Command, ExitCode, Stdio};
 use std::sync::{Arc, OnceLock};

@@ -4,13 +4,12 @@
 //! are reported as ignored with the reason, unless `MSTH_REQUIRE_CURL=1` (then they fail). This
 //! binary runs on `msth-testkit`'s harness (`harness = false`): [`main`] lists its tests.
 
-use std::process::Command;
-
 use msth_server::{BackgroundServer, ServerConfig};
+use msth_testkit::curl::curl;
 use msth_testkit::{Need, Tests};
 
 fn main() -> std::process::ExitCode {
-    let curl = Need::program("curl", None, CURL, &["--version"]);
+    let curl = Need::curl();
     Tests::new(file!())
         .needs(
             &[&curl],
@@ -20,50 +19,6 @@ fn main() -> std::process::ExitCode {
         .needs(&[&curl], "ranges", ranges)
         .needs(&[&curl], "traversal_is_refused", traversal_is_refused)
         .run()
-}
-
-const CURL: &str = "/usr/bin/curl";
-
-struct Reply {
-    status: u16,
-    headers: String,
-    body: Vec<u8>,
-}
-
-impl Reply {
-    fn header(&self, name: &str) -> Option<String> {
-        self.headers.lines().find_map(|l| {
-            let (k, v) = l.split_once(':')?;
-            k.trim()
-                .eq_ignore_ascii_case(name)
-                .then(|| v.trim().to_string())
-        })
-    }
-}
-
-/// Runs curl with `args` + the URL; headers go to a temp file, the body to stdout.
-fn curl(url: &str, args: &[&str]) -> Reply {
-    let dir = tempfile::tempdir().unwrap();
-    let head = dir.path().join("headers");
-    let out = Command::new(CURL)
-        .args(["-s", "--max-time", "10", "-D"])
-        .arg(&head)
-        .args(args)
-        .arg(url)
-        .output()
-        .expect("curl runs");
-    let headers = std::fs::read_to_string(&head).unwrap_or_default();
-    let status = headers
-        .lines()
-        .next()
-        .and_then(|l| l.split_whitespace().nth(1))
-        .and_then(|s| s.parse().ok())
-        .unwrap_or_else(|| panic!("no status from curl {args:?} {url}: {headers:?}"));
-    Reply {
-        status,
-        headers,
-        body: out.stdout,
-    }
 }
 
 /// A served folder `root/served` with `a.msth` (1000 known bytes) and `b.msth`, a secret file
