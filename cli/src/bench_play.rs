@@ -32,6 +32,14 @@ pub struct BenchPlayArgs {
     /// Static threshold of the incremental renderer.
     #[arg(long)]
     pub static_threshold: Option<f32>,
+    /// Mask value above which a static ray is cached without probes (see `msth play
+    /// --trust-threshold`).
+    #[arg(long)]
+    pub trust_threshold: Option<f32>,
+    /// Do not probe the rays the mask alone caches (by default they are probed too, only to
+    /// count how often the probes disagree with the mask; they stay cached either way).
+    #[arg(long)]
+    pub no_audit: bool,
     /// Probe renders that must agree before a ray is cached (see `msth play --probes`).
     #[arg(long)]
     pub probes: Option<usize>,
@@ -144,6 +152,10 @@ pub fn run(a: BenchPlayArgs) -> Result<()> {
     if let Some(th) = a.static_threshold {
         opts.render.static_threshold = th;
     }
+    if let Some(t) = a.trust_threshold {
+        opts.render.trust_threshold = t;
+    }
+    opts.render.audit_mask = !a.no_audit;
     if let Some(p) = a.probes {
         opts.render.probes = p;
     }
@@ -229,6 +241,27 @@ pub fn run(a: BenchPlayArgs) -> Result<()> {
         "rays: re-rendered rays are rendered in full".to_string()
     };
     println!("reuse on the re-rendered rays: {reuse}");
+    let classify = inc.frames.iter().find_map(|f| f.stats.classify);
+    if let Some(c) = &classify {
+        let pct = |n: usize| 100.0 * n as f64 / c.rays.max(1) as f64;
+        println!(
+            "mask: {:.1}% of the scene's rays cached by the mask alone (mask >= {}), {:.1}% probed (mask >= {}; {:.1}% kept by the probes), {:.1}% re-rendered",
+            pct(c.trusted),
+            opts.render.trust_threshold,
+            pct(c.probed),
+            opts.render.static_threshold,
+            pct(c.probed_static),
+            pct(c.rays - c.cached())
+        );
+        if let Some(d) = c.trusted_disagree {
+            println!(
+                "mask against probes: {d} of the {} rays the mask alone caches ({:.2}%) moved by more than {} at a probe time",
+                c.trusted,
+                100.0 * d as f64 / c.trusted.max(1) as f64,
+                opts.render.probe_tolerance
+            );
+        }
+    }
     println!(
         "the full renders change by more than 1/255 at {:.1}% of the pixels, by more than 8/255 at {:.1}%: the least a perfect static/dynamic split would re-render at those tolerances",
         100.0 * ideal,
@@ -271,7 +304,8 @@ pub fn run(a: BenchPlayArgs) -> Result<()> {
             "speedup": inc_fps / full_fps.max(1e-9), "dynamic_fraction": dynamic,
             "steady_incremental_fps": steady_fps, "steady_speedup": steady_fps / full_fps.max(1e-9),
             "cache_seconds": inc.cache_seconds(), "changing_fraction_full": ideal, "changing_fraction_full_8": ideal_coarse,
-            "static_threshold": opts.render.static_threshold, "probes": opts.render.probes, "probe_tolerance": opts.render.probe_tolerance,
+            "static_threshold": opts.render.static_threshold, "trust_threshold": opts.render.trust_threshold,
+            "classify": classify, "probes": opts.render.probes, "probe_tolerance": opts.render.probe_tolerance,
             "reuse": opts.render.reuse, "samples_per_rerendered_ray": samples_per_ray,
             "partition_times": opts.render.partition_times, "partition_samples": opts.render.partition_samples,
             "sample_cutoff": opts.render.sample_cutoff,

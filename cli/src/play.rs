@@ -55,7 +55,12 @@ pub struct PlayArgs {
     /// A ray is static when the mask is at least this along its visible part.
     #[arg(long, default_value_t = RenderSettings::default().static_threshold)]
     pub static_threshold: f32,
-    /// Probe renders (times over [0, 1]) that must agree before a ray is cached as static.
+    /// A static ray whose mask is at least this along its visible part is cached without probes;
+    /// the probes test only the static rays below it (above 1: probe every static ray).
+    #[arg(long, default_value_t = RenderSettings::default().trust_threshold)]
+    pub trust_threshold: f32,
+    /// Probe renders (times over [0, 1]) that must agree before a ray the mask is unsure of is
+    /// cached as static.
     #[arg(long, default_value_t = RenderSettings::default().probes)]
     pub probes: usize,
     /// Largest colour change (0-1 scale) a static ray may show at a probe.
@@ -168,6 +173,12 @@ pub fn options(a: &PlayArgs) -> Result<PlayOptions> {
             a.static_threshold
         );
     }
+    if !(a.trust_threshold.is_finite() && a.trust_threshold >= 0.0) {
+        bail!(
+            "--trust-threshold {}: a non-negative number (above 1: probe every static ray)",
+            a.trust_threshold
+        );
+    }
     if let Some(f) = a.fps {
         if !(f.is_finite() && f > 0.0 && f <= 1000.0) {
             bail!("--fps {f}: must lie in (0, 1000]");
@@ -184,6 +195,7 @@ pub fn options(a: &PlayArgs) -> Result<PlayOptions> {
     o.render.incremental = !a.no_incremental;
     o.backend = backend_choice(a.cpu, a.gpu);
     o.render.static_threshold = a.static_threshold;
+    o.render.trust_threshold = a.trust_threshold;
     if a.probes > 64 {
         bail!("--probes {}: at most 64", a.probes);
     }

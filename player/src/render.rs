@@ -34,6 +34,13 @@ pub struct RenderSettings {
     pub incremental: bool,
     /// A ray is static when the mask is at least this along its visible part (1 = static).
     pub static_threshold: f32,
+    /// A static ray whose mask is at least this along its visible part is cached on the mask's
+    /// word alone; static rays below it (the mask is uncertain there) go through the probes.
+    /// Above 1: every static ray is probed; at or below `static_threshold`: none is.
+    pub trust_threshold: f32,
+    /// Probe the rays the mask alone caches too, only to count how often the probes disagree
+    /// with the mask ([`ClassifyStats::trusted_disagree`]); the rays stay cached either way.
+    pub audit_mask: bool,
     /// Mask lookups per ray for the static test, per mask-grid cell along the scene.
     pub mask_steps_per_cell: f32,
     /// Times (evenly over `time_range`, ends included) at which the rays the mask calls static are
@@ -99,6 +106,15 @@ pub enum Reuse {
 /// Three probes (0, 0.5, 1) gave the same PSNR as five, with a third less cache-build time.
 pub const DEFAULT_PROBE_TOLERANCE: f32 = 0.03;
 
+/// Default of [`RenderSettings::trust_threshold`]: a ray whose mask stays at or above this along
+/// its visible part is cached without probes (docs/mask-learning.md, "The mask decides": on the
+/// built-in scene the probes disagree with about 1% of such rays).
+pub const DEFAULT_TRUST_THRESHOLD: f32 = 0.9;
+
+/// Default of [`RenderSettings::static_threshold`]: rays whose mask stays between this and
+/// [`DEFAULT_TRUST_THRESHOLD`] are probed; below it they are re-rendered every frame.
+pub const DEFAULT_STATIC_THRESHOLD: f32 = 0.5;
+
 /// Default of [`RenderSettings::sample_cutoff`]: a sample whose dynamic weight `1 - m` is below
 /// 5% is evaluated once (chosen on the built-in scene; `msth bench play` measures the effect).
 pub const DEFAULT_SAMPLE_CUTOFF: f32 = 0.05;
@@ -115,7 +131,9 @@ impl Default for RenderSettings {
     fn default() -> Self {
         RenderSettings {
             incremental: true,
-            static_threshold: 0.9,
+            static_threshold: DEFAULT_STATIC_THRESHOLD,
+            trust_threshold: DEFAULT_TRUST_THRESHOLD,
+            audit_mask: false,
             mask_steps_per_cell: 4.0,
             probes: 3,
             probe_tolerance: DEFAULT_PROBE_TOLERANCE,
@@ -150,6 +168,33 @@ pub struct FrameStats {
     pub cache_seconds: f64,
     /// Samples evaluated at this frame on rays with sample-level reuse (0 otherwise).
     pub samples_evaluated: usize,
+    /// How the static cache was sorted, on the frame that sorted it (the second of a camera).
+    pub classify: Option<ClassifyStats>,
+}
+
+/// How one camera's rays were sorted into cached and re-rendered ([`classify_static_with_stats`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+pub struct ClassifyStats {
+    /// Rays sorted (the camera's rays that hit the scene).
+    pub rays: usize,
+    /// Rays the mask alone caches (mask at least `trust_threshold` along the visible part).
+    pub trusted: usize,
+    /// Rays the mask calls static but not surely (between `static_threshold` and
+    /// `trust_threshold`): probed.
+    pub probed: usize,
+    /// Of those, the rays the probes kept static (cached).
+    pub probed_static: usize,
+    /// With [`RenderSettings::audit_mask`]: trusted rays whose colour moved by more than the
+    /// probe tolerance at a probe time (the mask and the probes disagree); `None` without audit
+    /// or without probes.
+    pub trusted_disagree: Option<usize>,
+}
+
+impl ClassifyStats {
+    /// Rays cached: trusted plus probed-and-static.
+    pub fn cached(&self) -> usize {
+        self.trusted + self.probed_static
+    }
 }
 
 /// A rendered frame: linear RGB in `[0, 1]`, row-major, 3 floats per pixel.
@@ -184,6 +229,8 @@ struct Cache {
     /// The first frame's evaluated rays, until the second frame classifies them (so that the
     /// first frame is shown without waiting for the static test and the probes).
     pending: Option<Pending>,
+    /// How the rays were sorted, once they are.
+    classified: Option<ClassifyStats>,
 }
 
 struct Pending {
@@ -269,9 +316,7 @@ pub fn render_rays(
 }
 
 /// Whether `ray` is static: the mask is at least `threshold` at every lookup from its entry into
-/// the scene to `visible_end`. Lookups are uniform in the sampler's spacing coordinate, `steps`
-/// of them over the ray's whole interval. Without a mask, a model is static only when it has no
-/// 4D part.
+/// the scene to `visible_end` ([`ray_min_mask`]).
 pub fn ray_is_static(
     cfg: &ModelConfig,
     layout: &ModelLayout,
@@ -281,16 +326,34 @@ pub fn ray_is_static(
     threshold: f32,
     steps: usize,
 ) -> bool {
+    ray_min_mask(cfg, layout, params, ray, visible_end, steps, threshold) >= threshold
+}
+
+/// The smallest mask value along `ray` from its entry into the scene to `visible_end` (1 for a ray
+/// that misses the scene). Lookups are uniform in the sampler's spacing coordinate, `steps` of
+/// them over the ray's whole interval; the walk stops early once the minimum is below `floor`
+/// (the caller's lowest threshold: the exact value below it does not matter). Without a mask
+/// the value is the encoding's constant mask (1 for a model with no 4D part, 0 otherwise).
+pub fn ray_min_mask(
+    cfg: &ModelConfig,
+    layout: &ModelLayout,
+    params: &[f32],
+    ray: &TimedRay,
+    visible_end: f32,
+    steps: usize,
+    floor: f32,
+) -> f32 {
     let enc = &layout.field.encoding;
     if enc.mask.is_none() {
-        return enc.mask_at(params, &[0.0; 3]) >= threshold;
+        return enc.mask_at(params, &[0.0; 3]);
     }
     let (near, far) = ray_limits(cfg, ray);
     if far <= near {
-        return true;
+        return 1.0;
     }
     let unit = spacing_unit(&cfg.bounds);
     let steps = steps.max(1);
+    let mut min = 1.0f32;
     for k in 0..=steps {
         let s = k as f32 / steps as f32;
         let t = cfg.sampler.spacing.t_of_s(s, near, far, unit);
@@ -298,11 +361,12 @@ pub fn ray_is_static(
             break;
         }
         let u = cfg.bounds.to_unit(ray.origin + ray.dir * t);
-        if enc.mask_at(params, &[u.x, u.y, u.z]) < threshold {
-            return false;
+        min = min.min(enc.mask_at(params, &[u.x, u.y, u.z]));
+        if min < floor {
+            break;
         }
     }
-    true
+    min
 }
 
 impl Renderer {
@@ -368,6 +432,7 @@ impl Renderer {
                 let t = Instant::now();
                 self.classify(params, params_at, p, &mut cache);
                 stats.cache_seconds = t.elapsed().as_secs_f64();
+                stats.classify = cache.classified;
             }
             let colours = match &cache.samples {
                 Some(sc) => {
@@ -453,6 +518,7 @@ impl Renderer {
             rays: Vec::new(),
             samples: None,
             empty,
+            classified: None,
             pending: Some(Pending {
                 pixels,
                 rays,
@@ -472,7 +538,7 @@ impl Renderer {
         p: Pending,
         cache: &mut Cache,
     ) {
-        let flags = classify_static(
+        let flags = classify_static_with_stats(
             &self.cfg,
             &self.layout,
             params,
@@ -495,10 +561,11 @@ impl Renderer {
                 )
             },
         );
-        let flags = match flags {
+        let (flags, counts) = match flags {
             Ok(f) => f,
             Err(never) => match never {},
         };
+        cache.classified = Some(counts);
         for ((&px, r), is_static) in p.pixels.iter().zip(&p.rays).zip(flags) {
             if !is_static {
                 cache.dynamic.push(px);
@@ -552,11 +619,7 @@ pub fn mask_steps(cfg: &ModelConfig, settings: &RenderSettings) -> usize {
 }
 
 /// Sorts a first frame's rays into static (`true`: cached) and dynamic, as every renderer of the
-/// player does: the mask test along each ray's visible segment ([`ray_is_static`], up to
-/// `visible_depth`), then the probes. `render(indices, time)` renders the rays `rays[i]` for the
-/// given indices at `time` and returns their colours in order (the backend's own renderer);
-/// a ray still marked static whose colour moves by more than the tolerance from `rgb0` at any
-/// probe time becomes dynamic.
+/// player does ([`classify_static_with_stats`] without its counts).
 #[allow(clippy::too_many_arguments)]
 pub fn classify_static<E>(
     cfg: &ModelConfig,
@@ -566,15 +629,71 @@ pub fn classify_static<E>(
     rays: &[TimedRay],
     rgb0: &[[f32; 3]],
     visible_depth: &[f32],
-    mut render: impl FnMut(&[usize], f32) -> Result<Vec<[f32; 3]>, E>,
+    render: impl FnMut(&[usize], f32) -> Result<Vec<[f32; 3]>, E>,
 ) -> Result<Vec<bool>, E> {
+    classify_static_with_stats(
+        cfg,
+        layout,
+        params,
+        settings,
+        rays,
+        rgb0,
+        visible_depth,
+        render,
+    )
+    .map(|(flags, _)| flags)
+}
+
+/// Sorts a first frame's rays into static (`true`: cached) and dynamic by the mask along each
+/// ray's visible segment (up to `visible_depth`, [`ray_min_mask`]):
+/// - at least `trust_threshold`: static on the mask's word alone;
+/// - at least `static_threshold` (the mask is not sure): static only if the probes agree: the
+///   ray is rendered at each probe time, and one whose colour moves by more than the tolerance
+///   from `rgb0` becomes dynamic;
+/// - below: dynamic.
+///
+/// `render(indices, time)` renders the rays `rays[i]` for the given indices at `time` and returns
+/// their colours in order (the backend's own renderer).
+#[allow(clippy::too_many_arguments)]
+pub fn classify_static_with_stats<E>(
+    cfg: &ModelConfig,
+    layout: &ModelLayout,
+    params: &[f32],
+    settings: &RenderSettings,
+    rays: &[TimedRay],
+    rgb0: &[[f32; 3]],
+    visible_depth: &[f32],
+    mut render: impl FnMut(&[usize], f32) -> Result<Vec<[f32; 3]>, E>,
+) -> Result<(Vec<bool>, ClassifyStats), E> {
     let steps = mask_steps(cfg, settings);
     let threshold = settings.static_threshold;
-    let mut flags: Vec<bool> = rays
+    // A trust threshold below the static one trusts exactly the static rays.
+    let trust = settings.trust_threshold.max(threshold);
+    let min_mask: Vec<f32> = rays
         .par_iter()
         .zip(visible_depth)
-        .map(|(r, &end)| ray_is_static(cfg, layout, params, r, end, threshold, steps))
+        .map(|(r, &end)| ray_min_mask(cfg, layout, params, r, end, steps, threshold))
         .collect();
+    let mut flags: Vec<bool> = min_mask.iter().map(|&m| m >= threshold).collect();
+    let trusted: Vec<bool> = min_mask.iter().map(|&m| m >= trust).collect();
+    let mut stats = ClassifyStats {
+        rays: rays.len(),
+        trusted: trusted.iter().filter(|&&t| t).count(),
+        probed: flags
+            .iter()
+            .zip(&trusted)
+            .filter(|(&f, &t)| f && !t)
+            .count(),
+        probed_static: 0,
+        trusted_disagree: (settings.audit_mask && settings.probes > 0).then_some(0),
+    };
+    // Rays the probes still test: the uncertain static ones, plus (auditing) the trusted ones.
+    let mut testing: Vec<bool> = flags
+        .iter()
+        .zip(&trusted)
+        .map(|(&f, &t)| f && (!t || settings.audit_mask))
+        .collect();
+    let mut disagree = vec![false; rays.len()];
     let k = settings.probes;
     for j in 0..k {
         let t = settings.clip_time(j, k);
@@ -582,7 +701,7 @@ pub fn classify_static<E>(
         if rays.iter().all(|r| r.time == t) {
             continue;
         }
-        let idx: Vec<usize> = (0..rays.len()).filter(|&i| flags[i]).collect();
+        let idx: Vec<usize> = (0..rays.len()).filter(|&i| testing[i]).collect();
         if idx.is_empty() {
             break;
         }
@@ -590,11 +709,24 @@ pub fn classify_static<E>(
         for (&i, c) in idx.iter().zip(&out) {
             let moved = (0..3).any(|ch| (c[ch] - rgb0[i][ch]).abs() > settings.probe_tolerance);
             if moved {
-                flags[i] = false;
+                testing[i] = false;
+                if trusted[i] {
+                    disagree[i] = true;
+                } else {
+                    flags[i] = false;
+                }
             }
         }
     }
-    Ok(flags)
+    stats.probed_static = flags
+        .iter()
+        .zip(&trusted)
+        .filter(|(&f, &t)| f && !t)
+        .count();
+    if let Some(d) = stats.trusted_disagree.as_mut() {
+        *d = disagree.iter().filter(|&&x| x).count();
+    }
+    Ok((flags, stats))
 }
 
 #[cfg(test)]
@@ -730,6 +862,57 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn a_sure_mask_is_trusted_without_probes_and_the_audit_counts_its_errors() {
+        // The mask says "surely static" (m = 0.982, above the trust threshold 0.98) while a 4D
+        // table of huge values makes everything move through the 1.8% left to it: trusted rays
+        // are cached on the mask's word (the probes do not see them), the audit counts them as
+        // disagreements, and a trust threshold above 1 probes them again.
+        let (cfg, mut params) = model(msth_core::config::BlendMode::Mt);
+        let layout = ModelLayout::new(&cfg);
+        set_mask(&cfg, &mut params, 4.0);
+        let mut rng = msth_core::rng::Rng::new(9);
+        let (_, h4) = layout.field.encoding.h4.clone().unwrap();
+        for v in &mut params[h4] {
+            *v = rng.range_f32(-100.0, 100.0);
+        }
+        let base = RenderSettings {
+            probes: 5,
+            probe_tolerance: 1.0 / 255.0,
+            reuse: Reuse::Rays,
+            ..Default::default()
+        };
+        let cam = camera();
+        let classify = |settings: RenderSettings| {
+            let mut r = Renderer::new(&cfg, settings);
+            r.render(&cam, 0.0, &params);
+            let f = r.render(&cam, 0.5, &params);
+            f.stats.classify.expect("the second frame sorts the rays")
+        };
+        let trusted = classify(RenderSettings {
+            audit_mask: true,
+            ..base
+        });
+        assert!(trusted.rays > 0);
+        assert_eq!(trusted.trusted, trusted.rays, "{trusted:?}");
+        assert_eq!(trusted.probed, 0);
+        let wrong = trusted.trusted_disagree.expect("audited");
+        assert!(
+            wrong > trusted.rays / 2,
+            "the audit sees the motion: {trusted:?}"
+        );
+        let quiet = classify(base);
+        assert_eq!(quiet.trusted_disagree, None);
+        assert_eq!(quiet.cached(), quiet.rays);
+        let probed = classify(RenderSettings {
+            trust_threshold: 1.5,
+            ..base
+        });
+        assert_eq!(probed.trusted, 0);
+        assert_eq!(probed.probed, probed.rays);
+        assert_eq!(probed.probed_static, probed.rays - wrong, "{probed:?}");
     }
 
     #[test]
@@ -910,6 +1093,8 @@ mod tests {
         let settings = RenderSettings {
             reuse: Reuse::Rays,
             probe_tolerance: 1.0 / 255.0,
+            // Probe every static ray (this test is about the probes' parameters).
+            trust_threshold: 2.0,
             ..Default::default()
         };
         let cam = camera();
@@ -960,6 +1145,7 @@ mod tests {
     fn probes_and_fixed_samples_cover_the_time_range_played() {
         let s = RenderSettings {
             time_range: (0.4, 0.2),
+            trust_threshold: 2.0,
             ..Default::default()
         };
         let times: Vec<f32> = (0..3).map(|j| s.clip_time(j, 3)).collect();

@@ -77,6 +77,11 @@ pub struct TrainSettings {
     pub model: ModelConfig,
 }
 
+/// Default of [`TrainSettings::mask_lr_scale`] (issue #16's measurements).
+pub const DEFAULT_MASK_LR_SCALE: f32 = 10.0;
+/// Default of [`TrainSettings::sample_mask_weight`] (issue #16's measurements).
+pub const DEFAULT_SAMPLE_MASK_WEIGHT: f32 = 5e-3;
+
 impl TrainSettings {
     pub fn for_preset(preset: Preset, data: &Dataset) -> Self {
         let background = Background::Color {
@@ -118,8 +123,12 @@ impl TrainSettings {
                 mode: SamplingMode::Dynamics,
                 ..SamplingConfig::default()
             },
-            mask_lr_scale: 1.0,
-            sample_mask_weight: 0.0,
+            // The mask decides (docs/mask-learning.md, "The mask decides", issue #16): a logit
+            // step 10x the field's, so empty space and seen static surfaces reach m >= 0.9 within
+            // a short run, and the per-sample mask loss, which pulls seen voxels static unless the
+            // 4D table lowers the image loss by more than its weight.
+            mask_lr_scale: DEFAULT_MASK_LR_SCALE,
+            sample_mask_weight: DEFAULT_SAMPLE_MASK_WEIGHT,
             model,
         }
     }
