@@ -37,10 +37,10 @@ use rayon::prelude::*;
 use serde::Serialize;
 use serde_json::{Map, Value};
 
-use super::cache::{store_frames, CacheKey, Fingerprint, FrameStorage, ProgressFn};
-use super::undistort::{undistort_image, Distortion, Intrinsics};
-use super::{downscale_rgb, Dataset, DatasetError, Image8, View};
+use crate::cache::{store_frames, CacheKey, Fingerprint, FrameStorage, ProgressFn};
 use crate::imageio;
+use crate::undistort::{undistort_image, Distortion, Intrinsics};
+use crate::{downscale_rgb, Dataset, DatasetError, Image8, View};
 
 /// How to load a dataset.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -70,7 +70,7 @@ const MAX_CAMERA_ID: u64 = 1 << 20;
 
 /// Intrinsics fields as written in a file (top level or one frame).
 #[derive(Clone, Copy, Debug, Default)]
-pub(super) struct IntrinsicFields {
+pub(crate) struct IntrinsicFields {
     camera_angle_x: Option<f64>,
     fl_x: Option<f64>,
     fl_y: Option<f64>,
@@ -87,7 +87,7 @@ const DISTORTION_FIELDS: [&str; 5] = ["k1", "k2", "k3", "p1", "p2"];
 
 impl IntrinsicFields {
     /// The distortion model (absent coefficients are 0); `None` when there is none.
-    pub(super) fn distortion(&self) -> Option<Distortion> {
+    pub(crate) fn distortion(&self) -> Option<Distortion> {
         let [k1, k2, k3, p1, p2] = self.distortion.map(|v| v.unwrap_or(0.0));
         let d = Distortion { k1, k2, k3, p1, p2 };
         (!d.is_identity()).then_some(d)
@@ -110,46 +110,46 @@ impl IntrinsicFields {
 
 /// One frame of a transforms file, parsed and checked, image not yet read.
 #[derive(Clone, Debug)]
-pub(super) struct FrameSpec {
+pub(crate) struct FrameSpec {
     /// The transforms file it came from.
     json: PathBuf,
     /// `frames[index]` (for messages).
     index: usize,
-    pub(super) image: PathBuf,
+    pub(crate) image: PathBuf,
     /// `None` when the frame has no `time` (allowed in nerfstudio files only).
-    pub(super) time: Option<f32>,
-    pub(super) pose: Mat4,
-    pub(super) intrinsics: IntrinsicFields,
-    pub(super) camera_id: Option<usize>,
+    pub(crate) time: Option<f32>,
+    pub(crate) pose: Mat4,
+    pub(crate) intrinsics: IntrinsicFields,
+    pub(crate) camera_id: Option<usize>,
 }
 
 impl FrameSpec {
-    pub(super) fn field(&self, name: &str) -> String {
+    pub(crate) fn field(&self, name: &str) -> String {
         format!("frames[{}].{name}", self.index)
     }
 }
 
 /// A parsed transforms file.
-pub(super) struct TransformsFile {
-    pub(super) frames: Vec<FrameSpec>,
-    pub(super) scene_box: Option<SceneBounds>,
+pub(crate) struct TransformsFile {
+    pub(crate) frames: Vec<FrameSpec>,
+    pub(crate) scene_box: Option<SceneBounds>,
     /// The top-level object (for format-specific fields).
-    pub(super) root: Map<String, Value>,
+    pub(crate) root: Map<String, Value>,
 }
 
 /// An image read and prepared for the dataset.
-pub(super) struct LoadedImage {
+pub(crate) struct LoadedImage {
     /// Size before downscaling.
-    pub(super) width: u32,
-    pub(super) height: u32,
-    pub(super) image: Image8,
+    pub(crate) width: u32,
+    pub(crate) height: u32,
+    pub(crate) image: Image8,
     /// Some pixel had alpha < 255.
-    pub(super) transparent: bool,
+    pub(crate) transparent: bool,
     /// Alpha after downscaling, when the image had transparency.
-    pub(super) alpha: Option<Vec<u8>>,
+    pub(crate) alpha: Option<Vec<u8>>,
 }
 
-pub(super) fn field_error(path: &Path, field: &str, message: impl Into<String>) -> DatasetError {
+pub(crate) fn field_error(path: &Path, field: &str, message: impl Into<String>) -> DatasetError {
     DatasetError::Field {
         path: path.to_path_buf(),
         field: field.to_string(),
@@ -157,7 +157,7 @@ pub(super) fn field_error(path: &Path, field: &str, message: impl Into<String>) 
     }
 }
 
-pub(super) fn type_name(v: &Value) -> &'static str {
+pub(crate) fn type_name(v: &Value) -> &'static str {
     match v {
         Value::Null => "null",
         Value::Bool(_) => "a boolean",
@@ -367,7 +367,7 @@ fn transform_matrix(v: &Value, path: &Path, field: &str) -> Result<Mat4, Dataset
 
 /// The image path of `file_path`: relative to `dir`, `.png` appended when there is no extension
 /// (or when only the `.png` variant exists, for names like `r_0.5`).
-pub(super) fn image_path(dir: &Path, file_path: &str) -> PathBuf {
+pub(crate) fn image_path(dir: &Path, file_path: &str) -> PathBuf {
     let p = dir.join(file_path);
     if p.extension().is_none() {
         return PathBuf::from(format!("{}.png", p.display()));
@@ -383,7 +383,7 @@ pub(super) fn image_path(dir: &Path, file_path: &str) -> PathBuf {
 
 /// Parses and checks a transforms file; `time_required` is false for nerfstudio files, where
 /// frames may leave out `time`.
-pub(super) fn parse_transforms(
+pub(crate) fn parse_transforms(
     dir: &Path,
     path: &Path,
     time_required: bool,
@@ -513,13 +513,13 @@ fn downscale_box(img: &Image8, factor: u32) -> Image8 {
 }
 
 /// Reads an image file, composites it on white and downscales it.
-pub(super) fn load_image(path: &Path, downscale: u32) -> Result<LoadedImage, DatasetError> {
+pub(crate) fn load_image(path: &Path, downscale: u32) -> Result<LoadedImage, DatasetError> {
     load_image_undistorted(path, downscale, None)
 }
 
 /// [`load_image`], undistorting the image to the pinhole camera first when `undistort` gives the
 /// frame's intrinsics fields with a distortion model (nerfstudio).
-pub(super) fn load_image_undistorted(
+pub(crate) fn load_image_undistorted(
     path: &Path,
     downscale: u32,
     undistort: Option<&IntrinsicFields>,
@@ -798,7 +798,7 @@ fn cached_images(
 type CameraIds = (Vec<Option<usize>>, Vec<Option<usize>>);
 
 /// Camera ids from the files, or from grouping identical poses (`None` for monocular data).
-pub(super) fn camera_ids(
+pub(crate) fn camera_ids(
     train: &[FrameSpec],
     test: &[FrameSpec],
 ) -> Result<CameraIds, DatasetError> {
@@ -899,7 +899,7 @@ const TRANSPARENT: &str = "transparent image: the frames stay in memory with the
 /// image with transparency stops, and the dataset is loaded into memory with its alpha (object
 /// captures are small). Its fingerprint covers the transforms files, every image file and the
 /// downscale factor.
-pub(super) fn assemble_with_storage(
+pub(crate) fn assemble_with_storage(
     dir: &Path,
     train_specs: &[FrameSpec],
     test_specs: &[FrameSpec],
@@ -1717,72 +1717,6 @@ mod tests {
             }
             b => panic!("{b:?}"),
         }
-    }
-
-    #[test]
-    fn write_then_load_round_trip() {
-        let cfg = crate::synth::SynthConfig {
-            width: 20,
-            height: 14,
-            num_frames: 4,
-            num_train_cams: 3,
-            supersample: 1,
-            ..Default::default()
-        };
-        let d = crate::synth::generate(&cfg);
-        let root = tempfile::tempdir().unwrap();
-        let out = root.path().join("scene");
-        write(&d, &out).unwrap();
-        // Nothing but the dataset is left next to it.
-        assert_eq!(std::fs::read_dir(root.path()).unwrap().count(), 1);
-        let back = load(&out, &LoadOptions::default()).unwrap();
-        assert_eq!(back.name, "scene");
-        assert_eq!(back.bounds, d.bounds);
-        assert_eq!(back.num_frames, d.num_frames);
-        assert_eq!(
-            (back.train.len(), back.test.len()),
-            (d.train.len(), d.test.len())
-        );
-        for (a, b) in d
-            .train
-            .iter()
-            .chain(&d.test)
-            .zip(back.train.iter().chain(&back.test))
-        {
-            assert_eq!(a.image, b.image);
-            assert_eq!(a.time, b.time);
-            assert_eq!(a.camera_id, b.camera_id);
-            let (ca, cb) = (a.camera, b.camera);
-            assert_eq!((ca.width, ca.height), (cb.width, cb.height));
-            for (x, y) in [
-                (ca.fx, cb.fx),
-                (ca.fy, cb.fy),
-                (ca.cx, cb.cx),
-                (ca.cy, cb.cy),
-            ] {
-                assert!((x - y).abs() < 1e-5);
-            }
-            assert!(ca.world_from_camera.abs_diff_eq(cb.world_from_camera, 1e-5));
-        }
-        let val: Value =
-            serde_json::from_slice(&std::fs::read(out.join("transforms_val.json")).unwrap())
-                .unwrap();
-        assert_eq!(
-            val["frames"].as_array().unwrap().len(),
-            d.test.len().div_ceil(3)
-        );
-        assert!(val["frames"][0]["file_path"]
-            .as_str()
-            .unwrap()
-            .starts_with("./test/cam03_"));
-        // Refuses to overwrite a dataset.
-        let err = write(&d, &out).unwrap_err();
-        assert!(err.to_string().contains("not an empty folder"), "{err}");
-        // An empty target folder is fine.
-        let empty = root.path().join("empty");
-        std::fs::create_dir(&empty).unwrap();
-        write(&d, &empty).unwrap();
-        assert!(empty.join("transforms_train.json").exists());
     }
 
     #[test]

@@ -40,10 +40,10 @@ use glam::{Mat3, Mat4, Vec3};
 use msth_core::{Camera, SceneBounds};
 use rayon::prelude::*;
 
-use super::cache::{store_frames, CacheKey, FrameSink, FrameStorage, ProgressFn, Stored};
-use super::dnerf::{contracted_bounds_from_cameras, load_image};
-use super::video::{self, Tools, VideoInfo};
-use super::{downscale_rgb, Dataset, DatasetError, Image8, View};
+use crate::cache::{store_frames, CacheKey, FrameSink, FrameStorage, ProgressFn, Stored};
+use crate::dnerf::{contracted_bounds_from_cameras, load_image};
+use crate::video::{self, Tools, VideoInfo};
+use crate::{downscale_rgb, Dataset, DatasetError, Image8, View};
 
 /// Largest accepted number of cameras (rows).
 const MAX_CAMERAS: usize = 4096;
@@ -384,7 +384,7 @@ pub fn forward_facing_bounds(cameras: &[Camera], nears: &[f32], fars: &[f32]) ->
 /// sizes and counts.
 pub fn read_rig(dir: &Path, opts: &DynerfOptions) -> Result<Rig, DatasetError> {
     let npy_path = dir.join("poses_bounds.npy");
-    let arr = super::npy::read(&npy_path)?;
+    let arr = crate::npy::read(&npy_path)?;
     if arr.shape.len() != 2 || arr.shape[1] != 17 {
         return Err(bad(
             &npy_path,
@@ -646,7 +646,7 @@ fn produce_frames(
 
 /// A fingerprint of the rig's sources and the options that change pixels.
 fn fingerprint(rig: &Rig, opts: &DynerfOptions) -> Result<u64, DatasetError> {
-    let mut fp = super::cache::Fingerprint::default();
+    let mut fp = crate::cache::Fingerprint::default();
     fp.str("dynerf-v1");
     fp.bytes(&opts.downscale.to_le_bytes());
     for c in &rig.cameras {
@@ -692,7 +692,7 @@ pub fn write_poses_bounds(path: &Path, cameras: &[(Camera, f64, f64)]) -> std::i
         .iter()
         .flat_map(|(c, n, f)| llff_row(c, *n, *f))
         .collect();
-    super::npy::write_f64(path, &[cameras.len(), 17], &data)
+    crate::npy::write_f64(path, &[cameras.len(), 17], &data)
 }
 
 /// Loads a DyNeRF dataset from `dir` (see the module docs). Frames are decoded into memory or
@@ -996,36 +996,36 @@ mod tests {
         let rows: Vec<f64> = cams.iter().flat_map(|c| llff_row(c, 2.0, 9.0)).collect();
         let o = raw_opts();
         // Truncated.
-        let bytes = crate::dataset::npy::encode_f64(&[3, 17], &rows);
+        let bytes = crate::npy::encode_f64(&[3, 17], &rows);
         std::fs::write(&npy, &bytes[..bytes.len() - 8]).unwrap();
         expect_err(dir.path(), &o, &["poses_bounds.npy", "truncated"]);
         // Wrong column count.
-        crate::dataset::npy::write_f64(&npy, &[3, 16], &rows[..48]).unwrap();
+        crate::npy::write_f64(&npy, &[3, 16], &rows[..48]).unwrap();
         expect_err(dir.path(), &o, &["poses_bounds.npy", "(N, 17)", "[3, 16]"]);
         // Non-finite pose.
         let mut r = rows.clone();
         r[17 + 3] = f64::NAN;
-        crate::dataset::npy::write_f64(&npy, &[3, 17], &r).unwrap();
+        crate::npy::write_f64(&npy, &[3, 17], &r).unwrap();
         expect_err(dir.path(), &o, &["poses_bounds.npy", "row 1", "not finite"]);
         // Not a rotation.
         let mut r = rows.clone();
         r[0] *= 3.0;
-        crate::dataset::npy::write_f64(&npy, &[3, 17], &r).unwrap();
+        crate::npy::write_f64(&npy, &[3, 17], &r).unwrap();
         expect_err(dir.path(), &o, &["row 0", "orthonormal"]);
         // near >= far.
         let mut r = rows.clone();
         r[2 * 17 + 16] = 1.0;
-        crate::dataset::npy::write_f64(&npy, &[3, 17], &r).unwrap();
+        crate::npy::write_f64(&npy, &[3, 17], &r).unwrap();
         expect_err(dir.path(), &o, &["row 2", "near/far"]);
         // More rows than cameras.
         let mut r = rows.clone();
         r.extend_from_slice(&rows[..17]);
-        crate::dataset::npy::write_f64(&npy, &[4, 17], &r).unwrap();
+        crate::npy::write_f64(&npy, &[4, 17], &r).unwrap();
         expect_err(dir.path(), &o, &["4 rows", "3 camNN/ frame folders"]);
         // hwf with another aspect ratio than the frames.
         let mut r = rows.clone();
         r[4] = 5.0;
-        crate::dataset::npy::write_f64(&npy, &[3, 17], &r).unwrap();
+        crate::npy::write_f64(&npy, &[3, 17], &r).unwrap();
         expect_err(dir.path(), &o, &["row 0", "aspect ratio"]);
         // Missing file.
         std::fs::remove_file(&npy).unwrap();

@@ -11,7 +11,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use image::codecs::png::PngEncoder;
 use image::{ExtendedColorType, ImageEncoder};
 
-use crate::dataset::Image8;
+use crate::Image8;
 
 /// Width in pixels of the white gap between the images of a [`panel`].
 pub const PANEL_GAP: u32 = 2;

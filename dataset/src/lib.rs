@@ -1,10 +1,11 @@
-//! Datasets: views (a camera, a time, an 8-bit RGB image) split into train and test.
+//! `msth-dataset`: datasets on disk, read and written. A dataset is views (a camera, a time, an
+//! 8-bit RGB image) split into train and test.
 //!
 //! One module per on-disk format: [`dnerf`] (Blender / D-NeRF JSON), [`nerfstudio`] (a single
 //! `transforms.json`), [`dynerf`] (Plenoptic Video / DyNeRF: `poses_bounds.npy` + videos or frame
 //! folders); [`detect`] picks one from a folder's contents. Every loader validates what it reads
 //! and reports the file and the field at fault ([`DatasetError`]). [`colmap`] runs COLMAP and
-//! reads its sparse models (for `msth import`, [`crate::import`]).
+//! reads its sparse models (for `msth import` in the trainer).
 //!
 //! Images are stored as 8-bit RGB already composited on the dataset's background colour. Their
 //! pixels ([`Pixels`]) live either in memory or in a memory-mapped frame cache on disk
@@ -14,6 +15,7 @@ pub mod cache;
 pub mod colmap;
 pub mod dnerf;
 pub mod dynerf;
+pub mod imageio;
 pub mod nerfstudio;
 pub mod npy;
 pub mod undistort;

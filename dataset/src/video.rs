@@ -9,7 +9,7 @@ use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 
-use super::DatasetError;
+use crate::DatasetError;
 
 /// Largest accepted frame side.
 const MAX_SIDE: u32 = 1 << 15;

@@ -4,7 +4,7 @@
 //!   one image per time step from a new random camera on the upper hemisphere (distance
 //!   [`OBJECT_CAMERA_DISTANCE`], D-NeRF's field of view), RGBA with straight alpha over a
 //!   transparent background, plus held-out views at random times. Written with
-//!   `msth_trainer::dataset::dnerf::write` (train / test / val JSON), after which the PNGs are
+//!   `msth_dataset::dnerf::write` (train / test / val JSON), after which the PNGs are
 //!   replaced by their RGBA versions.
 //! - **Stage** (DyNeRF style): the model (radius [`STAGE_MODEL_RADIUS`], standing on the floor)
 //!   in the [`crate::stage`] set, filmed by a forward-facing arc of fixed cameras at every time
@@ -23,7 +23,7 @@ use std::time::Instant;
 
 use glam::{Mat4, Vec3};
 use msth_core::{Camera, SceneBounds};
-use msth_trainer::dataset::{dnerf, Dataset, View};
+use msth_dataset::{dnerf, Dataset, View};
 use rayon::prelude::*;
 use serde_json::{json, Value};
 
@@ -568,7 +568,7 @@ fn generate_stage(
             let (rgb, _) = img.composite_on_white();
             let path = staging.dir.join(format!("cam{c:02}/{j:04}.png"));
             let file = io(&path, std::fs::File::create(&path))?;
-            msth_trainer::imageio::encode_png(std::io::BufWriter::new(file), &rgb)
+            msth_dataset::imageio::encode_png(std::io::BufWriter::new(file), &rgb)
                 .map_err(SceneGenError::io(&path))?;
             progress();
             Ok(())
