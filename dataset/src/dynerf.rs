@@ -40,8 +40,9 @@ use glam::{Mat3, Mat4, Vec3};
 use msth_core::{Camera, SceneBounds};
 use rayon::prelude::*;
 
+pub use crate::bounds::forward_facing_bounds;
 use crate::cache::{store_frames, CacheKey, FrameSink, FrameStorage, ProgressFn, Stored};
-use crate::dnerf::{contracted_bounds_from_cameras, load_image};
+use crate::imageio::load_image;
 use crate::video::{self, Tools, VideoInfo};
 use crate::{downscale_rgb, Dataset, DatasetError, Image8, View};
 
@@ -349,37 +350,6 @@ pub fn llff_normalization(poses: &[Mat4], nears: &[f32]) -> Similarity {
     }
 }
 
-/// Scene bounds for a forward-facing rig (see the module docs).
-pub fn forward_facing_bounds(cameras: &[Camera], nears: &[f32], fars: &[f32]) -> SceneBounds {
-    let n = cameras.len().max(1) as f32;
-    let mean_center = cameras.iter().map(|c| c.center()).sum::<Vec3>() / n;
-    let forward = (-cameras
-        .iter()
-        .map(|c| c.world_from_camera.z_axis.truncate())
-        .sum::<Vec3>())
-    .normalize_or_zero();
-    let min_near = nears.iter().copied().fold(f32::INFINITY, f32::min);
-    let max_far = fars.iter().copied().fold(0.0f32, f32::max);
-    if let SceneBounds::Contracted { center, radius } = contracted_bounds_from_cameras(cameras) {
-        let depth = (center - mean_center).dot(forward);
-        if depth.is_finite() && depth >= min_near && depth <= max_far {
-            return SceneBounds::Contracted { center, radius };
-        }
-    }
-    let mut mids: Vec<f32> = nears.iter().zip(fars).map(|(a, b)| 0.5 * (a + b)).collect();
-    mids.sort_by(f32::total_cmp);
-    let mid = mids.get(mids.len() / 2).copied().unwrap_or(1.0);
-    let mid = if mid.is_finite() && mid > 0.0 {
-        mid
-    } else {
-        1.0
-    };
-    SceneBounds::Contracted {
-        center: mean_center + forward * mid,
-        radius: mid,
-    }
-}
-
 /// Reads `poses_bounds.npy` and finds every camera's frames; no frame is decoded except to learn
 /// sizes and counts.
 pub fn read_rig(dir: &Path, opts: &DynerfOptions) -> Result<Rig, DatasetError> {
@@ -684,6 +654,18 @@ pub fn llff_row(camera: &Camera, near: f64, far: f64) -> [f64; 17] {
     r[15] = near;
     r[16] = far;
     r
+}
+
+/// The OpenGL camera-to-world matrix of an LLFF row (the inverse of [`llff_row`]'s pose part).
+pub fn c2w_from_llff_row(row: &[f64; 17]) -> Mat4 {
+    let col = |c: usize| Vec3::new(row[c] as f32, row[5 + c] as f32, row[10 + c] as f32);
+    let (down, right, back, t) = (col(0), col(1), col(2), col(3));
+    Mat4::from_cols(
+        right.extend(0.0),
+        (-down).extend(0.0),
+        back.extend(0.0),
+        t.extend(1.0),
+    )
 }
 
 /// Writes `poses_bounds.npy` for cameras with their near/far bounds (fixtures, tools).

@@ -25,8 +25,10 @@ use std::path::Path;
 use serde_json::Value;
 
 use crate::cache::{FrameStorage, ProgressFn};
-use crate::dnerf::{
-    self, assemble_with_storage, camera_ids, field_error, image_path, parse_transforms, FrameSpec,
+use crate::dnerf;
+use crate::transforms::{
+    assemble_with_storage, camera_ids, field_error, image_path, parse_transforms, type_name,
+    FrameSpec,
 };
 use crate::{Dataset, DatasetError};
 
@@ -62,7 +64,7 @@ fn name_list(
         Some(v) => Err(field_error(
             path,
             key,
-            format!("expected a list of file names, got {}", dnerf::type_name(v)),
+            format!("expected a list of file names, got {}", type_name(v)),
         )),
     }
 }

@@ -2,10 +2,10 @@
 //! while the camera stands still), write PNG frames and an MP4 when `ffmpeg` is installed.
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 use std::time::{Duration, Instant};
 
 use msth_codec::Limits;
+use msth_dataset::video::{self, EncodeError};
 
 use crate::backend::{BackendChoice, BackendInfo, FrameRenderer};
 use crate::gpu::GpuError;
@@ -312,33 +312,23 @@ pub fn write_png(path: &Path, frame: &Frame) -> Result<(), PlayError> {
 pub fn make_video(dir: &Path, fps: f32) -> Result<PathBuf, String> {
     let out = dir.join("video.mp4");
     let tmp = dir.join("video.tmp.mp4");
-    let status = Command::new("ffmpeg")
-        .args(["-y", "-v", "error", "-framerate"])
-        .arg(format!("{fps}"))
-        .arg("-i")
-        .arg(dir.join("frame_%05d.png"))
-        .args([
-            "-vf",
-            "pad=ceil(iw/2)*2:ceil(ih/2)*2",
-            "-c:v",
-            "libx264",
-            "-pix_fmt",
-            "yuv420p",
-            "-crf",
-            "18",
-        ])
-        .arg(&tmp)
-        .status();
-    match status {
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+    let encoded = video::encode_png_sequence(
+        Path::new("ffmpeg"),
+        &dir.join("frame_%05d.png"),
+        fps,
+        18,
+        &tmp,
+    );
+    match encoded {
+        Err(EncodeError::NotInstalled { .. }) => {
             Err("ffmpeg is not installed: PNG frames only".into())
         }
-        Err(e) => Err(format!("cannot run ffmpeg: {e}")),
-        Ok(s) if !s.success() => {
+        Err(EncodeError::Spawn { source, .. }) => Err(format!("cannot run ffmpeg: {source}")),
+        Err(EncodeError::Failed { status, .. }) => {
             let _ = std::fs::remove_file(&tmp);
-            Err(format!("ffmpeg failed ({s}): PNG frames only"))
+            Err(format!("ffmpeg failed ({status}): PNG frames only"))
         }
-        Ok(_) => std::fs::rename(&tmp, &out)
+        Ok(()) => std::fs::rename(&tmp, &out)
             .map(|_| out.clone())
             .map_err(|e| format!("{}: {e}", out.display())),
     }
