@@ -548,17 +548,7 @@ fn cached_images(
                 .collect();
             for (spec, img) in batch.iter().zip(imgs) {
                 let img = img?;
-                if (img.width, img.height) != (ref_w, ref_h) {
-                    return Err(DatasetError::Invalid {
-                        path: spec.image.clone(),
-                        message: format!(
-                            "image is {}x{} but {} is {ref_w}x{ref_h} (all images must have one size)",
-                            img.width,
-                            img.height,
-                            specs[0].image.display()
-                        ),
-                    });
-                }
+                check_size(spec, &img, specs[0], (ref_w, ref_h))?;
                 if img.transparent {
                     return Err(DatasetError::Invalid {
                         path: spec.image.clone(),
@@ -694,17 +684,7 @@ pub(crate) fn assemble_with_storage(
     let mut transparent = false;
     let mut views = Vec::with_capacity(specs.len());
     for (spec, img) in specs.iter().zip(images) {
-        if (img.width, img.height) != (ref_w, ref_h) {
-            return Err(DatasetError::Invalid {
-                path: spec.image.clone(),
-                message: format!(
-                    "image is {}x{} but {} is {ref_w}x{ref_h} (all images must have one size)",
-                    img.width,
-                    img.height,
-                    specs[0].image.display()
-                ),
-            });
-        }
+        check_size(spec, &img, specs[0], (ref_w, ref_h))?;
         transparent |= img.transparent;
         let mut camera = frame_camera(spec, img.width, img.height)?;
         if opts.downscale > 1 {
@@ -772,4 +752,26 @@ fn load_frame_image(spec: &FrameSpec, downscale: u32) -> Result<LoadedImage, Dat
     let undistort =
         move |width: u32, height: u32| Some((pinhole(&k, width, height)?, k.distortion()?));
     load_image_undistorted(&spec.image, downscale, Some(&undistort))
+}
+
+/// Every image of a dataset has the size of the first one (`first`, `ref_w x ref_h` before
+/// downscaling).
+fn check_size(
+    spec: &FrameSpec,
+    img: &LoadedImage,
+    first: &FrameSpec,
+    (ref_w, ref_h): (u32, u32),
+) -> Result<(), DatasetError> {
+    if (img.width, img.height) == (ref_w, ref_h) {
+        return Ok(());
+    }
+    Err(DatasetError::Invalid {
+        path: spec.image.clone(),
+        message: format!(
+            "image is {}x{} but {} is {ref_w}x{ref_h} (all images must have one size)",
+            img.width,
+            img.height,
+            first.image.display()
+        ),
+    })
 }

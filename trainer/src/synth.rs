@@ -903,14 +903,9 @@ mod tests {
     /// which does not know the built-in scene).
     #[test]
     fn dnerf_write_then_load_round_trip() {
-        let cfg = SynthConfig {
-            width: 20,
-            height: 14,
-            num_frames: 4,
-            num_train_cams: 3,
-            supersample: 1,
-            ..Default::default()
-        };
+        let mut cfg = small();
+        (cfg.width, cfg.height, cfg.num_frames) = (20, 14, 4);
+        (cfg.num_train_cams, cfg.supersample) = (3, 1);
         let d = generate(&cfg);
         let root = tempfile::tempdir().unwrap();
         let out = root.path().join("scene");
@@ -925,12 +920,9 @@ mod tests {
             (back.train.len(), back.test.len()),
             (d.train.len(), d.test.len())
         );
-        for (a, b) in d
-            .train
-            .iter()
-            .chain(&d.test)
-            .zip(back.train.iter().chain(&back.test))
-        {
+        let originals = d.train.iter().chain(&d.test);
+        let read_back = back.train.iter().chain(&back.test);
+        for (a, b) in originals.zip(read_back) {
             assert_eq!(a.image, b.image);
             assert_eq!(a.time, b.time);
             assert_eq!(a.camera_id, b.camera_id);
