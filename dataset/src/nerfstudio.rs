@@ -27,7 +27,7 @@ use serde_json::Value;
 use crate::cache::{FrameStorage, ProgressFn};
 use crate::dnerf;
 use crate::transforms::{
-    assemble_with_storage, camera_ids, field_error, image_path, parse_transforms, type_name,
+    assemble_with_storage, camera_ids, field_error, image_path, parse_transforms, wrong_type,
     FrameSpec,
 };
 use crate::{Dataset, DatasetError};
@@ -61,11 +61,7 @@ fn name_list(
             })
             .collect::<Result<Vec<_>, _>>()
             .map(Some),
-        Some(v) => Err(field_error(
-            path,
-            key,
-            format!("expected a list of file names, got {}", type_name(v)),
-        )),
+        Some(v) => Err(wrong_type(path, key, "a list of file names", v)),
     }
 }
 

@@ -100,6 +100,15 @@ pub(crate) fn field_error(path: &Path, field: &str, message: impl Into<String>) 
     }
 }
 
+/// A field of the wrong JSON type: "expected {expected}, got {what v is}".
+pub(crate) fn wrong_type(path: &Path, field: &str, expected: &str, v: &Value) -> DatasetError {
+    field_error(
+        path,
+        field,
+        format!("expected {expected}, got {}", type_name(v)),
+    )
+}
+
 pub(crate) fn type_name(v: &Value) -> &'static str {
     match v {
         Value::Null => "null",
@@ -116,11 +125,7 @@ fn number(v: &Value, path: &Path, field: &str) -> Result<f64, DatasetError> {
     match v.as_f64() {
         Some(x) if x.is_finite() => Ok(x),
         Some(x) => Err(field_error(path, field, format!("{x} is not finite"))),
-        None => Err(field_error(
-            path,
-            field,
-            format!("expected a number, got {}", type_name(v)),
-        )),
+        None => Err(wrong_type(path, field, "a number", v)),
     }
 }
 
@@ -223,13 +228,10 @@ fn intrinsic_fields(
 }
 
 fn vec3_field(v: &Value, path: &Path, field: &str) -> Result<Vec3, DatasetError> {
-    let arr = v.as_array().filter(|a| a.len() == 3).ok_or_else(|| {
-        field_error(
-            path,
-            field,
-            format!("expected 3 numbers, got {}", type_name(v)),
-        )
-    })?;
+    let arr = v
+        .as_array()
+        .filter(|a| a.len() == 3)
+        .ok_or_else(|| wrong_type(path, field, "3 numbers", v))?;
     let mut out = [0.0f32; 3];
     for (i, x) in arr.iter().enumerate() {
         out[i] = number(x, path, &format!("{field}[{i}]"))? as f32;
@@ -238,13 +240,9 @@ fn vec3_field(v: &Value, path: &Path, field: &str) -> Result<Vec3, DatasetError>
 }
 
 fn scene_box(v: &Value, path: &Path) -> Result<SceneBounds, DatasetError> {
-    let obj = v.as_object().ok_or_else(|| {
-        field_error(
-            path,
-            "scene_box",
-            format!("expected an object {{min, max}}, got {}", type_name(v)),
-        )
-    })?;
+    let obj = v
+        .as_object()
+        .ok_or_else(|| wrong_type(path, "scene_box", "an object {min, max}", v))?;
     let get = |k: &str| {
         obj.get(k)
             .ok_or_else(|| field_error(path, &format!("scene_box.{k}"), "missing"))
@@ -261,23 +259,14 @@ fn transform_matrix(v: &Value, path: &Path, field: &str) -> Result<Mat4, Dataset
     let rows = v
         .as_array()
         .filter(|r| r.len() == 3 || r.len() == 4)
-        .ok_or_else(|| {
-            field_error(
-                path,
-                field,
-                format!("expected a 4x4 (or 3x4) matrix, got {}", type_name(v)),
-            )
-        })?;
+        .ok_or_else(|| wrong_type(path, field, "a 4x4 (or 3x4) matrix", v))?;
     let mut m = [[0.0f32; 4]; 4];
     m[3] = [0.0, 0.0, 0.0, 1.0];
     for (i, row) in rows.iter().enumerate() {
-        let r = row.as_array().filter(|r| r.len() == 4).ok_or_else(|| {
-            field_error(
-                path,
-                &format!("{field}[{i}]"),
-                format!("expected a row of 4 numbers, got {}", type_name(row)),
-            )
-        })?;
+        let r = row
+            .as_array()
+            .filter(|r| r.len() == 4)
+            .ok_or_else(|| wrong_type(path, &format!("{field}[{i}]"), "a row of 4 numbers", row))?;
         for (j, x) in r.iter().enumerate() {
             m[i][j] = number(x, path, &format!("{field}[{i}][{j}]"))? as f32;
         }
@@ -354,13 +343,9 @@ pub(crate) fn parse_transforms(
     let frames_v = obj
         .get("frames")
         .ok_or_else(|| field_error(path, "frames", "missing"))?;
-    let frames_a = frames_v.as_array().ok_or_else(|| {
-        field_error(
-            path,
-            "frames",
-            format!("expected an array, got {}", type_name(frames_v)),
-        )
-    })?;
+    let frames_a = frames_v
+        .as_array()
+        .ok_or_else(|| wrong_type(path, "frames", "an array", frames_v))?;
     if frames_a.is_empty() {
         return Err(field_error(path, "frames", "the list is empty"));
     }
@@ -368,22 +353,12 @@ pub(crate) fn parse_transforms(
     for (index, fv) in frames_a.iter().enumerate() {
         let prefix = format!("frames[{index}].");
         let f = |k: &str| format!("{prefix}{k}");
-        let fo = fv.as_object().ok_or_else(|| {
-            field_error(
-                path,
-                &format!("frames[{index}]"),
-                format!("expected an object, got {}", type_name(fv)),
-            )
-        })?;
+        let fo = fv
+            .as_object()
+            .ok_or_else(|| wrong_type(path, &format!("frames[{index}]"), "an object", fv))?;
         let file_path = match fo.get("file_path") {
             Some(Value::String(s)) if !s.is_empty() => s.as_str(),
-            Some(v) => {
-                return Err(field_error(
-                    path,
-                    &f("file_path"),
-                    format!("expected a non-empty string, got {}", type_name(v)),
-                ))
-            }
+            Some(v) => return Err(wrong_type(path, &f("file_path"), "a non-empty string", v)),
             None => return Err(field_error(path, &f("file_path"), "missing")),
         };
         let time = match fo.get("time") {

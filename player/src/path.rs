@@ -276,12 +276,18 @@ impl CameraPath {
         template: &Camera,
         size: Option<(u32, u32)>,
     ) -> Result<Self, PathError> {
-        let text = std::fs::read_to_string(path).map_err(|source| PathError::Unreadable {
-            path: path.to_path_buf(),
-            source,
-        })?;
+        let owned = || path.to_path_buf();
+        let text = match std::fs::read_to_string(path) {
+            Ok(text) => text,
+            Err(source) => {
+                return Err(PathError::Unreadable {
+                    path: owned(),
+                    source,
+                })
+            }
+        };
         let file: PathFile = serde_json::from_str(&text).map_err(|e| PathError::Json {
-            path: path.to_path_buf(),
+            path: owned(),
             message: e.to_string(),
         })?;
         let frames = match file {

@@ -69,14 +69,15 @@ pub enum PlayError {
     #[error("{0}")]
     Options(String),
     #[error(transparent)]
-    Path(#[from] PathError),
-    #[error(transparent)]
     Gpu(#[from] GpuError),
     #[error("{path}: {error}")]
     Io {
         path: PathBuf,
         error: std::io::Error,
     },
+    /// The `--path` spec (camera index, view, orbit, JSON file) is not a camera path.
+    #[error(transparent)]
+    Path(#[from] PathError),
 }
 
 /// One rendered frame's record.
