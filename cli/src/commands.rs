@@ -103,8 +103,16 @@ fn read_config_file(path: &Path) -> Result<serde_json::Value> {
     }
 }
 
+/// Prints the trainer's notes (`note: ...` on stderr, above the bar when there is one).
+pub(crate) fn print_notes(pb: &ProgressBar, p: &Progress) {
+    for note in &p.notes {
+        pb.suspend(|| eprintln!("note: {note}"));
+    }
+}
+
 /// Shows training progress: a bar with ETA on a terminal, a log line every 5% otherwise.
 pub(crate) fn report(pb: &ProgressBar, p: &Progress) -> bool {
+    print_notes(pb, p);
     pb.set_position(p.step as u64);
     let msg = format!(
         "loss {:.5}  psnr {:.2} dB  {:.0}k samples/s",

@@ -1,10 +1,8 @@
 //! The `msth` command as a library: argument parsing and the subcommands, each a thin layer over
 //! the library crates. `main.rs` calls [`run`]; the end-to-end tests in `tests/` call it too.
 
+#[cfg(feature = "bench")]
 mod bench;
-mod bench_ablation;
-mod bench_play;
-pub mod bench_tradeoff;
 mod commands;
 pub mod data;
 mod demo;
@@ -14,8 +12,10 @@ mod inspect;
 mod play;
 mod scenegen;
 mod serve;
-pub mod tradeoff_plot;
-mod tradeoff_report;
+
+/// The benches' public pieces under their historical paths (see [`bench`]).
+#[cfg(feature = "bench")]
+pub use bench::{tradeoff as bench_tradeoff, tradeoff_plot};
 
 use std::ffi::OsString;
 use std::path::PathBuf;
@@ -52,6 +52,7 @@ enum Command {
     /// Render one image from a checkpoint for any camera and time.
     Render(RenderArgs),
     /// Benchmarks (`msth bench step`).
+    #[cfg(feature = "bench")]
     Bench(bench::BenchArgs),
     /// Encode a checkpoint into a streamable `.msth` file (or `--measure` the codec's modes).
     Export(export::ExportArgs),
@@ -232,6 +233,7 @@ where
         Command::Train(a) => commands::train(a).map(|_| ()),
         Command::Eval(a) => commands::eval(a),
         Command::Render(a) => commands::render(a),
+        #[cfg(feature = "bench")]
         Command::Bench(a) => bench::run(a),
         Command::Export(a) => export::export(a),
         Command::Serve(a) => serve::serve(a),

@@ -14,7 +14,7 @@
 //!   optional (the time range is used where it is missing), intrinsics optional (the first file
 //!   camera's are used).
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use glam::{Mat4, Vec3};
 use msth_core::{Camera, SceneBounds};
@@ -183,6 +183,38 @@ struct KeyframeJson {
     h: Option<u32>,
 }
 
+/// Why a `--path` spec is not a camera path. Each message names the spec or the file at fault.
+#[derive(Debug, thiserror::Error)]
+pub enum PathError {
+    #[error("--path {index}: the file has {count} cameras (0..{})", count.saturating_sub(1))]
+    NoSuchCamera { index: usize, count: usize },
+    #[error("--path cameras: the file has no cameras")]
+    NoCameras,
+    #[error("--path {spec}: expected view:AZ,EL,DIST (numbers)")]
+    ViewNotNumbers { spec: String },
+    #[error("--path {spec}: expected view:AZ,EL,DIST with finite numbers and DIST > 0")]
+    BadView { spec: String },
+    #[error(
+        "--path {}: not a camera index, view:, orbit, spiral, cameras or a readable JSON file ({source})",
+        path.display()
+    )]
+    Unreadable {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{}: malformed path JSON: {message}", path.display())]
+    Json { path: PathBuf, message: String },
+    #[error("{}: a path needs 1 to {MAX_KEYFRAMES} frames, found {found}", path.display())]
+    FrameCount { path: PathBuf, found: usize },
+    #[error("{}: frames[{index}]: {message}", path.display())]
+    Frame {
+        path: PathBuf,
+        index: usize,
+        message: String,
+    },
+}
+
 /// Most frames a JSON path may hold.
 const MAX_KEYFRAMES: usize = 1 << 20;
 
@@ -194,7 +226,7 @@ impl CameraPath {
         bounds: &SceneBounds,
         cameras: &[Camera],
         size: Option<(u32, u32)>,
-    ) -> Result<Self, String> {
+    ) -> Result<Self, PathError> {
         let sized = |c: &Camera| match size {
             Some((w, h)) => resize(c, w, h),
             None => *c,
@@ -207,21 +239,16 @@ impl CameraPath {
         );
         let rig = || Rig::new(bounds, cameras, template);
         if let Ok(i) = spec.parse::<usize>() {
-            let c = cameras.get(i).ok_or_else(|| {
-                format!(
-                    "--path {i}: the file has {} cameras (0..{})",
-                    cameras.len(),
-                    cameras.len().saturating_sub(1)
-                )
+            let c = cameras.get(i).ok_or(PathError::NoSuchCamera {
+                index: i,
+                count: cameras.len(),
             })?;
             return Ok(CameraPath::Fixed(sized(c)));
         }
         match spec {
             "orbit" => return Ok(CameraPath::Orbit(rig())),
             "spiral" => return Ok(CameraPath::Spiral(rig())),
-            "cameras" if cameras.is_empty() => {
-                return Err("--path cameras: the file has no cameras".into())
-            }
+            "cameras" if cameras.is_empty() => return Err(PathError::NoCameras),
             "cameras" => return Ok(CameraPath::Cameras(cameras.iter().map(sized).collect())),
             _ => {}
         }
@@ -230,11 +257,13 @@ impl CameraPath {
                 .split(',')
                 .map(|s| s.trim().parse::<f32>())
                 .collect::<Result<_, _>>()
-                .map_err(|_| format!("--path {spec}: expected view:AZ,EL,DIST (numbers)"))?;
+                .map_err(|_| PathError::ViewNotNumbers {
+                    spec: spec.to_string(),
+                })?;
             if v.len() != 3 || !v.iter().all(|x| x.is_finite()) || v[2] <= 0.0 {
-                return Err(format!(
-                    "--path {spec}: expected view:AZ,EL,DIST with finite numbers and DIST > 0"
-                ));
+                return Err(PathError::BadView {
+                    spec: spec.to_string(),
+                });
             }
             let cam = rig().view(v[0].to_radians(), v[1].to_radians(), v[2]);
             return Ok(CameraPath::Fixed(cam));
@@ -242,28 +271,41 @@ impl CameraPath {
         Self::from_json(Path::new(spec), &template, size)
     }
 
-    fn from_json(path: &Path, template: &Camera, size: Option<(u32, u32)>) -> Result<Self, String> {
-        let name = path.display();
-        let text = std::fs::read_to_string(path).map_err(|e| {
-            format!(
-                "--path {name}: not a camera index, view:, orbit, spiral, cameras or a readable \
-                 JSON file ({e})"
-            )
+    fn from_json(
+        path: &Path,
+        template: &Camera,
+        size: Option<(u32, u32)>,
+    ) -> Result<Self, PathError> {
+        let owned = || path.to_path_buf();
+        let text = match std::fs::read_to_string(path) {
+            Ok(text) => text,
+            Err(source) => {
+                return Err(PathError::Unreadable {
+                    path: owned(),
+                    source,
+                })
+            }
+        };
+        let file: PathFile = serde_json::from_str(&text).map_err(|e| PathError::Json {
+            path: owned(),
+            message: e.to_string(),
         })?;
-        let file: PathFile =
-            serde_json::from_str(&text).map_err(|e| format!("{name}: malformed path JSON: {e}"))?;
         let frames = match file {
             PathFile::Object { frames } | PathFile::List(frames) => frames,
         };
         if frames.is_empty() || frames.len() > MAX_KEYFRAMES {
-            return Err(format!(
-                "{name}: a path needs 1 to {MAX_KEYFRAMES} frames, found {}",
-                frames.len()
-            ));
+            return Err(PathError::FrameCount {
+                path: path.to_path_buf(),
+                found: frames.len(),
+            });
         }
         let mut out = Vec::with_capacity(frames.len());
         for (i, f) in frames.iter().enumerate() {
-            let at = |m: String| format!("{name}: frames[{i}]: {m}");
+            let at = |message: String| PathError::Frame {
+                path: path.to_path_buf(),
+                index: i,
+                message,
+            };
             let pose = Mat4::from_cols_array_2d(&f.transform_matrix).transpose();
             let (w, h) = (
                 f.w.unwrap_or(template.width),
@@ -388,6 +430,7 @@ mod tests {
         assert!(p.is_fixed());
         assert!(CameraPath::parse("9", &b, &c, None)
             .unwrap_err()
+            .to_string()
             .contains("4 cameras"));
         assert!(CameraPath::parse("view:1,2", &b, &c, None).is_err());
         assert!(CameraPath::parse("view:10,20,0", &b, &c, None).is_err());
@@ -400,6 +443,7 @@ mod tests {
         assert!((a.center() - z.center()).length() < 1e-3, "a full turn");
         assert!(CameraPath::parse("no-such-file.json", &b, &c, None)
             .unwrap_err()
+            .to_string()
             .contains("not a camera index"));
     }
 
@@ -431,7 +475,9 @@ mod tests {
             r#"[{"transform_matrix":[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]],"speed":2}]"#,
         ] {
             std::fs::write(&p, bad).unwrap();
-            let e = CameraPath::parse(p.to_str().unwrap(), &b, &c, None).unwrap_err();
+            let e = CameraPath::parse(p.to_str().unwrap(), &b, &c, None)
+                .unwrap_err()
+                .to_string();
             assert!(e.contains("path.json"), "{e}");
         }
     }

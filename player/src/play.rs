@@ -2,14 +2,14 @@
 //! while the camera stands still), write PNG frames and an MP4 when `ffmpeg` is installed.
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 use std::time::{Duration, Instant};
 
 use msth_codec::Limits;
+use msth_dataset::video::{self, EncodeError};
 
 use crate::backend::{BackendChoice, BackendInfo, FrameRenderer};
 use crate::gpu::GpuError;
-use crate::path::CameraPath;
+use crate::path::{CameraPath, PathError};
 use crate::render::{Frame, FrameStats, RenderSettings};
 use crate::source::{self, HttpOptions, TransferStats};
 use crate::stream::{ModelStream, StreamError};
@@ -75,6 +75,9 @@ pub enum PlayError {
         path: PathBuf,
         error: std::io::Error,
     },
+    /// The `--path` spec (camera index, view, orbit, JSON file) is not a camera path.
+    #[error(transparent)]
+    Path(#[from] PathError),
 }
 
 /// One rendered frame's record.
@@ -174,8 +177,7 @@ pub fn play(
     let src = source::open(&opts.source, &opts.http).map_err(StreamError::from)?;
     let stream = ModelStream::open(src, &opts.limits)?;
     let meta = stream.index().metadata.clone();
-    let path = CameraPath::parse(&opts.path, &meta.model.bounds, &meta.cameras, opts.size)
-        .map_err(PlayError::Options)?;
+    let path = CameraPath::parse(&opts.path, &meta.model.bounds, &meta.cameras, opts.size)?;
     let n = match (path.frame_count(), opts.frames) {
         (Some(k), Some(f)) if k != f => {
             return Err(PlayError::Options(format!(
@@ -269,7 +271,7 @@ pub fn play(
             let fps = opts.fps.or(meta.frame_rate).unwrap_or(30.0);
             match make_video(dir, fps) {
                 Ok(p) => (Some(p), None),
-                Err(note) => (None, Some(note)),
+                Err(note) => (None, Some(note.to_string())),
             }
         }
         _ => (None, None),
@@ -307,39 +309,43 @@ pub fn write_png(path: &Path, frame: &Frame) -> Result<(), PlayError> {
     std::fs::rename(&tmp, path).map_err(io)
 }
 
+/// Why [`make_video`] made no MP4 (the PNG frames are there either way).
+#[derive(Debug, thiserror::Error)]
+pub enum VideoError {
+    #[error("ffmpeg is not installed: PNG frames only")]
+    NotInstalled,
+    #[error("cannot run ffmpeg: {0}")]
+    Spawn(std::io::Error),
+    #[error("ffmpeg failed ({0}): PNG frames only")]
+    Failed(std::process::ExitStatus),
+    #[error("{}: {error}", path.display())]
+    Io {
+        path: PathBuf,
+        error: std::io::Error,
+    },
+}
+
 /// Encodes `dir/frame_*.png` into `dir/video.mp4` with ffmpeg (H.264, yuv420p); `Err` says why
 /// not (`msth demo` calls it to time the video on its own).
-pub fn make_video(dir: &Path, fps: f32) -> Result<PathBuf, String> {
+pub fn make_video(dir: &Path, fps: f32) -> Result<PathBuf, VideoError> {
     let out = dir.join("video.mp4");
     let tmp = dir.join("video.tmp.mp4");
-    let status = Command::new("ffmpeg")
-        .args(["-y", "-v", "error", "-framerate"])
-        .arg(format!("{fps}"))
-        .arg("-i")
-        .arg(dir.join("frame_%05d.png"))
-        .args([
-            "-vf",
-            "pad=ceil(iw/2)*2:ceil(ih/2)*2",
-            "-c:v",
-            "libx264",
-            "-pix_fmt",
-            "yuv420p",
-            "-crf",
-            "18",
-        ])
-        .arg(&tmp)
-        .status();
-    match status {
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            Err("ffmpeg is not installed: PNG frames only".into())
-        }
-        Err(e) => Err(format!("cannot run ffmpeg: {e}")),
-        Ok(s) if !s.success() => {
+    let encoded = video::encode_png_sequence(
+        Path::new("ffmpeg"),
+        &dir.join("frame_%05d.png"),
+        fps,
+        18,
+        &tmp,
+    );
+    match encoded {
+        Err(EncodeError::NotInstalled { .. }) => Err(VideoError::NotInstalled),
+        Err(EncodeError::Spawn { source, .. }) => Err(VideoError::Spawn(source)),
+        Err(EncodeError::Failed { status, .. }) => {
             let _ = std::fs::remove_file(&tmp);
-            Err(format!("ffmpeg failed ({s}): PNG frames only"))
+            Err(VideoError::Failed(status))
         }
-        Ok(_) => std::fs::rename(&tmp, &out)
+        Ok(()) => std::fs::rename(&tmp, &out)
             .map(|_| out.clone())
-            .map_err(|e| format!("{}: {e}", out.display())),
+            .map_err(|error| VideoError::Io { path: out, error }),
     }
 }

@@ -4,7 +4,7 @@
 
 use std::path::PathBuf;
 
-use msth_trainer::dataset::DatasetError;
+use msth_dataset::DatasetError;
 
 /// Everything that can go wrong while loading a model or writing a dataset. Every variant that
 /// concerns a file names it.

@@ -4,7 +4,7 @@
 //!   one image per time step from a new random camera on the upper hemisphere (distance
 //!   [`OBJECT_CAMERA_DISTANCE`], D-NeRF's field of view), RGBA with straight alpha over a
 //!   transparent background, plus held-out views at random times. Written with
-//!   `msth_trainer::dataset::dnerf::write` (train / test / val JSON), after which the PNGs are
+//!   `msth_dataset::dnerf::write` (train / test / val JSON), after which the PNGs are
 //!   replaced by their RGBA versions.
 //! - **Stage** (DyNeRF style): the model (radius [`STAGE_MODEL_RADIUS`], standing on the floor)
 //!   in the [`crate::stage`] set, filmed by a forward-facing arc of fixed cameras at every time
@@ -23,7 +23,8 @@ use std::time::Instant;
 
 use glam::{Mat4, Vec3};
 use msth_core::{Camera, SceneBounds};
-use msth_trainer::dataset::{dnerf, Dataset, View};
+use msth_dataset::staging::{StagingDir, StagingError};
+use msth_dataset::{dnerf, imageio, Dataset, View};
 use rayon::prelude::*;
 use serde_json::{json, Value};
 
@@ -283,65 +284,31 @@ fn write_rgba_png(path: &Path, img: &RgbaImage8) -> Result<()> {
         })
 }
 
-/// A staging folder next to `out`, renamed onto `out` by [`Staging::commit`], removed on drop
-/// otherwise.
-struct Staging {
-    dir: PathBuf,
-    out: PathBuf,
-    done: bool,
+/// A staging folder next to `out` ([`StagingDir`]), with the generator's messages.
+fn staging(out: &Path) -> Result<StagingDir> {
+    StagingDir::new(out).map_err(|e| match e {
+        StagingError::NotEmpty(_) => SceneGenError::Settings(format!(
+            "{}: exists and is not an empty folder; refusing to write a dataset there",
+            out.display()
+        )),
+        StagingError::NotAFolderName(_) => {
+            SceneGenError::Settings(format!("{}: not a folder name", out.display()))
+        }
+        StagingError::Io { path, source } => SceneGenError::Io {
+            path,
+            error: source,
+        },
+    })
 }
 
-impl Staging {
-    fn new(out: &Path) -> Result<Staging> {
-        if out.exists() {
-            let empty = std::fs::read_dir(out)
-                .map(|mut e| e.next().is_none())
-                .unwrap_or(false);
-            if !empty {
-                return Err(SceneGenError::Settings(format!(
-                    "{}: exists and is not an empty folder; refusing to write a dataset there",
-                    out.display()
-                )));
-            }
-        }
-        let name = out
-            .file_name()
-            .ok_or_else(|| {
-                SceneGenError::Settings(format!("{}: not a folder name", out.display()))
-            })?
-            .to_string_lossy()
-            .into_owned();
-        let nanos = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map(|d| d.subsec_nanos())
-            .unwrap_or(0);
-        let dir = out.with_file_name(format!(".{name}.staging-{}-{nanos}", std::process::id()));
-        if let Some(parent) = dir.parent().filter(|p| !p.as_os_str().is_empty()) {
-            io(parent, std::fs::create_dir_all(parent))?;
-        }
-        Ok(Staging {
-            dir,
-            out: out.to_path_buf(),
-            done: false,
-        })
-    }
-
-    fn commit(mut self) -> Result<()> {
-        if self.out.exists() {
-            io(&self.out, std::fs::remove_dir(&self.out))?;
-        }
-        io(&self.out, std::fs::rename(&self.dir, &self.out))?;
-        self.done = true;
-        Ok(())
-    }
-}
-
-impl Drop for Staging {
-    fn drop(&mut self) {
-        if !self.done {
-            let _ = std::fs::remove_dir_all(&self.dir);
-        }
-    }
+fn commit(staging: StagingDir) -> Result<()> {
+    staging.commit().map_err(|e| match e {
+        StagingError::Io { path, source } => SceneGenError::Io {
+            path,
+            error: source,
+        },
+        e => SceneGenError::Settings(e.to_string()),
+    })
 }
 
 fn meta_common(model: &Model, s: &SynthSettings, norm: &Normalisation, kind: &str) -> Value {
@@ -455,15 +422,15 @@ fn generate_object(
         background: [1.0, 1.0, 1.0],
         num_frames: s.frames,
     };
-    let staging = Staging::new(out)?;
-    dnerf::write(&dataset, &staging.dir)?;
+    let staging = staging(out)?;
+    dnerf::write(&dataset, staging.path())?;
     // dnerf::write stores RGB composited on white; replace each image by its RGBA original,
     // found through the file paths of the transforms files (same order as the views).
     for (json_name, imgs) in [
         ("transforms_train.json", &train_rgba),
         ("transforms_test.json", &test_rgba),
     ] {
-        let json_path = staging.dir.join(json_name);
+        let json_path = staging.path().join(json_name);
         let text = io(&json_path, std::fs::read_to_string(&json_path))?;
         let v: Value = serde_json::from_str(&text).map_err(|e| SceneGenError::Format {
             path: json_path.clone(),
@@ -483,7 +450,7 @@ fn generate_object(
             .zip(imgs.par_iter())
             .map(|(f, img)| {
                 let rel = f["file_path"].as_str().unwrap_or_default();
-                let mut path = staging.dir.join(rel.trim_start_matches("./"));
+                let mut path = staging.path().join(rel.trim_start_matches("./"));
                 if path.extension().is_none() {
                     path.set_extension("png");
                 }
@@ -502,8 +469,8 @@ fn generate_object(
     meta["counts"] =
         json!({"train": train.len(), "test": test.len(), "val": test.len().div_ceil(3)});
     meta["render_seconds"] = json!(render_secs);
-    write_json(&staging.dir.join("render_meta.json"), &meta)?;
-    staging.commit()?;
+    write_json(&staging.path().join("render_meta.json"), &meta)?;
+    commit(staging)?;
     Ok(Summary {
         images: train.len() + test.len(),
         render_secs,
@@ -548,10 +515,9 @@ fn generate_stage(
         supersample: s.supersample,
         ..RenderOptions::default()
     };
-    let staging = Staging::new(out)?;
-    io(&staging.dir, std::fs::create_dir(&staging.dir))?;
+    let staging = staging(out)?;
     for c in 0..cameras.len() {
-        let d = staging.dir.join(format!("cam{c:02}"));
+        let d = staging.path().join(format!("cam{c:02}"));
         io(&d, std::fs::create_dir(&d))?;
     }
     let started = Instant::now();
@@ -566,9 +532,9 @@ fn generate_stage(
         .map(|&(j, c)| {
             let img = scene::render(&scenes[j], &cameras[c].0, &opts);
             let (rgb, _) = img.composite_on_white();
-            let path = staging.dir.join(format!("cam{c:02}/{j:04}.png"));
+            let path = staging.path().join(format!("cam{c:02}/{j:04}.png"));
             let file = io(&path, std::fs::File::create(&path))?;
-            msth_trainer::imageio::encode_png(std::io::BufWriter::new(file), &rgb)
+            imageio::encode_png(std::io::BufWriter::new(file), &rgb)
                 .map_err(SceneGenError::io(&path))?;
             progress();
             Ok(())
@@ -585,8 +551,8 @@ fn generate_stage(
         .zip(&bounds)
         .map(|((cam, _), &(n, f))| dynerf::llff_row(cam, n, f))
         .collect();
-    dynerf::write_npy(&staging.dir.join("poses_bounds.npy"), &rows)?;
-    dynerf::write_npy(&staging.dir.join("poses_bounds_train.npy"), &rows[1..])?;
+    dynerf::write_npy(&staging.path().join("poses_bounds.npy"), &rows)?;
+    dynerf::write_npy(&staging.path().join("poses_bounds_train.npy"), &rows[1..])?;
 
     // transforms_{train,val,test}.json pointing at the frame folders.
     let frame = |c: usize, j: usize| {
@@ -608,7 +574,7 @@ fn generate_stage(
         ("transforms_val.json", val_frames),
     ] {
         write_json(
-            &staging.dir.join(file),
+            &staging.path().join(file),
             &json!({"camera_angle_x": STAGE_FOV_X, "frames": frames}),
         )?;
     }
@@ -630,7 +596,7 @@ fn generate_stage(
         })
         .collect();
     write_json(
-        &staging.dir.join("cameras.json"),
+        &staging.path().join("cameras.json"),
         &json!({
             "convention": "transform_matrix = camera-to-world, OpenGL/Blender camera axes (-Z forward, +Y up, +X right); world +Z up",
             "look_at": STAGE_LOOK_AT.to_array(),
@@ -653,8 +619,8 @@ fn generate_stage(
                 .map(|c| {
                     dynerf::encode_video(
                         ff,
-                        &staging.dir.join(name(c)),
-                        &staging.dir.join(format!("{}.mp4", name(c))),
+                        &staging.path().join(name(c)),
+                        &staging.path().join(format!("{}.mp4", name(c))),
                         s.fps,
                     )
                 })
@@ -690,8 +656,8 @@ fn generate_stage(
         "n_frames": s.frames,
     });
     meta["render_seconds"] = json!(render_secs);
-    write_json(&staging.dir.join("render_meta.json"), &meta)?;
-    staging.commit()?;
+    write_json(&staging.path().join("render_meta.json"), &meta)?;
+    commit(staging)?;
     Ok(Summary {
         images: jobs.len(),
         render_secs,

@@ -15,7 +15,7 @@
 //!
 //! World frame: +Z up (the glTF +Y-up model is rotated on load, as Blender's importer does);
 //! cameras follow `msth_core::Camera` (OpenGL axes, camera-to-world poses). Nothing here trains
-//! or knows about the field; the datasets are read back by `msth_trainer::dataset`.
+//! or knows about the field; the datasets are read back by `msth_dataset`, which also writes them.
 
 pub mod accessor;
 pub mod anim;

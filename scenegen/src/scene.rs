@@ -123,7 +123,7 @@ pub struct RgbaImage8 {
 impl RgbaImage8 {
     /// The image composited on white (`rgb * a + (1 - a)`, the D-NeRF convention) and its
     /// alpha channel (`None` when fully opaque).
-    pub fn composite_on_white(&self) -> (msth_trainer::dataset::Image8, Option<Vec<u8>>) {
+    pub fn composite_on_white(&self) -> (msth_dataset::Image8, Option<Vec<u8>>) {
         let n = (self.width * self.height) as usize;
         let mut rgb = Vec::with_capacity(n * 3);
         let mut alpha = Vec::with_capacity(n);
@@ -137,7 +137,7 @@ impl RgbaImage8 {
         }
         let opaque = alpha.iter().all(|&a| a == 255);
         (
-            msth_trainer::dataset::Image8 {
+            msth_dataset::Image8 {
                 width: self.width,
                 height: self.height,
                 data: rgb.into(),

@@ -12,12 +12,12 @@ use std::path::Path;
 
 use common::{quad_mesh, Builder};
 use glam::Vec3;
+use msth_dataset::dnerf::{load as load_dnerf, LoadOptions};
 use msth_scenegen::dynerf::{c2w_from_llff_row, read_npy};
 use msth_scenegen::layout::{frame_time, OBJECT_MODEL_RADIUS, STAGE_MODEL_RADIUS};
 use msth_scenegen::scene::{posed_triangles, Normalisation, Placement};
 use msth_scenegen::{generate, load, Layout, Model, SynthSettings};
 use msth_testkit::{Need, Tests};
-use msth_trainer::dataset::dnerf::{load as load_dnerf, LoadOptions};
 use serde_json::{json, Value};
 
 fn main() -> std::process::ExitCode {

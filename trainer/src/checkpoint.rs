@@ -7,7 +7,7 @@
 //! `v: [f32; n]`, `adam_step: u64`; then `crc32: u32` of every preceding byte.
 //! Files are written to a temporary sibling and renamed, so a crash never leaves half a file.
 
-use std::io::{Read, Write};
+use std::io::Read;
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
@@ -299,25 +299,9 @@ impl<'a> Reader<'a> {
     }
 }
 
-/// Writes `bytes` to `path` through a temporary sibling and a rename.
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    let dir = path
-        .parent()
-        .filter(|p| !p.as_os_str().is_empty())
-        .unwrap_or(Path::new("."));
-    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("file");
-    let tmp = dir.join(format!(".{name}.{}.tmp", std::process::id()));
-    let res = (|| {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        std::fs::rename(&tmp, path)
-    })();
-    if res.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    res
-}
+/// Writes `bytes` to `path` through a temporary sibling and a rename (from the dataset crate's
+/// [`msth_dataset::staging`], the one atomic writer).
+pub use msth_dataset::staging::write_atomic;
 
 #[cfg(test)]
 mod tests {

@@ -1,8 +1,8 @@
 //! `msth-trainer`: everything that turns a dataset into a trained MSTH model.
 //!
-//! - [`dataset`]: dataset types and loaders (one module per format), with validation;
+//! - [`dataset`]: re-export of `msth-dataset` (types, one module per format read and written);
 //! - [`synth`]: the built-in procedural dynamic scene with analytic ground truth;
-//! - [`metrics`], [`imageio`]: PSNR / SSIM / D-SSIM, PNG output and comparison pictures;
+//! - [`metrics`]: PSNR / SSIM / D-SSIM ([`imageio`], from `msth-dataset`: PNG output and pictures);
 //! - [`autosize`]: sizing the model from the data (scene, frame count, motion);
 //! - [`ray_sampling`]: uniform, dynamics-aware (paper §3.4) and static/dynamic batch samplers;
 //! - [`adam`], [`train`], [`checkpoint`], [`eval`]: the optimiser, the loop, the checkpoint file
@@ -10,12 +10,15 @@
 //! - [`import`]: `msth import`, videos to a dataset with COLMAP's camera poses;
 //! - [`unreached`]: hash-table values no training ray reached (dropped on export).
 
+/// The dataset crate under its historical path (`msth_trainer::dataset::...`).
+pub use msth_dataset as dataset;
+/// PNG output and comparison pictures, from the dataset crate.
+pub use msth_dataset::imageio;
+
 pub mod adam;
 pub mod autosize;
 pub mod checkpoint;
-pub mod dataset;
 pub mod eval;
-pub mod imageio;
 pub mod import;
 pub mod metrics;
 pub mod ray_sampling;

@@ -703,6 +703,7 @@ pub fn generate(cfg: &SynthConfig) -> Dataset {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use msth_dataset::dnerf;
 
     fn small() -> SynthConfig {
         SynthConfig {
@@ -896,5 +897,65 @@ mod tests {
             &img,
         )
         .unwrap();
+    }
+
+    /// The D-NeRF writer and reader on the built-in scene (moved here from the dataset crate,
+    /// which does not know the built-in scene).
+    #[test]
+    fn dnerf_write_then_load_round_trip() {
+        let mut cfg = small();
+        (cfg.width, cfg.height, cfg.num_frames) = (20, 14, 4);
+        (cfg.num_train_cams, cfg.supersample) = (3, 1);
+        let d = generate(&cfg);
+        let root = tempfile::tempdir().unwrap();
+        let out = root.path().join("scene");
+        dnerf::write(&d, &out).unwrap();
+        // Nothing but the dataset is left next to it.
+        assert_eq!(std::fs::read_dir(root.path()).unwrap().count(), 1);
+        let back = dnerf::load(&out, &dnerf::LoadOptions::default()).unwrap();
+        assert_eq!(back.name, "scene");
+        assert_eq!(back.bounds, d.bounds);
+        assert_eq!(back.num_frames, d.num_frames);
+        assert_eq!(
+            (back.train.len(), back.test.len()),
+            (d.train.len(), d.test.len())
+        );
+        let originals = d.train.iter().chain(&d.test);
+        let read_back = back.train.iter().chain(&back.test);
+        for (a, b) in originals.zip(read_back) {
+            assert_eq!(a.image, b.image);
+            assert_eq!(a.time, b.time);
+            assert_eq!(a.camera_id, b.camera_id);
+            let (ca, cb) = (a.camera, b.camera);
+            assert_eq!((ca.width, ca.height), (cb.width, cb.height));
+            for (x, y) in [
+                (ca.fx, cb.fx),
+                (ca.fy, cb.fy),
+                (ca.cx, cb.cx),
+                (ca.cy, cb.cy),
+            ] {
+                assert!((x - y).abs() < 1e-5);
+            }
+            assert!(ca.world_from_camera.abs_diff_eq(cb.world_from_camera, 1e-5));
+        }
+        let val: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(out.join("transforms_val.json")).unwrap())
+                .unwrap();
+        assert_eq!(
+            val["frames"].as_array().unwrap().len(),
+            d.test.len().div_ceil(3)
+        );
+        assert!(val["frames"][0]["file_path"]
+            .as_str()
+            .unwrap()
+            .starts_with("./test/cam03_"));
+        // Refuses to overwrite a dataset.
+        let err = dnerf::write(&d, &out).unwrap_err();
+        assert!(err.to_string().contains("not an empty folder"), "{err}");
+        // An empty target folder is fine.
+        let empty = root.path().join("empty");
+        std::fs::create_dir(&empty).unwrap();
+        dnerf::write(&d, &empty).unwrap();
+        assert!(empty.join("transforms_train.json").exists());
     }
 }

@@ -269,9 +269,13 @@ pub fn mask_learning_loss(ml: &MaskLearningConfig, l: &ChunkLosses) -> f64 {
     loss
 }
 
-/// Reported after each step.
+/// Reported after each step. The trainer prints nothing itself: what it has to tell (its notes)
+/// travels here, and the caller (the cli) shows it.
 #[derive(Clone, Debug)]
 pub struct Progress {
+    /// Notes about the run (for example the sampler falling back to uniform sampling), given
+    /// once, with the first step reported; empty otherwise.
+    pub notes: Vec<String>,
     pub step: usize,
     pub iters: usize,
     pub loss: f32,
@@ -642,9 +646,7 @@ pub fn train(
     let batch_seed = trainer.settings.seed ^ 0xBA7C_0000;
     let sampler =
         RaySampler::new(data, &trainer.settings.sampling).map_err(TrainError::Settings)?;
-    if let Some(note) = &sampler.note {
-        eprintln!("note: {note}");
-    }
+    let mut notes: Vec<String> = sampler.note.iter().cloned().collect();
     let mut rays = Vec::with_capacity(batch);
     let mut targets = Vec::with_capacity(batch);
     let use_bg = trainer.settings.random_background && data.train.iter().any(|v| v.alpha.is_some());
@@ -699,6 +701,7 @@ pub fn train(
         last_loss = loss;
         let elapsed = start.elapsed().as_secs_f64();
         let keep_going = progress(&Progress {
+            notes: std::mem::take(&mut notes),
             step: trainer.step,
             iters,
             loss,

@@ -40,10 +40,11 @@ use glam::{Mat3, Mat4, Vec3};
 use msth_core::{Camera, SceneBounds};
 use rayon::prelude::*;
 
-use super::cache::{store_frames, CacheKey, FrameSink, FrameStorage, ProgressFn, Stored};
-use super::dnerf::{contracted_bounds_from_cameras, load_image};
-use super::video::{self, Tools, VideoInfo};
-use super::{downscale_rgb, Dataset, DatasetError, Image8, View};
+pub use crate::bounds::forward_facing_bounds;
+use crate::cache::{store_frames, CacheKey, FrameSink, FrameStorage, ProgressFn, Stored};
+use crate::imageio::load_image;
+use crate::video::{self, Tools, VideoInfo};
+use crate::{downscale_rgb, Dataset, DatasetError, Image8, View};
 
 /// Largest accepted number of cameras (rows).
 const MAX_CAMERAS: usize = 4096;
@@ -349,42 +350,11 @@ pub fn llff_normalization(poses: &[Mat4], nears: &[f32]) -> Similarity {
     }
 }
 
-/// Scene bounds for a forward-facing rig (see the module docs).
-pub fn forward_facing_bounds(cameras: &[Camera], nears: &[f32], fars: &[f32]) -> SceneBounds {
-    let n = cameras.len().max(1) as f32;
-    let mean_center = cameras.iter().map(|c| c.center()).sum::<Vec3>() / n;
-    let forward = (-cameras
-        .iter()
-        .map(|c| c.world_from_camera.z_axis.truncate())
-        .sum::<Vec3>())
-    .normalize_or_zero();
-    let min_near = nears.iter().copied().fold(f32::INFINITY, f32::min);
-    let max_far = fars.iter().copied().fold(0.0f32, f32::max);
-    if let SceneBounds::Contracted { center, radius } = contracted_bounds_from_cameras(cameras) {
-        let depth = (center - mean_center).dot(forward);
-        if depth.is_finite() && depth >= min_near && depth <= max_far {
-            return SceneBounds::Contracted { center, radius };
-        }
-    }
-    let mut mids: Vec<f32> = nears.iter().zip(fars).map(|(a, b)| 0.5 * (a + b)).collect();
-    mids.sort_by(f32::total_cmp);
-    let mid = mids.get(mids.len() / 2).copied().unwrap_or(1.0);
-    let mid = if mid.is_finite() && mid > 0.0 {
-        mid
-    } else {
-        1.0
-    };
-    SceneBounds::Contracted {
-        center: mean_center + forward * mid,
-        radius: mid,
-    }
-}
-
 /// Reads `poses_bounds.npy` and finds every camera's frames; no frame is decoded except to learn
 /// sizes and counts.
 pub fn read_rig(dir: &Path, opts: &DynerfOptions) -> Result<Rig, DatasetError> {
     let npy_path = dir.join("poses_bounds.npy");
-    let arr = super::npy::read(&npy_path)?;
+    let arr = crate::npy::read(&npy_path)?;
     if arr.shape.len() != 2 || arr.shape[1] != 17 {
         return Err(bad(
             &npy_path,
@@ -646,7 +616,7 @@ fn produce_frames(
 
 /// A fingerprint of the rig's sources and the options that change pixels.
 fn fingerprint(rig: &Rig, opts: &DynerfOptions) -> Result<u64, DatasetError> {
-    let mut fp = super::cache::Fingerprint::default();
+    let mut fp = crate::cache::Fingerprint::default();
     fp.str("dynerf-v1");
     fp.bytes(&opts.downscale.to_le_bytes());
     for c in &rig.cameras {
@@ -686,13 +656,25 @@ pub fn llff_row(camera: &Camera, near: f64, far: f64) -> [f64; 17] {
     r
 }
 
+/// The OpenGL camera-to-world matrix of an LLFF row (the inverse of [`llff_row`]'s pose part).
+pub fn c2w_from_llff_row(row: &[f64; 17]) -> Mat4 {
+    let col = |c: usize| Vec3::new(row[c] as f32, row[5 + c] as f32, row[10 + c] as f32);
+    let (down, right, back, t) = (col(0), col(1), col(2), col(3));
+    Mat4::from_cols(
+        right.extend(0.0),
+        (-down).extend(0.0),
+        back.extend(0.0),
+        t.extend(1.0),
+    )
+}
+
 /// Writes `poses_bounds.npy` for cameras with their near/far bounds (fixtures, tools).
 pub fn write_poses_bounds(path: &Path, cameras: &[(Camera, f64, f64)]) -> std::io::Result<()> {
     let data: Vec<f64> = cameras
         .iter()
         .flat_map(|(c, n, f)| llff_row(c, *n, *f))
         .collect();
-    super::npy::write_f64(path, &[cameras.len(), 17], &data)
+    crate::npy::write_f64(path, &[cameras.len(), 17], &data)
 }
 
 /// Loads a DyNeRF dataset from `dir` (see the module docs). Frames are decoded into memory or
@@ -996,36 +978,36 @@ mod tests {
         let rows: Vec<f64> = cams.iter().flat_map(|c| llff_row(c, 2.0, 9.0)).collect();
         let o = raw_opts();
         // Truncated.
-        let bytes = crate::dataset::npy::encode_f64(&[3, 17], &rows);
+        let bytes = crate::npy::encode_f64(&[3, 17], &rows);
         std::fs::write(&npy, &bytes[..bytes.len() - 8]).unwrap();
         expect_err(dir.path(), &o, &["poses_bounds.npy", "truncated"]);
         // Wrong column count.
-        crate::dataset::npy::write_f64(&npy, &[3, 16], &rows[..48]).unwrap();
+        crate::npy::write_f64(&npy, &[3, 16], &rows[..48]).unwrap();
         expect_err(dir.path(), &o, &["poses_bounds.npy", "(N, 17)", "[3, 16]"]);
         // Non-finite pose.
         let mut r = rows.clone();
         r[17 + 3] = f64::NAN;
-        crate::dataset::npy::write_f64(&npy, &[3, 17], &r).unwrap();
+        crate::npy::write_f64(&npy, &[3, 17], &r).unwrap();
         expect_err(dir.path(), &o, &["poses_bounds.npy", "row 1", "not finite"]);
         // Not a rotation.
         let mut r = rows.clone();
         r[0] *= 3.0;
-        crate::dataset::npy::write_f64(&npy, &[3, 17], &r).unwrap();
+        crate::npy::write_f64(&npy, &[3, 17], &r).unwrap();
         expect_err(dir.path(), &o, &["row 0", "orthonormal"]);
         // near >= far.
         let mut r = rows.clone();
         r[2 * 17 + 16] = 1.0;
-        crate::dataset::npy::write_f64(&npy, &[3, 17], &r).unwrap();
+        crate::npy::write_f64(&npy, &[3, 17], &r).unwrap();
         expect_err(dir.path(), &o, &["row 2", "near/far"]);
         // More rows than cameras.
         let mut r = rows.clone();
         r.extend_from_slice(&rows[..17]);
-        crate::dataset::npy::write_f64(&npy, &[4, 17], &r).unwrap();
+        crate::npy::write_f64(&npy, &[4, 17], &r).unwrap();
         expect_err(dir.path(), &o, &["4 rows", "3 camNN/ frame folders"]);
         // hwf with another aspect ratio than the frames.
         let mut r = rows.clone();
         r[4] = 5.0;
-        crate::dataset::npy::write_f64(&npy, &[3, 17], &r).unwrap();
+        crate::npy::write_f64(&npy, &[3, 17], &r).unwrap();
         expect_err(dir.path(), &o, &["row 0", "aspect ratio"]);
         // Missing file.
         std::fs::remove_file(&npy).unwrap();

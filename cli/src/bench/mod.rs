@@ -1,8 +1,26 @@
-//! `msth bench step` (`msth bench play` is in `bench_play.rs`, `msth bench tradeoff` in
-//! `bench_tradeoff.rs`, `msth bench ablation` in `bench_ablation.rs`): the cost of one full training step (proposal and field, forward, backward
-//! and Adam) at the demo (fast preset) and paper configurations, reported as field samples per
-//! second, with two same-run baselines: the same step on one worker thread, and the plain
-//! reference hash encoding against the batched one.
+//! `msth bench ...`: the benchmarks and their reports, one module tree behind one boundary.
+//!
+//! - this file: `msth bench step`, the cost of one full training step (proposal and field,
+//!   forward, backward and Adam) at the demo (fast preset) and paper configurations, reported as
+//!   field samples per second, with two same-run baselines: the same step on one worker thread,
+//!   and the plain reference hash encoding against the batched one;
+//! - [`play`]: `msth bench play` (streamed playback, CPU and GPU);
+//! - [`tradeoff`], [`tradeoff_report`], [`tradeoff_plot`]: `msth bench tradeoff` (size, quality
+//!   and training time over model settings; tables and plots);
+//! - [`ablation`]: `msth bench ablation` (the paper's ablations).
+//!
+//! The boundary: the tree is compiled only with the cli's `bench` feature (on by default;
+//! `cargo build -p msth-cli --no-default-features` builds `msth` without it and without
+//! `plotters`). From the rest of the cli it uses only the dataset arguments ([`crate::data`]),
+//! the playback reuse and backend options ([`crate::play`]) and the held-out PSNR of a
+//! quantised model ([`crate::export`]); nothing outside this tree uses it but [`crate::run`]
+//! (and the re-exports `msth_cli::{bench_tradeoff, tradeoff_plot}` for `tests/`).
+
+pub mod ablation;
+pub mod play;
+pub mod tradeoff;
+pub mod tradeoff_plot;
+pub(crate) mod tradeoff_report;
 
 use std::time::Instant;
 
@@ -42,13 +60,13 @@ enum BenchKind {
     },
     /// Playback of a .msth file over loopback HTTP: time to first frame against the full
     /// download, incremental against full rendering (FPS and PSNR).
-    Play(crate::bench_play::BenchPlayArgs),
+    Play(play::BenchPlayArgs),
     /// The accuracy / cost trade-off: a one-factor-at-a-time sweep around a preset, plus the
     /// presets; tables and plots with the Pareto fronts (see `docs/tradeoff.md`).
-    Tradeoff(Box<crate::bench_tradeoff::TradeoffArgs>),
+    Tradeoff(Box<tradeoff::TradeoffArgs>),
     /// The paper's ablation: 4D only, h3 + h4, mt, mst, mst + uncertainty + MINE, each with
     /// uniform and dynamics-aware sampling; table, JSON and mask pictures.
-    Ablation(crate::bench_ablation::AblationArgs),
+    Ablation(ablation::AblationArgs),
 }
 
 pub fn run(a: BenchArgs) -> Result<()> {
@@ -59,9 +77,9 @@ pub fn run(a: BenchArgs) -> Result<()> {
             only,
             json,
         } => step(reps, batch_rays, only.as_deref(), json),
-        BenchKind::Play(a) => crate::bench_play::run(a),
-        BenchKind::Tradeoff(a) => crate::bench_tradeoff::run(*a),
-        BenchKind::Ablation(a) => crate::bench_ablation::run(a).map(|_| ()),
+        BenchKind::Play(a) => play::run(a),
+        BenchKind::Tradeoff(a) => tradeoff::run(*a),
+        BenchKind::Ablation(a) => ablation::run(a).map(|_| ()),
     }
 }
 

@@ -10,12 +10,10 @@ use std::path::Path;
 
 use glam::Vec3;
 use msth_core::Camera;
+use msth_dataset::cache::{FrameStorage, Stored};
+use msth_dataset::dynerf::{load, load_with_rig, write_poses_bounds, DynerfOptions, Normalization};
+use msth_dataset::video::{self, Tools, VideoInfo};
 use msth_testkit::{Need, Tests};
-use msth_trainer::dataset::cache::{FrameStorage, Stored};
-use msth_trainer::dataset::dynerf::{
-    load, load_with_rig, write_poses_bounds, DynerfOptions, Normalization,
-};
-use msth_trainer::dataset::video::{self, Tools, VideoInfo};
 
 fn main() -> std::process::ExitCode {
     let ffmpeg = Need::ffmpeg();

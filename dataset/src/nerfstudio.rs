@@ -1,11 +1,11 @@
 //! nerfstudio datasets: one `transforms.json` for all frames.
 //!
-//! The file has the fields of [`super::dnerf`] (intrinsics `fl_x`, `fl_y`, `cx`, `cy`, `w`, `h`
+//! The file has the fields of [`crate::dnerf`] (intrinsics `fl_x`, `fl_y`, `cx`, `cy`, `w`, `h`
 //! or `camera_angle_x`, at the top level or per frame; per-frame `file_path`,
 //! `transform_matrix`, optional `camera_id`), plus:
 //! - optional distortion `k1`, `k2`, `k3`, `p1`, `p2` (OpenCV model; top level or per frame).
 //!   Images are undistorted at load time to the pinhole camera with the same `fl_x, fl_y, cx,
-//!   cy`, by bilinear resampling ([`super::undistort`]); `camera_model` must then be `OPENCV`
+//!   cy`, by bilinear resampling ([`crate::undistort`]); `camera_model` must then be `OPENCV`
 //!   (or absent); fisheye and other models are refused;
 //! - optional per-frame `time` in `[0, 1]`: all frames have one or none does (a static scene,
 //!   time 0).
@@ -24,11 +24,13 @@ use std::path::Path;
 
 use serde_json::Value;
 
-use super::cache::{FrameStorage, ProgressFn};
-use super::dnerf::{
-    self, assemble_with_storage, camera_ids, field_error, image_path, parse_transforms, FrameSpec,
+use crate::cache::{FrameStorage, ProgressFn};
+use crate::dnerf;
+use crate::transforms::{
+    assemble_with_storage, camera_ids, field_error, image_path, parse_transforms, wrong_type,
+    FrameSpec,
 };
-use super::{Dataset, DatasetError};
+use crate::{Dataset, DatasetError};
 
 /// How to load a nerfstudio dataset.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -59,11 +61,7 @@ fn name_list(
             })
             .collect::<Result<Vec<_>, _>>()
             .map(Some),
-        Some(v) => Err(field_error(
-            path,
-            key,
-            format!("expected a list of file names, got {}", dnerf::type_name(v)),
-        )),
+        Some(v) => Err(wrong_type(path, key, "a list of file names", v)),
     }
 }
 
@@ -287,7 +285,7 @@ mod tests {
         Vec3::new(4.0 * a.cos(), 4.0 * a.sin(), 1.0)
     }
 
-    fn names(views: &[crate::dataset::View]) -> Vec<String> {
+    fn names(views: &[crate::View]) -> Vec<String> {
         views
             .iter()
             .map(|v| v.source.file_name().unwrap().to_string_lossy().into_owned())
@@ -439,7 +437,7 @@ mod tests {
     /// A distorted photo made analytically loads as the pinhole image (within resampling error).
     #[test]
     fn distortion_is_undistorted_on_load() {
-        use crate::dataset::undistort::Distortion;
+        use crate::undistort::Distortion;
         let (w, h) = (96u32, 72u32);
         let (fx, fy, cx, cy) = (80.0, 82.0, 48.5, 35.0);
         let d = Distortion {

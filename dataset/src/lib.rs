@@ -1,27 +1,34 @@
-//! Datasets: views (a camera, a time, an 8-bit RGB image) split into train and test.
+//! `msth-dataset`: datasets on disk, read and written. A dataset is views (a camera, a time, an
+//! 8-bit RGB image) split into train and test.
 //!
 //! One module per on-disk format: [`dnerf`] (Blender / D-NeRF JSON), [`nerfstudio`] (a single
 //! `transforms.json`), [`dynerf`] (Plenoptic Video / DyNeRF: `poses_bounds.npy` + videos or frame
 //! folders); [`detect`] picks one from a folder's contents. Every loader validates what it reads
 //! and reports the file and the field at fault ([`DatasetError`]). [`colmap`] runs COLMAP and
-//! reads its sparse models (for `msth import`, [`crate::import`]).
+//! reads its sparse models (for `msth import` in the trainer).
 //!
 //! Images are stored as 8-bit RGB already composited on the dataset's background colour. Their
 //! pixels ([`Pixels`]) live either in memory or in a memory-mapped frame cache on disk
 //! ([`cache`]), so that a dataset larger than RAM is bounded by disk instead.
 
+pub mod bounds;
 pub mod cache;
 pub mod colmap;
 pub mod dnerf;
 pub mod dynerf;
+pub mod imageio;
 pub mod nerfstudio;
 pub mod npy;
+pub mod staging;
+pub(crate) mod transforms;
 pub mod undistort;
 pub mod video;
 
 use std::ops::{Deref, DerefMut};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
+
+pub use imageio::downscale_rgb;
 
 use msth_core::{Camera, SceneBounds};
 
@@ -284,34 +291,6 @@ pub enum DatasetError {
     Image { path: PathBuf, message: String },
     #[error("{path}: {message}")]
     Invalid { path: PathBuf, message: String },
-}
-
-/// Area-filter (box) downscale of 8-bit RGB pixels of `width x height` by an integer factor;
-/// the remainder of `size % factor` pixels at the right and bottom is cropped. Rounds to nearest.
-pub fn downscale_rgb(rgb: &[u8], width: u32, height: u32, factor: u32) -> Vec<u8> {
-    let f = factor.max(1) as usize;
-    let (w, h) = (width as usize / f, height as usize / f);
-    let n = (f * f) as u64;
-    let mut out = vec![0u8; w * h * 3];
-    for y in 0..h {
-        for x in 0..w {
-            let mut acc = [0u64; 3];
-            for dy in 0..f {
-                let row = (y * f + dy) * width as usize;
-                for dx in 0..f {
-                    let i = (row + x * f + dx) * 3;
-                    for c in 0..3 {
-                        acc[c] += rgb[i + c] as u64;
-                    }
-                }
-            }
-            let o = (y * w + x) * 3;
-            for c in 0..3 {
-                out[o + c] = ((acc[c] + n / 2) / n) as u8;
-            }
-        }
-    }
-    out
 }
 
 /// The on-disk layouts `msth` reads.

@@ -20,7 +20,7 @@ use std::time::{Duration, Instant};
 
 use glam::{DMat3, DMat4, DQuat, DVec3, DVec4};
 
-use super::DatasetError;
+use crate::DatasetError;
 
 /// Largest accepted line count per model file (a reconstruction of a long video has a few
 /// hundred thousand points; anything beyond is certainly not a COLMAP model).

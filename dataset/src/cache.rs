@@ -17,7 +17,7 @@ use std::io::{BufWriter, Read, Write};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use super::{DatasetError, Pixels};
+use crate::{DatasetError, Pixels};
 
 const MAGIC: &[u8; 8] = b"MSTHFRC1";
 const VERSION: u32 = 1;
@@ -563,7 +563,7 @@ mod tests {
             assert_eq!(p.rgb_at(i), [data[1][i], data[1][i + 1], data[1][i + 2]]);
         }
         assert_eq!(&p.loaded()[..], &data[1][..]);
-        let img = super::super::Image8 {
+        let img = crate::Image8 {
             width: 4,
             height: 3,
             data: p.clone(),

@@ -4,7 +4,7 @@
 
 use std::path::Path;
 
-use super::DatasetError;
+use crate::DatasetError;
 
 /// Largest accepted array (elements); pose files are tiny.
 const MAX_ELEMENTS: usize = 1 << 24;

@@ -4,14 +4,14 @@
 //!
 //! Everything works on [`Image8`] (8-bit RGB, row 0 at the top).
 
-use std::io::{self, BufWriter, Write};
+use std::io::{self, Write};
 use std::path::Path;
-use std::sync::atomic::{AtomicU64, Ordering};
 
 use image::codecs::png::PngEncoder;
 use image::{ExtendedColorType, ImageEncoder};
 
-use crate::dataset::Image8;
+use crate::undistort::{undistort_image, Distortion, Intrinsics};
+use crate::{DatasetError, Image8};
 
 /// Width in pixels of the white gap between the images of a [`panel`].
 pub const PANEL_GAP: u32 = 2;
@@ -50,32 +50,7 @@ pub fn encode_png<W: Write>(writer: W, image: &Image8) -> io::Result<()> {
 /// folder, which is synced and then renamed over `path`. Readers never see a half-written file;
 /// on failure the temporary file is removed and `path` is left untouched.
 pub fn save_png_atomic(path: &Path, image: &Image8) -> io::Result<()> {
-    static COUNTER: AtomicU64 = AtomicU64::new(0);
-    let file_name = path.file_name().ok_or_else(|| {
-        io::Error::new(
-            io::ErrorKind::InvalidInput,
-            format!("{}: not a file path", path.display()),
-        )
-    })?;
-    let tmp_name = format!(
-        ".{}.tmp-{}-{}",
-        file_name.to_string_lossy(),
-        std::process::id(),
-        COUNTER.fetch_add(1, Ordering::Relaxed)
-    );
-    let tmp = path.with_file_name(tmp_name);
-    let result = (|| {
-        let file = std::fs::File::create(&tmp)?;
-        let mut writer = BufWriter::new(file);
-        encode_png(&mut writer, image)?;
-        let file = writer.into_inner().map_err(|e| e.into_error())?;
-        file.sync_all()?;
-        std::fs::rename(&tmp, path)
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result
+    crate::staging::write_atomic_with(path, &mut |w| encode_png(w, image))
 }
 
 /// Key points of the colour map used by [`error_map`]: an approximation of matplotlib's
@@ -160,6 +135,163 @@ pub fn panel(images: &[&Image8]) -> Image8 {
         x0 += im.width as usize + PANEL_GAP as usize;
     }
     out
+}
+
+// ---------------------------------------------------------------------------------------------
+// Reading dataset images
+
+/// Area-filter (box) downscale of 8-bit RGB pixels of `width x height` by an integer factor;
+/// the remainder of `size % factor` pixels at the right and bottom is cropped. Rounds to nearest.
+pub fn downscale_rgb(rgb: &[u8], width: u32, height: u32, factor: u32) -> Vec<u8> {
+    let f = factor.max(1) as usize;
+    let (w, h) = (width as usize / f, height as usize / f);
+    let n = (f * f) as u64;
+    let mut out = vec![0u8; w * h * 3];
+    for y in 0..h {
+        for x in 0..w {
+            let mut acc = [0u64; 3];
+            for dy in 0..f {
+                let row = (y * f + dy) * width as usize;
+                for dx in 0..f {
+                    let i = (row + x * f + dx) * 3;
+                    for c in 0..3 {
+                        acc[c] += rgb[i + c] as u64;
+                    }
+                }
+            }
+            let o = (y * w + x) * 3;
+            for c in 0..3 {
+                out[o + c] = ((acc[c] + n / 2) / n) as u8;
+            }
+        }
+    }
+    out
+}
+
+/// Largest accepted image side (anything beyond is certainly a broken file).
+pub const MAX_SIDE: u32 = 1 << 16;
+
+/// An image read and prepared for the dataset.
+pub struct LoadedImage {
+    /// Size before downscaling.
+    pub width: u32,
+    pub height: u32,
+    pub image: Image8,
+    /// Some pixel had alpha < 255.
+    pub transparent: bool,
+    /// Alpha after downscaling, when the image had transparency.
+    pub alpha: Option<Vec<u8>>,
+}
+
+/// Area-filter downscale by an integer factor; the remainder at the right/bottom is cropped.
+pub fn downscale_box(img: &Image8, factor: u32) -> Image8 {
+    if factor <= 1 {
+        return img.clone();
+    }
+    Image8 {
+        width: img.width / factor,
+        height: img.height / factor,
+        data: downscale_rgb(&img.data, img.width, img.height, factor).into(),
+    }
+}
+
+/// Reads an image file, composites it on white and downscales it.
+pub fn load_image(path: &Path, downscale: u32) -> Result<LoadedImage, DatasetError> {
+    load_image_undistorted(path, downscale, None)
+}
+
+/// What [`load_image_undistorted`] needs to undistort an image of a given size: its pinhole
+/// intrinsics and distortion model, or `None` to leave it as it is.
+pub type UndistortFn<'a> = dyn Fn(u32, u32) -> Option<(Intrinsics, Distortion)> + 'a;
+
+/// [`load_image`], undistorting the image to the pinhole camera first when `undistort` gives
+/// intrinsics and a distortion model for the image's size (nerfstudio).
+pub fn load_image_undistorted(
+    path: &Path,
+    downscale: u32,
+    undistort: Option<&UndistortFn<'_>>,
+) -> Result<LoadedImage, DatasetError> {
+    let bytes = std::fs::read(path).map_err(|source| DatasetError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let decoded = image::load_from_memory(&bytes).map_err(|e| DatasetError::Image {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    })?;
+    let (width, height) = (decoded.width(), decoded.height());
+    if width == 0 || height == 0 || width > MAX_SIDE || height > MAX_SIDE {
+        return Err(DatasetError::Image {
+            path: path.to_path_buf(),
+            message: format!("unsupported image size {width}x{height}"),
+        });
+    }
+    if width < downscale || height < downscale {
+        return Err(DatasetError::Invalid {
+            path: path.to_path_buf(),
+            message: format!(
+                "image {width}x{height} is smaller than the downscale factor {downscale}"
+            ),
+        });
+    }
+    let has_alpha = decoded.color().has_alpha();
+    let mut rgba = decoded.to_rgba8();
+    if let Some(undistort) = undistort {
+        if let Some((pin, d)) = undistort(width, height) {
+            // Undistort RGBA as two RGB images (colour, and alpha replicated).
+            let mut colour = Image8::new(width, height);
+            let mut alpha = Image8::new(width, height);
+            let (cd, ad): (&mut [u8], &mut [u8]) = (&mut colour.data, &mut alpha.data);
+            for ((c, a), p) in cd
+                .chunks_exact_mut(3)
+                .zip(ad.chunks_exact_mut(3))
+                .zip(rgba.pixels())
+            {
+                c.copy_from_slice(&p.0[..3]);
+                a.fill(p.0[3]);
+            }
+            let colour = undistort_image(&colour, &pin, &d);
+            let alpha = undistort_image(&alpha, &pin, &d);
+            for ((p, c), a) in rgba
+                .pixels_mut()
+                .zip(colour.data.chunks_exact(3))
+                .zip(alpha.data.chunks_exact(3))
+            {
+                p.0 = [c[0], c[1], c[2], a[0]];
+            }
+        }
+    }
+    let mut image = Image8::new(width, height);
+    let mut transparent = false;
+    for (dst, src) in image.data.chunks_exact_mut(3).zip(rgba.pixels()) {
+        let a = src.0[3] as u32;
+        if has_alpha && a < 255 {
+            transparent = true;
+        }
+        for c in 0..3 {
+            // rgb * a + (1 - a) on white, in 8-bit fixed point with rounding.
+            dst[c] = ((src.0[c] as u32 * a + 255 * (255 - a) + 127) / 255) as u8;
+        }
+    }
+    let alpha = transparent.then(|| {
+        // Box-filter the alpha channel the same way as the colours (through a grey image).
+        let mut a = Image8::new(width, height);
+        for (dst, src) in a.data.chunks_exact_mut(3).zip(rgba.pixels()) {
+            dst.fill(src.0[3]);
+        }
+        downscale_box(&a, downscale)
+            .data
+            .chunks_exact(3)
+            .map(|p| p[0])
+            .collect()
+    });
+    Ok(LoadedImage {
+        width,
+        height,
+        image: downscale_box(&image, downscale),
+        transparent,
+        alpha,
+    })
 }
 
 #[cfg(test)]

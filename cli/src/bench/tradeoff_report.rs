@@ -10,8 +10,8 @@ use serde_json::json;
 use msth_trainer::checkpoint::write_atomic;
 use msth_trainer::imageio::save_png_atomic;
 
-use crate::bench_tradeoff::Row;
-use crate::tradeoff_plot::{self, PlotPoint};
+use super::tradeoff::Row;
+use super::tradeoff_plot::{self, PlotPoint};
 
 /// The sweep's context, written with the tables.
 #[derive(Clone, Debug, Serialize, Deserialize)]

@@ -8,7 +8,7 @@
 //! [`undistort_image`] fills every pixel of the pinhole image with the distorted image sampled
 //! bilinearly at the distorted position (edge pixels repeated outside the source).
 
-use super::Image8;
+use crate::Image8;
 
 /// Distortion coefficients of the OpenCV model.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]

@@ -28,8 +28,8 @@ use msth_trainer::dataset::Dataset;
 use msth_trainer::eval::evaluate;
 use msth_trainer::train::{playback_cameras, train as run_training, TrainSettings};
 
+use super::tradeoff_report::{markdown_table, write_outputs, Meta};
 use crate::data::{self, DataArgs};
-use crate::tradeoff_report::{markdown_table, write_outputs, Meta};
 
 #[derive(Args)]
 pub struct TradeoffArgs {
@@ -547,6 +547,9 @@ fn measure(
 ) -> Result<VariantResult> {
     let batch_rays = settings.batch_rays;
     let (trainer, outcome) = run_training(train_data, settings, dir, None, &mut |p| {
+        for note in &p.notes {
+            eprintln!("note: {note}");
+        }
         on_step(p.step);
         true
     })

@@ -1,15 +1,19 @@
-//! Video decoding through the `ffmpeg` / `ffprobe` programs (no linked codec libraries).
+//! The one wrapper of the `ffmpeg` / `ffprobe` programs (no linked codec libraries): video
+//! decoding for the DyNeRF reader, and encoding for fixtures, generated datasets and the
+//! player's MP4s.
 //!
 //! [`probe`] reads a video's size and frame count with `ffprobe`; [`decode`] streams its frames
 //! as 8-bit RGB from `ffmpeg -f rawvideo -pix_fmt rgb24` one frame at a time, so memory stays at
 //! one frame whatever the length. Missing programs, files that are not videos, and videos whose
-//! decoded frames disagree with the probe are reported naming the file.
+//! decoded frames disagree with the probe are reported naming the file. [`encode`] writes raw
+//! frames to a video; [`encode_png_sequence`] turns numbered PNGs into an H.264 MP4; [`runs`]
+//! says whether a program starts.
 
 use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 
-use super::DatasetError;
+use crate::DatasetError;
 
 /// Largest accepted frame side.
 const MAX_SIDE: u32 = 1 << 15;
@@ -41,15 +45,86 @@ impl Default for Tools {
 impl Tools {
     /// Whether both programs can be started.
     pub fn available(&self) -> bool {
-        [&self.ffmpeg, &self.ffprobe].iter().all(|p| {
-            Command::new(p)
-                .arg("-version")
-                .stdout(Stdio::null())
-                .stderr(Stdio::null())
-                .status()
-                .is_ok_and(|s| s.success())
-        })
+        runs(&self.ffmpeg) && runs(&self.ffprobe)
     }
+}
+
+/// Whether `program -version` starts and succeeds.
+pub fn runs(program: &Path) -> bool {
+    Command::new(program)
+        .arg("-version")
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success())
+}
+
+/// Why [`encode_png_sequence`] made no video.
+#[derive(Debug, thiserror::Error)]
+pub enum EncodeError {
+    /// The program was not found.
+    #[error("`{}` is not installed", program.display())]
+    NotInstalled { program: PathBuf },
+    /// The program could not be started for another reason.
+    #[error("cannot run `{}`: {source}", program.display())]
+    Spawn {
+        program: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// It ran and failed: its exit status and the last lines of what it printed.
+    #[error("{status} ({stderr_tail})")]
+    Failed {
+        status: std::process::ExitStatus,
+        stderr_tail: String,
+    },
+}
+
+/// Encodes the numbered PNGs of `pattern` (an ffmpeg pattern such as `dir/%04d.png`) into
+/// `output`: H.264 (libx264), yuv420p, quality `crf`, `fps` frames per second, odd sizes padded
+/// by one pixel (yuv420p needs even ones), index at the front (`+faststart`).
+pub fn encode_png_sequence(
+    ffmpeg: &Path,
+    pattern: &Path,
+    fps: f32,
+    crf: u32,
+    output: &Path,
+) -> Result<(), EncodeError> {
+    let result = Command::new(ffmpeg)
+        .args(["-nostdin", "-hide_banner", "-loglevel", "error", "-y"])
+        .arg("-framerate")
+        .arg(format!("{fps}"))
+        .arg("-i")
+        .arg(pattern)
+        .args(["-c:v", "libx264", "-pix_fmt", "yuv420p", "-crf"])
+        .arg(crf.to_string())
+        .args([
+            "-vf",
+            "pad=ceil(iw/2)*2:ceil(ih/2)*2",
+            "-movflags",
+            "+faststart",
+        ])
+        .arg(output)
+        .stdin(Stdio::null())
+        .output()
+        .map_err(|source| match source.kind() {
+            std::io::ErrorKind::NotFound => EncodeError::NotInstalled {
+                program: ffmpeg.to_path_buf(),
+            },
+            _ => EncodeError::Spawn {
+                program: ffmpeg.to_path_buf(),
+                source,
+            },
+        })?;
+    if !result.status.success() {
+        let err = String::from_utf8_lossy(&result.stderr);
+        let tail: String = err.lines().rev().take(5).collect::<Vec<_>>().join(" | ");
+        return Err(EncodeError::Failed {
+            status: result.status,
+            stderr_tail: tail,
+        });
+    }
+    Ok(())
 }
 
 /// Size and length of a video's first video stream.
