@@ -8,7 +8,7 @@ use std::ops::Range;
 
 use crate::activation::{sigmoid, sigmoid_grad_from_output, trunc_exp, trunc_exp_grad};
 use crate::config::{BlendMode, EncodingConfig, FieldConfig, ModelConfig, ProposalConfig};
-use crate::grid::{DenseGrid3, GridLayout};
+use crate::grid::{backward_pair, encode_pair, pairable, DenseGrid3, GridLayout};
 use crate::mlp::{MlpActivations, MlpLayout};
 use crate::params::ParamLayout;
 use crate::rng::Rng;
@@ -152,7 +152,31 @@ impl EncodingLayout {
         let e = self.out_dim;
         s.enc.resize(n * e, 0.0);
         s.m.resize(n, 1.0);
-        if let Some((g, r)) = &self.h3 {
+        let skip = s.static_cutoff > 0.0
+            && self.mask.is_some()
+            && matches!(self.blend, BlendMode::Mst | BlendMode::Mt);
+        let paired = match (&self.h3, &self.h4) {
+            (Some((g3, r3)), Some((g4, r4))) if !skip && pairable(g3, g4) => {
+                // Both grids in one pass: they share their spatial corners.
+                s.h3.resize(n * e, 0.0);
+                s.h4.resize(n * e, 0.0);
+                encode_pair(
+                    g3,
+                    &params[r3.clone()],
+                    g4,
+                    &params[r4.clone()],
+                    &points[..n * 4],
+                    4,
+                    &mut s.h3,
+                    &mut s.h4,
+                    e,
+                    0,
+                );
+                true
+            }
+            _ => false,
+        };
+        if let Some((g, r)) = self.h3.as_ref().filter(|_| !paired) {
             s.h3.resize(n * e, 0.0);
             g.encode(&params[r.clone()], &points[..n * 4], 4, &mut s.h3, e, 0);
         }
@@ -162,11 +186,8 @@ impl EncodingLayout {
                 s.m[i] = sigmoid(d.sample(vals, &points[i * 4..i * 4 + 3]));
             }
         }
-        if let Some((g, r)) = &self.h4 {
+        if let Some((g, r)) = self.h4.as_ref().filter(|_| !paired) {
             s.h4.resize(n * e, 0.0);
-            let skip = s.static_cutoff > 0.0
-                && self.mask.is_some()
-                && matches!(self.blend, BlendMode::Mst | BlendMode::Mt);
             if skip {
                 // Look up only the points the mask leaves dynamic, packed, then scatter.
                 s.h4_active.clear();
@@ -272,11 +293,37 @@ impl EncodingLayout {
                 );
             }
         }
-        if let Some((g, r)) = &self.h3 {
-            g.backward(&points[..n * 4], 4, &s.d_h3, e, 0, &mut grad[r.clone()]);
-        }
-        if let Some((g, r)) = &self.h4 {
-            g.backward(&points[..n * 4], 4, &s.d_h4, e, 0, &mut grad[r.clone()]);
+        match (&self.h3, &self.h4) {
+            (Some((g3, r3)), Some((g4, r4))) if pairable(g3, g4) => {
+                // The two ranges are disjoint entries of one layout, in either order.
+                let (grad3, grad4) = if r3.start < r4.start {
+                    let (a, b) = grad.split_at_mut(r4.start);
+                    (&mut a[r3.clone()], &mut b[..r4.len()])
+                } else {
+                    let (a, b) = grad.split_at_mut(r3.start);
+                    (&mut b[..r3.len()], &mut a[r4.clone()])
+                };
+                backward_pair(
+                    g3,
+                    g4,
+                    &points[..n * 4],
+                    4,
+                    &s.d_h3,
+                    &s.d_h4,
+                    e,
+                    0,
+                    grad3,
+                    grad4,
+                );
+            }
+            _ => {
+                if let Some((g, r)) = &self.h3 {
+                    g.backward(&points[..n * 4], 4, &s.d_h3, e, 0, &mut grad[r.clone()]);
+                }
+                if let Some((g, r)) = &self.h4 {
+                    g.backward(&points[..n * 4], 4, &s.d_h4, e, 0, &mut grad[r.clone()]);
+                }
+            }
         }
     }
 }
@@ -445,7 +492,6 @@ impl FieldLayout {
         let (cm, cr) = &self.color;
         let (dm, _) = &self.density;
         let g = self.geo_features;
-        let cw = SH_COEFFS + g;
         let m = s.active.len();
         s.d_color_out.resize(m * 3, 0.0);
         for (k, &i) in s.active.iter().enumerate() {
@@ -454,15 +500,16 @@ impl FieldLayout {
                 s.d_color_out[k * 3 + ch] = d_rgb[idx] * sigmoid_grad_from_output(s.rgb[idx]);
             }
         }
-        s.d_color_in.resize(m * cw, 0.0);
-        cm.backward(
+        // Only the geometry features need an input gradient (the direction encoding is fixed).
+        s.d_color_in.resize(m * g, 0.0);
+        cm.backward_partial(
             &params[cr.clone()],
             &s.color_in,
             m,
             &mut s.color_acts,
             &s.d_color_out,
             &mut grad[cr.clone()],
-            Some(&mut s.d_color_in),
+            Some((SH_COEFFS, &mut s.d_color_in)),
         );
         let w = dm.output_dim();
         s.d_density_out.clear();
@@ -474,7 +521,7 @@ impl FieldLayout {
         for (k, &i) in s.active.iter().enumerate() {
             let i = i as usize;
             s.d_density_out[i * w + 1..(i + 1) * w]
-                .copy_from_slice(&s.d_color_in[k * cw + SH_COEFFS..(k + 1) * cw]);
+                .copy_from_slice(&s.d_color_in[k * g..(k + 1) * g]);
         }
         self.backward_density_mlp(params, n, s, grad);
         self.encoding
