@@ -98,11 +98,7 @@ impl EncodingLayout {
     pub fn mask_at(&self, params: &[f32], x: &[f32]) -> f32 {
         match &self.mask {
             Some((d, r)) => sigmoid(d.sample(&params[r.clone()], x)),
-            None => match self.blend {
-                BlendMode::Static => 1.0,
-                BlendMode::FourD => 0.0,
-                _ => 0.5,
-            },
+            None => self.blend.no_mask_value(),
         }
     }
 
@@ -136,28 +132,20 @@ impl EncodingLayout {
         for k in 0..self.out_dim {
             let a = h3.as_ref().map(|v| v[k]).unwrap_or(0.0);
             let b = h4.as_ref().map(|v| v[k]).unwrap_or(0.0);
-            enc[k] = match self.blend {
-                BlendMode::Mst => m * a + (1.0 - m) * b,
-                BlendMode::Mt => a + (1.0 - m) * b,
-                BlendMode::Add => a + b,
-                BlendMode::FourD => b,
-                BlendMode::Static => a,
-            };
+            let (ca, cb) = self.blend.coefficients(m);
+            enc[k] = ca * a + cb * b;
         }
         (enc, m)
     }
 
     /// Batched forward over `n` points (`points: [n, 4]`); result in `s.enc` (`[n, out_dim]`).
+    /// The same as [`EncodingLayout::forward_static`] then [`EncodingLayout::forward_dynamic`];
+    /// where both grids share their spatial corners (every preset), h3 and h4 are looked up in
+    /// one pass ([`crate::grid::encode_pair`], the same values).
     pub fn forward(&self, params: &[f32], points: &[f32], n: usize, s: &mut EncodingScratch) {
         let e = self.out_dim;
-        s.enc.resize(n * e, 0.0);
-        s.m.resize(n, 1.0);
-        let skip = s.static_cutoff > 0.0
-            && self.mask.is_some()
-            && matches!(self.blend, BlendMode::Mst | BlendMode::Mt);
-        let paired = match (&self.h3, &self.h4) {
-            (Some((g3, r3)), Some((g4, r4))) if !skip && pairable(g3, g4) => {
-                // Both grids in one pass: they share their spatial corners.
+        match (&self.h3, &self.h4) {
+            (Some((g3, r3)), Some((g4, r4))) if !self.skips_h4(s) && pairable(g3, g4) => {
                 s.h3.resize(n * e, 0.0);
                 s.h4.resize(n * e, 0.0);
                 encode_pair(
@@ -172,27 +160,59 @@ impl EncodingLayout {
                     e,
                     0,
                 );
-                true
+                self.mask_values(params, points, n, s);
+                self.blend_into(n, s);
             }
-            _ => false,
-        };
-        if let Some((g, r)) = self.h3.as_ref().filter(|_| !paired) {
-            s.h3.resize(n * e, 0.0);
-            g.encode(&params[r.clone()], &points[..n * 4], 4, &mut s.h3, e, 0);
-        }
-        if let Some((d, r)) = &self.mask {
-            let vals = &params[r.clone()];
-            for i in 0..n {
-                s.m[i] = sigmoid(d.sample(vals, &points[i * 4..i * 4 + 3]));
+            _ => {
+                self.forward_static(params, points, n, s);
+                self.forward_dynamic(params, points, n, s);
             }
         }
-        if let Some((g, r)) = self.h4.as_ref().filter(|_| !paired) {
+    }
+
+    /// The part of the encoding that does not depend on time: `s.h3` and the mask values `s.m`
+    /// of `n` points (the time column of `points` is not read).
+    pub fn forward_static(
+        &self,
+        params: &[f32],
+        points: &[f32],
+        n: usize,
+        s: &mut EncodingScratch,
+    ) {
+        if let Some((g, r)) = &self.h3 {
+            s.h3.resize(n * self.out_dim, 0.0);
+            g.encode(
+                &params[r.clone()],
+                &points[..n * 4],
+                4,
+                &mut s.h3,
+                self.out_dim,
+                0,
+            );
+        }
+        self.mask_values(params, points, n, s);
+    }
+
+    /// The part that depends on time, after [`EncodingLayout::forward_static`] on the same
+    /// points: `s.h4` (only where the mask leaves a point dynamic under `s.static_cutoff`) and
+    /// the blend into `s.enc`.
+    pub fn forward_dynamic(
+        &self,
+        params: &[f32],
+        points: &[f32],
+        n: usize,
+        s: &mut EncodingScratch,
+    ) {
+        let e = self.out_dim;
+        if let Some((g, r)) = &self.h4 {
             s.h4.resize(n * e, 0.0);
-            if skip {
+            if self.skips_h4(s) {
                 // Look up only the points the mask leaves dynamic, packed, then scatter.
                 s.h4_active.clear();
-                s.h4_active
-                    .extend((0..n as u32).filter(|&i| 1.0 - s.m[i as usize] >= s.static_cutoff));
+                s.h4_active.extend((0..n as u32).filter(|&i| {
+                    self.blend
+                        .is_dynamic(true, s.m[i as usize], s.static_cutoff)
+                }));
                 s.h4_points.clear();
                 for &i in &s.h4_active {
                     let i = i as usize;
@@ -210,6 +230,35 @@ impl EncodingLayout {
                 g.encode(&params[r.clone()], &points[..n * 4], 4, &mut s.h4, e, 0);
             }
         }
+        self.blend_into(n, s);
+    }
+
+    /// Whether the 4D lookup is skipped for points the mask makes static (`s.static_cutoff`).
+    fn skips_h4(&self, s: &EncodingScratch) -> bool {
+        s.static_cutoff > 0.0
+            && self.mask.is_some()
+            && matches!(self.blend, BlendMode::Mst | BlendMode::Mt)
+    }
+
+    /// `s.m` of `n` points: the mask, or 1 without one (the scratch's documented filler; the
+    /// blends without a mask do not read it, and [`EncodingLayout::mask_at`] reports
+    /// [`BlendMode::no_mask_value`]).
+    fn mask_values(&self, params: &[f32], points: &[f32], n: usize, s: &mut EncodingScratch) {
+        s.m.clear();
+        match &self.mask {
+            Some((d, r)) => {
+                let vals = &params[r.clone()];
+                s.m.extend((0..n).map(|i| sigmoid(d.sample(vals, &points[i * 4..i * 4 + 3]))));
+            }
+            None => s.m.resize(n, 1.0),
+        }
+    }
+
+    /// `s.enc = a(m) h3 + b(m) h4` ([`BlendMode::coefficients`]), written per mode so that a
+    /// grid the mode does not use is never read.
+    fn blend_into(&self, n: usize, s: &mut EncodingScratch) {
+        let e = self.out_dim;
+        s.enc.resize(n * e, 0.0);
         match self.blend {
             BlendMode::Mst => {
                 for i in 0..n {
