@@ -109,9 +109,6 @@ pub fn composite_ray(bg: Background, w: &[f32], rgb: &[f32], t_final: f32) -> [f
     render::composite(w, rgb, t_final, bg_rgb)
 }
 
-/// One training chunk: forward, losses and backward; gradients are added into `grad`.
-/// `backgrounds`, when given, replaces the configured background per ray (training on random
-
 /// Renders a chunk of rays for inference (deterministic sampling, no annealing).
 pub fn render_chunk(
     cfg: &ModelConfig,

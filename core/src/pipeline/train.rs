@@ -4,6 +4,8 @@
 
 use super::*;
 
+/// One training chunk: forward, losses and backward; gradients are added into `grad`.
+/// `backgrounds`, when given, replaces the configured background per ray (training on random
 /// backgrounds for images with transparency).
 #[allow(clippy::too_many_arguments)]
 pub fn train_chunk(
