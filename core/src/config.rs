@@ -33,6 +33,40 @@ impl BlendMode {
     pub fn uses_mask(self) -> bool {
         matches!(self, BlendMode::Mst | BlendMode::Mt)
     }
+
+    /// The mask value `m` an encoding without a mask reports: 1 for h3 alone (all static), 0 for
+    /// h4 alone, 0.5 for addition, meaning "both". The one home of this constant: the GPU
+    /// uniforms (`gpu/src/layout.rs`) and the page (`web/js/renderer.js`) mirror it.
+    pub fn no_mask_value(self) -> f32 {
+        match self {
+            BlendMode::Static => 1.0,
+            BlendMode::FourD => 0.0,
+            _ => 0.5,
+        }
+    }
+
+    /// The coefficients `(a, b)` in `enc = a * h3 + b * h4` at mask value `m` (a grid the mode
+    /// does not use gets 0).
+    pub fn coefficients(self, m: f32) -> (f32, f32) {
+        match self {
+            BlendMode::Mt => (1.0, 1.0 - m),
+            BlendMode::Mst => (m, 1.0 - m),
+            BlendMode::Add => (1.0, 1.0),
+            BlendMode::FourD => (0.0, 1.0),
+            BlendMode::Static => (1.0, 0.0),
+        }
+    }
+
+    /// Whether a point with mask value `m` needs the 4D grid (its time-dependent part) when
+    /// points whose dynamic weight `1 - m` is below `cutoff` skip it, as rendering does
+    /// ([`crate::field::EncodingScratch::static_cutoff`]); `has_mask`: the encoding has a mask.
+    pub fn is_dynamic(self, has_mask: bool, m: f32, cutoff: f32) -> bool {
+        match self {
+            BlendMode::Static => false,
+            BlendMode::Add | BlendMode::FourD => true,
+            BlendMode::Mt | BlendMode::Mst => !has_mask || 1.0 - m >= cutoff,
+        }
+    }
 }
 
 /// The masked space-time encoding: a 3D grid, a 4D grid and a dense mask grid.

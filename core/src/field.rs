@@ -8,7 +8,7 @@ use std::ops::Range;
 
 use crate::activation::{sigmoid, sigmoid_grad_from_output, trunc_exp, trunc_exp_grad};
 use crate::config::{BlendMode, EncodingConfig, FieldConfig, ModelConfig, ProposalConfig};
-use crate::grid::{DenseGrid3, GridLayout};
+use crate::grid::{backward_pair, encode_pair, pairable, DenseGrid3, GridLayout};
 use crate::mlp::{MlpActivations, MlpLayout};
 use crate::params::ParamLayout;
 use crate::rng::Rng;
@@ -98,11 +98,7 @@ impl EncodingLayout {
     pub fn mask_at(&self, params: &[f32], x: &[f32]) -> f32 {
         match &self.mask {
             Some((d, r)) => sigmoid(d.sample(&params[r.clone()], x)),
-            None => match self.blend {
-                BlendMode::Static => 1.0,
-                BlendMode::FourD => 0.0,
-                _ => 0.5,
-            },
+            None => self.blend.no_mask_value(),
         }
     }
 
@@ -136,42 +132,87 @@ impl EncodingLayout {
         for k in 0..self.out_dim {
             let a = h3.as_ref().map(|v| v[k]).unwrap_or(0.0);
             let b = h4.as_ref().map(|v| v[k]).unwrap_or(0.0);
-            enc[k] = match self.blend {
-                BlendMode::Mst => m * a + (1.0 - m) * b,
-                BlendMode::Mt => a + (1.0 - m) * b,
-                BlendMode::Add => a + b,
-                BlendMode::FourD => b,
-                BlendMode::Static => a,
-            };
+            let (ca, cb) = self.blend.coefficients(m);
+            enc[k] = ca * a + cb * b;
         }
         (enc, m)
     }
 
     /// Batched forward over `n` points (`points: [n, 4]`); result in `s.enc` (`[n, out_dim]`).
+    /// The same as [`EncodingLayout::forward_static`] then [`EncodingLayout::forward_dynamic`];
+    /// where both grids share their spatial corners (every preset), h3 and h4 are looked up in
+    /// one pass ([`crate::grid::encode_pair`], the same values).
     pub fn forward(&self, params: &[f32], points: &[f32], n: usize, s: &mut EncodingScratch) {
         let e = self.out_dim;
-        s.enc.resize(n * e, 0.0);
-        s.m.resize(n, 1.0);
-        if let Some((g, r)) = &self.h3 {
-            s.h3.resize(n * e, 0.0);
-            g.encode(&params[r.clone()], &points[..n * 4], 4, &mut s.h3, e, 0);
-        }
-        if let Some((d, r)) = &self.mask {
-            let vals = &params[r.clone()];
-            for i in 0..n {
-                s.m[i] = sigmoid(d.sample(vals, &points[i * 4..i * 4 + 3]));
+        match (&self.h3, &self.h4) {
+            (Some((g3, r3)), Some((g4, r4))) if !self.skips_h4(s) && pairable(g3, g4) => {
+                s.h3.resize(n * e, 0.0);
+                s.h4.resize(n * e, 0.0);
+                encode_pair(
+                    g3,
+                    &params[r3.clone()],
+                    g4,
+                    &params[r4.clone()],
+                    &points[..n * 4],
+                    4,
+                    &mut s.h3,
+                    &mut s.h4,
+                    e,
+                    0,
+                );
+                self.mask_values(params, points, n, s);
+                self.blend_into(n, s);
+            }
+            _ => {
+                self.forward_static(params, points, n, s);
+                self.forward_dynamic(params, points, n, s);
             }
         }
+    }
+
+    /// The part of the encoding that does not depend on time: `s.h3` and the mask values `s.m`
+    /// of `n` points (the time column of `points` is not read).
+    pub fn forward_static(
+        &self,
+        params: &[f32],
+        points: &[f32],
+        n: usize,
+        s: &mut EncodingScratch,
+    ) {
+        if let Some((g, r)) = &self.h3 {
+            s.h3.resize(n * self.out_dim, 0.0);
+            g.encode(
+                &params[r.clone()],
+                &points[..n * 4],
+                4,
+                &mut s.h3,
+                self.out_dim,
+                0,
+            );
+        }
+        self.mask_values(params, points, n, s);
+    }
+
+    /// The part that depends on time, after [`EncodingLayout::forward_static`] on the same
+    /// points: `s.h4` (only where the mask leaves a point dynamic under `s.static_cutoff`) and
+    /// the blend into `s.enc`.
+    pub fn forward_dynamic(
+        &self,
+        params: &[f32],
+        points: &[f32],
+        n: usize,
+        s: &mut EncodingScratch,
+    ) {
+        let e = self.out_dim;
         if let Some((g, r)) = &self.h4 {
             s.h4.resize(n * e, 0.0);
-            let skip = s.static_cutoff > 0.0
-                && self.mask.is_some()
-                && matches!(self.blend, BlendMode::Mst | BlendMode::Mt);
-            if skip {
+            if self.skips_h4(s) {
                 // Look up only the points the mask leaves dynamic, packed, then scatter.
                 s.h4_active.clear();
-                s.h4_active
-                    .extend((0..n as u32).filter(|&i| 1.0 - s.m[i as usize] >= s.static_cutoff));
+                s.h4_active.extend((0..n as u32).filter(|&i| {
+                    self.blend
+                        .is_dynamic(true, s.m[i as usize], s.static_cutoff)
+                }));
                 s.h4_points.clear();
                 for &i in &s.h4_active {
                     let i = i as usize;
@@ -189,6 +230,35 @@ impl EncodingLayout {
                 g.encode(&params[r.clone()], &points[..n * 4], 4, &mut s.h4, e, 0);
             }
         }
+        self.blend_into(n, s);
+    }
+
+    /// Whether the 4D lookup is skipped for points the mask makes static (`s.static_cutoff`).
+    fn skips_h4(&self, s: &EncodingScratch) -> bool {
+        s.static_cutoff > 0.0
+            && self.mask.is_some()
+            && matches!(self.blend, BlendMode::Mst | BlendMode::Mt)
+    }
+
+    /// `s.m` of `n` points: the mask, or 1 without one (the scratch's documented filler; the
+    /// blends without a mask do not read it, and [`EncodingLayout::mask_at`] reports
+    /// [`BlendMode::no_mask_value`]).
+    fn mask_values(&self, params: &[f32], points: &[f32], n: usize, s: &mut EncodingScratch) {
+        s.m.clear();
+        match &self.mask {
+            Some((d, r)) => {
+                let vals = &params[r.clone()];
+                s.m.extend((0..n).map(|i| sigmoid(d.sample(vals, &points[i * 4..i * 4 + 3]))));
+            }
+            None => s.m.resize(n, 1.0),
+        }
+    }
+
+    /// `s.enc = a(m) h3 + b(m) h4` ([`BlendMode::coefficients`]), written per mode so that a
+    /// grid the mode does not use is never read.
+    fn blend_into(&self, n: usize, s: &mut EncodingScratch) {
+        let e = self.out_dim;
+        s.enc.resize(n * e, 0.0);
         match self.blend {
             BlendMode::Mst => {
                 for i in 0..n {
@@ -272,11 +342,37 @@ impl EncodingLayout {
                 );
             }
         }
-        if let Some((g, r)) = &self.h3 {
-            g.backward(&points[..n * 4], 4, &s.d_h3, e, 0, &mut grad[r.clone()]);
-        }
-        if let Some((g, r)) = &self.h4 {
-            g.backward(&points[..n * 4], 4, &s.d_h4, e, 0, &mut grad[r.clone()]);
+        match (&self.h3, &self.h4) {
+            (Some((g3, r3)), Some((g4, r4))) if pairable(g3, g4) => {
+                // The two ranges are disjoint entries of one layout, in either order.
+                let (grad3, grad4) = if r3.start < r4.start {
+                    let (a, b) = grad.split_at_mut(r4.start);
+                    (&mut a[r3.clone()], &mut b[..r4.len()])
+                } else {
+                    let (a, b) = grad.split_at_mut(r3.start);
+                    (&mut b[..r3.len()], &mut a[r4.clone()])
+                };
+                backward_pair(
+                    g3,
+                    g4,
+                    &points[..n * 4],
+                    4,
+                    &s.d_h3,
+                    &s.d_h4,
+                    e,
+                    0,
+                    grad3,
+                    grad4,
+                );
+            }
+            _ => {
+                if let Some((g, r)) = &self.h3 {
+                    g.backward(&points[..n * 4], 4, &s.d_h3, e, 0, &mut grad[r.clone()]);
+                }
+                if let Some((g, r)) = &self.h4 {
+                    g.backward(&points[..n * 4], 4, &s.d_h4, e, 0, &mut grad[r.clone()]);
+                }
+            }
         }
     }
 }
@@ -445,7 +541,6 @@ impl FieldLayout {
         let (cm, cr) = &self.color;
         let (dm, _) = &self.density;
         let g = self.geo_features;
-        let cw = SH_COEFFS + g;
         let m = s.active.len();
         s.d_color_out.resize(m * 3, 0.0);
         for (k, &i) in s.active.iter().enumerate() {
@@ -454,15 +549,16 @@ impl FieldLayout {
                 s.d_color_out[k * 3 + ch] = d_rgb[idx] * sigmoid_grad_from_output(s.rgb[idx]);
             }
         }
-        s.d_color_in.resize(m * cw, 0.0);
-        cm.backward(
+        // Only the geometry features need an input gradient (the direction encoding is fixed).
+        s.d_color_in.resize(m * g, 0.0);
+        cm.backward_partial(
             &params[cr.clone()],
             &s.color_in,
             m,
             &mut s.color_acts,
             &s.d_color_out,
             &mut grad[cr.clone()],
-            Some(&mut s.d_color_in),
+            Some((SH_COEFFS, &mut s.d_color_in)),
         );
         let w = dm.output_dim();
         s.d_density_out.clear();
@@ -474,7 +570,7 @@ impl FieldLayout {
         for (k, &i) in s.active.iter().enumerate() {
             let i = i as usize;
             s.d_density_out[i * w + 1..(i + 1) * w]
-                .copy_from_slice(&s.d_color_in[k * cw + SH_COEFFS..(k + 1) * cw]);
+                .copy_from_slice(&s.d_color_in[k * g..(k + 1) * g]);
         }
         self.backward_density_mlp(params, n, s, grad);
         self.encoding

@@ -214,6 +214,31 @@ impl MlpLayout {
         grad: &mut [f32],
         d_input: Option<&mut [f32]>,
     ) {
+        self.backward_partial(
+            params,
+            input,
+            n,
+            acts,
+            d_output,
+            grad,
+            d_input.map(|d| (0, d)),
+        );
+    }
+
+    /// [`MlpLayout::backward`] where only the input columns `from..dims[0]` need a gradient:
+    /// `d_input = Some((from, d))` writes them into `d` (`[n, dims[0] - from]`), skipping the
+    /// work for the others (the colour MLP needs none for its direction encoding).
+    #[allow(clippy::too_many_arguments)]
+    pub fn backward_partial(
+        &self,
+        params: &[f32],
+        input: &[f32],
+        n: usize,
+        acts: &mut MlpActivations,
+        d_output: &[f32],
+        grad: &mut [f32],
+        d_input: Option<(usize, &mut [f32])>,
+    ) {
         let layers = self.num_layers();
         acts.grads.resize_with(layers, Vec::new);
         let MlpActivations { acts: a, grads } = acts;
@@ -247,13 +272,29 @@ impl MlpLayout {
                 let dx = &mut lower[k - 1];
                 dx.resize(n * fi, 0.0);
                 gemm(n, fo, fi, 1.0, dy, fo, false, w, fo, true, 0.0, dx, fi);
+                // A select rather than a branch: about half the units are off, at random, so
+                // a branch mispredicts often; the select also vectorises.
                 for (d, &act) in dx.iter_mut().zip(&a[k - 1]) {
-                    if act <= 0.0 {
-                        *d = 0.0;
-                    }
+                    *d = if act > 0.0 { *d } else { 0.0 };
                 }
-            } else if let Some(dx) = d_input.as_deref_mut() {
-                gemm(n, fo, fi, 1.0, dy, fo, false, w, fo, true, 0.0, dx, fi);
+            } else if let Some((from, dx)) = d_input.as_mut() {
+                let (from, cols) = (*from, fi - (*from).min(fi));
+                // Rows `from..` of W (`[fi, fo]`, row-major) are the ones those columns read.
+                gemm(
+                    n,
+                    fo,
+                    cols,
+                    1.0,
+                    dy,
+                    fo,
+                    false,
+                    &w[from * fo..],
+                    fo,
+                    true,
+                    0.0,
+                    dx,
+                    cols,
+                );
             }
         }
     }

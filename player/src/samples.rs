@@ -22,7 +22,7 @@
 //! which the fast path is tested against.
 
 use msth_core::activation::{sigmoid, trunc_exp};
-use msth_core::config::{BlendMode, ModelConfig};
+use msth_core::config::ModelConfig;
 use msth_core::field::{FieldScratch, ModelLayout};
 use msth_core::mlp::MlpActivations;
 use msth_core::pipeline::{
@@ -85,26 +85,6 @@ pub fn cache_bytes_bound(layout: &ModelLayout, rays: usize, samples: usize) -> u
     let e = layout.field.encoding.out_dim as u64;
     let per_sample = 4 * (1 + 1 + 3) + (2 + 4 * (3 + e + 1));
     rays as u64 * (samples as u64 * per_sample + 4 * (SH_COEFFS as u64 + 1))
-}
-
-/// Whether the sample at dynamic weight `1 - m` needs the 4D grid at every frame.
-fn is_dynamic(blend: BlendMode, has_mask: bool, m: f32, cutoff: f32) -> bool {
-    match blend {
-        BlendMode::Static => false,
-        BlendMode::Add | BlendMode::FourD => true,
-        BlendMode::Mt | BlendMode::Mst => !has_mask || 1.0 - m >= cutoff,
-    }
-}
-
-/// The blend's coefficients `(a, b)` in `enc = a * h3 + b * h4` at mask value `m`.
-fn blend_coefficients(blend: BlendMode, m: f32) -> (f32, f32) {
-    match blend {
-        BlendMode::Mt => (1.0, 1.0 - m),
-        BlendMode::Mst => (m, 1.0 - m),
-        BlendMode::Add => (1.0, 1.0),
-        BlendMode::FourD => (0.0, 1.0),
-        BlendMode::Static => (1.0, 0.0),
-    }
 }
 
 impl SampleCache {
@@ -192,8 +172,8 @@ impl SampleCache {
             for k in 0..s {
                 let j = i * s + k;
                 let m = fs.enc.m[j];
-                if is_dynamic(enc.blend, has_mask, m, cutoff) {
-                    let (a, b) = blend_coefficients(enc.blend, m);
+                if enc.blend.is_dynamic(has_mask, m, cutoff) {
+                    let (a, b) = enc.blend.coefficients(m);
                     out.dyn_slot.push(k as u16);
                     out.dyn_pts
                         .extend_from_slice(&part.points[j * 4..j * 4 + 3]);
@@ -435,7 +415,7 @@ pub fn reference_render(
 mod tests {
     use super::*;
     use glam::Vec3;
-    use msth_core::config::{Background, Preset};
+    use msth_core::config::{Background, BlendMode, Preset};
     use msth_core::rng::Rng;
     use msth_core::{Camera, SceneBounds};
 

@@ -105,6 +105,18 @@ impl Adam {
                     .iter()
                     .filter(|s| s.range.start < base + p.len() && s.range.end > base)
                     .collect();
+                if overl.is_empty() {
+                    // The common case, in a loop the compiler vectorises: the same operations in
+                    // the same order as below with `scale = 1`, so the same values.
+                    for (((p, &g), m), v) in p.iter_mut().zip(g).zip(m).zip(v) {
+                        let gi = g.clamp(-MAX_GRADIENT, MAX_GRADIENT);
+                        *m = b1 * *m + (1.0 - b1) * gi;
+                        *v = b2 * *v + (1.0 - b2) * gi * gi;
+                        let denom = v.sqrt() * inv_sqrt_bc2 + eps;
+                        *p -= step_size * *m / denom;
+                    }
+                    return loss;
+                }
                 for i in 0..p.len() {
                     let mut gi = g[i];
                     let mut scale = 1.0f32;

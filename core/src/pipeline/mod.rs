@@ -1,0 +1,172 @@
+//! The per-chunk pipeline shared by training and rendering: place proposal samples, evaluate the
+//! proposal field, resample from its weights, evaluate the main field, composite; and for
+//! training, the losses and the backward pass through both fields.
+//!
+//! A chunk is a few hundred rays processed by one thread with its own [`Workspace`]; the caller
+//! splits batches into chunks and sums gradients in a fixed order, so results are repeatable for
+//! a seed and a thread count.
+//!
+//! This module holds the types a chunk shares (rays, settings, losses, outputs, the per-thread
+//! [`Workspace`]); the work is split by concern:
+//! - `sampling`: ray limits, sample placement, direction encodings;
+//! - `forward`: the forward pass of both fields over a chunk, compositing, inference rendering;
+//! - `train`: the training step of a chunk (losses and backward), with the uncertainty branch of
+//!   mask learning;
+//! - `playback`: the time-independent sample partition of the player's sample reuse.
+
+use glam::Vec3;
+
+use crate::config::{Background, ModelConfig};
+use crate::field::{FieldScratch, ModelLayout};
+use crate::losses;
+use crate::render;
+use crate::rng::Rng;
+use crate::sampling::{sample_pdf, uniform_edges};
+use crate::scene::SceneBounds;
+use crate::sh::{sh4, SH_COEFFS};
+use crate::uncertainty::{
+    mine_estimate, ray_uncertainty, ray_uncertainty_backward, shuffle, uncertainty_loss, AuxLayout,
+    MaskLearningConfig, MineScratch,
+};
+use crate::Ray;
+
+/// One ray at one time.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TimedRay {
+    pub origin: Vec3,
+    pub dir: Vec3,
+    pub time: f32,
+}
+
+/// Per-step training settings.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StepSettings {
+    /// Proposal weight annealing exponent `a` (`w^a`), 1 at the end of the schedule.
+    pub anneal: f32,
+    pub interlevel_weight: f32,
+    pub distortion_weight: f32,
+    /// `1 / rays in the whole batch`: losses are means over the batch.
+    pub loss_scale: f32,
+    /// Weight of the per-sample mask loss `mean_r sum_i w_i (1 - m_i)` (the rendering weights
+    /// `w_i` held constant): pushes the mask toward static where rays see matter, scaled like
+    /// the image loss, so a voxel stays dynamic only where the 4D grid pays for itself. 0: off.
+    pub sample_mask_weight: f32,
+}
+
+/// Loss sums of one chunk (divide by the batch's ray count for means).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct ChunkLosses {
+    /// Sum over rays of the mean over channels of the squared error.
+    pub sq_err: f64,
+    pub interlevel: f64,
+    pub distortion: f64,
+    /// Sum over rays of the per-sample mask loss, its weight included.
+    pub sample_mask: f64,
+    /// Sum over rays of the uncertainty loss `L_u` (mask learning; 0 when off).
+    pub uncertainty: f64,
+    /// Sum over chunks of the MINE estimate `I(m, u)` times the chunk's ray count (0 when off).
+    pub mine: f64,
+    pub rays: usize,
+    pub field_samples: usize,
+    pub proposal_samples: usize,
+}
+
+impl std::ops::AddAssign for ChunkLosses {
+    fn add_assign(&mut self, o: Self) {
+        self.sq_err += o.sq_err;
+        self.interlevel += o.interlevel;
+        self.distortion += o.distortion;
+        self.sample_mask += o.sample_mask;
+        self.uncertainty += o.uncertainty;
+        self.mine += o.mine;
+        self.rays += o.rays;
+        self.field_samples += o.field_samples;
+        self.proposal_samples += o.proposal_samples;
+    }
+}
+
+/// What rendering returns per ray.
+#[derive(Clone, Debug, Default)]
+pub struct RenderOutput {
+    pub rgb: Vec<[f32; 3]>,
+    /// Expected termination distance (world units).
+    pub depth: Vec<f32>,
+    /// Accumulated opacity `1 - T_N`.
+    pub opacity: Vec<f32>,
+    /// Weight-averaged mask value `sum w_i m_i` (1 = static), for mask pictures.
+    pub mask: Vec<f32>,
+    /// Smallest mask value among samples that carry weight (`w > 1e-4`); 1 for empty rays.
+    /// A ray is static for incremental rendering when this is above `1 - eps`.
+    pub min_mask: Vec<f32>,
+    /// Distance at which the transmittance falls below [`VISIBLE_TRANSMITTANCE`] (the far end of
+    /// the samples when it never does): nothing behind it can change the pixel visibly.
+    pub visible_depth: Vec<f32>,
+}
+
+/// Rendering (not training) skips the 4D lookup of points whose dynamic weight `1 - m` is below
+/// this: their encoding changes by less than this fraction of `|h4|`
+/// ([`crate::field::EncodingScratch::static_cutoff`]).
+pub const RENDER_STATIC_CUTOFF: f32 = 1e-3;
+
+/// Transmittance below which what lies further along a ray is treated as invisible by
+/// [`RenderOutput::visible_depth`] (it contributes at most this fraction of the pixel).
+pub const VISIBLE_TRANSMITTANCE: f32 = 1e-3;
+
+/// Reusable buffers of one thread.
+#[derive(Clone, Debug, Default)]
+pub struct Workspace {
+    near_far: Vec<(f32, f32)>,
+    sh: Vec<f32>,
+    s_prop: Vec<f32>,
+    t_prop: Vec<f32>,
+    pts_prop: Vec<f32>,
+    delta_prop: Vec<f32>,
+    w_prop: Vec<f32>,
+    tfinal_prop: Vec<f32>,
+    s_main: Vec<f32>,
+    t_main: Vec<f32>,
+    pts_main: Vec<f32>,
+    delta_main: Vec<f32>,
+    w_main: Vec<f32>,
+    annealed: Vec<f32>,
+    d_w: Vec<f32>,
+    d_sigma_main: Vec<f32>,
+    d_rgb_main: Vec<f32>,
+    d_sigma_prop: Vec<f32>,
+    d_w_prop: Vec<f32>,
+    active: Vec<u32>,
+    prop: FieldScratch,
+    main: FieldScratch,
+    // Mask learning (training only, empty otherwise).
+    stat: FieldScratch,
+    w_stat: Vec<f32>,
+    tfinal_stat: Vec<f32>,
+    d_sigma_stat: Vec<f32>,
+    d_rgb_stat: Vec<f32>,
+    u_main: Vec<f32>,
+    d_u_main: Vec<f32>,
+    m_ray: Vec<f32>,
+    u_ray: Vec<f32>,
+    d_m_ray: Vec<f32>,
+    d_u_ray: Vec<f32>,
+    perm: Vec<usize>,
+    mine: MineScratch,
+}
+
+/// Samples whose transmittance has fallen below this get no colour evaluation: their weight,
+/// and every gradient through them, is below it.
+pub const HIDDEN_TRANSMITTANCE: f32 = 1e-4;
+
+mod forward;
+mod playback;
+mod sampling;
+#[cfg(test)]
+mod tests;
+mod train;
+
+use forward::forward_chunk;
+pub use forward::{composite_ray, render_chunk};
+pub use playback::{playback_partition, Partition};
+pub use sampling::{direction_encodings, ray_limits, spacing_unit};
+use sampling::{place_proposal_samples, place_samples};
+pub use train::{train_chunk, train_chunk_with, AuxStep};

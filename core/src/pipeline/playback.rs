@@ -1,0 +1,92 @@
+//! The time-independent sample partition of playback with sample-level reuse (the player's
+//! `samples` module): one set of sample positions per ray that serves every time of a clip.
+
+use super::*;
+
+/// Fixed sample positions for playback with sample-level reuse (see the player's
+/// `samples` module): `samples` per ray, the same at every time.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Partition {
+    /// Samples per ray.
+    pub samples: usize,
+    /// `[rays * samples * 4]`: each sample's unit-cube point, and time 0.
+    pub points: Vec<f32>,
+    /// `[rays * samples]`: interval lengths (world units).
+    pub deltas: Vec<f32>,
+}
+
+/// Builds a [`Partition`] of `rays` that serves every time in `times`: the proposal field is
+/// evaluated at its (deterministic, time-independent) samples at each of `times`, the weights of
+/// each bin are combined by their maximum over the times, and `samples` intervals are drawn
+/// from that histogram as rendering draws them from one time's. A surface that is anywhere
+/// along the ray at one of `times` thus gets samples; a static one gets the same as in a frame.
+pub fn playback_partition(
+    cfg: &ModelConfig,
+    layout: &ModelLayout,
+    params: &[f32],
+    rays: &[TimedRay],
+    times: &[f32],
+    samples: usize,
+    ws: &mut Workspace,
+) -> Partition {
+    let n = rays.len();
+    let np = cfg.sampler.num_proposal_samples;
+    let samples = samples.max(1);
+    ws.prop.enc.static_cutoff = RENDER_STATIC_CUTOFF;
+    place_proposal_samples(cfg, rays, None, ws);
+    // Per-bin maximum of the proposal weights over the times.
+    ws.annealed.clear();
+    ws.annealed.resize(n * np, 0.0);
+    ws.w_prop.resize(n * np, 0.0);
+    for &t in times {
+        let t = if t >= 0.0 { t.min(1.0) } else { 0.0 };
+        for k in 0..n * np {
+            ws.pts_prop[k * 4 + 3] = t;
+        }
+        layout
+            .proposal
+            .field
+            .forward_density(params, &ws.pts_prop, n * np, &mut ws.prop);
+        for i in 0..n {
+            let r = i * np..(i + 1) * np;
+            render::weights(
+                &ws.prop.sigma[r.clone()],
+                &ws.delta_prop[r.clone()],
+                &mut ws.w_prop[r.clone()],
+            );
+            for k in r {
+                ws.annealed[k] = ws.annealed[k].max(ws.w_prop[k]);
+            }
+        }
+    }
+    let mut out = Partition {
+        samples,
+        points: vec![0.0; n * samples * 4],
+        deltas: vec![0.0; n * samples],
+    };
+    ws.s_main.resize(samples + 1, 0.0);
+    ws.t_main.resize(samples + 1, 0.0);
+    for i in 0..n {
+        sample_pdf(
+            &ws.s_prop[i * (np + 1)..(i + 1) * (np + 1)],
+            &ws.annealed[i * np..(i + 1) * np],
+            cfg.sampler.histogram_padding,
+            None,
+            &mut ws.s_main[..samples + 1],
+        );
+        let r0 = TimedRay {
+            time: 0.0,
+            ..rays[i]
+        };
+        place_samples(
+            cfg,
+            &r0,
+            ws.near_far[i],
+            &ws.s_main[..samples + 1],
+            &mut ws.t_main[..samples + 1],
+            &mut out.points[i * samples * 4..(i + 1) * samples * 4],
+            &mut out.deltas[i * samples..(i + 1) * samples],
+        );
+    }
+    out
+}

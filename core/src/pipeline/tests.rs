@@ -1,0 +1,556 @@
+//! Tests of the chunk pipeline: finite differences of the training step, determinism of
+//! rendering, the playback partition.
+
+use super::*;
+use crate::config::{BlendMode, Preset};
+
+fn tiny_cfg() -> ModelConfig {
+    let mut c = ModelConfig::preset(
+        Preset::Fast,
+        SceneBounds::dnerf_default(),
+        Background::Color { rgb: [1.0; 3] },
+        5,
+    );
+    for enc in [&mut c.field.encoding, &mut c.proposal.encoding] {
+        enc.blend = BlendMode::Mst;
+        enc.resize(2, 6, 8.0, 4);
+        enc.grid4.finest_resolution[3] = 4.0;
+        enc.grid3.base_resolution = vec![4.0; 3];
+        enc.grid4.base_resolution = vec![4.0, 4.0, 4.0, 2.0];
+    }
+    c.field.density_hidden = 8;
+    c.field.color_hidden = 8;
+    c.field.geo_features = 3;
+    c.proposal.hidden = 4;
+    c.sampler.num_proposal_samples = 12;
+    c.sampler.num_samples = 6;
+    c
+}
+
+fn rays() -> (Vec<TimedRay>, Vec<[f32; 3]>) {
+    let mut rng = Rng::new(8);
+    let mut rays = Vec::new();
+    let mut tg = Vec::new();
+    for _ in 0..4 {
+        let o = Vec3::new(rng.range_f32(-0.5, 0.5), rng.range_f32(-0.5, 0.5), 3.0);
+        let d = Vec3::new(rng.range_f32(-0.2, 0.2), rng.range_f32(-0.2, 0.2), -1.0).normalize();
+        rays.push(TimedRay {
+            origin: o,
+            dir: d,
+            time: rng.f32(),
+        });
+        tg.push([rng.f32(), rng.f32(), rng.f32()]);
+    }
+    (rays, tg)
+}
+
+/// The full training loss (colour + distortion + interlevel with weights) differentiated by
+/// finite differences, with fixed sample positions (same rng stream for every evaluation).
+/// Only parameters whose gradient does not move sample positions are exact: the main field's
+/// parameters (the proposal's gradient comes from the interlevel loss alone, checked in
+/// `losses`, and the resampling itself is not differentiated, as in mip-NeRF 360).
+#[test]
+fn train_chunk_gradient_matches_finite_differences_for_main_field() {
+    let cfg = tiny_cfg();
+    cfg.validate().unwrap();
+    let layout = ModelLayout::new(&cfg);
+    let mut p = layout.init_params(1);
+    let mut r = Rng::new(2);
+    for v in p.iter_mut() {
+        *v += r.range_f32(-0.3, 0.3);
+    }
+    let (rays, tg) = rays();
+    let step = StepSettings {
+        anneal: 1.0,
+        interlevel_weight: 1.0,
+        distortion_weight: 0.01,
+        loss_scale: 1.0 / rays.len() as f32,
+        sample_mask_weight: 0.0,
+    };
+    let total = |p: &[f32]| -> f64 {
+        let mut ws = Workspace::default();
+        let mut g = vec![0f32; p.len()];
+        let l = train_chunk(
+            &cfg,
+            &layout,
+            p,
+            &mut g,
+            &rays,
+            &tg,
+            None,
+            &step,
+            &mut Rng::new(5),
+            &mut ws,
+        );
+        // only the terms that depend on the main field
+        (l.sq_err + step.distortion_weight as f64 * l.distortion) / rays.len() as f64
+    };
+    let mut ws = Workspace::default();
+    let mut grad = vec![0f32; p.len()];
+    train_chunk(
+        &cfg,
+        &layout,
+        &p,
+        &mut grad,
+        &rays,
+        &tg,
+        None,
+        &step,
+        &mut Rng::new(5),
+        &mut ws,
+    );
+    let mut checked = 0;
+    for e in layout
+        .params
+        .entries
+        .iter()
+        .filter(|e| e.name.starts_with("field"))
+    {
+        let mut idx: Vec<usize> = e.range().collect();
+        idx.sort_by(|&a, &b| grad[b].abs().partial_cmp(&grad[a].abs()).unwrap());
+        for &i in idx.iter().take(6) {
+            let h = 2e-3;
+            let mut q = p.clone();
+            q[i] += h;
+            let lp = total(&q);
+            q[i] -= 2.0 * h;
+            let lm = total(&q);
+            let fd = (lp - lm) / (2.0 * h as f64);
+            let tol = 1e-4 + 5e-2 * fd.abs();
+            assert!(
+                (fd - grad[i] as f64).abs() < tol,
+                "{} [{}]: fd {fd} vs {}",
+                e.name,
+                i - e.offset,
+                grad[i]
+            );
+            checked += 1;
+        }
+    }
+    assert!(checked >= 20);
+}
+
+/// Everything about mask learning the FD test needs: settings with visible weights, the
+/// auxiliary layout and perturbed auxiliary parameters.
+fn aux_setup(mine: bool) -> (MaskLearningConfig, AuxLayout, Vec<f32>) {
+    let mc = MaskLearningConfig {
+        uncertainty: true,
+        uncertainty_weight: 0.5,
+        uncertainty_resolution: 4,
+        mine,
+        mine_weight: 0.5,
+        mine_hidden: 6,
+        ..Default::default()
+    };
+    let al = AuxLayout::new(&mc);
+    let mut ap = al.init_params(3);
+    let mut r = Rng::new(9);
+    for v in &mut ap[al.grid.1.clone()] {
+        *v = r.range_f32(-1.0, 1.0);
+    }
+    (mc, al, ap)
+}
+
+/// Losses and gradients (model, auxiliary) of one chunk with mask learning.
+#[allow(clippy::type_complexity)]
+fn aux_chunk(
+    cfg: &ModelConfig,
+    layout: &ModelLayout,
+    p: &[f32],
+    mc: &MaskLearningConfig,
+    al: &AuxLayout,
+    ap: &[f32],
+) -> (f64, Vec<f32>, Vec<f32>) {
+    let (rays, tg) = rays();
+    let step = StepSettings {
+        anneal: 1.0,
+        interlevel_weight: 1.0,
+        distortion_weight: 0.01,
+        loss_scale: 1.0 / rays.len() as f32,
+        sample_mask_weight: 0.0,
+    };
+    let mut g = vec![0f32; p.len()];
+    let mut ag = vec![0f32; ap.len()];
+    let l = train_chunk_with(
+        cfg,
+        layout,
+        p,
+        &mut g,
+        &rays,
+        &tg,
+        None,
+        &step,
+        &mut Rng::new(5),
+        &mut Workspace::default(),
+        Some(AuxStep {
+            cfg: mc,
+            layout: al,
+            params: ap,
+            grad: &mut ag,
+        }),
+    );
+    let nr = rays.len() as f64;
+    let total = (l.sq_err + step.distortion_weight as f64 * l.distortion) / nr
+        + mc.uncertainty_weight as f64 * l.uncertainty / nr
+        - if mc.mine {
+            mc.mine_weight as f64 * l.mine / nr
+        } else {
+            0.0
+        };
+    (total, g, ag)
+}
+
+/// A central-difference check of the parameters with the largest analytic gradient.
+struct FdCheck {
+    /// How many parameters to check.
+    count: usize,
+    h: f32,
+    tol_abs: f64,
+    tol_rel: f64,
+    /// The largest gradient must exceed this (the term must reach the parameters at all).
+    min_grad: f64,
+}
+
+impl FdCheck {
+    /// Checks `grad(i)` against central differences of `loss` for the `count` parameters of
+    /// `range` with the largest `|grad|`: `|fd - grad| < tol_abs + tol_rel * |fd|`.
+    fn largest(
+        &self,
+        p: &[f32],
+        range: std::ops::Range<usize>,
+        grad: impl Fn(usize) -> f64,
+        loss: impl Fn(&[f32]) -> f64,
+    ) {
+        let mut idx: Vec<usize> = range.collect();
+        idx.sort_by(|&a, &b| grad(b).abs().partial_cmp(&grad(a).abs()).unwrap());
+        assert!(
+            grad(idx[0]).abs() > self.min_grad,
+            "no gradient reaches these parameters"
+        );
+        for &i in idx.iter().take(self.count) {
+            let mut q = p.to_vec();
+            q[i] += self.h;
+            let lp = loss(&q);
+            q[i] -= 2.0 * self.h;
+            let lm = loss(&q);
+            let fd = (lp - lm) / (2.0 * self.h as f64);
+            assert!(
+                (fd - grad(i)).abs() < self.tol_abs + self.tol_rel * fd.abs(),
+                "[{i}]: fd {fd} vs {}",
+                grad(i)
+            );
+        }
+    }
+}
+
+fn perturbed_params(layout: &ModelLayout) -> Vec<f32> {
+    let mut p = layout.init_params(1);
+    let mut r = Rng::new(2);
+    for v in p.iter_mut() {
+        *v += r.range_f32(-0.3, 0.3);
+    }
+    p
+}
+
+/// The whole training step with every mask-learning term on, against finite differences:
+/// the main field (h3, h4, mask, both MLPs: the static branch shares them), the uncertainty
+/// grid and the MINE network.
+#[test]
+fn train_chunk_with_mask_learning_matches_finite_differences() {
+    let cfg = tiny_cfg();
+    let layout = ModelLayout::new(&cfg);
+    let p = perturbed_params(&layout);
+    let (mc, al, ap) = aux_setup(true);
+    let (_, grad, agrad) = aux_chunk(&cfg, &layout, &p, &mc, &al, &ap);
+    let check = |name: &str, fd: f64, g: f32| {
+        let tol = 1e-4 + 5e-2 * fd.abs();
+        assert!((fd - g as f64).abs() < tol, "{name}: fd {fd} vs {g}");
+    };
+    let mut checked = 0;
+    for e in layout
+        .params
+        .entries
+        .iter()
+        .filter(|e| e.name.starts_with("field"))
+    {
+        let mut idx: Vec<usize> = e.range().collect();
+        idx.sort_by(|&a, &b| grad[b].abs().partial_cmp(&grad[a].abs()).unwrap());
+        for &i in idx.iter().take(6) {
+            let h = 2e-3;
+            let mut q = p.clone();
+            q[i] += h;
+            let lp = aux_chunk(&cfg, &layout, &q, &mc, &al, &ap).0;
+            q[i] -= 2.0 * h;
+            let lm = aux_chunk(&cfg, &layout, &q, &mc, &al, &ap).0;
+            check(&e.name, (lp - lm) / (2.0 * h as f64), grad[i]);
+            checked += 1;
+        }
+    }
+    for e in &al.params.entries {
+        let mut idx: Vec<usize> = e.range().collect();
+        idx.sort_by(|&a, &b| agrad[b].abs().partial_cmp(&agrad[a].abs()).unwrap());
+        assert!(agrad[idx[0]] != 0.0, "{} gets no gradient", e.name);
+        for &i in idx.iter().take(6) {
+            let h = 2e-3;
+            let mut q = ap.clone();
+            q[i] += h;
+            let lp = aux_chunk(&cfg, &layout, &p, &mc, &al, &q).0;
+            q[i] -= 2.0 * h;
+            let lm = aux_chunk(&cfg, &layout, &p, &mc, &al, &q).0;
+            check(&e.name, (lp - lm) / (2.0 * h as f64), agrad[i]);
+            checked += 1;
+        }
+    }
+    assert!(checked >= 30);
+}
+
+/// The `-gamma * I` term reaches the mask grid: the mask gradient with MINE on differs from
+/// the one without by the finite difference of the MINE term alone.
+#[test]
+fn mine_gradient_reaches_the_mask_grid() {
+    let cfg = tiny_cfg();
+    let layout = ModelLayout::new(&cfg);
+    let p = perturbed_params(&layout);
+    let (mut mc_on, al, ap) = aux_setup(true);
+    // A large weight, so that the MINE term stands out of the rounding of the total.
+    mc_on.mine_weight = 50.0;
+    let (mc_off, _, _) = aux_setup(false);
+    let (_, g_on, _) = aux_chunk(&cfg, &layout, &p, &mc_on, &al, &ap);
+    let (_, g_off, _) = aux_chunk(&cfg, &layout, &p, &mc_off, &al, &ap);
+    let mine_only = |q: &[f32]| {
+        aux_chunk(&cfg, &layout, q, &mc_on, &al, &ap).0
+            - aux_chunk(&cfg, &layout, q, &mc_off, &al, &ap).0
+    };
+    let mask = layout.params.get("field.mask").unwrap().range();
+    // The MINE term is summed in f32: steps below 1e-2 drown in rounding.
+    let fd = FdCheck {
+        count: 6,
+        h: 1e-2,
+        tol_abs: 1e-4,
+        tol_rel: 5e-2,
+        min_grad: 1e-3,
+    };
+    fd.largest(&p, mask, |i| (g_on[i] - g_off[i]) as f64, mine_only);
+}
+
+/// The per-sample mask loss: its gradient is that of `lambda * mean_r sum_i w_i (1 - m_i)`
+/// with the rendering weights held constant (finite differences over the mask logits), it
+/// reaches nothing but the mask, and weight 0 is the plain step.
+#[test]
+fn sample_mask_loss_matches_finite_differences() {
+    let cfg = tiny_cfg();
+    let layout = ModelLayout::new(&cfg);
+    let p = perturbed_params(&layout);
+    let (rays, tg) = rays();
+    let lam = 0.5f32;
+    let run = |lam: f32, ws: &mut Workspace| {
+        let step = StepSettings {
+            anneal: 1.0,
+            interlevel_weight: 1.0,
+            distortion_weight: 0.01,
+            loss_scale: 1.0 / rays.len() as f32,
+            sample_mask_weight: lam,
+        };
+        let mut g = vec![0f32; p.len()];
+        let l = train_chunk_with(
+            &cfg,
+            &layout,
+            &p,
+            &mut g,
+            &rays,
+            &tg,
+            None,
+            &step,
+            &mut Rng::new(5),
+            ws,
+            None,
+        );
+        (l, g)
+    };
+    let mut ws = Workspace::default();
+    let (l_on, g_on) = run(lam, &mut ws);
+    let (l_off, g_off) = run(0.0, &mut Workspace::default());
+    assert_eq!(l_off.sample_mask, 0.0);
+    assert_eq!(l_on.sq_err, l_off.sq_err);
+    let mask = layout.params.get("field.mask").unwrap().range();
+    for i in 0..p.len() {
+        if !mask.contains(&i) {
+            assert_eq!(g_on[i], g_off[i], "parameter {i} outside the mask moved");
+        }
+    }
+    // The run's weights and sample points, held fixed.
+    let w = ws.w_main.clone();
+    let pts = ws.pts_main.clone();
+    let stride = pts.len() / w.len();
+    let enc = &layout.field.encoding;
+    let scale = 1.0 / rays.len() as f64;
+    let term = |q: &[f32]| -> f64 {
+        (0..w.len())
+            .map(|j| {
+                let m = enc.mask_at(q, &pts[j * stride..j * stride + 3]) as f64;
+                w[j] as f64 * (1.0 - m)
+            })
+            .sum::<f64>()
+            * lam as f64
+            * scale
+    };
+    let t0 = term(&p);
+    assert!(
+        (t0 - l_on.sample_mask * scale).abs() < 1e-5 * t0.abs().max(1e-3),
+        "loss {} vs {t0}",
+        l_on.sample_mask * scale
+    );
+    let fd = FdCheck {
+        count: 8,
+        h: 1e-3,
+        tol_abs: 1e-6,
+        tol_rel: 1e-2,
+        min_grad: 1e-4,
+    };
+    fd.largest(&p, mask, |i| (g_on[i] - g_off[i]) as f64, term);
+}
+
+/// The whole step with mask learning at its extremes (uncertainty logits at +-60, so `u` at
+/// its floor or huge; MINE weights scaled up until its statistics saturate; `u_min = 0`):
+/// finite losses and gradients.
+#[test]
+fn mask_learning_step_extremes_stay_finite() {
+    let cfg = tiny_cfg();
+    let layout = ModelLayout::new(&cfg);
+    let p = perturbed_params(&layout);
+    for (logit, mine_scale, u_min) in [
+        (-60.0f32, 1.0f32, 0.0f32),
+        (60.0, 50.0, 0.01),
+        (-60.0, 200.0, 0.0),
+    ] {
+        let (mut mc, mut al, mut ap) = aux_setup(true);
+        mc.uncertainty_min = u_min;
+        al.u_min = u_min;
+        ap[al.grid.1.clone()].fill(logit);
+        for v in &mut ap[al.mine.1.clone()] {
+            *v *= mine_scale;
+        }
+        let (total, g, ag) = aux_chunk(&cfg, &layout, &p, &mc, &al, &ap);
+        assert!(total.is_finite(), "{logit} {mine_scale}: {total}");
+        assert!(
+            g.iter().chain(&ag).all(|v| v.is_finite()),
+            "{logit} {mine_scale}"
+        );
+    }
+}
+
+/// With the mask-learning settings present but every term off, a chunk is bit-for-bit the
+/// plain [`train_chunk`].
+#[test]
+fn mask_learning_off_is_the_plain_step() {
+    let cfg = tiny_cfg();
+    let layout = ModelLayout::new(&cfg);
+    let p = perturbed_params(&layout);
+    let (rays, tg) = rays();
+    let step = StepSettings {
+        anneal: 0.7,
+        interlevel_weight: 1.0,
+        distortion_weight: 0.01,
+        loss_scale: 0.25,
+        sample_mask_weight: 0.0,
+    };
+    let mc = MaskLearningConfig::default();
+    let al = AuxLayout::new(&mc);
+    let ap = al.init_params(1);
+    let mut ag = vec![0f32; ap.len()];
+    let mut g1 = vec![0f32; p.len()];
+    let mut g2 = vec![0f32; p.len()];
+    let mut ws = Workspace::default();
+    let l1 = train_chunk(
+        &cfg,
+        &layout,
+        &p,
+        &mut g1,
+        &rays,
+        &tg,
+        None,
+        &step,
+        &mut Rng::new(5),
+        &mut ws,
+    );
+    let l2 = train_chunk_with(
+        &cfg,
+        &layout,
+        &p,
+        &mut g2,
+        &rays,
+        &tg,
+        None,
+        &step,
+        &mut Rng::new(5),
+        &mut ws,
+        Some(AuxStep {
+            cfg: &mc,
+            layout: &al,
+            params: &ap,
+            grad: &mut ag,
+        }),
+    );
+    assert_eq!(l1, l2);
+    assert_eq!(g1, g2);
+    assert!(ag.iter().all(|&v| v == 0.0));
+}
+
+#[test]
+fn render_is_deterministic_and_finite() {
+    let cfg = tiny_cfg();
+    let layout = ModelLayout::new(&cfg);
+    let p = layout.init_params(3);
+    let (rays, _) = rays();
+    let mut a = RenderOutput::default();
+    let mut b = RenderOutput::default();
+    render_chunk(&cfg, &layout, &p, &rays, &mut Workspace::default(), &mut a);
+    render_chunk(&cfg, &layout, &p, &rays, &mut Workspace::default(), &mut b);
+    assert_eq!(a.rgb, b.rgb);
+    assert!(a.rgb.iter().flatten().all(|v| v.is_finite()));
+    // A ray that misses the box renders the background.
+    let miss = [TimedRay {
+        origin: Vec3::new(5.0, 5.0, 5.0),
+        dir: Vec3::Z,
+        time: 0.5,
+    }];
+    let mut m = RenderOutput::default();
+    render_chunk(&cfg, &layout, &p, &miss, &mut Workspace::default(), &mut m);
+    assert_eq!(m.rgb[0], [1.0, 1.0, 1.0]);
+}
+
+#[test]
+fn playback_partition_at_one_time_is_the_render_samples() {
+    let cfg = tiny_cfg();
+    let layout = ModelLayout::new(&cfg);
+    let p = perturbed_params(&layout);
+    let (rays, _) = rays();
+    let nf = cfg.sampler.num_samples;
+    for r in &rays {
+        let mut ws = Workspace::default();
+        render_chunk(
+            &cfg,
+            &layout,
+            &p,
+            &[*r],
+            &mut ws,
+            &mut RenderOutput::default(),
+        );
+        let rendered = ws.pts_main.clone();
+        let deltas = ws.delta_main.clone();
+        let part = playback_partition(&cfg, &layout, &p, &[*r], &[r.time], nf, &mut ws);
+        assert_eq!(part.samples, nf);
+        assert_eq!(part.deltas, deltas[..nf]);
+        for k in 0..nf {
+            assert_eq!(part.points[k * 4..k * 4 + 3], rendered[k * 4..k * 4 + 3]);
+            assert_eq!(part.points[k * 4 + 3], 0.0);
+        }
+        // Weights combine by their maximum: a repeated time changes nothing.
+        let twice = playback_partition(&cfg, &layout, &p, &[*r], &[r.time; 2], nf, &mut ws);
+        assert_eq!(twice, part);
+        let other = (r.time + 0.5) % 1.0;
+        let both = playback_partition(&cfg, &layout, &p, &[*r], &[r.time, other], nf, &mut ws);
+        assert!(both.points.iter().all(|v| v.is_finite()));
+        assert!(both.deltas.iter().all(|&d| d >= 0.0));
+    }
+}

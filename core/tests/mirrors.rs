@@ -1,0 +1,104 @@
+//! Which Rust item each GPU (WGSL) and page (JavaScript) rule mirrors, checked against the
+//! text of those files. The field's blend rules live in `msth_core::config::BlendMode`
+//! (`coefficients`, `is_dynamic`, `no_mask_value`) and the render cut-off in
+//! `msth_core::pipeline::RENDER_STATIC_CUTOFF`; the copies that cannot call them are listed here:
+//!
+//! | copy | mirrors |
+//! |---|---|
+//! | `gpu/shaders/render.wgsl`, `encode_into_hidden`: `v = ...` per blend code | `BlendMode::coefficients` |
+//! | `gpu/shaders/render.wgsl`, `encode_into_hidden`: `skip4` | `BlendMode::is_dynamic` |
+//! | `gpu/src/layout.rs`: `consts.x` of the encoding uniform | `BlendMode::no_mask_value` |
+//! | `web/js/renderer.js`: `noMask` | `BlendMode::no_mask_value` |
+//! | `web/js/renderer.js`: `RENDER_STATIC_CUTOFF` | `pipeline::RENDER_STATIC_CUTOFF` |
+//!
+//! A copy that calls the Rust item (or a constant generated from it) passes by naming it.
+
+use std::path::PathBuf;
+
+use msth_core::config::BlendMode;
+use msth_core::pipeline::RENDER_STATIC_CUTOFF;
+
+fn read(rel: &str) -> String {
+    let p = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("..")
+        .join(rel);
+    std::fs::read_to_string(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()))
+}
+
+const MODES: [BlendMode; 5] = [
+    BlendMode::Mst,
+    BlendMode::Mt,
+    BlendMode::Add,
+    BlendMode::FourD,
+    BlendMode::Static,
+];
+
+#[test]
+fn wgsl_blend_mirrors_blend_coefficients() {
+    let wgsl = read("gpu/shaders/render.wgsl");
+    // Blend codes 0..4 are Mst, Mt, Add, FourD, Static (gpu/src/layout.rs, blend_code); the
+    // shader writes `v = a * h3 + b * h4` with the coefficients spelled out per code.
+    let written = [
+        ("m * a + (1.0 - m) * b", (0.3, 0.7)),
+        ("a + (1.0 - m) * b", (1.0, 0.7)),
+        ("a + b", (1.0, 1.0)),
+        ("v = b;", (0.0, 1.0)),
+        ("var v = a;", (1.0, 0.0)),
+    ];
+    for (mode, (text, coeffs)) in MODES.iter().zip(written) {
+        assert!(wgsl.contains(text), "render.wgsl: no `{text}` ({mode:?})");
+        assert_eq!(mode.coefficients(0.3), coeffs, "{mode:?}");
+    }
+    // skip4: only Mst/Mt (codes <= 1) with a mask skip h4, where 1 - m < cutoff.
+    assert!(wgsl.contains("blend <= 1u && (1.0 - m) < cutoff"));
+    // (Static has no h4 to skip: it is never dynamic.)
+    for mode in MODES.into_iter().filter(|&m| m != BlendMode::Static) {
+        let skips = matches!(mode, BlendMode::Mst | BlendMode::Mt);
+        assert_eq!(!mode.is_dynamic(true, 1.0, 1e-3), skips, "{mode:?}");
+        assert!(mode.is_dynamic(true, 0.0, 1e-3));
+    }
+}
+
+#[test]
+fn no_mask_value_copies_mirror_blend_mode() {
+    let expect = |m: BlendMode| m.no_mask_value();
+    let layout = read("gpu/src/layout.rs");
+    if !layout.contains("no_mask_value()") {
+        for (arm, m) in [
+            ("BlendMode::Static => 1.0", BlendMode::Static),
+            ("BlendMode::FourD => 0.0", BlendMode::FourD),
+            ("_ => 0.5", BlendMode::Add),
+        ] {
+            assert!(layout.contains(arm), "gpu/src/layout.rs: no `{arm}`");
+            let v: f32 = arm.rsplit("=> ").next().unwrap().parse().unwrap();
+            assert_eq!(v, expect(m));
+        }
+    }
+    let js = read("web/js/renderer.js");
+    if !js.contains("no_mask_value") && !js.contains("NO_MASK") {
+        let line = js
+            .lines()
+            .find(|l| l.contains("const noMask"))
+            .expect("renderer.js: noMask");
+        assert!(
+            line.contains(&format!("\"static\" ? {}", expect(BlendMode::Static)))
+                && line.contains(&format!("\"four_d\" ? {}", expect(BlendMode::FourD)))
+                && line.contains(&format!(": {};", expect(BlendMode::Mt))),
+            "renderer.js: {line}"
+        );
+    }
+    if let Some(line) = js
+        .lines()
+        .find(|l| l.contains("const RENDER_STATIC_CUTOFF ="))
+    {
+        let v: f32 = line
+            .split('=')
+            .nth(1)
+            .unwrap()
+            .trim()
+            .trim_end_matches(';')
+            .parse()
+            .unwrap();
+        assert_eq!(v, RENDER_STATIC_CUTOFF);
+    }
+}
