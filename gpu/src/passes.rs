@@ -390,6 +390,20 @@ impl GpuContext {
         );
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
         let p = &self.passes;
+        // MSTH_GPU_PASS_PROFILE=1: every dispatch its own submission, timed (stderr).
+        let profile = std::env::var("MSTH_GPU_PASS_PROFILE").as_deref() == Ok("1");
+        let steps: [(&str, &wgpu::ComputePipeline, Option<u64>); 9] = [
+            ("setup", &p.setup, None),
+            ("args", &p.args, None),
+            ("proposal", &p.proposal, Some(ARGS_PROPOSAL)),
+            ("resample", &p.resample, Some(ARGS_RAYS)),
+            ("density", &p.density, Some(ARGS_SAMPLES)),
+            ("visible", &p.visible, Some(ARGS_RAYS)),
+            ("args", &p.args, None),
+            ("color", &p.color, Some(ARGS_COLOR)),
+            ("composite", &p.composite, Some(ARGS_RAYS)),
+        ];
+        let mut spent = [0f64; 9];
         let mut first = 0u32;
         while first < n {
             let count = scratch.capacity.min(n - first);
@@ -402,32 +416,42 @@ impl GpuContext {
                 .device
                 .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
             enc.clear_buffer(&scratch.ctrl, 0, None);
-            {
-                let mut cp = enc.begin_compute_pass(&wgpu::ComputePassDescriptor::default());
-                cp.set_bind_group(0, &main, &[]);
-                cp.set_pipeline(&p.setup);
-                cp.dispatch_workgroups(gx, gy, 1);
-                let ind = |cp: &mut wgpu::ComputePass, pl: &wgpu::ComputePipeline, at: u64| {
-                    cp.set_pipeline(pl);
-                    cp.dispatch_workgroups_indirect(&scratch.args, at);
-                };
-                let sizes = |cp: &mut wgpu::ComputePass| {
-                    cp.set_bind_group(0, &args, &[]);
-                    cp.set_pipeline(&p.args);
-                    cp.dispatch_workgroups(1, 1, 1);
-                    cp.set_bind_group(0, &main, &[]);
-                };
-                sizes(&mut cp);
-                ind(&mut cp, &p.proposal, ARGS_PROPOSAL);
-                ind(&mut cp, &p.resample, ARGS_RAYS);
-                ind(&mut cp, &p.density, ARGS_SAMPLES);
-                ind(&mut cp, &p.visible, ARGS_RAYS);
-                sizes(&mut cp);
-                ind(&mut cp, &p.color, ARGS_COLOR);
-                ind(&mut cp, &p.composite, ARGS_RAYS);
+            let mut k = 0;
+            while k < steps.len() {
+                let k_end = if profile { k + 1 } else { steps.len() };
+                {
+                    let mut cp = enc.begin_compute_pass(&wgpu::ComputePassDescriptor::default());
+                    for (name, pl, at) in &steps[k..k_end] {
+                        let bg = if *name == "args" { &args } else { &main };
+                        cp.set_bind_group(0, bg, &[]);
+                        cp.set_pipeline(pl);
+                        match (at, *name) {
+                            (Some(at), _) => cp.dispatch_workgroups_indirect(&scratch.args, *at),
+                            (None, "setup") => cp.dispatch_workgroups(gx, gy, 1),
+                            (None, _) => cp.dispatch_workgroups(1, 1, 1),
+                        }
+                    }
+                }
+                let t = std::time::Instant::now();
+                self.queue.submit([enc.finish()]);
+                if profile {
+                    self.wait()?;
+                    spent[k] += t.elapsed().as_secs_f64();
+                }
+                enc = self
+                    .device
+                    .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
+                k = k_end;
             }
-            self.queue.submit([enc.finish()]);
             first += count;
+        }
+        if profile {
+            let line: Vec<String> = steps
+                .iter()
+                .zip(spent)
+                .map(|((name, _, _), s)| format!("{name} {:.3} s", s))
+                .collect();
+            eprintln!("per-sample passes ({n} pixels): {}", line.join(", "));
         }
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(GpuError::Backend(e.to_string()));

@@ -5,13 +5,20 @@
 //! (sample-level reuse) on the CPU and the GPU.
 //!
 //! `cargo run --release -p msth-player --example bench_gpu_render -- FILE.msth [SIZE] [FRAMES]`
-//! (default 256 pixels square, 4 incremental frames). The camera is the file's first camera,
+//! (default 256 pixels square, 4 incremental frames). `FILE` may be `small` instead: a model
+//! with random parameters small enough for the per-ray kernel on lavapipe (the size of the
+//! end-to-end GPU test's model), for comparing both kernels where lavapipe takes both. The camera is the file's first camera,
 //! its intrinsics scaled to SIZE x SIZE. Any adapter is used (lavapipe included;
 //! `MSTH_BENCH_SKIP_PER_RAY=1` skips the old kernel, which takes minutes on software adapters
 //! for large frames). Timings include the read-back of the frame.
 
 use std::time::Instant;
 
+use glam::Vec3;
+use msth_core::config::{Background, ModelConfig, Preset};
+use msth_core::field::ModelLayout;
+use msth_core::rng::Rng;
+use msth_core::{Camera, SceneBounds};
 use msth_player::gpu::{AdapterPolicy, GpuContext, GpuKernels, GpuRenderer};
 use msth_player::{Frame, RenderSettings, Renderer};
 
@@ -26,6 +33,47 @@ fn psnr(a: &Frame, b: &Frame) -> f64 {
     -10.0 * mse.max(1e-20).log10()
 }
 
+type Loaded = (ModelConfig, Camera, Box<dyn Fn(f32) -> Vec<f32>>);
+
+/// The model, its first camera and its parameters at a time: from a file, or `small`.
+fn load(path: &str) -> Result<Loaded, Box<dyn std::error::Error>> {
+    if path == "small" {
+        let mut cfg = ModelConfig::preset(
+            Preset::Fast,
+            SceneBounds::dnerf_default(),
+            Background::Color { rgb: [1.0; 3] },
+            10,
+        );
+        let m = &mut cfg;
+        m.field.encoding.resize(4, 12, 128.0, 16);
+        m.proposal.encoding.resize(2, 10, 32.0, 16);
+        m.field.density_hidden = 16;
+        m.field.color_hidden = 16;
+        m.field.geo_features = 7;
+        m.proposal.hidden = 8;
+        m.sampler.num_proposal_samples = 24;
+        m.sampler.num_samples = 12;
+        let layout = ModelLayout::new(&cfg);
+        let mut p = layout.init_params(1);
+        let mut rng = Rng::new(2);
+        for e in &layout.params.entries {
+            if e.name.ends_with("h3") || e.name.ends_with("h4") || e.name.ends_with("mask") {
+                for v in &mut p[e.range()] {
+                    *v = rng.range_f32(-1.0, 1.0);
+                }
+            }
+        }
+        let cam = Camera::look_at(64, 64, 0.9, Vec3::new(0.3, -3.5, 1.2), Vec3::ZERO, Vec3::Z);
+        return Ok((cfg, cam, Box::new(move |_| p.clone())));
+    }
+    let bytes = std::fs::read(path)?;
+    let decoded = msth_codec::decode_all(&bytes)?;
+    let meta = &decoded.metadata;
+    let cfg = meta.model.clone();
+    let cam = *meta.cameras.first().ok_or("the file has no cameras")?;
+    Ok((cfg, cam, Box::new(move |t| decoded.params_for_time(t))))
+}
+
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let Some(path) = args.first() else {
@@ -33,11 +81,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     };
     let size: u32 = args.get(1).map(|s| s.parse()).transpose()?.unwrap_or(256);
     let frames: usize = args.get(2).map(|s| s.parse()).transpose()?.unwrap_or(4);
-    let bytes = std::fs::read(path)?;
-    let decoded = msth_codec::decode_all(&bytes)?;
-    let meta = &decoded.metadata;
-    let cfg = meta.model.clone();
-    let mut cam = *meta.cameras.first().ok_or("the file has no cameras")?;
+    let (cfg, mut cam, params_at) = load(path)?;
     let s = size as f32 / cam.width.max(cam.height) as f32;
     cam.fx *= s;
     cam.fy *= s;
@@ -45,7 +89,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     cam.height = size;
     cam.cx = 0.5 * size as f32;
     cam.cy = 0.5 * size as f32;
-    let params0 = decoded.params_for_time(0.0);
+    let params0 = params_at(0.0);
     println!(
         "model {path}: {} proposal + {} main samples per ray, {} levels; {size}x{size}",
         cfg.sampler.num_proposal_samples, cfg.sampler.num_samples, cfg.field.encoding.grid3.levels
@@ -111,7 +155,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut full_r = Renderer::new(&cfg, full);
     let (mut cs, mut gs, mut worst) = (Vec::new(), Vec::new(), f64::INFINITY);
     for (i, &tm) in times.iter().enumerate() {
-        let p = decoded.params_for_time(tm);
+        let p = params_at(tm);
         let a = cpu.render(&cam, tm, &p);
         let b = gpu.render(&cam, tm, &p)?;
         if i >= 2 {

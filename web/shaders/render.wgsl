@@ -121,6 +121,8 @@ var<private> w_prop: array<f32, MAX_PROPOSAL_SAMPLES>;
 var<private> s_main: array<f32, 129>; // MAX_SAMPLES + 1
 var<private> hid: array<f32, MAX_HIDDEN>;
 var<private> hid2: array<f32, MAX_HIDDEN>;
+// MLP accumulators, four outputs each (MAX_HIDDEN / 4).
+var<private> acc4: array<vec4<f32>, 32>;
 var<private> dout: array<f32, 32>; // 1 + MAX_GEO
 var<private> cin: array<f32, 47>; // 16 + MAX_GEO
 var<private> feat3: array<f32, MAX_FEATURES>;
@@ -347,10 +349,8 @@ fn grid_level(g: Grid, l: u32, p: vec4<f32>, into4: bool) {
     }
     var acc = array<f32, 8>(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
     let corners = 1u << dims;
-    // One flat loop over (corner, feature) pairs.
-    for (var t = 0u; t < corners * nf; t++) {
-        let c = t / nf;
-        let f = t % nf;
+    // Per corner: its weight and row once, then its features.
+    for (var c = 0u; c < corners; c++) {
         let u0 = (c & 1u) == 1u;
         let u1 = (c & 2u) == 2u;
         let u2 = (c & 4u) == 4u;
@@ -368,7 +368,10 @@ fn grid_level(g: Grid, l: u32, p: vec4<f32>, into4: bool) {
             row = (select(lo[0], hi[0], u0) ^ select(lo[1], hi[1], u1) ^ select(lo[2], hi[2], u2) ^ v3)
                 & g.shape.w;
         }
-        acc[f] += w * table(g.loc.x, lv.info.x + row * nf + f);
+        let base = lv.info.x + row * nf;
+        for (var f = 0u; f < nf; f++) {
+            acc[f] += w * table(g.loc.x, base + f);
+        }
     }
     for (var f = 0u; f < nf; f++) {
         if into4 {
@@ -397,8 +400,9 @@ fn encode_into_hidden(e: Encoding, p: vec4<f32>, cutoff: f32, w_off: u32, hidden
         levels = e.h4.shape.z;
         nf = e.h4.shape.y;
     }
-    for (var j = 0u; j < hidden; j++) {
-        hid[j] = 0.0;
+    let n4 = (hidden + 3u) / 4u;
+    for (var q = 0u; q < n4; q++) {
+        acc4[q] = vec4<f32>(0.0);
     }
     var venc = array<f32, 8>(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
     for (var l = 0u; l < levels; l++) {
@@ -427,34 +431,68 @@ fn encode_into_hidden(e: Encoding, p: vec4<f32>, cutoff: f32, w_off: u32, hidden
             }
             venc[f] = v;
         }
-        // Rows l * nf .. (l + 1) * nf of W, one flat loop over (feature, hidden unit).
+        // Rows l * nf .. (l + 1) * nf of W, four hidden units at a time.
         let row0 = w_off + l * nf * hidden;
-        for (var t = 0u; t < nf * hidden; t++) {
-            let j = t % hidden;
-            hid[j] += venc[t / hidden] * rest[row0 + t];
+        for (var f = 0u; f < nf; f++) {
+            accumulate_row(venc[f], row0 + f * hidden, hidden);
         }
     }
-    for (var j = 0u; j < hidden; j++) {
-        hid[j] = max(hid[j], 0.0);
-    }
+    flush_acc(hidden, true, false);
     return m;
 }
 
-// hid2[0..nout] = hid[0..nin] W (W [nin, nout] row-major at `off` in `rest`), ReLU when `relu`.
-// One flat loop over the weights, in the CPU's summation order.
-fn dense_layer(off: u32, nin: u32, nout: u32, relu: bool) {
-    for (var o = 0u; o < nout; o++) {
-        hid2[o] = 0.0;
+// rest[b .. b + 4], the components at or beyond `left` read as 0.
+fn w4(b: u32, left: u32) -> vec4<f32> {
+    return vec4<f32>(
+        rest[b],
+        select(0.0, rest[b + 1u], left > 1u),
+        select(0.0, rest[b + 2u], left > 2u),
+        select(0.0, rest[b + 3u], left > 3u),
+    );
+}
+
+// acc4 += x * W[row .. row + n] (four outputs per step; a sum per output in the CPU's order).
+fn accumulate_row(x: f32, row: u32, n: u32) {
+    let n4 = (n + 3u) / 4u;
+    for (var q = 0u; q < n4; q++) {
+        acc4[q] += x * w4(row + 4u * q, n - 4u * q);
     }
-    for (var t = 0u; t < nin * nout; t++) {
-        let o = t % nout;
-        hid2[o] += hid[t / nout] * rest[off + t];
-    }
-    if relu {
-        for (var o = 0u; o < nout; o++) {
-            hid2[o] = max(hid2[o], 0.0);
+}
+
+// The accumulators' first n values into hid (to_hid2 false) or hid2, ReLU when `relu`.
+fn flush_acc(n: u32, relu: bool, to_hid2: bool) {
+    let n4 = (n + 3u) / 4u;
+    for (var q = 0u; q < n4; q++) {
+        var v = acc4[q];
+        if relu {
+            v = max(v, vec4<f32>(0.0));
+        }
+        let o = 4u * q;
+        if to_hid2 {
+            hid2[o] = v.x;
+            hid2[o + 1u] = v.y;
+            hid2[o + 2u] = v.z;
+            hid2[o + 3u] = v.w;
+        } else {
+            hid[o] = v.x;
+            hid[o + 1u] = v.y;
+            hid[o + 2u] = v.z;
+            hid[o + 3u] = v.w;
         }
     }
+}
+
+// hid2[0..nout] = hid[0..nin] W (W [nin, nout] row-major at `off` in `rest`), ReLU when `relu`;
+// each output summed over the inputs in order, as on the CPU.
+fn dense_layer(off: u32, nin: u32, nout: u32, relu: bool) {
+    let n4 = (nout + 3u) / 4u;
+    for (var q = 0u; q < n4; q++) {
+        acc4[q] = vec4<f32>(0.0);
+    }
+    for (var i = 0u; i < nin; i++) {
+        accumulate_row(hid[i], off + i * nout, nout);
+    }
+    flush_acc(nout, relu, true);
 }
 
 // Proposal density at p.
