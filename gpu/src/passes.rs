@@ -274,7 +274,6 @@ impl GpuContext {
                 max: self.limits.max_storage_buffer_binding_size,
             });
         }
-        // Whole workgroups of the setup pass per batch.
         let capacity = pixels.max(1).min(fit);
         let (base, words) = regions(model, capacity as u64, samples as u64, false);
         self.check_storage("per-sample scratch", words * 4)?;
