@@ -121,6 +121,8 @@ var<private> w_prop: array<f32, MAX_PROPOSAL_SAMPLES>;
 var<private> s_main: array<f32, 129>; // MAX_SAMPLES + 1
 var<private> hid: array<f32, MAX_HIDDEN>;
 var<private> hid2: array<f32, MAX_HIDDEN>;
+// MLP accumulators, four outputs each (MAX_HIDDEN / 4).
+var<private> acc4: array<vec4<f32>, 32>;
 var<private> dout: array<f32, 32>; // 1 + MAX_GEO
 var<private> cin: array<f32, 47>; // 16 + MAX_GEO
 var<private> feat3: array<f32, MAX_FEATURES>;
@@ -347,10 +349,8 @@ fn grid_level(g: Grid, l: u32, p: vec4<f32>, into4: bool) {
     }
     var acc = array<f32, 8>(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
     let corners = 1u << dims;
-    // One flat loop over (corner, feature) pairs.
-    for (var t = 0u; t < corners * nf; t++) {
-        let c = t / nf;
-        let f = t % nf;
+    // Per corner: its weight and row once, then its features.
+    for (var c = 0u; c < corners; c++) {
         let u0 = (c & 1u) == 1u;
         let u1 = (c & 2u) == 2u;
         let u2 = (c & 4u) == 4u;
@@ -368,7 +368,10 @@ fn grid_level(g: Grid, l: u32, p: vec4<f32>, into4: bool) {
             row = (select(lo[0], hi[0], u0) ^ select(lo[1], hi[1], u1) ^ select(lo[2], hi[2], u2) ^ v3)
                 & g.shape.w;
         }
-        acc[f] += w * table(g.loc.x, lv.info.x + row * nf + f);
+        let base = lv.info.x + row * nf;
+        for (var f = 0u; f < nf; f++) {
+            acc[f] += w * table(g.loc.x, base + f);
+        }
     }
     for (var f = 0u; f < nf; f++) {
         if into4 {
@@ -397,8 +400,9 @@ fn encode_into_hidden(e: Encoding, p: vec4<f32>, cutoff: f32, w_off: u32, hidden
         levels = e.h4.shape.z;
         nf = e.h4.shape.y;
     }
-    for (var j = 0u; j < hidden; j++) {
-        hid[j] = 0.0;
+    let n4 = (hidden + 3u) / 4u;
+    for (var q = 0u; q < n4; q++) {
+        acc4[q] = vec4<f32>(0.0);
     }
     var venc = array<f32, 8>(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
     for (var l = 0u; l < levels; l++) {
@@ -427,34 +431,68 @@ fn encode_into_hidden(e: Encoding, p: vec4<f32>, cutoff: f32, w_off: u32, hidden
             }
             venc[f] = v;
         }
-        // Rows l * nf .. (l + 1) * nf of W, one flat loop over (feature, hidden unit).
+        // Rows l * nf .. (l + 1) * nf of W, four hidden units at a time.
         let row0 = w_off + l * nf * hidden;
-        for (var t = 0u; t < nf * hidden; t++) {
-            let j = t % hidden;
-            hid[j] += venc[t / hidden] * rest[row0 + t];
+        for (var f = 0u; f < nf; f++) {
+            accumulate_row(venc[f], row0 + f * hidden, hidden);
         }
     }
-    for (var j = 0u; j < hidden; j++) {
-        hid[j] = max(hid[j], 0.0);
-    }
+    flush_acc(hidden, true, false);
     return m;
 }
 
-// hid2[0..nout] = hid[0..nin] W (W [nin, nout] row-major at `off` in `rest`), ReLU when `relu`.
-// One flat loop over the weights, in the CPU's summation order.
-fn dense_layer(off: u32, nin: u32, nout: u32, relu: bool) {
-    for (var o = 0u; o < nout; o++) {
-        hid2[o] = 0.0;
+// rest[b .. b + 4], the components at or beyond `left` read as 0.
+fn w4(b: u32, left: u32) -> vec4<f32> {
+    return vec4<f32>(
+        rest[b],
+        select(0.0, rest[b + 1u], left > 1u),
+        select(0.0, rest[b + 2u], left > 2u),
+        select(0.0, rest[b + 3u], left > 3u),
+    );
+}
+
+// acc4 += x * W[row .. row + n] (four outputs per step; a sum per output in the CPU's order).
+fn accumulate_row(x: f32, row: u32, n: u32) {
+    let n4 = (n + 3u) / 4u;
+    for (var q = 0u; q < n4; q++) {
+        acc4[q] += x * w4(row + 4u * q, n - 4u * q);
     }
-    for (var t = 0u; t < nin * nout; t++) {
-        let o = t % nout;
-        hid2[o] += hid[t / nout] * rest[off + t];
-    }
-    if relu {
-        for (var o = 0u; o < nout; o++) {
-            hid2[o] = max(hid2[o], 0.0);
+}
+
+// The accumulators' first n values into hid (to_hid2 false) or hid2, ReLU when `relu`.
+fn flush_acc(n: u32, relu: bool, to_hid2: bool) {
+    let n4 = (n + 3u) / 4u;
+    for (var q = 0u; q < n4; q++) {
+        var v = acc4[q];
+        if relu {
+            v = max(v, vec4<f32>(0.0));
+        }
+        let o = 4u * q;
+        if to_hid2 {
+            hid2[o] = v.x;
+            hid2[o + 1u] = v.y;
+            hid2[o + 2u] = v.z;
+            hid2[o + 3u] = v.w;
+        } else {
+            hid[o] = v.x;
+            hid[o + 1u] = v.y;
+            hid[o + 2u] = v.z;
+            hid[o + 3u] = v.w;
         }
     }
+}
+
+// hid2[0..nout] = hid[0..nin] W (W [nin, nout] row-major at `off` in `rest`), ReLU when `relu`;
+// each output summed over the inputs in order, as on the CPU.
+fn dense_layer(off: u32, nin: u32, nout: u32, relu: bool) {
+    let n4 = (nout + 3u) / 4u;
+    for (var q = 0u; q < n4; q++) {
+        acc4[q] = vec4<f32>(0.0);
+    }
+    for (var i = 0u; i < nin; i++) {
+        accumulate_row(hid[i], off + i * nout, nout);
+    }
+    flush_acc(nout, relu, true);
 }
 
 // Proposal density at p.
@@ -699,5 +737,440 @@ fn eval_points(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
             let c = field_color();
             frame[j] = vec4<f32>(c, sigma);
         }
+    }
+}
+
+// =================================================================================================
+// Per-sample passes (issue #17): the same rendering split into dispatches over compacted work
+// lists, so that no invocation loops over a whole ray's field evaluations. One frame (or one
+// batch of rays of it) is, in order:
+//
+//   pass_setup      one per pixel of the batch: ray limits; a ray that misses the scene under a
+//                   constant background writes the background, the others are appended to the
+//                   ray list (`ctrl[0]`);
+//   pass_args       one invocation: indirect dispatch sizes from the counters (bound with the
+//                   `args` buffer in the `work` slot);
+//   pass_proposal   one per (ray, proposal sample): the proposal field's density;
+//   pass_resample   one per ray: proposal weights and the inverse CDF, `S + 1` edges (short
+//                   loops over the ray's histogram, no field evaluation);
+//   pass_density    one per (ray, main sample): encoding, mask blend, density MLP; sigma and the
+//                   geometry features;
+//   pass_visible    one per ray: which samples light still reaches: those get a colour and are
+//                   appended to the colour list (`ctrl[1]`);
+//   pass_args       again (the colour list's size);
+//   pass_color      one per listed sample: SH of the ray direction + colour MLP;
+//   pass_composite  one per ray: volume compositing and the background into `frame`.
+//
+// Incremental playback with sample-level reuse (msth-player's `samples.rs`) runs the same passes
+// on a persistent cache: `pass_wmax` (the per-bin maximum of the proposal weights over several
+// times), `pass_resample` from that histogram, `pass_build` (static samples evaluated once,
+// dynamic ones listed in `ctrl[2]`), then per frame `pass_dynamic` (the dynamic samples' density
+// at the frame's time), `pass_visible`, `pass_color` and `pass_composite`.
+//
+// Work buffer regions (offsets in 4-byte words, from `Pass`): rays (4 words per ray: output
+// index, pixel, near, far), hist (proposal sigma, then weights: np per ray), edges (S + 1
+// normalised edges per ray), samp (r, g, b, sigma per sample), geo (geo features per sample),
+// clist (colour list: a sample index per entry), wmax (np per ray), pts (x, y, z, dynamic flag per
+// sample), dlist (dynamic samples' indices). Samples are ray-major (`ray * S + k`): the
+// neighbouring invocations of a pass evaluate neighbouring points of one ray, which share hash
+// rows and cache lines.
+
+struct Pass {
+    // x: first entry of this batch in the pixel order, y: pixels in the batch, z: flags
+    // (bit 0: pixel list[first + i], else pixel first + i; bit 1: output to frame[first + i],
+    // else frame[pixel]; bit 2: cache (only samples flagged dynamic get colours); bit 3:
+    // resample from the `wmax` histogram), w: samples per ray S.
+    tile: vec4<u32>,
+    // Word offsets: x rays, y hist, z edges, w samp.
+    reg0: vec4<u32>,
+    // Word offsets: x geo, y clist, z wmax, w pts.
+    reg1: vec4<u32>,
+    // x: dlist, yzw: 0.
+    reg2: vec4<u32>,
+    // x: static cutoff of `pass_build`, y: 1 = first time of `pass_wmax`, zw: 0.
+    misc: vec4<f32>,
+}
+
+// Scratch of the passes (regions above); f32 words, u32 values stored as bit patterns.
+@group(0) @binding(7) var<storage, read_write> work: array<f32>;
+// Counters: [0] rays, [1] colour list, [2] dynamic samples.
+@group(0) @binding(8) var<storage, read_write> ctrl: array<atomic<u32>>;
+@group(0) @binding(9) var<uniform> pass_u: Pass;
+
+const FLAG_P_LIST: u32 = 1u;
+const FLAG_P_COMPACT: u32 = 2u;
+const FLAG_P_CACHE: u32 = 4u;
+const FLAG_P_WMAX: u32 = 8u;
+// Largest workgroup count per dimension the indirect dispatches use (WebGPU's default limit).
+const MAX_GROUPS: u32 = 65535u;
+
+fn work_u(i: u32) -> u32 {
+    return bitcast<u32>(work[i]);
+}
+
+fn ray_count() -> u32 {
+    return atomicLoad(&ctrl[0]);
+}
+
+fn samples_per_ray() -> u32 {
+    return pass_u.tile.w;
+}
+
+// Ray r's record: (output index, pixel, near, far).
+fn ray_rec(r: u32) -> vec4<f32> {
+    let o = pass_u.reg0.x + 4u * r;
+    return vec4<f32>(work[o], work[o + 1u], work[o + 2u], work[o + 3u]);
+}
+
+fn ray_pixel(rec: vec4<f32>) -> u32 {
+    return bitcast<u32>(rec.y);
+}
+
+fn field_time() -> f32 {
+    let t = view.time.x;
+    return select(0.0, min(t, 1.0), t >= 0.0);
+}
+
+// Main-sample interval k of ray r (distances t0, t1) from the ray's edges.
+fn main_interval(r: u32, k: u32, near: f32, far: f32) -> vec2<f32> {
+    let e = pass_u.reg0.z + r * (samples_per_ray() + 1u) + k;
+    return vec2<f32>(t_of_s(work[e], near, far), t_of_s(work[e + 1u], near, far));
+}
+
+// Workgroups (x, y, 1) for `n` invocations, written at `at` in `work` (bound to `args`).
+fn write_groups(at: u32, n: u32) {
+    let groups = (n + WORKGROUP - 1u) / WORKGROUP;
+    let x = min(groups, MAX_GROUPS);
+    var y = 0u;
+    if x > 0u {
+        y = (groups + x - 1u) / x;
+    }
+    work[at] = bitcast<f32>(x);
+    work[at + 1u] = bitcast<f32>(y);
+    work[at + 2u] = bitcast<f32>(1u);
+}
+
+@compute @workgroup_size(64)
+fn pass_setup(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let i = invocation(gid, groups);
+    if i < pass_u.tile.y {
+        let g = pass_u.tile.x + i;
+        let flags = pass_u.tile.z;
+        var pixel = g;
+        if (flags & FLAG_P_LIST) != 0u {
+            pixel = list[g];
+        }
+        let out = select(pixel, g, (flags & FLAG_P_COMPACT) != 0u);
+        let o = view.c2w[3].xyz;
+        let d = pixel_ray_dir(pixel);
+        let lim = ray_limits(o, d);
+        if !(lim.y > lim.x) && model.background.w == 1.0 {
+            frame[out] = vec4<f32>(model.background.xyz, lim.y);
+        } else {
+            let slot = atomicAdd(&ctrl[0], 1u);
+            let at = pass_u.reg0.x + 4u * slot;
+            work[at] = bitcast<f32>(out);
+            work[at + 1u] = bitcast<f32>(pixel);
+            work[at + 2u] = lim.x;
+            work[at + 3u] = lim.y;
+        }
+    }
+}
+
+// Indirect dispatch sizes, 3 words each: [0] rays x proposal samples, [3] rays, [6] rays x S,
+// [9] colour list, [12] dynamic samples.
+@compute @workgroup_size(1)
+fn pass_args() {
+    let n = atomicLoad(&ctrl[0]);
+    write_groups(0u, n * model.sampler.x);
+    write_groups(3u, n);
+    write_groups(6u, n * samples_per_ray());
+    write_groups(9u, atomicLoad(&ctrl[1]));
+    write_groups(12u, atomicLoad(&ctrl[2]));
+}
+
+@compute @workgroup_size(64)
+fn pass_proposal(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let i = invocation(gid, groups);
+    let np = model.sampler.x;
+    if i < ray_count() * np {
+        let r = i / np;
+        let k = i % np;
+        let rec = ray_rec(r);
+        let o = view.c2w[3].xyz;
+        let d = pixel_ray_dir(ray_pixel(rec));
+        let t0 = t_of_s(f32(k) / f32(np), rec.z, rec.w);
+        let t1 = t_of_s(f32(k + 1u) / f32(np), rec.z, rec.w);
+        work[pass_u.reg0.y + i] = proposal_sigma(sample_point(o, d, t0, t1, field_time()), model.prop.consts.y);
+    }
+}
+
+// Proposal weights of ray r from its densities (in place in `hist`), as msth-core's
+// `render::weights`.
+fn proposal_weights(r: u32, near: f32, far: f32) {
+    let np = model.sampler.x;
+    let base = pass_u.reg0.y + r * np;
+    var tau_sum = 0.0;
+    var t_prev = t_of_s(0.0, near, far);
+    for (var k = 0u; k < np; k++) {
+        let t_next = t_of_s(f32(k + 1u) / f32(np), near, far);
+        let tau = tau_of(work[base + k], max(t_next - t_prev, 0.0));
+        work[base + k] = exp(-tau_sum) * -expm1(-tau);
+        tau_sum += tau;
+        t_prev = t_next;
+    }
+}
+
+// Per ray (partition): weights of this time's densities, and their per-bin maximum over the
+// times so far in `wmax`.
+@compute @workgroup_size(64)
+fn pass_wmax(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let r = invocation(gid, groups);
+    if r < ray_count() {
+        let rec = ray_rec(r);
+        proposal_weights(r, rec.z, rec.w);
+        let np = model.sampler.x;
+        let first = pass_u.misc.y == 1.0;
+        for (var k = 0u; k < np; k++) {
+            let w = work[pass_u.reg0.y + r * np + k];
+            let at = pass_u.reg1.z + r * np + k;
+            work[at] = select(max(work[at], w), w, first);
+        }
+    }
+}
+
+// Per ray: the deterministic inverse CDF of the padded histogram (msth-core `sample_pdf`),
+// S + 1 edges in s.
+@compute @workgroup_size(64)
+fn pass_resample(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let r = invocation(gid, groups);
+    if r < ray_count() {
+        let np = model.sampler.x;
+        let m_out = samples_per_ray() + 1u;
+        let rec = ray_rec(r);
+        var hist = pass_u.reg0.y + r * np;
+        if (pass_u.tile.z & FLAG_P_WMAX) != 0u {
+            hist = pass_u.reg1.z + r * np;
+        } else {
+            proposal_weights(r, rec.z, rec.w);
+        }
+        let out = pass_u.reg0.z + r * m_out;
+        let pad = model.limits.z;
+        var total = 0.0;
+        for (var k = 0u; k < np; k++) {
+            total += sanitize(work[hist + k]) + pad;
+        }
+        if !(total > 0.0 && total <= 3.40282346e38) {
+            for (var k = 0u; k < m_out; k++) {
+                work[out + k] = f32(k) / f32(max(m_out - 1u, 1u));
+            }
+        } else {
+            let inv = 1.0 / total;
+            var bin = 0u;
+            var cdf_lo = 0.0;
+            var cdf_hi = (sanitize(work[hist]) + pad) * inv;
+            var prev = 0.0;
+            for (var k = 0u; k < m_out; k++) {
+                let u = f32(k) / f32(max(m_out - 1u, 1u));
+                while u > cdf_hi && bin + 1u < np {
+                    bin += 1u;
+                    cdf_lo = cdf_hi;
+                    cdf_hi += (sanitize(work[hist + bin]) + pad) * inv;
+                }
+                let span = cdf_hi - cdf_lo;
+                var frac = 0.0;
+                if span > 0.0 {
+                    frac = clamp((u - cdf_lo) / span, 0.0, 1.0);
+                }
+                let e0 = f32(bin) / f32(np);
+                let e1 = f32(bin + 1u) / f32(np);
+                var s = e0 + frac * (e1 - e0);
+                if k > 0u && s < prev {
+                    s = prev;
+                }
+                work[out + k] = s;
+                prev = s;
+            }
+        }
+    }
+}
+
+fn store_density(j: u32, sigma: f32) {
+    work[pass_u.reg0.w + 4u * j + 3u] = sigma;
+    let geo = model.color.w;
+    for (var q = 0u; q < geo; q++) {
+        work[pass_u.reg1.x + j * geo + q] = dout[1u + q];
+    }
+}
+
+@compute @workgroup_size(64)
+fn pass_density(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let j = invocation(gid, groups);
+    let s = samples_per_ray();
+    if j < ray_count() * s {
+        let r = j / s;
+        let rec = ray_rec(r);
+        let iv = main_interval(r, j % s, rec.z, rec.w);
+        let o = view.c2w[3].xyz;
+        let d = pixel_ray_dir(ray_pixel(rec));
+        var m = 1.0;
+        let sigma = field_density(sample_point(o, d, iv.x, iv.y, field_time()), model.field.consts.y, &m);
+        store_density(j, sigma);
+    }
+}
+
+// Per (ray, sample) of the cache (time 0, as msth-player's sample cache): a sample whose dynamic
+// weight 1 - m is below the cutoff is static: its density and colour are evaluated once, with
+// the 4D lookup skipped; the others keep their point and are listed for every frame.
+@compute @workgroup_size(64)
+fn pass_build(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let j = invocation(gid, groups);
+    let s = samples_per_ray();
+    if j < ray_count() * s {
+        let r = j / s;
+        let rec = ray_rec(r);
+        let iv = main_interval(r, j % s, rec.z, rec.w);
+        let o = view.c2w[3].xyz;
+        let d = pixel_ray_dir(ray_pixel(rec));
+        let p = sample_point(o, d, iv.x, iv.y, 0.0);
+        let cutoff = pass_u.misc.x;
+        let e = model.field;
+        let blend = e.mode.x;
+        var is_dyn = blend == 2u || blend == 3u;
+        if blend <= 1u {
+            is_dyn = e.mode.y == 0u || 1.0 - mask_at(e, p.xyz) >= cutoff;
+        }
+        let at = pass_u.reg1.w + 4u * j;
+        work[at] = p.x;
+        work[at + 1u] = p.y;
+        work[at + 2u] = p.z;
+        work[at + 3u] = select(0.0, 1.0, is_dyn);
+        let sp = pass_u.reg0.w + 4u * j;
+        if is_dyn {
+            let slot = atomicAdd(&ctrl[2], 1u);
+            work[pass_u.reg2.x + slot] = bitcast<f32>(j);
+            work[sp] = 0.0;
+            work[sp + 1u] = 0.0;
+            work[sp + 2u] = 0.0;
+            work[sp + 3u] = 0.0;
+        } else {
+            var m = 1.0;
+            let sigma = field_density(p, cutoff, &m);
+            sh4(normalize(d));
+            let c = field_color();
+            work[sp] = c.x;
+            work[sp + 1u] = c.y;
+            work[sp + 2u] = c.z;
+            work[sp + 3u] = sigma;
+        }
+    }
+}
+
+// Per listed dynamic sample of the cache: density at the frame's time (the 4D lookup always).
+@compute @workgroup_size(64)
+fn pass_dynamic(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let i = invocation(gid, groups);
+    if i < atomicLoad(&ctrl[2]) {
+        let j = work_u(pass_u.reg2.x + i);
+        let at = pass_u.reg1.w + 4u * j;
+        let p = vec4<f32>(work[at], work[at + 1u], work[at + 2u], field_time());
+        var m = 1.0;
+        let sigma = field_density(p, 0.0, &m);
+        store_density(j, sigma);
+    }
+}
+
+// Per ray: the samples light still reaches (optical depth before them at most ln(1e4)) go to
+// the colour list; the others get colour 0, as in the CPU renderer. With the cache flag only
+// dynamic samples are considered (static ones keep their colour).
+@compute @workgroup_size(64)
+fn pass_visible(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let r = invocation(gid, groups);
+    if r < ray_count() {
+        let s = samples_per_ray();
+        let rec = ray_rec(r);
+        let cache = (pass_u.tile.z & FLAG_P_CACHE) != 0u;
+        var tau = 0.0;
+        var t0 = t_of_s(work[pass_u.reg0.z + r * (s + 1u)], rec.z, rec.w);
+        for (var k = 0u; k < s; k++) {
+            let j = r * s + k;
+            let t1 = t_of_s(work[pass_u.reg0.z + r * (s + 1u) + k + 1u], rec.z, rec.w);
+            let sp = pass_u.reg0.w + 4u * j;
+            let is_dyn = !cache || work[pass_u.reg1.w + 4u * j + 3u] == 1.0;
+            if is_dyn {
+                if tau <= TAU_HIDDEN {
+                    let slot = atomicAdd(&ctrl[1], 1u);
+                    work[pass_u.reg1.y + slot] = bitcast<f32>(j);
+                } else {
+                    work[sp] = 0.0;
+                    work[sp + 1u] = 0.0;
+                    work[sp + 2u] = 0.0;
+                }
+            }
+            tau += tau_of(work[sp + 3u], max(t1 - t0, 0.0));
+            t0 = t1;
+        }
+    }
+}
+
+@compute @workgroup_size(64)
+fn pass_color(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let i = invocation(gid, groups);
+    if i < atomicLoad(&ctrl[1]) {
+        let j = work_u(pass_u.reg1.y + i);
+        let r = j / samples_per_ray();
+        let rec = ray_rec(r);
+        sh4(normalize(pixel_ray_dir(ray_pixel(rec))));
+        let geo = model.color.w;
+        for (var q = 0u; q < geo; q++) {
+            dout[1u + q] = work[pass_u.reg1.x + j * geo + q];
+        }
+        let c = field_color();
+        let sp = pass_u.reg0.w + 4u * j;
+        work[sp] = c.x;
+        work[sp + 1u] = c.y;
+        work[sp + 2u] = c.z;
+    }
+}
+
+// Per ray: C = sum w_k c_k + T * background, and the visible depth, into frame[output index].
+@compute @workgroup_size(64)
+fn pass_composite(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let r = invocation(gid, groups);
+    if r < ray_count() {
+        let s = samples_per_ray();
+        let rec = ray_rec(r);
+        var rgb = vec3<f32>(0.0);
+        var last_rgb = vec3<f32>(0.0);
+        var tau_sum = 0.0;
+        var acc = 0.0;
+        var visible = -1.0;
+        let e = pass_u.reg0.z + r * (s + 1u);
+        var t0 = t_of_s(work[e], rec.z, rec.w);
+        var t1 = t0;
+        for (var k = 0u; k < s; k++) {
+            t1 = t_of_s(work[e + k + 1u], rec.z, rec.w);
+            let sp = pass_u.reg0.w + 4u * (r * s + k);
+            let c = vec3<f32>(work[sp], work[sp + 1u], work[sp + 2u]);
+            let tau = tau_of(work[sp + 3u], max(t1 - t0, 0.0));
+            let w = exp(-tau_sum) * -expm1(-tau);
+            tau_sum += tau;
+            rgb += w * c;
+            last_rgb = c;
+            acc += w;
+            if visible < 0.0 && 1.0 - acc < VISIBLE_TRANSMITTANCE {
+                visible = t1;
+            }
+            t0 = t1;
+        }
+        var bg = model.background.xyz;
+        if model.background.w == 0.0 {
+            bg = select(vec3<f32>(0.0), last_rgb, s > 0u);
+        }
+        rgb += exp(-tau_sum) * bg;
+        if visible < 0.0 {
+            visible = t1;
+        }
+        frame[bitcast<u32>(rec.x)] = vec4<f32>(rgb, visible);
     }
 }

@@ -349,10 +349,9 @@ fn encoding_u(
     })
 }
 
-/// Loop iterations one `render` invocation runs for `cfg` (every loop of `render.wgsl`, counted
-/// generously): Mesa's lavapipe stops all loops of an invocation after
-/// [`LAVAPIPE_LOOP_ITERATIONS`] in total, so larger models render wrongly there.
-pub fn loop_iterations_per_ray(cfg: &ModelConfig) -> u64 {
+/// Loop iterations of one field evaluation in the kernels, counted generously: the proposal
+/// density, the main density and the colour decoder.
+fn evaluation_loops(cfg: &ModelConfig) -> (u64, u64, u64) {
     let encode = |e: &msth_core::config::EncodingConfig, hidden: usize| -> u64 {
         let (use3, use4) = (e.blend.uses_h3(), e.blend.uses_h4());
         let g = if use3 { &e.grid3 } else { &e.grid4 };
@@ -362,8 +361,6 @@ pub fn loop_iterations_per_ray(cfg: &ModelConfig) -> u64 {
             9 + if use3 { grid(3) } else { 0 } + if use4 { grid(4) } else { 0 } + f + 1 + f * h + 1;
         8 + 3 + 2 * (h + 1) + levels * per_level + 1
     };
-    let s = &cfg.sampler;
-    let (np, nf) = (s.num_proposal_samples as u64, s.num_samples as u64);
     let proposal =
         encode(&cfg.proposal.encoding, cfg.proposal.hidden) + cfg.proposal.hidden as u64 + 1;
     let f = &cfg.field;
@@ -385,8 +382,31 @@ pub fn loop_iterations_per_ray(cfg: &ModelConfig) -> u64 {
         + hc
         + 1
         + dense(hc, 3);
+    (proposal, density, color)
+}
+
+/// Loop iterations one `render` invocation runs for `cfg` (every loop of `render.wgsl`, counted
+/// generously): Mesa's lavapipe stops all loops of an invocation after
+/// [`LAVAPIPE_LOOP_ITERATIONS`] in total, so larger models render wrongly there.
+pub fn loop_iterations_per_ray(cfg: &ModelConfig) -> u64 {
+    let (proposal, density, color) = evaluation_loops(cfg);
+    let s = &cfg.sampler;
+    let (np, nf) = (s.num_proposal_samples as u64, s.num_samples as u64);
     let sampling = 3 + np + 1 + np + 1 + 2 * (nf + 2) + np + nf + 1 + 16;
     np * proposal + nf * (density + color) + sampling
+}
+
+/// Loop iterations of the longest invocation of the per-sample passes for `cfg` (one sample's
+/// density and colour in `pass_build`; a ray's histogram and samples in `pass_resample`), with
+/// the sample cache's fixed samples up to `MAX_SAMPLES`: far below lavapipe's budget for every
+/// preset.
+pub fn loop_iterations_per_invocation(cfg: &ModelConfig) -> u64 {
+    let (proposal, density, color) = evaluation_loops(cfg);
+    let s = &cfg.sampler;
+    let np = s.num_proposal_samples as u64;
+    let samples = (s.num_samples.max(MAX_SAMPLES)) as u64 + 1;
+    let resample = 3 * np + 2 * samples + 8;
+    proposal.max(density + color + 16).max(resample)
 }
 
 /// Loop iterations Mesa's lavapipe (llvmpipe's `LP_MAX_TGSI_LOOP_ITERATIONS`) runs per
@@ -434,6 +454,22 @@ mod tests {
         small.sampler.num_proposal_samples = 12;
         small.sampler.num_samples = 6;
         assert!(loop_iterations_per_ray(&small) < LAVAPIPE_LOOP_ITERATIONS);
+        // The per-sample passes fit every preset.
+        for p in [
+            Preset::Fast,
+            Preset::Balanced,
+            Preset::Quality,
+            Preset::Paper,
+        ] {
+            let cfg = ModelConfig::preset(
+                p,
+                SceneBounds::dnerf_default(),
+                Background::Color { rgb: [1.0; 3] },
+                300,
+            );
+            let n = loop_iterations_per_invocation(&cfg);
+            assert!(n < LAVAPIPE_LOOP_ITERATIONS / 4, "{p:?}: {n}");
+        }
     }
 
     #[test]

@@ -1,8 +1,11 @@
 //! `msth-gpu`: every WGSL kernel of msth and its wgpu host code (Vulkan, Metal, DX12 natively;
 //! the browser runs the same render kernels through WebGPU).
 //!
-//! - [`render`]: the renderer's kernels (`shaders/render.wgsl`: one invocation per ray, and
-//!   `eval_points`), the device context that compiles them and one model's buffers on the device;
+//! - [`render`]: the renderer's kernels (`shaders/render.wgsl`: the per-sample passes, the older
+//!   one-invocation-per-ray `render`, and `eval_points`), the device context that compiles them
+//!   and one model's buffers on the device;
+//! - [`passes`]: rendering through per-sample passes over compacted work lists (frames, probes,
+//!   and the sample cache of incremental playback);
 //! - [`layout`]: the render kernels' uniforms and parameter-buffer split, byte for byte;
 //! - [`device`]: a compute device for the training kernels (f32 atomics when the adapter has
 //!   them), buffers, dispatches, read-back;
@@ -16,6 +19,19 @@
 //! A copy rather than the server handing out [`RENDER_WGSL`]: `web/` stays a self-contained
 //! static site (any static file server serves the page the same way as
 //! `msth serve --web web`), and the server need not link the GPU stack nor special-case one URL.
+//!
+//! # Render passes: buffer layout, and why
+//! A frame is rendered in batches; each batch is nine dispatches (ray setup, proposal per
+//! sample, resampling per ray, density per sample, visibility per ray, colour per visible
+//! sample, compositing per ray, and two that size the next dispatches from atomic counters:
+//! indirect dispatch, no host round trip). Every intermediate lives in one `work` buffer at
+//! word offsets given in a uniform ([`passes::regions`]): ray records, proposal densities,
+//! edges, per-sample `(r, g, b, sigma)` and geometry features, the colour list; samples
+//! ray-major. Why one buffer: every pass then binds the same 10 bindings (7 storage buffers,
+//! within WebGPU's default of 8 per stage, so the page runs the same WGSL), one bind group
+//! serves a whole batch, and neighbouring invocations read neighbouring samples of one ray
+//! (shared hash rows). Only the indirect sizes have their own buffer: one buffer may not be a
+//! storage binding and the indirect argument of the same dispatch.
 //!
 //! # Training kernels: per-sample passes
 //! No invocation loops over a ray. The encoding runs one invocation per (sample, level) pair
@@ -74,9 +90,11 @@ pub mod device;
 pub mod hashgrid;
 pub mod layout;
 pub mod mask;
+pub mod passes;
 pub mod render;
 
 pub use layout::{GpuModel, ViewU, FLAG_COMPACT, FLAG_LIST};
+pub use passes::{FrameScratch, GpuSampleCache, Pixels};
 pub use render::{
     AdapterPolicy, GpuContext, GpuError, GpuScene, Kernel, ALLOW_SOFTWARE_ENV, RENDER_WGSL,
 };

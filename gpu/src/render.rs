@@ -168,14 +168,18 @@ pub(crate) fn pick_adapter(policy: AdapterPolicy) -> Result<wgpu::Adapter, GpuEr
 
 /// An open device with the compiled kernels.
 pub struct GpuContext {
-    device: wgpu::Device,
-    queue: wgpu::Queue,
+    pub(crate) device: wgpu::Device,
+    pub(crate) queue: wgpu::Queue,
     info: wgpu::AdapterInfo,
-    limits: wgpu::Limits,
-    layout: wgpu::BindGroupLayout,
+    pub(crate) limits: wgpu::Limits,
+    pub(crate) layout: wgpu::BindGroupLayout,
     render: wgpu::ComputePipeline,
     eval: wgpu::ComputePipeline,
-    state: Arc<Mutex<DeviceState>>,
+    /// The per-sample passes' pipelines ([`crate::passes`]).
+    pub(crate) passes: crate::passes::Pipelines,
+    /// Bound at bindings 7-9 by the per-ray kernels, which use none of them.
+    pub(crate) placeholders: crate::passes::Placeholders,
+    pub(crate) state: Arc<Mutex<DeviceState>>,
 }
 
 impl std::fmt::Debug for GpuContext {
@@ -256,6 +260,9 @@ impl GpuContext {
                 storage(4, true),
                 storage(5, true),
                 storage(6, false),
+                storage(7, false),
+                storage(8, false),
+                uniform(9),
             ],
         });
         let pl = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
@@ -275,9 +282,11 @@ impl GpuContext {
         };
         let render = pipeline("render");
         let eval = pipeline("eval_points");
+        let passes = crate::passes::Pipelines::new(pipeline);
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(GpuError::Shader(e.to_string()));
         }
+        let placeholders = crate::passes::Placeholders::new(&device);
         Ok(GpuContext {
             device,
             queue,
@@ -286,6 +295,8 @@ impl GpuContext {
             layout,
             render,
             eval,
+            passes,
+            placeholders,
             state,
         })
     }
@@ -334,7 +345,7 @@ impl GpuContext {
     }
 
     /// Fails with what the device reported since the last check (lost device, validation).
-    fn check_state(&self) -> Result<(), GpuError> {
+    pub(crate) fn check_state(&self) -> Result<(), GpuError> {
         check_state(&self.state)
     }
 
@@ -412,6 +423,9 @@ impl GpuContext {
             scene.rest.as_entire_binding(),
             list.as_entire_binding(),
             out.as_entire_binding(),
+            self.placeholders.work.as_entire_binding(),
+            self.placeholders.ctrl.as_entire_binding(),
+            self.placeholders.pass.as_entire_binding(),
         ];
         let entries: Vec<wgpu::BindGroupEntry> = entries
             .into_iter()
@@ -447,7 +461,7 @@ impl GpuContext {
         self.check_state()
     }
 
-    fn wait(&self) -> Result<(), GpuError> {
+    pub(crate) fn wait(&self) -> Result<(), GpuError> {
         self.device
             .poll(wgpu::PollType::wait_indefinitely())
             .map(|_| ())
@@ -503,10 +517,10 @@ impl GpuContext {
 /// One model on the device: its `Model` uniform and the three parameter buffers.
 pub struct GpuScene {
     pub gpu_model: GpuModel,
-    model: wgpu::Buffer,
-    tab3: wgpu::Buffer,
-    tab4: wgpu::Buffer,
-    rest: wgpu::Buffer,
+    pub(crate) model: wgpu::Buffer,
+    pub(crate) tab3: wgpu::Buffer,
+    pub(crate) tab4: wgpu::Buffer,
+    pub(crate) rest: wgpu::Buffer,
     /// The parameters last uploaded (to notice a new chunk).
     uploaded: Vec<f32>,
 }

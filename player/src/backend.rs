@@ -98,7 +98,7 @@ impl FrameRenderer {
     }
 
     /// Renders one frame, the probes of the static test using `params_at` (see
-    /// [`Renderer::render_probing`]). The GPU renderer's probes use `params`.
+    /// [`Renderer::render_probing`]), on either backend.
     pub fn render_probing(
         &mut self,
         camera: &Camera,
@@ -108,7 +108,7 @@ impl FrameRenderer {
     ) -> Result<Frame, GpuError> {
         match self {
             FrameRenderer::Cpu(r) => Ok(r.render_probing(camera, time, params, params_at)),
-            FrameRenderer::Gpu(r) => r.render(camera, time, params),
+            FrameRenderer::Gpu(r) => r.render_probing(camera, time, params, params_at),
         }
     }
 

@@ -5,7 +5,7 @@
 mod renderer;
 
 pub use msth_gpu::{
-    layout, AdapterPolicy, GpuContext, GpuError, GpuModel, GpuScene, Kernel, ViewU,
-    ALLOW_SOFTWARE_ENV, FLAG_COMPACT, FLAG_LIST, RENDER_WGSL,
+    layout, AdapterPolicy, FrameScratch, GpuContext, GpuError, GpuModel, GpuSampleCache, GpuScene,
+    Kernel, Pixels, ViewU, ALLOW_SOFTWARE_ENV, FLAG_COMPACT, FLAG_LIST, RENDER_WGSL,
 };
-pub use renderer::GpuRenderer;
+pub use renderer::{GpuKernels, GpuRenderer};

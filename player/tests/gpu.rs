@@ -14,8 +14,8 @@ use msth_core::rng::Rng;
 use msth_core::sh::{sh4, SH_COEFFS};
 use msth_core::{Camera, SceneBounds};
 use msth_player::gpu::{
-    AdapterPolicy, GpuContext, GpuError, GpuModel, GpuRenderer, GpuScene, Kernel, ViewU,
-    FLAG_COMPACT,
+    AdapterPolicy, GpuContext, GpuError, GpuKernels, GpuModel, GpuRenderer, GpuScene, Kernel,
+    ViewU, FLAG_COMPACT,
 };
 use msth_player::{Frame, RenderSettings, Renderer, Reuse};
 use msth_testkit::{Need, Skip, Tests};
@@ -51,6 +51,26 @@ fn main() -> std::process::ExitCode {
             &[&gpu],
             "gpu_frames_match_cpu_frames_full_and_incremental",
             gpu_frames_match_cpu_frames_full_and_incremental,
+        )
+        .needs(
+            &[&gpu],
+            "per_ray_and_per_sample_kernels_render_the_same_frames",
+            per_ray_and_per_sample_kernels_render_the_same_frames,
+        )
+        .needs(
+            &[&gpu],
+            "gpu_sample_reuse_matches_cpu_sample_reuse",
+            gpu_sample_reuse_matches_cpu_sample_reuse,
+        )
+        .needs(
+            &[&gpu],
+            "balanced_preset_frames_match_the_cpu_full_and_incremental",
+            balanced_preset_frames_match_the_cpu_full_and_incremental,
+        )
+        .needs(
+            &[&gpu],
+            "probes_render_with_the_parameters_of_their_time_on_the_gpu",
+            probes_render_with_the_parameters_of_their_time_on_the_gpu,
         )
         .run()
 }
@@ -245,10 +265,12 @@ fn models_beyond_lavapipes_loop_budget_are_clear_errors_there() -> Result<(), Sk
         Background::Color { rgb: [1.0; 3] },
         10,
     );
-    let e = GpuRenderer::new(ctx, &cfg, RenderSettings::default())
+    let e = GpuRenderer::with_kernels(ctx, &cfg, RenderSettings::default(), GpuKernels::PerRay)
         .err()
-        .expect("a preset model exceeds lavapipe's loop budget");
+        .expect("a preset model exceeds lavapipe's loop budget with the per-ray kernel");
     assert!(e.to_string().contains("loop iterations"), "{e}");
+    // The per-sample passes take it.
+    GpuRenderer::new(context(), &cfg, RenderSettings::default()).unwrap();
     Ok(())
 }
 
@@ -362,4 +384,210 @@ fn gpu_frames_match_cpu_frames_full_and_incremental() {
         let e = gpu.render(&cam, 0.5, &p2[1..]).err().unwrap();
         assert!(e.to_string().contains("parameter buffer"), "{e}");
     }
+}
+
+/// PSNR (dB) of two frames.
+fn psnr(a: &Frame, b: &Frame) -> f64 {
+    let mse = a
+        .rgb
+        .iter()
+        .zip(&b.rgb)
+        .map(|(x, y)| ((x - y) as f64).powi(2))
+        .sum::<f64>()
+        / a.rgb.len().max(1) as f64;
+    -10.0 * mse.max(1e-20).log10()
+}
+
+/// A model whose mask is dynamic around the centre of the scene and static elsewhere.
+fn centre_dynamic(cfg: &ModelConfig, params: &mut [f32]) {
+    let layout = ModelLayout::new(cfg);
+    let (grid, r) = layout.field.encoding.mask.clone().unwrap();
+    let res = grid.res;
+    for (k, v) in params[r].iter_mut().enumerate() {
+        let (x, y, z) = (k % res, (k / res) % res, k / (res * res));
+        let centre = |c: usize| (res / 3..=2 * res / 3).contains(&c);
+        *v = if centre(x) && centre(y) && centre(z) {
+            -3.0
+        } else {
+            9.0
+        };
+    }
+}
+
+fn test_camera(w: u32, h: u32) -> Camera {
+    Camera::look_at(
+        w,
+        h,
+        0.9,
+        glam::Vec3::new(0.3, -3.5, 1.2),
+        glam::Vec3::ZERO,
+        glam::Vec3::Z,
+    )
+}
+
+/// The per-ray kernel and the per-sample passes evaluate the same field at the same samples:
+/// full frames agree to float rounding, for both scene kinds and backgrounds.
+fn per_ray_and_per_sample_kernels_render_the_same_frames() {
+    for (bounds, background) in [
+        (
+            SceneBounds::dnerf_default(),
+            Background::Color { rgb: [1.0; 3] },
+        ),
+        (
+            SceneBounds::Contracted {
+                center: glam::Vec3::ZERO,
+                radius: 1.0,
+            },
+            Background::LastSample,
+        ),
+    ] {
+        let mut cfg = config(BlendMode::Mst);
+        cfg.bounds = bounds;
+        cfg.background = background;
+        small(&mut cfg);
+        let layout = ModelLayout::new(&cfg);
+        let params = random_params(&layout, 11);
+        let settings = RenderSettings {
+            incremental: false,
+            ..Default::default()
+        };
+        let mut a =
+            GpuRenderer::with_kernels(context(), &cfg, settings, GpuKernels::PerRay).unwrap();
+        let mut b = GpuRenderer::new(context(), &cfg, settings).unwrap();
+        let cam = test_camera(33, 21);
+        for t in [0.0, 0.6] {
+            let fa = a.render(&cam, t, &params).unwrap();
+            let fb = b.render(&cam, t, &params).unwrap();
+            let d = max_diff(&fa, &fb);
+            assert!(d < 1e-4, "{bounds:?} t = {t}: {d}");
+        }
+    }
+}
+
+/// Sample-level reuse on the device follows the CPU renderer's: the same classification, the
+/// same fixed samples, the same static/dynamic split; frames within float rounding of the CPU's
+/// incremental frames and close to full renders.
+fn gpu_sample_reuse_matches_cpu_sample_reuse() {
+    let mut cfg = config(BlendMode::Mt);
+    small(&mut cfg);
+    let layout = ModelLayout::new(&cfg);
+    let mut params = random_params(&layout, 5);
+    centre_dynamic(&cfg, &mut params);
+    let settings = RenderSettings {
+        probes: 0,
+        ..Default::default()
+    };
+    assert_eq!(settings.reuse, Reuse::Samples);
+    let mut cpu = Renderer::new(&cfg, settings);
+    let mut gpu = GpuRenderer::new(context(), &cfg, settings).unwrap();
+    let mut full = Renderer::new(
+        &cfg,
+        RenderSettings {
+            incremental: false,
+            ..settings
+        },
+    );
+    let cam = test_camera(40, 30);
+    let first = full.render(&cam, 0.0, &params);
+    for (i, t) in [0.0f32, 0.3, 0.9].into_iter().enumerate() {
+        let a = cpu.render(&cam, t, &params);
+        let b = gpu.render(&cam, t, &params).unwrap();
+        assert_eq!(a.stats.full, i == 0);
+        assert_eq!(b.stats.full, i == 0);
+        assert_eq!(a.stats.rays_rendered, b.stats.rays_rendered, "frame {i}");
+        let d = max_diff(&a, &b);
+        let g = full.render(&cam, t, &params);
+        println!(
+            "frame {i}: GPU vs CPU incremental max {d:.2e}, {:.1} dB; vs CPU full {:.1} dB; {} samples evaluated (CPU {})",
+            psnr(&a, &b),
+            psnr(&b, &g),
+            b.stats.samples_evaluated,
+            a.stats.samples_evaluated
+        );
+        assert!(d < 2e-3, "frame {i}: max difference {d}");
+        assert!(psnr(&b, &g) >= 40.0, "frame {i}: {:.1} dB", psnr(&b, &g));
+        if i > 0 {
+            assert_eq!(a.stats.samples_evaluated, b.stats.samples_evaluated);
+            assert!(b.stats.samples_evaluated > 0);
+            // The frame does move with time, and the incremental frame follows it.
+            assert!(max_diff(&first, &g) > 5e-3);
+        }
+    }
+    let f = gpu.dynamic_fraction().unwrap();
+    assert!(f > 0.0 && f < 1.0, "dynamic fraction {f}");
+}
+
+/// A `balanced`-preset model (which the per-ray kernel cannot render on lavapipe): full and
+/// incremental GPU frames against the CPU renderer's.
+fn balanced_preset_frames_match_the_cpu_full_and_incremental() {
+    let cfg = ModelConfig::preset(
+        Preset::Balanced,
+        SceneBounds::dnerf_default(),
+        Background::Color { rgb: [1.0; 3] },
+        30,
+    );
+    let layout = ModelLayout::new(&cfg);
+    let mut params = random_params(&layout, 3);
+    centre_dynamic(&cfg, &mut params);
+    let cam = test_camera(32, 24);
+    for reuse in [Reuse::Rays, Reuse::Samples] {
+        let settings = RenderSettings {
+            probes: 0,
+            reuse,
+            ..Default::default()
+        };
+        let mut cpu = Renderer::new(&cfg, settings);
+        let mut gpu = GpuRenderer::new(context(), &cfg, settings).unwrap();
+        for (i, t) in [0.0f32, 0.5, 1.0].into_iter().enumerate() {
+            let a = cpu.render(&cam, t, &params);
+            let b = gpu.render(&cam, t, &params).unwrap();
+            assert_eq!(b.stats.full, i == 0);
+            let p = psnr(&a, &b);
+            println!(
+                "balanced {reuse:?} frame {i}: {p:.1} dB, max {:.2e}, {} rays rendered, {} samples",
+                max_diff(&a, &b),
+                b.stats.rays_rendered,
+                b.stats.samples_evaluated
+            );
+            assert!(p >= 40.0, "{reuse:?} frame {i}: {p:.1} dB");
+            assert_eq!(a.stats.rays_rendered, b.stats.rays_rendered);
+        }
+    }
+}
+
+/// Probes render with the parameters of their own time (a file streamed in chunks): a still
+/// first chunk caches every ray; another chunk's table at the probe times makes rays dynamic.
+fn probes_render_with_the_parameters_of_their_time_on_the_gpu() {
+    let mut cfg = config(BlendMode::Mt);
+    small(&mut cfg);
+    let layout = ModelLayout::new(&cfg);
+    let mut params = random_params(&layout, 8);
+    let (_, r) = layout.field.encoding.mask.clone().unwrap();
+    params[r].fill(3.0);
+    // Nothing depends on time in this chunk: no 4D features in the field or the proposal.
+    let p4 = layout.params.get("proposal.h4").unwrap().range();
+    params[p4].fill(0.0);
+    let (_, h4) = layout.field.encoding.h4.clone().unwrap();
+    params[h4.clone()].fill(0.0);
+    let mut other = params.clone();
+    let mut rng = Rng::new(4);
+    for v in &mut other[h4] {
+        *v = rng.range_f32(-3.0, 3.0);
+    }
+    let settings = RenderSettings {
+        reuse: Reuse::Rays,
+        probe_tolerance: 1.0 / 255.0,
+        ..Default::default()
+    };
+    let cam = test_camera(24, 16);
+    let second = |provider: &mut dyn FnMut(f32) -> Option<Vec<f32>>| {
+        let mut g = GpuRenderer::new(context(), &cfg, settings).unwrap();
+        g.render(&cam, 0.0, &params).unwrap();
+        g.render_probing(&cam, 0.0, &params, provider)
+            .unwrap()
+            .stats
+    };
+    assert_eq!(second(&mut |_| None).rays_rendered, 0);
+    let chunked = second(&mut |t| (t > 0.0).then(|| other.clone()));
+    assert!(chunked.rays_rendered > 0, "probes ignored the other chunk");
 }

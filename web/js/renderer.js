@@ -4,7 +4,14 @@
 // the browser's host side of its bindings, a port of `gpu/src/layout.rs` as documented in
 // `shaders/README.md`: the `Model` uniform (6496 bytes), the `View` uniform (112 bytes), the
 // split of the flat parameter buffer into `tab3` (field.h3), `tab4` (field.h4) and `rest`
-// (everything after them), and the `render` entry point's 2D dispatch of 64-wide workgroups.
+// (everything after them), and the 2D dispatch of 64-wide workgroups.
+//
+// Frames are rendered through the per-sample passes (`pass_*` entry points; the host side of
+// `gpu/src/passes.rs`, documented in `shaders/README.md`): per batch of pixels, ray setup,
+// proposal densities per sample, resampling per ray, main-field density per sample, visibility
+// per ray, colour per visible sample and compositing per ray, each a dispatch over a compacted
+// list sized on the GPU (indirect dispatch). `?kernel=ray` on the page's URL selects the older
+// one-invocation-per-ray `render` kernel instead (for timing comparisons).
 //
 // The kernel writes (r, g, b, depth) per pixel to a storage buffer; a small display pass (below,
 // not part of the renderer: it only copies that buffer to the canvas, clamped to [0, 1]) draws it.
@@ -22,6 +29,34 @@ const MAX_GEO = 31;
 /** msth-core `pipeline::RENDER_STATIC_CUTOFF`. */
 const RENDER_STATIC_CUTOFF = 1e-3;
 const BLEND = { mst: 0, mt: 1, add: 2, four_d: 3, static: 4 };
+
+/** Scratch memory one batch of rays may take (gpu/src/passes.rs `FRAME_WORK_BYTES`). */
+const FRAME_WORK_BYTES = 128 << 20;
+/** Byte offsets of the indirect dispatch sizes `pass_args` writes (passes.rs `ARGS_*`). */
+const ARGS = { proposal: 0, rays: 12, samples: 24, color: 36, dynamic: 48, bytes: 64 };
+/** `Pass` uniform bytes (passes.rs `PassU`). */
+const PASS_BYTES = 80;
+const PASS_ENTRIES = ["pass_setup", "pass_args", "pass_proposal", "pass_resample", "pass_density", "pass_visible", "pass_color", "pass_composite"];
+
+/**
+ * Word offsets of the `work` regions for `rays` rays of `samples` samples (passes.rs `regions`,
+ * frame batches): rays, hist, edges, samp, geo, clist; and the words they take.
+ */
+export function passRegions(np, geo, rays, samples) {
+  let at = 0;
+  const take = (words) => {
+    const o = at;
+    at += Math.ceil(words / 4) * 4;
+    return o;
+  };
+  const r = [take(4 * rays), take(np * rays), take((samples + 1) * rays), take(4 * samples * rays), take(geo * samples * rays), take(samples * rays)];
+  return { offsets: r, words: Math.max(at, 4) };
+}
+
+/** Words of `work` per ray of a frame batch (passes.rs `words_per_ray`). */
+function wordsPerRay(np, geo, samples) {
+  return 4 + np + (samples + 1) + samples * (4 + geo + 1) + 16;
+}
 
 /** The browser has no usable WebGPU (the page says so instead of rendering). */
 export class NoWebGpu extends Error {}
@@ -172,26 +207,44 @@ export class Renderer {
   async create(canvas, cfg, layout) {
     const device = this.device;
     const { uniform, split } = gpuModel(cfg, layout);
+    const perRay = typeof location !== "undefined" && new URLSearchParams(location.search).get("kernel") === "ray";
     device.pushErrorScope("validation");
     const module = device.createShaderModule({ code: this.source, label: "render.wgsl" });
     const info = await module.getCompilationInfo();
     const errors = info.messages.filter((m) => m.type === "error");
     if (errors.length) throw new Error(`render.wgsl: ${errors.map((m) => `${m.lineNum}:${m.linePos} ${m.message}`).join("; ")}`);
-    const pipeline = await device.createComputePipelineAsync({ layout: "auto", compute: { module, entryPoint: "render" } });
+    // One explicit layout for every entry point (web/shaders/README.md, "Bindings").
+    const C = GPUShaderStage.COMPUTE;
+    const kinds = ["uniform", "uniform", "read-only-storage", "read-only-storage", "read-only-storage", "read-only-storage", "storage", "storage", "storage", "uniform"];
+    const bindLayout = device.createBindGroupLayout({
+      label: "msth render bindings",
+      entries: kinds.map((type, binding) => ({ binding, visibility: C, buffer: { type } })),
+    });
+    const pl = device.createPipelineLayout({ bindGroupLayouts: [bindLayout] });
+    const make = (entryPoint) => device.createComputePipelineAsync({ layout: pl, compute: { module, entryPoint } });
+    const pipelines = {};
+    const names = perRay ? ["render"] : PASS_ENTRIES;
+    const made = await Promise.all(names.map(make));
+    names.forEach((n, i) => (pipelines[n] = made[i]));
     const err = await device.popErrorScope();
     if (err) throw new Error(`render.wgsl: ${err.message}`);
-    return new GpuScene(this, canvas, pipeline, uniform, split);
+    return new GpuScene(this, canvas, { layout: bindLayout, pipelines, perRay }, uniform, split, cfg);
   }
 }
 
 class GpuScene {
-  constructor(r, canvas, pipeline, modelUniform, split) {
+  constructor(r, canvas, kernels, modelUniform, split, cfg) {
     const device = r.device;
     this.r = r;
     this.device = device;
     this.canvas = canvas;
-    this.pipeline = pipeline;
+    this.kernels = kernels;
+    /** `"passes"` (per-sample passes) or `"ray"` (one invocation per ray). */
+    this.kernel = kernels.perRay ? "ray" : "passes";
     this.split = split;
+    this.np = cfg.sampler.num_proposal_samples;
+    this.samples = cfg.sampler.num_samples;
+    this.geo = cfg.field.geo_features;
     const limit = device.limits.maxStorageBufferBindingSize;
     const buffer = (bytes, usage, label) => {
       if (bytes > limit) throw new Error(`${label} needs ${bytes} bytes, more than this GPU's storage buffer limit ${limit}`);
@@ -206,6 +259,14 @@ class GpuScene {
     device.queue.writeBuffer(this.model, 0, modelUniform);
     this.view = device.createBuffer({ size: VIEW_BYTES, usage: GPUBufferUsage.UNIFORM | GPUBufferUsage.COPY_DST, label: "View" });
     this.size = device.createBuffer({ size: 8, usage: GPUBufferUsage.UNIFORM | GPUBufferUsage.COPY_DST, label: "display size" });
+    this.pass = device.createBuffer({ size: PASS_BYTES, usage: GPUBufferUsage.UNIFORM | GPUBufferUsage.COPY_DST, label: "Pass" });
+    const small = (usage, label) => device.createBuffer({ size: ARGS.bytes, usage, label });
+    this.ctrl = small(GPUBufferUsage.STORAGE | GPUBufferUsage.COPY_DST, "pass counters");
+    this.args = small(GPUBufferUsage.STORAGE | GPUBufferUsage.INDIRECT, "pass dispatch sizes");
+    this.noList = small(GPUBufferUsage.STORAGE, "no list");
+    this.noWork = small(GPUBufferUsage.STORAGE, "no work");
+    this.noCtrl = small(GPUBufferUsage.STORAGE, "no counters");
+    this.storageLimit = limit;
     this.context = canvas.getContext("webgpu");
     this.format = navigator.gpu.getPreferredCanvasFormat();
     this.context.configure({ device, format: this.format, alphaMode: "opaque" });
@@ -217,8 +278,10 @@ class GpuScene {
       primitive: { topology: "triangle-list" },
     });
     this.frameSize = null;
-    /** Rays per dispatch (adapted after each). */
+    /** Rays per batch (adapted after each). */
     this.tile = 4096;
+    this.work = null;
+    this.capacity = 0;
   }
 
   #ensureFrame(w, h) {
@@ -230,11 +293,25 @@ class GpuScene {
     this.frame = device.createBuffer({ size: bytes, usage: GPUBufferUsage.STORAGE | GPUBufferUsage.COPY_SRC, label: "frame" });
     this.readback = device.createBuffer({ size: bytes, usage: GPUBufferUsage.MAP_READ | GPUBufferUsage.COPY_DST, label: "readback" });
     this.order?.destroy();
-    // The pixel list of the tiles: 0, 1, ..., w * h - 1 (each tile binds its part).
-    this.order = device.createBuffer({ size: 4 * w * h, usage: GPUBufferUsage.STORAGE, mappedAtCreation: true, label: "pixel order" });
-    const ids = new Uint32Array(this.order.getMappedRange());
-    for (let i = 0; i < ids.length; i++) ids[i] = i;
-    this.order.unmap();
+    this.order = null;
+    this.work?.destroy();
+    this.work = null;
+    if (this.kernels.perRay) {
+      // The pixel list of the tiles: 0, 1, ..., w * h - 1 (each tile binds its part).
+      this.order = device.createBuffer({ size: 4 * w * h, usage: GPUBufferUsage.STORAGE, mappedAtCreation: true, label: "pixel order" });
+      const ids = new Uint32Array(this.order.getMappedRange());
+      for (let i = 0; i < ids.length; i++) ids[i] = i;
+      this.order.unmap();
+    } else {
+      // Scratch of one batch: as many rays as fit FRAME_WORK_BYTES and the binding limit.
+      const perRay = 4 * wordsPerRay(this.np, this.geo, this.samples);
+      const fit = Math.floor(Math.min(FRAME_WORK_BYTES, this.storageLimit) / perRay);
+      if (fit < 1) throw new Error(`one ray's scratch needs ${perRay} bytes, more than this GPU's storage buffer limit ${this.storageLimit}`);
+      this.capacity = Math.min(w * h, fit);
+      const reg = passRegions(this.np, this.geo, this.capacity, this.samples);
+      this.regions = reg.offsets;
+      this.work = device.createBuffer({ size: 4 * reg.words, usage: GPUBufferUsage.STORAGE, label: "work" });
+    }
     device.queue.writeBuffer(this.size, 0, new Uint32Array([w, h]));
     this.displayBind = device.createBindGroup({
       layout: this.display.getBindGroupLayout(0),
@@ -244,6 +321,7 @@ class GpuScene {
       ],
     });
     this.frameSize = [w, h];
+    this.groups = null;
     if (this.canvas.width !== w || this.canvas.height !== h) {
       this.canvas.width = w;
       this.canvas.height = h;
@@ -275,6 +353,79 @@ class GpuScene {
     if (this.r.lost) throw new Error(this.r.lost);
     const { width: w, height: h } = cam;
     this.#ensureFrame(w, h);
+    return this.kernels.perRay ? this.#renderPerRay(cam, t, abort) : this.#renderPasses(cam, t, abort);
+  }
+
+  /** Bind groups of the passes: `main` (work at binding 7) and `args` (the dispatch sizes there). */
+  #passGroups() {
+    if (this.groups) return this.groups;
+    const group = (work) =>
+      this.device.createBindGroup({
+        layout: this.kernels.layout,
+        entries: [this.model, this.view, this.tab3, this.tab4, this.rest, this.noList, this.frame, work, this.ctrl, this.pass].map((buffer, binding) => ({ binding, resource: { buffer } })),
+      });
+    this.groups = { main: group(this.work), args: group(this.args) };
+    return this.groups;
+  }
+
+  async #renderPasses(cam, t, abort) {
+    const [w, h] = this.frameSize;
+    const n = w * h;
+    const device = this.device;
+    const p = this.kernels.pipelines;
+    const { main, args } = this.#passGroups();
+    const maxDim = device.limits.maxComputeWorkgroupsPerDimension;
+    device.queue.writeBuffer(this.view, 0, viewUniform(cam, t, n, 0));
+    for (let start = 0; start < n; ) {
+      const count = Math.min(this.tile, this.capacity, n - start);
+      const groups = dispatchSize(count, maxDim);
+      if (!groups) throw new Error(`${count} rays exceed this GPU's dispatch limits`);
+      const pass = new ArrayBuffer(PASS_BYTES);
+      new Uint32Array(pass, 0, 12).set([start, count, 0, this.samples, ...this.regions, 0, 0]);
+      device.queue.writeBuffer(this.pass, 0, pass);
+      device.pushErrorScope("validation");
+      const enc = device.createCommandEncoder();
+      enc.clearBuffer(this.ctrl);
+      const cp = enc.beginComputePass();
+      cp.setBindGroup(0, main);
+      cp.setPipeline(p.pass_setup);
+      cp.dispatchWorkgroups(groups[0], groups[1], 1);
+      const sizes = () => {
+        cp.setBindGroup(0, args);
+        cp.setPipeline(p.pass_args);
+        cp.dispatchWorkgroups(1);
+        cp.setBindGroup(0, main);
+      };
+      const indirect = (name, at) => {
+        cp.setPipeline(p[name]);
+        cp.dispatchWorkgroupsIndirect(this.args, at);
+      };
+      sizes();
+      indirect("pass_proposal", ARGS.proposal);
+      indirect("pass_resample", ARGS.rays);
+      indirect("pass_density", ARGS.samples);
+      indirect("pass_visible", ARGS.rays);
+      sizes();
+      indirect("pass_color", ARGS.color);
+      indirect("pass_composite", ARGS.rays);
+      cp.end();
+      this.#present(enc);
+      const t0 = performance.now();
+      device.queue.submit([enc.finish()]);
+      const err = await device.popErrorScope();
+      if (err) throw new Error(`render: ${err.message}`);
+      await device.queue.onSubmittedWorkDone();
+      const ms = Math.max(performance.now() - t0, 0.1);
+      // The next batches aim at ~50 ms each.
+      this.tile = Math.min(1 << 22, Math.max(64, Math.round((count * 50) / ms / 64) * 64));
+      start += count;
+      if (start < n && abort()) return false;
+    }
+    return true;
+  }
+
+  async #renderPerRay(cam, t, abort) {
+    const [w, h] = this.frameSize;
     const n = w * h;
     const device = this.device;
     const maxDim = device.limits.maxComputeWorkgroupsPerDimension;
@@ -285,15 +436,15 @@ class GpuScene {
       device.queue.writeBuffer(this.view, 0, viewUniform(cam, t, count, FLAG_LIST));
       device.pushErrorScope("validation");
       const bind = device.createBindGroup({
-        layout: this.pipeline.getBindGroupLayout(0),
-        entries: [this.model, this.view, this.tab3, this.tab4, this.rest, this.order, this.frame].map((buffer, binding) => ({
+        layout: this.kernels.layout,
+        entries: [this.model, this.view, this.tab3, this.tab4, this.rest, this.order, this.frame, this.noWork, this.noCtrl, this.pass].map((buffer, binding) => ({
           binding,
           resource: binding === 5 ? { buffer, offset: 4 * start, size: 4 * count } : { buffer },
         })),
       });
       const enc = device.createCommandEncoder();
       const pass = enc.beginComputePass();
-      pass.setPipeline(this.pipeline);
+      pass.setPipeline(this.kernels.pipelines.render);
       pass.setBindGroup(0, bind);
       pass.dispatchWorkgroups(groups[0], groups[1], 1);
       pass.end();

@@ -1,10 +1,17 @@
-//! The GPU counterpart of [`crate::render::Renderer`]: the same frames, the same static-ray cache.
+//! The GPU counterpart of [`crate::render::Renderer`]: the same frames, the same static-ray cache,
+//! the same sample-level reuse.
 //!
 //! A full frame renders every pixel on the device into a frame buffer that stays there
-//! (`(r, g, b, visible depth)` per pixel). The second frame of a fixed camera classifies the first
-//! frame's rays with [`classify_static`] (the CPU renderer's mask test, with the probes rendered on
-//! the device), uploads the compacted list of dynamic pixels, and from then on each frame renders
-//! only those pixels' rays into the cached frame buffer, which is read back whole.
+//! (`(r, g, b, visible depth)` per pixel), through the per-sample passes of `msth-gpu`
+//! ([`GpuKernels::PerSample`], the default) or the older one-invocation-per-ray kernel
+//! ([`GpuKernels::PerRay`], kept for comparison: `msth bench play --gpu` and
+//! `gpu/examples/bench_render.rs` time both). The second frame of a fixed camera classifies
+//! the first frame's rays with [`classify_static`] (the CPU renderer's mask test, then probes
+//! rendered on the device, each with the parameters of its own time), uploads the compacted
+//! list of dynamic pixels, and, with [`Reuse::Samples`], builds the device's sample cache of
+//! those rays ([`GpuSampleCache`]: fixed samples over the clip, static samples evaluated once).
+//! From then on each frame evaluates only the dynamic samples (or, with [`Reuse::Rays`], the
+//! dynamic pixels' whole rays) into the cached frame buffer, which is read back whole.
 
 use std::time::Instant;
 
@@ -12,9 +19,24 @@ use msth_core::config::{Background, ModelConfig};
 use msth_core::field::ModelLayout;
 use msth_core::pipeline::{ray_limits, TimedRay};
 use msth_core::Camera;
+use msth_gpu::passes::FrameScratch;
+use msth_gpu::{GpuSampleCache, Pixels};
 
 use super::{GpuContext, GpuError, GpuModel, GpuScene, Kernel, ViewU, FLAG_COMPACT, FLAG_LIST};
-use crate::render::{classify_static, Frame, FrameStats, RenderSettings};
+use crate::render::{
+    classify_static, partition_samples, partition_times, Frame, FrameStats, RenderSettings, Reuse,
+};
+
+/// Which kernels render rays.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum GpuKernels {
+    /// Per-sample passes over compacted work lists (`msth_gpu::passes`).
+    #[default]
+    PerSample,
+    /// The `render` kernel: one invocation loops over a whole ray (the renderer before #17;
+    /// refused on lavapipe for models beyond its loop budget).
+    PerRay,
+}
 
 struct Pending {
     pixels: Vec<u32>,
@@ -31,6 +53,8 @@ struct Cache {
     /// Pixels re-rendered every frame, on the host and on the device.
     dynamic: Vec<u32>,
     dynamic_buf: Option<wgpu::Buffer>,
+    /// Sample-level reuse of the dynamic pixels ([`Reuse::Samples`]).
+    samples: Option<GpuSampleCache>,
     pending: Option<Pending>,
 }
 
@@ -40,28 +64,51 @@ pub struct GpuRenderer {
     cfg: ModelConfig,
     layout: ModelLayout,
     settings: RenderSettings,
+    kernels: GpuKernels,
     gpu_model: GpuModel,
     scene: Option<GpuScene>,
     /// Per-pixel output, and how many pixels it holds.
     frame: Option<(wgpu::Buffer, usize)>,
+    /// The passes' scratch, and the pixel count it was made for.
+    scratch: Option<(FrameScratch, usize)>,
     /// Bound as `list` when a dispatch reads none.
     no_list: wgpu::Buffer,
     cache: Option<Cache>,
 }
 
 impl GpuRenderer {
-    /// A renderer of `cfg` on `ctx`; fails when the kernels cannot render the model.
+    /// A renderer of `cfg` on `ctx` with the per-sample passes; fails when the kernels cannot
+    /// render the model.
     pub fn new(
         ctx: GpuContext,
         cfg: &ModelConfig,
         settings: RenderSettings,
     ) -> Result<Self, GpuError> {
+        Self::with_kernels(ctx, cfg, settings, GpuKernels::PerSample)
+    }
+
+    /// A renderer of `cfg` on `ctx` with the given kernels.
+    pub fn with_kernels(
+        ctx: GpuContext,
+        cfg: &ModelConfig,
+        settings: RenderSettings,
+        kernels: GpuKernels,
+    ) -> Result<Self, GpuError> {
         let gpu_model = GpuModel::new(cfg).map_err(GpuError::Model)?;
         if ctx.is_lavapipe() {
-            let n = super::layout::loop_iterations_per_ray(cfg);
+            let (n, what) = match kernels {
+                GpuKernels::PerRay => (
+                    super::layout::loop_iterations_per_ray(cfg),
+                    "one ray of this model",
+                ),
+                GpuKernels::PerSample => (
+                    super::layout::loop_iterations_per_invocation(cfg),
+                    "one per-sample invocation of this model",
+                ),
+            };
             if n > super::layout::LAVAPIPE_LOOP_ITERATIONS {
                 return Err(GpuError::Limit {
-                    what: "one ray of this model".to_string(),
+                    what: what.to_string(),
                     amount: n,
                     unit: "loop iterations",
                     limit: "lavapipe loop iterations per invocation (LP_MAX_TGSI_LOOP_ITERATIONS)",
@@ -78,9 +125,11 @@ impl GpuRenderer {
             cfg: cfg.clone(),
             layout: ModelLayout::new(cfg),
             settings,
+            kernels,
             gpu_model,
             scene: None,
             frame: None,
+            scratch: None,
             no_list,
             cache: None,
         })
@@ -93,6 +142,11 @@ impl GpuRenderer {
 
     pub fn settings(&self) -> &RenderSettings {
         &self.settings
+    }
+
+    /// The kernels that render rays.
+    pub fn kernels(&self) -> GpuKernels {
+        self.kernels
     }
 
     /// Forgets the static cache: the next frame is rendered in full.
@@ -109,6 +163,14 @@ impl GpuRenderer {
             .map(|c| c.dynamic.len() as f32 / c.total.max(1) as f32)
     }
 
+    /// Samples the sample cache evaluates at every frame (`None` without one).
+    pub fn dynamic_samples(&self) -> Option<u32> {
+        self.cache
+            .as_ref()
+            .and_then(|c| c.samples.as_ref())
+            .map(|s| s.dynamic_samples())
+    }
+
     fn upload(&mut self, params: &[f32]) -> Result<(), GpuError> {
         match &mut self.scene {
             Some(s) => {
@@ -122,11 +184,26 @@ impl GpuRenderer {
     }
 
     /// Renders `camera` at normalised time `time` with `params` (the flat buffer for that time).
+    /// The probes of the static test render other times with `params` too (see
+    /// [`GpuRenderer::render_probing`]).
     pub fn render(
         &mut self,
         camera: &Camera,
         time: f32,
         params: &[f32],
+    ) -> Result<Frame, GpuError> {
+        self.render_probing(camera, time, params, &mut |_| None)
+    }
+
+    /// [`GpuRenderer::render`], with `params_at(t)` giving the flat buffer for a probe time `t`
+    /// when it differs from `params` (a file streamed in time chunks), as
+    /// [`crate::render::Renderer::render_probing`].
+    pub fn render_probing(
+        &mut self,
+        camera: &Camera,
+        time: f32,
+        params: &[f32],
+        params_at: &mut dyn FnMut(f32) -> Option<Vec<f32>>,
     ) -> Result<Frame, GpuError> {
         let start = Instant::now();
         camera
@@ -137,6 +214,13 @@ impl GpuRenderer {
         let total = w as usize * h as usize;
         let pixels32 = u32::try_from(total)
             .map_err(|_| GpuError::Model(format!("{w}x{h} pixels exceed 32-bit indices")))?;
+        if self.kernels == GpuKernels::PerSample
+            && self.scratch.as_ref().is_none_or(|(_, n)| *n != total)
+        {
+            self.scratch = None;
+            let s = self.ctx.frame_scratch(&self.gpu_model, pixels32)?;
+            self.scratch = Some((s, total));
+        }
         let reuse = self.settings.incremental
             && self
                 .cache
@@ -146,47 +230,36 @@ impl GpuRenderer {
             rays_total: total,
             ..Default::default()
         };
-        let scene = self.scene.as_ref().expect("uploaded above");
         let rgb = if reuse {
             let mut cache = self.cache.take().expect("checked above");
             if let Some(p) = cache.pending.take() {
                 let t = Instant::now();
-                let flags = classify_static(
-                    &self.cfg,
-                    &self.layout,
-                    params,
-                    &self.settings,
-                    &p.rays,
-                    &p.rgb,
-                    &p.visible_depth,
-                    |idx, t| {
-                        let px: Vec<u32> = idx.iter().map(|&i| p.pixels[i]).collect();
-                        render_list(&self.ctx, scene, camera, t, &px, None)
-                    },
-                )?;
-                cache.dynamic = p
-                    .pixels
-                    .iter()
-                    .zip(flags)
-                    .filter(|(_, s)| !s)
-                    .map(|(&px, _)| px)
-                    .collect();
-                cache.dynamic_buf = if cache.dynamic.is_empty() {
-                    None
-                } else {
-                    Some(self.ctx.storage_buffer(
-                        "dynamic pixels",
-                        bytemuck::cast_slice(&cache.dynamic),
-                        false,
-                    )?)
-                };
+                self.classify(camera, params, params_at, p, &mut cache)?;
                 stats.cache_seconds = t.elapsed().as_secs_f64();
             }
+            let scene = self.scene.as_ref().expect("uploaded above");
             let (frame, _) = self.frame.as_ref().expect("a full frame came first");
             if let Some(list) = &cache.dynamic_buf {
-                let view = ViewU::new(camera, time, cache.dynamic.len() as u32, FLAG_LIST);
-                self.ctx
-                    .dispatch(Kernel::Render, scene, &view, list, frame)?;
+                let n = cache.dynamic.len() as u32;
+                let view = ViewU::new(camera, time, n, FLAG_LIST);
+                match (&cache.samples, &self.scratch) {
+                    (Some(sc), _) => {
+                        stats.samples_evaluated = sc.dynamic_samples() as usize;
+                        self.ctx
+                            .render_sample_cache(scene, &view, sc, list, frame)?;
+                    }
+                    (None, Some((scratch, _))) => {
+                        let px = Pixels::List {
+                            list,
+                            n,
+                            compact: false,
+                        };
+                        self.ctx.render_passes(scene, &view, px, frame, scratch)?;
+                    }
+                    (None, None) => self
+                        .ctx
+                        .dispatch(Kernel::Render, scene, &view, list, frame)?,
+                }
             }
             let out = self.ctx.read_vec4(frame, total)?;
             stats.rays_rendered = cache.dynamic.len();
@@ -199,10 +272,18 @@ impl GpuRenderer {
                 self.frame = None;
                 self.frame = Some((self.ctx.output_buffer("frame", total)?, total));
             }
+            let scene = self.scene.as_ref().expect("uploaded above");
             let (frame, _) = self.frame.as_ref().expect("made above");
             let view = ViewU::new(camera, time, pixels32, 0);
-            self.ctx
-                .dispatch(Kernel::Render, scene, &view, &self.no_list, frame)?;
+            match &self.scratch {
+                Some((scratch, _)) => {
+                    self.ctx
+                        .render_passes(scene, &view, Pixels::All(pixels32), frame, scratch)?
+                }
+                None => self
+                    .ctx
+                    .dispatch(Kernel::Render, scene, &view, &self.no_list, frame)?,
+            }
             let out = self.ctx.read_vec4(frame, total)?;
             let cache = self.pending_cache(camera, time, &out);
             stats.full = true;
@@ -218,6 +299,88 @@ impl GpuRenderer {
             rgb,
             stats,
         })
+    }
+
+    /// Sorts the first frame's rays into static and dynamic ([`classify_static`], probes on the
+    /// device with their own time's parameters), uploads the dynamic pixels and, with
+    /// [`Reuse::Samples`], builds the sample cache (falling back to whole rays when it would
+    /// take more than `max_sample_cache_bytes` or the adapter's limits).
+    fn classify(
+        &mut self,
+        camera: &Camera,
+        params: &[f32],
+        params_at: &mut dyn FnMut(f32) -> Option<Vec<f32>>,
+        p: Pending,
+        cache: &mut Cache,
+    ) -> Result<(), GpuError> {
+        let ctx = &self.ctx;
+        let scene = self.scene.as_mut().expect("uploaded before");
+        let scratch = self.scratch.as_ref().map(|(s, _)| s);
+        let flags = classify_static(
+            &self.cfg,
+            &self.layout,
+            params,
+            &self.settings,
+            &p.rays,
+            &p.rgb,
+            &p.visible_depth,
+            |idx, t| {
+                let px: Vec<u32> = idx.iter().map(|&i| p.pixels[i]).collect();
+                let other = params_at(t);
+                if let Some(o) = &other {
+                    scene.update(ctx, o)?;
+                }
+                let out = render_list(ctx, scene, scratch, camera, t, &px, None);
+                if other.is_some() {
+                    scene.update(ctx, params)?;
+                }
+                out
+            },
+        )?;
+        cache.dynamic = p
+            .pixels
+            .iter()
+            .zip(flags)
+            .filter(|(_, s)| !s)
+            .map(|(&px, _)| px)
+            .collect();
+        cache.dynamic_buf = None;
+        cache.samples = None;
+        if cache.dynamic.is_empty() {
+            return Ok(());
+        }
+        let list = ctx.storage_buffer(
+            "dynamic pixels",
+            bytemuck::cast_slice(&cache.dynamic),
+            false,
+        )?;
+        if self.settings.reuse == Reuse::Samples && self.kernels == GpuKernels::PerSample {
+            let n = cache.dynamic.len() as u32;
+            let samples = partition_samples(&self.cfg, &self.settings) as u32;
+            let bytes = GpuContext::sample_cache_bytes(&self.gpu_model, n as u64, samples as u64);
+            if bytes <= self.settings.max_sample_cache_bytes {
+                let times = partition_times(&self.cfg, &self.settings);
+                let (frame, _) = self.frame.as_ref().expect("a full frame came first");
+                let view = ViewU::new(camera, 0.0, n, FLAG_LIST);
+                match ctx.build_sample_cache(
+                    scene,
+                    &view,
+                    &list,
+                    n,
+                    &times,
+                    samples,
+                    self.settings.sample_cutoff,
+                    frame,
+                ) {
+                    Ok(c) => cache.samples = Some(c),
+                    // Beyond the adapter's buffer limits: whole rays, as over the budget.
+                    Err(GpuError::Limit { .. }) => {}
+                    Err(e) => return Err(e),
+                }
+            }
+        }
+        cache.dynamic_buf = Some(list);
+        Ok(())
     }
 
     /// The cache of a full frame: which pixels were evaluated (the others miss the scene under a
@@ -259,16 +422,19 @@ impl GpuRenderer {
             empty,
             dynamic: Vec::new(),
             dynamic_buf: None,
+            samples: None,
             pending: Some(p),
         }
     }
 }
 
 /// Renders the listed pixels of `camera` at `time` into a compact output and reads their colours
-/// back (probes); `visible`, when given, receives the visible depths.
+/// back (probes), with the per-sample passes when `scratch` is given, else the per-ray kernel;
+/// `visible`, when given, receives the visible depths.
 pub(crate) fn render_list(
     ctx: &GpuContext,
     scene: &GpuScene,
+    scratch: Option<&FrameScratch>,
     camera: &Camera,
     time: f32,
     pixels: &[u32],
@@ -279,8 +445,19 @@ pub(crate) fn render_list(
     }
     let list = ctx.storage_buffer("pixel list", bytemuck::cast_slice(pixels), false)?;
     let out = ctx.output_buffer("probe colours", pixels.len())?;
-    let view = ViewU::new(camera, time, pixels.len() as u32, FLAG_LIST | FLAG_COMPACT);
-    ctx.dispatch(Kernel::Render, scene, &view, &list, &out)?;
+    let n = pixels.len() as u32;
+    let view = ViewU::new(camera, time, n, FLAG_LIST | FLAG_COMPACT);
+    match scratch {
+        Some(s) => {
+            let px = Pixels::List {
+                list: &list,
+                n,
+                compact: true,
+            };
+            ctx.render_passes(scene, &view, px, &out, s)?
+        }
+        None => ctx.dispatch(Kernel::Render, scene, &view, &list, &out)?,
+    }
     let v = ctx.read_vec4(&out, pixels.len())?;
     if let Some(vis) = visible {
         vis.clear();

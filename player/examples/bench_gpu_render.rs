@@ -1,0 +1,187 @@
+//! Old against new in one run (issue #17): the GPU renderer's one-invocation-per-ray kernel
+//! (`GpuKernels::PerRay`, the renderer before #17) and the per-sample passes
+//! (`GpuKernels::PerSample`) on the same model, camera and adapter, with the CPU renderer as the
+//! reference: full-frame time and PSNR against the CPU, then incremental frames of a fixed camera
+//! (sample-level reuse) on the CPU and the GPU.
+//!
+//! `cargo run --release -p msth-player --example bench_gpu_render -- FILE.msth [SIZE] [FRAMES]`
+//! (default 256 pixels square, 4 incremental frames). `FILE` may be `small` instead: a model
+//! with random parameters small enough for the per-ray kernel on lavapipe (the size of the
+//! end-to-end GPU test's model), for comparing both kernels where lavapipe takes both. The camera is the file's first camera,
+//! its intrinsics scaled to SIZE x SIZE. Any adapter is used (lavapipe included;
+//! `MSTH_BENCH_SKIP_PER_RAY=1` skips the old kernel, which takes minutes on software adapters
+//! for large frames). Timings include the read-back of the frame.
+
+use std::time::Instant;
+
+use glam::Vec3;
+use msth_core::config::{Background, ModelConfig, Preset};
+use msth_core::field::ModelLayout;
+use msth_core::rng::Rng;
+use msth_core::{Camera, SceneBounds};
+use msth_player::gpu::{AdapterPolicy, GpuContext, GpuKernels, GpuRenderer};
+use msth_player::{Frame, RenderSettings, Renderer};
+
+fn psnr(a: &Frame, b: &Frame) -> f64 {
+    let mse = a
+        .rgb
+        .iter()
+        .zip(&b.rgb)
+        .map(|(x, y)| ((x.clamp(0.0, 1.0) - y.clamp(0.0, 1.0)) as f64).powi(2))
+        .sum::<f64>()
+        / a.rgb.len().max(1) as f64;
+    -10.0 * mse.max(1e-20).log10()
+}
+
+type Loaded = (ModelConfig, Camera, Box<dyn Fn(f32) -> Vec<f32>>);
+
+/// The model, its first camera and its parameters at a time: from a file, or `small`.
+fn load(path: &str) -> Result<Loaded, Box<dyn std::error::Error>> {
+    if path == "small" {
+        let mut cfg = ModelConfig::preset(
+            Preset::Fast,
+            SceneBounds::dnerf_default(),
+            Background::Color { rgb: [1.0; 3] },
+            10,
+        );
+        let m = &mut cfg;
+        m.field.encoding.resize(4, 12, 128.0, 16);
+        m.proposal.encoding.resize(2, 10, 32.0, 16);
+        m.field.density_hidden = 16;
+        m.field.color_hidden = 16;
+        m.field.geo_features = 7;
+        m.proposal.hidden = 8;
+        m.sampler.num_proposal_samples = 24;
+        m.sampler.num_samples = 12;
+        let layout = ModelLayout::new(&cfg);
+        let mut p = layout.init_params(1);
+        let mut rng = Rng::new(2);
+        for e in &layout.params.entries {
+            if e.name.ends_with("h3") || e.name.ends_with("h4") || e.name.ends_with("mask") {
+                for v in &mut p[e.range()] {
+                    *v = rng.range_f32(-1.0, 1.0);
+                }
+            }
+        }
+        let cam = Camera::look_at(64, 64, 0.9, Vec3::new(0.3, -3.5, 1.2), Vec3::ZERO, Vec3::Z);
+        return Ok((cfg, cam, Box::new(move |_| p.clone())));
+    }
+    let bytes = std::fs::read(path)?;
+    let decoded = msth_codec::decode_all(&bytes)?;
+    let meta = &decoded.metadata;
+    let cfg = meta.model.clone();
+    let cam = *meta.cameras.first().ok_or("the file has no cameras")?;
+    Ok((cfg, cam, Box::new(move |t| decoded.params_for_time(t))))
+}
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let Some(path) = args.first() else {
+        return Err("usage: bench_gpu_render FILE.msth [SIZE] [FRAMES]".into());
+    };
+    let size: u32 = args.get(1).map(|s| s.parse()).transpose()?.unwrap_or(256);
+    let frames: usize = args.get(2).map(|s| s.parse()).transpose()?.unwrap_or(4);
+    let (cfg, mut cam, params_at) = load(path)?;
+    let s = size as f32 / cam.width.max(cam.height) as f32;
+    cam.fx *= s;
+    cam.fy *= s;
+    cam.width = size;
+    cam.height = size;
+    cam.cx = 0.5 * size as f32;
+    cam.cy = 0.5 * size as f32;
+    let params0 = params_at(0.0);
+    println!(
+        "model {path}: {} proposal + {} main samples per ray, {} levels; {size}x{size}",
+        cfg.sampler.num_proposal_samples, cfg.sampler.num_samples, cfg.field.encoding.grid3.levels
+    );
+
+    let full = RenderSettings {
+        incremental: false,
+        ..Default::default()
+    };
+    let t = Instant::now();
+    let reference = Renderer::new(&cfg, full).render(&cam, 0.0, &params0);
+    let cpu_s = t.elapsed().as_secs_f64();
+    println!("cpu full frame:                 {cpu_s:8.3} s");
+
+    let ctx = GpuContext::open(AdapterPolicy::any())?;
+    println!("adapter: {}", ctx.adapter_name());
+    let mut old_s = None;
+    if std::env::var("MSTH_BENCH_SKIP_PER_RAY").as_deref() != Ok("1") {
+        match GpuRenderer::with_kernels(ctx, &cfg, full, GpuKernels::PerRay) {
+            Ok(mut old) => {
+                let t = Instant::now();
+                let f = old.render(&cam, 0.0, &params0)?;
+                let secs = t.elapsed().as_secs_f64();
+                println!(
+                    "gpu full frame, per-ray kernel (old):    {secs:8.3} s  {:.1} dB vs cpu",
+                    psnr(&f, &reference)
+                );
+                old_s = Some(secs);
+            }
+            Err(e) => println!("gpu per-ray kernel (old): refused: {e}"),
+        }
+    }
+    let ctx = GpuContext::open(AdapterPolicy::any())?;
+    let mut new = GpuRenderer::new(ctx, &cfg, full)?;
+    // The first frame compiles nothing more (pipelines are made with the context), but pays
+    // the scratch allocation: time the first and a second frame.
+    let t = Instant::now();
+    let f = new.render(&cam, 0.0, &params0)?;
+    let first_s = t.elapsed().as_secs_f64();
+    let t = Instant::now();
+    new.render(&cam, 0.0, &params0)?;
+    let new_s = t.elapsed().as_secs_f64();
+    println!(
+        "gpu full frame, per-sample passes (new): {first_s:8.3} s first, {new_s:.3} s next  {:.1} dB vs cpu",
+        psnr(&f, &reference)
+    );
+    if let Some(o) = old_s {
+        println!(
+            "speed-up of a full frame, new vs old: {:.1}x (first frame {:.1}x)",
+            o / new_s,
+            o / first_s
+        );
+    }
+    println!("cpu / new gpu full frame: {:.2}x", cpu_s / new_s);
+
+    // Incremental frames of a fixed camera, default settings (sample-level reuse, probes).
+    let inc = RenderSettings::default();
+    let times: Vec<f32> = (0..=frames)
+        .map(|i| i as f32 / frames.max(1) as f32)
+        .collect();
+    let mut cpu = Renderer::new(&cfg, inc);
+    let mut gpu = GpuRenderer::new(GpuContext::open(AdapterPolicy::any())?, &cfg, inc)?;
+    let mut full_r = Renderer::new(&cfg, full);
+    let (mut cs, mut gs, mut worst) = (Vec::new(), Vec::new(), f64::INFINITY);
+    for (i, &tm) in times.iter().enumerate() {
+        let p = params_at(tm);
+        let a = cpu.render(&cam, tm, &p);
+        let b = gpu.render(&cam, tm, &p)?;
+        if i >= 2 {
+            cs.push(a.stats.seconds);
+            gs.push(b.stats.seconds);
+        }
+        let g = full_r.render(&cam, tm, &p);
+        let pg = psnr(&b, &a);
+        worst = worst.min(pg);
+        println!(
+            "t = {tm:.2}: cpu {:.3} s, gpu {:.3} s ({} rays, {} samples; classify/build {:.3} s); gpu vs cpu incremental {pg:.1} dB, vs cpu full {:.1} dB",
+            a.stats.seconds,
+            b.stats.seconds,
+            b.stats.rays_rendered,
+            b.stats.samples_evaluated,
+            b.stats.cache_seconds,
+            psnr(&b, &g)
+        );
+    }
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+    if !gs.is_empty() {
+        println!(
+            "incremental frames (after the cache is built): cpu {:.3} s, gpu {:.3} s mean; worst gpu vs cpu {worst:.1} dB",
+            mean(&cs),
+            mean(&gs)
+        );
+    }
+    Ok(())
+}

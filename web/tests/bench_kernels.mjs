@@ -1,0 +1,65 @@
+// Old against new in one run (issue #17), in headless Chromium on SwiftShader: the page's first
+// frame with the per-sample passes (the default) and with the one-invocation-per-ray `render`
+// kernel (`?kernel=ray`), same model, size, view and time, one fresh browser each. Prints the
+// time to first frame (navigation to frame) and the render time of that frame (compiled
+// pipelines to frame), and the PSNR between the two frames. For the record only: nothing
+// passes or fails on timing.
+//
+//   node web/tests/bench_kernels.mjs --base http://127.0.0.1:8080 --model demo.msth \
+//     [--size 256x256] [--kernels passes,ray] [--timeout-s 1800] [--chromium /usr/bin/chromium]
+//
+// Needs a running `msth serve --web web DIR` and `npm ci --prefix web`.
+
+import { mkdtempSync, rmSync } from "node:fs";
+import { tmpdir } from "node:os";
+import { join } from "node:path";
+import { chromium } from "playwright-core";
+
+const FLAGS = ["--no-sandbox", "--disable-background-networking", "--disable-component-update", "--disable-sync", "--no-first-run", "--disable-gpu-sandbox", "--enable-unsafe-webgpu", "--enable-features=Vulkan", "--use-vulkan=swiftshader", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--use-webgpu-adapter=swiftshader"];
+
+const a = {};
+const argv = process.argv.slice(2);
+for (let i = 0; i < argv.length; i += 2) a[argv[i].replace(/^--/, "")] = argv[i + 1];
+if (!a.base || !a.model) {
+  console.error("usage: node web/tests/bench_kernels.mjs --base URL --model NAME [--size WxH] [--kernels passes,ray] [--timeout-s S]");
+  process.exit(2);
+}
+const size = a.size || "256x256";
+const kernels = (a.kernels || "passes,ray").split(",");
+const timeout = 1000 * Number(a["timeout-s"] || 1800);
+
+async function firstFrame(kernel) {
+  const dir = mkdtempSync(join(tmpdir(), "msth-bench-"));
+  const ctx = await chromium.launchPersistentContext(dir, { executablePath: a.chromium || process.env.MSTH_CHROMIUM || "/usr/bin/chromium", headless: true, args: FLAGS });
+  try {
+    const page = await ctx.newPage();
+    const logs = [];
+    page.on("console", (m) => logs.push(m.text()));
+    const q = kernel === "ray" ? "&kernel=ray" : "";
+    await page.goto(`${a.base}/?model=${encodeURIComponent(a.model)}&size=${size}&play=0&t=0${q}`);
+    await page.waitForFunction(() => window.msth && (window.msth.firstFrameMs !== null || window.msth.error || window.msth.noWebGpu), null, { timeout, polling: 250 });
+    const r = await page.evaluate(() => ({ ttff: window.msth.firstFrameMs, pipeline: window.msth.timings && window.msth.timings.pipeline, error: window.msth.error, kernel: window.msth.renderer && window.msth.renderer.kernel }));
+    if (r.error || r.ttff === null) throw new Error(`${kernel}: ${r.error || "no WebGPU"}\n${logs.join("\n")}`);
+    const px = await page.evaluate(() => window.msth.readPixels());
+    return { ...r, px: Array.from(px) };
+  } finally {
+    await ctx.close();
+    rmSync(dir, { recursive: true, force: true });
+  }
+}
+
+const out = {};
+for (const k of kernels) {
+  const r = await firstFrame(k);
+  out[k] = r;
+  const render = r.pipeline ? r.ttff - r.pipeline : NaN;
+  console.log(`${k} (${r.kernel}): ${size} first frame ${(r.ttff / 1000).toFixed(1)} s after navigation, ${(render / 1000).toFixed(1)} s of it rendering`);
+}
+if (out.passes && out.ray) {
+  const [p, q] = [out.passes.px, out.ray.px];
+  let se = 0;
+  let n = 0;
+  for (let i = 0; i < p.length; i += 4) for (let c = 0; c < 3; c++, n++) se += ((p[i + c] - q[i + c]) / 255) ** 2;
+  const psnr = se === 0 ? Infinity : -10 * Math.log10(se / n);
+  console.log(`speed-up of the first frame, passes vs ray: ${(out.ray.ttff / out.passes.ttff).toFixed(1)}x (rendering only: ${((out.ray.ttff - out.ray.pipeline) / (out.passes.ttff - out.passes.pipeline)).toFixed(1)}x); frames agree at ${psnr.toFixed(1)} dB`);
+}
