@@ -103,7 +103,7 @@ async function waitFirstFrame(page, timeout = 300_000) {
 /** Waits until a frame has been rendered after this call with nothing left to render. */
 async function settled(page) {
   await page.evaluate(() => window.msth.nextFrame());
-  await page.waitForFunction(() => !window.msth.state.dirty && !window.msth.state.rendering, null, { timeout: 120_000, polling: 50 });
+  await page.waitForFunction(() => !window.msth.state.dirty && !window.msth.state.refine && !window.msth.state.rendering, null, { timeout: 120_000, polling: 50 });
 }
 
 const pixels = (page) => page.evaluate(() => window.msth.readPixels());
