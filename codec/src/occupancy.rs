@@ -52,7 +52,7 @@ impl OccupancyGrid {
     pub fn full(resolution: u32) -> Self {
         let cells = (resolution as usize).pow(3);
         let mut words = vec![u32::MAX; cells.div_ceil(32)];
-        if cells % 32 != 0 {
+        if !cells.is_multiple_of(32) {
             *words.last_mut().unwrap() = (1u32 << (cells % 32)) - 1;
         }
         OccupancyGrid {
@@ -321,7 +321,7 @@ mod tests {
     fn unit_points_map_to_their_cells() {
         let mut g = OccupancyGrid::full(4);
         g.words.iter_mut().for_each(|w| *w = 0);
-        g.set(3 + 4 * (0 + 4 * 2));
+        g.set(3 + 4 * 4 * 2);
         assert!(g.occupied_unit([0.99, 0.1, 0.6]));
         assert!(g.occupied_unit([1.0, 0.0, 0.5]));
         assert!(!g.occupied_unit([0.74, 0.1, 0.6]));

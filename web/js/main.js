@@ -5,8 +5,9 @@
 // frame rate and the resolution being drawn.
 //
 // Resolution policy (stated on the page): while the camera moves or the timeline plays, frames
-// are drawn at a reduced resolution, 1, 1/2, 1/4 or 1/8 of the full size per side, adapted frame
-// by frame so that a frame fits its budget (1/30 s while moving, one model frame while playing);
+// are drawn at a reduced resolution, 1 (playing only), 1/2, 1/4 or 1/8 of the full size per
+// side, adapted frame by frame so that a frame fits its budget (1/30 s while moving, one model
+// frame while playing);
 // when the camera stops (STILL_MS after the last input) and playback is paused, the view is
 // drawn again at full resolution. The timeline advances with the clock at the model's frame
 // rate; when the GPU cannot keep up even at 1/8, frames are dropped, not slowed down.
@@ -176,8 +177,9 @@ async function main() {
   $("info").textContent = `${name}: ${meta.model.num_frames} frames, ${meta.param_count.toLocaleString()} parameters, ${meta.quant}, ${meta.chunks.length} chunks`;
   const modelFps = meta.frame_rate || 24;
   $("policy").textContent =
-    `Resolution: while you move the camera or the video plays, frames are drawn at 1/2 to 1/8 of ${template.width}x${template.height} ` +
-    `(per side, adapted so a frame takes at most ${MOVING_BUDGET_MS.toFixed(0)} ms while moving and ${(1000 / modelFps).toFixed(0)} ms, one frame of the model's ${modelFps} fps, while playing); ` +
+    `Resolution: while you move the camera, frames are drawn at 1/2 to 1/8 of ${template.width}x${template.height} per side, ` +
+    `adapted so that a frame takes at most ${MOVING_BUDGET_MS.toFixed(0)} ms; while the video plays, at full size when a frame fits one model frame ` +
+    `(${(1000 / modelFps).toFixed(0)} ms at ${modelFps} fps), else reduced the same way; ` +
     `${STILL_MS} ms after the camera stops, paused, the view is drawn again at full resolution. ` +
     `The timeline runs at the model's ${modelFps} fps: frames the GPU cannot draw in time are skipped.`;
 
@@ -325,7 +327,9 @@ async function main() {
     const full = orbit.camera();
     // The resolution policy (top of this file): reduced while moving or playing, full when still.
     const moving = performance.now() - state.lastInput < STILL_MS;
-    const scale = moving || state.playing ? SCALES[state.level] : 1;
+    // Moving: at most half size per side (a drag should answer at once); playing: full size as
+    // long as a frame fits one model frame.
+    const scale = moving ? SCALES[Math.max(state.level, 1)] : state.playing ? SCALES[state.level] : 1;
     const w = Math.max(1, Math.round(full.width * scale));
     const h = Math.max(1, Math.round(full.height * scale));
     const cam = scale === 1 ? full : resize(full, w, h);
