@@ -40,7 +40,8 @@ pub struct OccupancyGrid {
     pub resolution: u32,
     /// The density (world units^-1) at or above which a vertex counted as occupied.
     pub density_threshold: f32,
-    /// Times at which the density was evaluated (the model's frames).
+    /// Times at which the density was evaluated (the model's frames, at most
+    /// [`MAX_OCCUPANCY_TIMES`]).
     pub frames: u32,
     /// `ceil(R^3 / 32)` words; bit `i % 32` of word `i / 32` is cell `i = x + R (y + R z)`;
     /// bits past `R^3` are 0.
@@ -197,8 +198,20 @@ pub fn density_threshold(bounds: &SceneBounds, resolution: u32, alpha: f32) -> f
 /// Vertices per work item.
 const BATCH: usize = 4096;
 
+/// The most times [`compute`] evaluates: every frame of a model with at most this many, else this
+/// many times evenly over `[0, 1]` (ends included). Bounds the export's cost for long videos
+/// (10,000 frames would otherwise mean 10,000 passes over the grid).
+pub const MAX_OCCUPANCY_TIMES: usize = 256;
+
+/// The normalised times [`compute`] evaluates for a model of `frames` frames.
+pub fn evaluation_times(frames: usize) -> Vec<f32> {
+    let n = frames.clamp(1, MAX_OCCUPANCY_TIMES);
+    (0..n).map(|k| crate::encode::frame_time(k, n)).collect()
+}
+
 /// The occupancy grid of a model: the main field's density at the `(R + 1)^3` grid vertices at
-/// every frame time `f / (num_frames - 1)`; a cell is occupied when one of its 8 corners reaches
+/// every frame time `f / (num_frames - 1)` (at most [`MAX_OCCUPANCY_TIMES`] times, evenly spread,
+/// for longer models); a cell is occupied when one of its 8 corners reaches
 /// `density_threshold(bounds, R, alpha)` at some frame; the occupied set is then dilated by one
 /// cell (26 neighbours) so that density peaking between vertices, and the quantisation of the
 /// shipped tables, lose nothing visible. A vertex found occupied is not evaluated again.
@@ -212,32 +225,39 @@ pub fn compute(
     let r = resolution.max(1) as usize;
     let threshold = density_threshold(&cfg.bounds, resolution.max(1), alpha);
     let v = r + 1;
-    let mut vertex_hit = vec![false; v * v * v];
+    let nv = v * v * v;
+    let mut vertex_hit = vec![false; nv];
     let frames = cfg.num_frames.max(1);
-    for f in 0..frames {
-        let t = crate::encode::frame_time(f, frames);
-        let todo: Vec<u32> = (0..vertex_hit.len() as u32)
-            .filter(|&i| !vertex_hit[i as usize])
-            .collect();
-        if todo.is_empty() {
+    let times = evaluation_times(frames);
+    let batches: Vec<usize> = (0..nv).step_by(BATCH).collect();
+    for &t in &times {
+        if vertex_hit.iter().all(|&h| h) {
             break;
         }
-        let hits: Vec<u32> = todo
-            .par_chunks(BATCH)
+        let hit = &vertex_hit;
+        let hits: Vec<u32> = batches
+            .par_iter()
             .map_init(
-                || (FieldScratch::default(), Vec::new()),
-                |(scratch, pts), ids| {
+                || (FieldScratch::default(), Vec::new(), Vec::new()),
+                |(scratch, pts, ids), &start| {
                     scratch.enc.static_cutoff = RENDER_STATIC_CUTOFF;
                     pts.clear();
-                    for &i in ids {
-                        let i = i as usize;
+                    ids.clear();
+                    for i in start..(start + BATCH).min(nv) {
+                        if hit[i] {
+                            continue;
+                        }
                         let (x, y, z) = (i % v, (i / v) % v, i / (v * v));
+                        ids.push(i as u32);
                         pts.extend_from_slice(&[
                             x as f32 / r as f32,
                             y as f32 / r as f32,
                             z as f32 / r as f32,
                             t,
                         ]);
+                    }
+                    if ids.is_empty() {
+                        return Vec::new();
                     }
                     layout
                         .field
@@ -260,7 +280,7 @@ pub fn compute(
     let mut grid = OccupancyGrid {
         resolution: r as u32,
         density_threshold: threshold,
-        frames: frames as u32,
+        frames: times.len() as u32,
         words: vec![0; (r * r * r).div_ceil(32)],
     };
     // Cell c spans vertices c..=c+1 per axis; dilated: c-1..=c+2.
