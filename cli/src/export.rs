@@ -52,6 +52,13 @@ pub struct ExportArgs {
     /// codec stores almost for free; found from the checkpoint's optimiser state).
     #[arg(long)]
     pub keep_unreached: bool,
+    /// Cells per axis of the occupancy grid stored for empty-space skipping (format.md §6.5).
+    #[arg(long, default_value_t = msth_codec::occupancy::DEFAULT_OCCUPANCY_RESOLUTION)]
+    pub occupancy_resolution: u32,
+    /// Opacity budget of the occupancy threshold: a ray crossing the grid's diagonal through
+    /// density just below it would reach this opacity (samples below it are skipped).
+    #[arg(long, default_value_t = msth_codec::occupancy::DEFAULT_OCCUPANCY_ALPHA)]
+    pub occupancy_alpha: f32,
 }
 
 pub fn export(a: ExportArgs) -> Result<()> {
@@ -63,6 +70,9 @@ pub fn export(a: ExportArgs) -> Result<()> {
         dynamic_threshold: a.dynamic_threshold,
         frame_rate: a.fps,
         zstd_level: a.zstd_level,
+        occupancy_resolution: a.occupancy_resolution,
+        occupancy_alpha: a.occupancy_alpha,
+        occupancy: None,
     };
     if let Some(d) = &a.measure {
         let dir = a.checkpoint.parent().unwrap_or(std::path::Path::new("."));
@@ -196,6 +206,11 @@ fn print_summary(r: &EncodeReport, out: &std::path::Path) {
         None if r.h4_values > 0 => println!("  no mask: the whole 4D table is dynamic"),
         None => println!("  no 4D table: no dynamic chunks"),
     }
+    let (occupied, cells) = r.occupied_cells;
+    println!(
+        "  occupancy grid: {occupied} of {cells} cells occupied ({:.1}%): renderers skip samples in the others",
+        100.0 * occupied as f64 / cells.max(1) as f64
+    );
     if r.chunks.is_empty() {
         println!("  no dynamic chunks (static scene or no dynamic voxels)");
     } else {

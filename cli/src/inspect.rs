@@ -244,6 +244,11 @@ impl Inspection {
             "dynamic_voxels": self.dynamic_voxels().map(|(d, n)| json!({
                 "dynamic": d, "total": n, "share": d as f64 / n.max(1) as f64,
             })),
+            "occupancy": self.model.as_ref().and_then(|m| m.occupancy.as_ref()).map(|g| json!({
+                "resolution": g.resolution, "density_threshold": g.density_threshold,
+                "frames": g.frames, "occupied_cells": g.occupied_cells(), "cells": g.cells(),
+                "occupied_share": g.occupied_fraction(),
+            })),
         })
     }
 
@@ -411,6 +416,31 @@ impl Inspection {
             }
             (false, None) => {
                 let _ = writeln!(o, "dynamic     needs the sections (--validate)");
+            }
+        }
+        match (
+            self.model.as_ref().map(|m| m.occupancy.as_ref()),
+            ix.section(msth_codec::SectionKind::Occupancy),
+        ) {
+            (Some(Some(g)), _) => {
+                let _ = writeln!(
+                    o,
+                    "occupancy   {r}^3 cells, {} occupied ({:.1}%), density >= {:.4} at any of {} frames, dilated by one cell",
+                    g.occupied_cells(),
+                    100.0 * g.occupied_fraction(),
+                    g.density_threshold,
+                    g.frames,
+                    r = g.resolution
+                );
+            }
+            (_, None) => {
+                let _ = writeln!(
+                    o,
+                    "occupancy   none (a version-1 file: renderers skip no empty space)"
+                );
+            }
+            (_, Some(_)) => {
+                let _ = writeln!(o, "occupancy   needs the sections (--validate)");
             }
         }
         o

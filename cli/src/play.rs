@@ -52,6 +52,9 @@ pub struct PlayArgs {
     /// Render every frame in full (no static-ray cache).
     #[arg(long)]
     pub no_incremental: bool,
+    /// Evaluate every sample, also in the cells the file's occupancy grid marks empty.
+    #[arg(long)]
+    pub no_skip_empty: bool,
     /// A ray is static when the mask is at least this along its visible part.
     #[arg(long, default_value_t = RenderSettings::default().static_threshold)]
     pub static_threshold: f32,
@@ -193,6 +196,7 @@ pub fn options(a: &PlayArgs) -> Result<PlayOptions> {
     o.out = a.out.clone();
     o.video = !a.no_video;
     o.render.incremental = !a.no_incremental;
+    o.skip_empty = !a.no_skip_empty;
     o.backend = backend_choice(a.cpu, a.gpu);
     o.render.static_threshold = a.static_threshold;
     o.render.trust_threshold = a.trust_threshold;

@@ -86,6 +86,38 @@ fn inspect_describes_and_validates_an_exported_model() {
     }
 }
 
+/// Version 2 (issue #17): the occupancy section is listed and described; version 1 says it has
+/// none.
+#[test]
+fn inspect_shows_the_occupancy_section() {
+    let file = repo("tests/fixtures/v2.msth");
+    let f = file.to_str().unwrap();
+    let decoded = msth_codec::decode_all(&std::fs::read(&file).unwrap()).unwrap();
+    let grid = decoded.occupancy.unwrap();
+    let v = inspect_json(&[f]);
+    assert_eq!(v["header"]["version"], 2);
+    let sections = v["sections"].as_array().unwrap();
+    assert_eq!(sections[3]["kind"], "occupancy");
+    assert_eq!(v["occupancy"]["resolution"], grid.resolution);
+    assert_eq!(v["occupancy"]["occupied_cells"], grid.occupied_cells());
+    assert_eq!(v["occupancy"]["cells"], grid.cells());
+    let (ok, text, _) = msth(&["inspect", f]);
+    assert!(ok);
+    println!("{text}");
+    let line = format!(
+        "occupancy   {}^3 cells, {} occupied",
+        grid.resolution,
+        grid.occupied_cells()
+    );
+    assert!(text.contains(&line), "`{line}` missing:\n{text}");
+    let (ok, text, _) = msth(&["inspect", repo("tests/fixtures/v1.msth").to_str().unwrap()]);
+    assert!(ok);
+    assert!(
+        text.contains("occupancy   none (a version-1 file"),
+        "{text}"
+    );
+}
+
 #[test]
 fn inspect_exits_non_zero_with_the_first_violation() {
     for (file, needles) in [

@@ -7,7 +7,8 @@ use msth_core::field::ModelLayout;
 use msth_core::Camera;
 
 use crate::error::DecodeError;
-use crate::format::{FileIndex, Limits, Metadata, SectionEntry, SectionKind, FIRST_CHUNK};
+use crate::format::{FileIndex, Limits, Metadata, SectionEntry, SectionKind};
+use crate::occupancy::OccupancyGrid;
 use crate::sections::{
     max_chunk_bytes, max_static_bytes, read_chunk, read_static, SparseChunk, StaticPart, SHARED_TAG,
 };
@@ -110,6 +111,9 @@ pub struct Decoder {
     have: [bool; 3],
     shared: Option<SparseChunk>,
     chunks: Vec<Option<SparseChunk>>,
+    /// The occupancy grid (version 2 files), once decoded.
+    occupancy: Option<OccupancyGrid>,
+    max_occupancy_resolution: u64,
 }
 
 impl Decoder {
@@ -129,6 +133,8 @@ impl Decoder {
             have: [false; 3],
             shared: None,
             chunks,
+            occupancy: None,
+            max_occupancy_resolution: limits.max_occupancy_resolution,
         })
     }
 
@@ -144,20 +150,33 @@ impl Decoder {
 
     /// Whether section `i` (index order) has been decoded.
     pub fn is_decoded(&self, i: usize) -> bool {
-        match i {
-            0..=2 => self.have[i],
-            3 => self.shared.is_some(),
-            c => self
+        let Some(e) = self.index.sections.get(i) else {
+            return false;
+        };
+        match e.kind {
+            SectionKind::Mlp => self.have[0],
+            SectionKind::Proposal => self.have[1],
+            SectionKind::Static => self.have[2],
+            SectionKind::Occupancy => self.occupancy.is_some(),
+            SectionKind::Shared => self.shared.is_some(),
+            SectionKind::Dynamic => self
                 .chunks
-                .get(c - FIRST_CHUNK)
+                .get(e.chunk as usize)
                 .is_some_and(|c| c.is_some()),
         }
     }
 
-    /// MLPs, proposal, static and (when there are chunks) shared sections all decoded: frames
-    /// can be rendered once their chunk is.
+    /// Every section before the first chunk decoded (MLPs, proposal, static, the occupancy grid
+    /// of a version-2 file and, when there are chunks, the shared section): frames can be
+    /// rendered once their chunk is.
     pub fn static_ready(&self) -> bool {
-        self.have.iter().all(|&h| h) && (self.chunks.is_empty() || self.shared.is_some())
+        (0..self.index.before_first_frame()).all(|i| self.is_decoded(i))
+    }
+
+    /// The occupancy grid: `None` before its section is decoded and for version-1 files (which
+    /// have none: a renderer then skips nothing).
+    pub fn occupancy(&self) -> Option<&OccupancyGrid> {
+        self.occupancy.as_ref()
     }
 
     /// Decodes section `i` (index order) from exactly its stored bytes.
@@ -179,6 +198,11 @@ impl Decoder {
             SectionKind::Shared => {
                 let raw = unpack(&entry, stored, max_chunk_bytes(layout))?;
                 self.shared = Some(read_chunk(layout, &raw, SHARED_TAG, &what)?);
+            }
+            SectionKind::Occupancy => {
+                let max = self.max_occupancy_resolution;
+                let raw = unpack(&entry, stored, OccupancyGrid::payload_len(max))?;
+                self.occupancy = Some(OccupancyGrid::from_payload(&raw, max, &what)?);
             }
             kind => {
                 let (part, slot) = match kind {
@@ -227,7 +251,7 @@ impl Decoder {
     /// the chunk covering `t` (other 4D rows 0). Needs the static sections and that chunk.
     pub fn params_for_time_into(&self, t: f32, out: &mut Vec<f32>) -> Result<(), DecodeError> {
         if !self.static_ready() {
-            let missing = (0..FIRST_CHUNK.min(self.index.sections.len()))
+            let missing = (0..self.index.before_first_frame())
                 .find(|&i| !self.is_decoded(i))
                 .unwrap_or(0);
             return Err(not_loaded(&self.index.sections[missing]));
@@ -237,7 +261,7 @@ impl Decoder {
         if let Some(c) = self.index.chunk_for_time(t) {
             let chunk = self
                 .chunk(c)
-                .ok_or_else(|| not_loaded(&self.index.sections[FIRST_CHUNK + c]))?;
+                .ok_or_else(|| not_loaded(&self.index.sections[self.index.first_chunk() + c]))?;
             if let Some(shared) = &self.shared {
                 shared.apply(&self.index.layout, out);
             }
@@ -272,6 +296,7 @@ impl Decoder {
             cameras: self.index.metadata.cameras.clone(),
             layout: self.index.layout.clone(),
             metadata: self.index.metadata,
+            occupancy: self.occupancy,
             params,
             base,
             shared,
@@ -303,6 +328,8 @@ pub struct DecodedModel {
     pub params: Vec<f32>,
     pub cameras: Vec<Camera>,
     pub metadata: Metadata,
+    /// The occupancy grid (`None` for a version-1 file).
+    pub occupancy: Option<OccupancyGrid>,
     /// Static part plus the shared 4D rows.
     base: Vec<f32>,
     shared: Option<SparseChunk>,

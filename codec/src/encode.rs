@@ -12,6 +12,9 @@ use crate::format::{
     index_offset, prefix_size, write_entry, ChunkSpan, FixedHeader, Metadata, QuantMode,
     SectionEntry, SectionKind, ALIGN, FIXED_HEADER, VERSION,
 };
+use crate::occupancy::{
+    OccupancyGrid, DEFAULT_OCCUPANCY_ALPHA, DEFAULT_OCCUPANCY_RESOLUTION, MAX_OCCUPANCY_RESOLUTION,
+};
 use crate::sections::{write_chunk, write_static, Encodings, StaticPart, SHARED_TAG};
 use crate::select::{dynamic_region, reached_rows};
 
@@ -27,6 +30,15 @@ pub struct EncodeOptions {
     pub frame_rate: Option<f32>,
     /// zstd level for every section.
     pub zstd_level: i32,
+    /// Occupancy grid cells per axis (format.md §6.5), 1..=512.
+    pub occupancy_resolution: u32,
+    /// Opacity budget of the occupancy threshold: a ray crossing the grid's diagonal through
+    /// density just below the threshold would reach this opacity
+    /// ([`crate::occupancy::density_threshold`]).
+    pub occupancy_alpha: f32,
+    /// A grid computed beforehand (e.g. once for several encodings of one model); `None`: the
+    /// encoder computes it from the parameters.
+    pub occupancy: Option<std::sync::Arc<OccupancyGrid>>,
 }
 
 impl Default for EncodeOptions {
@@ -37,6 +49,9 @@ impl Default for EncodeOptions {
             dynamic_threshold: 0.3,
             frame_rate: None,
             zstd_level: 9,
+            occupancy_resolution: DEFAULT_OCCUPANCY_RESOLUTION,
+            occupancy_alpha: DEFAULT_OCCUPANCY_ALPHA,
+            occupancy: None,
         }
     }
 }
@@ -82,6 +97,8 @@ pub struct EncodeReport {
     /// Dynamic and total mask voxels (`None`: no mask, everything is dynamic).
     pub dynamic_voxels: Option<(u64, u64)>,
     pub num_frames: usize,
+    /// Occupied and total cells of the occupancy grid.
+    pub occupied_cells: (u64, u64),
     pub encode_seconds: f64,
 }
 
@@ -198,6 +215,18 @@ pub fn encode(
                 message: e.to_string(),
             })?;
     }
+    if !(1..=MAX_OCCUPANCY_RESOLUTION).contains(&(opts.occupancy_resolution as u64)) {
+        return Err(EncodeError::InvalidOption(format!(
+            "occupancy_resolution must be in 1..={MAX_OCCUPANCY_RESOLUTION} (got {})",
+            opts.occupancy_resolution
+        )));
+    }
+    if !(opts.occupancy_alpha.is_finite() && (0.0..1.0).contains(&opts.occupancy_alpha)) {
+        return Err(EncodeError::InvalidOption(format!(
+            "occupancy_alpha must be in [0, 1) (got {})",
+            opts.occupancy_alpha
+        )));
+    }
     let enc = Encodings::for_mode(opts.quant);
 
     let mut payloads: Vec<(SectionKind, u32, Vec<u8>)> = Vec::new();
@@ -216,6 +245,29 @@ pub fn encode(
         });
         payloads.push((kind, 0, raw));
     }
+    let occupancy = match &opts.occupancy {
+        Some(g) => {
+            let raw = g.to_payload();
+            OccupancyGrid::from_payload(&raw, MAX_OCCUPANCY_RESOLUTION, "occupancy option")
+                .map_err(|e| EncodeError::InvalidOption(e.to_string()))?;
+            (**g).clone()
+        }
+        None => crate::occupancy::compute(
+            model,
+            &layout,
+            params,
+            opts.occupancy_resolution,
+            opts.occupancy_alpha,
+        ),
+    };
+    let raw = occupancy.to_payload();
+    sections.push(SectionReport {
+        name: SectionKind::Occupancy.name().into(),
+        stored_bytes: 0,
+        raw_bytes: raw.len() as u64,
+        values: 0,
+    });
+    payloads.push((SectionKind::Occupancy, 0, raw));
 
     let region = dynamic_region(&layout.field.encoding, params, opts.dynamic_threshold);
     let mut chunks = Vec::new();
@@ -378,6 +430,7 @@ pub fn encode(
         h4_values,
         h4_kept_union,
         dynamic_voxels: region.voxels,
+        occupied_cells: (occupancy.occupied_cells(), occupancy.cells()),
         num_frames: model.num_frames,
         encode_seconds: start.elapsed().as_secs_f64(),
     };

@@ -12,8 +12,10 @@ use crate::error::DecodeError;
 
 /// `b"MSTH"`.
 pub const MAGIC: [u8; 4] = *b"MSTH";
-/// The format version this crate writes and reads.
-pub const VERSION: u16 = 1;
+/// The format version this crate writes.
+pub const VERSION: u16 = 2;
+/// The oldest version this crate reads (version 1: no occupancy section).
+pub const MIN_VERSION: u16 = 1;
 /// Bytes of the fixed header.
 pub const FIXED_HEADER: usize = 32;
 /// Bytes of one index entry.
@@ -35,6 +37,8 @@ pub enum SectionKind {
     Dynamic = 4,
     /// The 4D rows that two or more chunks need, stored once (present iff there are chunks).
     Shared = 5,
+    /// The occupancy grid (version 2): where the field has density at any frame.
+    Occupancy = 6,
 }
 
 impl SectionKind {
@@ -45,6 +49,7 @@ impl SectionKind {
             3 => SectionKind::Static,
             4 => SectionKind::Dynamic,
             5 => SectionKind::Shared,
+            6 => SectionKind::Occupancy,
             _ => return None,
         })
     }
@@ -55,12 +60,28 @@ impl SectionKind {
             SectionKind::Static => "static",
             SectionKind::Dynamic => "dynamic",
             SectionKind::Shared => "shared",
+            SectionKind::Occupancy => "occupancy",
         }
     }
 }
 
-/// Index position of chunk 0 (after MLP, proposal, static and shared).
+/// Index position of chunk 0 in a version-1 file (after MLP, proposal, static and shared); see
+/// [`FileIndex::first_chunk`] for any version.
 pub const FIRST_CHUNK: usize = 4;
+
+/// The sections a version has before its optional shared section and chunks, in index order.
+pub fn fixed_sections(version: u16) -> &'static [SectionKind] {
+    if version >= 2 {
+        &[
+            SectionKind::Mlp,
+            SectionKind::Proposal,
+            SectionKind::Static,
+            SectionKind::Occupancy,
+        ]
+    } else {
+        &[SectionKind::Mlp, SectionKind::Proposal, SectionKind::Static]
+    }
+}
 
 /// Section compression (index entry `compression`); version 1 has zstd only.
 pub const COMPRESSION_ZSTD: u8 = 1;
@@ -221,6 +242,8 @@ pub struct Limits {
     pub max_proposal_samples: u64,
     /// Most main samples per ray (`model.sampler.num_samples`).
     pub max_samples: u64,
+    /// Largest occupancy grid resolution (cells per axis).
+    pub max_occupancy_resolution: u64,
 }
 
 /// [`Limits::max_image_side`]'s default: 16384 pixels (the largest `msth play --size` side).
@@ -247,6 +270,7 @@ impl Default for Limits {
             max_image_pixels: MAX_IMAGE_PIXELS,
             max_proposal_samples: MAX_PROPOSAL_SAMPLES,
             max_samples: MAX_SAMPLES,
+            max_occupancy_resolution: crate::occupancy::MAX_OCCUPANCY_RESOLUTION,
         }
     }
 }
@@ -352,11 +376,11 @@ impl FixedHeader {
             section_count: u32_at(16),
             prefix_crc32: u32_at(28),
         };
-        if h.version != VERSION {
+        if !(MIN_VERSION..=VERSION).contains(&h.version) {
             return Err(DecodeError::Unsupported {
                 what: "version".into(),
                 message: format!(
-                    "file is version {}, this decoder reads {VERSION}",
+                    "file is version {}, this decoder reads {MIN_VERSION} to {VERSION}",
                     h.version
                 ),
             });
@@ -438,7 +462,7 @@ fn parse_entry(b: &[u8], i: usize) -> Result<SectionEntry, DecodeError> {
     if b[1] != COMPRESSION_ZSTD {
         return Err(DecodeError::Unsupported {
             what,
-            message: format!("compression {} (version 1 has zstd = 1 only)", b[1]),
+            message: format!("compression {} (zstd = 1 is the only one)", b[1]),
         });
     }
     if b[2] != 0 || b[3] != 0 || u32_at(36) != 0 {
@@ -507,7 +531,7 @@ impl FileIndex {
             let o = io + i * INDEX_ENTRY;
             sections.push(parse_entry(&bytes[o..o + INDEX_ENTRY], i)?);
         }
-        check_sections(&sections, &metadata, hs as u64, limits)?;
+        check_sections(&sections, &metadata, header.version, hs as u64, limits)?;
         Ok(FileIndex {
             header,
             metadata,
@@ -523,6 +547,16 @@ impl FileIndex {
             .map(|s| s.offset + s.length)
             .max()
             .unwrap_or(self.header.header_size as u64)
+    }
+
+    /// Index position of chunk 0: after the version's fixed sections and the shared section.
+    pub fn first_chunk(&self) -> usize {
+        fixed_sections(self.header.version).len() + 1
+    }
+
+    /// The sections a player needs before the first frame (index positions `0..n`).
+    pub fn before_first_frame(&self) -> usize {
+        self.first_chunk().min(self.sections.len())
     }
 
     pub fn section(&self, kind: SectionKind) -> Option<&SectionEntry> {
@@ -665,11 +699,17 @@ fn check_metadata(m: &Metadata, limits: &Limits) -> Result<ModelLayout, DecodeEr
 fn check_sections(
     s: &[SectionEntry],
     m: &Metadata,
+    version: u16,
     header_size: u64,
     limits: &Limits,
 ) -> Result<(), DecodeError> {
     let n_chunks = m.chunks.len();
-    let expected = if n_chunks == 0 { 3 } else { 4 + n_chunks };
+    let fixed = fixed_sections(version);
+    let expected = if n_chunks == 0 {
+        fixed.len()
+    } else {
+        fixed.len() + 1 + n_chunks
+    };
     if s.len() != expected {
         return Err(DecodeError::malformed(
             "index",
@@ -682,11 +722,9 @@ fn check_sections(
     let mut end = header_size;
     for (i, e) in s.iter().enumerate() {
         let (kind, chunk) = match i {
-            0 => (SectionKind::Mlp, 0),
-            1 => (SectionKind::Proposal, 0),
-            2 => (SectionKind::Static, 0),
-            3 => (SectionKind::Shared, 0),
-            c => (SectionKind::Dynamic, (c - FIRST_CHUNK) as u32),
+            i if i < fixed.len() => (fixed[i], 0),
+            i if i == fixed.len() => (SectionKind::Shared, 0),
+            c => (SectionKind::Dynamic, (c - fixed.len() - 1) as u32),
         };
         if e.kind != kind || e.chunk != chunk {
             return Err(DecodeError::malformed(

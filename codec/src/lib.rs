@@ -4,7 +4,7 @@
 //! fetches, then zstd-compressed sections a client fetches by byte range: decoder MLPs, the
 //! proposal field (the empty-space structure), the static part (3D table, mask grid) and the
 //! dynamic part as time chunks, each holding only the 4D-table rows that dynamic voxels reach in
-//! its time span.
+//! its time span, and (version 2) the occupancy grid renderers skip empty space with.
 //!
 //! - [`encode`]: model configuration + flat parameters + cameras -> bytes and an [`EncodeReport`];
 //! - [`Decoder`]: streaming and random access (prefix first, then any section from its bytes);
@@ -13,12 +13,13 @@
 //!
 //! Modules: [`format`] (header, metadata, index, limits), [`quant`] (value blocks and
 //! quantisation), [`sections`] (section payloads), [`select`] (which 4D rows a chunk keeps),
-//! [`error`]. This crate knows the model's layout, not how it was trained.
+//! [`occupancy`] (the occupancy grid and how export computes it), [`error`]. This crate knows the model's layout, not how it was trained.
 
 pub mod decode;
 pub mod encode;
 pub mod error;
 pub mod format;
+pub mod occupancy;
 pub mod quant;
 pub mod sections;
 pub mod select;
@@ -27,6 +28,7 @@ pub use decode::{decode_all, decode_all_with_limits, DecodedModel, Decoder};
 pub use encode::{encode, ChunkReport, EncodeOptions, EncodeReport, SectionReport};
 pub use error::{DecodeError, EncodeError};
 pub use format::{FileIndex, Limits, Metadata, QuantMode, SectionEntry, SectionKind};
+pub use occupancy::OccupancyGrid;
 
 #[cfg(test)]
 mod tests;

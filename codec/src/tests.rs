@@ -161,9 +161,11 @@ fn every_prefix_streams_cleanly() {
         }
     }
     let s = stream.unwrap();
-    // Random access: chunk 1 alone, from its own bytes.
+    // Random access: chunk 1 alone, from its own bytes (version 2: MLP, proposal, static,
+    // occupancy, shared, chunk 0, chunk 1).
     let mut r = Decoder::new(&bytes[..hs]).unwrap();
-    for i in [5, 2, 0, 3, 1] {
+    assert_eq!(r.index().first_chunk(), 5);
+    for i in [6, 2, 0, 4, 3, 1] {
         let e = r.index().sections[i].clone();
         r.decode_section(i, &bytes[e.offset as usize..(e.offset + e.length) as usize])
             .unwrap();

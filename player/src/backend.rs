@@ -120,6 +120,14 @@ impl FrameRenderer {
         }
     }
 
+    /// Hands the file's occupancy grid to the renderer. The CPU renderer skips the main field's
+    /// samples in empty cells; the GPU renderer does not use it yet (it renders every sample).
+    pub fn set_occupancy(&mut self, grid: Option<std::sync::Arc<msth_codec::OccupancyGrid>>) {
+        if let FrameRenderer::Cpu(r) = self {
+            r.set_occupancy(grid);
+        }
+    }
+
     /// Forgets the static cache.
     pub fn invalidate(&mut self) {
         match self {

@@ -40,6 +40,9 @@ pub struct PlayOptions {
     pub limits: Limits,
     /// Longest wait for any one section to arrive.
     pub section_timeout: Duration,
+    /// Skip samples in the cells the file's occupancy grid marks empty (CPU renderer; files of
+    /// format version 1 have no grid and skip nothing).
+    pub skip_empty: bool,
 }
 
 impl PlayOptions {
@@ -58,6 +61,7 @@ impl PlayOptions {
             http: HttpOptions::default(),
             limits: Limits::default(),
             section_timeout: Duration::from_secs(120),
+            skip_empty: true,
         }
     }
 }
@@ -229,6 +233,10 @@ pub fn play(
         let chunk = stream.index().chunk_for_time(time);
         if loaded != Some(chunk) {
             stream.params_for_time(time, &mut params, opts.section_timeout)?;
+            if loaded.is_none() && opts.skip_empty {
+                // The occupancy section is one of the static sections, decoded by now.
+                renderer.set_occupancy(stream.occupancy());
+            }
             loaded = Some(chunk);
         }
         if i + 1 < n {

@@ -10,22 +10,26 @@
 //! camera (or [`Renderer::invalidate`]) renders everything again.
 //!
 //! Empty space is skipped: rays that miss the scene box are never evaluated (they show the
-//! background), the proposal field concentrates the samples of the others on surfaces, and
-//! samples hidden behind them skip the colour decoder ([`msth_core::pipeline`]).
+//! background), the proposal field concentrates the samples of the others on surfaces, samples
+//! in cells the file's occupancy grid marks empty skip the main field ([`crate::skip`],
+//! [`Renderer::set_occupancy`]), and samples hidden behind surfaces skip the colour decoder
+//! ([`msth_core::pipeline`]).
 //!
 //! Everything renders the parameters given, i.e. the decoded (quantised) model as shipped.
 
+use std::sync::Arc;
 use std::time::Instant;
+
+use msth_codec::OccupancyGrid;
 
 use msth_core::config::{Background, ModelConfig};
 use msth_core::field::ModelLayout;
-use msth_core::pipeline::{
-    ray_limits, render_chunk, spacing_unit, RenderOutput, TimedRay, Workspace,
-};
+use msth_core::pipeline::{ray_limits, render_chunk, spacing_unit, RenderOutput, TimedRay};
 use msth_core::Camera;
 use rayon::prelude::*;
 
 use crate::samples::{cache_bytes_bound, SampleCache};
+use crate::skip::{render_chunk_skipping, SkipWorkspace};
 
 /// How frames are rendered.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -246,6 +250,8 @@ pub struct Renderer {
     layout: ModelLayout,
     settings: RenderSettings,
     cache: Option<Cache>,
+    /// The file's occupancy grid: samples in empty cells are skipped ([`crate::skip`]).
+    occupancy: Option<Arc<OccupancyGrid>>,
 }
 
 /// Most rays per work item of the parallel loop.
@@ -295,11 +301,26 @@ pub fn render_rays(
     params: &[f32],
     rays: &[TimedRay],
 ) -> RenderOutput {
+    render_rays_skipping(cfg, layout, params, rays, None)
+}
+
+/// [`render_rays`], skipping the main field's samples in the cells `occupancy` marks empty
+/// ([`crate::skip`]; `None` evaluates every sample).
+pub fn render_rays_skipping(
+    cfg: &ModelConfig,
+    layout: &ModelLayout,
+    params: &[f32],
+    rays: &[TimedRay],
+    occupancy: Option<&OccupancyGrid>,
+) -> RenderOutput {
     let parts: Vec<RenderOutput> = rays
         .par_chunks(rays_per_batch(cfg, CHUNK))
-        .map_init(Workspace::default, |ws, c| {
+        .map_init(SkipWorkspace::default, |ws, c| {
             let mut out = RenderOutput::default();
-            render_chunk(cfg, layout, params, c, ws, &mut out);
+            match occupancy {
+                Some(g) => render_chunk_skipping(cfg, layout, params, c, g, ws, &mut out),
+                None => render_chunk(cfg, layout, params, c, ws.core(), &mut out),
+            }
             out
         })
         .collect();
@@ -376,7 +397,25 @@ impl Renderer {
             layout: ModelLayout::new(cfg),
             settings,
             cache: None,
+            occupancy: None,
         }
+    }
+
+    /// Uses the file's occupancy grid to skip empty space (`None`: a version-1 file, or
+    /// skipping off); forgets the cache, whose frame was rendered with the previous setting.
+    pub fn set_occupancy(&mut self, grid: Option<Arc<OccupancyGrid>>) {
+        self.occupancy = grid;
+        self.cache = None;
+    }
+
+    fn render_rays(&self, params: &[f32], rays: &[TimedRay]) -> RenderOutput {
+        render_rays_skipping(
+            &self.cfg,
+            &self.layout,
+            params,
+            rays,
+            self.occupancy.as_deref(),
+        )
     }
 
     pub fn settings(&self) -> &RenderSettings {
@@ -443,7 +482,7 @@ impl Renderer {
                     for r in &mut cache.rays {
                         r.time = time;
                     }
-                    render_rays(&self.cfg, &self.layout, params, &cache.rays).rgb
+                    self.render_rays(params, &cache.rays).rgb
                 }
             };
             let mut rgb = cache.rgb.clone();
@@ -507,7 +546,7 @@ impl Renderer {
                 }
             }
         }
-        let out = render_rays(&self.cfg, &self.layout, params, &rays);
+        let out = self.render_rays(params, &rays);
         for (&p, c) in pixels.iter().zip(&out.rgb) {
             rgb[p as usize * 3..p as usize * 3 + 3].copy_from_slice(c);
         }
@@ -556,9 +595,7 @@ impl Renderer {
                     .collect();
                 let owned = params_at(t);
                 let at_t = owned.as_deref().unwrap_or(params);
-                Ok::<_, std::convert::Infallible>(
-                    render_rays(&self.cfg, &self.layout, at_t, &probe).rgb,
-                )
+                Ok::<_, std::convert::Infallible>(self.render_rays(at_t, &probe).rgb)
             },
         );
         let (flags, counts) = match flags {

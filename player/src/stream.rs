@@ -16,7 +16,7 @@ use std::ops::Range;
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
-use msth_codec::format::{FileIndex, FIRST_CHUNK, FIXED_HEADER};
+use msth_codec::format::{FileIndex, FIXED_HEADER};
 use msth_codec::{Decoder, Limits};
 
 use crate::source::{ByteSource, SourceError, TransferStats};
@@ -83,7 +83,7 @@ pub struct ModelStream {
 
 /// The sections before the first dynamic chunk, as index positions.
 fn static_sections(index: &FileIndex) -> Range<usize> {
-    0..FIRST_CHUNK.min(index.sections.len())
+    0..index.before_first_frame()
 }
 
 impl ModelStream {
@@ -195,6 +195,13 @@ impl ModelStream {
                 error,
             })?;
         Ok(chunk)
+    }
+
+    /// The file's occupancy grid once its section is decoded (`None` before, and for a
+    /// version-1 file, which has none).
+    pub fn occupancy(&self) -> Option<Arc<msth_codec::OccupancyGrid>> {
+        let st = self.shared.lock();
+        st.decoder.occupancy().cloned().map(Arc::new)
     }
 
     /// Whether the chunk for time `t` (and the static part) is already decoded.

@@ -9,6 +9,7 @@ use msth_testkit::{Need, Tests};
 use std::path::{Path, PathBuf};
 
 use msth_codec::format::{index_offset, FIXED_HEADER, INDEX_ENTRY};
+use msth_codec::occupancy::OCCUPANCY_HEADER;
 use msth_codec::quant::{BlockEncoding, Writer};
 use msth_codec::{decode_all, encode, Decoder, EncodeOptions, QuantMode};
 use msth_core::config::{Background, BlendMode, ModelConfig, Preset};
@@ -184,6 +185,10 @@ impl File {
     }
 }
 
+/// Index positions, in a version-2 file, of the occupancy and the shared section.
+const OCCUPANCY: usize = 3;
+const SHARED: usize = 4;
+
 /// Index position of the last section (a dynamic chunk).
 fn b_last(v: &[u8]) -> usize {
     u32::from_le_bytes(v[16..20].try_into().unwrap()) as usize - 1
@@ -201,7 +206,7 @@ fn corpus() -> Vec<(&'static str, Vec<u8>)> {
     b.bytes[0] = b'X';
     add("bad_magic", b.bytes);
     let mut b = f();
-    b.bytes[4] = 2;
+    b.bytes[4] = (msth_codec::format::VERSION + 1) as u8;
     b.fix_prefix();
     add("bad_version", b.bytes);
     let mut b = f();
@@ -589,7 +594,7 @@ fn corpus() -> Vec<(&'static str, Vec<u8>)> {
     let mut b = f();
     let shared = chunk_payload(&[2], 0, &ok_block);
     let stored = zstd::bulk::compress(&shared, 3).unwrap();
-    b.replace_section(3, &stored, shared.len() as u64);
+    b.replace_section(SHARED, &stored, shared.len() as u64);
     add("shared_wrong_tag", b.bytes);
     // Blocks (format.md §5.2), each in the last chunk's one stored row.
     let edited_block = |edit: &dyn Fn(&mut Vec<u8>, usize), enc: BlockEncoding| {
@@ -644,6 +649,59 @@ fn corpus() -> Vec<(&'static str, Vec<u8>)> {
             BlockEncoding::Codebook { bits: 4 },
         ),
     );
+
+    // The occupancy section (format.md §6.5, version 2), index entry 3, with valid checksums.
+    let occupancy = |edit: &dyn Fn(&mut Vec<u8>)| {
+        let mut b = f();
+        let mut raw = b.payload(OCCUPANCY);
+        edit(&mut raw);
+        let stored = zstd::bulk::compress(&raw, 3).unwrap();
+        b.replace_section(OCCUPANCY, &stored, raw.len() as u64);
+        b.bytes
+    };
+    add(
+        "occupancy_resolution_zero",
+        occupancy(&|r| r[0..4].copy_from_slice(&0u32.to_le_bytes())),
+    );
+    add(
+        "occupancy_resolution_over_limit",
+        occupancy(&|r| r[0..4].copy_from_slice(&600u32.to_le_bytes())),
+    );
+    add(
+        "occupancy_wrong_length",
+        occupancy(&|r| r.truncate(r.len() - 4)),
+    );
+    add(
+        "occupancy_nan_threshold",
+        occupancy(&|r| r[4..8].copy_from_slice(&f32::NAN.to_le_bytes())),
+    );
+    add("occupancy_reserved_nonzero", occupancy(&|r| r[12] = 1));
+    // Resolution 3: 27 cells in one word, bit 27 is padding.
+    add(
+        "occupancy_padding_bit",
+        occupancy(&|r| {
+            r.truncate(OCCUPANCY_HEADER);
+            r[0..4].copy_from_slice(&3u32.to_le_bytes());
+            r.extend_from_slice(&(1u32 << 27 | 1).to_le_bytes());
+        }),
+    );
+    let mut b = f();
+    let e = b.entry(OCCUPANCY);
+    b.set_u64(e + 24, 1 << 30);
+    b.fix_prefix();
+    add("occupancy_raw_length_beyond_limit", b.bytes);
+    // A version-2 file is read with version 1's section order and the other way round.
+    let mut b = f();
+    b.bytes[4] = 1;
+    b.fix_prefix();
+    add("v2_file_marked_v1", b.bytes);
+    let mut b = File {
+        bytes: std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/v1.msth"))
+            .unwrap(),
+    };
+    b.bytes[4] = 2;
+    b.fix_prefix();
+    add("v1_file_marked_v2", b.bytes);
     out
 }
 
@@ -752,6 +810,33 @@ fn each_fault_names_its_violation() {
         ("negative_scale", &["scale -1"]),
         ("affine_overflow", &["not finite"]),
         ("codebook_nan_entry", &["codebook entry 0"]),
+        (
+            "occupancy_resolution_zero",
+            &["occupancy section", "resolution 0"],
+        ),
+        (
+            "occupancy_resolution_over_limit",
+            &["occupancy section resolution", "600", "512"],
+        ),
+        ("occupancy_wrong_length", &["occupancy section", "needs"]),
+        (
+            "occupancy_nan_threshold",
+            &["occupancy section", "threshold"],
+        ),
+        (
+            "occupancy_reserved_nonzero",
+            &["occupancy section", "reserved"],
+        ),
+        (
+            "occupancy_padding_bit",
+            &["occupancy section", "past the last cell"],
+        ),
+        (
+            "occupancy_raw_length_beyond_limit",
+            &["occupancy section raw length"],
+        ),
+        ("v2_file_marked_v1", &["index", "7 sections, expected 6"]),
+        ("v1_file_marked_v2", &["index"]),
     ];
     let corpus = corpus();
     for (name, needles) in expect {
@@ -798,8 +883,8 @@ fn a_row_in_shared_and_chunk_takes_the_chunks_values() {
         b.replace_section(i, &stored, raw.len() as u64);
     };
     let row = 2;
-    put(&mut b, 3, one_row_payload(u32::MAX, row, 0.5));
-    put(&mut b, 4, one_row_payload(0, row + 1, 0.25));
+    put(&mut b, SHARED, one_row_payload(u32::MAX, row, 0.5));
+    put(&mut b, SHARED + 1, one_row_payload(0, row + 1, 0.25));
     put(&mut b, last, one_row_payload(1, row, 0.75));
     let (c, _) = tiny_model();
     let layout = ModelLayout::new(&c);

@@ -11,7 +11,6 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::Duration;
 
-use msth_codec::format::FIRST_CHUNK;
 use msth_codec::Limits;
 use msth_player::source::TransferStats;
 use msth_player::{ByteSource, FileSource, HttpOptions, HttpSource, ModelStream};
@@ -369,7 +368,7 @@ fn seeking_fetches_the_wanted_chunk_first_then_plays_on_from_it() {
     stream.wait_all(Duration::from_secs(30)).unwrap();
     let log = gated.log.lock().unwrap().clone();
     let chunk_of = |r: &Range<u64>| {
-        index.sections[FIRST_CHUNK..]
+        index.sections[index.first_chunk()..]
             .iter()
             .position(|s| s.offset == r.start)
     };

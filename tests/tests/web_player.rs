@@ -212,6 +212,19 @@ fn web_player_streams_renders_and_matches_native() {
     .unwrap();
     let base = format!("http://{}", server.addr());
     let results = dir.path().join("browser.json");
+    // README screenshots (issue #17): `MSTH_UPDATE_SCREENSHOTS=1` writes the page, paused at
+    // t = 0.5 at the file's camera 0 (a training camera), to docs/images/web-player.png;
+    // `MSTH_SCREENSHOT_MODEL=FILE.msth` (e.g. `msth demo`'s scene.msth) is served beside the
+    // test's model and shown instead.
+    let screenshot = repo_root().join("docs/images/web-player.png");
+    let mut extra: Vec<String> = Vec::new();
+    if std::env::var("MSTH_UPDATE_SCREENSHOTS").is_ok_and(|v| v == "1") {
+        extra.extend(["--screenshot".into(), screenshot.display().to_string()]);
+        if let Some(m) = std::env::var_os("MSTH_SCREENSHOT_MODEL") {
+            std::fs::copy(&m, served.join("screenshot.msth")).unwrap();
+            extra.extend(["--screenshot-model".into(), "screenshot.msth".into()]);
+        }
+    }
     let (ok, out) = run_node(
         &[
             "web/tests/browser.mjs",
@@ -231,7 +244,10 @@ fn web_player_streams_renders_and_matches_native() {
             chromium.to_str().unwrap(),
             "--out",
             results.to_str().unwrap(),
-        ],
+        ]
+        .into_iter()
+        .chain(extra.iter().map(String::as_str))
+        .collect::<Vec<_>>(),
         BROWSER_TIMEOUT,
     );
     assert!(ok, "the browser test failed:\n{out}");

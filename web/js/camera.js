@@ -112,6 +112,9 @@ export function templateCamera(cameras, size) {
 /**
  * Orbit controls state: azimuth/elevation (degrees), distance and a pan offset of the target in
  * the rig's frame. `camera()` gives the current camera; at zero pan it is exactly `rigView`.
+ * After `setCamera(cam)` (one of the file's cameras) `camera()` is that camera exactly, and the
+ * orbit parameters are set so that the first drag turns about the point of its view axis nearest
+ * the scene centre, continuing from its position and viewing direction.
  */
 export class Orbit {
   constructor(rig, az = 0, el = (rig.elevation * 180) / Math.PI, dist = rig.radius) {
@@ -120,18 +123,38 @@ export class Orbit {
     this.el = el;
     this.dist = dist;
     this.pan = [0, 0, 0];
+    /** A file camera shown as it is until the first orbit, pan or zoom (null: the orbit's view). */
+    this.fixed = null;
+  }
+  /** Shows `cam` (resized to the rig's template) and continues orbiting from it. */
+  setCamera(cam) {
+    const rig = this.rig;
+    const t = rig.template;
+    this.fixed = cam.width === t.width && cam.height === t.height ? cam : resize(cam, t.width, t.height);
+    const eye = center(cam);
+    const forward = normalize([-cam.m[8], -cam.m[9], -cam.m[10]]);
+    const along = Math.max(dot(sub(rig.center, eye), forward), 0.05 * rig.radius);
+    const target = add(eye, mul(forward, along));
+    const d = sub(eye, target);
+    this.pan = sub(target, rig.center);
+    this.dist = length(d);
+    this.el = (Math.asin(Math.min(1, Math.max(-1, dot(d, rig.up) / this.dist))) * 180) / Math.PI;
+    this.az = (Math.atan2(dot(d, rig.e2), dot(d, rig.e1)) * 180) / Math.PI;
   }
   camera() {
+    if (this.fixed) return this.fixed;
     const target = add(this.rig.center, this.pan);
     return rigView(this.rig, (this.az * Math.PI) / 180, (this.el * Math.PI) / 180, this.dist, target);
   }
   /** Turns by a drag of (dx, dy) pixels. */
   rotate(dx, dy) {
+    this.fixed = null;
     this.az -= dx * 0.4;
     this.el = Math.min(89, Math.max(-89, this.el + dy * 0.4));
   }
   /** Moves the target by a drag of (dx, dy) pixels in the image plane. */
   panBy(dx, dy) {
+    this.fixed = null;
     const cam = this.camera();
     const right = [cam.m[0], cam.m[1], cam.m[2]];
     const upv = [cam.m[4], cam.m[5], cam.m[6]];
@@ -140,6 +163,7 @@ export class Orbit {
   }
   /** Zooms by a factor (> 1 moves away). */
   zoom(factor) {
+    this.fixed = null;
     this.dist = Math.min(this.rig.radius * 20, Math.max(this.rig.radius * 0.05, this.dist * factor));
   }
 }

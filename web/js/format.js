@@ -1,33 +1,22 @@
-// The `.msth` format (docs/format.md, version 1) for the browser and Node: the prefix (fixed
-// header, metadata JSON, section index), section decoding (CRC-32, zstd through the `fzstd` npm
-// package, blocks f32 / f16 / affine / codebook with the delta predictor, sparse 4D chunks) and
-// the model's flat parameter buffer layout (§7), mirroring msth-codec and msth-core's
-// `ModelLayout`. Every count read from a file is checked before it is used to allocate or index.
+// The `.msth` format (docs/format.md, versions 1 and 2) for the browser and Node: the prefix
+// (fixed header, metadata JSON, section index), section decoding (CRC-32, zstd through the
+// `fzstd` npm package, blocks f32 / f16 / affine / codebook with the delta predictor, sparse 4D
+// chunks, the occupancy grid of version 2) and the model's flat parameter buffer layout (§7),
+// mirroring msth-codec and msth-core's `ModelLayout`. Every count read from a file is checked
+// before it is used to allocate or index. The constants both languages must agree on come from
+// `generated/contract.js`, which tests/tests/web_contract.rs writes from the Rust code.
 
 import { Decompress } from "fzstd";
+import {
+  MAGIC, VERSION, MIN_VERSION, FIXED_HEADER, INDEX_ENTRY, ALIGN, COMPRESSION_ZSTD, KIND, FIXED_SECTIONS,
+  SHARED_TAG, LIMITS, OCCUPANCY, METADATA_KEYS, QUANT_MODES, HASH_PRIMES, PARAM_ALIGN, SH_COEFFS,
+} from "./generated/contract.js";
 
-export const MAGIC = [0x4d, 0x53, 0x54, 0x48];
-export const VERSION = 1;
-export const FIXED_HEADER = 32;
-export const INDEX_ENTRY = 40;
-/** Index position of dynamic chunk 0 (after MLP, proposal, static and shared). */
-export const FIRST_CHUNK = 4;
-export const KIND = { mlp: 1, proposal: 2, static: 3, dynamic: 4, shared: 5 };
-const KIND_NAME = { 1: "mlp", 2: "proposal", 3: "static", 4: "dynamic", 5: "shared" };
-const SHARED_TAG = 0xffffffff;
+export { MAGIC, VERSION, MIN_VERSION, FIXED_HEADER, INDEX_ENTRY, KIND, LIMITS, HASH_PRIMES };
+const KIND_NAME = Object.fromEntries(Object.entries(KIND).map(([name, code]) => [code, name]));
 
-/** msth-codec's default limits (format.md §8). */
-export const LIMITS = {
-  maxMetadata: 16 << 20,
-  maxSections: 1 << 16,
-  maxParams: 1 << 27,
-  maxSectionBytes: 2 * 1024 * 1024 * 1024,
-  maxCameras: 4096,
-  maxImageSide: 16384,
-  maxImagePixels: 2 ** 24,
-  maxProposalSamples: 1024,
-  maxSamples: 512,
-};
+/** Index position of dynamic chunk 0 in a file of `version` (after its fixed sections and the shared one). */
+export const firstChunk = (version) => FIXED_SECTIONS[version].length + 1;
 
 /** A decoding failure: `what` names the part of the file, `truncated` asks for more bytes. */
 export class FormatError extends Error {
@@ -60,7 +49,6 @@ export function crc32(bytes, crc = 0) {
 
 // ---------------------------------------------------------------- layout (msth-core)
 
-const PRIMES = [1, 2654435761, 805459861, 3674653429];
 
 // LLVM's powi (compiler-rt __powidf2): repeated squaring, as Rust's f64::powi.
 function powi(a, b) {
@@ -110,12 +98,10 @@ export function gridLayout(cfg) {
   return { dims: d, features: cfg.features_per_level, levels, numParams: offset, tableSize };
 }
 
-export { PRIMES as HASH_PRIMES };
 
 const usesH3 = (blend) => blend !== "four_d";
 const usesH4 = (blend) => blend !== "static";
 const usesMask = (blend) => blend === "mst" || blend === "mt";
-const SH_COEFFS = 16;
 
 function mlpLayout(dims) {
   const offsets = [];
@@ -135,7 +121,7 @@ function mlpLayout(dims) {
 export function modelLayout(model) {
   let total = 0;
   const push = (len) => {
-    const start = Math.ceil(total / 16) * 16;
+    const start = Math.ceil(total / PARAM_ALIGN) * PARAM_ALIGN;
     total = start + len;
     return { start, end: start + len };
   };
@@ -244,7 +230,7 @@ const u64 = (b, o, what) => {
   if (hi >= 2 ** 21) throw new FormatError(what, "a 64-bit value exceeds 2^53");
   return hi * 2 ** 32 + lo;
 };
-const align8 = (x) => Math.ceil(x / 8) * 8;
+const align8 = (x) => Math.ceil(x / ALIGN) * ALIGN;
 
 /** `header_size` from the first 32 bytes (the prefix a client fetches next). */
 export function prefixLength(first, limits = LIMITS) {
@@ -254,7 +240,7 @@ export function prefixLength(first, limits = LIMITS) {
   }
   if (first.length < FIXED_HEADER) throw new FormatError("fixed header", `needs ${FIXED_HEADER} bytes, have ${first.length}`, true);
   const version = u16(first, 4);
-  if (version !== VERSION) throw new FormatError("version", `file is version ${version}, this decoder reads ${VERSION}`);
+  if (version < MIN_VERSION || version > VERSION) throw new FormatError("version", `file is version ${version}, this decoder reads ${MIN_VERSION} to ${VERSION}`);
   if (u16(first, 6) !== 0) throw new FormatError("header", "reserved flag bits set");
   for (let i = 20; i < 28; i++) if (first[i] !== 0) throw new FormatError("header", "reserved bytes 20..28 must be zero");
   const headerSize = u32(first, 8);
@@ -291,7 +277,7 @@ export function parsePrefix(bytes, limits = LIMITS) {
     const what = `index entry ${i}`;
     const kind = bytes[o];
     if (!KIND_NAME[kind]) throw new FormatError(what, `unsupported section kind ${kind}`);
-    if (bytes[o + 1] !== 1) throw new FormatError(what, `unsupported compression ${bytes[o + 1]} (version 1 has zstd = 1 only)`);
+    if (bytes[o + 1] !== COMPRESSION_ZSTD) throw new FormatError(what, `unsupported compression ${bytes[o + 1]} (zstd = ${COMPRESSION_ZSTD} is the only one)`);
     if (bytes[o + 2] || bytes[o + 3] || u32(bytes, o + 36)) throw new FormatError(what, "reserved fields must be zero");
     sections.push({
       kind,
@@ -302,12 +288,13 @@ export function parsePrefix(bytes, limits = LIMITS) {
       crc32: u32(bytes, o + 32),
     });
   }
-  checkSections(sections, metadata, layout, headerSize, limits);
+  const version = u16(bytes, 4);
+  checkSections(sections, metadata, layout, version, headerSize, limits);
   const fileLength = sections.reduce((m, s) => Math.max(m, s.offset + s.length), headerSize);
-  return { metadata, sections, layout, headerSize, fileLength };
+  return { version, metadata, sections, layout, headerSize, fileLength, firstChunk: firstChunk(version) };
 }
 
-const TOP_KEYS = ["model", "param_count", "frame_rate", "time_range", "cameras", "quant", "dynamic_threshold", "chunk_frames", "chunks", "encoder"];
+const TOP_KEYS = METADATA_KEYS;
 
 function checkMetadata(m, limits) {
   const bad = (msg) => {
@@ -349,26 +336,28 @@ function checkMetadata(m, limits) {
   if (m.frame_rate !== null && !(Number.isFinite(m.frame_rate) && m.frame_rate > 0)) bad("frame_rate must be null or > 0");
   if (!Array.isArray(m.time_range) || m.time_range.length !== 2 || !m.time_range.every(Number.isFinite)) bad("time_range must be two numbers");
   if (m.time_range[0] !== 0 || m.time_range[1] !== 1) bad(`time_range is [${m.time_range[0]}, ${m.time_range[1]}], version 1 allows only [0, 1]`);
-  if (!["f32", "f16", "q8", "q6", "q5", "q4", "k4", "k3"].includes(m.quant)) bad(`unknown quantisation mode \`${m.quant}\``);
+  if (!QUANT_MODES.includes(m.quant)) bad(`unknown quantisation mode \`${m.quant}\``);
   if (!(Number.isFinite(m.dynamic_threshold) && m.dynamic_threshold >= 0 && m.dynamic_threshold <= 1)) bad("dynamic_threshold must lie in [0, 1]");
   if (!(Number.isInteger(m.chunk_frames) && m.chunk_frames >= 1)) bad("chunk_frames must be an integer >= 1");
   if (typeof m.encoder !== "string") bad("encoder must be a string");
   return layout;
 }
 
-function checkSections(sections, metadata, layout, headerSize, limits) {
+function checkSections(sections, metadata, layout, version, headerSize, limits) {
   const chunks = metadata.chunks.length;
-  const expected = chunks ? FIRST_CHUNK + chunks : 3;
+  const fixed = FIXED_SECTIONS[version];
+  const first = fixed.length + 1;
+  const expected = chunks ? first + chunks : fixed.length;
   if (sections.length !== expected) throw new FormatError("index", `${sections.length} sections, the metadata implies ${expected}`);
-  const order = [KIND.mlp, KIND.proposal, KIND.static, KIND.shared];
+  const order = [...fixed, KIND.shared];
   let end = headerSize;
   sections.forEach((s, i) => {
     const what = `index entry ${i}`;
-    const kind = i < FIRST_CHUNK ? order[i] : KIND.dynamic;
-    const chunk = i < FIRST_CHUNK ? 0 : i - FIRST_CHUNK;
+    const kind = i < first ? order[i] : KIND.dynamic;
+    const chunk = i < first ? 0 : i - first;
     if (s.kind !== kind || s.chunk !== chunk) throw new FormatError(what, `expected a ${KIND_NAME[kind]} section${kind === KIND.dynamic ? ` for chunk ${chunk}` : ""}`);
     if (s.length > limits.maxSectionBytes || s.rawLength > limits.maxSectionBytes) throw new FormatError(what, "section exceeds the 2 GiB limit");
-    if (s.rawLength > maxPayload(layout, s.kind)) throw new FormatError(what, `raw length ${s.rawLength} exceeds what the model allows`);
+    if (s.rawLength > maxPayload(layout, s.kind, limits)) throw new FormatError(what, `raw length ${s.rawLength} exceeds what the model allows`);
     if (s.offset % 8 !== 0) throw new FormatError(what, "offset is not a multiple of 8");
     if (s.offset < end) throw new FormatError(what, "sections overlap");
     end = s.offset + s.length;
@@ -402,7 +391,11 @@ function staticRanges(layout, kind) {
   return out;
 }
 
-function maxPayload(layout, kind) {
+/** Bytes of an occupancy payload of `resolution` cells per axis (format.md §6.5). */
+export const occupancyPayloadLength = (resolution) => OCCUPANCY.headerBytes + 4 * Math.ceil(resolution ** 3 / 32);
+
+function maxPayload(layout, kind, limits = LIMITS) {
+  if (kind === KIND.occupancy) return occupancyPayloadLength(limits.maxOccupancyResolution);
   if (kind === KIND.dynamic || kind === KIND.shared) {
     const g = layout.field.encoding.h4;
     if (!g) return 0;
@@ -530,6 +523,7 @@ export function f16ToF32(h) {
 export function sectionLabel(s) {
   if (s.kind === KIND.dynamic) return `dynamic chunk ${s.chunk}`;
   if (s.kind === KIND.shared) return "shared dynamic section";
+  if (s.kind === KIND.occupancy) return "occupancy section";
   return `${KIND_NAME[s.kind]} section`;
 }
 
@@ -613,6 +607,39 @@ export function readStatic(layout, payload, entry, params) {
   r.finish();
 }
 
+/**
+ * Decodes an occupancy payload (format.md §6.5) strictly: `{ resolution, densityThreshold,
+ * frames, words }`, `words` a Uint32Array where bit `i % 32` of word `i >> 5` is cell
+ * `i = x + R (y + R z)` of the unit cube (set: something is there at some frame).
+ */
+export function readOccupancy(payload, entry, limits = LIMITS) {
+  const what = sectionLabel(entry);
+  if (payload.length < OCCUPANCY.headerBytes) throw new FormatError(what, `${payload.length} bytes, the occupancy header needs ${OCCUPANCY.headerBytes}`);
+  const view = new DataView(payload.buffer, payload.byteOffset, payload.byteLength);
+  const resolution = view.getUint32(0, true);
+  const densityThreshold = view.getFloat32(4, true);
+  const frames = view.getUint32(8, true);
+  if (resolution === 0) throw new FormatError(what, "occupancy resolution 0");
+  if (resolution > limits.maxOccupancyResolution) throw new FormatError(what, `resolution ${resolution} exceeds the limit ${limits.maxOccupancyResolution}`);
+  if (!(Number.isFinite(densityThreshold) && densityThreshold >= 0)) throw new FormatError(what, `density threshold ${densityThreshold} is not finite and >= 0`);
+  if (view.getUint32(12, true) !== 0) throw new FormatError(what, "reserved field must be zero");
+  const need = occupancyPayloadLength(resolution);
+  if (payload.length !== need) throw new FormatError(what, `${payload.length} bytes, resolution ${resolution} needs ${need}`);
+  const words = new Uint32Array(need / 4 - OCCUPANCY.headerBytes / 4);
+  for (let i = 0; i < words.length; i++) words[i] = view.getUint32(OCCUPANCY.headerBytes + 4 * i, true);
+  const tail = resolution ** 3 % 32;
+  if (tail && words[words.length - 1] >>> tail) throw new FormatError(what, "bits past the last cell must be zero");
+  return { resolution, densityThreshold, frames, words };
+}
+
+/** Whether the occupancy cell holding unit-cube point `p` is set (as msth-codec's `occupied_unit`). */
+export function occupiedUnit(grid, p) {
+  const r = grid.resolution;
+  const c = (v) => Math.min(Math.trunc(Math.fround(Math.min(Math.max(v, 0), 1) * r)), r - 1);
+  const i = c(p[0]) + r * (c(p[1]) + r * c(p[2]));
+  return ((grid.words[i >>> 5] >>> (i & 31)) & 1) === 1;
+}
+
 /** Decodes a shared or chunk payload: per 4D level `{ rows: Uint32Array, values: Float32Array }`. */
 export function readChunk(layout, payload, entry) {
   const what = sectionLabel(entry);
@@ -672,10 +699,13 @@ export function chunkForTime(metadata, t) {
 export class Decoder {
   constructor(prefix, limits = LIMITS) {
     Object.assign(this, parsePrefix(prefix, limits));
+    this.limits = limits;
     this.base = new Float32Array(this.layout.total);
     this.decoded = new Array(this.sections.length).fill(false);
     this.shared = null;
-    this.chunks = new Array(Math.max(0, this.sections.length - FIRST_CHUNK)).fill(null);
+    this.chunks = new Array(this.metadata.chunks.length).fill(null);
+    /** The occupancy grid (`readOccupancy`) once decoded; stays null for a version-1 file. */
+    this.occupancy = null;
   }
 
   /** Decodes index entry `i` from its stored bytes. */
@@ -684,13 +714,14 @@ export class Decoder {
     const payload = unpack(e, stored);
     if (e.kind === KIND.shared) this.shared = readChunk(this.layout, payload, e);
     else if (e.kind === KIND.dynamic) this.chunks[e.chunk] = readChunk(this.layout, payload, e);
+    else if (e.kind === KIND.occupancy) this.occupancy = readOccupancy(payload, e, this.limits);
     else readStatic(this.layout, payload, e, this.base);
     this.decoded[i] = true;
   }
 
   /** Whether the sections every frame needs are decoded. */
   staticReady() {
-    return this.decoded.slice(0, Math.min(FIRST_CHUNK, this.sections.length)).every(Boolean);
+    return this.decoded.slice(0, Math.min(this.firstChunk, this.sections.length)).every(Boolean);
   }
 
   chunkForTime(t) {

@@ -1,19 +1,35 @@
 // The web player's page: picks a model from `/models`, streams it (stream.js), keeps the
 // decoded flat parameter buffer on the GPU (renderer.js, the native renderer's WGSL) and drives
-// the UI: orbit / pan / zoom with mouse and touch, a timeline with play/pause and scrubbing, a
-// loading bar of the streamed byte ranges and a frames-per-second counter.
+// the UI: the file's cameras as starting views, orbit / pan / zoom with mouse and touch, a
+// timeline with play/pause and scrubbing, a loading bar of the streamed byte ranges, and the
+// frame rate and the resolution being drawn.
 //
-// URL parameters: `model=NAME` (a name from /models), `view=AZ,EL,DIST` (degrees, degrees,
-// distance: the same viewpoint as `msth play --path view:AZ,EL,DIST`), `t=T` (normalised time,
-// starts paused there), `size=WxH` (render size, as `msth play --size`), `play=0|1`.
+// Resolution policy (stated on the page): while the camera moves or the timeline plays, frames
+// are drawn at a reduced resolution, 1 (playing only), 1/2, 1/4 or 1/8 of the full size per
+// side, adapted frame by frame so that a frame fits its budget (1/30 s while moving, one model
+// frame while playing);
+// when the camera stops (STILL_MS after the last input) and playback is paused, the view is
+// drawn again at full resolution. The timeline advances with the clock at the model's frame
+// rate; when the GPU cannot keep up even at 1/8, frames are dropped, not slowed down.
+//
+// URL parameters: `model=NAME` (a name from /models), `camera=K` (start at the file's camera K,
+// the default: camera 0), `view=AZ,EL,DIST` (degrees, degrees, distance: the same viewpoint as
+// `msth play --path view:AZ,EL,DIST`, instead of a file camera), `t=T` (normalised time, starts
+// paused there), `size=WxH` (render size, as `msth play --size`), `play=0|1`.
 //
 // `window.msth` exposes the player's state to tests and to the console (see `hooks` below).
 
 import { ModelStream } from "./stream.js";
-import { cameraFromJson, makeRig, Orbit, templateCamera } from "./camera.js";
+import { cameraFromJson, makeRig, Orbit, resize, templateCamera } from "./camera.js";
 import { Renderer, NoWebGpu } from "./renderer.js";
 
 const $ = (id) => document.getElementById(id);
+/** Reduced resolutions (per side) while moving or playing, finest first. */
+const SCALES = [1, 1 / 2, 1 / 4, 1 / 8];
+/** Frame budget while the camera moves (ms). */
+const MOVING_BUDGET_MS = 1000 / 30;
+/** The camera counts as still this long after the last input (ms). */
+const STILL_MS = 250;
 const params = new URLSearchParams(location.search);
 
 const hooks = {
@@ -143,6 +159,14 @@ async function main() {
   const rig = makeRig(meta.model.bounds, cameras, template);
   const view = parseView(params.get("view"));
   const orbit = view ? new Orbit(rig, view[0], view[1], view[2]) : new Orbit(rig);
+  // The default view is one of the file's cameras (the training cameras `msth export` stores).
+  const camSel = $("camera");
+  cameras.forEach((c, i) => camSel.append(new Option(`camera ${i} (${c.width}x${c.height})`, String(i))));
+  camSel.append(new Option("free orbit", "free"));
+  const camParam = Number(params.get("camera") ?? 0);
+  const startCamera = Number.isInteger(camParam) && camParam >= 0 && camParam < cameras.length ? camParam : 0;
+  if (!view && cameras.length) orbit.setCamera(cameras[startCamera]);
+  camSel.value = orbit.fixed ? String(startCamera) : "free";
   const canvas = $("view");
   canvas.width = template.width;
   canvas.height = template.height;
@@ -151,6 +175,13 @@ async function main() {
   canvas.style.width = `${template.width * shown}px`;
   canvas.style.height = `${template.height * shown}px`;
   $("info").textContent = `${name}: ${meta.model.num_frames} frames, ${meta.param_count.toLocaleString()} parameters, ${meta.quant}, ${meta.chunks.length} chunks`;
+  const modelFps = meta.frame_rate || 24;
+  $("policy").textContent =
+    `Resolution: while you move the camera, frames are drawn at 1/2 to 1/8 of ${template.width}x${template.height} per side, ` +
+    `adapted so that a frame takes at most ${MOVING_BUDGET_MS.toFixed(0)} ms; while the video plays, at full size when a frame fits one model frame ` +
+    `(${(1000 / modelFps).toFixed(0)} ms at ${modelFps} fps), else reduced the same way; ` +
+    `${STILL_MS} ms after the camera stops, paused, the view is drawn again at full resolution. ` +
+    `The timeline runs at the model's ${modelFps} fps: frames the GPU cannot draw in time are skipped.`;
 
   const tParam = params.get("t");
   const state = {
@@ -159,6 +190,14 @@ async function main() {
     dirty: true,
     loadedChunk: undefined,
     rendering: false,
+    /** When the camera last moved (ms, performance.now()). */
+    lastInput: -Infinity,
+    /** Index into SCALES used while moving or playing (adapted to the frame budget). */
+    level: 0,
+    /** Per-side scale of the last frame drawn. */
+    scale: 1,
+    /** The last frame was reduced: draw it again at full resolution when the camera is still. */
+    refine: false,
   };
   hooks.state = state;
   hooks.orbit = orbit;
@@ -177,8 +216,7 @@ async function main() {
   const scrub = $("scrub");
   const playBtn = $("play");
   const frames = meta.model.num_frames;
-  const fps = meta.frame_rate || 24;
-  const duration = Math.max(frames, 2) / fps;
+  const duration = Math.max(frames, 2) / modelFps;
   const setPlaying = (p) => {
     state.playing = p;
     playBtn.textContent = p ? "❚❚" : "▶";
@@ -208,6 +246,16 @@ async function main() {
     canvas.setPointerCapture(e.pointerId);
     pointers.set(e.pointerId, { x: e.clientX, y: e.clientY, button: e.button, shift: e.shiftKey });
   });
+  const moved = () => {
+    state.dirty = true;
+    state.lastInput = performance.now();
+    if (!orbit.fixed) camSel.value = "free";
+  };
+  camSel.onchange = () => {
+    const k = Number(camSel.value);
+    if (camSel.value !== "free" && cameras[k]) orbit.setCamera(cameras[k]);
+    state.dirty = true;
+  };
   const scale = () => canvas.width / canvas.getBoundingClientRect().width;
   canvas.addEventListener("pointermove", (e) => {
     const p = pointers.get(e.pointerId);
@@ -230,7 +278,7 @@ async function main() {
     } else {
       orbit.rotate(sx, sy);
     }
-    state.dirty = true;
+    moved();
   });
   const up = (e) => {
     pointers.delete(e.pointerId);
@@ -243,7 +291,7 @@ async function main() {
     (e) => {
       e.preventDefault();
       orbit.zoom(Math.exp(e.deltaY * 0.001));
-      state.dirty = true;
+      moved();
     },
     { passive: false },
   );
@@ -252,6 +300,14 @@ async function main() {
     orbit.el = el;
     orbit.dist = dist;
     orbit.pan = [0, 0, 0];
+    orbit.fixed = null;
+    camSel.value = "free";
+    state.dirty = true;
+  };
+  /** Shows the file's camera `k`, as the view menu does. */
+  hooks.setCamera = (k) => {
+    orbit.setCamera(cameras[k]);
+    camSel.value = String(k);
     state.dirty = true;
   };
 
@@ -268,11 +324,31 @@ async function main() {
       state.paramsStale = false;
       hooks.timings.params ??= performance.now();
     }
-    const cam = orbit.camera();
+    const full = orbit.camera();
+    // The resolution policy (top of this file): reduced while moving or playing, full when still.
+    const moving = performance.now() - state.lastInput < STILL_MS;
+    // Moving: at most half size per side (a drag should answer at once); playing: full size as
+    // long as a frame fits one model frame.
+    const scale = moving ? SCALES[Math.max(state.level, 1)] : state.playing ? SCALES[state.level] : 1;
+    const w = Math.max(1, Math.round(full.width * scale));
+    const h = Math.max(1, Math.round(full.height * scale));
+    const cam = scale === 1 ? full : resize(full, w, h);
     const t0 = performance.now();
     // New input (orbit, zoom, scrub) abandons a frame still in progress.
     if (!(await gpu.render(cam, state.t, () => state.dirty))) return;
     const t1 = performance.now();
+    state.scale = scale;
+    if (moving || state.playing) {
+      const budget = moving ? MOVING_BUDGET_MS : 1000 / modelFps;
+      const ms = t1 - t0;
+      if (ms > budget && state.level < SCALES.length - 1) state.level++;
+      else if (ms * 4 < 0.7 * budget && state.level > 0) state.level--;
+    }
+    // A reduced frame is drawn again at full resolution once the camera stops and playback is
+    // paused.
+    state.refine = scale !== 1;
+    hooks.lastScale = scale;
+    hooks.lastSize = [w, h];
     hooks.frames++;
     hooks.lastFrameMs = t1 - t0;
     hooks.lastTime = state.t;
@@ -299,7 +375,9 @@ async function main() {
       scrub.value = String(Math.round(state.t * 1000));
     }
     $("time").textContent = `t = ${state.t.toFixed(3)} · frame ${Math.round(state.t * (frames - 1))}`;
-    if (!state.rendering && (state.dirty || state.playing || frameDone.length)) {
+    // A pending refinement waits until the camera has been still for STILL_MS.
+    const refine = state.refine && !state.playing && now - state.lastInput >= STILL_MS;
+    if (!state.rendering && (state.dirty || state.playing || frameDone.length || refine)) {
       if (stream.readyFor(state.t)) {
         state.rendering = true;
         state.dirty = false;
@@ -316,6 +394,11 @@ async function main() {
     }
     const n = recent.length;
     $("fps").textContent = n > 1 ? `${n} fps · ${hooks.lastFrameMs.toFixed(1)} ms/frame` : hooks.lastFrameMs ? `${hooks.lastFrameMs.toFixed(1)} ms/frame` : "– fps";
+    if (hooks.lastSize) {
+      const [rw, rh] = hooks.lastSize;
+      const s = state.scale;
+      $("res").textContent = `· ${rw}x${rh}${s === 1 ? " (full)" : ` (1/${Math.round(1 / s)}${state.playing ? ", playing" : ", moving"})`}`;
+    }
     if (performance.now() - (recent[n - 1] ?? 0) > 1000) recent.length = 0;
     if (!hooks.error) requestAnimationFrame(tick);
   }

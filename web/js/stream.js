@@ -6,7 +6,7 @@
 // If-Range with the first response's validator so a file replaced mid-stream is detected).
 // Sections are decoded as they arrive; `ranges` tells the loading bar what has streamed.
 
-import { Decoder, FIRST_CHUNK, FIXED_HEADER, FormatError, prefixLength } from "./format.js";
+import { Decoder, FIXED_HEADER, FormatError, prefixLength } from "./format.js";
 
 /** Largest gap between two sections fetched in one request (as stream.rs). */
 const MAX_GAP = 4096;
@@ -196,7 +196,7 @@ export class ModelStream {
   #nextRequest() {
     const d = this.decoder;
     const secs = d.sections;
-    const nStatic = Math.min(FIRST_CHUNK, secs.length);
+    const nStatic = Math.min(d.firstChunk, secs.length);
     const missing = [];
     for (let i = 0; i < nStatic; i++) if (!d.decoded[i]) missing.push(i);
     if (missing.length) {
@@ -214,7 +214,7 @@ export class ModelStream {
     const start = Math.min(this.want ?? 0, chunks - 1);
     for (let k = 0; k < chunks; k++) {
       const c = (start + k) % chunks;
-      if (!d.chunks[c]) return [FIRST_CHUNK + c, FIRST_CHUNK + c + 1];
+      if (!d.chunks[c]) return [d.firstChunk + c, d.firstChunk + c + 1];
     }
     return null;
   }

@@ -4,6 +4,7 @@
 //
 //   node web/tests/browser.mjs --base http://127.0.0.1:8080 --model demo.msth \
 //     --view 30,25,4 --size 64x48 --native0 t0.png --native1 t1.png [--screenshot page.png] \
+//     [--screenshot-model NAME] \
 //     [--bench-size 256x256] [--out results.json] [--chromium /usr/bin/chromium]
 //
 // `--native0` / `--native1` are `msth play FILE --path view:VIEW --size SIZE --frames 1
@@ -103,7 +104,7 @@ async function waitFirstFrame(page, timeout = 300_000) {
 /** Waits until a frame has been rendered after this call with nothing left to render. */
 async function settled(page) {
   await page.evaluate(() => window.msth.nextFrame());
-  await page.waitForFunction(() => !window.msth.state.dirty && !window.msth.state.rendering, null, { timeout: 120_000, polling: 50 });
+  await page.waitForFunction(() => !window.msth.state.dirty && !window.msth.state.refine && !window.msth.state.rendering, null, { timeout: 120_000, polling: 50 });
 }
 
 const pixels = (page) => page.evaluate(() => window.msth.readPixels());
@@ -273,8 +274,9 @@ async function main() {
       console.log(`bench: ${bench.width}x${bench.height}: ${bench.fps.toFixed(2)} frames per second (${bench.frames} frames in ${bench.seconds.toFixed(2)} s), time to first frame ${t.toFixed(0)} ms`);
     }
     if (a.screenshot) {
-      // Paused: while SwiftShader renders, the page cannot composite a screenshot.
-      const url = `${a.base}/?model=${encodeURIComponent(a.model)}&t=0.5&play=0`;
+      // Paused: while SwiftShader renders, the page cannot composite a screenshot. The default
+      // view: the file's camera 0 (a training camera), at its own size.
+      const url = `${a.base}/?model=${encodeURIComponent(a["screenshot-model"] || a.model)}&t=0.5&play=0`;
       await page.goto(url);
       await waitFirstFrame(page);
       await page.waitForFunction(() => window.msth.stream.progress().complete, null, { timeout: 300_000 });
