@@ -799,6 +799,20 @@ mod tests {
         params[r].fill(logit);
     }
 
+    /// An `mt` model whose mask logit is `logit` everywhere over a 4D table of uniform values in
+    /// `[-amplitude, amplitude]`: frames move wherever the mask lets the table through.
+    fn mask_over_a_moving_table(logit: f32, amplitude: f32) -> (ModelConfig, Vec<f32>) {
+        let (cfg, mut params) = model(msth_core::config::BlendMode::Mt);
+        let layout = ModelLayout::new(&cfg);
+        set_mask(&cfg, &mut params, logit);
+        let mut rng = msth_core::rng::Rng::new(9);
+        let (_, h4) = layout.field.encoding.h4.clone().unwrap();
+        for v in &mut params[h4] {
+            *v = rng.range_f32(-amplitude, amplitude);
+        }
+        (cfg, params)
+    }
+
     #[test]
     fn all_static_mask_renders_once_and_matches_full_renders() {
         let (cfg, mut params) = model(msth_core::config::BlendMode::Mt);
@@ -860,14 +874,8 @@ mod tests {
 
     #[test]
     fn probes_catch_rays_a_lenient_mask_calls_static() {
-        let (cfg, mut params) = model(msth_core::config::BlendMode::Mt);
-        let layout = ModelLayout::new(&cfg);
-        set_mask(&cfg, &mut params, 1.0); // m = 0.73: "static" at threshold 0.5
-        let mut rng = msth_core::rng::Rng::new(9);
-        let (_, h4) = layout.field.encoding.h4.clone().unwrap();
-        for v in &mut params[h4] {
-            *v = rng.range_f32(-2.0, 2.0);
-        }
+        // m = 0.73: "static" at threshold 0.5, unsure (below the trust threshold).
+        let (cfg, params) = mask_over_a_moving_table(1.0, 2.0);
         let lenient = RenderSettings {
             static_threshold: 0.5,
             probe_tolerance: 1.0 / 255.0,
@@ -903,18 +911,11 @@ mod tests {
 
     #[test]
     fn a_sure_mask_is_trusted_without_probes_and_the_audit_counts_its_errors() {
-        // The mask says "surely static" (m = 0.982, above the trust threshold 0.98) while a 4D
-        // table of huge values makes everything move through the 1.8% left to it: trusted rays
-        // are cached on the mask's word (the probes do not see them), the audit counts them as
+        // The mask says "surely static" (m = 0.982, above the trust threshold) while a 4D table
+        // of huge values makes everything move through the 1.8% left to it: trusted rays are
+        // cached on the mask's word (the probes do not see them), the audit counts them as
         // disagreements, and a trust threshold above 1 probes them again.
-        let (cfg, mut params) = model(msth_core::config::BlendMode::Mt);
-        let layout = ModelLayout::new(&cfg);
-        set_mask(&cfg, &mut params, 4.0);
-        let mut rng = msth_core::rng::Rng::new(9);
-        let (_, h4) = layout.field.encoding.h4.clone().unwrap();
-        for v in &mut params[h4] {
-            *v = rng.range_f32(-100.0, 100.0);
-        }
+        let (cfg, params) = mask_over_a_moving_table(4.0, 100.0);
         let base = RenderSettings {
             probes: 5,
             probe_tolerance: 1.0 / 255.0,
