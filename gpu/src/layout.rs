@@ -140,7 +140,7 @@ impl GpuModel {
     /// Builds the uniforms of `cfg` (validated) and checks the kernels' limits; the error says
     /// which limit a model exceeds.
     pub fn new(cfg: &ModelConfig) -> Result<Self, String> {
-        cfg.validate()?;
+        cfg.validate().map_err(|e| e.to_string())?;
         let layout = ModelLayout::new(cfg);
         let (np, nf) = (cfg.sampler.num_proposal_samples, cfg.sampler.num_samples);
         let check = |what: &str, v: usize, max: usize| {
