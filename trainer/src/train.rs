@@ -21,7 +21,9 @@ use msth_core::uncertainty::{AuxLayout, InvalidMaskLearning, MaskLearningConfig}
 use msth_core::Camera;
 
 use crate::adam::{Adam, AdamConfig, MaskLossSlice};
-use crate::checkpoint::{AuxCheckpoint, Checkpoint, CheckpointError, CheckpointHeader};
+use crate::checkpoint::{
+    AuxCheckpoint, Checkpoint, CheckpointError, CheckpointFormatError, CheckpointHeader,
+};
 use crate::dataset::Dataset;
 use crate::ray_sampling::{
     push_ray, InvalidSamplingConfig, RaySampler, SamplingConfig, SamplingError, SamplingMode,
@@ -665,10 +667,10 @@ pub fn train(
             if a.step != trainer.step as u64 {
                 return Err(CheckpointError::Format {
                     path: aux_path,
-                    reason: format!(
-                        "it belongs to step {} but the checkpoint is at step {}",
-                        a.step, trainer.step
-                    ),
+                    reason: CheckpointFormatError::StepMismatch {
+                        aux_step: a.step,
+                        step: trainer.step,
+                    },
                 }
                 .into());
             }
