@@ -160,7 +160,9 @@ pub fn encode(
     opts: &EncodeOptions,
 ) -> Result<(Vec<u8>, EncodeReport), EncodeError> {
     let start = Instant::now();
-    model.validate().map_err(EncodeError::InvalidConfig)?;
+    model
+        .validate()
+        .map_err(|e| EncodeError::InvalidConfig(e.to_string()))?;
     // Never write a file the decoder's default limits refuse.
     let limits = crate::Limits::default();
     limits
@@ -206,8 +208,10 @@ pub fn encode(
         )));
     }
     for (index, c) in cameras.iter().enumerate() {
-        c.validate()
-            .map_err(|message| EncodeError::InvalidCamera { index, message })?;
+        c.validate().map_err(|e| EncodeError::InvalidCamera {
+            index,
+            message: e.to_string(),
+        })?;
         limits
             .check_image(&format!("cameras[{index}]"), c.width, c.height)
             .map_err(|e| EncodeError::InvalidCamera {

@@ -612,7 +612,9 @@ impl FileIndex {
 }
 
 fn check_metadata(m: &Metadata, limits: &Limits) -> Result<ModelLayout, DecodeError> {
-    m.model.validate().map_err(DecodeError::Model)?;
+    m.model
+        .validate()
+        .map_err(|e| DecodeError::Model(e.to_string()))?;
     limits.check_model(&m.model)?;
     // Bound the layout's size before building it: the parameter count of every grid is at most
     // levels * table rows * features, and ModelLayout::new allocates nothing per row.

@@ -31,6 +31,11 @@ pub struct Ray {
     pub dir: Vec3,
 }
 
+/// Why a camera was rejected by [`Camera::validate`] (pose or intrinsics).
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("{0}")]
+pub struct InvalidCamera(pub String);
+
 impl Camera {
     /// A camera from the horizontal field of view (NeRF `camera_angle_x`), principal point centred.
     pub fn from_fov_x(width: u32, height: u32, fov_x: f32, world_from_camera: Mat4) -> Self {
@@ -109,29 +114,29 @@ impl Camera {
     }
 
     /// Checks that the pose is finite and invertible and the intrinsics positive.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), InvalidCamera> {
         let m = self.world_from_camera;
         if !m.to_cols_array().iter().all(|v| v.is_finite()) {
-            return Err("pose has non-finite entries".into());
+            return Err(InvalidCamera("pose has non-finite entries".into()));
         }
         let det = glam::Mat3::from_mat4(m).determinant();
         if !det.is_finite() || det.abs() < 1e-6 {
-            return Err(format!(
+            return Err(InvalidCamera(format!(
                 "pose rotation is not invertible (determinant {det})"
-            ));
+            )));
         }
         for (name, v) in [("fx", self.fx), ("fy", self.fy)] {
             if !(v.is_finite() && v > 0.0) {
-                return Err(format!(
+                return Err(InvalidCamera(format!(
                     "focal length {name} = {v} must be finite and positive"
-                ));
+                )));
             }
         }
         if !(self.cx.is_finite() && self.cy.is_finite()) {
-            return Err("principal point is not finite".into());
+            return Err(InvalidCamera("principal point is not finite".into()));
         }
         if self.width == 0 || self.height == 0 {
-            return Err("image size is zero".into());
+            return Err(InvalidCamera("image size is zero".into()));
         }
         Ok(())
     }

@@ -3,9 +3,9 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::grid::GridConfig;
+use crate::grid::{GridConfig, InvalidGrid};
 use crate::sampling::Spacing;
-use crate::scene::SceneBounds;
+use crate::scene::{InvalidBounds, SceneBounds};
 
 /// How the 3D and 4D encodings are combined (method.md §1).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -160,9 +160,20 @@ pub const MAX_SAMPLES_PER_RAY: usize = 4096;
 pub const MAX_MLP_WIDTH: usize = 1024;
 pub const MAX_MASK_RESOLUTION: usize = 1024;
 
+/// Why [`ModelConfig::validate`] rejected a configuration; the message names the field.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum ModelConfigError {
+    #[error(transparent)]
+    Grid(#[from] InvalidGrid),
+    #[error("bounds: {0}")]
+    Bounds(InvalidBounds),
+    #[error("{0}")]
+    Invalid(String),
+}
+
 impl ModelConfig {
     /// Checks every value a user or a file could get wrong; the message names the field.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), ModelConfigError> {
         for (name, enc) in [
             ("field.encoding", &self.field.encoding),
             ("proposal.encoding", &self.proposal.encoding),
@@ -170,33 +181,39 @@ impl ModelConfig {
             if enc.blend.uses_h3() {
                 enc.grid3.validate(&format!("{name}.grid3"))?;
                 if enc.grid3.dims() != 3 {
-                    return Err(format!("{name}.grid3 must have 3 axes"));
+                    return Err(ModelConfigError::Invalid(format!(
+                        "{name}.grid3 must have 3 axes"
+                    )));
                 }
             }
             if enc.blend.uses_h4() {
                 enc.grid4.validate(&format!("{name}.grid4"))?;
                 if enc.grid4.dims() != 4 {
-                    return Err(format!("{name}.grid4 must have 4 axes"));
+                    return Err(ModelConfigError::Invalid(format!(
+                        "{name}.grid4 must have 4 axes"
+                    )));
                 }
             }
             if enc.blend.uses_h3()
                 && enc.blend.uses_h4()
                 && enc.grid3.output_dim() != enc.grid4.output_dim()
             {
-                return Err(format!(
+                return Err(ModelConfigError::Invalid(format!(
                     "{name}: grid3 and grid4 must produce the same number of features (levels x features): {} vs {}",
                     enc.grid3.output_dim(),
                     enc.grid4.output_dim()
-                ));
+                )));
             }
             if enc.blend.uses_mask() && !(2..=MAX_MASK_RESOLUTION).contains(&enc.mask_resolution) {
-                return Err(format!(
+                return Err(ModelConfigError::Invalid(format!(
                     "{name}.mask_resolution must be in 2..={MAX_MASK_RESOLUTION} (got {})",
                     enc.mask_resolution
-                ));
+                )));
             }
             if !enc.mask_init.is_finite() {
-                return Err(format!("{name}.mask_init must be finite"));
+                return Err(ModelConfigError::Invalid(format!(
+                    "{name}.mask_init must be finite"
+                )));
             }
         }
         let f = &self.field;
@@ -207,40 +224,48 @@ impl ModelConfig {
             ("proposal.hidden", self.proposal.hidden),
         ] {
             if v == 0 || v > MAX_MLP_WIDTH {
-                return Err(format!("{n} must be in 1..={MAX_MLP_WIDTH} (got {v})"));
+                return Err(ModelConfigError::Invalid(format!(
+                    "{n} must be in 1..={MAX_MLP_WIDTH} (got {v})"
+                )));
             }
         }
         if f.color_layers == 0 || f.color_layers > 8 {
-            return Err(format!(
+            return Err(ModelConfigError::Invalid(format!(
                 "field.color_layers must be in 1..=8 (got {})",
                 f.color_layers
-            ));
+            )));
         }
         let s = &self.sampler;
         if !(1..=MAX_SAMPLES_PER_RAY).contains(&s.num_samples)
             || !(1..=MAX_SAMPLES_PER_RAY).contains(&s.num_proposal_samples)
         {
-            return Err(format!(
+            return Err(ModelConfigError::Invalid(format!(
                 "sampler: num_samples and num_proposal_samples must be in 1..={MAX_SAMPLES_PER_RAY}"
-            ));
+            )));
         }
         if !(s.near.is_finite() && s.far.is_finite() && s.near >= 0.0 && s.far > s.near) {
-            return Err(format!(
+            return Err(ModelConfigError::Invalid(format!(
                 "sampler: need 0 <= near < far, finite (got {} .. {})",
                 s.near, s.far
-            ));
+            )));
         }
         if !(s.histogram_padding.is_finite() && s.histogram_padding >= 0.0) {
-            return Err("sampler.histogram_padding must be finite and >= 0".into());
+            return Err(ModelConfigError::Invalid(
+                "sampler.histogram_padding must be finite and >= 0".into(),
+            ));
         }
-        self.bounds.validate().map_err(|e| format!("bounds: {e}"))?;
+        self.bounds.validate().map_err(ModelConfigError::Bounds)?;
         if let Background::Color { rgb } = self.background {
             if !rgb.iter().all(|v| v.is_finite()) {
-                return Err("background colour must be finite".into());
+                return Err(ModelConfigError::Invalid(
+                    "background colour must be finite".into(),
+                ));
             }
         }
         if self.num_frames == 0 {
-            return Err("num_frames must be at least 1".into());
+            return Err(ModelConfigError::Invalid(
+                "num_frames must be at least 1".into(),
+            ));
         }
         Ok(())
     }
@@ -257,17 +282,20 @@ pub enum Preset {
     Paper,
 }
 
+/// A preset name that [`Preset`]'s `FromStr` does not know.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("unknown preset `{0}` (expected fast, balanced, quality or paper)")]
+pub struct UnknownPreset(pub String);
+
 impl std::str::FromStr for Preset {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
+    type Err = UnknownPreset;
+    fn from_str(s: &str) -> Result<Self, UnknownPreset> {
         match s {
             "fast" => Ok(Preset::Fast),
             "balanced" => Ok(Preset::Balanced),
             "quality" => Ok(Preset::Quality),
             "paper" => Ok(Preset::Paper),
-            _ => Err(format!(
-                "unknown preset `{s}` (expected fast, balanced, quality or paper)"
-            )),
+            _ => Err(UnknownPreset(s.to_string())),
         }
     }
 }

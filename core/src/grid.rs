@@ -59,48 +59,79 @@ pub struct GridConfig {
     pub finest_resolution: Vec<f32>,
 }
 
+/// Why a grid configuration was rejected by [`GridConfig::validate`]: which grid, and what is wrong.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("{what}: {reason}")]
+pub struct InvalidGrid {
+    /// The grid's name in the configuration, e.g. `field.encoding.grid3`.
+    pub what: String,
+    pub reason: String,
+}
+
+impl InvalidGrid {
+    fn new(what: &str, reason: String) -> Self {
+        InvalidGrid {
+            what: what.to_string(),
+            reason,
+        }
+    }
+}
+
 impl GridConfig {
     pub fn dims(&self) -> usize {
         self.base_resolution.len()
     }
 
-    pub fn validate(&self, what: &str) -> Result<(), String> {
+    pub fn validate(&self, what: &str) -> Result<(), InvalidGrid> {
         let d = self.base_resolution.len();
         if !(d == 3 || d == 4) || self.finest_resolution.len() != d {
-            return Err(format!(
-                "{what}: base and finest resolutions need 3 or 4 axes each (got {} and {})",
-                d,
-                self.finest_resolution.len()
+            return Err(InvalidGrid::new(
+                what,
+                format!(
+                    "base and finest resolutions need 3 or 4 axes each (got {} and {})",
+                    d,
+                    self.finest_resolution.len()
+                ),
             ));
         }
         if self.levels == 0 || self.levels > MAX_LEVELS {
-            return Err(format!(
-                "{what}: levels must be in 1..={MAX_LEVELS} (got {})",
-                self.levels
+            return Err(InvalidGrid::new(
+                what,
+                format!("levels must be in 1..={MAX_LEVELS} (got {})", self.levels),
             ));
         }
         if ![1, 2, 4, 8].contains(&self.features_per_level) {
-            return Err(format!(
-                "{what}: features_per_level must be 1, 2, 4 or 8 (got {})",
-                self.features_per_level
+            return Err(InvalidGrid::new(
+                what,
+                format!(
+                    "features_per_level must be 1, 2, 4 or 8 (got {})",
+                    self.features_per_level
+                ),
             ));
         }
         if !(3..=MAX_LOG2_TABLE_SIZE).contains(&self.log2_table_size) {
-            return Err(format!(
-                "{what}: log2_table_size must be in 3..={MAX_LOG2_TABLE_SIZE} (got {})",
-                self.log2_table_size
+            return Err(InvalidGrid::new(
+                what,
+                format!(
+                    "log2_table_size must be in 3..={MAX_LOG2_TABLE_SIZE} (got {})",
+                    self.log2_table_size
+                ),
             ));
         }
         for a in 0..d {
             let (b, f) = (self.base_resolution[a], self.finest_resolution[a]);
             if !(b.is_finite() && (1.0..=MAX_RESOLUTION).contains(&b)) {
-                return Err(format!(
-                    "{what}: base resolution {b} on axis {a} is out of range"
+                return Err(InvalidGrid::new(
+                    what,
+                    format!("base resolution {b} on axis {a} is out of range"),
                 ));
             }
             if !(f.is_finite() && (b..=MAX_RESOLUTION).contains(&f)) {
-                return Err(format!(
-                    "{what}: finest resolution {f} on axis {a} must be in [base {b}, {MAX_RESOLUTION}]"
+                return Err(InvalidGrid::new(
+                    what,
+                    format!(
+                        "finest resolution {f} on axis {a} must be in [base {b}, {MAX_RESOLUTION}]"
+                    ),
                 ));
             }
         }

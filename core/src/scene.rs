@@ -26,6 +26,11 @@ pub struct RayInterval {
     pub far: f32,
 }
 
+/// Why scene bounds were rejected by [`SceneBounds::validate`].
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("{0}")]
+pub struct InvalidBounds(pub String);
+
 impl SceneBounds {
     /// The D-NeRF convention: a cube of half-size 1.5 around the origin.
     pub fn dnerf_default() -> Self {
@@ -35,23 +40,23 @@ impl SceneBounds {
         }
     }
 
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), InvalidBounds> {
         match *self {
             SceneBounds::Box { min, max } => {
                 if !(min.is_finite() && max.is_finite()) {
-                    return Err("scene box has non-finite corners".into());
+                    return Err(InvalidBounds("scene box has non-finite corners".into()));
                 }
                 if !(max.cmpgt(min).all()) {
-                    return Err(format!(
+                    return Err(InvalidBounds(format!(
                         "scene box max {max} must exceed min {min} on every axis"
-                    ));
+                    )));
                 }
             }
             SceneBounds::Contracted { center, radius } => {
                 if !(center.is_finite() && radius.is_finite() && radius > 0.0) {
-                    return Err(format!(
+                    return Err(InvalidBounds(format!(
                         "contraction needs a finite centre and a positive radius (got {center}, {radius})"
-                    ));
+                    )));
                 }
             }
         }

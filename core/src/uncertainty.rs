@@ -59,32 +59,47 @@ impl Default for MaskLearningConfig {
     }
 }
 
+/// Why a mask-learning configuration was rejected by [`MaskLearningConfig::validate`].
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("{0}")]
+pub struct InvalidMaskLearning(pub String);
+
 impl MaskLearningConfig {
     /// Whether any term is on.
     pub fn enabled(&self) -> bool {
         self.uncertainty || self.mine
     }
 
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), InvalidMaskLearning> {
         for (n, v) in [
             ("uncertainty_weight", self.uncertainty_weight),
             ("mine_weight", self.mine_weight),
         ] {
             if !(v.is_finite() && v >= 0.0) {
-                return Err(format!("mask_learning.{n} must be finite and >= 0"));
+                return Err(InvalidMaskLearning(format!(
+                    "mask_learning.{n} must be finite and >= 0"
+                )));
             }
         }
         if !(self.uncertainty_min.is_finite() && self.uncertainty_min >= 0.0) {
-            return Err("mask_learning.uncertainty_min must be finite and >= 0".into());
+            return Err(InvalidMaskLearning(
+                "mask_learning.uncertainty_min must be finite and >= 0".into(),
+            ));
         }
         if !(2..=256).contains(&self.uncertainty_resolution) {
-            return Err("mask_learning.uncertainty_resolution must be in 2..=256".into());
+            return Err(InvalidMaskLearning(
+                "mask_learning.uncertainty_resolution must be in 2..=256".into(),
+            ));
         }
         if !(1..=256).contains(&self.mine_hidden) {
-            return Err("mask_learning.mine_hidden must be in 1..=256".into());
+            return Err(InvalidMaskLearning(
+                "mask_learning.mine_hidden must be in 1..=256".into(),
+            ));
         }
         if self.mine && !self.uncertainty {
-            return Err("mask_learning.mine needs mask_learning.uncertainty".into());
+            return Err(InvalidMaskLearning(
+                "mask_learning.mine needs mask_learning.uncertainty".into(),
+            ));
         }
         Ok(())
     }

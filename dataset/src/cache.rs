@@ -160,6 +160,19 @@ impl CacheFile {
     }
 }
 
+/// Why [`FrameCache::open`] found no usable cache (the caller rebuilds it).
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum StaleCache {
+    #[error("no cache yet")]
+    Absent,
+    #[error("shorter than a header")]
+    ShortHeader,
+    #[error("header differs (other source files, sizes or options)")]
+    HeaderDiffers,
+    #[error("{len} bytes where {want} were expected")]
+    Length { len: u64, want: u64 },
+}
+
 /// An open, validated frame cache.
 #[derive(Clone, Debug)]
 pub struct FrameCache {
@@ -171,7 +184,10 @@ pub struct FrameCache {
 impl FrameCache {
     /// Opens `path` if it exists and matches `key`; `Ok(Err(reason))` when it is absent or stale,
     /// so that the caller rebuilds it; `Err` for I/O errors other than absence.
-    pub fn open(path: &Path, key: &CacheKey) -> Result<Result<FrameCache, String>, DatasetError> {
+    pub fn open(
+        path: &Path,
+        key: &CacheKey,
+    ) -> Result<Result<FrameCache, StaleCache>, DatasetError> {
         let io = |source| DatasetError::Io {
             path: path.to_path_buf(),
             source,
@@ -179,23 +195,21 @@ impl FrameCache {
         let mut file = match File::open(path) {
             Ok(f) => f,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-                return Ok(Err("no cache yet".into()))
+                return Ok(Err(StaleCache::Absent))
             }
             Err(e) => return Err(io(e)),
         };
         let mut head = [0u8; HEADER_USED];
         if file.read_exact(&mut head).is_err() {
-            return Ok(Err("shorter than a header".into()));
+            return Ok(Err(StaleCache::ShortHeader));
         }
         if head[..] != key.header()[..HEADER_USED] {
-            return Ok(Err(
-                "header differs (other source files, sizes or options)".into()
-            ));
+            return Ok(Err(StaleCache::HeaderDiffers));
         }
         let want = DATA_OFFSET + key.count * key.frame_bytes();
         let len = file.metadata().map_err(io)?.len();
         if len != want {
-            return Ok(Err(format!("{len} bytes where {want} were expected")));
+            return Ok(Err(StaleCache::Length { len, want }));
         }
         // SAFETY: the file is opened read-only and only ever replaced by rename, never modified
         // in place by msth; another process truncating it would be a user error we cannot
@@ -501,7 +515,7 @@ mod tests {
         let f = std::fs::OpenOptions::new().write(true).open(&path).unwrap();
         f.set_len(DATA_OFFSET + 10).unwrap();
         let why = FrameCache::open(&path, &key(4, 2)).unwrap().unwrap_err();
-        assert!(why.contains("bytes where"), "{why}");
+        assert!(why.to_string().contains("bytes where"), "{why}");
         // Nothing but the cache is left in the folder.
         let names: Vec<_> = std::fs::read_dir(path.parent().unwrap())
             .unwrap()

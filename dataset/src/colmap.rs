@@ -64,18 +64,21 @@ impl CameraModel {
     }
 }
 
+/// A camera model name that [`CameraModel`]'s `FromStr` does not know.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("unknown camera model `{0}` (expected opencv, radial, simple_radial, pinhole or simple_pinhole)")]
+pub struct UnknownCameraModel(pub String);
+
 impl std::str::FromStr for CameraModel {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
+    type Err = UnknownCameraModel;
+    fn from_str(s: &str) -> Result<Self, UnknownCameraModel> {
         match s.to_ascii_uppercase().replace('-', "_").as_str() {
             "SIMPLE_PINHOLE" => Ok(CameraModel::SimplePinhole),
             "PINHOLE" => Ok(CameraModel::Pinhole),
             "SIMPLE_RADIAL" => Ok(CameraModel::SimpleRadial),
             "RADIAL" => Ok(CameraModel::Radial),
             "OPENCV" => Ok(CameraModel::Opencv),
-            _ => Err(format!(
-                "unknown camera model `{s}` (expected opencv, radial, simple_radial, pinhole or simple_pinhole)"
-            )),
+            _ => Err(UnknownCameraModel(s.to_string())),
         }
     }
 }
@@ -244,7 +247,7 @@ pub fn read_text_model(dir: &Path) -> Result<Model, DatasetError> {
             ));
         }
         let id: u32 = parse(&path, n, "camera id", f[0])?;
-        let model_kind: CameraModel = f[1].parse().map_err(|m: String| {
+        let model_kind: CameraModel = f[1].parse().map_err(|m: UnknownCameraModel| {
             bad(
                 &path,
                 format!("line {n}: {m}; import with --camera-model opencv"),

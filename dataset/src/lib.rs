@@ -291,6 +291,12 @@ pub enum DatasetError {
     Image { path: PathBuf, message: String },
     #[error("{path}: {message}")]
     Invalid { path: PathBuf, message: String },
+    #[error("{path}: not a valid .npy array: {source}")]
+    Npy {
+        path: PathBuf,
+        #[source]
+        source: npy::NpyError,
+    },
 }
 
 /// The on-disk layouts `msth` reads.
@@ -304,16 +310,19 @@ pub enum Format {
     DyNerf,
 }
 
+/// A dataset format name that [`Format`]'s `FromStr` does not know.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("unknown dataset format `{0}` (expected dnerf, nerfstudio or dynerf)")]
+pub struct UnknownFormat(pub String);
+
 impl std::str::FromStr for Format {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
+    type Err = UnknownFormat;
+    fn from_str(s: &str) -> Result<Self, UnknownFormat> {
         match s.to_ascii_lowercase().as_str() {
             "dnerf" | "d-nerf" | "blender" => Ok(Format::DNerf),
             "nerfstudio" => Ok(Format::Nerfstudio),
             "dynerf" | "plenoptic" | "llff" => Ok(Format::DyNerf),
-            _ => Err(format!(
-                "unknown dataset format `{s}` (expected dnerf, nerfstudio or dynerf)"
-            )),
+            _ => Err(UnknownFormat(s.to_string())),
         }
     }
 }

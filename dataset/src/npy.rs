@@ -16,11 +16,40 @@ pub struct Array {
     pub data: Vec<f64>,
 }
 
-fn bad(path: &Path, message: impl Into<String>) -> DatasetError {
-    DatasetError::Invalid {
-        path: path.to_path_buf(),
-        message: message.into(),
-    }
+/// What is wrong with the bytes of a `.npy` file ([`parse`]).
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum NpyError {
+    #[error("missing the \\x93NUMPY magic")]
+    Magic,
+    #[error("truncated header")]
+    TruncatedHeader,
+    #[error("unsupported format version {0}")]
+    Version(u8),
+    #[error("header of {header_len} bytes runs past the end of the file ({file_len} bytes)")]
+    HeaderPastEnd { header_len: usize, file_len: usize },
+    #[error("the header is not text")]
+    HeaderNotText,
+    #[error("dtype `{0}`: expected float32 or float64")]
+    Dtype(String),
+    #[error("fortran_order `{0}` is not True/False")]
+    FortranOrder(String),
+    #[error("shape `{0}` is not a tuple")]
+    ShapeNotTuple(String),
+    #[error("shape `{shape}`: `{part}` is not a size")]
+    ShapeSize { shape: String, part: String },
+    #[error("shape {shape:?} is too large")]
+    TooLarge { shape: Vec<usize> },
+    #[error("shape {shape:?} of {descr} needs {needed} bytes of data but the file holds {held} (truncated or padded)")]
+    Payload {
+        shape: Vec<usize>,
+        descr: String,
+        needed: usize,
+        held: usize,
+    },
+    #[error("the header has no `{0}`")]
+    MissingKey(String),
+    #[error("malformed header near `{0}`")]
+    MalformedNear(String),
 }
 
 /// Reads `path` (see the module docs).
@@ -29,39 +58,39 @@ pub fn read(path: &Path) -> Result<Array, DatasetError> {
         path: path.to_path_buf(),
         source,
     })?;
-    parse(&bytes).map_err(|m| bad(path, format!("not a valid .npy array: {m}")))
+    parse(&bytes).map_err(|source| DatasetError::Npy {
+        path: path.to_path_buf(),
+        source,
+    })
 }
 
 /// Parses the bytes of a `.npy` file.
-pub fn parse(bytes: &[u8]) -> Result<Array, String> {
+pub fn parse(bytes: &[u8]) -> Result<Array, NpyError> {
     if bytes.len() < 10 || &bytes[0..6] != b"\x93NUMPY" {
-        return Err("missing the \\x93NUMPY magic".into());
+        return Err(NpyError::Magic);
     }
     let major = bytes[6];
     let (header_len, start) = match major {
         1 => (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10usize),
         2 | 3 => {
             if bytes.len() < 12 {
-                return Err("truncated header".into());
+                return Err(NpyError::TruncatedHeader);
             }
             (
                 u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize,
                 12,
             )
         }
-        v => return Err(format!("unsupported format version {v}")),
+        v => return Err(NpyError::Version(v)),
     };
     let end = start
         .checked_add(header_len)
         .filter(|&e| e <= bytes.len())
-        .ok_or_else(|| {
-            format!(
-                "header of {header_len} bytes runs past the end of the file ({} bytes)",
-                bytes.len()
-            )
+        .ok_or(NpyError::HeaderPastEnd {
+            header_len,
+            file_len: bytes.len(),
         })?;
-    let header = std::str::from_utf8(&bytes[start..end])
-        .map_err(|_| "the header is not text".to_string())?;
+    let header = std::str::from_utf8(&bytes[start..end]).map_err(|_| NpyError::HeaderNotText)?;
     let descr = dict_value(header, "descr")?;
     let descr = descr.trim_matches(|c| c == '\'' || c == '"');
     let (big, size) = match descr {
@@ -69,37 +98,40 @@ pub fn parse(bytes: &[u8]) -> Result<Array, String> {
         ">f8" => (true, 8),
         "<f4" | "=f4" | "float32" => (false, 4),
         ">f4" => (true, 4),
-        d => return Err(format!("dtype `{d}`: expected float32 or float64")),
+        d => return Err(NpyError::Dtype(d.to_string())),
     };
     let fortran = match dict_value(header, "fortran_order")?.as_str() {
         "True" => true,
         "False" => false,
-        v => return Err(format!("fortran_order `{v}` is not True/False")),
+        v => return Err(NpyError::FortranOrder(v.to_string())),
     };
     let shape_s = dict_value(header, "shape")?;
     let inner = shape_s
         .strip_prefix('(')
         .and_then(|s| s.strip_suffix(')'))
-        .ok_or_else(|| format!("shape `{shape_s}` is not a tuple"))?;
+        .ok_or_else(|| NpyError::ShapeNotTuple(shape_s.clone()))?;
     let mut shape = Vec::new();
     for part in inner.split(',').map(str::trim).filter(|p| !p.is_empty()) {
-        shape.push(
-            part.parse::<usize>()
-                .map_err(|_| format!("shape `{shape_s}`: `{part}` is not a size"))?,
-        );
+        shape.push(part.parse::<usize>().map_err(|_| NpyError::ShapeSize {
+            shape: shape_s.clone(),
+            part: part.to_string(),
+        })?);
     }
     let n = shape
         .iter()
         .try_fold(1usize, |a, &d| a.checked_mul(d))
         .filter(|&n| n <= MAX_ELEMENTS)
-        .ok_or_else(|| format!("shape {shape:?} is too large"))?;
+        .ok_or_else(|| NpyError::TooLarge {
+            shape: shape.clone(),
+        })?;
     let payload = &bytes[end..];
     if payload.len() != n * size {
-        return Err(format!(
-            "shape {shape:?} of {descr} needs {} bytes of data but the file holds {} (truncated or padded)",
-            n * size,
-            payload.len()
-        ));
+        return Err(NpyError::Payload {
+            shape,
+            descr: descr.to_string(),
+            needed: n * size,
+            held: payload.len(),
+        });
     }
     let mut data: Vec<f64> = payload
         .chunks_exact(size)
@@ -137,25 +169,25 @@ pub fn parse(bytes: &[u8]) -> Result<Array, String> {
 }
 
 /// The raw text of `key`'s value in the header's Python dict literal.
-fn dict_value(header: &str, key: &str) -> Result<String, String> {
+fn dict_value(header: &str, key: &str) -> Result<String, NpyError> {
     let pat_a = format!("'{key}'");
     let pat_b = format!("\"{key}\"");
     let at = header
         .find(&pat_a)
         .map(|i| i + pat_a.len())
         .or_else(|| header.find(&pat_b).map(|i| i + pat_b.len()))
-        .ok_or_else(|| format!("the header has no `{key}`"))?;
+        .ok_or_else(|| NpyError::MissingKey(key.to_string()))?;
     let rest = header[at..].trim_start();
     let rest = rest
         .strip_prefix(':')
-        .ok_or_else(|| format!("malformed header near `{key}`"))?
+        .ok_or_else(|| NpyError::MalformedNear(key.to_string()))?
         .trim_start();
     let end = if rest.starts_with('(') {
         rest.find(')').map(|i| i + 1)
     } else {
         rest.find([',', '}'])
     }
-    .ok_or_else(|| format!("malformed header near `{key}`"))?;
+    .ok_or_else(|| NpyError::MalformedNear(key.to_string()))?;
     Ok(rest[..end].trim().to_string())
 }
 
@@ -245,7 +277,10 @@ mod tests {
         ];
         for (bytes, needle) in cases {
             let e = parse(&bytes).unwrap_err();
-            assert!(e.contains(needle), "{e} should mention {needle}");
+            assert!(
+                e.to_string().contains(needle),
+                "{e} should mention {needle}"
+            );
         }
     }
 }

@@ -251,7 +251,7 @@ fn scene_box(v: &Value, path: &Path) -> Result<SceneBounds, DatasetError> {
     let max = vec3_field(get("max")?, path, "scene_box.max")?;
     let b = SceneBounds::Box { min, max };
     b.validate()
-        .map_err(|m| field_error(path, "scene_box", m))?;
+        .map_err(|m| field_error(path, "scene_box", m.to_string()))?;
     Ok(b)
 }
 
@@ -293,7 +293,7 @@ fn transform_matrix(v: &Value, path: &Path, field: &str) -> Result<Mat4, Dataset
     };
     probe
         .validate()
-        .map_err(|msg| field_error(path, field, msg))?;
+        .map_err(|msg| field_error(path, field, msg.to_string()))?;
     Ok(pose)
 }
 
@@ -477,7 +477,7 @@ fn frame_camera(spec: &FrameSpec, width: u32, height: u32) -> Result<Camera, Dat
     };
     camera
         .validate()
-        .map_err(|m| field_error(json, &spec.field(field), m))?;
+        .map_err(|m| field_error(json, &spec.field(field), m.to_string()))?;
     Ok(camera)
 }
 

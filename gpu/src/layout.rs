@@ -131,23 +131,50 @@ fn blend_code(b: BlendMode) -> u32 {
 }
 
 /// Offsets must fit the kernels' u32 indices.
-fn u32_of(v: usize, what: &str) -> Result<u32, String> {
-    u32::try_from(v)
-        .map_err(|_| format!("{what} ({v}) does not fit the GPU kernels' 32-bit indices"))
+fn u32_of(v: usize, what: &str) -> Result<u32, GpuLayoutError> {
+    u32::try_from(v).map_err(|_| GpuLayoutError::Index {
+        what: what.to_string(),
+        value: v,
+    })
+}
+
+/// Why [`GpuModel::new`] refused a model: an invalid configuration or a limit of the kernels.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum GpuLayoutError {
+    #[error(transparent)]
+    Config(#[from] msth_core::config::ModelConfigError),
+    #[error("{what} is {value}; the GPU renderer supports at most {max} (use --cpu)")]
+    Limit {
+        what: String,
+        value: usize,
+        max: usize,
+    },
+    #[error("field.color_layers is 0; the GPU renderer needs at least one hidden colour layer (use --cpu)")]
+    NoColorLayers,
+    #[error("{what} ({value}) does not fit the GPU kernels' 32-bit indices")]
+    Index { what: String, value: usize },
+    #[error("parameter `{0}` lies before the field's hash tables; the GPU renderer cannot split this layout")]
+    Split(String),
+    #[error("too many grid levels for the GPU renderer")]
+    TooManyLevels,
+    #[error("3D and 4D grids differ in levels or features")]
+    GridMismatch,
 }
 
 impl GpuModel {
     /// Builds the uniforms of `cfg` (validated) and checks the kernels' limits; the error says
     /// which limit a model exceeds.
-    pub fn new(cfg: &ModelConfig) -> Result<Self, String> {
+    pub fn new(cfg: &ModelConfig) -> Result<Self, GpuLayoutError> {
         cfg.validate()?;
         let layout = ModelLayout::new(cfg);
         let (np, nf) = (cfg.sampler.num_proposal_samples, cfg.sampler.num_samples);
         let check = |what: &str, v: usize, max: usize| {
             if v > max {
-                Err(format!(
-                    "{what} is {v}; the GPU renderer supports at most {max} (use --cpu)"
-                ))
+                Err(GpuLayoutError::Limit {
+                    what: what.to_string(),
+                    value: v,
+                    max,
+                })
             } else {
                 Ok(())
             }
@@ -159,7 +186,7 @@ impl GpuModel {
         check("proposal.hidden", cfg.proposal.hidden, MAX_HIDDEN)?;
         check("field.geo_features", cfg.field.geo_features, MAX_GEO)?;
         if cfg.field.color_layers == 0 {
-            return Err("field.color_layers is 0; the GPU renderer needs at least one hidden colour layer (use --cpu)".into());
+            return Err(GpuLayoutError::NoColorLayers);
         }
         let split = Self::split(&layout)?;
         let mut levels = [LevelU::default(); LEVEL_SLOTS];
@@ -240,7 +267,7 @@ impl GpuModel {
         Ok(GpuModel { model, split })
     }
 
-    fn split(layout: &ModelLayout) -> Result<ParamSplit, String> {
+    fn split(layout: &ModelLayout) -> Result<ParamSplit, GpuLayoutError> {
         let enc = &layout.field.encoding;
         let range = |g: &Option<(GridLayout, Range<usize>)>| {
             g.as_ref().map(|(_, r)| r.clone()).unwrap_or(0..0)
@@ -256,10 +283,7 @@ impl GpuModel {
             .filter(|e| e.name != "field.h3" && e.name != "field.h4");
         for e in others {
             if e.offset < rest_start {
-                return Err(format!(
-                    "parameter `{}` lies before the field's hash tables; the GPU renderer cannot split this layout",
-                    e.name
-                ));
+                return Err(GpuLayoutError::Split(e.name.to_string()));
             }
         }
         Ok(ParamSplit {
@@ -289,46 +313,47 @@ fn encoding_u(
     buffers: [u32; 2],
     levels: &mut [LevelU; LEVEL_SLOTS],
     next_slot: &mut usize,
-) -> Result<EncodingU, String> {
+) -> Result<EncodingU, GpuLayoutError> {
     let rest0 = split.rest.start;
-    let mut grid = |g: &Option<(GridLayout, Range<usize>)>, buffer: u32| -> Result<GridU, String> {
-        let Some((gl, r)) = g else {
-            return Ok(GridU::default());
-        };
-        // Field tables start their own buffers; proposal tables live in `rest`.
-        let base = if buffer == 2 { r.start - rest0 } else { 0 };
-        let first = *next_slot;
-        if first + gl.levels.len() > LEVEL_SLOTS {
-            return Err("too many grid levels for the GPU renderer".into());
-        }
-        for (k, lv) in gl.levels.iter().enumerate() {
-            levels[first + k] = LevelU {
-                scale: lv.scale,
-                stride: lv.stride,
-                info: [
-                    u32_of(base + lv.offset, "grid table offset")?,
-                    lv.dense as u32,
-                    u32_of(lv.rows, "grid rows")?,
-                    0,
-                ],
+    let mut grid =
+        |g: &Option<(GridLayout, Range<usize>)>, buffer: u32| -> Result<GridU, GpuLayoutError> {
+            let Some((gl, r)) = g else {
+                return Ok(GridU::default());
             };
-        }
-        *next_slot += gl.levels.len();
-        Ok(GridU {
-            shape: [
-                gl.dims as u32,
-                gl.features as u32,
-                gl.levels.len() as u32,
-                (gl.table_size - 1) as u32,
-            ],
-            loc: [buffer, first as u32, 1, 0],
-        })
-    };
+            // Field tables start their own buffers; proposal tables live in `rest`.
+            let base = if buffer == 2 { r.start - rest0 } else { 0 };
+            let first = *next_slot;
+            if first + gl.levels.len() > LEVEL_SLOTS {
+                return Err(GpuLayoutError::TooManyLevels);
+            }
+            for (k, lv) in gl.levels.iter().enumerate() {
+                levels[first + k] = LevelU {
+                    scale: lv.scale,
+                    stride: lv.stride,
+                    info: [
+                        u32_of(base + lv.offset, "grid table offset")?,
+                        lv.dense as u32,
+                        u32_of(lv.rows, "grid rows")?,
+                        0,
+                    ],
+                };
+            }
+            *next_slot += gl.levels.len();
+            Ok(GridU {
+                shape: [
+                    gl.dims as u32,
+                    gl.features as u32,
+                    gl.levels.len() as u32,
+                    (gl.table_size - 1) as u32,
+                ],
+                loc: [buffer, first as u32, 1, 0],
+            })
+        };
     let h3 = grid(&e.h3, buffers[0])?;
     let h4 = grid(&e.h4, buffers[1])?;
     if let (Some((a, _)), Some((b, _))) = (&e.h3, &e.h4) {
         if a.levels.len() != b.levels.len() || a.features != b.features {
-            return Err("3D and 4D grids differ in levels or features".into());
+            return Err(GpuLayoutError::GridMismatch);
         }
     }
     let (has_mask, mask_res, mask_off) = match &e.mask {

@@ -93,7 +93,7 @@ pub mod mask;
 pub mod passes;
 pub mod render;
 
-pub use layout::{GpuModel, ViewU, FLAG_COMPACT, FLAG_LIST};
+pub use layout::{GpuLayoutError, GpuModel, ViewU, FLAG_COMPACT, FLAG_LIST};
 pub use passes::{FrameScratch, GpuSampleCache, Pixels};
 pub use render::{
     AdapterPolicy, GpuContext, GpuError, GpuScene, Kernel, ALLOW_SOFTWARE_ENV, RENDER_WGSL,

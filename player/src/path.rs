@@ -333,7 +333,7 @@ impl CameraPath {
             if let Some((w, h)) = size {
                 cam = resize(&cam, w, h);
             }
-            cam.validate().map_err(at)?;
+            cam.validate().map_err(|e| at(e.to_string()))?;
             if let Some(t) = f.time {
                 if !(0.0..=1.0).contains(&t) {
                     return Err(at(format!("time {t} outside [0, 1]")));

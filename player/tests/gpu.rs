@@ -277,14 +277,14 @@ fn models_beyond_lavapipes_loop_budget_are_clear_errors_there() -> Result<(), Sk
 fn models_beyond_the_kernel_limits_are_clear_errors() {
     let mut cfg = config(BlendMode::Mt);
     cfg.field.density_hidden = 512;
-    let e = GpuModel::new(&cfg).unwrap_err();
+    let e = GpuModel::new(&cfg).unwrap_err().to_string();
     assert!(
         e.contains("field.density_hidden") && e.contains("128"),
         "{e}"
     );
     let mut cfg = config(BlendMode::Mt);
     cfg.sampler.num_samples = 1000;
-    let e = GpuModel::new(&cfg).unwrap_err();
+    let e = GpuModel::new(&cfg).unwrap_err().to_string();
     assert!(e.contains("num_samples"), "{e}");
 }
 

@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use msth_core::config::ModelConfig;
+use msth_core::config::{ModelConfig, ModelConfigError};
 use msth_core::field::ModelLayout;
 use msth_core::Camera;
 
@@ -65,7 +65,46 @@ pub enum CheckpointError {
         source: std::io::Error,
     },
     #[error("{path}: not an msth checkpoint ({reason})")]
-    Format { path: PathBuf, reason: String },
+    Format {
+        path: PathBuf,
+        reason: CheckpointFormatError,
+    },
+}
+
+/// What is wrong with the bytes of a checkpoint (`model.ckpt`) or its mask-learning companion
+/// (`model.aux`).
+#[derive(Debug, thiserror::Error)]
+pub enum CheckpointFormatError {
+    #[error("file is {len} bytes, larger than any valid checkpoint")]
+    TooLarge { len: u64 },
+    #[error("bad magic number")]
+    BadMagic,
+    #[error("short file")]
+    ShortFile,
+    #[error("checksum mismatch (truncated or corrupted file)")]
+    Checksum,
+    #[error("unsupported version {version} (this build reads {VERSION})")]
+    Version { version: u32 },
+    #[error("truncated: wanted {wanted} bytes at offset {offset}")]
+    Truncated { wanted: usize, offset: usize },
+    #[error("size overflow")]
+    SizeOverflow,
+    #[error("reserved flag bits set: {flags:#x}")]
+    ReservedFlags { flags: u32 },
+    #[error("header length {len} exceeds {MAX_HEADER}")]
+    HeaderTooLong { len: u64 },
+    #[error("header JSON: {0}")]
+    HeaderJson(serde_json::Error),
+    #[error("model config: {0}")]
+    Model(ModelConfigError),
+    #[error("{stored} parameters stored but the configuration needs {expected}")]
+    ParamCount { stored: u64, expected: u64 },
+    #[error("{stored} parameters stored but the mask-learning settings need {expected}")]
+    AuxParamCount { stored: u64, expected: usize },
+    #[error("{bytes} unexpected trailing bytes")]
+    Trailing { bytes: usize },
+    #[error("it belongs to step {aux_step} but the checkpoint is at step {step}")]
+    StepMismatch { aux_step: u64, step: usize },
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> CheckpointError + '_ {
@@ -114,7 +153,7 @@ impl Checkpoint {
         if len > MAX_HEADER + 3 * 4 * MAX_PARAMS + 64 {
             return Err(CheckpointError::Format {
                 path: path.into(),
-                reason: format!("file is {len} bytes, larger than any valid checkpoint"),
+                reason: CheckpointFormatError::TooLarge { len },
             });
         }
         let mut bytes = Vec::with_capacity(len as usize);
@@ -125,28 +164,29 @@ impl Checkpoint {
         })
     }
 
-    pub fn from_bytes(b: &[u8]) -> Result<Self, String> {
+    pub fn from_bytes(b: &[u8]) -> Result<Self, CheckpointFormatError> {
         let mut r = Reader::framed(b, MAGIC, 28)?;
         let flags = r.u32()?;
         if flags & !1 != 0 {
-            return Err(format!("reserved flag bits set: {flags:#x}"));
+            return Err(CheckpointFormatError::ReservedFlags { flags });
         }
         let hlen = r.u64()?;
         if hlen > MAX_HEADER {
-            return Err(format!("header length {hlen} exceeds {MAX_HEADER}"));
+            return Err(CheckpointFormatError::HeaderTooLong { len: hlen });
         }
         let header: CheckpointHeader = serde_json::from_slice(r.take(hlen as usize)?)
-            .map_err(|e| format!("header JSON: {e}"))?;
+            .map_err(CheckpointFormatError::HeaderJson)?;
         header
             .model
             .validate()
-            .map_err(|e| format!("model config: {e}"))?;
+            .map_err(CheckpointFormatError::Model)?;
         let n = r.u64()?;
         let expect = ModelLayout::new(&header.model).params.total as u64;
         if n != expect {
-            return Err(format!(
-                "{n} parameters stored but the configuration needs {expect}"
-            ));
+            return Err(CheckpointFormatError::ParamCount {
+                stored: n,
+                expected: expect,
+            });
         }
         let params = r.f32s(n as usize)?;
         let adam = if flags & 1 == 1 {
@@ -158,7 +198,9 @@ impl Checkpoint {
             None
         };
         if r.pos != r.b.len() {
-            return Err(format!("{} unexpected trailing bytes", r.b.len() - r.pos));
+            return Err(CheckpointFormatError::Trailing {
+                bytes: r.b.len() - r.pos,
+            });
         }
         Ok(Checkpoint {
             header,
@@ -201,21 +243,24 @@ impl AuxCheckpoint {
     }
 
     /// Parses a file that must hold `expect` parameters.
-    pub fn from_bytes(b: &[u8], expect: usize) -> Result<Self, String> {
+    pub fn from_bytes(b: &[u8], expect: usize) -> Result<Self, CheckpointFormatError> {
         let mut r = Reader::framed(b, AUX_MAGIC, 36)?;
         let step = r.u64()?;
         let n = r.u64()?;
         if n != expect as u64 {
-            return Err(format!(
-                "{n} parameters stored but the mask-learning settings need {expect}"
-            ));
+            return Err(CheckpointFormatError::AuxParamCount {
+                stored: n,
+                expected: expect,
+            });
         }
         let params = r.f32s(expect)?;
         let m = r.f32s(expect)?;
         let v = r.f32s(expect)?;
         let adam_step = r.u64()?;
         if r.pos != r.b.len() {
-            return Err(format!("{} unexpected trailing bytes", r.b.len() - r.pos));
+            return Err(CheckpointFormatError::Trailing {
+                bytes: r.b.len() - r.pos,
+            });
         }
         Ok(AuxCheckpoint {
             step,
@@ -250,48 +295,52 @@ struct Reader<'a> {
 impl<'a> Reader<'a> {
     /// Checks a file's frame (`magic`, at least `min_len` bytes, CRC-32 of everything before the
     /// last 4 bytes, the format version) and returns a reader positioned after the version.
-    fn framed(b: &'a [u8], magic: &[u8], min_len: usize) -> Result<Self, String> {
+    fn framed(b: &'a [u8], magic: &[u8], min_len: usize) -> Result<Self, CheckpointFormatError> {
         if b.len() < min_len || &b[..8] != magic {
-            return Err("bad magic number".into());
+            return Err(CheckpointFormatError::BadMagic);
         }
         let (body, crc) = b.split_at(b.len() - 4);
-        let crc = u32::from_le_bytes(crc.try_into().map_err(|_| "short file")?);
+        let crc = u32::from_le_bytes(
+            crc.try_into()
+                .map_err(|_| CheckpointFormatError::ShortFile)?,
+        );
         if crc32fast::hash(body) != crc {
-            return Err("checksum mismatch (truncated or corrupted file)".into());
+            return Err(CheckpointFormatError::Checksum);
         }
         let mut r = Reader { b: body, pos: 8 };
         let version = r.u32()?;
         if version != VERSION {
-            return Err(format!(
-                "unsupported version {version} (this build reads {VERSION})"
-            ));
+            return Err(CheckpointFormatError::Version { version });
         }
         Ok(r)
     }
 
-    fn take(&mut self, n: usize) -> Result<&'a [u8], String> {
+    fn take(&mut self, n: usize) -> Result<&'a [u8], CheckpointFormatError> {
         if n > self.b.len() - self.pos {
-            return Err(format!(
-                "truncated: wanted {n} bytes at offset {}",
-                self.pos
-            ));
+            return Err(CheckpointFormatError::Truncated {
+                wanted: n,
+                offset: self.pos,
+            });
         }
         let s = &self.b[self.pos..self.pos + n];
         self.pos += n;
         Ok(s)
     }
-    fn u32(&mut self) -> Result<u32, String> {
+    fn u32(&mut self) -> Result<u32, CheckpointFormatError> {
         Ok(u32::from_le_bytes(
             self.take(4)?.try_into().expect("4 bytes"),
         ))
     }
-    fn u64(&mut self) -> Result<u64, String> {
+    fn u64(&mut self) -> Result<u64, CheckpointFormatError> {
         Ok(u64::from_le_bytes(
             self.take(8)?.try_into().expect("8 bytes"),
         ))
     }
-    fn f32s(&mut self, n: usize) -> Result<Vec<f32>, String> {
-        let bytes = self.take(n.checked_mul(4).ok_or("size overflow")?)?;
+    fn f32s(&mut self, n: usize) -> Result<Vec<f32>, CheckpointFormatError> {
+        let bytes = self.take(
+            n.checked_mul(4)
+                .ok_or(CheckpointFormatError::SizeOverflow)?,
+        )?;
         Ok(bytes
             .chunks_exact(4)
             .map(|c| f32::from_le_bytes(c.try_into().expect("4 bytes")))
@@ -348,7 +397,10 @@ mod tests {
         // A flipped byte is caught by the checksum.
         let mut e = b.clone();
         e[b.len() / 3] ^= 0x40;
-        assert!(Checkpoint::from_bytes(&e).unwrap_err().contains("checksum"));
+        assert!(Checkpoint::from_bytes(&e)
+            .unwrap_err()
+            .to_string()
+            .contains("checksum"));
     }
 
     #[test]
@@ -366,6 +418,7 @@ mod tests {
         assert_eq!(AuxCheckpoint::from_bytes(&b, 3).unwrap(), a);
         assert!(AuxCheckpoint::from_bytes(&b, 4)
             .unwrap_err()
+            .to_string()
             .contains("need 4"));
         for cut in [0, 7, 35, b.len() - 1] {
             assert!(AuxCheckpoint::from_bytes(&b[..cut], 3).is_err());
@@ -374,6 +427,7 @@ mod tests {
         e[20] ^= 1;
         assert!(AuxCheckpoint::from_bytes(&e, 3)
             .unwrap_err()
+            .to_string()
             .contains("checksum"));
     }
 

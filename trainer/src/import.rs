@@ -53,13 +53,18 @@ pub enum Layout {
     Monocular,
 }
 
+/// A layout name that [`Layout`]'s `FromStr` does not know.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("unknown layout `{0}` (expected rig or monocular)")]
+pub struct UnknownLayout(pub String);
+
 impl std::str::FromStr for Layout {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
+    type Err = UnknownLayout;
+    fn from_str(s: &str) -> Result<Self, UnknownLayout> {
         match s {
             "rig" => Ok(Layout::Rig),
             "monocular" => Ok(Layout::Monocular),
-            _ => Err(format!("unknown layout `{s}` (expected rig or monocular)")),
+            _ => Err(UnknownLayout(s.to_string())),
         }
     }
 }

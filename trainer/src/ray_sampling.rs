@@ -98,26 +98,61 @@ impl Default for SamplingConfig {
     }
 }
 
+/// Why [`SamplingConfig::validate`] rejected a configuration; the message names the field.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("{0}")]
+pub struct InvalidSamplingConfig(pub String);
+
+/// Why an [`AliasTable`] could not be built from its weights.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum AliasTableError {
+    #[error("alias table: need 1..={} weights (got {got})", u32::MAX)]
+    Count { got: usize },
+    #[error("alias table: weight {index} is {weight} (must be finite and >= 0)")]
+    Weight { index: usize, weight: f64 },
+    #[error("alias table: the weights sum to {sum} (must be positive and finite)")]
+    Sum { sum: f64 },
+}
+
+/// Why a [`RaySampler`] (or its [`PixelStats`]) could not be built.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum SamplingError {
+    #[error(transparent)]
+    Config(#[from] InvalidSamplingConfig),
+    #[error(transparent)]
+    AliasTable(#[from] AliasTableError),
+    #[error("dynamics-aware sampling: {pixels} training pixels are more than it indexes (4e9); use --downscale or sampling.mode=uniform")]
+    TooManyPixels { pixels: usize },
+}
+
 impl SamplingConfig {
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), InvalidSamplingConfig> {
         for (n, v) in [("tau1", self.tau1), ("tau2", self.tau2)] {
             if v.is_nan() || v < 0.0 {
-                return Err(format!("sampling.{n} must be >= 0 (got {v})"));
+                return Err(InvalidSamplingConfig(format!(
+                    "sampling.{n} must be >= 0 (got {v})"
+                )));
             }
         }
         if !(self.dynamic_variance.is_finite() && self.dynamic_variance >= 0.0) {
-            return Err("sampling.dynamic_variance must be finite and >= 0".into());
+            return Err(InvalidSamplingConfig(
+                "sampling.dynamic_variance must be finite and >= 0".into(),
+            ));
         }
         for (n, v) in [
             ("ratio_start", self.ratio_start),
             ("ratio_end", self.ratio_end),
         ] {
             if !(v.is_finite() && v >= 0.0) {
-                return Err(format!("sampling.{n} must be finite and >= 0"));
+                return Err(InvalidSamplingConfig(format!(
+                    "sampling.{n} must be finite and >= 0"
+                )));
             }
         }
         if !(1..=1000).contains(&self.max_repeats) {
-            return Err("sampling.max_repeats must be in 1..=1000".into());
+            return Err(InvalidSamplingConfig(
+                "sampling.max_repeats must be in 1..=1000".into(),
+            ));
         }
         Ok(())
     }
@@ -144,25 +179,20 @@ pub struct AliasTable {
 
 impl AliasTable {
     /// From non-negative finite weights with a positive sum (at most `u32::MAX` of them).
-    pub fn new(weights: &[f64]) -> Result<Self, String> {
+    pub fn new(weights: &[f64]) -> Result<Self, AliasTableError> {
         let n = weights.len();
         if n == 0 || n > u32::MAX as usize {
-            return Err(format!(
-                "alias table: need 1..={} weights (got {n})",
-                u32::MAX
-            ));
+            return Err(AliasTableError::Count { got: n });
         }
         if let Some(i) = weights.iter().position(|w| !(w.is_finite() && *w >= 0.0)) {
-            return Err(format!(
-                "alias table: weight {i} is {} (must be finite and >= 0)",
-                weights[i]
-            ));
+            return Err(AliasTableError::Weight {
+                index: i,
+                weight: weights[i],
+            });
         }
         let sum: f64 = weights.iter().sum();
         if !(sum > 0.0 && sum.is_finite()) {
-            return Err(format!(
-                "alias table: the weights sum to {sum} (must be positive and finite)"
-            ));
+            return Err(AliasTableError::Sum { sum });
         }
         let mut scaled: Vec<f64> = weights.iter().map(|w| w * n as f64 / sum).collect();
         let mut prob = vec![1f32; n];
@@ -267,7 +297,7 @@ impl PixelStats {
     /// Statistics of `views` (one pass over every image; cameras in parallel). The per-frame
     /// deviations are kept when `deviations` is set and they fit in [`MAX_DEVIATION_BYTES`]
     /// ([`PixelStats::has_deviations`]).
-    pub fn new(views: &[View], deviations: bool) -> Result<Self, String> {
+    pub fn new(views: &[View], deviations: bool) -> Result<Self, SamplingError> {
         let mut groups: Vec<CameraGroup> = Vec::new();
         let mut by_key: HashMap<(usize, u32, u32), usize> = HashMap::new();
         for (i, v) in views.iter().enumerate() {
@@ -308,9 +338,7 @@ impl PixelStats {
             }
         }
         if pix >= u32::MAX as usize {
-            return Err(format!(
-                "dynamics-aware sampling: {pix} training pixels are more than it indexes (4e9); use --downscale or sampling.mode=uniform"
-            ));
+            return Err(SamplingError::TooManyPixels { pixels: pix });
         }
         let keep = deviations && dev <= MAX_DEVIATION_BYTES;
         let per_group: Vec<(Vec<f32>, Vec<u8>)> = groups
@@ -443,7 +471,7 @@ pub struct RaySampler {
 
 impl RaySampler {
     /// Builds the sampler `cfg` asks for over `data.train`.
-    pub fn new(data: &Dataset, cfg: &SamplingConfig) -> Result<Self, String> {
+    pub fn new(data: &Dataset, cfg: &SamplingConfig) -> Result<Self, SamplingError> {
         cfg.validate()?;
         if cfg.mode == SamplingMode::Uniform {
             return Ok(RaySampler {
@@ -1015,7 +1043,7 @@ mod tests {
             }
             .validate()
             .unwrap_err();
-            assert!(e.contains("tau1"), "{e}");
+            assert!(e.to_string().contains("tau1"), "{e}");
         }
     }
 

@@ -11,19 +11,23 @@ use std::time::Instant;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use msth_core::config::{Background, ModelConfig, Preset};
+use msth_core::config::{Background, ModelConfig, ModelConfigError, Preset};
 use msth_core::field::ModelLayout;
 use msth_core::pipeline::{
     train_chunk_with, AuxStep, ChunkLosses, StepSettings, TimedRay, Workspace,
 };
 use msth_core::rng::Rng;
-use msth_core::uncertainty::{AuxLayout, MaskLearningConfig};
+use msth_core::uncertainty::{AuxLayout, InvalidMaskLearning, MaskLearningConfig};
 use msth_core::Camera;
 
 use crate::adam::{Adam, AdamConfig, MaskLossSlice};
-use crate::checkpoint::{AuxCheckpoint, Checkpoint, CheckpointError, CheckpointHeader};
+use crate::checkpoint::{
+    AuxCheckpoint, Checkpoint, CheckpointError, CheckpointFormatError, CheckpointHeader,
+};
 use crate::dataset::Dataset;
-use crate::ray_sampling::{push_ray, RaySampler, SamplingConfig, SamplingMode};
+use crate::ray_sampling::{
+    push_ray, InvalidSamplingConfig, RaySampler, SamplingConfig, SamplingError, SamplingMode,
+};
 
 /// Every knob of a training run. Presets fill it; a config file and `--set key=value` override
 /// any field (see [`TrainSettings::apply_overrides`]).
@@ -81,6 +85,30 @@ pub struct TrainSettings {
 pub const DEFAULT_MASK_LR_SCALE: f32 = 10.0;
 /// Default of [`TrainSettings::sample_mask_weight`] (issue #16's measurements).
 pub const DEFAULT_SAMPLE_MASK_WEIGHT: f32 = 5e-3;
+
+/// Why [`TrainSettings::validate`] or [`TrainSettings::apply_overrides`] refused settings; the
+/// message names the setting.
+#[derive(Debug, thiserror::Error)]
+pub enum SettingsError {
+    #[error("{0}")]
+    Invalid(String),
+    #[error(transparent)]
+    MaskLearning(#[from] InvalidMaskLearning),
+    #[error(transparent)]
+    Sampling(#[from] InvalidSamplingConfig),
+    #[error("model.{0}")]
+    Model(ModelConfigError),
+    #[error("--set `{0}`: expected key=value")]
+    SetSyntax(String),
+    #[error("--set `{key}`: unknown setting `{part}`")]
+    UnknownSet { key: String, part: String },
+    #[error("config: unknown setting `{0}`")]
+    UnknownConfigKey(String),
+    #[error("{0}")]
+    Serialize(serde_json::Error),
+    #[error("invalid settings: {0}")]
+    Deserialize(serde_json::Error),
+}
 
 impl TrainSettings {
     pub fn for_preset(preset: Preset, data: &Dataset) -> Self {
@@ -154,35 +182,40 @@ impl TrainSettings {
         &mut self,
         file: Option<serde_json::Value>,
         sets: &[String],
-    ) -> Result<(), String> {
-        let mut v = serde_json::to_value(&*self).map_err(|e| e.to_string())?;
+    ) -> Result<(), SettingsError> {
+        let mut v = serde_json::to_value(&*self).map_err(SettingsError::Serialize)?;
         if let Some(f) = file {
             merge(&mut v, f, "")?;
         }
         for s in sets {
             let (key, val) = s
                 .split_once('=')
-                .ok_or_else(|| format!("--set `{s}`: expected key=value"))?;
+                .ok_or_else(|| SettingsError::SetSyntax(s.clone()))?;
             let val: serde_json::Value = serde_json::from_str(val)
                 .unwrap_or_else(|_| serde_json::Value::String(val.to_string()));
             let mut node = &mut v;
             for part in key.split('.') {
                 node = node
                     .get_mut(part)
-                    .ok_or_else(|| format!("--set `{key}`: unknown setting `{part}`"))?;
+                    .ok_or_else(|| SettingsError::UnknownSet {
+                        key: key.to_string(),
+                        part: part.to_string(),
+                    })?;
             }
             *node = val;
         }
-        *self = serde_json::from_value(v).map_err(|e| format!("invalid settings: {e}"))?;
+        *self = serde_json::from_value(v).map_err(SettingsError::Deserialize)?;
         self.validate()
     }
 
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), SettingsError> {
         if self.iters == 0 {
-            return Err("iters must be at least 1".into());
+            return Err(SettingsError::Invalid("iters must be at least 1".into()));
         }
         if !(1..=1 << 22).contains(&self.batch_rays) || !(1..=1 << 16).contains(&self.chunk_rays) {
-            return Err("batch_rays must be in 1..=4194304 and chunk_rays in 1..=65536".into());
+            return Err(SettingsError::Invalid(
+                "batch_rays must be in 1..=4194304 and chunk_rays in 1..=65536".into(),
+            ));
         }
         for (n, v) in [
             ("adam.lr", self.adam.lr),
@@ -190,7 +223,9 @@ impl TrainSettings {
             ("adam.eps", self.adam.eps),
         ] {
             if !(v.is_finite() && v > 0.0) {
-                return Err(format!("{n} must be finite and positive"));
+                return Err(SettingsError::Invalid(format!(
+                    "{n} must be finite and positive"
+                )));
             }
         }
         for (n, v) in [
@@ -201,27 +236,31 @@ impl TrainSettings {
             ("sample_mask_weight", self.sample_mask_weight),
         ] {
             if !(v.is_finite() && v >= 0.0) {
-                return Err(format!("{n} must be finite and >= 0"));
+                return Err(SettingsError::Invalid(format!(
+                    "{n} must be finite and >= 0"
+                )));
             }
         }
         if !(self.scene_scale.is_finite() && self.scene_scale > 0.0) {
-            return Err(format!(
+            return Err(SettingsError::Invalid(format!(
                 "scene_scale must be finite and positive (got {})",
                 self.scene_scale
-            ));
+            )));
         }
         if self.eval_stride == 0 {
-            return Err("eval_stride must be at least 1".into());
+            return Err(SettingsError::Invalid(
+                "eval_stride must be at least 1".into(),
+            ));
         }
         self.mask_learning.validate()?;
         self.sampling.validate()?;
         if self.mask_learning.uncertainty && !self.model.field.encoding.blend.uses_h3() {
-            return Err(
+            return Err(SettingsError::Invalid(
                 "mask_learning.uncertainty needs a 3D grid (its static branch decodes h3 alone)"
                     .into(),
-            );
+            ));
         }
-        self.model.validate().map_err(|e| format!("model.{e}"))
+        self.model.validate().map_err(SettingsError::Model)
     }
 }
 
@@ -229,7 +268,11 @@ fn one() -> f32 {
     1.0
 }
 
-fn merge(dst: &mut serde_json::Value, src: serde_json::Value, path: &str) -> Result<(), String> {
+fn merge(
+    dst: &mut serde_json::Value,
+    src: serde_json::Value,
+    path: &str,
+) -> Result<(), SettingsError> {
     match src {
         serde_json::Value::Object(map) => {
             for (k, v) in map {
@@ -240,7 +283,7 @@ fn merge(dst: &mut serde_json::Value, src: serde_json::Value, path: &str) -> Res
                 };
                 let slot = dst
                     .get_mut(&k)
-                    .ok_or_else(|| format!("config: unknown setting `{p}`"))?;
+                    .ok_or_else(|| SettingsError::UnknownConfigKey(p.clone()))?;
                 if v.is_object() && slot.is_object() {
                     merge(slot, v, &p)?;
                 } else {
@@ -298,7 +341,9 @@ pub struct TrainOutcome {
 #[derive(Debug, thiserror::Error)]
 pub enum TrainError {
     #[error("invalid settings: {0}")]
-    Settings(String),
+    Settings(SettingsError),
+    #[error("invalid settings: {0}")]
+    Sampling(SamplingError),
     #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
     #[error("training diverged at step {step}: {what} is not finite; the last good checkpoint is {last_good}")]
@@ -622,10 +667,10 @@ pub fn train(
             if a.step != trainer.step as u64 {
                 return Err(CheckpointError::Format {
                     path: aux_path,
-                    reason: format!(
-                        "it belongs to step {} but the checkpoint is at step {}",
-                        a.step, trainer.step
-                    ),
+                    reason: CheckpointFormatError::StepMismatch {
+                        aux_step: a.step,
+                        step: trainer.step,
+                    },
                 }
                 .into());
             }
@@ -645,7 +690,7 @@ pub fn train(
     // batches as an uninterrupted one.
     let batch_seed = trainer.settings.seed ^ 0xBA7C_0000;
     let sampler =
-        RaySampler::new(data, &trainer.settings.sampling).map_err(TrainError::Settings)?;
+        RaySampler::new(data, &trainer.settings.sampling).map_err(TrainError::Sampling)?;
     let mut notes: Vec<String> = sampler.note.iter().cloned().collect();
     let mut rays = Vec::with_capacity(batch);
     let mut targets = Vec::with_capacity(batch);
@@ -806,21 +851,21 @@ mod tests {
         let e = s
             .apply_overrides(Some(serde_json::json!({"modle": {}})), &[])
             .unwrap_err();
-        assert!(e.contains("modle"), "{e}");
+        assert!(e.to_string().contains("modle"), "{e}");
         let e = s.apply_overrides(None, &["iters".into()]).unwrap_err();
-        assert!(e.contains("key=value"), "{e}");
+        assert!(e.to_string().contains("key=value"), "{e}");
         let e = s
             .apply_overrides(None, &["iters=\"many\"".into()])
             .unwrap_err();
-        assert!(e.contains("invalid settings"), "{e}");
+        assert!(e.to_string().contains("invalid settings"), "{e}");
         let e = s
             .apply_overrides(None, &["model.sampler.near=-1".into()])
             .unwrap_err();
-        assert!(e.contains("near"), "{e}");
+        assert!(e.to_string().contains("near"), "{e}");
         // Settings that disagree with each other are caught too.
         let e = s
             .apply_overrides(None, &["model.field.encoding.grid3.levels=8".into()])
             .unwrap_err();
-        assert!(e.contains("same number of features"), "{e}");
+        assert!(e.to_string().contains("same number of features"), "{e}");
     }
 }

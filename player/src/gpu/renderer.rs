@@ -94,7 +94,7 @@ impl GpuRenderer {
         settings: RenderSettings,
         kernels: GpuKernels,
     ) -> Result<Self, GpuError> {
-        let gpu_model = GpuModel::new(cfg).map_err(GpuError::Model)?;
+        let gpu_model = GpuModel::new(cfg).map_err(|e| GpuError::Model(e.to_string()))?;
         if ctx.is_lavapipe() {
             let (n, what) = match kernels {
                 GpuKernels::PerRay => (
