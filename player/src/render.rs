@@ -336,20 +336,6 @@ pub fn render_rays_skipping(
     out
 }
 
-/// Whether `ray` is static: the mask is at least `threshold` at every lookup from its entry into
-/// the scene to `visible_end` ([`ray_min_mask`]).
-pub fn ray_is_static(
-    cfg: &ModelConfig,
-    layout: &ModelLayout,
-    params: &[f32],
-    ray: &TimedRay,
-    visible_end: f32,
-    threshold: f32,
-    steps: usize,
-) -> bool {
-    ray_min_mask(cfg, layout, params, ray, visible_end, steps, threshold) >= threshold
-}
-
 /// The smallest mask value along `ray` from its entry into the scene to `visible_end` (1 for a ray
 /// that misses the scene). Lookups are uniform in the sampler's spacing coordinate, `steps` of
 /// them over the ray's whole interval; the walk stops early once the minimum is below `floor`
@@ -648,7 +634,7 @@ pub fn partition_times(cfg: &ModelConfig, settings: &RenderSettings) -> Vec<f32>
     (0..k).map(|j| settings.clip_time(j, k)).collect()
 }
 
-/// Mask lookups per ray for the static test ([`ray_is_static`]) under `settings`.
+/// Mask lookups per ray for the static test ([`ray_min_mask`]) under `settings`.
 pub fn mask_steps(cfg: &ModelConfig, settings: &RenderSettings) -> usize {
     let cells = cfg.field.encoding.mask_resolution.max(1) as f32;
     // The longest straight path through the unit cube is sqrt(3) long.
@@ -656,32 +642,7 @@ pub fn mask_steps(cfg: &ModelConfig, settings: &RenderSettings) -> usize {
 }
 
 /// Sorts a first frame's rays into static (`true`: cached) and dynamic, as every renderer of the
-/// player does ([`classify_static_with_stats`] without its counts).
-#[allow(clippy::too_many_arguments)]
-pub fn classify_static<E>(
-    cfg: &ModelConfig,
-    layout: &ModelLayout,
-    params: &[f32],
-    settings: &RenderSettings,
-    rays: &[TimedRay],
-    rgb0: &[[f32; 3]],
-    visible_depth: &[f32],
-    render: impl FnMut(&[usize], f32) -> Result<Vec<[f32; 3]>, E>,
-) -> Result<Vec<bool>, E> {
-    classify_static_with_stats(
-        cfg,
-        layout,
-        params,
-        settings,
-        rays,
-        rgb0,
-        visible_depth,
-        render,
-    )
-    .map(|(flags, _)| flags)
-}
-
-/// Sorts a first frame's rays into static (`true`: cached) and dynamic by the mask along each
+/// player does, by the mask along each
 /// ray's visible segment (up to `visible_depth`, [`ray_min_mask`]):
 /// - at least `trust_threshold`: static on the mask's word alone;
 /// - at least `static_threshold` (the mask is not sure): static only if the probes agree: the
@@ -971,22 +932,18 @@ mod tests {
         };
         let steps = 64;
         // Visible to the far side: the dynamic vertex is crossed.
-        assert!(!ray_is_static(
-            &cfg, &layout, &params, &ray, 10.0, 0.95, steps
-        ));
+        let min_mask =
+            |ray: &TimedRay, end: f32| ray_min_mask(&cfg, &layout, &params, ray, end, steps, 0.95);
+        assert!(min_mask(&ray, 10.0) < 0.95);
         // A surface before it hides it.
-        assert!(ray_is_static(
-            &cfg, &layout, &params, &ray, 3.5, 0.95, steps
-        ));
+        assert!(min_mask(&ray, 3.5) >= 0.95);
         // A ray that misses the box is static.
         let miss = TimedRay {
             origin: Vec3::new(0.0, -4.0, 5.0),
             dir: Vec3::Y,
             time: 0.0,
         };
-        assert!(ray_is_static(
-            &cfg, &layout, &params, &miss, 10.0, 0.95, steps
-        ));
+        assert!(min_mask(&miss, 10.0) >= 0.95);
     }
 
     #[test]

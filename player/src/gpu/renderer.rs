@@ -6,7 +6,7 @@
 //! ([`GpuKernels::PerSample`], the default) or the older one-invocation-per-ray kernel
 //! ([`GpuKernels::PerRay`], kept for comparison: `msth bench play --gpu` and
 //! `gpu/examples/bench_render.rs` time both). The second frame of a fixed camera classifies
-//! the first frame's rays with [`classify_static`] (the CPU renderer's mask test, then probes
+//! the first frame's rays with [`classify_static_with_stats`] (the CPU renderer's mask test, then probes
 //! rendered on the device, each with the parameters of its own time), uploads the compacted
 //! list of dynamic pixels, and, with [`Reuse::Samples`], builds the device's sample cache of
 //! those rays ([`GpuSampleCache`]: fixed samples over the clip, static samples evaluated once).
@@ -24,7 +24,8 @@ use msth_gpu::{GpuSampleCache, Pixels};
 
 use super::{GpuContext, GpuError, GpuModel, GpuScene, Kernel, ViewU, FLAG_COMPACT, FLAG_LIST};
 use crate::render::{
-    classify_static, partition_samples, partition_times, Frame, FrameStats, RenderSettings, Reuse,
+    classify_static_with_stats, partition_samples, partition_times, ClassifyStats, Frame,
+    FrameStats, RenderSettings, Reuse,
 };
 
 /// Which kernels render rays.
@@ -234,7 +235,7 @@ impl GpuRenderer {
             let mut cache = self.cache.take().expect("checked above");
             if let Some(p) = cache.pending.take() {
                 let t = Instant::now();
-                self.classify(camera, params, params_at, p, &mut cache)?;
+                stats.classify = Some(self.classify(camera, params, params_at, p, &mut cache)?);
                 stats.cache_seconds = t.elapsed().as_secs_f64();
             }
             let scene = self.scene.as_ref().expect("uploaded above");
@@ -301,7 +302,7 @@ impl GpuRenderer {
         })
     }
 
-    /// Sorts the first frame's rays into static and dynamic ([`classify_static`], probes on the
+    /// Sorts the first frame's rays into static and dynamic ([`classify_static_with_stats`], probes on the
     /// device with their own time's parameters), uploads the dynamic pixels and, with
     /// [`Reuse::Samples`], builds the sample cache (falling back to whole rays when it would
     /// take more than `max_sample_cache_bytes` or the adapter's limits).
@@ -312,11 +313,11 @@ impl GpuRenderer {
         params_at: &mut dyn FnMut(f32) -> Option<Vec<f32>>,
         p: Pending,
         cache: &mut Cache,
-    ) -> Result<(), GpuError> {
+    ) -> Result<ClassifyStats, GpuError> {
         let ctx = &self.ctx;
         let scene = self.scene.as_mut().expect("uploaded before");
         let scratch = self.scratch.as_ref().map(|(s, _)| s);
-        let flags = classify_static(
+        let (flags, counts) = classify_static_with_stats(
             &self.cfg,
             &self.layout,
             params,
@@ -347,7 +348,7 @@ impl GpuRenderer {
         cache.dynamic_buf = None;
         cache.samples = None;
         if cache.dynamic.is_empty() {
-            return Ok(());
+            return Ok(counts);
         }
         let list = ctx.storage_buffer(
             "dynamic pixels",
@@ -380,7 +381,7 @@ impl GpuRenderer {
             }
         }
         cache.dynamic_buf = Some(list);
-        Ok(())
+        Ok(counts)
     }
 
     /// The cache of a full frame: which pixels were evaluated (the others miss the scene under a
