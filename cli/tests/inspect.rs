@@ -226,3 +226,29 @@ fn inspect_over_http_reads_the_prefix_unless_asked_to_validate() {
     let (ok, _, err) = msth(&["inspect", &bad, "--validate"]);
     assert!(!ok && err.contains("zstd frame"), "{err}");
 }
+
+#[test]
+fn a_reader_that_closes_the_pipe_early_is_not_a_crash() {
+    // The read end is closed before `msth` writes, so its first line already meets a broken
+    // pipe (what `msth inspect FILE | head -1` does once head has its line).
+    let (reader, writer) = std::io::pipe().expect("pipe");
+    drop(reader);
+    let file = repo("tests/fixtures/v1.msth");
+    for args in [
+        vec!["inspect", file.to_str().unwrap()],
+        vec!["bench", "play", "--help"],
+    ] {
+        let out = Command::new(env!("CARGO_BIN_EXE_msth"))
+            .args(&args)
+            .stdout(writer.try_clone().expect("clone the pipe's write end"))
+            .stderr(Stdio::piped())
+            .output()
+            .expect("msth runs");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            out.status.success() && !err.contains("panicked"),
+            "msth {args:?} with a closed stdout: {:?}\n{err}",
+            out.status
+        );
+    }
+}
