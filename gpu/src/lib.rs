@@ -10,7 +10,10 @@
 //! - [`device`]: a compute device for the training kernels (f32 atomics when the adapter has
 //!   them), buffers, dispatches, read-back;
 //! - [`hashgrid`]: the multi-resolution hash-grid encoding (3D and 4D), forward and backward;
-//! - [`mask`]: the dense mask grid (trilinear + sigmoid), forward and backward.
+//! - [`mask`]: the dense mask grid (trilinear + sigmoid), forward and backward;
+//! - [`mlp`]: the density and colour MLPs (and their output activations), forward and backward,
+//!   tiled through workgroup memory;
+//! - [`sh`]: the view-direction encoding (spherical harmonics, forward).
 //!
 //! # The web page's copy of `render.wgsl`
 //! `shaders/render.wgsl` here is the one source. The browser page fetches
@@ -90,8 +93,10 @@ pub mod device;
 pub mod hashgrid;
 pub mod layout;
 pub mod mask;
+pub mod mlp;
 pub mod passes;
 pub mod render;
+pub mod sh;
 
 pub use layout::{GpuLayoutError, GpuModel, ViewU, FLAG_COMPACT, FLAG_LIST};
 pub use passes::{FrameScratch, GpuSampleCache, Pixels};

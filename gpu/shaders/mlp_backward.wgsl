@@ -1,0 +1,138 @@
+// MLP backward (after `mlp.wgsl` and an atomic variant, which declares `grad` at binding 3 and
+// `add_grad`): from d loss / d (activated outputs) and the forward's `acts`, adds the weight
+// gradients into `grad` and, with FLAG_D_INPUT, writes d loss / d input columns info.z.. into
+// `d_input` [n, dims[0] - info.z].
+//
+// Per layer, last to first: (B) the weight gradient sum_s x[s, i] dy[s, o] of the workgroup's
+// GROUP samples, in chunks of CHUNK samples staged in `tile`; invocation t owns the 4x4 block
+// (rows 4 (t / fo4).., columns 4 (t % fo4)..) and keeps it in registers over the whole tile,
+// then adds it with one `add_grad` per entry: one atomic per weight and workgroup. (A) the
+// input gradient dx = W dy with the layer's weights staged in `tile`, masked by the ReLU.
+
+@group(0) @binding(4) var<storage, read> acts: array<f32>;
+@group(0) @binding(5) var<storage, read> d_output: array<f32>;
+@group(0) @binding(6) var<storage, read_write> d_input: array<f32>;
+
+const CHUNK: u32 = 32u;
+
+// Input i of layer k for sample s: the network's input (k = 0) or hidden layer k - 1's output.
+fn layer_input(k: u32, s: u32, i: u32) -> f32 {
+    if k == 0u {
+        return input[s * dim(0u) + i];
+    }
+    return acts[s * mlp.info.y + aoff(k - 1u) + i];
+}
+
+@compute @workgroup_size(256)
+fn mlp_backward(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let g = group_index(wid, groups);
+    if g * GROUP >= mlp.run.x {
+        return;
+    }
+    let s = g * GROUP + lid;
+    let live = s < mlp.run.x;
+    let layers = mlp.run.y;
+    // d loss / d raw output: through the output activation, as the CPU field does.
+    var dy: array<vec4<f32>, W4>;
+    if live {
+        let fl = dim(layers);
+        for (var o = 0u; o < fl; o++) {
+            let raw = acts[s * mlp.info.y + aoff(layers - 1u) + o];
+            var d = d_output[s * fl + o];
+            if mlp.info.x == ACT_SIGMOID {
+                let y = logistic(raw);
+                d *= y * (1.0 - y);
+            } else if mlp.info.x == ACT_DENSITY && o == 0u {
+                d *= exp(clamp(raw, -15.0, 15.0)); // trunc_exp_grad
+            }
+            dy[o / 4u][o % 4u] = d;
+        }
+    }
+    for (var kk = 0u; kk < layers; kk++) {
+        let k = layers - 1u - kk;
+        let fi = dim(k);
+        let fo = dim(k + 1u);
+        let fi4 = (fi + 3u) / 4u;
+        let fo4 = (fo + 3u) / 4u;
+        // (B) weight gradient of layer k over the tile.
+        let own = lid < fi4 * fo4;
+        let ib = lid / fo4;
+        let ob = lid % fo4;
+        var gw: array<vec4<f32>, 4>;
+        for (var c = 0u; c < GROUP / CHUNK; c++) {
+            workgroupBarrier();
+            if lid / CHUNK == c {
+                let j = lid % CHUNK;
+                for (var i4 = 0u; i4 < fi4; i4++) {
+                    var v = vec4<f32>(0.0);
+                    if live {
+                        for (var r = 0u; r < 4u; r++) {
+                            if i4 * 4u + r < fi {
+                                v[r] = layer_input(k, s, i4 * 4u + r);
+                            }
+                        }
+                    }
+                    tile[j * W4 + i4] = v;
+                }
+                for (var o4 = 0u; o4 < fo4; o4++) {
+                    tile[(CHUNK + j) * W4 + o4] = dy[o4];
+                }
+            }
+            workgroupBarrier();
+            if own {
+                for (var j = 0u; j < CHUNK; j++) {
+                    let xv = tile[j * W4 + ib];
+                    let d = tile[(CHUNK + j) * W4 + ob];
+                    gw[0] = fma(vec4<f32>(xv.x), d, gw[0]);
+                    gw[1] = fma(vec4<f32>(xv.y), d, gw[1]);
+                    gw[2] = fma(vec4<f32>(xv.z), d, gw[2]);
+                    gw[3] = fma(vec4<f32>(xv.w), d, gw[3]);
+                }
+            }
+        }
+        if own {
+            let base = mlp.run.z + woff(k);
+            for (var r = 0u; r < 4u; r++) {
+                let i = ib * 4u + r;
+                for (var c = 0u; c < 4u; c++) {
+                    let o = ob * 4u + c;
+                    let v = gw[r][c];
+                    // Zero contributions (dead ReLUs, padding) issue no atomic.
+                    if i < fi && o < fo && v != 0.0 {
+                        add_grad(base + i * fo + o, v);
+                    }
+                }
+            }
+        }
+        // (A) input gradient of layer k.
+        if k > 0u || (mlp.run.w & FLAG_D_INPUT) != 0u {
+            workgroupBarrier();
+            stage_weights(k, lid);
+            workgroupBarrier();
+            let first = select(0u, mlp.info.z, k == 0u);
+            var dx: array<vec4<f32>, W4>;
+            if live {
+                for (var i = first; i < fi; i++) {
+                    var a = 0.0;
+                    for (var o = 0u; o < W4; o++) {
+                        if o < fo4 {
+                            a += dot(tile[i * fo4 + o], dy[o]);
+                        }
+                    }
+                    if k > 0u {
+                        // The ReLU: no gradient where the unit was off (as the CPU's select).
+                        a = select(0.0, a, layer_input(k, s, i) > 0.0);
+                    } else {
+                        d_input[s * (fi - first) + i - first] = a;
+                    }
+                    dx[i / 4u][i % 4u] = a;
+                }
+            }
+            dy = dx;
+        }
+    }
+}
