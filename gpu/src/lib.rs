@@ -13,7 +13,8 @@
 //! - [`mask`]: the dense mask grid (trilinear + sigmoid), forward and backward;
 //! - [`mlp`]: the density and colour MLPs (and their output activations), forward and backward,
 //!   tiled through workgroup memory;
-//! - [`sh`]: the view-direction encoding (spherical harmonics, forward).
+//! - [`sh`]: the view-direction encoding (spherical harmonics, forward);
+//! - [`adam`]: Adam over the flat parameter buffer (the trainer's update, mask loss fused).
 //!
 //! # The web page's copy of `render.wgsl`
 //! `shaders/render.wgsl` here is the one source. The browser page fetches
@@ -89,6 +90,7 @@
 //! workgroup memory before issuing atomics (`../shared/docs/gpu-notes.md`: the Metal port
 //! of tiny-cuda-nn spent 30 of 33 ms in this scatter).
 
+pub mod adam;
 pub mod device;
 pub mod hashgrid;
 pub mod layout;
