@@ -10,39 +10,22 @@
 //! included); the backward uses native f32 atomics where the adapter has them, else the
 //! compare-exchange loop, and the compare-exchange loop always as a second row.
 
-use std::time::Instant;
+mod common;
 
 use msth_core::config::{Background, ModelConfig, Preset};
 use msth_core::grid::GridLayout;
 use msth_core::rng::Rng;
 use msth_core::SceneBounds;
-use msth_gpu::device::ComputeDevice;
 use msth_gpu::hashgrid::{encoding_counts, AtomicMode, GpuGrid, HashGridKernels};
-use msth_gpu::{AdapterPolicy, GpuError};
+use msth_gpu::GpuError;
 
-fn best_of(repeats: usize, mut f: impl FnMut()) -> f64 {
-    f(); // warm-up
-    (0..repeats)
-        .map(|_| {
-            let t = Instant::now();
-            f();
-            t.elapsed().as_secs_f64()
-        })
-        .fold(f64::INFINITY, f64::min)
-}
+use common::{best_of, open_device};
 
 fn main() -> Result<(), GpuError> {
     let args: Vec<String> = std::env::args().collect();
     let n: usize = args.get(1).and_then(|s| s.parse().ok()).unwrap_or(32768);
     let repeats: usize = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(3);
-    let dev = match ComputeDevice::open(AdapterPolicy::any()) {
-        Ok(d) => d,
-        Err(e @ GpuError::NoAdapter(_)) => {
-            eprintln!("bench_encode: no GPU adapter, nothing to measure: {e}");
-            std::process::exit(2);
-        }
-        Err(e) => return Err(e),
-    };
+    let dev = open_device("bench_encode")?;
     println!(
         "adapter: {}; f32 atomics: {}; {n} samples, best of {repeats}",
         dev.adapter_name(),

@@ -57,21 +57,47 @@ fn logistic(x: f32) -> f32 {
     return select(e / (1.0 + e), 1.0 / (1.0 + e), x >= 0.0);
 }
 
-// Layer k's weights into `tile`: row r at r * fo4, zero-padded to a multiple of 4 columns.
+// Layer k's weights into `tile`: row r at r * fo4, zero-padded to a multiple of 4 columns and
+// of 4 rows (kernels read rows 4 at a time).
 fn stage_weights(k: u32, lid: u32) {
     let fi = dim(k);
     let fo = dim(k + 1u);
     let fo4 = (fo + 3u) / 4u;
     let base = mlp.run.z + woff(k);
-    for (var e = lid; e < fi * fo4; e += GROUP) {
+    for (var e = lid; e < (fi + 3u) / 4u * 4u * fo4; e += GROUP) {
         let r = e / fo4;
         let c = (e % fo4) * 4u;
         var v = vec4<f32>(0.0);
         for (var j = 0u; j < 4u; j++) {
-            if c + j < fo {
+            if r < fi && c + j < fo {
                 v[j] = params[base + r * fo + c + j];
             }
         }
         tile[e] = v;
     }
+}
+
+// x[4 i4 + r] (i4 < fi4) times rows 4 i4 + r of the staged weights, summed: output block o4.
+fn rows_times(x: vec4<f32>, i4: u32, fo4: u32, o4: u32, acc: vec4<f32>) -> vec4<f32> {
+    let r = 4u * i4 * fo4 + o4;
+    var a = fma(vec4<f32>(x.x), tile[r], acc);
+    a = fma(vec4<f32>(x.y), tile[r + fo4], a);
+    a = fma(vec4<f32>(x.z), tile[r + 2u * fo4], a);
+    return fma(vec4<f32>(x.w), tile[r + 3u * fo4], a);
+}
+
+// Inputs 4 i4 .. 4 i4 + 3 of sample s (zero past the width d0).
+fn input4(s: u32, i4: u32, d0: u32) -> vec4<f32> {
+    var v = vec4<f32>(0.0);
+    for (var j = 0u; j < 4u; j++) {
+        if 4u * i4 + j < d0 {
+            v[j] = input[s * d0 + 4u * i4 + j];
+        }
+    }
+    return v;
+}
+
+// Element j < 4 of v without dynamic component indexing.
+fn lane(v: vec4<f32>, j: u32) -> f32 {
+    return select(select(v.x, v.y, j == 1u), select(v.z, v.w, j == 3u), j >= 2u);
 }

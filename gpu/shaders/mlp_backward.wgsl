@@ -15,12 +15,21 @@
 
 const CHUNK: u32 = 32u;
 
-// Input i of layer k for sample s: the network's input (k = 0) or hidden layer k - 1's output.
-fn layer_input(k: u32, s: u32, i: u32) -> f32 {
+// Inputs 4 i4 .. 4 i4 + 3 of layer k for sample s: the network's input (k = 0) or hidden
+// layer k - 1's output (zero past the width).
+fn layer_input4(k: u32, s: u32, i4: u32) -> vec4<f32> {
     if k == 0u {
-        return input[s * dim(0u) + i];
+        return input4(s, i4, dim(0u));
     }
-    return acts[s * mlp.info.y + aoff(k - 1u) + i];
+    let fi = dim(k);
+    let at = s * mlp.info.y + aoff(k - 1u);
+    var v = vec4<f32>(0.0);
+    for (var j = 0u; j < 4u; j++) {
+        if 4u * i4 + j < fi {
+            v[j] = acts[at + 4u * i4 + j];
+        }
+    }
+    return v;
 }
 
 @compute @workgroup_size(256)
@@ -40,16 +49,24 @@ fn mlp_backward(
     var dy: array<vec4<f32>, W4>;
     if live {
         let fl = dim(layers);
-        for (var o = 0u; o < fl; o++) {
-            let raw = acts[s * mlp.info.y + aoff(layers - 1u) + o];
-            var d = d_output[s * fl + o];
-            if mlp.info.x == ACT_SIGMOID {
-                let y = logistic(raw);
-                d *= y * (1.0 - y);
-            } else if mlp.info.x == ACT_DENSITY && o == 0u {
-                d *= exp(clamp(raw, -15.0, 15.0)); // trunc_exp_grad
+        let raw_at = s * mlp.info.y + aoff(layers - 1u);
+        for (var o4 = 0u; o4 < (fl + 3u) / 4u; o4++) {
+            var d4 = vec4<f32>(0.0);
+            for (var j = 0u; j < 4u; j++) {
+                let o = 4u * o4 + j;
+                if o < fl {
+                    let raw = acts[raw_at + o];
+                    var d = d_output[s * fl + o];
+                    if mlp.info.x == ACT_SIGMOID {
+                        let y = logistic(raw);
+                        d *= y * (1.0 - y);
+                    } else if mlp.info.x == ACT_DENSITY && o == 0u {
+                        d *= exp(clamp(raw, -15.0, 15.0)); // trunc_exp_grad
+                    }
+                    d4[j] = d;
+                }
             }
-            dy[o / 4u][o % 4u] = d;
+            dy[o4] = d4;
         }
     }
     for (var kk = 0u; kk < layers; kk++) {
@@ -70,11 +87,7 @@ fn mlp_backward(
                 for (var i4 = 0u; i4 < fi4; i4++) {
                     var v = vec4<f32>(0.0);
                     if live {
-                        for (var r = 0u; r < 4u; r++) {
-                            if i4 * 4u + r < fi {
-                                v[r] = layer_input(k, s, i4 * 4u + r);
-                            }
-                        }
+                        v = layer_input4(k, s, i4);
                     }
                     tile[j * W4 + i4] = v;
                 }
@@ -100,7 +113,7 @@ fn mlp_backward(
                 let i = ib * 4u + r;
                 for (var c = 0u; c < 4u; c++) {
                     let o = ob * 4u + c;
-                    let v = gw[r][c];
+                    let v = lane(gw[r], c);
                     // Zero contributions (dead ReLUs, padding) issue no atomic.
                     if i < fi && o < fo && v != 0.0 {
                         add_grad(base + i * fo + o, v);
@@ -108,7 +121,7 @@ fn mlp_backward(
                 }
             }
         }
-        // (A) input gradient of layer k.
+        // (A) input gradient of layer k: 4 rows of W times dy at a time.
         if k > 0u || (mlp.run.w & FLAG_D_INPUT) != 0u {
             workgroupBarrier();
             stage_weights(k, lid);
@@ -116,20 +129,30 @@ fn mlp_backward(
             let first = select(0u, mlp.info.z, k == 0u);
             var dx: array<vec4<f32>, W4>;
             if live {
-                for (var i = first; i < fi; i++) {
-                    var a = 0.0;
-                    for (var o = 0u; o < W4; o++) {
-                        if o < fo4 {
-                            a += dot(tile[i * fo4 + o], dy[o]);
-                        }
+                for (var i4 = first / 4u; i4 < fi4; i4++) {
+                    var d = vec4<f32>(0.0);
+                    let r = 4u * i4 * fo4;
+                    for (var o4 = 0u; o4 < fo4; o4++) {
+                        let y = dy[o4];
+                        d += vec4<f32>(
+                            dot(tile[r + o4], y),
+                            dot(tile[r + fo4 + o4], y),
+                            dot(tile[r + 2u * fo4 + o4], y),
+                            dot(tile[r + 3u * fo4 + o4], y),
+                        );
                     }
                     if k > 0u {
                         // The ReLU: no gradient where the unit was off (as the CPU's select).
-                        a = select(0.0, a, layer_input(k, s, i) > 0.0);
+                        d = select(vec4<f32>(0.0), d, layer_input4(k, s, i4) > vec4<f32>(0.0));
                     } else {
-                        d_input[s * (fi - first) + i - first] = a;
+                        for (var j = 0u; j < 4u; j++) {
+                            let i = 4u * i4 + j;
+                            if i >= first && i < fi {
+                                d_input[s * (fi - first) + i - first] = lane(d, j);
+                            }
+                        }
                     }
-                    dx[i / 4u][i % 4u] = a;
+                    dx[i4] = d;
                 }
             }
             dy = dx;

@@ -20,48 +20,45 @@ fn mlp_forward(
     let store = (mlp.run.w & FLAG_ACTS) != 0u;
     let layers = mlp.run.y;
     let d0 = dim(0u);
-    var x: array<f32, 64>;
+    // The current layer's input, 4 units per vec4 (zero past the width).
+    var x: array<vec4<f32>, W4>;
     if live {
-        for (var i = 0u; i < d0; i++) {
-            x[i] = input[s * d0 + i];
+        for (var i4 = 0u; i4 < (d0 + 3u) / 4u; i4++) {
+            x[i4] = input4(s, i4, d0);
         }
     }
-    var acc: array<vec4<f32>, W4>;
     for (var k = 0u; k < layers; k++) {
         workgroupBarrier();
         stage_weights(k, lid);
         workgroupBarrier();
-        let fi = dim(k);
+        let fi4 = (dim(k) + 3u) / 4u;
         let fo = dim(k + 1u);
         let fo4 = (fo + 3u) / 4u;
-        for (var o = 0u; o < W4; o++) {
-            acc[o] = vec4<f32>(0.0);
-        }
-        for (var i = 0u; i < fi; i++) {
-            let xi = vec4<f32>(x[i]);
-            for (var o = 0u; o < W4; o++) {
-                if o < fo4 {
-                    acc[o] = fma(xi, tile[i * fo4 + o], acc[o]);
+        let hidden = k + 1u < layers;
+        var y: array<vec4<f32>, W4>;
+        for (var o4 = 0u; o4 < fo4; o4++) {
+            var a = vec4<f32>(0.0);
+            for (var i4 = 0u; i4 < fi4; i4++) {
+                a = rows_times(x[i4], i4, fo4, o4, a);
+            }
+            if hidden {
+                // As the CPU's `v.max(0.0)`: NaN gives 0.
+                a = select(vec4<f32>(0.0), a, a > vec4<f32>(0.0));
+            }
+            y[o4] = a;
+            if live && store {
+                let at = s * mlp.info.y + aoff(k) + 4u * o4;
+                for (var j = 0u; j < min(4u, fo - 4u * o4); j++) {
+                    acts[at + j] = lane(a, j);
                 }
             }
         }
-        let hidden = k + 1u < layers;
-        for (var o = 0u; o < fo; o++) {
-            var v = acc[o / 4u][o % 4u];
-            if hidden {
-                // As the CPU's `v.max(0.0)`: NaN gives 0.
-                v = select(0.0, v, v > 0.0);
-            }
-            x[o] = v;
-            if live && store {
-                acts[s * mlp.info.y + aoff(k) + o] = v;
-            }
-        }
+        x = y;
     }
     if live {
         let fl = dim(layers);
         for (var o = 0u; o < fl; o++) {
-            var y = x[o];
+            var y = lane(x[o / 4u], o % 4u);
             if mlp.info.x == ACT_SIGMOID {
                 y = logistic(y);
             } else if mlp.info.x == ACT_DENSITY && o == 0u {
