@@ -14,7 +14,8 @@
 //! - [`mlp`]: the density and colour MLPs (and their output activations), forward and backward,
 //!   tiled through workgroup memory;
 //! - [`sh`]: the view-direction encoding (spherical harmonics, forward);
-//! - [`adam`]: Adam over the flat parameter buffer (the trainer's update, mask loss fused).
+//! - [`adam`]: Adam over the flat parameter buffer (the trainer's update, mask loss fused);
+//! - [`composite`]: volume rendering of ray batches, forward and backward (scans per ray).
 //!
 //! # The web page's copy of `render.wgsl`
 //! `shaders/render.wgsl` here is the one source. The browser page fetches
@@ -135,12 +136,18 @@
 //! only at about 10x the aim), 3.7e11 bytes/s, and 3.7e9 atomics/s into 9,344 addresses, a
 //! twentieth of the hash grid's 7.7e10. The SH encoding ([`sh`]): 12 bytes read, 64 written,
 //! about 40 flops per direction. Adam ([`adam`]): 16 bytes read and 12 written per parameter
-//! (gradient, parameter, both moments), one invocation each, no atomics.
+//! (gradient, parameter, both moments), one invocation each, no atomics. Compositing
+//! ([`composite`]): one workgroup of 64 per ray, one invocation per sample, the sums along the
+//! ray (optical depth front to back, the backward's `sum_{i>k} d_w_i w_i` back to front) as
+//! 6-step scans in workgroup memory per chunk of 64 samples with a carry; per sample 12 bytes
+//! read and 4 written forward (sigma, delta, rgb; w), 28 read and 16 written backward, no
+//! atomics; 48-sample rays keep 48 of 64 invocations busy.
 //!
 //! Measured on lavapipe (`examples/bench_mlp.rs`; 2 shared CPU cores): the MLP kernels run at
 //! about 1% of core's one-thread SGEMM MLP; lavapipe is a correctness target, not a speed one.
 
 pub mod adam;
+pub mod composite;
 pub mod device;
 pub mod hashgrid;
 pub mod layout;

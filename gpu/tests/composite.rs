@@ -1,0 +1,195 @@
+//! The compositing kernels against `msth_core::render` (`weights`, `composite`,
+//! `weights_backward`) on whatever adapter exists: rays of 0, 1, 5, 48, 64, 65, 128 and 300
+//! samples (chunk boundaries of the scans), ordinary densities, and a ray of extremes (zero,
+//! tiny, 1e8, infinite, NaN and negative densities: the CPU's `tau_of` rules), with and without
+//! an extra per-sample weight gradient.
+//!
+//! Tolerances (the GPU sums optical depth, colours and the backward's suffix in a tree order,
+//! the CPU front to back; the tests' optical depths stay below ~20):
+//! - weights and T_N: |gpu - cpu| <= 1e-5 value + 1e-7; colour: 1e-5 absolute;
+//! - d sigma: |gpu - cpu| <= 2e-5 delta (1 + sum_i |d_w_i| w_i + |d_T| T_N) + 1e-7;
+//! - d rgb: |gpu - cpu| <= 1e-5 |dC| w + 1e-8.
+//!
+//! Without an adapter they are reported as ignored, with the reason, unless `MSTH_REQUIRE_GPU=1`
+//! (then they fail): this binary runs on `msth-testkit`'s harness (`harness = false`), and
+//! [`main`] lists every test.
+
+use msth_core::render::{composite, weights, weights_backward};
+use msth_core::rng::Rng;
+use msth_gpu::composite::{CompositeBuffers, CompositeKernels, GpuRays};
+use msth_gpu::device::ComputeDevice;
+use msth_gpu::{AdapterPolicy, GpuError};
+use msth_testkit::{Need, Tests};
+
+/// The device (the tests that call this run only where one exists: see [`main`]).
+fn device() -> ComputeDevice {
+    ComputeDevice::open(AdapterPolicy::any()).expect("the adapter the gpu need found")
+}
+
+fn main() -> std::process::ExitCode {
+    // "No adapter" is a missing need; any other error opening one fails the test.
+    let gpu = Need::new("gpu", || match ComputeDevice::open(AdapterPolicy::any()) {
+        Ok(_) => Ok(()),
+        Err(e @ GpuError::NoAdapter(_)) => Err(e.to_string()),
+        Err(e) => panic!("{e}"),
+    });
+    Tests::new(file!())
+        .needs(
+            &[&gpu],
+            "composite_forward_and_backward_match_the_cpu",
+            composite_forward_and_backward_match_the_cpu,
+        )
+        .needs(
+            &[&gpu],
+            "composite_bad_input_is_an_error",
+            composite_bad_input_is_an_error,
+        )
+        .run()
+}
+
+const BG: [f32; 3] = [1.0, 0.5, 0.25];
+
+fn composite_forward_and_backward_match_the_cpu() {
+    let dev = device();
+    let k = CompositeKernels::new(&dev).unwrap();
+    let mut rng = Rng::new(31);
+    let counts = [0usize, 1, 5, 48, 64, 65, 128, 300, 12];
+    let mut offsets = vec![0u32];
+    let (mut sig, mut del) = (Vec::new(), Vec::new());
+    for (r, &c) in counts.iter().enumerate() {
+        for j in 0..c {
+            if r == counts.len() - 1 {
+                // The ray of extremes.
+                let s = [0.0, 1e-8, 2.0, 1e8, f32::INFINITY, f32::NAN, -5.0, 1.0];
+                sig.push(s[j % s.len()]);
+                del.push([1e-3, 0.05, 1.0][j % 3]);
+            } else {
+                sig.push(rng.range_f32(0.0, 4.0));
+                del.push(rng.range_f32(0.002, 0.04));
+            }
+        }
+        offsets.push(sig.len() as u32);
+    }
+    let n = sig.len();
+    let rgb: Vec<f32> = (0..3 * n).map(|_| rng.f32()).collect();
+    let extra: Vec<f32> = (0..n).map(|_| rng.range_f32(-1.0, 1.0)).collect();
+    let d_col: Vec<f32> = (0..4 * (counts.len()))
+        .map(|_| rng.range_f32(-1.0, 1.0))
+        .collect();
+    let rays = GpuRays::new(&dev, &offsets).unwrap();
+    let sd: Vec<f32> = sig.iter().zip(&del).flat_map(|(s, d)| [*s, *d]).collect();
+    let sd_b = dev.buffer_f32("sd", &sd).unwrap();
+    let rgb_b = dev.buffer_f32("rgb", &rgb).unwrap();
+    let w_b = dev.zeros_f32("w", n).unwrap();
+    let ray_b = dev.zeros_f32("rays", 4 * counts.len()).unwrap();
+    let bufs = CompositeBuffers {
+        sigma_delta: &sd_b,
+        rgb: &rgb_b,
+        weights: &w_b,
+        ray_out: &ray_b,
+    };
+    k.forward(&dev, &rays, &bufs, BG).unwrap();
+    let w_gpu = dev.read_f32(&w_b, n).unwrap();
+    let ray_gpu = dev.read_f32(&ray_b, 4 * counts.len()).unwrap();
+    let dc_b = dev.buffer_f32("dC", &d_col).unwrap();
+    let ex_b = dev.buffer_f32("extra", &extra).unwrap();
+    let ds_b = dev.zeros_f32("d sample", 4 * n).unwrap();
+    let (mut worst_f, mut worst_b) = (0f32, 0f32);
+    for with_extra in [false, true] {
+        k.backward(
+            &dev,
+            &rays,
+            &bufs,
+            BG,
+            &dc_b,
+            with_extra.then_some(&ex_b),
+            &ds_b,
+        )
+        .unwrap();
+        let ds_gpu = dev.read_f32(&ds_b, 4 * n).unwrap();
+        for r in 0..counts.len() {
+            let (a, b) = (offsets[r] as usize, offsets[r + 1] as usize);
+            let m = b - a;
+            let mut w = vec![0f32; m];
+            let t = weights(&sig[a..b], &del[a..b], &mut w);
+            let c = composite(&w, &rgb[3 * a..3 * b], t, BG);
+            let check = |what: &str, g: f32, cpu: f32, tol: f32, worst: &mut f32| {
+                let err = (g - cpu).abs();
+                assert!(
+                    err <= tol,
+                    "ray {r} ({m} samples): {what}: gpu {g} cpu {cpu}"
+                );
+                *worst = worst.max(err / tol);
+            };
+            for i in 0..m {
+                check(
+                    &format!("w[{i}]"),
+                    w_gpu[a + i],
+                    w[i],
+                    1e-5 * w[i] + 1e-7,
+                    &mut worst_f,
+                );
+            }
+            check("T_N", ray_gpu[4 * r + 3], t, 1e-5 * t + 1e-7, &mut worst_f);
+            for ch in 0..3 {
+                check("C", ray_gpu[4 * r + ch], c[ch], 1e-5, &mut worst_f);
+            }
+            // Backward: d_w = extra + dC . rgb, d_T = dC . bg.
+            let dc = &d_col[4 * r..4 * r + 3];
+            let d_w: Vec<f32> = (0..m)
+                .map(|i| {
+                    let e = if with_extra { extra[a + i] } else { 0.0 };
+                    e + (0..3).map(|ch| dc[ch] * rgb[3 * (a + i) + ch]).sum::<f32>()
+                })
+                .collect();
+            let d_t: f32 = (0..3).map(|ch| dc[ch] * BG[ch]).sum();
+            let mut d_sigma = vec![0f32; m];
+            weights_backward(&sig[a..b], &del[a..b], &w, t, &d_w, d_t, &mut d_sigma);
+            let scale: f32 =
+                1.0 + d_w.iter().zip(&w).map(|(x, y)| (x * y).abs()).sum::<f32>() + (d_t * t).abs();
+            for i in 0..m {
+                let d = &ds_gpu[4 * (a + i)..4 * (a + i + 1)];
+                let delta = del[a + i];
+                check(
+                    &format!("d sigma[{i}] (extra {with_extra})"),
+                    d[0],
+                    d_sigma[i],
+                    2e-5 * delta * scale + 1e-7,
+                    &mut worst_b,
+                );
+                for ch in 0..3 {
+                    check(
+                        &format!("d rgb[{i}]"),
+                        d[1 + ch],
+                        dc[ch] * w[i],
+                        1e-5 * dc[ch].abs() * w[i] + 1e-8,
+                        &mut worst_b,
+                    );
+                }
+            }
+        }
+    }
+    println!(
+        "composite: {} rays, {n} samples: forward worst error / tolerance {worst_f:.3}, backward {worst_b:.3}",
+        counts.len()
+    );
+}
+
+fn composite_bad_input_is_an_error() {
+    let dev = device();
+    let k = CompositeKernels::new(&dev).unwrap();
+    for offsets in [&[][..], &[1, 2][..], &[0, 5, 3][..]] {
+        let e = GpuRays::new(&dev, offsets).err().unwrap();
+        assert!(matches!(e, GpuError::Input(_)), "{e}");
+    }
+    let rays = GpuRays::new(&dev, &[0, 10]).unwrap();
+    let small = dev.zeros_f32("small", 4).unwrap();
+    let bufs = CompositeBuffers {
+        sigma_delta: &small,
+        rgb: &small,
+        weights: &small,
+        ray_out: &small,
+    };
+    let e = k.forward(&dev, &rays, &bufs, BG).unwrap_err();
+    assert!(matches!(e, GpuError::Input(_)), "{e}");
+}
