@@ -13,17 +13,16 @@
 
 mod common;
 
-use msth_core::config::{Background, ModelConfig, Preset};
 use msth_core::field::ModelLayout;
 use msth_core::mlp::{MlpActivations, MlpLayout};
 use msth_core::rng::Rng;
 use msth_core::sh::SH_COEFFS;
-use msth_core::SceneBounds;
 use msth_gpu::hashgrid::AtomicMode;
 use msth_gpu::mlp::{mlp_counts, GpuMlp, MlpKernels, OutputActivation, TILE};
+use msth_gpu::presets::{reference_model, REFERENCE_PRESETS};
 use msth_gpu::GpuError;
 
-use common::{best_of, open_device};
+use common::{best_of, open_device, rates};
 
 fn main() -> Result<(), GpuError> {
     let args: Vec<String> = std::env::args().collect();
@@ -41,13 +40,8 @@ fn main() -> Result<(), GpuError> {
         "mlp", "pass", "cpu samples/s", "gpu samples/s", "gpu/cpu", "flops", "B/smp", "atomics"
     );
     let mut rng = Rng::new(1);
-    for (name, preset) in [("demo", Preset::Fast), ("paper", Preset::Paper)] {
-        let cfg = ModelConfig::preset(
-            preset,
-            SceneBounds::dnerf_default(),
-            Background::Color { rgb: [1.0; 3] },
-            300,
-        );
+    for (name, preset) in REFERENCE_PRESETS {
+        let cfg = reference_model(preset);
         let model = ModelLayout::new(&cfg);
         for (mname, l, act, from) in [
             (
@@ -153,10 +147,8 @@ fn bench_one(
     err?;
     let row = |pass: &str, cpu: f64, gpu: f64, flops: u64, bytes: u64, atomics: f64| {
         println!(
-            "{label:<26} {pass:<9} {:>14.0} {:>14.0} {:>8.2}  {flops:>7} {bytes:>6} {atomics:>8.1}",
-            n as f64 / cpu,
-            n as f64 / gpu,
-            cpu / gpu
+            "{label:<26} {pass:<9} {}  {flops:>7} {bytes:>6} {atomics:>8.1}",
+            rates(n, cpu, gpu)
         );
     };
     row(

@@ -65,6 +65,24 @@ fn color(i: u32) -> vec3<f32> {
     return vec3<f32>(rgb[3u * i], rgb[3u * i + 1u], rgb[3u * i + 2u]);
 }
 
-fn ray_index(wid: vec3<u32>, groups: vec3<u32>) -> u32 {
-    return wid.x + wid.y * groups.x;
+// The builtins both entry points take.
+struct Invocation {
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+}
+
+// The workgroup's ray (a dispatch tiled into 2D).
+fn ray_index(inv: Invocation) -> u32 {
+    return inv.wid.x + inv.wid.y * inv.groups.x;
+}
+
+// Ray r's samples `[start, end)`; empty for workgroups past the last ray, which run through
+// doing nothing (no early exit: every barrier stays in uniform control flow).
+fn ray_span(r: u32) -> vec2<u32> {
+    if r >= u.run.x {
+        return vec2<u32>(0u);
+    }
+    let start = offsets[r];
+    return vec2<u32>(start, max(offsets[r + 1u], start));
 }

@@ -11,17 +11,13 @@
 @group(0) @binding(8) var<storage, read_write> d_sample: array<vec4<f32>>;
 
 @compute @workgroup_size(64)
-fn composite_backward(
-    @builtin(workgroup_id) wid: vec3<u32>,
-    @builtin(num_workgroups) groups: vec3<u32>,
-    @builtin(local_invocation_index) lid: u32,
-) {
-    let r = ray_index(wid, groups);
-    if r >= u.run.x {
-        return;
-    }
-    let start = offsets[r];
-    let end = max(offsets[r + 1u], start);
+fn composite_backward(inv: Invocation) {
+    let lid = inv.lid;
+    // Workgroups past the last ray read the last ray's values and write nothing.
+    let r = min(ray_index(inv), max(u.run.x, 1u) - 1u);
+    let span = ray_span(ray_index(inv));
+    let start = span.x;
+    let end = span.y;
     let chunks = (end - start + CH - 1u) / CH;
     let dc = d_ray[r].xyz;
     let t_final = ray_out[r].w;

@@ -5,17 +5,11 @@
 @group(0) @binding(5) var<storage, read_write> ray_out: array<vec4<f32>>;
 
 @compute @workgroup_size(64)
-fn composite_forward(
-    @builtin(workgroup_id) wid: vec3<u32>,
-    @builtin(num_workgroups) groups: vec3<u32>,
-    @builtin(local_invocation_index) lid: u32,
-) {
-    let r = ray_index(wid, groups);
-    if r >= u.run.x {
-        return;
-    }
-    let start = offsets[r];
-    let end = max(offsets[r + 1u], start);
+fn composite_forward(inv: Invocation) {
+    let lid = inv.lid;
+    let r = ray_index(inv);
+    let start = ray_span(r).x;
+    let end = ray_span(r).y;
     var carry = 0.0;
     var c = vec3<f32>(0.0);
     for (var k = 0u; k < (end - start + CH - 1u) / CH; k++) {
@@ -44,7 +38,7 @@ fn composite_forward(
         }
     }
     workgroupBarrier();
-    if lid == 0u {
+    if lid == 0u && r < u.run.x {
         let t_final = exp(-carry);
         ray_out[r] = vec4<f32>(sh3[0].xyz + t_final * u.bg.xyz, t_final);
     }

@@ -46,9 +46,18 @@ fn aoff(k: u32) -> u32 {
     return mlp.aoff[k / 4u][k % 4u];
 }
 
-// The workgroup's index in a dispatch tiled into 2D.
-fn group_index(wid: vec3<u32>, groups: vec3<u32>) -> u32 {
-    return wid.x + wid.y * groups.x;
+// The builtins both entry points take.
+struct Invocation {
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+}
+
+// The first sample of the invocation's workgroup (a dispatch tiled into 2D). Workgroups past
+// the last sample run through with no live invocation (no early exit: every barrier stays in
+// uniform control flow).
+fn tile_start(inv: Invocation) -> u32 {
+    return (inv.wid.x + inv.wid.y * inv.groups.x) * GROUP;
 }
 
 // 1 / (1 + e^-x), as `msth_core::activation::sigmoid` (no overflow for large |x|).

@@ -33,16 +33,9 @@ fn layer_input4(k: u32, s: u32, i4: u32) -> vec4<f32> {
 }
 
 @compute @workgroup_size(256)
-fn mlp_backward(
-    @builtin(workgroup_id) wid: vec3<u32>,
-    @builtin(num_workgroups) groups: vec3<u32>,
-    @builtin(local_invocation_index) lid: u32,
-) {
-    let g = group_index(wid, groups);
-    if g * GROUP >= mlp.run.x {
-        return;
-    }
-    let s = g * GROUP + lid;
+fn mlp_backward(inv: Invocation) {
+    let lid = inv.lid;
+    let s = tile_start(inv) + lid;
     let live = s < mlp.run.x;
     let layers = mlp.run.y;
     // d loss / d raw output: through the output activation, as the CPU field does.

@@ -6,16 +6,9 @@
 @group(0) @binding(4) var<storage, read_write> acts: array<f32>;
 
 @compute @workgroup_size(256)
-fn mlp_forward(
-    @builtin(workgroup_id) wid: vec3<u32>,
-    @builtin(num_workgroups) groups: vec3<u32>,
-    @builtin(local_invocation_index) lid: u32,
-) {
-    let g = group_index(wid, groups);
-    if g * GROUP >= mlp.run.x {
-        return;
-    }
-    let s = g * GROUP + lid;
+fn mlp_forward(inv: Invocation) {
+    let lid = inv.lid;
+    let s = tile_start(inv) + lid;
     let live = s < mlp.run.x;
     let store = (mlp.run.w & FLAG_ACTS) != 0u;
     let layers = mlp.run.y;

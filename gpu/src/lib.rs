@@ -140,7 +140,7 @@
 //! ([`composite`]): one workgroup of 64 per ray, one invocation per sample, the sums along the
 //! ray (optical depth front to back, the backward's `sum_{i>k} d_w_i w_i` back to front) as
 //! 6-step scans in workgroup memory per chunk of 64 samples with a carry; per sample 12 bytes
-//! read and 4 written forward (sigma, delta, rgb; w), 28 read and 16 written backward, no
+//! read and 4 written forward (sigma, delta, rgb; w), about 40 read and 20 written backward, no
 //! atomics; 48-sample rays keep 48 of 64 invocations busy.
 //!
 //! Measured on lavapipe (`examples/bench_mlp.rs`; 2 shared CPU cores): the MLP kernels run at
@@ -154,6 +154,7 @@ pub mod layout;
 pub mod mask;
 pub mod mlp;
 pub mod passes;
+pub mod presets;
 pub mod render;
 pub mod sh;
 

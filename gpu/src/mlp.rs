@@ -453,9 +453,8 @@ pub fn mlp_counts(layout: &MlpLayout) -> MlpCounts {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use msth_core::config::{Background, ModelConfig, Preset};
+    use crate::presets::{reference_model, REFERENCE_PRESETS};
     use msth_core::field::ModelLayout;
-    use msth_core::SceneBounds;
 
     #[test]
     fn uniform_size_matches_the_wgsl_struct() {
@@ -468,13 +467,8 @@ mod tests {
     #[test]
     fn counts_match_the_crate_header() {
         let mut rows = Vec::new();
-        for preset in [Preset::Fast, Preset::Paper] {
-            let cfg = ModelConfig::preset(
-                preset,
-                SceneBounds::dnerf_default(),
-                Background::Color { rgb: [1.0; 3] },
-                300,
-            );
+        for (_, preset) in REFERENCE_PRESETS {
+            let cfg = reference_model(preset);
             let m = ModelLayout::new(&cfg);
             for l in [
                 &m.field.density.0,

@@ -9,10 +9,22 @@ use msth_core::sh::SH_COEFFS;
 
 use crate::device::ComputeDevice;
 use crate::mlp::need_floats;
-use crate::GpuError;
+use crate::{GpuError, RENDER_WGSL};
 
-/// The kernel `sh_encode`.
+/// The kernel `sh_encode` (after [`sh4_wgsl`]).
 pub const SH_WGSL: &str = include_str!("../shaders/sh.wgsl");
+
+/// `fn sh4` of the render kernels ([`RENDER_WGSL`], the one WGSL copy of the SH constants)
+/// with the private array it writes.
+pub fn sh4_wgsl() -> Result<String, GpuError> {
+    let missing = || GpuError::Shader("render.wgsl has no `fn sh4(` ending in `\n}\n`".into());
+    let start = RENDER_WGSL.find("fn sh4(").ok_or_else(missing)?;
+    let len = RENDER_WGSL[start..].find("\n}\n").ok_or_else(missing)? + 3;
+    Ok(format!(
+        "var<private> sh: array<f32, 16>;\n{}",
+        &RENDER_WGSL[start..start + len]
+    ))
+}
 
 /// The kernel's `Sh` uniform: `(directions, row stride, first column, 0)`.
 #[repr(C)]
@@ -31,7 +43,8 @@ impl ShKernel {
     pub fn new(dev: &ComputeDevice) -> Result<Self, GpuError> {
         // Binding 1 directions (3 floats each), 2 output rows.
         let layout = dev.bind_layout("sh", &[true, false]);
-        let pipeline = dev.pipeline("sh", SH_WGSL, "sh_encode", &layout)?;
+        let source = format!("{}\n{SH_WGSL}", sh4_wgsl()?);
+        let pipeline = dev.pipeline("sh", &source, "sh_encode", &layout)?;
         Ok(ShKernel { layout, pipeline })
     }
 

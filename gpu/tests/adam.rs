@@ -16,25 +16,18 @@
 //! (then they fail): this binary runs on `msth-testkit`'s harness (`harness = false`), and
 //! [`main`] lists every test.
 
+mod common;
+
 use msth_core::rng::Rng;
 use msth_gpu::adam::{AdamHyper, AdamKernel, GpuAdam, MaskSlice, MAX_GRADIENT};
-use msth_gpu::device::ComputeDevice;
-use msth_gpu::{AdapterPolicy, GpuError};
-use msth_testkit::{Need, Tests};
+use msth_gpu::GpuError;
+use msth_testkit::Tests;
+
+use common::{device, gpu_need};
 use msth_trainer::adam::{Adam, AdamConfig, MaskLossSlice};
 
-/// The device (the tests that call this run only where one exists: see [`main`]).
-fn device() -> ComputeDevice {
-    ComputeDevice::open(AdapterPolicy::any()).expect("the adapter the gpu need found")
-}
-
 fn main() -> std::process::ExitCode {
-    // "No adapter" is a missing need; any other error opening one fails the test.
-    let gpu = Need::new("gpu", || match ComputeDevice::open(AdapterPolicy::any()) {
-        Ok(_) => Ok(()),
-        Err(e @ GpuError::NoAdapter(_)) => Err(e.to_string()),
-        Err(e) => panic!("{e}"),
-    });
+    let gpu = gpu_need();
     Tests::new(file!())
         .needs(
             &[&gpu],

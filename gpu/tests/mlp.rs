@@ -20,32 +20,25 @@
 //! (then they fail): this binary runs on `msth-testkit`'s harness (`harness = false`), and
 //! [`main`] lists every test.
 
+mod common;
+
 use msth_core::activation::{sigmoid, sigmoid_grad_from_output, trunc_exp, trunc_exp_grad};
-use msth_core::config::{Background, ModelConfig, Preset};
+use msth_core::config::Preset;
 use msth_core::field::ModelLayout;
 use msth_core::mlp::{MlpActivations, MlpLayout};
 use msth_core::rng::Rng;
 use msth_core::sh::{sh4, SH_COEFFS};
-use msth_core::SceneBounds;
-use msth_gpu::device::ComputeDevice;
 use msth_gpu::hashgrid::AtomicMode;
 use msth_gpu::mlp::{GpuMlp, MlpKernels, OutputActivation};
+use msth_gpu::presets::{reference_model, REFERENCE_PRESETS};
 use msth_gpu::sh::ShKernel;
-use msth_gpu::{AdapterPolicy, GpuError};
-use msth_testkit::{Need, Tests};
+use msth_gpu::GpuError;
+use msth_testkit::Tests;
 
-/// The device (the tests that call this run only where one exists: see [`main`]).
-fn device() -> ComputeDevice {
-    ComputeDevice::open(AdapterPolicy::any()).expect("the adapter the gpu need found")
-}
+use common::{device, gpu_need, modes};
 
 fn main() -> std::process::ExitCode {
-    // "No adapter" is a missing need; any other error opening one fails the test.
-    let gpu = Need::new("gpu", || match ComputeDevice::open(AdapterPolicy::any()) {
-        Ok(_) => Ok(()),
-        Err(e @ GpuError::NoAdapter(_)) => Err(e.to_string()),
-        Err(e) => panic!("{e}"),
-    });
+    let gpu = gpu_need();
     Tests::new(file!())
         .needs(
             &[&gpu],
@@ -71,19 +64,6 @@ fn main() -> std::process::ExitCode {
         .run()
 }
 
-fn modes(dev: &ComputeDevice) -> Vec<AtomicMode> {
-    let mut m = vec![AtomicMode::CompareExchange];
-    if dev.has_float_atomics() {
-        m.push(AtomicMode::NativeF32);
-    } else {
-        eprintln!(
-            "SKIPPED native f32 atomics path: {} lacks SHADER_FLOAT32_ATOMIC (the compare-exchange path is tested)",
-            dev.adapter_name()
-        );
-    }
-    m
-}
-
 /// One MLP of a preset model: its name, layout, activation and the first input column whose
 /// gradient the field needs.
 struct Case {
@@ -95,13 +75,8 @@ struct Case {
 
 fn cases() -> Vec<Case> {
     let mut out = Vec::new();
-    for preset in [Preset::Fast, Preset::Paper] {
-        let cfg = ModelConfig::preset(
-            preset,
-            SceneBounds::dnerf_default(),
-            Background::Color { rgb: [1.0; 3] },
-            300,
-        );
+    for (_, preset) in REFERENCE_PRESETS {
+        let cfg = reference_model(preset);
         let m = ModelLayout::new(&cfg);
         out.push(Case {
             name: format!("{preset:?} density"),

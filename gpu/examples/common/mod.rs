@@ -29,3 +29,14 @@ pub fn best_of(repeats: usize, mut f: impl FnMut()) -> f64 {
         })
         .fold(f64::INFINITY, f64::min)
 }
+
+/// The middle of a table row: CPU and GPU samples per second over `n` samples and the GPU / CPU
+/// ratio, from the two timings in seconds.
+pub fn rates(n: usize, cpu_s: f64, gpu_s: f64) -> String {
+    format!(
+        "{:>14.0} {:>14.0} {:>8.2}",
+        n as f64 / cpu_s,
+        n as f64 / gpu_s,
+        cpu_s / gpu_s
+    )
+}
