@@ -53,11 +53,16 @@ struct Invocation {
     @builtin(local_invocation_index) lid: u32,
 }
 
-// The first sample of the invocation's workgroup (a dispatch tiled into 2D). Workgroups past
-// the last sample run through with no live invocation (no early exit: every barrier stays in
-// uniform control flow).
+// The first sample of the invocation's workgroup (a dispatch tiled into 2D).
 fn tile_start(inv: Invocation) -> u32 {
     return (inv.wid.x + inv.wid.y * inv.groups.x) * GROUP;
+}
+
+// The layers the workgroup runs through: none for workgroups past the last sample (the 2D
+// tiling's spares), which so skip all work with no early exit, every barrier staying in
+// uniform control flow.
+fn tile_layers(inv: Invocation) -> u32 {
+    return select(0u, mlp.run.y, tile_start(inv) < mlp.run.x);
 }
 
 // 1 / (1 + e^-x), as `msth_core::activation::sigmoid` (no overflow for large |x|).

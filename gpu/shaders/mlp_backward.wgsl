@@ -37,7 +37,7 @@ fn mlp_backward(inv: Invocation) {
     let lid = inv.lid;
     let s = tile_start(inv) + lid;
     let live = s < mlp.run.x;
-    let layers = mlp.run.y;
+    let layers = tile_layers(inv);
     // d loss / d raw output: through the output activation, as the CPU field does.
     var dy: array<vec4<f32>, W4>;
     if live {

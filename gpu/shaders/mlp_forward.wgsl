@@ -11,7 +11,7 @@ fn mlp_forward(inv: Invocation) {
     let s = tile_start(inv) + lid;
     let live = s < mlp.run.x;
     let store = (mlp.run.w & FLAG_ACTS) != 0u;
-    let layers = mlp.run.y;
+    let layers = tile_layers(inv);
     let d0 = dim(0u);
     // The current layer's input, 4 units per vec4 (zero past the width).
     var x: array<vec4<f32>, W4>;

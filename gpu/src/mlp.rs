@@ -229,13 +229,14 @@ impl MlpKernels {
         self.mode
     }
 
-    /// Invocations for `n` samples: whole workgroups of [`TILE`] (the device dispatches in
-    /// 64-wide units; the kernels index workgroups).
+    /// What to ask [`ComputeDevice::run`] for `n` samples: it dispatches one workgroup per 64
+    /// "invocations", and each of these kernels' workgroups ([`TILE`] invocations) takes a tile
+    /// of [`TILE`] samples, so 64 per tile.
     fn invocations(n: usize) -> Result<u64, GpuError> {
         if n > u32::MAX as usize - TILE {
             return Err(GpuError::Input(format!("{n} samples exceed 2^32")));
         }
-        Ok(n.div_ceil(TILE) as u64 * TILE as u64)
+        Ok(n.div_ceil(TILE) as u64 * 64)
     }
 
     /// The MLP over `n` samples: `input` `[n, dims[0]]` (sample-major), `params` the buffer
