@@ -40,9 +40,11 @@
 //!
 //! # Training kernels: per-sample passes
 //! No invocation loops over a ray. The encoding runs one invocation per (sample, level) pair
-//! (at most `2^D * F <= 128` loop iterations each), the mask one per sample (8 corners), so the
-//! work spreads over `samples * levels` invocations and lavapipe's per-invocation loop budget
-//! never binds. Kernels read and write device buffers and return; the host chains passes.
+//! (at most `2^D * F <= 128` loop iterations each), the mask one per sample (8 corners), the
+//! MLPs one per sample (a layer's width of multiply-adds per output block), compositing one per
+//! sample with the ray's sums as workgroup scans, Adam one per parameter, so the work spreads
+//! over many invocations and lavapipe's per-invocation loop budget never binds. Kernels read
+//! and write device buffers and return; the host chains passes.
 //!
 //! # Buffer layout, and why
 //! - **Tables: core's layout unchanged.** A grid's table is its slice of the one flat

@@ -99,7 +99,13 @@ impl GpuMlp {
                 "an MLP of {layers} layers (1 to {MAX_LAYERS})"
             )));
         }
-        if let Some(&w) = layout.dims.iter().find(|&&w| w == 0 || w > MAX_WIDTH) {
+        if layout.dims.contains(&0) {
+            return Err(GpuError::Input(format!(
+                "an MLP with a layer of width 0 (dims {:?})",
+                layout.dims
+            )));
+        }
+        if let Some(&w) = layout.dims.iter().find(|&&w| w > MAX_WIDTH) {
             return Err(GpuError::Limit {
                 what: format!("an MLP layer of width {w} (dims {:?})", layout.dims),
                 amount: w as u64,
