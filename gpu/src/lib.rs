@@ -15,7 +15,8 @@
 //!   tiled through workgroup memory;
 //! - [`sh`]: the view-direction encoding (spherical harmonics, forward);
 //! - [`adam`]: Adam over the flat parameter buffer (the trainer's update, mask loss fused);
-//! - [`composite`]: volume rendering of ray batches, forward and backward (scans per ray).
+//! - [`composite`]: volume rendering of ray batches, forward and backward (scans per ray);
+//! - [`glue`]: the encoding blend and column copies that chain a field's kernels.
 //!
 //! # The web page's copy of `render.wgsl`
 //! `shaders/render.wgsl` here is the one source. The browser page fetches
@@ -151,6 +152,7 @@
 pub mod adam;
 pub mod composite;
 pub mod device;
+pub mod glue;
 pub mod hashgrid;
 pub mod layout;
 pub mod mask;
