@@ -15,7 +15,7 @@ fn composite_backward(inv: Invocation) {
     let lid = inv.lid;
     // Workgroups past the last ray read the last ray's values and write nothing.
     let r = min(ray_index(inv), max(u.run.x, 1u) - 1u);
-    let span = ray_span(ray_index(inv));
+    let span = ray_span(ray_index(inv), u.run.x);
     let start = span.x;
     let end = span.y;
     let chunks = (end - start + CH - 1u) / CH;

@@ -8,8 +8,8 @@
 fn composite_forward(inv: Invocation) {
     let lid = inv.lid;
     let r = ray_index(inv);
-    let start = ray_span(r).x;
-    let end = ray_span(r).y;
+    let start = ray_span(r, u.run.x).x;
+    let end = ray_span(r, u.run.x).y;
     var carry = 0.0;
     var c = vec3<f32>(0.0);
     for (var k = 0u; k < (end - start + CH - 1u) / CH; k++) {

@@ -14,7 +14,9 @@ use crate::device::ComputeDevice;
 use crate::mlp::need_floats;
 use crate::GpuError;
 
-/// The common part of both kernels (uniform, bindings 1-3, scans).
+/// Per-ray scans (binding 1: the rays' offsets), before every per-ray kernel.
+pub const RAY_SCAN_WGSL: &str = include_str!("../shaders/ray_scan.wgsl");
+/// The common part of both compositing kernels (uniform, bindings 2-3, `tau_of`).
 pub const COMPOSITE_WGSL: &str = include_str!("../shaders/composite.wgsl");
 /// The forward entry point `composite_forward` (after [`COMPOSITE_WGSL`]).
 pub const COMPOSITE_FORWARD_WGSL: &str = include_str!("../shaders/composite_forward.wgsl");
@@ -62,6 +64,11 @@ impl GpuRays {
     pub fn samples(&self) -> usize {
         self.samples
     }
+
+    /// The offsets buffer (binding 1 of every per-ray kernel).
+    pub fn offsets(&self) -> &wgpu::Buffer {
+        &self.offsets
+    }
 }
 
 /// The compiled compositing kernels of one device.
@@ -94,13 +101,13 @@ impl CompositeKernels {
         );
         let forward = dev.pipeline(
             "composite forward",
-            &format!("{COMPOSITE_WGSL}\n{COMPOSITE_FORWARD_WGSL}"),
+            &format!("{RAY_SCAN_WGSL}\n{COMPOSITE_WGSL}\n{COMPOSITE_FORWARD_WGSL}"),
             "composite_forward",
             &forward_layout,
         )?;
         let backward = dev.pipeline(
             "composite backward",
-            &format!("{COMPOSITE_WGSL}\n{COMPOSITE_BACKWARD_WGSL}"),
+            &format!("{RAY_SCAN_WGSL}\n{COMPOSITE_WGSL}\n{COMPOSITE_BACKWARD_WGSL}"),
             "composite_backward",
             &backward_layout,
         )?;

@@ -16,7 +16,8 @@
 //! - [`sh`]: the view-direction encoding (spherical harmonics, forward);
 //! - [`adam`]: Adam over the flat parameter buffer (the trainer's update, mask loss fused);
 //! - [`composite`]: volume rendering of ray batches, forward and backward (scans per ray);
-//! - [`glue`]: the encoding blend and column copies that chain a field's kernels.
+//! - [`glue`]: the encoding blend and column copies that chain a field's kernels;
+//! - [`losses`]: per-ray losses (the distortion loss, value and gradient).
 //!
 //! # The web page's copy of `render.wgsl`
 //! `shaders/render.wgsl` here is the one source. The browser page fetches
@@ -144,7 +145,9 @@
 //! ray (optical depth front to back, the backward's `sum_{i>k} d_w_i w_i` back to front) as
 //! 6-step scans in workgroup memory per chunk of 64 samples with a carry; per sample 12 bytes
 //! read and 4 written forward (sigma, delta, rgb; w), about 40 read and 20 written backward, no
-//! atomics; 48-sample rays keep 48 of 64 invocations busy.
+//! atomics; 48-sample rays keep 48 of 64 invocations busy. The distortion loss ([`losses`]):
+//! the same per-ray scans (sums of `w` and `w m` before, after and in total), 24 bytes read per
+//! sample twice and `d_w` updated in place (8 bytes), no atomics.
 //!
 //! Measured on lavapipe (`examples/bench_mlp.rs`; 2 shared CPU cores): the MLP kernels run at
 //! about 1% of core's one-thread SGEMM MLP; lavapipe is a correctness target, not a speed one.
@@ -155,6 +158,7 @@ pub mod device;
 pub mod glue;
 pub mod hashgrid;
 pub mod layout;
+pub mod losses;
 pub mod mask;
 pub mod mlp;
 pub mod passes;

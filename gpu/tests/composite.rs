@@ -8,7 +8,10 @@
 //! the CPU front to back; the tests' optical depths stay below ~20):
 //! - weights and T_N: |gpu - cpu| <= 1e-5 value + 1e-7; colour: 1e-5 absolute;
 //! - d sigma: |gpu - cpu| <= 2e-5 delta (1 + sum_i |d_w_i| w_i + |d_T| T_N) + 1e-7;
-//! - d rgb: |gpu - cpu| <= 1e-5 |dC| w + 1e-8.
+//! - d rgb: |gpu - cpu| <= 1e-5 |dC| w + 1e-8;
+//! - the distortion loss (`msth_core::losses::distortion`, same rays): per ray
+//!   |gpu - cpu| <= 1e-5 (sum w)^2 + 1e-8, its gradient (added into a buffer already holding
+//!   values) |gpu - cpu| <= 2e-5 scale (1 + sum w) + 1e-8.
 //!
 //! Without an adapter they are reported as ignored, with the reason, unless `MSTH_REQUIRE_GPU=1`
 //! (then they fail): this binary runs on `msth-testkit`'s harness (`harness = false`), and
@@ -16,9 +19,11 @@
 
 mod common;
 
+use msth_core::losses::distortion;
 use msth_core::render::{composite, weights, weights_backward};
 use msth_core::rng::Rng;
 use msth_gpu::composite::{CompositeBuffers, CompositeKernels, GpuRays};
+use msth_gpu::losses::DistortionKernel;
 use msth_gpu::GpuError;
 use msth_testkit::Tests;
 
@@ -31,6 +36,11 @@ fn main() -> std::process::ExitCode {
             &[&gpu],
             "composite_forward_and_backward_match_the_cpu",
             composite_forward_and_backward_match_the_cpu,
+        )
+        .needs(
+            &[&gpu],
+            "distortion_loss_matches_the_cpu",
+            distortion_loss_matches_the_cpu,
         )
         .needs(
             &[&gpu],
@@ -185,4 +195,63 @@ fn composite_bad_input_is_an_error() {
     };
     let e = k.forward(&dev, &rays, &bufs, BG).unwrap_err();
     assert!(matches!(e, GpuError::Input(_)), "{e}");
+}
+
+fn distortion_loss_matches_the_cpu() {
+    let dev = device();
+    let k = DistortionKernel::new(&dev).unwrap();
+    let mut rng = Rng::new(32);
+    let counts = [0usize, 1, 5, 48, 64, 65, 128, 300];
+    let mut offsets = vec![0u32];
+    let (mut edges, mut intervals, mut w) = (Vec::new(), Vec::new(), Vec::new());
+    for &c in &counts {
+        // Sorted edges over [0, 1] (the normalised ray coordinate), weights summing below 1.
+        let mut e: Vec<f32> = (0..=c).map(|_| rng.f32()).collect();
+        e.sort_by(f32::total_cmp);
+        let ws: Vec<f32> = (0..c).map(|_| rng.f32() * 2.0 / c as f32).collect();
+        for i in 0..c {
+            intervals.extend([e[i], e[i + 1]]);
+        }
+        w.extend_from_slice(&ws);
+        edges.push(e);
+        offsets.push(w.len() as u32);
+    }
+    let n = w.len();
+    let scale = 0.7;
+    let d_w0: Vec<f32> = (0..n).map(|_| rng.range_f32(-1.0, 1.0)).collect();
+    let rays = GpuRays::new(&dev, &offsets).unwrap();
+    let iv_b = dev.buffer_f32("intervals", &intervals).unwrap();
+    let w_b = dev.buffer_f32("w", &w).unwrap();
+    let dw_b = dev.buffer_f32("d_w", &d_w0).unwrap();
+    let loss_b = dev.zeros_f32("loss", counts.len()).unwrap();
+    k.run(&dev, &rays, &iv_b, &w_b, scale, &dw_b, &loss_b)
+        .unwrap();
+    let loss = dev.read_f32(&loss_b, counts.len()).unwrap();
+    let d_w = dev.read_f32(&dw_b, n).unwrap();
+    let mut worst = 0f32;
+    for r in 0..counts.len() {
+        let (a, b) = (offsets[r] as usize, offsets[r + 1] as usize);
+        let mut d_cpu = d_w0[a..b].to_vec();
+        let l = distortion(&edges[r], &w[a..b], scale, &mut d_cpu);
+        let total: f32 = w[a..b].iter().sum();
+        let tol = 1e-5 * total * total + 1e-8;
+        assert!(
+            (loss[r] - l).abs() <= tol,
+            "ray {r}: loss gpu {} cpu {l}",
+            loss[r]
+        );
+        worst = worst.max((loss[r] - l).abs() / tol);
+        for i in 0..b - a {
+            let tol = 2e-5 * scale * (1.0 + total) + 1e-8;
+            let err = (d_w[a + i] - d_cpu[i]).abs();
+            assert!(
+                err <= tol,
+                "ray {r} sample {i}: d_w gpu {} cpu {}",
+                d_w[a + i],
+                d_cpu[i]
+            );
+            worst = worst.max(err / tol);
+        }
+    }
+    println!("distortion: worst error / tolerance {worst:.3}");
 }
