@@ -17,7 +17,7 @@
 //! - [`adam`]: Adam over the flat parameter buffer (the trainer's update, mask loss fused);
 //! - [`composite`]: volume rendering of ray batches, forward and backward (scans per ray);
 //! - [`glue`]: the encoding blend and column copies that chain a field's kernels;
-//! - [`losses`]: per-ray losses (the distortion loss, value and gradient).
+//! - [`losses`]: per-ray losses (colour MSE and its dC; the distortion loss, value and gradient).
 //!
 //! # The web page's copy of `render.wgsl`
 //! `shaders/render.wgsl` here is the one source. The browser page fetches

@@ -1,8 +1,10 @@
-//! Per-ray losses on the device: the distortion loss of mip-NeRF 360
-//! (`msth_core::losses::distortion`), its value per ray and its gradient with respect to the
-//! weights added into a per-sample buffer (which the compositing backward takes as its extra
-//! `d_w`); one workgroup per ray, one invocation per sample, the sums along the ray as scans
-//! (`shaders/ray_scan.wgsl`). Checked against the CPU in `tests/composite.rs`.
+//! Per-ray losses on the device, checked against the CPU in `tests/composite.rs`:
+//! - the colour loss (the trainer's mean squared error over rgb): squared error per ray and
+//!   `dC` where the compositing backward reads it, one invocation per ray;
+//! - the distortion loss of mip-NeRF 360 (`msth_core::losses::distortion`): its value per ray
+//!   and its gradient with respect to the weights added into a per-sample buffer (which the
+//!   compositing backward takes as its extra `d_w`); one workgroup per ray, one invocation per
+//!   sample, the sums along the ray as scans (`shaders/ray_scan.wgsl`).
 
 use bytemuck::{Pod, Zeroable};
 
@@ -11,14 +13,67 @@ use crate::device::ComputeDevice;
 use crate::mlp::need_floats;
 use crate::GpuError;
 
+/// The kernel `color_loss`.
+pub const COLOR_LOSS_WGSL: &str = include_str!("../shaders/color_loss.wgsl");
 /// The kernel `distortion` (after [`RAY_SCAN_WGSL`]).
 pub const DISTORTION_WGSL: &str = include_str!("../shaders/distortion.wgsl");
 
+/// The uniform of both loss kernels: `(rays, 0, 0, 0)` and `(scale, 0, 0, 0)`.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Pod, Zeroable)]
-struct DistortionU {
+struct LossU {
     run: [u32; 4],
     scale: [f32; 4],
+}
+
+impl LossU {
+    fn new(rays: &GpuRays, scale: f32) -> Self {
+        LossU {
+            run: [rays.rays() as u32, 0, 0, 0],
+            scale: [scale, 0.0, 0.0, 0.0],
+        }
+    }
+}
+
+/// The compiled colour-loss kernel of one device.
+pub struct ColorLossKernel {
+    layout: wgpu::BindGroupLayout,
+    pipeline: wgpu::ComputePipeline,
+}
+
+impl ColorLossKernel {
+    pub fn new(dev: &ComputeDevice) -> Result<Self, GpuError> {
+        // 1 (C, T_N) per ray, 2 targets (rgb per ray), 3 (dC, 0) per ray, 4 squared error.
+        let layout = dev.bind_layout("colour loss", &[true, true, false, false]);
+        let pipeline = dev.pipeline("colour loss", COLOR_LOSS_WGSL, "color_loss", &layout)?;
+        Ok(ColorLossKernel { layout, pipeline })
+    }
+
+    /// Per ray: the mean squared error of `ray_out`'s colour against `targets` (3 floats per
+    /// ray) into `sq_err`, and `dC = scale * d(mse)/dC` into `d_color` (4 floats per ray).
+    pub fn run(
+        &self,
+        dev: &ComputeDevice,
+        rays: &GpuRays,
+        ray_out: &wgpu::Buffer,
+        targets: &wgpu::Buffer,
+        scale: f32,
+        (d_color, sq_err): (&wgpu::Buffer, &wgpu::Buffer),
+    ) -> Result<(), GpuError> {
+        let n = rays.rays();
+        need_floats("per-ray output", ray_out, 4 * n as u64, n)?;
+        need_floats("targets", targets, 3 * n as u64, n)?;
+        need_floats("d_color", d_color, 4 * n as u64, n)?;
+        need_floats("squared error", sq_err, n as u64, n)?;
+        let u = LossU::new(rays, scale);
+        dev.run(
+            &self.pipeline,
+            &self.layout,
+            bytemuck::bytes_of(&u),
+            &[ray_out, targets, d_color, sq_err],
+            n as u64,
+        )
+    }
 }
 
 /// The compiled distortion-loss kernel of one device.
@@ -58,10 +113,7 @@ impl DistortionKernel {
         need_floats("weights", w, n as u64, n)?;
         need_floats("d_w", d_w, n as u64, n)?;
         need_floats("loss", loss, rays.rays() as u64, n)?;
-        let u = DistortionU {
-            run: [rays.rays() as u32, 0, 0, 0],
-            scale: [scale, 0.0, 0.0, 0.0],
-        };
+        let u = LossU::new(rays, scale);
         dev.run(
             &self.pipeline,
             &self.layout,

@@ -9,6 +9,8 @@
 //! - weights and T_N: |gpu - cpu| <= 1e-5 value + 1e-7; colour: 1e-5 absolute;
 //! - d sigma: |gpu - cpu| <= 2e-5 delta (1 + sum_i |d_w_i| w_i + |d_T| T_N) + 1e-7;
 //! - d rgb: |gpu - cpu| <= 1e-5 |dC| w + 1e-8;
+//! - the colour loss (mean squared error over rgb, dC = 2 diff / 3 x scale): equal to the
+//!   trainer's arithmetic on the GPU's colours within 4 ulp (bit-equal on lavapipe);
 //! - the distortion loss (`msth_core::losses::distortion`, same rays): per ray
 //!   |gpu - cpu| <= 1e-5 (sum w)^2 + 1e-8, its gradient (added into a buffer already holding
 //!   values) |gpu - cpu| <= 2e-5 scale (1 + sum w) + 1e-8.
@@ -23,7 +25,7 @@ use msth_core::losses::distortion;
 use msth_core::render::{composite, weights, weights_backward};
 use msth_core::rng::Rng;
 use msth_gpu::composite::{CompositeBuffers, CompositeKernels, GpuRays};
-use msth_gpu::losses::DistortionKernel;
+use msth_gpu::losses::{ColorLossKernel, DistortionKernel};
 use msth_gpu::GpuError;
 use msth_testkit::Tests;
 
@@ -94,6 +96,42 @@ fn composite_forward_and_backward_match_the_cpu() {
     k.forward(&dev, &rays, &bufs, BG).unwrap();
     let w_gpu = dev.read_f32(&w_b, n).unwrap();
     let ray_gpu = dev.read_f32(&ray_b, 4 * counts.len()).unwrap();
+    // The colour loss from the GPU's colours: the trainer's arithmetic, exactly.
+    let targets: Vec<f32> = (0..3 * counts.len()).map(|_| rng.f32()).collect();
+    let loss_k = ColorLossKernel::new(&dev).unwrap();
+    let (t_b, dcl_b, se_b) = (
+        dev.buffer_f32("targets", &targets).unwrap(),
+        dev.zeros_f32("dC from the loss", 4 * counts.len()).unwrap(),
+        dev.zeros_f32("squared error", counts.len()).unwrap(),
+    );
+    loss_k
+        .run(&dev, &rays, &ray_b, &t_b, 0.5, (&dcl_b, &se_b))
+        .unwrap();
+    let (dcl, se) = (
+        dev.read_f32(&dcl_b, 4 * counts.len()).unwrap(),
+        dev.read_f32(&se_b, counts.len()).unwrap(),
+    );
+    // Within 4 ulp (Vulkan allows the division 2.5).
+    let close = |g: f32, c: f32| (g - c).abs() <= 4.0 * f32::EPSILON * c.abs();
+    for r in 0..counts.len() {
+        let mut sum = 0f32;
+        for ch in 0..3 {
+            let diff = ray_gpu[4 * r + ch] - targets[3 * r + ch];
+            sum += diff * diff;
+            let want = 2.0 * diff / 3.0 * 0.5;
+            assert!(
+                close(dcl[4 * r + ch], want),
+                "ray {r}: dC {} vs {want}",
+                dcl[4 * r + ch]
+            );
+        }
+        assert!(
+            close(se[r], sum / 3.0),
+            "ray {r}: squared error {} vs {}",
+            se[r],
+            sum / 3.0
+        );
+    }
     let dc_b = dev.buffer_f32("dC", &d_col).unwrap();
     let ex_b = dev.buffer_f32("extra", &extra).unwrap();
     let ds_b = dev.zeros_f32("d sample", 4 * n).unwrap();
