@@ -17,7 +17,8 @@
 //! - [`adam`]: Adam over the flat parameter buffer (the trainer's update, mask loss fused);
 //! - [`composite`]: volume rendering of ray batches, forward and backward (scans per ray);
 //! - [`glue`]: the encoding blend and column copies that chain a field's kernels;
-//! - [`losses`]: per-ray losses (colour MSE and its dC; the distortion loss, value and gradient).
+//! - [`losses`]: per-ray losses (colour MSE and its dC; distortion and interlevel losses, values
+//!   and gradients).
 //!
 //! # The web page's copy of `render.wgsl`
 //! `shaders/render.wgsl` here is the one source. The browser page fetches
@@ -147,7 +148,11 @@
 //! read and 4 written forward (sigma, delta, rgb; w), about 40 read and 20 written backward, no
 //! atomics; 48-sample rays keep 48 of 64 invocations busy. The distortion loss ([`losses`]):
 //! the same per-ray scans (sums of `w` and `w m` before, after and in total), 24 bytes read per
-//! sample twice and `d_w` updated in place (8 bytes), no atomics.
+//! sample twice and `d_w` updated in place (8 bytes), no atomics. The interlevel loss: per
+//! main interval a bisection into the ray's proposal intervals (log2 128 = 7 steps) and a walk
+//! over the few it overlaps; per proposal interval a bisection into the main intervals and a
+//! gather of their gradients (each recomputing its bound): a few hundred bytes of cached reads
+//! per ray sample, no atomics.
 //!
 //! Measured on lavapipe (`examples/bench_mlp.rs`; 2 shared CPU cores): the MLP kernels run at
 //! about 1% of core's one-thread SGEMM MLP; lavapipe is a correctness target, not a speed one.

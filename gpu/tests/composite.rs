@@ -13,7 +13,10 @@
 //!   trainer's arithmetic on the GPU's colours within 4 ulp (bit-equal on lavapipe);
 //! - the distortion loss (`msth_core::losses::distortion`, same rays): per ray
 //!   |gpu - cpu| <= 1e-5 (sum w)^2 + 1e-8, its gradient (added into a buffer already holding
-//!   values) |gpu - cpu| <= 2e-5 scale (1 + sum w) + 1e-8.
+//!   values) |gpu - cpu| <= 2e-5 scale (1 + sum w) + 1e-8;
+//! - the interlevel loss (`msth_core::losses::interlevel`, main and proposal levels of 0 to 130
+//!   samples): per ray |gpu - cpu| <= 1e-4 loss + 1e-6 (the GPU sums each bound directly, the
+//!   CPU as a difference of prefix sums), its gradient |gpu - cpu| <= 1e-4 (scale + |cpu|).
 //!
 //! Without an adapter they are reported as ignored, with the reason, unless `MSTH_REQUIRE_GPU=1`
 //! (then they fail): this binary runs on `msth-testkit`'s harness (`harness = false`), and
@@ -21,11 +24,11 @@
 
 mod common;
 
-use msth_core::losses::distortion;
+use msth_core::losses::{distortion, interlevel};
 use msth_core::render::{composite, weights, weights_backward};
 use msth_core::rng::Rng;
 use msth_gpu::composite::{CompositeBuffers, CompositeKernels, GpuRays};
-use msth_gpu::losses::{ColorLossKernel, DistortionKernel};
+use msth_gpu::losses::{ColorLossKernel, DistortionKernel, InterlevelKernel, LevelSamples};
 use msth_gpu::GpuError;
 use msth_testkit::Tests;
 
@@ -43,6 +46,11 @@ fn main() -> std::process::ExitCode {
             &[&gpu],
             "distortion_loss_matches_the_cpu",
             distortion_loss_matches_the_cpu,
+        )
+        .needs(
+            &[&gpu],
+            "interlevel_loss_matches_the_cpu",
+            interlevel_loss_matches_the_cpu,
         )
         .needs(
             &[&gpu],
@@ -244,13 +252,9 @@ fn distortion_loss_matches_the_cpu() {
     let (mut edges, mut intervals, mut w) = (Vec::new(), Vec::new(), Vec::new());
     for &c in &counts {
         // Sorted edges over [0, 1] (the normalised ray coordinate), weights summing below 1.
-        let mut e: Vec<f32> = (0..=c).map(|_| rng.f32()).collect();
-        e.sort_by(f32::total_cmp);
-        let ws: Vec<f32> = (0..c).map(|_| rng.f32() * 2.0 / c as f32).collect();
-        for i in 0..c {
-            intervals.extend([e[i], e[i + 1]]);
-        }
-        w.extend_from_slice(&ws);
+        let (e, pairs) = sorted_intervals(c, &mut rng);
+        intervals.extend(pairs);
+        w.extend((0..c).map(|_| rng.f32() * 2.0 / c as f32));
         edges.push(e);
         offsets.push(w.len() as u32);
     }
@@ -292,4 +296,101 @@ fn distortion_loss_matches_the_cpu() {
         }
     }
     println!("distortion: worst error / tolerance {worst:.3}");
+}
+
+/// Sorted edges over [0, 1] as `(s_i, s_{i+1})` pairs, and the edges themselves.
+fn sorted_intervals(count: usize, rng: &mut Rng) -> (Vec<f32>, Vec<f32>) {
+    let mut e: Vec<f32> = (0..=count).map(|_| rng.f32()).collect();
+    e.sort_by(f32::total_cmp);
+    let pairs = (0..count).flat_map(|i| [e[i], e[i + 1]]).collect();
+    (e, pairs)
+}
+
+fn interlevel_loss_matches_the_cpu() {
+    let dev = device();
+    let k = InterlevelKernel::new(&dev).unwrap();
+    let mut rng = Rng::new(33);
+    let shapes = [
+        (0usize, 0usize),
+        (1, 3),
+        (5, 16),
+        (48, 128),
+        (64, 64),
+        (65, 130),
+        (20, 0),
+    ];
+    let (mut off_m, mut off_p) = (vec![0u32], vec![0u32]);
+    let (mut iv_m, mut iv_p, mut w_m, mut w_p) = (vec![], vec![], vec![], vec![]);
+    let mut edges = Vec::new();
+    for &(nf, np) in &shapes {
+        let (em, pm) = sorted_intervals(nf, &mut rng);
+        let (ep, pp) = sorted_intervals(np, &mut rng);
+        iv_m.extend(pm);
+        iv_p.extend(pp);
+        w_m.extend((0..nf).map(|_| rng.f32() * 2.0 / nf as f32));
+        w_p.extend((0..np).map(|_| rng.f32() * 1.5 / np as f32));
+        edges.push((em, ep));
+        off_m.push(w_m.len() as u32);
+        off_p.push(w_p.len() as u32);
+    }
+    let scale = 0.3;
+    let d0: Vec<f32> = (0..w_p.len()).map(|_| rng.range_f32(-1.0, 1.0)).collect();
+    let (rays_m, rays_p) = (
+        GpuRays::new(&dev, &off_m).unwrap(),
+        GpuRays::new(&dev, &off_p).unwrap(),
+    );
+    let b = |what: &str, v: &[f32]| dev.buffer_f32(what, v).unwrap();
+    let (ivm_b, wm_b, ivp_b, wp_b) = (
+        b("iv m", &iv_m),
+        b("w m", &w_m),
+        b("iv p", &iv_p),
+        b("w p", &w_p),
+    );
+    let (d_b, loss_b) = (
+        b("d w_prop", &d0),
+        dev.zeros_f32("loss", shapes.len()).unwrap(),
+    );
+    let main = LevelSamples {
+        rays: &rays_m,
+        intervals: &ivm_b,
+        weights: &wm_b,
+    };
+    let prop = LevelSamples {
+        rays: &rays_p,
+        intervals: &ivp_b,
+        weights: &wp_b,
+    };
+    k.run(&dev, &main, &prop, scale, (&d_b, &loss_b)).unwrap();
+    let loss = dev.read_f32(&loss_b, shapes.len()).unwrap();
+    let d = dev.read_f32(&d_b, w_p.len()).unwrap();
+    let (mut worst, mut active) = (0f32, 0);
+    for (r, (em, ep)) in edges.iter().enumerate() {
+        let (a, b) = (off_m[r] as usize, off_m[r + 1] as usize);
+        let (pa, pb) = (off_p[r] as usize, off_p[r + 1] as usize);
+        let mut d_cpu = d0[pa..pb].to_vec();
+        let l = interlevel(em, &w_m[a..b], ep, &w_p[pa..pb], scale, &mut d_cpu);
+        let tol = 1e-4 * l + 1e-6;
+        assert!(
+            (loss[r] - l).abs() <= tol,
+            "ray {r}: loss gpu {} cpu {l}",
+            loss[r]
+        );
+        worst = worst.max((loss[r] - l).abs() / tol);
+        for j in 0..pb - pa {
+            let tol = 1e-4 * (scale + d_cpu[j].abs());
+            let err = (d[pa + j] - d_cpu[j]).abs();
+            assert!(
+                err <= tol,
+                "ray {r} proposal {j}: gpu {} cpu {}",
+                d[pa + j],
+                d_cpu[j]
+            );
+            worst = worst.max(err / tol);
+            active += (d_cpu[j] != d0[pa + j]) as usize;
+        }
+    }
+    assert!(active > 50, "only {active} proposal weights got a gradient");
+    println!(
+        "interlevel: {active} proposal weights with a gradient, worst error / tolerance {worst:.3}"
+    );
 }
