@@ -144,7 +144,7 @@
 //! (gradient, parameter, both moments), one invocation each, no atomics. Compositing
 //! ([`composite`]): one workgroup of 64 per ray, one invocation per sample, the sums along the
 //! ray (optical depth front to back, the backward's `sum_{i>k} d_w_i w_i` back to front) as
-//! 6-step scans in workgroup memory per chunk of 64 samples with a carry; per sample 12 bytes
+//! 6-step scans in workgroup memory per chunk of 64 samples with a carry; per sample 20 bytes
 //! read and 4 written forward (sigma, delta, rgb; w), about 40 read and 20 written backward, no
 //! atomics; 48-sample rays keep 48 of 64 invocations busy. The distortion loss ([`losses`]):
 //! the same per-ray scans (sums of `w` and `w m` before, after and in total), 24 bytes read per
@@ -156,6 +156,11 @@
 //!
 //! Measured on lavapipe (`examples/bench_mlp.rs`; 2 shared CPU cores): the MLP kernels run at
 //! about 1% of core's one-thread SGEMM MLP; lavapipe is a correctness target, not a speed one.
+//!
+//! Not yet a step: each kernel call above submits its own dispatch and waits for it
+//! ([`device::ComputeDevice::run`]), which is right for tests and wrong for training (the
+//! per-op synchronisation trap of `../shared/docs/gpu-notes.md`); the step has to record all
+//! its passes into one command encoder and read back only the losses.
 
 pub mod adam;
 pub mod composite;
