@@ -158,7 +158,7 @@
 //! about 1% of core's one-thread SGEMM MLP; lavapipe is a correctness target, not a speed one.
 //!
 //! Not yet a step: each kernel call above submits its own dispatch and waits for it
-//! ([`device::ComputeDevice::run`]), which is right for tests and wrong for training (the
+//! (`ComputeDevice::run`), which is right for tests and wrong for training (the
 //! per-op synchronisation trap of `../shared/docs/gpu-notes.md`); the step has to record all
 //! its passes into one command encoder and read back only the losses.
 
