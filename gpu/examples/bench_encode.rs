@@ -10,39 +10,21 @@
 //! included); the backward uses native f32 atomics where the adapter has them, else the
 //! compare-exchange loop, and the compare-exchange loop always as a second row.
 
-use std::time::Instant;
+mod common;
 
-use msth_core::config::{Background, ModelConfig, Preset};
 use msth_core::grid::GridLayout;
 use msth_core::rng::Rng;
-use msth_core::SceneBounds;
-use msth_gpu::device::ComputeDevice;
 use msth_gpu::hashgrid::{encoding_counts, AtomicMode, GpuGrid, HashGridKernels};
-use msth_gpu::{AdapterPolicy, GpuError};
+use msth_gpu::presets::{reference_model, REFERENCE_PRESETS};
+use msth_gpu::GpuError;
 
-fn best_of(repeats: usize, mut f: impl FnMut()) -> f64 {
-    f(); // warm-up
-    (0..repeats)
-        .map(|_| {
-            let t = Instant::now();
-            f();
-            t.elapsed().as_secs_f64()
-        })
-        .fold(f64::INFINITY, f64::min)
-}
+use common::{best_of, open_device, rates};
 
 fn main() -> Result<(), GpuError> {
     let args: Vec<String> = std::env::args().collect();
     let n: usize = args.get(1).and_then(|s| s.parse().ok()).unwrap_or(32768);
     let repeats: usize = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(3);
-    let dev = match ComputeDevice::open(AdapterPolicy::any()) {
-        Ok(d) => d,
-        Err(e @ GpuError::NoAdapter(_)) => {
-            eprintln!("bench_encode: no GPU adapter, nothing to measure: {e}");
-            std::process::exit(2);
-        }
-        Err(e) => return Err(e),
-    };
+    let dev = open_device("bench_encode")?;
     println!(
         "adapter: {}; f32 atomics: {}; {n} samples, best of {repeats}",
         dev.adapter_name(),
@@ -61,13 +43,8 @@ fn main() -> Result<(), GpuError> {
         "grid", "pass", "cpu samples/s", "gpu samples/s", "gpu/cpu", "B/smp", "atomics"
     );
     let mut rng = Rng::new(1);
-    for (name, preset) in [("demo", Preset::Fast), ("paper", Preset::Paper)] {
-        let cfg = ModelConfig::preset(
-            preset,
-            SceneBounds::dnerf_default(),
-            Background::Color { rgb: [1.0; 3] },
-            300,
-        );
+    for (name, preset) in REFERENCE_PRESETS {
+        let cfg = reference_model(preset);
         for (gname, gcfg) in [
             ("3D", &cfg.field.encoding.grid3),
             ("4D", &cfg.field.encoding.grid4),
@@ -106,10 +83,8 @@ fn main() -> Result<(), GpuError> {
             let label = format!("{name} {gname} ({} MiB)", counts.table_bytes >> 20);
             let row = |pass: &str, cpu: f64, gpu: f64, bytes: u64, atomics: u64| {
                 println!(
-                    "{label:<22} {pass:<9} {:>14.0} {:>14.0} {:>8.2}  {bytes:>7} {atomics:>8}",
-                    n as f64 / cpu,
-                    n as f64 / gpu,
-                    cpu / gpu
+                    "{label:<22} {pass:<9} {}  {bytes:>7} {atomics:>8}",
+                    rates(n, cpu, gpu)
                 );
             };
             row(

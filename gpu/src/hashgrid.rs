@@ -343,21 +343,15 @@ pub fn encoding_counts(layout: &GridLayout) -> EncodingCounts {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use msth_core::config::{Background, ModelConfig, Preset};
-    use msth_core::SceneBounds;
+    use crate::presets::{reference_model, REFERENCE_PRESETS};
 
     /// The table of the crate header: per-sample counts of the main field's grids of a
     /// 300-frame scene at the demo (fast preset) and paper configurations.
     #[test]
     fn counts_match_the_crate_header() {
         let mut rows = Vec::new();
-        for preset in [Preset::Fast, Preset::Paper] {
-            let cfg = ModelConfig::preset(
-                preset,
-                SceneBounds::dnerf_default(),
-                Background::Color { rgb: [1.0; 3] },
-                300,
-            );
+        for (_, preset) in REFERENCE_PRESETS {
+            let cfg = reference_model(preset);
             for g in [&cfg.field.encoding.grid3, &cfg.field.encoding.grid4] {
                 let c = encoding_counts(&GridLayout::new(g));
                 let dense = GridLayout::new(g).levels.iter().filter(|l| l.dense).count();

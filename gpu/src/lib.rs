@@ -10,7 +10,15 @@
 //! - [`device`]: a compute device for the training kernels (f32 atomics when the adapter has
 //!   them), buffers, dispatches, read-back;
 //! - [`hashgrid`]: the multi-resolution hash-grid encoding (3D and 4D), forward and backward;
-//! - [`mask`]: the dense mask grid (trilinear + sigmoid), forward and backward.
+//! - [`mask`]: the dense mask grid (trilinear + sigmoid), forward and backward;
+//! - [`mlp`]: the density and colour MLPs (and their output activations), forward and backward,
+//!   tiled through workgroup memory;
+//! - [`sh`]: the view-direction encoding (spherical harmonics, forward);
+//! - [`adam`]: Adam over the flat parameter buffer (the trainer's update, mask loss fused);
+//! - [`composite`]: volume rendering of ray batches, forward and backward (scans per ray);
+//! - [`glue`]: the encoding blend and column copies that chain a field's kernels;
+//! - [`losses`]: per-ray losses (colour MSE and its dC; distortion and interlevel losses, values
+//!   and gradients).
 //!
 //! # The web page's copy of `render.wgsl`
 //! `shaders/render.wgsl` here is the one source. The browser page fetches
@@ -35,9 +43,11 @@
 //!
 //! # Training kernels: per-sample passes
 //! No invocation loops over a ray. The encoding runs one invocation per (sample, level) pair
-//! (at most `2^D * F <= 128` loop iterations each), the mask one per sample (8 corners), so the
-//! work spreads over `samples * levels` invocations and lavapipe's per-invocation loop budget
-//! never binds. Kernels read and write device buffers and return; the host chains passes.
+//! (at most `2^D * F <= 128` loop iterations each), the mask one per sample (8 corners), the
+//! MLPs one per sample (a layer's width of multiply-adds per output block), compositing one per
+//! sample with the ray's sums as workgroup scans, Adam one per parameter, so the work spreads
+//! over many invocations and lavapipe's per-invocation loop budget never binds. Kernels read
+//! and write device buffers and return; the host chains passes.
 //!
 //! # Buffer layout, and why
 //! - **Tables: core's layout unchanged.** A grid's table is its slice of the one flat
@@ -85,13 +95,86 @@
 //! dense coarse levels, where every sample of a batch adds into the same few rows, reduce in
 //! workgroup memory before issuing atomics (`../shared/docs/gpu-notes.md`: the Metal port
 //! of tiny-cuda-nn spent 30 of 33 ms in this scatter).
+//!
+//! # MLPs: tiling, layout, and why
+//! - **Weights: core's layout unchanged.** Each MLP is its named slice of the flat buffer
+//!   (`field.density_mlp`, `field.color_mlp`, `proposal.density_mlp`), layer `k` row-major
+//!   `[dims[k], dims[k + 1]]` at `MlpLayout::offsets[k]`, bias-free; the kernels take the flat
+//!   buffer and the slice's offset, and the gradient buffer has the same layout (as the grids).
+//! - **One workgroup = 256 samples, one invocation per sample.** Per layer, the workgroup
+//!   stages the whole weight matrix in workgroup memory (rows padded to whole `vec4`s: at most
+//!   64 x 64 floats = 16 KiB, WebGPU's guaranteed `max_compute_workgroup_storage_size`, hence
+//!   [`mlp::MAX_WIDTH`] = 64, which every preset meets), then each invocation multiplies its
+//!   own activation row (in registers, `vec4` blocks) by it; every invocation reads the same
+//!   weight at the same time (a broadcast, no bank conflicts), one `vec4` load per 4 FMAs.
+//! - **Activations sample-major**: input `[n, dims[0]]` (the encoding's `[n, levels, F]` as it
+//!   is), outputs `[n, dims[L]]` after the output activation (`trunc_exp` on the density,
+//!   `sigmoid` on rgb, as `msth_core::field`), and for training `acts` `[n, sum dims[1..]]`:
+//!   the hidden outputs after the ReLU and the raw last layer, which the backward reads instead
+//!   of recomputing the forward.
+//! - **Backward, per layer from the last**: (B) the weight gradient of the workgroup's 256
+//!   samples, staged 32 samples at a time (inputs and output gradients, 16 KiB); invocation
+//!   `t` owns one 4x4 block of the layer's weights (a 64 x 64 layer has exactly 256 blocks)
+//!   and sums it in registers over all 256 samples, then adds each entry once with
+//!   `add_grad` (native f32 `atomicAdd` or the compare-exchange loop, [`hashgrid::AtomicMode`]):
+//!   **one atomic per weight per 256 samples**, zero sums skipped. (A) the input gradient
+//!   `dx = W dy` from the staged weights, masked by the ReLU; for the first layer it is
+//!   written out (`d_input`, the columns asked for: all for the density MLPs, which feed the
+//!   hash-grid backward; the geometry features only for the colour MLP).
+//! - Why not per-sample atomics, or a partial-sum buffer reduced in a second pass: the first
+//!   would issue 6,272 atomics per sample into the same 6,272 addresses (the colour MLP), the
+//!   second moves `weights x 4` bytes per workgroup through memory twice; a 256-sample tile
+//!   brings the atomics to 24.5 per sample, below the hash grid's hundreds.
+//!
+//! Per sample ([`mlp::mlp_counts`], pinned by a unit test; weights are read once per workgroup):
+//!
+//! | config | MLP | weights | fwd flops | bwd flops | fwd bytes | bwd bytes | bwd atomics |
+//! |---|---|---|---|---|---|---|---|
+//! | demo | density `[24, 64, 16]` | 2560 | 5120 | 10240 | 520 | 872 | 10 |
+//! | demo, paper | colour `[31, 64, 64, 3]` | 6272 | 12544 | 25088 | 758 | 1394 | 24.5 |
+//! | paper | density `[32, 64, 16]` | 3072 | 6144 | 12288 | 560 | 944 | 12 |
+//! | demo, paper | proposal `[10, 16, 1]` | 176 | 352 | 704 | 115 | 219 | 0.7 |
+//!
+//! A main-field sample (density + colour) at the paper config: 18.7 kflop forward, 37.4 kflop
+//! backward, about 3.7 KB of activation traffic and 36.5 atomics. At the issue's aim of 1e8
+//! samples/s that is 5.6e12 flop/s (a tenth of an H100's f32 peak: the MLPs are compute-bound
+//! only at about 10x the aim), 3.7e11 bytes/s, and 3.7e9 atomics/s into 9,344 addresses, a
+//! twentieth of the hash grid's 7.7e10. The SH encoding ([`sh`]): 12 bytes read, 64 written,
+//! about 40 flops per direction. Adam ([`adam`]): 16 bytes read and 12 written per parameter
+//! (gradient, parameter, both moments), one invocation each, no atomics. Compositing
+//! ([`composite`]): one workgroup of 64 per ray, one invocation per sample, the sums along the
+//! ray (optical depth front to back, the backward's `sum_{i>k} d_w_i w_i` back to front) as
+//! 6-step scans in workgroup memory per chunk of 64 samples with a carry; per sample 20 bytes
+//! read and 4 written forward (sigma, delta, rgb; w), about 40 read and 20 written backward, no
+//! atomics; 48-sample rays keep 48 of 64 invocations busy. The distortion loss ([`losses`]):
+//! the same per-ray scans (sums of `w` and `w m` before, after and in total), 24 bytes read per
+//! sample twice and `d_w` updated in place (8 bytes), no atomics. The interlevel loss: per
+//! main interval a bisection into the ray's proposal intervals (log2 128 = 7 steps) and a walk
+//! over the few it overlaps; per proposal interval a bisection into the main intervals and a
+//! gather of their gradients (each recomputing its bound): a few hundred bytes of cached reads
+//! per ray sample, no atomics.
+//!
+//! Measured on lavapipe (`examples/bench_mlp.rs`; 2 shared CPU cores): the MLP kernels run at
+//! about 1% of core's one-thread SGEMM MLP; lavapipe is a correctness target, not a speed one.
+//!
+//! Not yet a step: each kernel call above submits its own dispatch and waits for it
+//! (`ComputeDevice::run`), which is right for tests and wrong for training (the
+//! per-op synchronisation trap of `../shared/docs/gpu-notes.md`); the step has to record all
+//! its passes into one command encoder and read back only the losses.
 
+pub mod adam;
+pub mod composite;
 pub mod device;
+pub mod glue;
 pub mod hashgrid;
 pub mod layout;
+pub mod losses;
 pub mod mask;
+pub mod mlp;
 pub mod passes;
+pub mod presets;
 pub mod render;
+pub mod sh;
 
 pub use layout::{GpuLayoutError, GpuModel, ViewU, FLAG_COMPACT, FLAG_LIST};
 pub use passes::{FrameScratch, GpuSampleCache, Pixels};

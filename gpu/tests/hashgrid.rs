@@ -18,25 +18,18 @@
 //! (then they fail): this binary runs on `msth-testkit`'s harness (`harness = false`), and
 //! [`main`] lists every test.
 
+mod common;
+
 use msth_core::grid::{GridConfig, GridLayout};
 use msth_core::rng::Rng;
-use msth_gpu::device::ComputeDevice;
 use msth_gpu::hashgrid::{AtomicMode, HashGridKernels};
-use msth_gpu::{AdapterPolicy, GpuError};
-use msth_testkit::{Need, Tests};
+use msth_gpu::GpuError;
+use msth_testkit::Tests;
 
-/// The device (the tests that call this run only where one exists: see [`main`]).
-fn device() -> ComputeDevice {
-    ComputeDevice::open(AdapterPolicy::any()).expect("the adapter the gpu need found")
-}
+use common::{device, gpu_need, modes};
 
 fn main() -> std::process::ExitCode {
-    // "No adapter" is a missing need; any other error opening one fails the test.
-    let gpu = Need::new("gpu", || match ComputeDevice::open(AdapterPolicy::any()) {
-        Ok(_) => Ok(()),
-        Err(e @ GpuError::NoAdapter(_)) => Err(e.to_string()),
-        Err(e) => panic!("{e}"),
-    });
+    let gpu = gpu_need();
     Tests::new(file!())
         .needs(
             &[&gpu],
@@ -64,21 +57,6 @@ fn main() -> std::process::ExitCode {
             bad_input_is_an_error_not_a_panic,
         )
         .run()
-}
-
-/// The atomic paths this device can run: the compare-exchange loop always (forced even where
-/// native atomics exist), native f32 atomics where the adapter has them.
-fn modes(dev: &ComputeDevice) -> Vec<AtomicMode> {
-    let mut m = vec![AtomicMode::CompareExchange];
-    if dev.has_float_atomics() {
-        m.push(AtomicMode::NativeF32);
-    } else {
-        eprintln!(
-            "SKIPPED native f32 atomics path: {} lacks SHADER_FLOAT32_ATOMIC (the compare-exchange path is tested)",
-            dev.adapter_name()
-        );
-    }
-    m
 }
 
 /// Grids with coarse dense levels, fine hashed ones, and different resolutions per axis.

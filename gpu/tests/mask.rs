@@ -11,27 +11,20 @@
 //! (then they fail): this binary runs on `msth-testkit`'s harness (`harness = false`), and
 //! [`main`] lists every test.
 
+mod common;
+
 use msth_core::activation::sigmoid;
 use msth_core::grid::DenseGrid3;
 use msth_core::rng::Rng;
-use msth_gpu::device::ComputeDevice;
 use msth_gpu::hashgrid::AtomicMode;
 use msth_gpu::mask::MaskKernels;
-use msth_gpu::{AdapterPolicy, GpuError};
-use msth_testkit::{Need, Tests};
+use msth_gpu::GpuError;
+use msth_testkit::Tests;
 
-/// The device (the tests that call this run only where one exists: see [`main`]).
-fn device() -> ComputeDevice {
-    ComputeDevice::open(AdapterPolicy::any()).expect("the adapter the gpu need found")
-}
+use common::{device, gpu_need, modes};
 
 fn main() -> std::process::ExitCode {
-    // "No adapter" is a missing need; any other error opening one fails the test.
-    let gpu = Need::new("gpu", || match ComputeDevice::open(AdapterPolicy::any()) {
-        Ok(_) => Ok(()),
-        Err(e @ GpuError::NoAdapter(_)) => Err(e.to_string()),
-        Err(e) => panic!("{e}"),
-    });
+    let gpu = gpu_need();
     Tests::new(file!())
         .needs(
             &[&gpu],
@@ -49,19 +42,6 @@ fn main() -> std::process::ExitCode {
             mask_bad_input_is_an_error,
         )
         .run()
-}
-
-fn modes(dev: &ComputeDevice) -> Vec<AtomicMode> {
-    let mut m = vec![AtomicMode::CompareExchange];
-    if dev.has_float_atomics() {
-        m.push(AtomicMode::NativeF32);
-    } else {
-        eprintln!(
-            "SKIPPED native f32 atomics path: {} lacks SHADER_FLOAT32_ATOMIC (the compare-exchange path is tested)",
-            dev.adapter_name()
-        );
-    }
-    m
 }
 
 fn points(n: usize, rng: &mut Rng) -> Vec<[f32; 4]> {
