@@ -708,16 +708,9 @@ impl ModelLayout {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::config::{Background, Preset};
-    use crate::scene::SceneBounds;
 
     fn small_config(blend: BlendMode) -> ModelConfig {
-        let mut c = ModelConfig::preset(
-            Preset::Fast,
-            SceneBounds::dnerf_default(),
-            Background::Color { rgb: [1.0; 3] },
-            10,
-        );
+        let mut c = ModelConfig::fast_on_white(10);
         for enc in [&mut c.field.encoding, &mut c.proposal.encoding] {
             enc.blend = blend;
             enc.resize(3, 8, 40.0, 6);

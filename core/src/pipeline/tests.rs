@@ -2,15 +2,10 @@
 //! rendering, the playback partition.
 
 use super::*;
-use crate::config::{BlendMode, Preset};
+use crate::config::BlendMode;
 
 fn tiny_cfg() -> ModelConfig {
-    let mut c = ModelConfig::preset(
-        Preset::Fast,
-        SceneBounds::dnerf_default(),
-        Background::Color { rgb: [1.0; 3] },
-        5,
-    );
+    let mut c = ModelConfig::fast_on_white(5);
     for enc in [&mut c.field.encoding, &mut c.proposal.encoding] {
         enc.blend = BlendMode::Mst;
         enc.resize(2, 6, 8.0, 4);
@@ -18,12 +13,9 @@ fn tiny_cfg() -> ModelConfig {
         enc.grid3.base_resolution = vec![4.0; 3];
         enc.grid4.base_resolution = vec![4.0, 4.0, 4.0, 2.0];
     }
-    c.field.density_hidden = 8;
-    c.field.color_hidden = 8;
+    c.resize_mlps(8, 4);
     c.field.geo_features = 3;
-    c.proposal.hidden = 4;
-    c.sampler.num_proposal_samples = 12;
-    c.sampler.num_samples = 6;
+    c.sampler.set_samples(12, 6);
     c
 }
 
