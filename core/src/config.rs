@@ -24,6 +24,15 @@ pub enum BlendMode {
 }
 
 impl BlendMode {
+    /// Every mode, in the order of the GPU blend codes (0..4).
+    pub const ALL: [BlendMode; 5] = [
+        BlendMode::Mst,
+        BlendMode::Mt,
+        BlendMode::Add,
+        BlendMode::FourD,
+        BlendMode::Static,
+    ];
+
     pub fn uses_h3(self) -> bool {
         !matches!(self, BlendMode::FourD)
     }
