@@ -90,12 +90,7 @@ fn expect_error(what: &str, end: End) -> String {
 
 #[test]
 fn hostile_files_end_in_errors_under_a_memory_cap() {
-    let mut files: Vec<PathBuf> = std::fs::read_dir(bad_dir())
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .filter(|p| p.extension().is_some_and(|x| x == "msth"))
-        .collect();
-    files.sort();
+    let files = msth_testkit::files_with_extension(&bad_dir(), "msth");
     assert!(files.len() >= 40, "only {} files in tests/bad", files.len());
     for p in &files {
         let f = p.to_str().unwrap();
@@ -119,19 +114,13 @@ fn hostile_files_end_in_errors_under_a_memory_cap() {
 /// A tiny valid file, trained for no step: the generator's model with `sampler` samples per ray
 /// and one camera of 32 x 24 pixels.
 fn valid_file(dir: &Path, proposal_samples: usize, samples: usize) -> PathBuf {
-    use msth_core::config::{Background, BlendMode, ModelConfig, Preset};
-    let mut c = ModelConfig::preset(
-        Preset::Fast,
-        msth_core::SceneBounds::dnerf_default(),
-        Background::Color { rgb: [1.0; 3] },
-        4,
-    );
+    use msth_core::config::{BlendMode, ModelConfig};
+    let mut c = ModelConfig::fast_on_white(4);
     for enc in [&mut c.field.encoding, &mut c.proposal.encoding] {
         enc.blend = BlendMode::Mt;
         enc.resize(2, 8, 16.0, 4);
     }
-    c.sampler.num_proposal_samples = proposal_samples;
-    c.sampler.num_samples = samples;
+    c.sampler.set_samples(proposal_samples, samples);
     let layout = msth_core::field::ModelLayout::new(&c);
     let p = layout.init_params(1);
     let cam = msth_core::Camera::look_at(

@@ -15,22 +15,15 @@
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
+mod support;
+use support::KillOnDrop;
+
 /// PSNR floor of a played frame against `msth render` (q5; see the module docs).
 const Q5_FLOOR_DB: f64 = 25.0;
-
-/// Kills the demo when the test fails half-way.
-struct Demo(Child);
-
-impl Drop for Demo {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
 
 fn read_rgb(p: &Path) -> (u32, u32, Vec<u8>) {
     let img = image::open(p)
@@ -114,7 +107,7 @@ fn shortened_demo_serves_plays_and_matches_msth_render() {
         .spawn()
         .expect("starting msth demo");
     let stdout = child.stdout.take().unwrap();
-    let mut demo = Demo(child);
+    let mut demo = KillOnDrop(child); // killed when the test fails half-way
     let (tx, rx) = mpsc::channel();
     std::thread::spawn(move || {
         for line in BufReader::new(stdout).lines() {

@@ -3,9 +3,10 @@
 //! violation), and over HTTP against a real `msth serve` on loopback, where it reads only the
 //! prefix unless `--validate` asks for every section.
 
-use std::io::{BufRead, BufReader};
 use std::path::PathBuf;
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
+
+mod support;
 
 fn repo(path: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
@@ -152,38 +153,6 @@ fn inspect_exits_non_zero_with_the_first_violation() {
     }
 }
 
-struct Server(Child);
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-/// `msth serve DIR` on a free loopback port; returns the server and its base URL.
-fn serve(dir: &std::path::Path) -> (Server, String) {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_msth"))
-        .args(["serve", dir.to_str().unwrap(), "--addr", "127.0.0.1:0"])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("starting msth serve");
-    let stdout = child.stdout.take().unwrap();
-    let server = Server(child);
-    let mut reader = BufReader::new(stdout);
-    let mut first = String::new();
-    reader.read_line(&mut first).unwrap();
-    std::thread::spawn(move || std::io::copy(&mut reader, &mut std::io::sink()));
-    let base = first
-        .split_whitespace()
-        .find(|w| w.starts_with("http://"))
-        .unwrap_or_else(|| panic!("no URL in `{first}`"))
-        .trim_end_matches('/')
-        .to_string();
-    (server, base)
-}
-
 #[test]
 fn inspect_over_http_reads_the_prefix_unless_asked_to_validate() {
     let dir = tempfile::tempdir().unwrap();
@@ -195,7 +164,7 @@ fn inspect_over_http_reads_the_prefix_unless_asked_to_validate() {
         dir.path().join("two_frames.msth"),
     )
     .unwrap();
-    let (_server, base) = serve(dir.path());
+    let (_server, base) = support::serve(dir.path(), &[]);
     let url = format!("{base}/models/good.msth");
     let local = inspect_json(&[repo("tests/fixtures/v1.msth").to_str().unwrap()]);
     let v = inspect_json(&[&url]);

@@ -3,25 +3,16 @@
 //! resident memory must stay flat from round to round. Bounded in count (3 rounds) and in time
 //! (every request has timeouts).
 
-use std::io::{BufRead, BufReader};
 use std::path::PathBuf;
-use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use msth_codec::Limits;
 use msth_player::{HttpOptions, HttpSource, ModelStream};
 
+mod support;
+
 const CLIENTS: usize = 200;
 const ROUNDS: usize = 3;
-
-struct Server(Child);
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
 
 fn rss_kib(pid: u32) -> Option<u64> {
     let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
@@ -65,29 +56,11 @@ fn round(url: &str) -> Vec<String> {
 #[test]
 fn two_hundred_concurrent_clients_stream_without_failures_and_flat_memory() {
     let file = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../tests/fixtures/v1.msth");
-    let mut child = Command::new(env!("CARGO_BIN_EXE_msth"))
-        // Every client here comes from 127.0.0.1, where real clients come from many addresses:
-        // raise the per-address cap (default 64, tested in server/tests/slow_clients.rs) above
-        // the client count so that this test measures the load, not the cap.
-        .args(["serve", file.to_str().unwrap(), "--addr", "127.0.0.1:0"])
-        .args(["--max-connections-per-ip", &(2 * CLIENTS).to_string()])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("starting msth serve");
-    let stdout = child.stdout.take().unwrap();
-    let server = Server(child);
-    let mut reader = BufReader::new(stdout);
-    let mut first = String::new();
-    reader.read_line(&mut first).unwrap();
-    // Keep draining the server's stdout so that it never writes into a closed pipe.
-    std::thread::spawn(move || std::io::copy(&mut reader, &mut std::io::sink()));
-    let base = first
-        .split_whitespace()
-        .find(|w| w.starts_with("http://"))
-        .unwrap_or_else(|| panic!("no URL in `{first}`"))
-        .trim_end_matches('/')
-        .to_string();
+    // Every client here comes from 127.0.0.1, where real clients come from many addresses:
+    // raise the per-address cap (default 64, tested in server/tests/slow_clients.rs) above the
+    // client count so that this test measures the load, not the cap.
+    let cap = (2 * CLIENTS).to_string();
+    let (server, base) = support::serve(&file, &["--max-connections-per-ip", &cap]);
     let url = format!("{base}/models/v1.msth");
     let pid = server.0.id();
     let idle = rss_kib(pid);

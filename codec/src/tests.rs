@@ -1,19 +1,13 @@
 //! Unit tests across the codec's modules on a tiny model: round trips, streaming, hostile bytes.
 
-use msth_core::config::{Background, BlendMode, ModelConfig, Preset};
+use msth_core::config::{BlendMode, ModelConfig};
 use msth_core::field::ModelLayout;
-use msth_core::SceneBounds;
 
 use crate::format::{FileIndex, Limits};
 use crate::{decode_all, encode, DecodeError, Decoder, EncodeOptions, QuantMode};
 
 fn tiny(blend: BlendMode, frames: usize) -> ModelConfig {
-    let mut c = ModelConfig::preset(
-        Preset::Fast,
-        SceneBounds::dnerf_default(),
-        Background::Color { rgb: [1.0; 3] },
-        frames,
-    );
+    let mut c = ModelConfig::fast_on_white(frames);
     for enc in [&mut c.field.encoding, &mut c.proposal.encoding] {
         enc.blend = blend;
         enc.resize(4, 14, 64.0, 8);

@@ -9,9 +9,8 @@ use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 use msth_codec::{decode_all, encode, EncodeOptions, QuantMode};
-use msth_core::config::{Background, BlendMode, ModelConfig, Preset};
+use msth_core::config::{BlendMode, ModelConfig};
 use msth_core::field::ModelLayout;
-use msth_core::SceneBounds;
 
 struct Counting;
 
@@ -43,19 +42,12 @@ static ALLOCATOR: Counting = Counting;
 #[test]
 fn encoding_10000_frames_keeps_memory_per_row_not_per_chunk_and_row() {
     let frames = 10_000;
-    let mut c = ModelConfig::preset(
-        Preset::Fast,
-        SceneBounds::dnerf_default(),
-        Background::Color { rgb: [1.0; 3] },
-        frames,
-    );
+    let mut c = ModelConfig::fast_on_white(frames);
     for enc in [&mut c.field.encoding, &mut c.proposal.encoding] {
         enc.blend = BlendMode::Mt;
         enc.resize(4, 12, 64.0, 16);
     }
-    c.field.density_hidden = 8;
-    c.field.color_hidden = 8;
-    c.proposal.hidden = 4;
+    c.resize_mlps(8, 4);
     let layout = ModelLayout::new(&c);
     let mut p = layout.init_params(1);
     // Half the mask dynamic: every chunk reaches most of the 4D table.

@@ -15,23 +15,8 @@
 //! - codebook: every value decodes to the codebook entry nearest to it.
 
 use msth_codec::quant::{affine_params, BlockEncoding, Reader, Writer};
+use msth_testkit::proptest_config;
 use proptest::prelude::*;
-
-/// `cases` cases from a fixed seed (`PROPTEST_CASES` and `PROPTEST_RNG_SEED=n` explore more);
-/// failures print their minimal input and are kept as named tests rather than regression files.
-fn config(cases: u32) -> ProptestConfig {
-    let mut c = ProptestConfig {
-        failure_persistence: None,
-        ..ProptestConfig::default()
-    };
-    if std::env::var_os("PROPTEST_CASES").is_none() {
-        c.cases = cases;
-    }
-    if std::env::var_os("PROPTEST_RNG_SEED").is_none() {
-        c.rng_seed = proptest::test_runner::RngSeed::Fixed(0x5747_2026);
-    }
-    c
-}
 
 fn round_trip(values: &[f32], enc: BlockEncoding) -> (Vec<f32>, Vec<u8>) {
     let mut w = Writer::default();
@@ -95,7 +80,7 @@ fn f16_bound(v: f32) -> f64 {
 }
 
 proptest! {
-    #![proptest_config(config(256))]
+    #![proptest_config(proptest_config(256))]
 
     /// f16 blocks: finite, saturated at ±65504, within the rounding error of the clamped value.
     #[test]
@@ -239,24 +224,16 @@ fn named_extremes_round_trip() {
 
 mod files {
     use msth_codec::{decode_all, encode, EncodeOptions, QuantMode};
-    use msth_core::config::{Background, BlendMode, ModelConfig, Preset};
+    use msth_core::config::{BlendMode, ModelConfig};
     use msth_core::field::ModelLayout;
-    use msth_core::SceneBounds;
 
     fn tiny(frames: usize) -> ModelConfig {
-        let mut c = ModelConfig::preset(
-            Preset::Fast,
-            SceneBounds::dnerf_default(),
-            Background::Color { rgb: [1.0; 3] },
-            frames,
-        );
+        let mut c = ModelConfig::fast_on_white(frames);
         for enc in [&mut c.field.encoding, &mut c.proposal.encoding] {
             enc.blend = BlendMode::Mt;
             enc.resize(3, 12, 32.0, 6);
         }
-        c.field.density_hidden = 8;
-        c.field.color_hidden = 8;
-        c.proposal.hidden = 4;
+        c.resize_mlps(8, 4);
         c
     }
 

@@ -24,6 +24,15 @@ pub enum BlendMode {
 }
 
 impl BlendMode {
+    /// Every mode, in the order of the GPU blend codes (0..4).
+    pub const ALL: [BlendMode; 5] = [
+        BlendMode::Mst,
+        BlendMode::Mt,
+        BlendMode::Add,
+        BlendMode::FourD,
+        BlendMode::Static,
+    ];
+
     pub fn uses_h3(self) -> bool {
         !matches!(self, BlendMode::FourD)
     }
@@ -142,6 +151,14 @@ pub struct SamplerConfig {
     pub far: f32,
     /// Added to every proposal bin before resampling.
     pub histogram_padding: f32,
+}
+
+impl SamplerConfig {
+    /// Sets the samples per ray: `proposal` for the proposal field, `main` for the main field.
+    pub fn set_samples(&mut self, proposal: usize, main: usize) {
+        self.num_proposal_samples = proposal;
+        self.num_samples = main;
+    }
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -391,11 +408,53 @@ impl ModelConfig {
             num_frames: num_frames.max(1),
         }
     }
+
+    /// The fast preset over [`SceneBounds::dnerf_default`] on a white background (D-NeRF's
+    /// synthetic scenes), `num_frames` frames: where the small models of tests, examples and
+    /// benches start before [`EncodingConfig::resize`] and [`ModelConfig::resize_mlps`].
+    pub fn fast_on_white(num_frames: usize) -> Self {
+        let white = Background::Color { rgb: [1.0; 3] };
+        Self::preset(
+            Preset::Fast,
+            SceneBounds::dnerf_default(),
+            white,
+            num_frames,
+        )
+    }
+
+    /// Sets the MLP widths: `hidden` for the main field's density and colour MLPs,
+    /// `proposal_hidden` for the proposal's density MLP (the geometry features and the colour
+    /// layers stay): the MLP half of cutting a model down, next to [`EncodingConfig::resize`].
+    pub fn resize_mlps(&mut self, hidden: usize, proposal_hidden: usize) {
+        self.field.density_hidden = hidden;
+        self.field.color_hidden = hidden;
+        self.proposal.hidden = proposal_hidden;
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn small_model_helpers_set_what_they_name() {
+        let white = Background::Color { rgb: [1.0; 3] };
+        let base = ModelConfig::preset(Preset::Fast, SceneBounds::dnerf_default(), white, 7);
+        let mut c = ModelConfig::fast_on_white(7);
+        assert_eq!(c, base);
+        c.resize_mlps(8, 4);
+        c.sampler.set_samples(12, 6);
+        // These fields and nothing else moved.
+        let mut expected = base.clone();
+        (expected.field.density_hidden, expected.field.color_hidden) = (8, 8);
+        expected.proposal.hidden = 4;
+        (
+            expected.sampler.num_proposal_samples,
+            expected.sampler.num_samples,
+        ) = (12, 6);
+        assert_eq!(c, expected);
+        c.validate().unwrap();
+    }
 
     #[test]
     fn presets_validate() {

@@ -708,16 +708,10 @@ impl ModelLayout {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::config::{Background, Preset};
-    use crate::scene::SceneBounds;
+    use crate::test_support::{central_difference, largest_first};
 
     fn small_config(blend: BlendMode) -> ModelConfig {
-        let mut c = ModelConfig::preset(
-            Preset::Fast,
-            SceneBounds::dnerf_default(),
-            Background::Color { rgb: [1.0; 3] },
-            10,
-        );
+        let mut c = ModelConfig::fast_on_white(10);
         for enc in [&mut c.field.encoding, &mut c.proposal.encoding] {
             enc.blend = blend;
             enc.resize(3, 8, 40.0, 6);
@@ -750,13 +744,7 @@ mod tests {
 
     #[test]
     fn batched_matches_reference_every_blend() {
-        for blend in [
-            BlendMode::Mst,
-            BlendMode::Mt,
-            BlendMode::Add,
-            BlendMode::FourD,
-            BlendMode::Static,
-        ] {
+        for blend in BlendMode::ALL {
             let cfg = small_config(blend);
             cfg.validate().unwrap();
             let layout = ModelLayout::new(&cfg);
@@ -878,13 +866,7 @@ mod tests {
     /// a sample of parameters in every named slice.
     #[test]
     fn field_backward_matches_finite_differences() {
-        for blend in [
-            BlendMode::Mst,
-            BlendMode::Mt,
-            BlendMode::Add,
-            BlendMode::FourD,
-            BlendMode::Static,
-        ] {
+        for blend in BlendMode::ALL {
             let cfg = small_config(blend);
             let layout = ModelLayout::new(&cfg);
             let p = params(&layout, 3);
@@ -920,17 +902,9 @@ mod tests {
                     continue;
                 }
                 // the parameters with the largest gradients, plus a few arbitrary ones
-                let mut idx: Vec<usize> = e.range().collect();
-                idx.sort_by(|&x, &y| grad[y].abs().partial_cmp(&grad[x].abs()).unwrap());
                 let mut checked = 0;
-                for &i in idx.iter().take(12) {
-                    let h = 3e-4f32;
-                    let mut pp = p.clone();
-                    pp[i] += h;
-                    let lp = loss(&pp);
-                    pp[i] -= 2.0 * h;
-                    let lm = loss(&pp);
-                    let fd = (lp - lm) / (2.0 * h as f64);
+                for &i in largest_first(e.range(), |i| grad[i] as f64).iter().take(12) {
+                    let fd = central_difference(loss, &p, i, 3e-4);
                     let tol = 2e-3 + 2e-2 * fd.abs();
                     assert!(
                         (fd - grad[i] as f64).abs() < tol,
@@ -1025,17 +999,10 @@ mod tests {
         };
         for name in ["field.h3", "field.density_mlp", "field.color_mlp"] {
             let e = layout.params.get(name).unwrap();
-            let mut idx: Vec<usize> = e.range().collect();
-            idx.sort_by(|&x, &y| grad[y].abs().partial_cmp(&grad[x].abs()).unwrap());
+            let idx = largest_first(e.range(), |i| grad[i] as f64);
             assert!(grad[idx[0]] != 0.0, "{name}");
             for &i in idx.iter().take(8) {
-                let h = 3e-4f32;
-                let mut q = p.clone();
-                q[i] += h;
-                let lp = loss(&q);
-                q[i] -= 2.0 * h;
-                let lm = loss(&q);
-                let fd = (lp - lm) / (2.0 * h as f64);
+                let fd = central_difference(loss, &p, i, 3e-4);
                 assert!(
                     (fd - grad[i] as f64).abs() < 2e-3 + 2e-2 * fd.abs(),
                     "{name}: fd {fd} vs {}",

@@ -27,6 +27,8 @@ pub mod rng;
 pub mod sampling;
 pub mod scene;
 pub mod sh;
+#[cfg(test)]
+mod test_support;
 pub mod uncertainty;
 
 pub use camera::{Camera, Ray};

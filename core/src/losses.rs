@@ -94,6 +94,15 @@ mod tests {
     use super::*;
     use crate::rng::Rng;
 
+    /// `(f(x + h e_k) - f(x - h e_k)) / 2h`: the central difference of `f` along entry `k`.
+    fn central_difference(f: impl Fn(&[f32]) -> f64, x: &[f32], k: usize, h: f64) -> f64 {
+        let mut plus = x.to_vec();
+        plus[k] += h as f32;
+        let mut minus = x.to_vec();
+        minus[k] -= h as f32;
+        (f(&plus) - f(&minus)) / (2.0 * h)
+    }
+
     fn sorted(n: usize, rng: &mut Rng) -> Vec<f32> {
         let mut v: Vec<f32> = (0..n + 1).map(|_| rng.f32()).collect();
         v[0] = 0.0;
@@ -124,11 +133,7 @@ mod tests {
         let l = distortion(&s, &w, 1.0, &mut d);
         assert!((l as f64 - brute(&w)).abs() < 1e-5);
         for k in 0..n {
-            let mut wp = w.clone();
-            wp[k] += 1e-3;
-            let mut wm = w.clone();
-            wm[k] -= 1e-3;
-            let fd = (brute(&wp) - brute(&wm)) / 2e-3;
+            let fd = central_difference(brute, &w, k, 1e-3);
             assert!((fd - d[k] as f64).abs() < 1e-3, "{k}: {fd} vs {}", d[k]);
         }
     }
@@ -159,11 +164,7 @@ mod tests {
         let l = interlevel(&c, &w, &cp, &wp, 1.0, &mut d);
         assert!((l as f64 - brute(&wp)).abs() < 1e-5);
         for k in 0..np {
-            let mut a = wp.clone();
-            a[k] += 1e-4;
-            let mut b = wp.clone();
-            b[k] -= 1e-4;
-            let fd = (brute(&a) - brute(&b)) / 2e-4;
+            let fd = central_difference(brute, &wp, k, 1e-4);
             assert!((fd - d[k] as f64).abs() < 1e-2, "{k}: {fd} vs {}", d[k]);
         }
     }

@@ -303,6 +303,20 @@ impl MlpLayout {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::test_support::central_difference;
+
+    /// An MLP of `sizes` with initial weights from seed `seed` and `n` inputs uniform in
+    /// `[-1, 1]`; the generator is returned for further draws.
+    fn random_mlp(sizes: &[usize], seed: u64, n: usize) -> (MlpLayout, Vec<f32>, Vec<f32>, Rng) {
+        let mlp = MlpLayout::new(sizes);
+        let mut rng = Rng::new(seed);
+        let mut p = vec![0f32; mlp.num_params];
+        mlp.init(&mut p, &mut rng);
+        let x: Vec<f32> = (0..n * sizes[0])
+            .map(|_| rng.range_f32(-1.0, 1.0))
+            .collect();
+        (mlp, p, x, rng)
+    }
 
     #[test]
     fn gemm_matches_naive_with_transposes() {
@@ -329,12 +343,8 @@ mod tests {
 
     #[test]
     fn batched_forward_matches_reference() {
-        let mlp = MlpLayout::new(&[31, 64, 64, 3]);
-        let mut rng = Rng::new(3);
-        let mut p = vec![0f32; mlp.num_params];
-        mlp.init(&mut p, &mut rng);
         let n = 37;
-        let x: Vec<f32> = (0..n * 31).map(|_| rng.range_f32(-1.0, 1.0)).collect();
+        let (mlp, p, x, _) = random_mlp(&[31, 64, 64, 3], 3, n);
         let mut acts = MlpActivations::default();
         mlp.forward(&p, &x, n, &mut acts);
         let out = mlp.output(&acts);
@@ -348,12 +358,8 @@ mod tests {
 
     #[test]
     fn backward_matches_finite_differences() {
-        let mlp = MlpLayout::new(&[6, 8, 8, 3]);
-        let mut rng = Rng::new(4);
-        let mut p = vec![0f32; mlp.num_params];
-        mlp.init(&mut p, &mut rng);
         let n = 5;
-        let x: Vec<f32> = (0..n * 6).map(|_| rng.range_f32(-1.0, 1.0)).collect();
+        let (mlp, p, x, mut rng) = random_mlp(&[6, 8, 8, 3], 4, n);
         let wts: Vec<f32> = (0..n * 3).map(|_| rng.range_f32(-1.0, 1.0)).collect();
         let loss = |p: &[f32], x: &[f32]| -> f64 {
             let mut s = 0f64;
@@ -372,12 +378,7 @@ mod tests {
         mlp.backward(&p, &x, n, &mut acts, &wts, &mut grad, Some(&mut dx));
         let h = 1e-3f32;
         for i in 0..mlp.num_params {
-            let mut pp = p.clone();
-            pp[i] += h;
-            let lp = loss(&pp, &x);
-            pp[i] -= 2.0 * h;
-            let lm = loss(&pp, &x);
-            let fd = (lp - lm) / (2.0 * h as f64);
+            let fd = central_difference(|pp| loss(pp, &x), &p, i, h);
             assert!(
                 (fd - grad[i] as f64).abs() < 2e-3,
                 "w{i}: {fd} vs {}",
@@ -385,12 +386,7 @@ mod tests {
             );
         }
         for i in 0..n * 6 {
-            let mut xx = x.clone();
-            xx[i] += h;
-            let lp = loss(&p, &xx);
-            xx[i] -= 2.0 * h;
-            let lm = loss(&p, &xx);
-            let fd = (lp - lm) / (2.0 * h as f64);
+            let fd = central_difference(|xx| loss(&p, xx), &x, i, h);
             assert!((fd - dx[i] as f64).abs() < 2e-3, "x{i}: {fd} vs {}", dx[i]);
         }
     }

@@ -456,41 +456,55 @@ mod tests {
         (aux, p, m, u, perm)
     }
 
+    /// [`mine_estimate`] at scale 1 into fresh buffers: the estimate and its gradients in `p`
+    /// (the MINE slice written, the rest 0), in `m` and in `u`.
+    fn estimate(
+        aux: &AuxLayout,
+        p: &[f32],
+        m: &[f32],
+        u: &[f32],
+        perm: &[usize],
+    ) -> (f32, Vec<f32>, Vec<f32>, Vec<f32>) {
+        let (mlp, r) = &aux.mine;
+        let mut grad = vec![0f32; p.len()];
+        let (mut dm, mut du) = (vec![0f32; m.len()], vec![0f32; u.len()]);
+        let i = mine_estimate(
+            mlp,
+            &p[r.clone()],
+            m,
+            u,
+            perm,
+            1.0,
+            &mut grad[r.clone()],
+            &mut dm,
+            &mut du,
+            &mut MineScratch::default(),
+        );
+        (i, grad, dm, du)
+    }
+
     #[test]
     fn mine_matches_reference_and_fd_in_weights_and_inputs() {
         let n = 9;
         let (aux, p, m, u, perm) = mine_setup(n, 2);
         let (mlp, r) = &aux.mine;
-        let mut grad = vec![0f32; p.len()];
-        let (mut dm, mut du) = (vec![0f32; n], vec![0f32; n]);
-        let mut s = MineScratch::default();
-        let i = mine_estimate(
-            mlp,
-            &p[r.clone()],
-            &m,
-            &u,
-            &perm,
-            1.0,
-            &mut grad[r.clone()],
-            &mut dm,
-            &mut du,
-            &mut s,
-        );
+        let (i, grad, dm, du) = estimate(&aux, &p, &m, &u, &perm);
         let reference = mine_reference(mlp, &p[r.clone()], &m, &u, &perm);
         assert!((i as f64 - reference).abs() < 1e-5, "{i} vs {reference}");
         let h = 1e-3;
+        let close = |what: String, d: f64, g: f32| {
+            assert!(
+                (d - g as f64).abs() < 2e-3 + 1e-2 * d.abs(),
+                "{what}: {d} vs {g}"
+            );
+        };
         for k in r.clone() {
             let f = |v: f64| {
                 let mut q = p.clone();
                 q[k] = v as f32;
                 mine_reference(mlp, &q[r.clone()], &m, &u, &perm)
             };
-            let d = fd(f, p[k] as f64, h);
-            assert!(
-                (d - grad[k] as f64).abs() < 2e-3 + 1e-2 * d.abs(),
-                "w{k}: {d} vs {}",
-                grad[k]
-            );
+            close(format!("w{k}"), fd(f, p[k] as f64, h), grad[k]);
         }
         for j in 0..n {
             let f = |v: f64| {
@@ -498,23 +512,13 @@ mod tests {
                 a[j] = v as f32;
                 mine_reference(mlp, &p[r.clone()], &a, &u, &perm)
             };
-            let d = fd(f, m[j] as f64, h);
-            assert!(
-                (d - dm[j] as f64).abs() < 2e-3 + 1e-2 * d.abs(),
-                "m{j}: {d} vs {}",
-                dm[j]
-            );
+            close(format!("m{j}"), fd(f, m[j] as f64, h), dm[j]);
             let f = |v: f64| {
                 let mut a = u.clone();
                 a[j] = v as f32;
                 mine_reference(mlp, &p[r.clone()], &m, &a, &perm)
             };
-            let d = fd(f, u[j] as f64, h);
-            assert!(
-                (d - du[j] as f64).abs() < 2e-3 + 1e-2 * d.abs(),
-                "u{j}: {d} vs {}",
-                du[j]
-            );
+            close(format!("u{j}"), fd(f, u[j] as f64, h), du[j]);
         }
     }
 
@@ -523,26 +527,12 @@ mod tests {
     fn mine_extremes_stay_finite() {
         let n = 16;
         let (aux, mut p, m, _, perm) = mine_setup(n, 5);
-        let (mlp, r) = &aux.mine;
-        for v in &mut p[r.clone()] {
+        for v in &mut p[aux.mine.1.clone()] {
             *v *= 40.0;
         }
         for u_val in [U_EPS, 1.0, 1e4] {
             let u = vec![u_val; n];
-            let mut grad = vec![0f32; p.len()];
-            let (mut dm, mut du) = (vec![0f32; n], vec![0f32; n]);
-            let i = mine_estimate(
-                mlp,
-                &p[r.clone()],
-                &m,
-                &u,
-                &perm,
-                1.0,
-                &mut grad[r.clone()],
-                &mut dm,
-                &mut du,
-                &mut MineScratch::default(),
-            );
+            let (i, grad, dm, du) = estimate(&aux, &p, &m, &u, &perm);
             assert!(i.is_finite(), "u {u_val}: {i}");
             assert!(grad.iter().chain(&dm).chain(&du).all(|v| v.is_finite()));
         }

@@ -25,14 +25,6 @@ fn read(rel: &str) -> String {
     std::fs::read_to_string(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()))
 }
 
-const MODES: [BlendMode; 5] = [
-    BlendMode::Mst,
-    BlendMode::Mt,
-    BlendMode::Add,
-    BlendMode::FourD,
-    BlendMode::Static,
-];
-
 #[test]
 fn wgsl_blend_mirrors_blend_coefficients() {
     let wgsl = read("gpu/shaders/render.wgsl");
@@ -45,14 +37,17 @@ fn wgsl_blend_mirrors_blend_coefficients() {
         ("v = b;", (0.0, 1.0)),
         ("var v = a;", (1.0, 0.0)),
     ];
-    for (mode, (text, coeffs)) in MODES.iter().zip(written) {
+    for (mode, (text, coeffs)) in BlendMode::ALL.iter().zip(written) {
         assert!(wgsl.contains(text), "render.wgsl: no `{text}` ({mode:?})");
         assert_eq!(mode.coefficients(0.3), coeffs, "{mode:?}");
     }
     // skip4: only Mst/Mt (codes <= 1) with a mask skip h4, where 1 - m < cutoff.
     assert!(wgsl.contains("blend <= 1u && (1.0 - m) < cutoff"));
     // (Static has no h4 to skip: it is never dynamic.)
-    for mode in MODES.into_iter().filter(|&m| m != BlendMode::Static) {
+    for mode in BlendMode::ALL
+        .into_iter()
+        .filter(|&m| m != BlendMode::Static)
+    {
         let skips = matches!(mode, BlendMode::Mst | BlendMode::Mt);
         assert_eq!(!mode.is_dynamic(true, 1.0, 1e-3), skips, "{mode:?}");
         assert!(mode.is_dynamic(true, 0.0, 1e-3));

@@ -9,6 +9,7 @@
 //! covered and the bugs the suite found.
 
 use glam::Vec3;
+use msth_testkit::proptest_config;
 use proptest::prelude::*;
 
 use msth_core::activation::{sigmoid, softplus, softplus_grad, trunc_exp, trunc_exp_grad};
@@ -46,22 +47,6 @@ fn step() -> impl Strategy<Value = f32> {
         1 => Just(1e3f32),
         6 => log_uniform(1e-8, 1e3),
     ]
-}
-
-fn config(cases: u32) -> ProptestConfig {
-    // `cases` cases from a fixed seed (`PROPTEST_CASES` and `PROPTEST_RNG_SEED=n` explore more);
-    // failures print their minimal input and are kept as named tests, not regression files.
-    let mut c = ProptestConfig {
-        failure_persistence: None,
-        ..ProptestConfig::default()
-    };
-    if std::env::var_os("PROPTEST_CASES").is_none() {
-        c.cases = cases;
-    }
-    if std::env::var_os("PROPTEST_RNG_SEED").is_none() {
-        c.rng_seed = proptest::test_runner::RngSeed::Fixed(0x5747_2026);
-    }
-    c
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -121,7 +106,7 @@ mod render {
     }
 
     proptest! {
-        #![proptest_config(config(256))]
+        #![proptest_config(proptest_config(256))]
 
         /// Any densities in [0, 1e8] and steps in [1e-8, 1e3]: weights in [0, 1] summing with the
         /// final transmittance to 1, matching an f64 reference, and a finite backward pass that
@@ -330,7 +315,7 @@ mod sampling_and_losses {
     }
 
     proptest! {
-        #![proptest_config(config(256))]
+        #![proptest_config(proptest_config(256))]
 
         /// Inverse-CDF resampling from any weights (zero, subnormal, huge, NaN, infinite) gives
         /// sorted, finite positions inside `[0, 1]`.
@@ -578,7 +563,7 @@ mod grids {
     }
 
     proptest! {
-        #![proptest_config(config(64))]
+        #![proptest_config(proptest_config(64))]
 
         /// Finest resolutions up to 2^16 per axis on 3D and 4D grids with 2^10..2^22 rows and up
         /// to 32 levels: the layout matches the formulas (dense exactly when `prod(res + 1) <= T`),
@@ -858,12 +843,9 @@ mod pipeline {
             enc.grid3.base_resolution = vec![4.0; 3];
             enc.grid4.base_resolution[..3].copy_from_slice(&[4.0; 3]);
         }
-        c.field.density_hidden = 8;
-        c.field.color_hidden = 8;
+        c.resize_mlps(8, 4);
         c.field.geo_features = 3;
-        c.proposal.hidden = 4;
-        c.sampler.num_proposal_samples = 16;
-        c.sampler.num_samples = 8;
+        c.sampler.set_samples(16, 8);
         c.validate().unwrap();
         c
     }
@@ -1020,7 +1002,7 @@ mod pipeline {
     }
 
     proptest! {
-        #![proptest_config(config(64))]
+        #![proptest_config(proptest_config(64))]
 
         /// Rays that miss the box render the background exactly, with zero opacity and depth, and
         /// a chunk of them contributes exactly zero gradient (only the background's error).
@@ -1098,7 +1080,7 @@ mod pipeline {
     }
 
     proptest! {
-        #![proptest_config(config(64))]
+        #![proptest_config(proptest_config(64))]
 
         /// The same with an unbounded (contracted) scene, rays from anywhere up to 1e4 units away:
         /// the disparity spacing's steps grow to hundreds of units near the far plane (1000

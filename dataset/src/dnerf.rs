@@ -636,29 +636,12 @@ mod tests {
     #[test]
     fn bad_poses() {
         let (dir, mut train, test) = fixture();
-        train["frames"][0]["transform_matrix"] =
-            json!([[0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 1]]);
-        expect_error(
-            dir.path(),
-            &train,
-            &test,
-            &[
-                "transforms_train.json",
-                "frames[0].transform_matrix",
-                "invertible",
-            ],
-        );
-        train["frames"][0]["transform_matrix"] = pose(1e39);
-        expect_error(
-            dir.path(),
-            &train,
-            &test,
-            &[
-                "transforms_train.json",
-                "frames[0].transform_matrix",
-                "non-finite",
-            ],
-        );
+        let singular = json!([[0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 1]]);
+        for (matrix, why) in [(singular, "invertible"), (pose(1e39), "non-finite")] {
+            train["frames"][0]["transform_matrix"] = matrix;
+            let needles = ["transforms_train.json", "frames[0].transform_matrix", why];
+            expect_error(dir.path(), &train, &test, &needles);
+        }
     }
 
     #[test]

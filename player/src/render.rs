@@ -735,12 +735,7 @@ mod tests {
     use msth_core::SceneBounds;
 
     fn model(blend: msth_core::config::BlendMode) -> (ModelConfig, Vec<f32>) {
-        let mut cfg = ModelConfig::preset(
-            Preset::Fast,
-            SceneBounds::dnerf_default(),
-            Background::Color { rgb: [1.0; 3] },
-            10,
-        );
+        let mut cfg = ModelConfig::fast_on_white(10);
         cfg.field.encoding.resize(4, 10, 64.0, 8);
         cfg.proposal.encoding.resize(3, 10, 32.0, 8);
         cfg.field.encoding.blend = blend;
@@ -1128,8 +1123,7 @@ mod tests {
         // (unless a single ray is), never empty.
         for (np, nf) in [(1024, 512), (4096, 4096)] {
             let mut cfg = paper.clone();
-            cfg.sampler.num_proposal_samples = np;
-            cfg.sampler.num_samples = nf;
+            cfg.sampler.set_samples(np, nf);
             let n = rays_per_batch(&cfg, CHUNK);
             assert!((1..CHUNK).contains(&n), "{np} + {nf}: {n} rays");
             assert!(n as u64 * scratch_bytes_per_ray(&cfg) <= BATCH_SCRATCH_BYTES);

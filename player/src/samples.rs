@@ -433,8 +433,7 @@ mod tests {
         cfg.field.encoding.resize(4, 10, 64.0, 8);
         cfg.proposal.encoding.resize(3, 10, 32.0, 8);
         cfg.field.encoding.blend = blend;
-        cfg.sampler.num_proposal_samples = 16;
-        cfg.sampler.num_samples = 8;
+        cfg.sampler.set_samples(16, 8);
         let layout = ModelLayout::new(&cfg);
         let mut params = layout.init_params(7);
         let mut rng = Rng::new(3);

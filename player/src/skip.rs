@@ -183,22 +183,15 @@ pub fn render_chunk_skipping(
 mod tests {
     use super::*;
     use glam::Vec3;
-    use msth_core::config::{Background, BlendMode, Preset};
-    use msth_core::scene::SceneBounds;
+    use msth_core::config::BlendMode;
 
     fn model() -> (ModelConfig, ModelLayout, Vec<f32>) {
-        let mut cfg = ModelConfig::preset(
-            Preset::Fast,
-            SceneBounds::dnerf_default(),
-            Background::Color { rgb: [1.0; 3] },
-            4,
-        );
+        let mut cfg = ModelConfig::fast_on_white(4);
         for enc in [&mut cfg.field.encoding, &mut cfg.proposal.encoding] {
             enc.blend = BlendMode::Mst;
             enc.resize(3, 12, 32.0, 10);
         }
-        cfg.sampler.num_proposal_samples = 24;
-        cfg.sampler.num_samples = 12;
+        cfg.sampler.set_samples(24, 12);
         let layout = ModelLayout::new(&cfg);
         let params = layout.init_params(5);
         (cfg, layout, params)

@@ -188,14 +188,7 @@ pub fn render(scene: &Scene, camera: &Camera, opts: &RenderOptions) -> RgbaImage
         cy: camera.cy * s as f32,
         world_from_camera: camera.world_from_camera,
     };
-    let raster: Vec<RasterTriangle> = scene
-        .triangles
-        .iter()
-        .map(|t| RasterTriangle {
-            positions: t.positions,
-            cull_back: !scene.materials[t.material as usize].double_sided,
-        })
-        .collect();
+    let raster = raster_triangles(scene);
     let frags = rasterize(&fine, &raster, opts.near);
     let (w, h) = (camera.width as usize, camera.height as usize);
     let fw = fine.width as usize;
@@ -238,16 +231,21 @@ pub fn render(scene: &Scene, camera: &Camera, opts: &RenderOptions) -> RgbaImage
     }
 }
 
-/// Depths (distance along the viewing axis) of every covered pixel centre, for near/far bounds.
-pub fn depths(scene: &Scene, camera: &Camera, near: f32) -> Vec<f32> {
-    let raster: Vec<RasterTriangle> = scene
+/// The scene's triangles as the rasteriser takes them: single-sided materials cull back faces.
+fn raster_triangles(scene: &Scene) -> Vec<RasterTriangle> {
+    scene
         .triangles
         .iter()
         .map(|t| RasterTriangle {
             positions: t.positions,
             cull_back: !scene.materials[t.material as usize].double_sided,
         })
-        .collect();
+        .collect()
+}
+
+/// Depths (distance along the viewing axis) of every covered pixel centre, for near/far bounds.
+pub fn depths(scene: &Scene, camera: &Camera, near: f32) -> Vec<f32> {
+    let raster = raster_triangles(scene);
     rasterize(camera, &raster, near)
         .into_iter()
         .filter(|f| f.tri != EMPTY)

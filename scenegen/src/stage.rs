@@ -39,64 +39,29 @@ fn quad(out: &mut Vec<Triangle>, a: Vec3, b: Vec3, c: Vec3, d: Vec3, material: u
     out.push(tri([a, c, d], material));
 }
 
+/// The faces of a box: the corners of each, counter-clockwise seen from outside, as corner
+/// numbers whose bits 0, 1, 2 pick the high end in x, y, z.
+const CUBOID_FACES: [[usize; 4]; 6] = [
+    [0, 1, 5, 4], // -Y
+    [3, 2, 6, 7], // +Y
+    [2, 0, 4, 6], // -X
+    [1, 3, 7, 5], // +X
+    [4, 5, 7, 6], // +Z
+    [2, 3, 1, 0], // -Z
+];
+
 /// An axis-aligned box with outward faces.
 fn cuboid(out: &mut Vec<Triangle>, lo: Vec3, hi: Vec3, material: u32) {
-    let p = |x: bool, y: bool, z: bool| {
+    let corner = |bits: usize| {
         Vec3::new(
-            if x { hi.x } else { lo.x },
-            if y { hi.y } else { lo.y },
-            if z { hi.z } else { lo.z },
+            if bits & 1 != 0 { hi.x } else { lo.x },
+            if bits & 2 != 0 { hi.y } else { lo.y },
+            if bits & 4 != 0 { hi.z } else { lo.z },
         )
     };
-    let (f, t) = (false, true);
-    quad(
-        out,
-        p(f, f, f),
-        p(t, f, f),
-        p(t, f, t),
-        p(f, f, t),
-        material,
-    ); // -Y
-    quad(
-        out,
-        p(t, t, f),
-        p(f, t, f),
-        p(f, t, t),
-        p(t, t, t),
-        material,
-    ); // +Y
-    quad(
-        out,
-        p(f, t, f),
-        p(f, f, f),
-        p(f, f, t),
-        p(f, t, t),
-        material,
-    ); // -X
-    quad(
-        out,
-        p(t, f, f),
-        p(t, t, f),
-        p(t, t, t),
-        p(t, f, t),
-        material,
-    ); // +X
-    quad(
-        out,
-        p(f, f, t),
-        p(t, f, t),
-        p(t, t, t),
-        p(f, t, t),
-        material,
-    ); // +Z
-    quad(
-        out,
-        p(f, t, f),
-        p(t, t, f),
-        p(t, f, f),
-        p(f, f, f),
-        material,
-    ); // -Z
+    for [a, b, c, d] in CUBOID_FACES {
+        quad(out, corner(a), corner(b), corner(c), corner(d), material);
+    }
 }
 
 /// A UV sphere with smooth normals.

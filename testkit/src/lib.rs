@@ -182,6 +182,19 @@ fn runs(program: &Path, args: &[String]) -> Result<(), String> {
     }
 }
 
+/// The files of `dir` (not its subfolders) whose extension is `ext` (`"msth"`, `"png"`), sorted
+/// by path. A folder that cannot be read panics, failing the test.
+pub fn files_with_extension(dir: &Path, ext: &str) -> Vec<PathBuf> {
+    let entries =
+        std::fs::read_dir(dir).unwrap_or_else(|e| panic!("reading {}: {e}", dir.display()));
+    let mut files: Vec<PathBuf> = entries
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.is_file() && p.extension().is_some_and(|x| x == ext))
+        .collect();
+    files.sort();
+    files
+}
+
 /// `../shared/data/REL` beside the repository root (the shared datasets of CI and development
 /// machines); the path whether or not it exists.
 pub fn shared_data(rel: &str) -> PathBuf {
@@ -325,6 +338,25 @@ impl Tests {
     }
 }
 
+/// The settings of the property tests (`core/tests/stability.rs`, `codec/tests/stability.rs`):
+/// `cases` cases from a fixed seed, so that a run is repeatable (`PROPTEST_CASES` and
+/// `PROPTEST_RNG_SEED=n` explore more); a failure prints its minimal input and is kept as a named
+/// test, not as a regression file. Behind the `proptest` feature.
+#[cfg(feature = "proptest")]
+pub fn proptest_config(cases: u32) -> proptest::test_runner::Config {
+    let mut c = proptest::test_runner::Config {
+        failure_persistence: None,
+        ..proptest::test_runner::Config::default()
+    };
+    if std::env::var_os("PROPTEST_CASES").is_none() {
+        c.cases = cases;
+    }
+    if std::env::var_os("PROPTEST_RNG_SEED").is_none() {
+        c.rng_seed = proptest::test_runner::RngSeed::Fixed(0x5747_2026);
+    }
+    c
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -395,6 +427,35 @@ mod tests {
         let why = n.check().unwrap_err();
         assert!(why.contains("/nonexistent/program"), "{why}");
         assert!(Need::shared_data("no/such/file").check().is_err());
+    }
+
+    #[cfg(feature = "proptest")]
+    #[test]
+    fn proptest_config_is_seeded_and_keeps_no_files() {
+        let c = proptest_config(17);
+        assert!(c.failure_persistence.is_none());
+        if std::env::var_os("PROPTEST_CASES").is_none() {
+            assert_eq!(c.cases, 17);
+        }
+        if std::env::var_os("PROPTEST_RNG_SEED").is_none() {
+            let fixed = proptest::test_runner::RngSeed::Fixed(0x5747_2026);
+            assert_eq!(c.rng_seed, fixed);
+        }
+    }
+
+    #[test]
+    fn files_with_extension_lists_matching_files_sorted() {
+        let dir = tempfile::tempdir().unwrap();
+        for name in ["b.msth", "a.msth", "c.png", "d.msth.tmp", "noext"] {
+            std::fs::write(dir.path().join(name), b"x").unwrap();
+        }
+        std::fs::create_dir(dir.path().join("sub.msth")).unwrap();
+        let names: Vec<String> = files_with_extension(dir.path(), "msth")
+            .iter()
+            .map(|p| p.file_name().unwrap().to_string_lossy().into_owned())
+            .collect();
+        assert_eq!(names, ["a.msth", "b.msth"]);
+        assert_eq!(files_with_extension(dir.path(), "png").len(), 1);
     }
 
     #[test]

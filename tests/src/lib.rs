@@ -2,7 +2,7 @@
 //! needs of the tests that use outside things (for `msth-testkit`'s harness, see
 //! testkit/src/lib.rs), small built-in scenes, and running the `msth` command in-process.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use msth_core::config::Preset;
 use msth_testkit::Need;
@@ -71,6 +71,53 @@ pub fn msth(args: &[&str]) -> anyhow_like::Result {
     let mut v = vec!["msth"];
     v.extend_from_slice(args);
     msth_cli::run(v).map_err(|e| format!("{e:#}"))
+}
+
+/// `msth train DATA --out OUT EXTRA...` in-process.
+pub fn train_cmd(data: &Path, out: &Path, extra: &[&str]) -> anyhow_like::Result {
+    msth_with(&["train", path_str(data), "--out", path_str(out)], extra)
+}
+
+/// `msth export CKPT -o OUT EXTRA...` in-process.
+pub fn export_cmd(ckpt: &Path, out: &Path, extra: &[&str]) -> anyhow_like::Result {
+    msth_with(&["export", path_str(ckpt), "-o", path_str(out)], extra)
+}
+
+/// `msth synth --out OUT EXTRA...` in-process.
+pub fn synth_cmd(out: &Path, extra: &[&str]) -> anyhow_like::Result {
+    msth_with(&["synth", "--out", path_str(out)], extra)
+}
+
+/// `msth render CKPT -o PNG EXTRA...` in-process.
+pub fn render_cmd(ckpt: &Path, png: &Path, extra: &[&str]) -> anyhow_like::Result {
+    msth_with(&["render", path_str(ckpt), "-o", path_str(png)], extra)
+}
+
+/// `msth play SRC --path 0 --out OUT --no-video --quiet EXTRA...` with a JSON report next to
+/// `out` (`OUT.json`); returns the report. A failed command panics, naming `src`.
+pub fn play_report(src: &str, out: &Path, extra: &[&str]) -> serde_json::Value {
+    let report = out.with_extension("json");
+    let head = ["play", src, "--path", "0", "--out", path_str(out)];
+    let tail = ["--no-video", "--quiet", "--report", path_str(&report)];
+    msth_with(&[&head[..], &tail[..]].concat(), extra)
+        .unwrap_or_else(|e| panic!("msth play {src}: {e}"));
+    read_json(&report)
+}
+
+/// A JSON file the commands wrote (a report, `metrics.json`), parsed.
+pub fn read_json(path: &Path) -> serde_json::Value {
+    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    serde_json::from_slice(&bytes).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+/// `msth HEAD... EXTRA...` in-process.
+fn msth_with(head: &[&str], extra: &[&str]) -> anyhow_like::Result {
+    msth(&[head, extra].concat())
+}
+
+/// A path as the `&str` argument of a command (test paths are UTF-8).
+fn path_str(p: &Path) -> &str {
+    p.to_str().expect("test paths are UTF-8")
 }
 
 pub mod anyhow_like {

@@ -136,11 +136,8 @@ fn ten_thousand_steps_with_every_term_on_stay_finite() {
         enc.blend = BlendMode::Mst;
         enc.resize(3, 10, 48.0, 12);
     }
-    s.model.field.density_hidden = 16;
-    s.model.field.color_hidden = 16;
-    s.model.proposal.hidden = 8;
-    s.model.sampler.num_proposal_samples = 12;
-    s.model.sampler.num_samples = 8;
+    s.model.resize_mlps(16, 8);
+    s.model.sampler.set_samples(12, 8);
     let dir = tempfile::tempdir().unwrap();
     let mut max_loss = 0f32;
     let (t, outcome) = train(&data, s, dir.path(), None, &mut |p| {

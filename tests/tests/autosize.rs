@@ -7,16 +7,13 @@ use std::path::Path;
 
 use msth_codec::{Decoder, SectionKind};
 use msth_core::config::BlendMode;
-use msth_tests::msth;
+use msth_tests::{export_cmd, msth, play_report, read_json, synth_cmd, train_cmd};
 use msth_trainer::autosize::SizingReport;
 use msth_trainer::checkpoint::Checkpoint;
 
 /// Writes a small built-in scene (static or moving) into `dir`.
 fn synth(dir: &Path, static_scene: bool) {
     let mut args = vec![
-        "synth",
-        "--out",
-        dir.to_str().unwrap(),
         "--width",
         "32",
         "--height",
@@ -29,30 +26,26 @@ fn synth(dir: &Path, static_scene: bool) {
     if static_scene {
         args.push("--static");
     }
-    msth(&args).unwrap();
+    synth_cmd(dir, &args).unwrap();
 }
 
-/// Trains a few steps of the fast preset (small sampler) with extra arguments.
+/// A few steps of the fast preset with a small sampler.
+const SHORT_TRAIN: &[&str] = &[
+    "--preset",
+    "fast",
+    "--iters",
+    "12",
+    "--batch-rays",
+    "256",
+    "--set",
+    "model.sampler.num_proposal_samples=16",
+    "--set",
+    "model.sampler.num_samples=8",
+];
+
+/// Trains [`SHORT_TRAIN`] without evaluation, with extra arguments.
 fn train(data: &Path, out: &Path, extra: &[&str]) {
-    let mut args = vec![
-        "train",
-        data.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--preset",
-        "fast",
-        "--iters",
-        "12",
-        "--batch-rays",
-        "256",
-        "--no-eval",
-        "--set",
-        "model.sampler.num_proposal_samples=16",
-        "--set",
-        "model.sampler.num_samples=8",
-    ];
-    args.extend_from_slice(extra);
-    msth(&args).unwrap();
+    train_cmd(data, out, &[SHORT_TRAIN, &["--no-eval"], extra].concat()).unwrap();
 }
 
 fn sizing(out: &Path) -> SizingReport {
@@ -61,15 +54,7 @@ fn sizing(out: &Path) -> SizingReport {
 
 fn export(out: &Path) -> (std::path::PathBuf, Decoder) {
     let file = out.join("model.msth");
-    msth(&[
-        "export",
-        out.join("model.ckpt").to_str().unwrap(),
-        "-o",
-        file.to_str().unwrap(),
-        "--chunk-frames",
-        "2",
-    ])
-    .unwrap();
+    export_cmd(&out.join("model.ckpt"), &file, &["--chunk-frames", "2"]).unwrap();
     let bytes = std::fs::read(&file).unwrap();
     (file, Decoder::new(&bytes).unwrap())
 }
@@ -137,21 +122,7 @@ fn static_video_trains_exports_and_plays_without_a_4d_table() {
 
     // It plays: every frame rendered.
     let frames = dir.path().join("frames");
-    let report = dir.path().join("report.json");
-    msth(&[
-        "play",
-        sfile.to_str().unwrap(),
-        "--path",
-        "0",
-        "--out",
-        frames.to_str().unwrap(),
-        "--no-video",
-        "--quiet",
-        "--report",
-        report.to_str().unwrap(),
-    ])
-    .unwrap();
-    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    let r = play_report(sfile.to_str().unwrap(), &frames, &[]);
     assert_eq!(r["frames"].as_array().unwrap().len(), 4);
     for i in 0..4 {
         assert!(frames.join(format!("frame_{i:05}.png")).is_file());
@@ -188,8 +159,7 @@ fn user_settings_and_no_autosize_win() {
         ckpt.header.model.background,
         4,
     );
-    preset.sampler.num_proposal_samples = 16;
-    preset.sampler.num_samples = 8;
+    preset.sampler.set_samples(16, 8);
     assert_eq!(ckpt.header.model, preset);
     assert!(!out.join("sizing.json").exists());
 }
@@ -228,23 +198,7 @@ fn scene_scale_is_recorded_and_applied_by_eval() {
     synth(&data, false);
     shrink_json(&data, 1e-3);
     let out = dir.path().join("out");
-    let mut args = vec![
-        "train",
-        data.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--preset",
-        "fast",
-        "--iters",
-        "12",
-        "--batch-rays",
-        "256",
-        "--set",
-        "model.sampler.num_proposal_samples=16",
-        "--set",
-        "model.sampler.num_samples=8",
-    ];
-    msth(&args).unwrap();
+    train_cmd(&data, &out, SHORT_TRAIN).unwrap();
     let s = sizing(&out);
     let c = s.choices.iter().find(|c| c.name == "scene scale").unwrap();
     assert!(c.applied && c.chosen != "1", "{c:?}");
@@ -254,10 +208,7 @@ fn scene_scale_is_recorded_and_applied_by_eval() {
     // The model lives in the scaled world: a box of about 3 units.
     let (lo, hi) = ckpt.header.model.bounds.extent();
     assert!(((hi - lo).max_element() - 3.0).abs() < 1e-2);
-    let psnr = |p: &Path| -> f64 {
-        let m: serde_json::Value = serde_json::from_slice(&std::fs::read(p).unwrap()).unwrap();
-        m["psnr"].as_f64().unwrap()
-    };
+    let psnr = |p: &Path| -> f64 { read_json(p)["psnr"].as_f64().unwrap() };
     let trained = psnr(&out.join("metrics.json"));
     let again = dir.path().join("eval");
     msth(&[
@@ -276,9 +227,8 @@ fn scene_scale_is_recorded_and_applied_by_eval() {
     );
     // `--set scene_scale=1` keeps the dataset's units (the user's value wins).
     let out1 = dir.path().join("unscaled");
-    args[3] = out1.to_str().unwrap();
-    args.extend_from_slice(&["--set", "scene_scale=1", "--no-eval"]);
-    msth(&args).unwrap();
+    let unscaled = ["--set", "scene_scale=1", "--no-eval"];
+    train_cmd(&data, &out1, &[SHORT_TRAIN, &unscaled].concat()).unwrap();
     let ckpt = Checkpoint::load(&out1.join("model.ckpt")).unwrap();
     assert_eq!(ckpt.header.scene_scale(), 1.0);
     let (lo, hi) = ckpt.header.model.bounds.extent();

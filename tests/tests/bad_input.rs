@@ -2,15 +2,12 @@
 
 use std::path::Path;
 
-use msth_tests::msth;
+use msth_tests::{synth_cmd, train_cmd};
 
 /// Writes a tiny valid dataset and returns its folder.
 fn valid_dataset(root: &Path) -> std::path::PathBuf {
     let d = root.join("data");
-    msth(&[
-        "synth",
-        "--out",
-        d.to_str().unwrap(),
+    let size = [
         "--width",
         "16",
         "--height",
@@ -19,8 +16,8 @@ fn valid_dataset(root: &Path) -> std::path::PathBuf {
         "3",
         "--cameras",
         "2",
-    ])
-    .unwrap();
+    ];
+    synth_cmd(&d, &size).unwrap();
     d
 }
 
@@ -47,17 +44,8 @@ fn training_image(data: &Path, k: usize) -> std::path::PathBuf {
 /// Trains on the broken dataset and checks the error and that no output was written.
 fn expect_failure(root: &Path, data: &Path, needles: &[&str]) {
     let out = root.join("run");
-    let err = msth(&[
-        "train",
-        data.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--preset",
-        "fast",
-        "--iters",
-        "1",
-    ])
-    .expect_err("training on a broken dataset must fail");
+    let err = train_cmd(data, &out, &["--preset", "fast", "--iters", "1"])
+        .expect_err("training on a broken dataset must fail");
     for n in needles {
         assert!(err.contains(n), "error should mention `{n}`: {err}");
     }
@@ -66,6 +54,15 @@ fn expect_failure(root: &Path, data: &Path, needles: &[&str]) {
         "no checkpoint may be left behind"
     );
     assert!(!out.join("metrics.json").exists());
+}
+
+/// A valid dataset with `edit` applied to `transforms_train.json` fails to train with an error
+/// naming the file and `field`.
+fn edited_transforms_fail(field: &str, edit: impl FnOnce(&mut serde_json::Value)) {
+    let t = tempfile::tempdir().unwrap();
+    let d = valid_dataset(t.path());
+    edit_json(&d.join("transforms_train.json"), edit);
+    expect_failure(t.path(), &d, &["transforms_train.json", field]);
 }
 
 #[test]
@@ -126,35 +123,23 @@ fn images_of_mixed_sizes() {
 
 #[test]
 fn non_finite_pose() {
-    let t = tempfile::tempdir().unwrap();
-    let d = valid_dataset(t.path());
-    let json = d.join("transforms_train.json");
     // JSON has no NaN; 1e39 overflows f32 to infinity.
-    edit_json(&json, |v| {
+    edited_transforms_fail("transform_matrix", |v| {
         v["frames"][0]["transform_matrix"][0][3] = serde_json::json!(1e39)
     });
-    expect_failure(t.path(), &d, &["transforms_train.json", "transform_matrix"]);
 }
 
 #[test]
 fn non_invertible_pose() {
-    let t = tempfile::tempdir().unwrap();
-    let d = valid_dataset(t.path());
-    let json = d.join("transforms_train.json");
-    edit_json(&json, |v| {
+    edited_transforms_fail("transform_matrix", |v| {
         v["frames"][0]["transform_matrix"] =
             serde_json::json!([[0, 0, 0, 1], [0, 0, 0, 2], [0, 0, 0, 3], [0, 0, 0, 1]]);
     });
-    expect_failure(t.path(), &d, &["transforms_train.json", "transform_matrix"]);
 }
 
 #[test]
 fn time_outside_unit_interval() {
-    let t = tempfile::tempdir().unwrap();
-    let d = valid_dataset(t.path());
-    let json = d.join("transforms_train.json");
-    edit_json(&json, |v| v["frames"][1]["time"] = serde_json::json!(1.5));
-    expect_failure(t.path(), &d, &["transforms_train.json", "time"]);
+    edited_transforms_fail("time", |v| v["frames"][1]["time"] = serde_json::json!(1.5));
 }
 
 #[test]
@@ -162,19 +147,7 @@ fn bad_settings_are_rejected_before_training() {
     let t = tempfile::tempdir().unwrap();
     let d = valid_dataset(t.path());
     let out = t.path().join("run");
-    let run = |set: &str| {
-        msth(&[
-            "train",
-            d.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-            "--iters",
-            "1",
-            "--set",
-            set,
-        ])
-        .unwrap_err()
-    };
+    let run = |set: &str| train_cmd(&d, &out, &["--iters", "1", "--set", set]).unwrap_err();
     assert!(run("model.sampler.num_samples=0").contains("num_samples"));
     assert!(run("model.field.encoding.grid3.log2_table_size=40").contains("log2_table_size"));
     assert!(run("no_such_knob=1").contains("no_such_knob"));

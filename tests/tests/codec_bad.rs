@@ -12,9 +12,8 @@ use msth_codec::format::{index_offset, FIXED_HEADER, INDEX_ENTRY};
 use msth_codec::occupancy::OCCUPANCY_HEADER;
 use msth_codec::quant::{BlockEncoding, Writer};
 use msth_codec::{decode_all, encode, Decoder, EncodeOptions, QuantMode};
-use msth_core::config::{Background, BlendMode, ModelConfig, Preset};
+use msth_core::config::{BlendMode, ModelConfig};
 use msth_core::field::ModelLayout;
-use msth_core::SceneBounds;
 
 fn bad_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("bad")
@@ -22,20 +21,13 @@ fn bad_dir() -> PathBuf {
 
 /// A tiny model with a dynamic region, so that the file has chunks.
 fn tiny_model() -> (ModelConfig, Vec<f32>) {
-    let mut c = ModelConfig::preset(
-        Preset::Fast,
-        SceneBounds::dnerf_default(),
-        Background::Color { rgb: [1.0; 3] },
-        4,
-    );
+    let mut c = ModelConfig::fast_on_white(4);
     for enc in [&mut c.field.encoding, &mut c.proposal.encoding] {
         enc.blend = BlendMode::Mt;
         enc.resize(2, 8, 16.0, 4);
     }
-    c.field.density_hidden = 4;
-    c.field.color_hidden = 4;
+    c.resize_mlps(4, 4);
     c.field.color_layers = 1;
-    c.proposal.hidden = 4;
     let layout = ModelLayout::new(&c);
     let mut p = layout.init_params(1);
     if let Some((_, r)) = &layout.field.encoding.mask {
@@ -710,11 +702,8 @@ fn corpus() -> Vec<(&'static str, Vec<u8>)> {
 fn regenerate_bad_corpus() {
     let dir = bad_dir();
     std::fs::create_dir_all(&dir).unwrap();
-    for e in std::fs::read_dir(&dir).unwrap() {
-        let p = e.unwrap().path();
-        if p.extension().is_some_and(|x| x == "msth") {
-            std::fs::remove_file(p).unwrap();
-        }
+    for p in msth_testkit::files_with_extension(&dir, "msth") {
+        std::fs::remove_file(p).unwrap();
     }
     for (i, (name, bytes)) in corpus().into_iter().enumerate() {
         std::fs::write(dir.join(format!("{i:02}_{name}.msth")), bytes).unwrap();
@@ -727,12 +716,7 @@ fn corpus_base_file_is_valid() {
 }
 
 fn bad_corpus_fails_cleanly() {
-    let mut files: Vec<PathBuf> = std::fs::read_dir(bad_dir())
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .filter(|p| p.extension().is_some_and(|x| x == "msth"))
-        .collect();
-    files.sort();
+    let files = msth_testkit::files_with_extension(&bad_dir(), "msth");
     assert!(files.len() >= 20, "only {} files in tests/bad", files.len());
     for p in &files {
         let bytes = std::fs::read(p).unwrap();

@@ -4,27 +4,29 @@
 
 use msth_codec::{decode_all, encode, EncodeOptions, QuantMode};
 use msth_core::field::ModelLayout;
-use msth_tests::{msth, short_run, tiny_scene};
+use msth_tests::{export_cmd, short_run, tiny_scene};
 use msth_trainer::checkpoint::Checkpoint;
+use msth_trainer::dataset::Dataset;
 use msth_trainer::eval::render_image;
 use msth_trainer::metrics::psnr;
 use msth_trainer::train::train;
 
-/// A tiny scene trained for a few steps, saved as a checkpoint in `dir`.
-fn trained(dir: &std::path::Path) -> Checkpoint {
+/// A tiny scene trained for a few steps, saved as `model.ckpt` in a new temporary folder: the
+/// folder, the checkpoint and the scene.
+fn trained() -> (tempfile::TempDir, Checkpoint, Dataset) {
+    let dir = tempfile::tempdir().unwrap();
     let (_, data) = tiny_scene();
     let s = short_run(&data, 30);
-    train(&data, s, dir, None, &mut |_| true).unwrap();
-    Checkpoint::load(&dir.join("model.ckpt")).unwrap()
+    train(&data, s, dir.path(), None, &mut |_| true).unwrap();
+    let ckpt = Checkpoint::load(&dir.path().join("model.ckpt")).unwrap();
+    (dir, ckpt, data)
 }
 
 #[test]
 fn lossless_round_trip_renders_the_checkpoint_pixels() {
-    let dir = tempfile::tempdir().unwrap();
-    let ckpt = trained(dir.path());
+    let (_dir, ckpt, data) = trained();
     let model = &ckpt.header.model;
     let layout = ModelLayout::new(model);
-    let (_, data) = tiny_scene();
     let camera = data.test[0].camera;
     for threshold in [0.5, 0.0] {
         let opts = EncodeOptions {
@@ -81,11 +83,9 @@ fn lossless_round_trip_renders_the_checkpoint_pixels() {
 
 #[test]
 fn lossy_modes_render_close_to_the_checkpoint() {
-    let dir = tempfile::tempdir().unwrap();
-    let ckpt = trained(dir.path());
+    let (_dir, ckpt, data) = trained();
     let model = &ckpt.header.model;
     let layout = ModelLayout::new(model);
-    let (_, data) = tiny_scene();
     let view = &data.test[1];
     let full = render_image(model, &layout, &ckpt.params, &view.camera, view.time);
     let mut last_size = usize::MAX;
@@ -129,33 +129,20 @@ fn lossy_modes_render_close_to_the_checkpoint() {
 
 #[test]
 fn export_command_writes_a_decodable_file() {
-    let dir = tempfile::tempdir().unwrap();
-    trained(dir.path());
+    let (dir, _, _) = trained();
     let ckpt = dir.path().join("model.ckpt");
     let out = dir.path().join("scene.msth");
-    msth(&[
-        "export",
-        ckpt.to_str().unwrap(),
-        "-o",
-        out.to_str().unwrap(),
+    let q8 = [
         "--quant",
         "q8",
         "--chunk-frames",
         "3",
         "--dynamic-threshold",
         "0.2",
-    ])
-    .unwrap();
+    ];
+    export_cmd(&ckpt, &out, &q8).unwrap();
     let d = decode_all(&std::fs::read(&out).unwrap()).unwrap();
     assert_eq!(d.metadata.quant, QuantMode::Q8);
     assert_eq!(d.metadata.chunk_frames, 3);
-    assert!(msth(&[
-        "export",
-        ckpt.to_str().unwrap(),
-        "-o",
-        out.to_str().unwrap(),
-        "--quant",
-        "q9"
-    ])
-    .is_err());
+    assert!(export_cmd(&ckpt, &out, &["--quant", "q9"]).is_err());
 }

@@ -12,7 +12,7 @@ use std::sync::{Arc, OnceLock};
 
 use msth_player::{play, BackendChoice, PlayOptions, PlayReport};
 use msth_testkit::Tests;
-use msth_tests::{gpu_need, msth, short_run, tiny_scene};
+use msth_tests::{export_cmd, gpu_need, short_run, tiny_scene};
 use msth_trainer::metrics::psnr;
 use msth_trainer::train::train;
 
@@ -63,12 +63,9 @@ impl Fixture {
         let m = &mut s.model;
         m.field.encoding.resize(4, 12, 128.0, 16);
         m.proposal.encoding.resize(2, 10, 32.0, 16);
-        m.field.density_hidden = 16;
-        m.field.color_hidden = 16;
+        m.resize_mlps(16, 8);
         m.field.geo_features = 7;
-        m.proposal.hidden = 8;
-        m.sampler.num_proposal_samples = 24;
-        m.sampler.num_samples = 12;
+        m.sampler.set_samples(24, 12);
         assert!(
             msth_player::gpu::layout::loop_iterations_per_ray(m)
                 < msth_player::gpu::layout::LAVAPIPE_LOOP_ITERATIONS,
@@ -78,14 +75,11 @@ impl Fixture {
         let train_dir = dir.path().join("train");
         train(&data, s, &train_dir, None, &mut |_| true).unwrap();
         let file = dir.path().join("tiny.msth");
-        msth(&[
-            "export",
-            train_dir.join("model.ckpt").to_str().unwrap(),
-            "-o",
-            file.to_str().unwrap(),
-            "--chunk-frames",
-            "2",
-        ])
+        export_cmd(
+            &train_dir.join("model.ckpt"),
+            &file,
+            &["--chunk-frames", "2"],
+        )
         .unwrap();
 
         let mut opts = PlayOptions::new(file.to_str().unwrap());

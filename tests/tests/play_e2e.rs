@@ -7,7 +7,7 @@ use std::path::Path;
 
 use msth_core::field::ModelLayout;
 use msth_server::{BackgroundServer, ServerConfig};
-use msth_tests::{msth, short_run, tiny_scene};
+use msth_tests::{export_cmd, play_report, short_run, tiny_scene};
 use msth_trainer::checkpoint::Checkpoint;
 use msth_trainer::eval::render_image;
 use msth_trainer::metrics::psnr;
@@ -44,16 +44,11 @@ fn train_export_serve_play_matches_the_checkpoint() {
     let served = dir.path().join("models");
     std::fs::create_dir_all(&served).unwrap();
     let file = served.join("tiny.msth");
-    msth(&[
-        "export",
-        ckpt_path.to_str().unwrap(),
-        "-o",
-        file.to_str().unwrap(),
-        "--quant",
-        "f32",
-        "--chunk-frames",
-        "2",
-    ])
+    export_cmd(
+        &ckpt_path,
+        &file,
+        &["--quant", "f32", "--chunk-frames", "2"],
+    )
     .unwrap();
     let server = BackgroundServer::start(ServerConfig {
         addr: "127.0.0.1:0".parse().unwrap(),
@@ -65,32 +60,15 @@ fn train_export_serve_play_matches_the_checkpoint() {
     // Play over HTTP and from the local file.
     let http_out = dir.path().join("http");
     let local_out = dir.path().join("local");
-    let report = dir.path().join("report.json");
-    for (src, out) in [
-        (url.as_str(), &http_out),
-        (file.to_str().unwrap(), &local_out),
-    ] {
-        msth(&[
-            "play",
-            src,
-            "--path",
-            "0",
-            "--out",
-            out.to_str().unwrap(),
-            "--no-video",
-            "--quiet",
-            "--report",
-            report.to_str().unwrap(),
-        ])
-        .unwrap();
-    }
+    play_report(&url, &http_out, &[]);
+    // The report of the local playback is checked below.
+    let r = play_report(file.to_str().unwrap(), &local_out, &[]);
 
     let ckpt = Checkpoint::load(&ckpt_path).unwrap();
     let model = &ckpt.header.model;
     let layout = ModelLayout::new(model);
     let camera = ckpt.header.cameras[0];
     let frames = model.num_frames;
-    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
     assert_eq!(r["frames"].as_array().unwrap().len(), frames);
     assert_eq!(r["frames"][0]["stats"]["full"], true);
     // The default incremental playback reuses samples on the re-rendered rays (fixed samples,

@@ -15,7 +15,7 @@ use std::time::{Duration, Instant};
 
 use msth_player::{ByteSource, FileSource, HttpOptions, HttpSource, SourceError};
 use msth_server::{BackgroundServer, ServerConfig};
-use msth_tests::msth;
+use msth_tests::{msth, play_report};
 use rcgen::{BasicConstraints, CertificateParams, CertifiedIssuer, IsCa, KeyPair};
 use rustls::pki_types::{CertificateDer, PrivateKeyDer, PrivatePkcs8KeyDer};
 
@@ -39,8 +39,11 @@ impl TestCa {
         TestCa { issuer }
     }
 
-    fn write_pem(&self, path: &Path) {
-        std::fs::write(path, self.issuer.pem()).unwrap();
+    /// Writes the CA certificate as PEM to `dir/name` and returns that path.
+    fn write_pem(&self, dir: &Path, name: &str) -> PathBuf {
+        let path = dir.join(name);
+        std::fs::write(&path, self.issuer.pem()).unwrap();
+        path
     }
 
     /// A server certificate for `names` signed by this CA; `expired`: valid only in 2000.
@@ -184,32 +187,10 @@ fn quick(ca: Option<&Path>) -> HttpOptions {
     }
 }
 
-/// `msth play SRC` into `out` with a JSON report; returns the report.
-fn play(src: &str, out: &Path, extra: &[&str]) -> serde_json::Value {
-    let report = out.with_extension("json");
-    let mut args = vec![
-        "play",
-        src,
-        "--path",
-        "0",
-        "--out",
-        out.to_str().unwrap(),
-        "--no-video",
-        "--quiet",
-        "--report",
-        report.to_str().unwrap(),
-    ];
-    args.extend_from_slice(extra);
-    msth(&args).unwrap_or_else(|e| panic!("msth play {src}: {e}"));
-    serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap()
-}
-
 /// The PNG frames of a playback folder, by name, as file bytes.
 fn frames(dir: &Path) -> Vec<(String, Vec<u8>)> {
-    let mut v: Vec<_> = std::fs::read_dir(dir)
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .filter(|p| p.extension().is_some_and(|x| x == "png"))
+    let mut v: Vec<_> = msth_testkit::files_with_extension(dir, "png")
+        .into_iter()
         .map(|p| {
             let name = p.file_name().unwrap().to_string_lossy().into_owned();
             (name, std::fs::read(&p).unwrap())
@@ -223,8 +204,7 @@ fn frames(dir: &Path) -> Vec<(String, Vec<u8>)> {
 fn https_playback_equals_http_and_the_local_file() {
     let dir = tempfile::tempdir().unwrap();
     let ca = TestCa::new("msth test CA");
-    let ca_pem = dir.path().join("ca.pem");
-    ca.write_pem(&ca_pem);
+    let ca_pem = ca.write_pem(dir.path(), "ca.pem");
     let server = serve_fixture();
     let front = TlsFront::start(server.addr(), &ca.leaf(&["localhost", "127.0.0.1"], false));
     let https = front.url("/models/v1.msth");
@@ -233,7 +213,7 @@ fn https_playback_equals_http_and_the_local_file() {
 
     // Local first (it warms the renderer), then http and https twice each, interleaved, so the
     // times to first frame compare like with like.
-    let local = play(
+    let local = play_report(
         fixture_path().to_str().unwrap(),
         &dir.path().join("local"),
         &[],
@@ -242,7 +222,7 @@ fn https_playback_equals_http_and_the_local_file() {
     for round in 0..2 {
         for (scheme, url) in [("http", &http), ("https", &https)] {
             let out = dir.path().join(format!("{scheme}{round}"));
-            let r = play(url, &out, &ca_arg);
+            let r = play_report(url, &out, &ca_arg);
             runs.push((scheme, out, r));
         }
     }
@@ -345,11 +325,9 @@ fn refused(url: &str, ca: Option<&Path>, reasons: &[&str]) -> String {
 fn untrusted_certificates_fail_clearly() {
     let dir = tempfile::tempdir().unwrap();
     let ca = TestCa::new("msth test CA");
-    let ca_pem = dir.path().join("ca.pem");
-    ca.write_pem(&ca_pem);
+    let ca_pem = ca.write_pem(dir.path(), "ca.pem");
     let other_ca = TestCa::new("another CA");
-    let other_pem = dir.path().join("other.pem");
-    other_ca.write_pem(&other_pem);
+    let other_pem = other_ca.write_pem(dir.path(), "other.pem");
     let server = serve_fixture();
     let good = TlsFront::start(server.addr(), &ca.leaf(&["localhost", "127.0.0.1"], false));
     let path = "/models/v1.msth";

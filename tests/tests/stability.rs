@@ -89,12 +89,9 @@ fn small_settings(data: &Dataset, iters: usize) -> TrainSettings {
     for enc in [&mut m.field.encoding, &mut m.proposal.encoding] {
         enc.resize(4, 12, 64.0, 16);
     }
-    m.field.density_hidden = 16;
-    m.field.color_hidden = 16;
+    m.resize_mlps(16, 8);
     m.field.geo_features = 7;
-    m.proposal.hidden = 8;
-    m.sampler.num_proposal_samples = 32;
-    m.sampler.num_samples = 16;
+    m.sampler.set_samples(32, 16);
     s.validate().unwrap();
     s
 }

@@ -5,8 +5,10 @@
 //! and a test whose need is missing is reported as ignored with the reason (the shared data:
 //! `MSTH_REQUIRE_DATA=1` makes that a failure).
 
+use std::path::Path;
+
 use msth_testkit::{Need, Tests};
-use msth_tests::{msth, shared_dataset};
+use msth_tests::{msth, read_json, shared_dataset, synth_cmd, train_cmd};
 use msth_trainer::dataset::dnerf::{load, LoadOptions};
 
 fn main() -> std::process::ExitCode {
@@ -31,38 +33,21 @@ fn box_animated_both_layouts_load_and_the_stage_trains() {
     let tmp = tempfile::tempdir().unwrap();
     let object = tmp.path().join("object");
     let stage = tmp.path().join("stage");
-    msth(&[
-        "synth",
-        "--gltf",
-        model,
-        "--layout",
-        "object",
-        "--size",
-        "40x40",
-        "--frames",
-        "6",
-        "--cameras",
-        "2",
-        "--out",
-        object.to_str().unwrap(),
-    ])
-    .unwrap();
-    msth(&[
-        "synth",
-        "--gltf",
-        model,
-        "--layout",
-        "stage",
-        "--size",
-        "40x30",
-        "--frames",
-        "5",
-        "--cameras",
-        "4",
-        "--out",
-        stage.to_str().unwrap(),
-    ])
-    .unwrap();
+    let synth = |out: &Path, layout: &str, size: &str, frames: &str, cameras: &str| {
+        let args = [
+            "--layout",
+            layout,
+            "--size",
+            size,
+            "--frames",
+            frames,
+            "--cameras",
+            cameras,
+        ];
+        synth_cmd(out, &[&["--gltf", model][..], &args].concat()).unwrap();
+    };
+    synth(&object, "object", "40x40", "6", "2");
+    synth(&stage, "stage", "40x30", "5", "4");
     let o = load(&object, &LoadOptions::default()).unwrap();
     assert_eq!((o.train.len(), o.test.len()), (6, 2));
     assert!(o.train.iter().all(|v| v.alpha.is_some()));
@@ -74,19 +59,8 @@ fn box_animated_both_layouts_load_and_the_stage_trains() {
     assert!(stage.join("poses_bounds.npy").is_file());
     // A few training steps on the generated stage, then evaluation.
     let run = tmp.path().join("run");
-    msth(&[
-        "train",
-        stage.to_str().unwrap(),
-        "--out",
-        run.to_str().unwrap(),
-        "--preset",
-        "fast",
-        "--iters",
-        "10",
-    ])
-    .unwrap();
-    let metrics: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(run.join("metrics.json")).unwrap()).unwrap();
+    train_cmd(&stage, &run, &["--preset", "fast", "--iters", "10"]).unwrap();
+    let metrics = read_json(&run.join("metrics.json"));
     assert!(metrics["psnr"].as_f64().unwrap() > 5.0, "{metrics}");
 }
 

@@ -10,7 +10,7 @@ use std::path::Path;
 
 use msth_cli::tradeoff_plot::{self, PlotPoint};
 use msth_testkit::{Need, Tests};
-use msth_tests::msth;
+use msth_tests::{msth, synth_cmd};
 
 fn main() -> std::process::ExitCode {
     let font = Need::new("font", || {
@@ -53,17 +53,10 @@ fn tradeoff_sweep_writes_tables_plots_and_fronts() {
     let tmp = tempfile::tempdir().unwrap();
     let data = tmp.path().join("data");
     let out = tmp.path().join("out");
-    msth(&[
-        "synth",
-        "--out",
-        data.to_str().unwrap(),
-        "--size",
-        "32x24",
-        "--frames",
-        "3",
-        "--cameras",
-        "3",
-    ])
+    synth_cmd(
+        &data,
+        &["--size", "32x24", "--frames", "3", "--cameras", "3"],
+    )
     .unwrap();
     let args = [
         "--threads",
@@ -226,50 +219,16 @@ fn tradeoff_rejects_bad_options() {
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("out");
     let o = out.to_str().unwrap();
-    let e = msth(&[
-        "bench",
-        "tradeoff",
-        "builtin",
-        "--out",
-        o,
-        "--factors",
-        "colour",
-    ])
-    .unwrap_err();
-    assert!(e.contains("unknown factor `colour`"), "{e}");
-    let e = msth(&[
-        "bench",
-        "tradeoff",
-        "builtin",
-        "--out",
-        o,
-        "--variant",
-        "nolabel",
-    ])
-    .unwrap_err();
-    assert!(e.contains("--variant"), "{e}");
-    let e = msth(&[
-        "bench",
-        "tradeoff",
-        "builtin",
-        "--out",
-        o,
-        "--fps-size",
-        "0x5",
-    ])
-    .unwrap_err();
-    assert!(e.contains("--fps-size"), "{e}");
-    let e = msth(&[
-        "bench",
-        "tradeoff",
-        "builtin",
-        "--out",
-        o,
-        "--presets",
-        "huge",
-    ])
-    .unwrap_err();
-    assert!(e.contains("unknown preset"), "{e}");
+    // (option, bad value, what the error says)
+    for (flag, value, needle) in [
+        ("--factors", "colour", "unknown factor `colour`"),
+        ("--variant", "nolabel", "--variant"),
+        ("--fps-size", "0x5", "--fps-size"),
+        ("--presets", "huge", "unknown preset"),
+    ] {
+        let e = msth(&["bench", "tradeoff", "builtin", "--out", o, flag, value]).unwrap_err();
+        assert!(e.contains(needle), "{flag} {value}: {e}");
+    }
     let e = msth(&["bench", "tradeoff", "/no/such/dir", "--out", o]).unwrap_err();
     assert!(e.contains("/no/such/dir"), "{e}");
 }

@@ -8,7 +8,7 @@
 use msth_core::config::Preset;
 use msth_core::field::ModelLayout;
 use msth_testkit::{Need, Tests};
-use msth_tests::{msth, shared_dataset, tiny_scene};
+use msth_tests::{msth, read_json, render_cmd, shared_dataset, tiny_scene, train_cmd};
 use msth_trainer::checkpoint::Checkpoint;
 use msth_trainer::eval::evaluate;
 use msth_trainer::train::{train, TrainSettings};
@@ -144,8 +144,7 @@ fn demo_leaves_checkpoint_and_metrics() {
         "7",
     ])
     .unwrap();
-    let m: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap()).unwrap();
+    let m = read_json(&out.join("metrics.json"));
     for k in [
         "psnr",
         "ssim",
@@ -165,39 +164,19 @@ fn demo_leaves_checkpoint_and_metrics() {
     assert!(std::path::Path::new(pic).is_file());
     let png = t.path().join("r.png");
     let ck = out.join("model.ckpt");
-    msth(&[
-        "render",
-        ck.to_str().unwrap(),
+    let orbit = [
         "--camera",
         "orbit:30,20,3",
         "--time",
         "0.5",
         "--width",
         "40",
-        "-o",
-        png.to_str().unwrap(),
-    ])
-    .unwrap();
+    ];
+    render_cmd(&ck, &png, &orbit).unwrap();
     assert!(png.is_file());
-    let err = msth(&[
-        "render",
-        ck.to_str().unwrap(),
-        "--time",
-        "1.5",
-        "-o",
-        png.to_str().unwrap(),
-    ])
-    .unwrap_err();
+    let err = render_cmd(&ck, &png, &["--time", "1.5"]).unwrap_err();
     assert!(err.contains("--time"), "{err}");
-    let err = msth(&[
-        "render",
-        ck.to_str().unwrap(),
-        "--camera",
-        "99",
-        "-o",
-        png.to_str().unwrap(),
-    ])
-    .unwrap_err();
+    let err = render_cmd(&ck, &png, &["--camera", "99"]).unwrap_err();
     assert!(err.contains("cameras"), "{err}");
 }
 
@@ -206,23 +185,14 @@ fn shared_object_dataset_trains() {
     let dir = shared_dataset("box_animated_object");
     let t = tempfile::tempdir().unwrap();
     let out = t.path().join("obj");
-    msth(&[
-        "train",
-        dir.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--preset",
-        "fast",
-        "--iters",
-        "150",
-        "--downscale",
-        "2",
-        "--set",
-        "eval_stride=5",
-    ])
+    let settings = ["--preset", "fast", "--iters", "150", "--downscale", "2"];
+    train_cmd(
+        &dir,
+        &out,
+        &[&settings[..], &["--set", "eval_stride=5"]].concat(),
+    )
     .unwrap();
-    let m: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap()).unwrap();
+    let m = read_json(&out.join("metrics.json"));
     let psnr = m["psnr"].as_f64().unwrap();
     // An all-white prediction scores about 22.5 dB here; learning the object must beat it.
     assert!(psnr > 25.0, "held-out PSNR {psnr:.2}");

@@ -29,8 +29,7 @@ use msth_codec::occupancy::{
 use msth_codec::quant::{ENC_AFFINE, ENC_CODEBOOK, ENC_F16, ENC_F32, PRED_DELTA, PRED_NONE};
 use msth_codec::sections::SHARED_TAG;
 use msth_codec::QuantMode;
-use msth_core::config::{Background, BlendMode, ModelConfig, Preset};
-use msth_core::scene::SceneBounds;
+use msth_core::config::{BlendMode, ModelConfig};
 
 fn path() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../web/js/generated/contract.js")
@@ -69,12 +68,7 @@ const BLENDS: [(BlendMode, &str); 5] = [
 
 /// The blend code msth-gpu puts in the `Model` uniform for `blend`.
 fn gpu_blend_code(blend: BlendMode) -> u32 {
-    let mut cfg = ModelConfig::preset(
-        Preset::Fast,
-        SceneBounds::dnerf_default(),
-        Background::Color { rgb: [1.0; 3] },
-        2,
-    );
+    let mut cfg = ModelConfig::fast_on_white(2);
     cfg.field.encoding.blend = blend;
     msth_gpu::GpuModel::new(&cfg)
         .expect("the fast preset fits the GPU kernels")
@@ -153,12 +147,7 @@ fn generate() -> String {
         js_str_list(QuantMode::ALL.iter().map(|m| m.name()))
     );
     // The metadata's keys, as msth-codec serialises them.
-    let cfg = ModelConfig::preset(
-        Preset::Fast,
-        SceneBounds::dnerf_default(),
-        Background::Color { rgb: [1.0; 3] },
-        2,
-    );
+    let cfg = ModelConfig::fast_on_white(2);
     let meta = msth_codec::Metadata {
         param_count: 0,
         model: cfg,

@@ -20,7 +20,7 @@ use std::time::{Duration, Instant};
 use msth_player::path::Rig;
 use msth_server::{BackgroundServer, ServerConfig};
 use msth_testkit::{Need, Tests};
-use msth_tests::{fixture_run, msth, tiny_scene};
+use msth_tests::{export_cmd, fixture_run, msth, read_json, tiny_scene};
 use msth_trainer::train::train;
 
 fn main() -> std::process::ExitCode {
@@ -133,17 +133,8 @@ fn web_player_streams_renders_and_matches_native() {
     let served = dir.path().join("models");
     std::fs::create_dir_all(&served).unwrap();
     let file = served.join("tiny.msth");
-    msth(&[
-        "export",
-        train_dir.join("model.ckpt").to_str().unwrap(),
-        "-o",
-        file.to_str().unwrap(),
-        "--quant",
-        "q8",
-        "--chunk-frames",
-        "2",
-    ])
-    .unwrap();
+    let q8 = ["--quant", "q8", "--chunk-frames", "2"];
+    export_cmd(&train_dir.join("model.ckpt"), &file, &q8).unwrap();
 
     // The JavaScript decoder reproduces msth-codec's flat parameter buffers bit for bit.
     let bytes = std::fs::read(&file).unwrap();
@@ -251,7 +242,7 @@ fn web_player_streams_renders_and_matches_native() {
         BROWSER_TIMEOUT,
     );
     assert!(ok, "the browser test failed:\n{out}");
-    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&results).unwrap()).unwrap();
+    let r = read_json(&results);
     let checks = r["checks"].as_array().unwrap();
     assert!(
         checks.len() >= 11 && checks.iter().all(|c| c["ok"] == true),

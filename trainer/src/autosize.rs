@@ -807,15 +807,7 @@ mod tests {
         assert_eq!(e.grid3.finest_resolution, vec![128.0; 3]);
         assert_eq!(&e.grid4.finest_resolution[..3], &[128.0; 3]);
         // Never above the preset: a fast preset keeps its smaller table.
-        let mut fast = TrainSettings::for_model(
-            Preset::Fast,
-            ModelConfig::preset(
-                Preset::Fast,
-                SceneBounds::dnerf_default(),
-                Background::Color { rgb: [1.0; 3] },
-                4,
-            ),
-        );
+        let mut fast = TrainSettings::for_model(Preset::Fast, ModelConfig::fast_on_white(4));
         autosize(&d, &mut fast, &[]);
         assert_eq!(fast.model.field.encoding.grid3.log2_table_size, 15);
     }

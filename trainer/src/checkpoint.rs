@@ -355,16 +355,9 @@ pub use msth_dataset::staging::write_atomic;
 #[cfg(test)]
 mod tests {
     use super::*;
-    use msth_core::config::{Background, Preset};
-    use msth_core::SceneBounds;
 
     fn sample() -> Checkpoint {
-        let model = ModelConfig::preset(
-            Preset::Fast,
-            SceneBounds::dnerf_default(),
-            Background::Color { rgb: [1.0; 3] },
-            4,
-        );
+        let model = ModelConfig::fast_on_white(4);
         let layout = ModelLayout::new(&model);
         let params = layout.init_params(1);
         let n = params.len();

@@ -302,17 +302,10 @@ impl PixelStats {
         let mut by_key: HashMap<(usize, u32, u32), usize> = HashMap::new();
         for (i, v) in views.iter().enumerate() {
             let (w, h) = (v.image.width, v.image.height);
-            let g = match v.camera_id {
-                Some(id) => *by_key.entry((id, w, h)).or_insert_with(|| {
-                    groups.push(CameraGroup {
-                        views: Vec::new(),
-                        width: w,
-                        height: h,
-                        pixel_offset: 0,
-                        dev_offset: 0,
-                    });
-                    groups.len() - 1
-                }),
+            // Views of one camera id and size share a group; a view without an id is alone.
+            let key = v.camera_id.map(|id| (id, w, h));
+            let g = match key.and_then(|k| by_key.get(&k)) {
+                Some(&g) => g,
                 None => {
                     groups.push(CameraGroup {
                         views: Vec::new(),
@@ -321,6 +314,9 @@ impl PixelStats {
                         pixel_offset: 0,
                         dev_offset: 0,
                     });
+                    if let Some(k) = key {
+                        by_key.insert(k, groups.len() - 1);
+                    }
                     groups.len() - 1
                 }
             };

@@ -805,15 +805,9 @@ pub fn train(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use msth_core::SceneBounds;
 
     fn settings() -> TrainSettings {
-        let model = ModelConfig::preset(
-            Preset::Fast,
-            SceneBounds::dnerf_default(),
-            Background::Color { rgb: [1.0; 3] },
-            10,
-        );
+        let model = ModelConfig::fast_on_white(10);
         TrainSettings::for_model(Preset::Fast, model)
     }
 

@@ -92,8 +92,7 @@ mod tests {
         s.iters = 8;
         s.batch_rays = 256;
         s.checkpoint_every = 0;
-        s.model.sampler.num_proposal_samples = 16;
-        s.model.sampler.num_samples = 8;
+        s.model.sampler.set_samples(16, 8);
         let dir = tempfile::tempdir().unwrap();
         let (trainer, _) = train(&data, s, dir.path(), None, &mut |_| true).unwrap();
         let layout = &trainer.layout;

@@ -2,15 +2,11 @@
 //! rendering, the playback partition.
 
 use super::*;
-use crate::config::{BlendMode, Preset};
+use crate::config::BlendMode;
+use crate::test_support::{central_difference, largest_first};
 
 fn tiny_cfg() -> ModelConfig {
-    let mut c = ModelConfig::preset(
-        Preset::Fast,
-        SceneBounds::dnerf_default(),
-        Background::Color { rgb: [1.0; 3] },
-        5,
-    );
+    let mut c = ModelConfig::fast_on_white(5);
     for enc in [&mut c.field.encoding, &mut c.proposal.encoding] {
         enc.blend = BlendMode::Mst;
         enc.resize(2, 6, 8.0, 4);
@@ -18,12 +14,9 @@ fn tiny_cfg() -> ModelConfig {
         enc.grid3.base_resolution = vec![4.0; 3];
         enc.grid4.base_resolution = vec![4.0, 4.0, 4.0, 2.0];
     }
-    c.field.density_hidden = 8;
-    c.field.color_hidden = 8;
+    c.resize_mlps(8, 4);
     c.field.geo_features = 3;
-    c.proposal.hidden = 4;
-    c.sampler.num_proposal_samples = 12;
-    c.sampler.num_samples = 6;
+    c.sampler.set_samples(12, 6);
     c
 }
 
@@ -54,19 +47,9 @@ fn train_chunk_gradient_matches_finite_differences_for_main_field() {
     let cfg = tiny_cfg();
     cfg.validate().unwrap();
     let layout = ModelLayout::new(&cfg);
-    let mut p = layout.init_params(1);
-    let mut r = Rng::new(2);
-    for v in p.iter_mut() {
-        *v += r.range_f32(-0.3, 0.3);
-    }
+    let p = perturbed_params(&layout);
     let (rays, tg) = rays();
-    let step = StepSettings {
-        anneal: 1.0,
-        interlevel_weight: 1.0,
-        distortion_weight: 0.01,
-        loss_scale: 1.0 / rays.len() as f32,
-        sample_mask_weight: 0.0,
-    };
+    let step = full_step(rays.len(), 0.0);
     let total = |p: &[f32]| -> f64 {
         let mut ws = Workspace::default();
         let mut g = vec![0f32; p.len()];
@@ -106,16 +89,8 @@ fn train_chunk_gradient_matches_finite_differences_for_main_field() {
         .iter()
         .filter(|e| e.name.starts_with("field"))
     {
-        let mut idx: Vec<usize> = e.range().collect();
-        idx.sort_by(|&a, &b| grad[b].abs().partial_cmp(&grad[a].abs()).unwrap());
-        for &i in idx.iter().take(6) {
-            let h = 2e-3;
-            let mut q = p.clone();
-            q[i] += h;
-            let lp = total(&q);
-            q[i] -= 2.0 * h;
-            let lm = total(&q);
-            let fd = (lp - lm) / (2.0 * h as f64);
+        for &i in largest_first(e.range(), |i| grad[i] as f64).iter().take(6) {
+            let fd = central_difference(total, &p, i, 2e-3);
             let tol = 1e-4 + 5e-2 * fd.abs();
             assert!(
                 (fd - grad[i] as f64).abs() < tol,
@@ -162,13 +137,7 @@ fn aux_chunk(
     ap: &[f32],
 ) -> (f64, Vec<f32>, Vec<f32>) {
     let (rays, tg) = rays();
-    let step = StepSettings {
-        anneal: 1.0,
-        interlevel_weight: 1.0,
-        distortion_weight: 0.01,
-        loss_scale: 1.0 / rays.len() as f32,
-        sample_mask_weight: 0.0,
-    };
+    let step = full_step(rays.len(), 0.0);
     let mut g = vec![0f32; p.len()];
     let mut ag = vec![0f32; ap.len()];
     let l = train_chunk_with(
@@ -221,25 +190,31 @@ impl FdCheck {
         grad: impl Fn(usize) -> f64,
         loss: impl Fn(&[f32]) -> f64,
     ) {
-        let mut idx: Vec<usize> = range.collect();
-        idx.sort_by(|&a, &b| grad(b).abs().partial_cmp(&grad(a).abs()).unwrap());
+        let idx = largest_first(range, &grad);
         assert!(
             grad(idx[0]).abs() > self.min_grad,
             "no gradient reaches these parameters"
         );
         for &i in idx.iter().take(self.count) {
-            let mut q = p.to_vec();
-            q[i] += self.h;
-            let lp = loss(&q);
-            q[i] -= 2.0 * self.h;
-            let lm = loss(&q);
-            let fd = (lp - lm) / (2.0 * self.h as f64);
+            let fd = central_difference(&loss, p, i, self.h);
             assert!(
                 (fd - grad(i)).abs() < self.tol_abs + self.tol_rel * fd.abs(),
                 "[{i}]: fd {fd} vs {}",
                 grad(i)
             );
         }
+    }
+}
+
+/// The settings of a full training step (annealing done, interlevel and distortion on) over
+/// `rays` rays, with per-sample mask loss weight `sample_mask_weight`.
+fn full_step(rays: usize, sample_mask_weight: f32) -> StepSettings {
+    StepSettings {
+        anneal: 1.0,
+        interlevel_weight: 1.0,
+        distortion_weight: 0.01,
+        loss_scale: 1.0 / rays as f32,
+        sample_mask_weight,
     }
 }
 
@@ -273,31 +248,18 @@ fn train_chunk_with_mask_learning_matches_finite_differences() {
         .iter()
         .filter(|e| e.name.starts_with("field"))
     {
-        let mut idx: Vec<usize> = e.range().collect();
-        idx.sort_by(|&a, &b| grad[b].abs().partial_cmp(&grad[a].abs()).unwrap());
-        for &i in idx.iter().take(6) {
-            let h = 2e-3;
-            let mut q = p.clone();
-            q[i] += h;
-            let lp = aux_chunk(&cfg, &layout, &q, &mc, &al, &ap).0;
-            q[i] -= 2.0 * h;
-            let lm = aux_chunk(&cfg, &layout, &q, &mc, &al, &ap).0;
-            check(&e.name, (lp - lm) / (2.0 * h as f64), grad[i]);
+        let loss = |q: &[f32]| aux_chunk(&cfg, &layout, q, &mc, &al, &ap).0;
+        for &i in largest_first(e.range(), |i| grad[i] as f64).iter().take(6) {
+            check(&e.name, central_difference(loss, &p, i, 2e-3), grad[i]);
             checked += 1;
         }
     }
     for e in &al.params.entries {
-        let mut idx: Vec<usize> = e.range().collect();
-        idx.sort_by(|&a, &b| agrad[b].abs().partial_cmp(&agrad[a].abs()).unwrap());
+        let idx = largest_first(e.range(), |i| agrad[i] as f64);
         assert!(agrad[idx[0]] != 0.0, "{} gets no gradient", e.name);
+        let loss = |q: &[f32]| aux_chunk(&cfg, &layout, &p, &mc, &al, q).0;
         for &i in idx.iter().take(6) {
-            let h = 2e-3;
-            let mut q = ap.clone();
-            q[i] += h;
-            let lp = aux_chunk(&cfg, &layout, &p, &mc, &al, &q).0;
-            q[i] -= 2.0 * h;
-            let lm = aux_chunk(&cfg, &layout, &p, &mc, &al, &q).0;
-            check(&e.name, (lp - lm) / (2.0 * h as f64), agrad[i]);
+            check(&e.name, central_difference(loss, &ap, i, 2e-3), agrad[i]);
             checked += 1;
         }
     }
@@ -344,13 +306,7 @@ fn sample_mask_loss_matches_finite_differences() {
     let (rays, tg) = rays();
     let lam = 0.5f32;
     let run = |lam: f32, ws: &mut Workspace| {
-        let step = StepSettings {
-            anneal: 1.0,
-            interlevel_weight: 1.0,
-            distortion_weight: 0.01,
-            loss_scale: 1.0 / rays.len() as f32,
-            sample_mask_weight: lam,
-        };
+        let step = full_step(rays.len(), lam);
         let mut g = vec![0f32; p.len()];
         let l = train_chunk_with(
             &cfg,
