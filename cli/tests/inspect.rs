@@ -210,7 +210,7 @@ fn a_reader_that_closes_the_pipe_early_is_not_a_crash() {
         let out = Command::new(env!("CARGO_BIN_EXE_msth"))
             .args(&args)
             .stdout(writer.try_clone().expect("clone the pipe's write end"))
-            .stderr(Stdio::piped())
+            .stderr(std::process::Stdio::piped())
             .output()
             .expect("msth runs");
         let err = String::from_utf8_lossy(&out.stderr);
