@@ -37,6 +37,18 @@ const ARGS = { proposal: 0, rays: 12, samples: 24, color: 36, dynamic: 48, bytes
 /** `Pass` uniform bytes (passes.rs `PassU`). */
 const PASS_BYTES = 80;
 const PASS_ENTRIES = ["pass_setup", "pass_args", "pass_proposal", "pass_resample", "pass_density", "pass_visible", "pass_color", "pass_composite"];
+/** The dispatches of one batch, in order: entry point, and the offset of its indirect size (`null`: direct). */
+const PASS_STEPS = [
+  ["pass_setup", null],
+  ["pass_args", null],
+  ["pass_proposal", ARGS.proposal],
+  ["pass_resample", ARGS.rays],
+  ["pass_density", ARGS.samples],
+  ["pass_visible", ARGS.rays],
+  ["pass_args", null],
+  ["pass_color", ARGS.color],
+  ["pass_composite", ARGS.rays],
+];
 
 /**
  * Word offsets of the `work` regions for `rays` rays of `samples` samples (passes.rs `regions`,
@@ -203,8 +215,12 @@ export class Renderer {
     });
   }
 
-  /** Binds the kernels to `canvas` for a model (`cfg` its config, `layout` format.js's). */
-  async create(canvas, cfg, layout) {
+  /**
+   * Binds the kernels to `canvas` for a model (`cfg` its config, `layout` format.js's). `marks`,
+   * when given, receives `module` (ms since navigation start: the WGSL compiled) and
+   * `pipelines` (every pipeline created).
+   */
+  async create(canvas, cfg, layout, marks = {}) {
     const device = this.device;
     const { uniform, split } = gpuModel(cfg, layout);
     const perRay = typeof location !== "undefined" && new URLSearchParams(location.search).get("kernel") === "ray";
@@ -213,9 +229,10 @@ export class Renderer {
     const info = await module.getCompilationInfo();
     const errors = info.messages.filter((m) => m.type === "error");
     if (errors.length) throw new Error(`render.wgsl: ${errors.map((m) => `${m.lineNum}:${m.linePos} ${m.message}`).join("; ")}`);
+    marks.module = performance.now();
     // One explicit layout for every entry point (web/shaders/README.md, "Bindings").
     const C = GPUShaderStage.COMPUTE;
-    const kinds = ["uniform", "uniform", "read-only-storage", "read-only-storage", "read-only-storage", "read-only-storage", "storage", "storage", "storage", "uniform"];
+    const kinds = ["uniform", "uniform", "read-only-storage", "read-only-storage", "read-only-storage", "read-only-storage", "storage", "storage", "storage", "uniform", "read-only-storage"];
     const bindLayout = device.createBindGroupLayout({
       label: "msth render bindings",
       entries: kinds.map((type, binding) => ({ binding, visibility: C, buffer: { type } })),
@@ -228,6 +245,7 @@ export class Renderer {
     names.forEach((n, i) => (pipelines[n] = made[i]));
     const err = await device.popErrorScope();
     if (err) throw new Error(`render.wgsl: ${err.message}`);
+    marks.pipelines = performance.now();
     return new GpuScene(this, canvas, { layout: bindLayout, pipelines, perRay }, uniform, split, cfg);
   }
 }
@@ -266,6 +284,10 @@ class GpuScene {
     this.noList = small(GPUBufferUsage.STORAGE, "no list");
     this.noWork = small(GPUBufferUsage.STORAGE, "no work");
     this.noCtrl = small(GPUBufferUsage.STORAGE, "no counters");
+    /** The file's occupancy grid (`setOccupancy`); a placeholder and resolution 0 without one. */
+    this.noOccupancy = small(GPUBufferUsage.STORAGE, "no occupancy grid");
+    this.occupancy = this.noOccupancy;
+    this.occupancyResolution = 0;
     this.storageLimit = limit;
     this.context = canvas.getContext("webgpu");
     this.format = navigator.gpu.getPreferredCanvasFormat();
@@ -282,6 +304,9 @@ class GpuScene {
     this.tile = 4096;
     this.work = null;
     this.capacity = 0;
+    this.profile = typeof location !== "undefined" && new URLSearchParams(location.search).get("profile") === "1";
+    /** With `?profile=1`: milliseconds spent per entry point, summed over frames. */
+    this.passMs = {};
   }
 
   #ensureFrame(w, h) {
@@ -328,6 +353,25 @@ class GpuScene {
     }
   }
 
+  /**
+   * Uses the file's occupancy grid (format.js `readOccupancy`: `{ resolution, words }`), or none
+   * (`null`: a version-1 file, or skipping off): the per-sample passes then evaluate the main
+   * field only at samples in occupied cells, as the native renderers do.
+   */
+  setOccupancy(grid) {
+    if (this.occupancy !== this.noOccupancy) this.occupancy.destroy();
+    this.occupancy = this.noOccupancy;
+    this.occupancyResolution = 0;
+    if (grid) {
+      const bytes = grid.words.byteLength;
+      if (bytes > this.storageLimit) throw new Error(`the occupancy grid needs ${bytes} bytes, more than this GPU's storage buffer limit ${this.storageLimit}`);
+      this.occupancy = this.device.createBuffer({ size: Math.max(16, Math.ceil(bytes / 16) * 16), usage: GPUBufferUsage.STORAGE | GPUBufferUsage.COPY_DST, label: "occupancy grid" });
+      this.device.queue.writeBuffer(this.occupancy, 0, grid.words.buffer, grid.words.byteOffset, bytes);
+      this.occupancyResolution = grid.resolution;
+    }
+    this.groups = null;
+  }
+
   /** Uploads the flat parameter buffer (a Float32Array of `param_count` values). */
   setParams(params) {
     const q = this.device.queue;
@@ -362,7 +406,7 @@ class GpuScene {
     const group = (work) =>
       this.device.createBindGroup({
         layout: this.kernels.layout,
-        entries: [this.model, this.view, this.tab3, this.tab4, this.rest, this.noList, this.frame, work, this.ctrl, this.pass].map((buffer, binding) => ({ binding, resource: { buffer } })),
+        entries: [this.model, this.view, this.tab3, this.tab4, this.rest, this.noList, this.frame, work, this.ctrl, this.pass, this.occupancy].map((buffer, binding) => ({ binding, resource: { buffer } })),
       });
     this.groups = { main: group(this.work), args: group(this.args) };
     return this.groups;
@@ -381,37 +425,36 @@ class GpuScene {
       const groups = dispatchSize(count, maxDim);
       if (!groups) throw new Error(`${count} rays exceed this GPU's dispatch limits`);
       const pass = new ArrayBuffer(PASS_BYTES);
-      new Uint32Array(pass, 0, 12).set([start, count, 0, this.samples, ...this.regions, 0, 0]);
+      // tile, reg0, reg1 (rays, hist, edges, samp, geo, clist, no cache regions), reg2.y: the occupancy resolution.
+      new Uint32Array(pass, 0, 14).set([start, count, 0, this.samples, ...this.regions, 0, 0, 0, this.occupancyResolution]);
       device.queue.writeBuffer(this.pass, 0, pass);
       device.pushErrorScope("validation");
-      const enc = device.createCommandEncoder();
+      let enc = device.createCommandEncoder();
       enc.clearBuffer(this.ctrl);
-      const cp = enc.beginComputePass();
-      cp.setBindGroup(0, main);
-      cp.setPipeline(p.pass_setup);
-      cp.dispatchWorkgroups(groups[0], groups[1], 1);
-      const sizes = () => {
-        cp.setBindGroup(0, args);
-        cp.setPipeline(p.pass_args);
-        cp.dispatchWorkgroups(1);
-        cp.setBindGroup(0, main);
-      };
-      const indirect = (name, at) => {
-        cp.setPipeline(p[name]);
-        cp.dispatchWorkgroupsIndirect(this.args, at);
-      };
-      sizes();
-      indirect("pass_proposal", ARGS.proposal);
-      indirect("pass_resample", ARGS.rays);
-      indirect("pass_density", ARGS.samples);
-      indirect("pass_visible", ARGS.rays);
-      sizes();
-      indirect("pass_color", ARGS.color);
-      indirect("pass_composite", ARGS.rays);
-      cp.end();
-      this.#present(enc);
       const t0 = performance.now();
-      device.queue.submit([enc.finish()]);
+      // `?profile=1`: every dispatch its own submission, timed into `passMs` (ms per entry point).
+      for (let k = 0; k < PASS_STEPS.length; ) {
+        const end = this.profile ? k + 1 : PASS_STEPS.length;
+        const cp = enc.beginComputePass();
+        for (const [name, at] of PASS_STEPS.slice(k, end)) {
+          cp.setBindGroup(0, name === "pass_args" ? args : main);
+          cp.setPipeline(p[name]);
+          if (at !== null) cp.dispatchWorkgroupsIndirect(this.args, at);
+          else if (name === "pass_setup") cp.dispatchWorkgroups(groups[0], groups[1], 1);
+          else cp.dispatchWorkgroups(1);
+        }
+        cp.end();
+        if (end === PASS_STEPS.length) this.#present(enc);
+        const ts = performance.now();
+        device.queue.submit([enc.finish()]);
+        if (this.profile) {
+          await device.queue.onSubmittedWorkDone();
+          const name = PASS_STEPS[k][0];
+          this.passMs[name] = (this.passMs[name] || 0) + performance.now() - ts;
+          enc = device.createCommandEncoder();
+        }
+        k = end;
+      }
       const err = await device.popErrorScope();
       if (err) throw new Error(`render: ${err.message}`);
       await device.queue.onSubmittedWorkDone();
@@ -437,7 +480,7 @@ class GpuScene {
       device.pushErrorScope("validation");
       const bind = device.createBindGroup({
         layout: this.kernels.layout,
-        entries: [this.model, this.view, this.tab3, this.tab4, this.rest, this.order, this.frame, this.noWork, this.noCtrl, this.pass].map((buffer, binding) => ({
+        entries: [this.model, this.view, this.tab3, this.tab4, this.rest, this.order, this.frame, this.noWork, this.noCtrl, this.pass, this.noOccupancy].map((buffer, binding) => ({
           binding,
           resource: binding === 5 ? { buffer, offset: 4 * start, size: 4 * count } : { buffer },
         })),
