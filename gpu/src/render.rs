@@ -201,10 +201,16 @@ impl GpuContext {
     /// Opens the best adapter `policy` allows (discrete, integrated, virtual, other, then
     /// software), or says why none can be used.
     pub fn open(policy: AdapterPolicy) -> Result<Self, GpuError> {
-        Self::with_adapter(pick_adapter(policy)?)
+        Self::with_adapter(pick_adapter(policy)?, RENDER_WGSL)
     }
 
-    fn with_adapter(adapter: wgpu::Adapter) -> Result<Self, GpuError> {
+    /// [`GpuContext::open`] with another WGSL source of the same entry points and bindings (a
+    /// benchmark's older version of `render.wgsl`, to time old kernels against new ones).
+    pub fn open_with_source(policy: AdapterPolicy, wgsl: &str) -> Result<Self, GpuError> {
+        Self::with_adapter(pick_adapter(policy)?, wgsl)
+    }
+
+    fn with_adapter(adapter: wgpu::Adapter, wgsl: &str) -> Result<Self, GpuError> {
         let info = adapter.get_info();
         let name = format!("{} ({:?})", info.name, info.backend);
         // Ask for the adapter's own buffer limits (models and frames can be large), WebGPU
@@ -228,7 +234,7 @@ impl GpuContext {
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
         let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("render.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(RENDER_WGSL.into()),
+            source: wgpu::ShaderSource::Wgsl(wgsl.into()),
         });
         let storage = |binding: u32, read_only: bool| wgpu::BindGroupLayoutEntry {
             binding,

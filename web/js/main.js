@@ -160,7 +160,8 @@ async function main() {
   const rig = makeRig(meta.model.bounds, cameras, template);
   const view = parseView(params.get("view"));
   const orbit = view ? new Orbit(rig, view[0], view[1], view[2]) : new Orbit(rig);
-  // The default view is one of the file's cameras (the training cameras `msth export` stores).
+  // The default view is one of the file's cameras: camera 0, the first training camera (the
+  // trainer lists the training cameras first, the held-out ones after them).
   const camSel = $("camera");
   cameras.forEach((c, i) => camSel.append(new Option(`camera ${i} (${c.width}x${c.height})`, String(i))));
   camSel.append(new Option("free orbit", "free"));

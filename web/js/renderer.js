@@ -16,26 +16,12 @@
 // The kernel writes (r, g, b, depth) per pixel to a storage buffer; a small display pass (below,
 // not part of the renderer: it only copies that buffer to the canvas, clamped to [0, 1]) draws it.
 
-const LEVEL_SLOTS = 128;
-const MODEL_BYTES = 352 + 48 * LEVEL_SLOTS;
-const VIEW_BYTES = 112;
-const WORKGROUP = 64;
-/** `View.size.w` bit: invocation `i` renders pixel `list[i]`. */
-const FLAG_LIST = 1;
-const MAX_PROPOSAL_SAMPLES = 256;
-const MAX_SAMPLES = 128;
-const MAX_HIDDEN = 128;
-const MAX_GEO = 31;
-/** msth-core `pipeline::RENDER_STATIC_CUTOFF`. */
-const RENDER_STATIC_CUTOFF = 1e-3;
-const BLEND = { mst: 0, mt: 1, add: 2, four_d: 3, static: 4 };
+import {
+  LEVEL_SLOTS, LEVEL_BYTES, LEVEL_OFFSETS, ENCODING_OFFSETS, GRID_OFFSETS, MODEL_BYTES, MODEL_OFFSETS, VIEW_BYTES, WORKGROUP,
+  FLAG_LIST, MAX_PROPOSAL_SAMPLES, MAX_SAMPLES, MAX_HIDDEN, MAX_GEO, RENDER_STATIC_CUTOFF, BLEND,
+  FRAME_WORK_BYTES, PASS_ARGS as ARGS, PASS_BYTES, PASS_OFFSETS,
+} from "./generated/contract.js";
 
-/** Scratch memory one batch of rays may take (gpu/src/passes.rs `FRAME_WORK_BYTES`). */
-const FRAME_WORK_BYTES = 128 << 20;
-/** Byte offsets of the indirect dispatch sizes `pass_args` writes (passes.rs `ARGS_*`). */
-const ARGS = { proposal: 0, rays: 12, samples: 24, color: 36, dynamic: 48, bytes: 64 };
-/** `Pass` uniform bytes (passes.rs `PassU`). */
-const PASS_BYTES = 80;
 const PASS_ENTRIES = ["pass_setup", "pass_args", "pass_proposal", "pass_resample", "pass_density", "pass_visible", "pass_color", "pass_composite"];
 /** The dispatches of one batch, in order: entry point, and the offset of its indirect size (`null`: direct). */
 const PASS_STEPS = [
@@ -113,9 +99,13 @@ export function gpuModel(cfg, layout) {
   const buf = new ArrayBuffer(MODEL_BYTES);
   const u = new Uint32Array(buf);
   const f = new Float32Array(buf);
-  // Word offsets of the struct members.
-  const SAMPLER = 0, LIMITS = 4, BOUNDS_A = 8, BOUNDS_B = 12, BACKGROUND = 16, DENSITY = 20, COLOR = 24, PROPOSAL = 28;
-  const FIELD = 32, PROP = 60, LEVELS = 88;
+  // Word offsets of the struct members (the generated contract's byte offsets / 4).
+  const M = Object.fromEntries(Object.entries(MODEL_OFFSETS).map(([k, v]) => [k, v / 4]));
+  const [SAMPLER, LIMITS, BOUNDS_A, BOUNDS_B, BACKGROUND, DENSITY, COLOR, PROPOSAL] = [M.sampler, M.limits, M.boundsA, M.boundsB, M.background, M.density, M.color, M.proposal];
+  const [FIELD, PROP, LEVELS] = [M.field, M.prop, M.levels];
+  const LV = { scale: LEVEL_OFFSETS.scale / 4, stride: LEVEL_OFFSETS.stride / 4, info: LEVEL_OFFSETS.info / 4, words: LEVEL_BYTES / 4 };
+  const EN = { mode: ENCODING_OFFSETS.mode / 4, dims: ENCODING_OFFSETS.dims / 4, consts: ENCODING_OFFSETS.consts / 4, h3: ENCODING_OFFSETS.h3 / 4, h4: ENCODING_OFFSETS.h4 / 4 };
+  const GR = { shape: GRID_OFFSETS.shape / 4, loc: GRID_OFFSETS.loc / 4 };
   const s = cfg.sampler;
   const b = cfg.bounds;
   u.set([s.num_proposal_samples, s.num_samples, s.spacing === "lin_disp" ? 1 : 0, b.kind === "contracted" ? 1 : 0], SAMPLER);
@@ -142,22 +132,22 @@ export function gpuModel(cfg, layout) {
     const first = nextSlot;
     if (first + g.levels.length > LEVEL_SLOTS) throw new Error("too many grid levels for the GPU renderer");
     g.levels.forEach((lv, k) => {
-      const o = LEVELS + 12 * (first + k);
-      f.set([...lv.scale, 0, 0, 0, 0].slice(0, 4), o);
-      u.set(lv.stride.slice(0, 4), o + 4);
-      u.set([base + lv.offset, lv.dense ? 1 : 0, lv.rows, 0], o + 8);
+      const o = LEVELS + LV.words * (first + k);
+      f.set([...lv.scale, 0, 0, 0, 0].slice(0, 4), o + LV.scale);
+      u.set(lv.stride.slice(0, 4), o + LV.stride);
+      u.set([base + lv.offset, lv.dense ? 1 : 0, lv.rows, 0], o + LV.info);
     });
     nextSlot += g.levels.length;
-    u.set([g.dims, g.features, g.levels.length, g.tableSize - 1], at);
-    u.set([buffer, first, 1, 0], at + 4);
+    u.set([g.dims, g.features, g.levels.length, g.tableSize - 1], at + GR.shape);
+    u.set([buffer, first, 1, 0], at + GR.loc);
   };
   const encoding = (e, buffers, at) => {
-    grid(e.h3, buffers[0], at + 12);
-    grid(e.h4, buffers[1], at + 20);
-    u.set(e.mask ? [BLEND[e.blend], 1, e.mask.res, e.mask.start - rest0] : [BLEND[e.blend], 0, 0, 0], at);
-    u.set([e.outDim, 0, 0, 0], at + 4);
+    grid(e.h3, buffers[0], at + EN.h3);
+    grid(e.h4, buffers[1], at + EN.h4);
+    u.set(e.mask ? [BLEND[e.blend], 1, e.mask.res, e.mask.start - rest0] : [BLEND[e.blend], 0, 0, 0], at + EN.mode);
+    u.set([e.outDim, 0, 0, 0], at + EN.dims);
     const noMask = e.blend === "static" ? 1 : e.blend === "four_d" ? 0 : 0.5;
-    f.set([noMask, RENDER_STATIC_CUTOFF, 0, 0], at + 8);
+    f.set([noMask, RENDER_STATIC_CUTOFF, 0, 0], at + EN.consts);
   };
   encoding(fe, [0, 1], FIELD);
   encoding(layout.proposal.encoding, [2, 2], PROP);
@@ -424,9 +414,11 @@ class GpuScene {
       const count = Math.min(this.tile, this.capacity, n - start);
       const groups = dispatchSize(count, maxDim);
       if (!groups) throw new Error(`${count} rays exceed this GPU's dispatch limits`);
-      const pass = new ArrayBuffer(PASS_BYTES);
-      // tile, reg0, reg1 (rays, hist, edges, samp, geo, clist, no cache regions), reg2.y: the occupancy resolution.
-      new Uint32Array(pass, 0, 14).set([start, count, 0, this.samples, ...this.regions, 0, 0, 0, this.occupancyResolution]);
+      const pass = new Uint32Array(PASS_BYTES / 4);
+      pass.set([start, count, 0, this.samples], PASS_OFFSETS.tile / 4);
+      // reg0, reg1: rays, hist, edges, samp, geo, clist (no cache regions); reg2.y: the occupancy resolution.
+      pass.set(this.regions, PASS_OFFSETS.reg0 / 4);
+      pass[PASS_OFFSETS.reg2 / 4 + 1] = this.occupancyResolution;
       device.queue.writeBuffer(this.pass, 0, pass);
       device.pushErrorScope("validation");
       let enc = device.createCommandEncoder();
