@@ -12,7 +12,8 @@
 //! `MSTH_BENCH_SKIP_PER_RAY=1` skips the old kernel, which takes minutes on software adapters
 //! for large frames; `MSTH_BENCH_OLD_WGSL=FILE` compiles the old kernel from another version of
 //! `render.wgsl`, e.g. `git show a04e488:gpu/shaders/render.wgsl`, the kernels before the
-//! per-sample passes were optimised; `MSTH_BENCH_SKIP_INCREMENTAL=1` stops after the full
+//! per-sample passes were optimised, and `MSTH_BENCH_OLD_KERNELS=passes` times that file's
+//! per-sample passes instead of its per-ray kernel; `MSTH_BENCH_SKIP_INCREMENTAL=1` stops after the full
 //! frames). Timings include the read-back of the frame; "cpu" is this process's CPU time over
 //! the same span (all threads: lavapipe's included), which a busy machine inflates less than
 //! the wall time.
@@ -134,19 +135,23 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     println!("adapter: {}", ctx.adapter_name());
     let mut old_s = None;
     if std::env::var("MSTH_BENCH_SKIP_PER_RAY").as_deref() != Ok("1") {
-        match GpuRenderer::with_kernels(ctx, &cfg, full, GpuKernels::PerRay) {
+        let (kernels, what) = match std::env::var("MSTH_BENCH_OLD_KERNELS").as_deref() {
+            Ok("passes") => (GpuKernels::PerSample, "per-sample passes"),
+            _ => (GpuKernels::PerRay, "per-ray kernel"),
+        };
+        match GpuRenderer::with_kernels(ctx, &cfg, full, kernels) {
             Ok(mut old) => {
                 let (t, c) = (Instant::now(), cpu_seconds());
                 let f = old.render(&cam, 0.0, &params0)?;
                 let (secs, cpu) = (t.elapsed().as_secs_f64(), cpu_seconds() - c);
                 println!(
-                    "gpu full frame, per-ray kernel (old{}):    {secs:8.3} s (cpu {cpu:.1} s)  {:.1} dB vs cpu",
+                    "gpu full frame, {what} (old{}):    {secs:8.3} s (cpu {cpu:.1} s)  {:.1} dB vs cpu",
                     if old_source.is_some() { ", MSTH_BENCH_OLD_WGSL" } else { "" },
                     psnr(&f, &reference)
                 );
                 old_s = Some((secs, cpu));
             }
-            Err(e) => println!("gpu per-ray kernel (old): refused: {e}"),
+            Err(e) => println!("gpu {what} (old): refused: {e}"),
         }
     }
     let ctx = GpuContext::open(AdapterPolicy::any())?;
