@@ -22,19 +22,6 @@ const WORKGROUP: u32 = 64u;
 const VISIBLE_TRANSMITTANCE: f32 = 1e-3;
 const TAU_HIDDEN: f32 = 9.210340372; // ln(1 / HIDDEN_TRANSMITTANCE), HIDDEN_TRANSMITTANCE = 1e-4
 
-// Hash primes for (x, y, z, t).
-fn prime(a: u32) -> u32 {
-    var p = 3674653429u;
-    if a == 0u {
-        p = 1u;
-    } else if a == 1u {
-        p = 2654435761u;
-    } else if a == 2u {
-        p = 805459861u;
-    }
-    return p;
-}
-
 // ---- Uniforms -------------------------------------------------------------------------------
 
 struct Level {
@@ -119,14 +106,11 @@ struct View {
 
 var<private> w_prop: array<f32, MAX_PROPOSAL_SAMPLES>;
 var<private> s_main: array<f32, 129>; // MAX_SAMPLES + 1
-var<private> hid: array<f32, MAX_HIDDEN>;
+// MLP activations: the input (an encoding of at most MAX_LEVELS * MAX_FEATURES values) and
+// hidden layers in `hid`, each layer's output in `hid2`.
+var<private> hid: array<f32, 256>;
 var<private> hid2: array<f32, MAX_HIDDEN>;
-// MLP accumulators, four outputs each (MAX_HIDDEN / 4).
-var<private> acc4: array<vec4<f32>, 32>;
 var<private> dout: array<f32, 32>; // 1 + MAX_GEO
-var<private> cin: array<f32, 47>; // 16 + MAX_GEO
-var<private> feat3: array<f32, MAX_FEATURES>;
-var<private> feat4: array<f32, MAX_FEATURES>;
 var<private> sh: array<f32, 16>;
 
 // ---- Small functions --------------------------------------------------------------------------
@@ -139,6 +123,14 @@ var<private> sh: array<f32, 16>;
 fn clamp_unit(x: f32) -> f32 {
     // NaN maps to 0 (as the CPU's `if x >= 0 { min(x, 1) } else { 0 }`).
     return select(0.0, min(x, 1.0), x >= 0.0);
+}
+
+fn clamp_unit3(x: vec3<f32>) -> vec3<f32> {
+    return select(vec3<f32>(0.0), min(x, vec3<f32>(1.0)), x >= vec3<f32>(0.0));
+}
+
+fn clamp_unit4(x: vec4<f32>) -> vec4<f32> {
+    return select(vec4<f32>(0.0), min(x, vec4<f32>(1.0)), x >= vec4<f32>(0.0));
 }
 
 fn sigmoid(x: f32) -> f32 {
@@ -287,17 +279,12 @@ fn sh4(d: vec3<f32>) {
 
 // ---- Encoding ---------------------------------------------------------------------------------
 
-// Trilinear read of the dense mask grid (logit), `res^3` values at `off` in `rest`.
+// Trilinear read of the dense mask grid (logit), `res^3` values at `off` in `rest`. Per-axis
+// values in vectors, not indexed arrays (software adapters turn those into memory traffic).
 fn mask_logit(off: u32, res: u32, x: vec3<f32>) -> f32 {
-    var base: vec3<u32>;
-    var fr: vec3<f32>;
-    let rm1 = f32(res - 1u);
-    for (var a = 0u; a < 3u; a++) {
-        let p = clamp_unit(x[a]) * rm1;
-        let i = min(u32(p), res - 2u);
-        base[a] = i;
-        fr[a] = p - f32(i);
-    }
+    let pos = clamp_unit3(x) * f32(res - 1u);
+    let base = min(vec3<u32>(pos), vec3<u32>(res - 2u));
+    let fr = pos - vec3<f32>(base);
     var v = 0.0;
     for (var c = 0u; c < 8u; c++) {
         let bx = c & 1u;
@@ -321,70 +308,61 @@ fn mask_at(e: Encoding, x: vec3<f32>) -> f32 {
     return m;
 }
 
-// Features of one level of one grid at point p (dims 3 or 4) into `out` (feat3 or feat4):
-// multilinear interpolation of the 2^D corners, dense or hashed indexing.
-fn grid_level(g: Grid, l: u32, p: vec4<f32>, into4: bool) {
+// The features of one level (at most MAX_FEATURES: `a` holds features 0..3, `b` 4..7).
+struct Feat {
+    a: vec4<f32>,
+    b: vec4<f32>,
+}
+
+// Features of level l of grid g at point p (dims 3 or 4): multilinear interpolation of the 2^D
+// corners, dense or hashed indexing; the table is in buffer `buf` (0 tab3, 1 tab4, 2 rest),
+// a constant at every call site so that the compiler can drop `table`'s branches. Per-axis
+// values in vectors and features in two vec4 (no indexed private arrays).
+fn grid_level(g: Grid, l: u32, p: vec4<f32>, buf: u32) -> Feat {
     let lv = model.levels[g.loc.y + l];
-    let dims = g.shape.x;
+    let four = g.shape.x == 4u;
     let nf = g.shape.y;
     let dense = lv.info.y == 1u;
-    // Per-axis values in function-local arrays (no dynamic indexing of vector values).
-    var pa = array<f32, 4>(p.x, p.y, p.z, p.w);
-    var scale = array<f32, 4>(lv.scale.x, lv.scale.y, lv.scale.z, lv.scale.w);
-    var stride = array<u32, 4>(lv.stride.x, lv.stride.y, lv.stride.z, lv.stride.w);
-    var lo = array<u32, 4>(0u, 0u, 0u, 0u);
-    var hi = array<u32, 4>(0u, 0u, 0u, 0u);
-    var fr = array<f32, 4>(0.0, 0.0, 0.0, 0.0);
-    for (var a = 0u; a < dims; a++) {
-        let q = clamp_unit(pa[a]) * scale[a] + 0.5;
-        let i = u32(q); // q >= 0.5: truncation is floor
-        fr[a] = q - f32(i);
-        if dense {
-            lo[a] = i * stride[a];
-            hi[a] = lo[a] + stride[a];
-        } else {
-            lo[a] = i * prime(a);
-            hi[a] = (i + 1u) * prime(a);
-        }
-    }
-    var acc = array<f32, 8>(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
-    let corners = 1u << dims;
+    let q = clamp_unit4(p) * lv.scale + 0.5;
+    let iv = vec4<u32>(q); // q >= 0.5: truncation is floor
+    let fr = q - vec4<f32>(iv);
+    let primes = vec4<u32>(1u, 2654435761u, 805459861u, 3674653429u);
+    let lo = select(iv * primes, iv * lv.stride, dense);
+    let hi = select((iv + 1u) * primes, lo + lv.stride, dense);
+    var fa = vec4<f32>(0.0);
+    var fb = vec4<f32>(0.0);
+    let corners = select(8u, 16u, four);
     // Per corner: its weight and row once, then its features.
     for (var c = 0u; c < corners; c++) {
-        let u0 = (c & 1u) == 1u;
-        let u1 = (c & 2u) == 2u;
-        let u2 = (c & 4u) == 4u;
-        let u3 = (c & 8u) == 8u && dims == 4u;
-        var w = select(1.0 - fr[0], fr[0], u0) * select(1.0 - fr[1], fr[1], u1)
-            * select(1.0 - fr[2], fr[2], u2);
-        if dims == 4u {
-            w *= select(1.0 - fr[3], fr[3], u3);
+        let u = vec4<bool>((c & 1u) != 0u, (c & 2u) != 0u, (c & 4u) != 0u, (c & 8u) != 0u);
+        let wv = select(1.0 - fr, fr, u);
+        var w = wv.x * wv.y * wv.z;
+        if four {
+            w *= wv.w;
         }
-        let v3 = select(0u, select(lo[3], hi[3], u3), dims == 4u);
+        let cv = select(lo, hi, u);
+        let v3 = select(0u, cv.w, four);
         var row: u32;
         if dense {
-            row = select(lo[0], hi[0], u0) + select(lo[1], hi[1], u1) + select(lo[2], hi[2], u2) + v3;
+            row = cv.x + cv.y + cv.z + v3;
         } else {
-            row = (select(lo[0], hi[0], u0) ^ select(lo[1], hi[1], u1) ^ select(lo[2], hi[2], u2) ^ v3)
-                & g.shape.w;
+            row = (cv.x ^ cv.y ^ cv.z ^ v3) & g.shape.w;
         }
         let base = lv.info.x + row * nf;
         for (var f = 0u; f < nf; f++) {
-            acc[f] += w * table(g.loc.x, base + f);
+            let t = w * table(buf, base + f);
+            let fv = vec4<u32>(f);
+            fa = select(fa, fa + t, fv == vec4<u32>(0u, 1u, 2u, 3u));
+            fb = select(fb, fb + t, fv == vec4<u32>(4u, 5u, 6u, 7u));
         }
     }
-    for (var f = 0u; f < nf; f++) {
-        if into4 {
-            feat4[f] = acc[f];
-        } else {
-            feat3[f] = acc[f];
-        }
-    }
+    return Feat(fa, fb);
 }
 
-// Masked encoding at point p fused into the first layer of an MLP: hid[j] = relu(sum_k enc_k W[k, j])
-// with W ([in, hidden], row-major) at `w_off` in `rest`. Returns the mask value m.
-fn encode_into_hidden(e: Encoding, p: vec4<f32>, cutoff: f32, w_off: u32, hidden: u32) -> f32 {
+// Masked encoding at point p into hid[0 .. levels * features] (level-major, features within a
+// level), the MLPs' input. `buf3`, `buf4`: the buffers of the 3D and 4D tables (constants at
+// the call sites: field 0 and 1, proposal 2 and 2). Returns the mask value m.
+fn encode(e: Encoding, p: vec4<f32>, cutoff: f32, buf3: u32, buf4: u32) -> f32 {
     let m = mask_at(e, p.xyz);
     let blend = e.mode.x;
     let use3 = e.h3.loc.z == 1u;
@@ -400,99 +378,90 @@ fn encode_into_hidden(e: Encoding, p: vec4<f32>, cutoff: f32, w_off: u32, hidden
         levels = e.h4.shape.z;
         nf = e.h4.shape.y;
     }
-    let n4 = (hidden + 3u) / 4u;
-    for (var q = 0u; q < n4; q++) {
-        acc4[q] = vec4<f32>(0.0);
-    }
-    var venc = array<f32, 8>(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+    let zero = Feat(vec4<f32>(0.0), vec4<f32>(0.0));
     for (var l = 0u; l < levels; l++) {
-        for (var f = 0u; f < MAX_FEATURES; f++) {
-            feat3[f] = 0.0;
-            feat4[f] = 0.0;
-        }
+        var f3 = zero;
+        var f4 = zero;
         if use3 {
-            grid_level(e.h3, l, p, false);
+            f3 = grid_level(e.h3, l, p, buf3);
         }
         if use4 && !skip4 {
-            grid_level(e.h4, l, p, true);
+            f4 = grid_level(e.h4, l, p, buf4);
+        }
+        var v = f3;
+        if blend == 0u {
+            v = Feat(m * f3.a + (1.0 - m) * f4.a, m * f3.b + (1.0 - m) * f4.b);
+        } else if blend == 1u {
+            v = Feat(f3.a + (1.0 - m) * f4.a, f3.b + (1.0 - m) * f4.b);
+        } else if blend == 2u {
+            v = Feat(f3.a + f4.a, f3.b + f4.b);
+        } else if blend == 3u {
+            v = f4;
         }
         for (var f = 0u; f < nf; f++) {
-            let a = feat3[f];
-            let b = feat4[f];
-            var v = a;
-            if blend == 0u {
-                v = m * a + (1.0 - m) * b;
-            } else if blend == 1u {
-                v = a + (1.0 - m) * b;
-            } else if blend == 2u {
-                v = a + b;
-            } else if blend == 3u {
-                v = b;
-            }
-            venc[f] = v;
-        }
-        // Rows l * nf .. (l + 1) * nf of W, four hidden units at a time.
-        let row0 = w_off + l * nf * hidden;
-        for (var f = 0u; f < nf; f++) {
-            accumulate_row(venc[f], row0 + f * hidden, hidden);
+            hid[l * nf + f] = select(v.b[f & 3u], v.a[f & 3u], f < 4u);
         }
     }
-    flush_acc(hidden, true, false);
     return m;
 }
 
 // rest[b .. b + 4], the components at or beyond `left` read as 0.
 fn w4(b: u32, left: u32) -> vec4<f32> {
     return vec4<f32>(
-        rest[b],
+        select(0.0, rest[b], left > 0u),
         select(0.0, rest[b + 1u], left > 1u),
         select(0.0, rest[b + 2u], left > 2u),
         select(0.0, rest[b + 3u], left > 3u),
     );
 }
 
-// acc4 += x * W[row .. row + n] (four outputs per step; a sum per output in the CPU's order).
-fn accumulate_row(x: f32, row: u32, n: u32) {
-    let n4 = (n + 3u) / 4u;
-    for (var q = 0u; q < n4; q++) {
-        acc4[q] += x * w4(row + 4u * q, n - 4u * q);
-    }
-}
-
-// The accumulators' first n values into hid (to_hid2 false) or hid2, ReLU when `relu`.
-fn flush_acc(n: u32, relu: bool, to_hid2: bool) {
-    let n4 = (n + 3u) / 4u;
-    for (var q = 0u; q < n4; q++) {
-        var v = acc4[q];
-        if relu {
-            v = max(v, vec4<f32>(0.0));
-        }
-        let o = 4u * q;
-        if to_hid2 {
-            hid2[o] = v.x;
-            hid2[o + 1u] = v.y;
-            hid2[o + 2u] = v.z;
-            hid2[o + 3u] = v.w;
-        } else {
-            hid[o] = v.x;
-            hid[o + 1u] = v.y;
-            hid[o + 2u] = v.z;
-            hid[o + 3u] = v.w;
-        }
-    }
+// a - b, or 0 when b > a.
+fn sub_sat(a: u32, b: u32) -> u32 {
+    return select(0u, a - b, a > b);
 }
 
 // hid2[0..nout] = hid[0..nin] W (W [nin, nout] row-major at `off` in `rest`), ReLU when `relu`;
-// each output summed over the inputs in order, as on the CPU.
+// each output summed over the inputs in order, as on the CPU. Sixteen outputs at a time in four
+// vec4 accumulators that stay in registers (indexed private memory only outside the inner loop:
+// software rasterisers such as SwiftShader turn every indexed private access into a per-lane
+// gather or scatter).
 fn dense_layer(off: u32, nin: u32, nout: u32, relu: bool) {
-    let n4 = (nout + 3u) / 4u;
-    for (var q = 0u; q < n4; q++) {
-        acc4[q] = vec4<f32>(0.0);
+    for (var o0 = 0u; o0 < nout; o0 += 16u) {
+        let left = nout - o0;
+        let l1 = sub_sat(left, 4u);
+        let l2 = sub_sat(left, 8u);
+        let l3 = sub_sat(left, 12u);
+        var a0 = vec4<f32>(0.0);
+        var a1 = vec4<f32>(0.0);
+        var a2 = vec4<f32>(0.0);
+        var a3 = vec4<f32>(0.0);
+        var row = off + o0;
+        for (var i = 0u; i < nin; i++) {
+            let x = hid[i];
+            a0 += x * w4(row, left);
+            a1 += x * w4(row + 4u, l1);
+            a2 += x * w4(row + 8u, l2);
+            a3 += x * w4(row + 12u, l3);
+            row += nout;
+        }
+        if relu {
+            a0 = max(a0, vec4<f32>(0.0));
+            a1 = max(a1, vec4<f32>(0.0));
+            a2 = max(a2, vec4<f32>(0.0));
+            a3 = max(a3, vec4<f32>(0.0));
+        }
+        let outs = array<vec4<f32>, 4>(a0, a1, a2, a3);
+        for (var k = 0u; k < min(left, 16u); k++) {
+            hid2[o0 + k] = outs[k >> 2u][k & 3u];
+        }
     }
-    for (var i = 0u; i < nin; i++) {
-        accumulate_row(hid[i], off + i * nout, nout);
+}
+
+// hid[0..n] = hid2[0..n].
+fn hid2_to_hid(n: u32) {
+    for (var j = 0u; j < n; j++) {
+        hid[j] = hid2[j];
     }
-    flush_acc(nout, relu, true);
 }
 
 // Proposal density at p.
@@ -500,11 +469,12 @@ fn proposal_sigma(p: vec4<f32>, cutoff: f32) -> f32 {
     let d = model.proposal;
     let off = d.x;
     let hidden = d.z;
-    encode_into_hidden(model.prop, p, cutoff, off, hidden);
+    encode(model.prop, p, cutoff, 2u, 2u);
+    dense_layer(off, d.y, hidden, true);
     let w2 = off + d.y * hidden;
     var s = 0.0;
     for (var j = 0u; j < hidden; j++) {
-        s += hid[j] * rest[w2 + j];
+        s += hid2[j] * rest[w2 + j];
     }
     return trunc_exp(s);
 }
@@ -515,7 +485,9 @@ fn field_density(p: vec4<f32>, cutoff: f32, m: ptr<function, f32>) -> f32 {
     let off = d.x;
     let hidden = d.z;
     let nout = d.w;
-    *m = encode_into_hidden(model.field, p, cutoff, off, hidden);
+    *m = encode(model.field, p, cutoff, 0u, 1u);
+    dense_layer(off, d.y, hidden, true);
+    hid2_to_hid(hidden);
     let w2 = off + d.y * hidden;
     dense_layer(w2, hidden, nout, false);
     for (var o = 0u; o < nout; o++) {
@@ -531,28 +503,35 @@ fn field_color() -> vec3<f32> {
     let hidden = c.y;
     let layers = c.z;
     let nin = 16u + geo;
-    for (var k = 0u; k < 16u; k++) {
-        cin[k] = sh[k];
-    }
+    // Constant indices: plain registers, no indexed private memory.
+    hid[0] = sh[0];
+    hid[1] = sh[1];
+    hid[2] = sh[2];
+    hid[3] = sh[3];
+    hid[4] = sh[4];
+    hid[5] = sh[5];
+    hid[6] = sh[6];
+    hid[7] = sh[7];
+    hid[8] = sh[8];
+    hid[9] = sh[9];
+    hid[10] = sh[10];
+    hid[11] = sh[11];
+    hid[12] = sh[12];
+    hid[13] = sh[13];
+    hid[14] = sh[14];
+    hid[15] = sh[15];
     for (var k = 0u; k < geo; k++) {
-        cin[16u + k] = dout[1u + k];
-    }
-    for (var i = 0u; i < nin; i++) {
-        hid[i] = cin[i];
+        hid[16u + k] = dout[1u + k];
     }
     var off = c.x;
     dense_layer(off, nin, hidden, true);
     off += nin * hidden;
     for (var k = 1u; k < layers; k++) {
-        for (var j = 0u; j < hidden; j++) {
-            hid[j] = hid2[j];
-        }
+        hid2_to_hid(hidden);
         dense_layer(off, hidden, hidden, true);
         off += hidden * hidden;
     }
-    for (var j = 0u; j < hidden; j++) {
-        hid[j] = hid2[j];
-    }
+    hid2_to_hid(hidden);
     dense_layer(off, hidden, 3u, false);
     let rgb = vec3<f32>(sigmoid(hid2[0]), sigmoid(hid2[1]), sigmoid(hid2[2]));
     return rgb;
@@ -785,7 +764,7 @@ struct Pass {
     reg0: vec4<u32>,
     // Word offsets: x geo, y clist, z wmax, w pts.
     reg1: vec4<u32>,
-    // x: dlist, yzw: 0.
+    // x: dlist, y: occupancy resolution R (0: no grid, every sample is evaluated), zw: 0.
     reg2: vec4<u32>,
     // x: static cutoff of `pass_build`, y: 1 = first time of `pass_wmax`, zw: 0.
     misc: vec4<f32>,
@@ -796,6 +775,9 @@ struct Pass {
 // Counters: [0] rays, [1] colour list, [2] dynamic samples.
 @group(0) @binding(8) var<storage, read_write> ctrl: array<atomic<u32>>;
 @group(0) @binding(9) var<uniform> pass_u: Pass;
+// The file's occupancy grid (docs/format.md §6.5): `R^3` bits over the grids' unit cube, cell
+// `i = x + R (y + R z)` is bit `i % 32` of word `i / 32`; a placeholder word without a grid.
+@group(0) @binding(10) var<storage, read> occupancy_words: array<u32>;
 
 const FLAG_P_LIST: u32 = 1u;
 const FLAG_P_COMPACT: u32 = 2u;
@@ -824,6 +806,21 @@ fn ray_rec(r: u32) -> vec4<f32> {
 
 fn ray_pixel(rec: vec4<f32>) -> u32 {
     return bitcast<u32>(rec.y);
+}
+
+// Whether the main field is evaluated at unit-cube point p: its occupancy cell is set (cell
+// `min(floor(clamp(p, 0, 1) R), R - 1)` per axis, as msth-codec's `occupied_unit`), or the
+// pass skips nothing (R = 0). A clear cell's samples get density 0 and no colour, as in the CPU
+// renderer's `skip.rs`.
+fn occupied(p: vec3<f32>) -> bool {
+    let r = pass_u.reg2.y;
+    var bit = true;
+    if r != 0u {
+        let c = min(vec3<u32>(clamp(p, vec3<f32>(0.0), vec3<f32>(1.0)) * f32(r)), vec3<u32>(r - 1u));
+        let i = c.x + r * (c.y + r * c.z);
+        bit = ((occupancy_words[i >> 5u] >> (i & 31u)) & 1u) == 1u;
+    }
+    return bit;
 }
 
 fn field_time() -> f32 {
@@ -877,31 +874,49 @@ fn pass_setup(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
     }
 }
 
-// Indirect dispatch sizes, 3 words each: [0] rays x proposal samples, [3] rays, [6] rays x S,
-// [9] colour list, [12] dynamic samples.
+// Indirect dispatch sizes, 3 words each: [0] rays x proposal samples / LANES, [3] rays,
+// [6] rays x S / LANES, [9] colour list / LANES, [12] dynamic samples.
 @compute @workgroup_size(1)
 fn pass_args() {
     let n = atomicLoad(&ctrl[0]);
-    write_groups(0u, n * model.sampler.x);
+    write_groups(0u, (n * model.sampler.x + LANES - 1u) / LANES);
     write_groups(3u, n);
-    write_groups(6u, n * samples_per_ray());
-    write_groups(9u, atomicLoad(&ctrl[1]));
+    write_groups(6u, (n * samples_per_ray() + LANES - 1u) / LANES);
+    write_groups(9u, (atomicLoad(&ctrl[1]) + LANES - 1u) / LANES);
     write_groups(12u, atomicLoad(&ctrl[2]));
 }
 
+// Per invocation: the proposal field's density at LANES (ray, proposal sample) pairs, entries
+// LANES i .. LANES i + LANES - 1 of the batch's pairs (ray-major); encodings one by one, the MLP
+// for the LANES samples together (`dense_lanes`).
 @compute @workgroup_size(64)
 fn pass_proposal(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let i = invocation(gid, groups);
     let np = model.sampler.x;
-    if i < ray_count() * np {
-        let r = i / np;
-        let k = i % np;
-        let rec = ray_rec(r);
-        let o = view.c2w[3].xyz;
-        let d = pixel_ray_dir(ray_pixel(rec));
-        let t0 = t_of_s(f32(k) / f32(np), rec.z, rec.w);
-        let t1 = t_of_s(f32(k + 1u) / f32(np), rec.z, rec.w);
-        work[pass_u.reg0.y + i] = proposal_sigma(sample_point(o, d, t0, t1, field_time()), model.prop.consts.y);
+    let n = ray_count() * np;
+    if i * LANES < n {
+        let used = min(n - i * LANES, LANES);
+        let d = model.proposal;
+        for (var k = 0u; k < LANES; k++) {
+            let e = i * LANES + min(k, used - 1u);
+            let r = e / np;
+            let ks = e % np;
+            let rec = ray_rec(r);
+            let dir = pixel_ray_dir(ray_pixel(rec));
+            let t0 = t_of_s(f32(ks) / f32(np), rec.z, rec.w);
+            let t1 = t_of_s(f32(ks + 1u) / f32(np), rec.z, rec.w);
+            encode(model.prop, sample_point(view.c2w[3].xyz, dir, t0, t1, field_time()), model.prop.consts.y, 2u, 2u);
+            hid_to_lane(k, d.y);
+        }
+        dense_lanes(d.x, d.y, d.z, true);
+        let w2 = d.x + d.y * d.z;
+        var sum = vec4<f32>(0.0);
+        for (var j = 0u; j < d.z; j++) {
+            sum += out4[j] * rest[w2 + j];
+        }
+        for (var k = 0u; k < used; k++) {
+            work[pass_u.reg0.y + i * LANES + k] = trunc_exp(sum[k]);
+        }
     }
 }
 
@@ -1003,28 +1018,74 @@ fn store_density(j: u32, sigma: f32) {
     }
 }
 
+// Main sample k of ray r (record `rec`): the unit-cube point at the frame's time.
+fn main_point(r: u32, k: u32, rec: vec4<f32>) -> vec4<f32> {
+    let iv = main_interval(r, k, rec.z, rec.w);
+    let d = pixel_ray_dir(ray_pixel(rec));
+    return sample_point(view.c2w[3].xyz, d, iv.x, iv.y, field_time());
+}
+
+// Per invocation: the main field's density and geometry features at LANES (ray, sample) pairs,
+// entries LANES i .. of the batch's samples (ray-major); encodings one by one, the density MLP
+// for the LANES samples together. Samples in empty occupancy cells get density 0 and no
+// evaluation.
 @compute @workgroup_size(64)
 fn pass_density(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let j = invocation(gid, groups);
+    let i = invocation(gid, groups);
     let s = samples_per_ray();
-    if j < ray_count() * s {
-        let r = j / s;
-        let rec = ray_rec(r);
-        let iv = main_interval(r, j % s, rec.z, rec.w);
-        let o = view.c2w[3].xyz;
-        let d = pixel_ray_dir(ray_pixel(rec));
-        var m = 1.0;
-        let sigma = field_density(sample_point(o, d, iv.x, iv.y, field_time()), model.field.consts.y, &m);
-        store_density(j, sigma);
+    let n = ray_count() * s;
+    if i * LANES < n {
+        let used = min(n - i * LANES, LANES);
+        let d = model.density;
+        var live = vec4<bool>(false);
+        for (var k = 0u; k < LANES; k++) {
+            let j = i * LANES + min(k, used - 1u);
+            let r = j / s;
+            let p = main_point(r, j % s, ray_rec(r));
+            live[k] = occupied(p.xyz);
+            if live[k] {
+                encode(model.field, p, model.field.consts.y, 0u, 1u);
+            } else {
+                for (var q = 0u; q < d.y; q++) {
+                    hid[q] = 0.0;
+                }
+            }
+            hid_to_lane(k, d.y);
+        }
+        dense_lanes(d.x, d.y, d.z, true);
+        out4_to_hid4(d.z);
+        dense_lanes(d.x + d.y * d.z, d.z, d.w, false);
+        let geo = model.color.w;
+        for (var k = 0u; k < used; k++) {
+            let j = i * LANES + k;
+            work[pass_u.reg0.w + 4u * j + 3u] = select(0.0, trunc_exp(out4[0][k]), live[k]);
+            for (var q = 0u; q < geo; q++) {
+                work[pass_u.reg1.x + j * geo + q] = out4[1u + q][k];
+            }
+        }
+    }
+}
+
+// hid4[0..n] component `lane` = hid[0..n] (one sample's MLP input into its lane).
+fn hid_to_lane(lane: u32, n: u32) {
+    for (var q = 0u; q < n; q++) {
+        hid4[q][lane] = hid[q];
     }
 }
 
 // Per (ray, sample) of the cache (time 0, as msth-player's sample cache): a sample whose dynamic
 // weight 1 - m is below the cutoff is static: its density and colour are evaluated once, with
 // the 4D lookup skipped; the others keep their point and are listed for every frame.
+// Dispatched as `pass_density` (LANES samples per invocation), one sample after the other.
 @compute @workgroup_size(64)
 fn pass_build(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let j = invocation(gid, groups);
+    let i = invocation(gid, groups);
+    for (var k = 0u; k < LANES; k++) {
+        build_sample(i * LANES + k);
+    }
+}
+
+fn build_sample(j: u32) {
     let s = samples_per_ray();
     if j < ray_count() * s {
         let r = j / s;
@@ -1081,8 +1142,9 @@ fn pass_dynamic(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
 }
 
 // Per ray: the samples light still reaches (optical depth before them at most ln(1e4)) go to
-// the colour list; the others get colour 0, as in the CPU renderer. With the cache flag only
-// dynamic samples are considered (static ones keep their colour).
+// the colour list; the others, and those in empty occupancy cells, get colour 0, as in the CPU
+// renderer. With the cache flag only dynamic samples are considered (static ones keep their
+// colour) and the occupancy grid is not used (as the CPU renderer's sample cache).
 @compute @workgroup_size(64)
 fn pass_visible(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let r = invocation(gid, groups);
@@ -1098,7 +1160,7 @@ fn pass_visible(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
             let sp = pass_u.reg0.w + 4u * j;
             let is_dyn = !cache || work[pass_u.reg1.w + 4u * j + 3u] == 1.0;
             if is_dyn {
-                if tau <= TAU_HIDDEN {
+                if tau <= TAU_HIDDEN && (cache || pass_u.reg2.y == 0u || occupied(main_point(r, k, rec).xyz)) {
                     let slot = atomicAdd(&ctrl[1], 1u);
                     work[pass_u.reg1.y + slot] = bitcast<f32>(j);
                 } else {
@@ -1113,26 +1175,133 @@ fn pass_visible(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
     }
 }
 
+// Per invocation: the colours of LANES listed samples (entries LANES i .. LANES i + LANES - 1 of
+// the colour list), their colour MLPs evaluated together: component k of a vec4 is sample k, so
+// that every weight read from `rest` serves LANES samples (weight reads dominate the pass on
+// software adapters, which gather every per-invocation storage read lane by lane).
 @compute @workgroup_size(64)
 fn pass_color(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let i = invocation(gid, groups);
-    if i < atomicLoad(&ctrl[1]) {
-        let j = work_u(pass_u.reg1.y + i);
-        let r = j / samples_per_ray();
-        let rec = ray_rec(r);
-        sh4(normalize(pixel_ray_dir(ray_pixel(rec))));
+    let n = atomicLoad(&ctrl[1]);
+    if i * LANES < n {
         let geo = model.color.w;
-        for (var q = 0u; q < geo; q++) {
-            dout[1u + q] = work[pass_u.reg1.x + j * geo + q];
+        let used = min(n - i * LANES, LANES);
+        var js = vec4<u32>(0u);
+        for (var k = 0u; k < LANES; k++) {
+            // Lanes past the list's end repeat its last sample and store nothing.
+            let j = work_u(pass_u.reg1.y + i * LANES + min(k, used - 1u));
+            js[k] = j;
+            let rec = ray_rec(j / samples_per_ray());
+            sh4(normalize(pixel_ray_dir(ray_pixel(rec))));
+            hid4[0][k] = sh[0];
+            hid4[1][k] = sh[1];
+            hid4[2][k] = sh[2];
+            hid4[3][k] = sh[3];
+            hid4[4][k] = sh[4];
+            hid4[5][k] = sh[5];
+            hid4[6][k] = sh[6];
+            hid4[7][k] = sh[7];
+            hid4[8][k] = sh[8];
+            hid4[9][k] = sh[9];
+            hid4[10][k] = sh[10];
+            hid4[11][k] = sh[11];
+            hid4[12][k] = sh[12];
+            hid4[13][k] = sh[13];
+            hid4[14][k] = sh[14];
+            hid4[15][k] = sh[15];
+            for (var q = 0u; q < geo; q++) {
+                hid4[16u + q][k] = work[pass_u.reg1.x + j * geo + q];
+            }
         }
-        let c = field_color();
-        let sp = pass_u.reg0.w + 4u * j;
-        work[sp] = c.x;
-        work[sp + 1u] = c.y;
-        work[sp + 2u] = c.z;
+        let c = field_color_lanes();
+        for (var k = 0u; k < used; k++) {
+            let sp = pass_u.reg0.w + 4u * js[k];
+            work[sp] = c[0][k];
+            work[sp + 1u] = c[1][k];
+            work[sp + 2u] = c[2][k];
+        }
     }
 }
 
+// ---- MLPs of LANES samples at once (`pass_color`) ----------------------------------------------
+
+// Samples per invocation of `pass_color`.
+const LANES: u32 = 4u;
+// Activations, component k for sample k: the input and hidden layers in `hid4`, each layer's
+// output in `out4`.
+var<private> hid4: array<vec4<f32>, MAX_HIDDEN>; // also the colour input: 16 + MAX_GEO < MAX_HIDDEN
+var<private> out4: array<vec4<f32>, MAX_HIDDEN>;
+
+// out4[0..nout] = hid4[0..nin] W per sample (W [nin, nout] row-major at `off` in `rest`), ReLU
+// when `relu`; each output summed over the inputs in order, as on the CPU. Eight outputs at a
+// time in registers: one read of a weight serves the LANES samples.
+fn dense_lanes(off: u32, nin: u32, nout: u32, relu: bool) {
+    for (var o0 = 0u; o0 < nout; o0 += 8u) {
+        let left = nout - o0;
+        let l1 = sub_sat(left, 4u);
+        var a0 = vec4<f32>(0.0);
+        var a1 = vec4<f32>(0.0);
+        var a2 = vec4<f32>(0.0);
+        var a3 = vec4<f32>(0.0);
+        var a4 = vec4<f32>(0.0);
+        var a5 = vec4<f32>(0.0);
+        var a6 = vec4<f32>(0.0);
+        var a7 = vec4<f32>(0.0);
+        var row = off + o0;
+        for (var i = 0u; i < nin; i++) {
+            let x = hid4[i];
+            let w = w4(row, left);
+            let v = w4(row + 4u, l1);
+            a0 += x * w.x;
+            a1 += x * w.y;
+            a2 += x * w.z;
+            a3 += x * w.w;
+            a4 += x * v.x;
+            a5 += x * v.y;
+            a6 += x * v.z;
+            a7 += x * v.w;
+            row += nout;
+        }
+        var outs = array<vec4<f32>, 8>(a0, a1, a2, a3, a4, a5, a6, a7);
+        for (var k = 0u; k < min(left, 8u); k++) {
+            var v = outs[k];
+            if relu {
+                v = max(v, vec4<f32>(0.0));
+            }
+            out4[o0 + k] = v;
+        }
+    }
+}
+
+// hid4[0..n] = out4[0..n].
+fn out4_to_hid4(n: u32) {
+    for (var j = 0u; j < n; j++) {
+        hid4[j] = out4[j];
+    }
+}
+
+fn sigmoid4(x: vec4<f32>) -> vec4<f32> {
+    return vec4<f32>(sigmoid(x.x), sigmoid(x.y), sigmoid(x.z), sigmoid(x.w));
+}
+
+// The colours of the LANES samples whose colour inputs (SH coefficients, then the geo
+// features) are in hid4, as `field_color`: red, green, blue, component k for sample k.
+fn field_color_lanes() -> array<vec4<f32>, 3> {
+    let c = model.color;
+    let hidden = c.y;
+    let nin = 16u + c.w;
+    var off = c.x;
+    dense_lanes(off, nin, hidden, true);
+    off += nin * hidden;
+    for (var k = 1u; k < c.z; k++) {
+        out4_to_hid4(hidden);
+        dense_lanes(off, hidden, hidden, true);
+        off += hidden * hidden;
+    }
+    out4_to_hid4(hidden);
+    dense_lanes(off, hidden, 3u, false);
+    return array<vec4<f32>, 3>(sigmoid4(out4[0]), sigmoid4(out4[1]), sigmoid4(out4[2]));
+}
 // Per ray: C = sum w_k c_k + T * background, and the visible depth, into frame[output index].
 @compute @workgroup_size(64)
 fn pass_composite(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {

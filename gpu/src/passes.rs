@@ -15,9 +15,11 @@
 //! # The `work` buffer, and why one
 //! Every pass binds the same group (`web/shaders/README.md`): the per-ray kernels' seven
 //! bindings plus `work` (one read-write f32 buffer holding every intermediate array at word
-//! offsets given in the `Pass` uniform), `ctrl` (the atomic counters) and the `Pass` uniform.
-//! One buffer for the intermediates rather than one binding each keeps every pass within
-//! WebGPU's default of 8 storage buffers per stage (7 used) and lets one bind group serve all
+//! offsets given in the `Pass` uniform), `ctrl` (the atomic counters), the `Pass` uniform and
+//! the file's occupancy grid (`pass_density` and `pass_visible` skip samples in its empty
+//! cells, as msth-player's `skip.rs`). One buffer for the intermediates rather than one binding
+//! each keeps every pass within WebGPU's default of 8 storage buffers per stage (8 used) and
+//! lets one bind group serve all
 //! nine dispatches. Per sample the passes keep `(r, g, b, sigma)` and the geometry features,
 //! ray-major (`ray * S + k`), so that neighbouring invocations evaluate neighbouring points of
 //! one ray (shared hash rows). The indirect dispatch sizes live in their own buffer (`args`),
@@ -32,21 +34,25 @@ use crate::render::{GpuContext, GpuError, GpuScene};
 /// `Pass.tile.z` bit: the output index is the batch-global list position (probes).
 const P_LIST: u32 = FLAG_LIST;
 const P_COMPACT: u32 = FLAG_COMPACT;
-/// Only samples flagged dynamic get colours (the sample cache).
-const P_CACHE: u32 = 4;
-/// `pass_resample` reads the `wmax` histogram.
-const P_WMAX: u32 = 8;
+/// `Pass.tile.z` bit: only samples flagged dynamic get colours (the sample cache).
+pub const PASS_FLAG_CACHE: u32 = 4;
+/// `Pass.tile.z` bit: `pass_resample` reads the `wmax` histogram.
+pub const PASS_FLAG_WMAX: u32 = 8;
+const P_CACHE: u32 = PASS_FLAG_CACHE;
+const P_WMAX: u32 = PASS_FLAG_WMAX;
 
 /// Scratch memory a frame's batch may take on the device; batches hold as many rays as fit.
 pub const FRAME_WORK_BYTES: u64 = 128 << 20;
 
-/// Byte offsets of the indirect dispatch sizes `pass_args` writes.
-const ARGS_PROPOSAL: u64 = 0;
-const ARGS_RAYS: u64 = 12;
-const ARGS_SAMPLES: u64 = 24;
-const ARGS_COLOR: u64 = 36;
-const ARGS_DYNAMIC: u64 = 48;
-const ARGS_BYTES: u64 = 64;
+/// Byte offsets of the indirect dispatch sizes `pass_args` writes (3 u32 each): rays x
+/// proposal samples, rays, rays x samples, the colour list, the dynamic samples.
+pub const ARGS_PROPOSAL: u64 = 0;
+pub const ARGS_RAYS: u64 = 12;
+pub const ARGS_SAMPLES: u64 = 24;
+pub const ARGS_COLOR: u64 = 36;
+pub const ARGS_DYNAMIC: u64 = 48;
+/// Bytes of the indirect sizes buffer.
+pub const ARGS_BYTES: u64 = 64;
 
 /// The `Pass` uniform (80 bytes; `render.wgsl`).
 #[repr(C)]
@@ -58,7 +64,7 @@ pub struct PassU {
     pub reg0: [u32; 4],
     /// Word offsets `(geo, clist, wmax, pts)`.
     pub reg1: [u32; 4],
-    /// `(dlist, 0, 0, 0)`.
+    /// `(dlist, occupancy resolution (0: none), 0, 0)`.
     pub reg2: [u32; 4],
     /// `(build cutoff, first time of pass_wmax, 0, 0)`.
     pub misc: [f32; 4],
@@ -142,11 +148,12 @@ impl Pipelines {
     }
 }
 
-/// Small buffers bound at bindings 7-9 by kernels that use none of them.
+/// Small buffers bound at bindings 7-10 by kernels that use none of them.
 pub(crate) struct Placeholders {
     pub(crate) work: wgpu::Buffer,
     pub(crate) ctrl: wgpu::Buffer,
     pub(crate) pass: wgpu::Buffer,
+    pub(crate) occupancy: wgpu::Buffer,
 }
 
 impl Placeholders {
@@ -168,6 +175,7 @@ impl Placeholders {
                 usage: wgpu::BufferUsages::UNIFORM,
                 mapped_at_creation: false,
             }),
+            occupancy: storage("occupancy placeholder"),
         }
     }
 }
@@ -313,6 +321,7 @@ impl GpuContext {
                 work,
                 ctrl,
                 pass,
+                &scene.occupancy,
             ]
             .into_iter()
             .enumerate()
@@ -408,6 +417,7 @@ impl GpuContext {
             let count = scratch.capacity.min(n - first);
             let mut pass = scratch.base;
             pass.tile = [first, count, flags, scratch.samples];
+            pass.reg2[1] = scene.occupancy_resolution;
             self.queue
                 .write_buffer(&pass_buf, 0, bytemuck::bytes_of(&pass));
             let (gx, gy) = self.direct_groups(count)?;

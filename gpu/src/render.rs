@@ -177,7 +177,7 @@ pub struct GpuContext {
     eval: wgpu::ComputePipeline,
     /// The per-sample passes' pipelines ([`crate::passes`]).
     pub(crate) passes: crate::passes::Pipelines,
-    /// Bound at bindings 7-9 by the per-ray kernels, which use none of them.
+    /// Bound at bindings 7-10 by the per-ray kernels, which use none of them.
     pub(crate) placeholders: crate::passes::Placeholders,
     pub(crate) state: Arc<Mutex<DeviceState>>,
 }
@@ -201,10 +201,16 @@ impl GpuContext {
     /// Opens the best adapter `policy` allows (discrete, integrated, virtual, other, then
     /// software), or says why none can be used.
     pub fn open(policy: AdapterPolicy) -> Result<Self, GpuError> {
-        Self::with_adapter(pick_adapter(policy)?)
+        Self::with_adapter(pick_adapter(policy)?, RENDER_WGSL)
     }
 
-    fn with_adapter(adapter: wgpu::Adapter) -> Result<Self, GpuError> {
+    /// [`GpuContext::open`] with another WGSL source of the same entry points and bindings (a
+    /// benchmark's older version of `render.wgsl`, to time old kernels against new ones).
+    pub fn open_with_source(policy: AdapterPolicy, wgsl: &str) -> Result<Self, GpuError> {
+        Self::with_adapter(pick_adapter(policy)?, wgsl)
+    }
+
+    fn with_adapter(adapter: wgpu::Adapter, wgsl: &str) -> Result<Self, GpuError> {
         let info = adapter.get_info();
         let name = format!("{} ({:?})", info.name, info.backend);
         // Ask for the adapter's own buffer limits (models and frames can be large), WebGPU
@@ -228,7 +234,7 @@ impl GpuContext {
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
         let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("render.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(RENDER_WGSL.into()),
+            source: wgpu::ShaderSource::Wgsl(wgsl.into()),
         });
         let storage = |binding: u32, read_only: bool| wgpu::BindGroupLayoutEntry {
             binding,
@@ -263,6 +269,7 @@ impl GpuContext {
                 storage(7, false),
                 storage(8, false),
                 uniform(9),
+                storage(10, true),
             ],
         });
         let pl = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
@@ -426,6 +433,7 @@ impl GpuContext {
             self.placeholders.work.as_entire_binding(),
             self.placeholders.ctrl.as_entire_binding(),
             self.placeholders.pass.as_entire_binding(),
+            self.placeholders.occupancy.as_entire_binding(),
         ];
         let entries: Vec<wgpu::BindGroupEntry> = entries
             .into_iter()
@@ -514,13 +522,31 @@ impl GpuContext {
     }
 }
 
-/// One model on the device: its `Model` uniform and the three parameter buffers.
+/// Checks that `words` are the bit words of an occupancy grid of resolution `r` (format.md §6.5).
+pub fn check_occupancy(r: u32, words: &[u32]) -> Result<(), GpuError> {
+    let cells = (r as u64).pow(3);
+    if r == 0 || words.len() as u64 != cells.div_ceil(32) {
+        return Err(GpuError::Input(format!(
+            "an occupancy grid of resolution {r} needs {} words, not {}",
+            cells.div_ceil(32),
+            words.len()
+        )));
+    }
+    Ok(())
+}
+
+/// One model on the device: its `Model` uniform, the three parameter buffers and the file's
+/// occupancy grid.
 pub struct GpuScene {
     pub gpu_model: GpuModel,
     pub(crate) model: wgpu::Buffer,
     pub(crate) tab3: wgpu::Buffer,
     pub(crate) tab4: wgpu::Buffer,
     pub(crate) rest: wgpu::Buffer,
+    /// The occupancy grid's words (a placeholder word without one).
+    pub(crate) occupancy: wgpu::Buffer,
+    /// Its resolution `R`; 0: no grid, the passes evaluate every sample.
+    pub(crate) occupancy_resolution: u32,
     /// The parameters last uploaded (to notice a new chunk).
     uploaded: Vec<f32>,
 }
@@ -549,6 +575,7 @@ impl GpuScene {
                 contents: bytemuck::bytes_of(&gpu_model.model),
                 usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
             });
+        let occupancy = ctx.storage_buffer("no occupancy grid", &[], false)?;
         ctx.check_state()?;
         Ok(GpuScene {
             gpu_model,
@@ -556,8 +583,39 @@ impl GpuScene {
             tab3,
             tab4,
             rest,
+            occupancy,
+            occupancy_resolution: 0,
             uploaded: params.to_vec(),
         })
+    }
+
+    /// Uses the file's occupancy grid (docs/format.md §6.5: `resolution` cells per axis, the bit
+    /// words) to skip the main field in empty cells in the per-sample passes' frames, or none
+    /// (every sample evaluated). The sample cache of incremental playback and the per-ray
+    /// kernel evaluate every sample, as the CPU renderer's sample cache does.
+    pub fn set_occupancy(
+        &mut self,
+        ctx: &GpuContext,
+        grid: Option<(u32, &[u32])>,
+    ) -> Result<(), GpuError> {
+        match grid {
+            None => {
+                self.occupancy = ctx.storage_buffer("no occupancy grid", &[], false)?;
+                self.occupancy_resolution = 0;
+            }
+            Some((r, words)) => {
+                check_occupancy(r, words)?;
+                self.occupancy =
+                    ctx.storage_buffer("occupancy grid", bytemuck::cast_slice(words), false)?;
+                self.occupancy_resolution = r;
+            }
+        }
+        Ok(())
+    }
+
+    /// The occupancy grid's resolution in use (0: none).
+    pub fn occupancy_resolution(&self) -> u32 {
+        self.occupancy_resolution
     }
 
     /// Uploads `params` when they differ from the last upload; `true` when they did.

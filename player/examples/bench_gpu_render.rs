@@ -10,7 +10,13 @@
 //! end-to-end GPU test's model), for comparing both kernels where lavapipe takes both. The camera is the file's first camera,
 //! its intrinsics scaled to SIZE x SIZE. Any adapter is used (lavapipe included;
 //! `MSTH_BENCH_SKIP_PER_RAY=1` skips the old kernel, which takes minutes on software adapters
-//! for large frames). Timings include the read-back of the frame.
+//! for large frames; `MSTH_BENCH_OLD_WGSL=FILE` compiles the old kernel from another version of
+//! `render.wgsl`, e.g. `git show a04e488:gpu/shaders/render.wgsl`, the kernels before the
+//! per-sample passes were optimised, and `MSTH_BENCH_OLD_KERNELS=passes` times that file's
+//! per-sample passes instead of its per-ray kernel; `MSTH_BENCH_SKIP_INCREMENTAL=1` stops after the full
+//! frames). Timings include the read-back of the frame; "cpu" is this process's CPU time over
+//! the same span (all threads: lavapipe's included), which a busy machine inflates less than
+//! the wall time.
 
 use std::time::Instant;
 
@@ -21,6 +27,20 @@ use msth_core::rng::Rng;
 use msth_core::{Camera, SceneBounds};
 use msth_player::gpu::{AdapterPolicy, GpuContext, GpuKernels, GpuRenderer};
 use msth_player::{Frame, RenderSettings, Renderer};
+
+/// CPU seconds this process has used (user + system, all threads; Linux `/proc/self/stat`,
+/// 100 ticks per second), 0 where unavailable.
+fn cpu_seconds() -> f64 {
+    let Ok(stat) = std::fs::read_to_string("/proc/self/stat") else {
+        return 0.0;
+    };
+    // Fields after the command name (which may hold spaces) in parentheses.
+    let rest = stat.rsplit(')').next().unwrap_or("");
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ticks = |i: usize| f.get(i).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
+    // utime and stime are fields 14 and 15 of the line, 12 and 13 after the name.
+    (ticks(11) + ticks(12)) / 100.0
+}
 
 fn psnr(a: &Frame, b: &Frame) -> f64 {
     let mse = a
@@ -104,46 +124,63 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let cpu_s = t.elapsed().as_secs_f64();
     println!("cpu full frame:                 {cpu_s:8.3} s");
 
-    let ctx = GpuContext::open(AdapterPolicy::any())?;
+    let old_source = match std::env::var_os("MSTH_BENCH_OLD_WGSL") {
+        Some(p) => Some(std::fs::read_to_string(&p)?),
+        None => None,
+    };
+    let ctx = match &old_source {
+        Some(src) => GpuContext::open_with_source(AdapterPolicy::any(), src)?,
+        None => GpuContext::open(AdapterPolicy::any())?,
+    };
     println!("adapter: {}", ctx.adapter_name());
     let mut old_s = None;
     if std::env::var("MSTH_BENCH_SKIP_PER_RAY").as_deref() != Ok("1") {
-        match GpuRenderer::with_kernels(ctx, &cfg, full, GpuKernels::PerRay) {
+        let (kernels, what) = match std::env::var("MSTH_BENCH_OLD_KERNELS").as_deref() {
+            Ok("passes") => (GpuKernels::PerSample, "per-sample passes"),
+            _ => (GpuKernels::PerRay, "per-ray kernel"),
+        };
+        match GpuRenderer::with_kernels(ctx, &cfg, full, kernels) {
             Ok(mut old) => {
-                let t = Instant::now();
+                let (t, c) = (Instant::now(), cpu_seconds());
                 let f = old.render(&cam, 0.0, &params0)?;
-                let secs = t.elapsed().as_secs_f64();
+                let (secs, cpu) = (t.elapsed().as_secs_f64(), cpu_seconds() - c);
                 println!(
-                    "gpu full frame, per-ray kernel (old):    {secs:8.3} s  {:.1} dB vs cpu",
+                    "gpu full frame, {what} (old{}):    {secs:8.3} s (cpu {cpu:.1} s)  {:.1} dB vs cpu",
+                    if old_source.is_some() { ", MSTH_BENCH_OLD_WGSL" } else { "" },
                     psnr(&f, &reference)
                 );
-                old_s = Some(secs);
+                old_s = Some((secs, cpu));
             }
-            Err(e) => println!("gpu per-ray kernel (old): refused: {e}"),
+            Err(e) => println!("gpu {what} (old): refused: {e}"),
         }
     }
     let ctx = GpuContext::open(AdapterPolicy::any())?;
     let mut new = GpuRenderer::new(ctx, &cfg, full)?;
     // The first frame compiles nothing more (pipelines are made with the context), but pays
     // the scratch allocation: time the first and a second frame.
-    let t = Instant::now();
+    let (t, c) = (Instant::now(), cpu_seconds());
     let f = new.render(&cam, 0.0, &params0)?;
-    let first_s = t.elapsed().as_secs_f64();
-    let t = Instant::now();
+    let (first_s, first_cpu) = (t.elapsed().as_secs_f64(), cpu_seconds() - c);
+    let (t, c) = (Instant::now(), cpu_seconds());
     new.render(&cam, 0.0, &params0)?;
-    let new_s = t.elapsed().as_secs_f64();
+    let (new_s, new_cpu) = (t.elapsed().as_secs_f64(), cpu_seconds() - c);
     println!(
-        "gpu full frame, per-sample passes (new): {first_s:8.3} s first, {new_s:.3} s next  {:.1} dB vs cpu",
+        "gpu full frame, per-sample passes (new): {first_s:8.3} s first (cpu {first_cpu:.1} s), {new_s:.3} s next (cpu {new_cpu:.1} s)  {:.1} dB vs cpu",
         psnr(&f, &reference)
     );
-    if let Some(o) = old_s {
+    if let Some((o, oc)) = old_s {
         println!(
-            "speed-up of a full frame, new vs old: {:.1}x (first frame {:.1}x)",
+            "speed-up of a full frame, new vs old: {:.1}x wall, {:.1}x cpu (first frame {:.1}x wall, {:.1}x cpu)",
             o / new_s,
-            o / first_s
+            oc / new_cpu.max(1e-9),
+            o / first_s,
+            oc / first_cpu.max(1e-9)
         );
     }
     println!("cpu / new gpu full frame: {:.2}x", cpu_s / new_s);
+    if std::env::var("MSTH_BENCH_SKIP_INCREMENTAL").as_deref() == Ok("1") {
+        return Ok(());
+    }
 
     // Incremental frames of a fixed camera, default settings (sample-level reuse, probes).
     let inc = RenderSettings::default();

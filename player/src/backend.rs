@@ -11,7 +11,7 @@
 //!   is none or it cannot render the model.
 
 use crate::gpu::{AdapterPolicy, GpuContext, GpuError, GpuRenderer};
-use crate::render::{Frame, RenderSettings, Renderer, Reuse};
+use crate::render::{Frame, RenderSettings, Renderer};
 use msth_core::config::ModelConfig;
 use msth_core::Camera;
 
@@ -64,9 +64,8 @@ impl FrameRenderer {
             let ctx = GpuContext::open(policy)?;
             let device = ctx.adapter_name();
             let r = GpuRenderer::new(ctx, cfg, settings)?;
-            let note = (settings.incremental && settings.reuse == Reuse::Samples).then(|| {
-                "the GPU re-renders whole dynamic rays (sample-level reuse is CPU-only)".to_string()
-            });
+            // The GPU renderer has the CPU renderer's caches (sample-level reuse included).
+            let note = None;
             Ok((
                 FrameRenderer::Gpu(Box::new(r)),
                 BackendInfo {
@@ -120,12 +119,17 @@ impl FrameRenderer {
         }
     }
 
-    /// Hands the file's occupancy grid to the renderer. The CPU renderer skips the main field's
-    /// samples in empty cells; the GPU renderer does not use it yet (it renders every sample).
-    pub fn set_occupancy(&mut self, grid: Option<std::sync::Arc<msth_codec::OccupancyGrid>>) {
-        if let FrameRenderer::Cpu(r) = self {
-            r.set_occupancy(grid);
+    /// Hands the file's occupancy grid to the renderer: both skip the main field's samples in
+    /// empty cells (the GPU renderer in its per-sample passes).
+    pub fn set_occupancy(
+        &mut self,
+        grid: Option<std::sync::Arc<msth_codec::OccupancyGrid>>,
+    ) -> Result<(), GpuError> {
+        match self {
+            FrameRenderer::Cpu(r) => r.set_occupancy(grid),
+            FrameRenderer::Gpu(r) => r.set_occupancy(grid)?,
         }
+        Ok(())
     }
 
     /// Forgets the static cache.

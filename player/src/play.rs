@@ -40,8 +40,9 @@ pub struct PlayOptions {
     pub limits: Limits,
     /// Longest wait for any one section to arrive.
     pub section_timeout: Duration,
-    /// Skip samples in the cells the file's occupancy grid marks empty (CPU renderer; files of
-    /// format version 1 have no grid and skip nothing).
+    /// Skip samples in the cells the file's occupancy grid marks empty (CPU renderer, and the
+    /// GPU renderer's per-sample passes; files of format version 1 have no grid and skip
+    /// nothing).
     pub skip_empty: bool,
 }
 
@@ -235,7 +236,7 @@ pub fn play(
             stream.params_for_time(time, &mut params, opts.section_timeout)?;
             if loaded.is_none() && opts.skip_empty {
                 // The occupancy section is one of the static sections, decoded by now.
-                renderer.set_occupancy(stream.occupancy());
+                renderer.set_occupancy(stream.occupancy())?;
             }
             loaded = Some(chunk);
         }

@@ -54,6 +54,11 @@ fn main() -> std::process::ExitCode {
         )
         .needs(
             &[&gpu],
+            "gpu_frames_with_an_occupancy_grid_match_the_cpu_renderer",
+            gpu_frames_with_an_occupancy_grid_match_the_cpu_renderer,
+        )
+        .needs(
+            &[&gpu],
             "per_ray_and_per_sample_kernels_render_the_same_frames",
             per_ray_and_per_sample_kernels_render_the_same_frames,
         )
@@ -384,6 +389,72 @@ fn gpu_frames_match_cpu_frames_full_and_incremental() {
         let e = gpu.render(&cam, 0.5, &p2[1..]).err().unwrap();
         assert!(e.to_string().contains("parameter buffer"), "{e}");
     }
+}
+
+/// With the file's occupancy grid (here: every cell with `x < R / 2` empty) the GPU renderer
+/// skips what the CPU renderer skips (`skip.rs`): full and incremental frames (whole dynamic
+/// rays) equal the CPU renderer's with the same grid, the grid changes the frame, and without a
+/// grid (a version-1 file) frames are the unskipped ones again.
+fn gpu_frames_with_an_occupancy_grid_match_the_cpu_renderer() {
+    let mut cfg = config(BlendMode::Mt);
+    small(&mut cfg);
+    let layout = ModelLayout::new(&cfg);
+    let mut params = random_params(&layout, 7);
+    centre_dynamic(&cfg, &mut params);
+    let r = 16u32;
+    let mut grid = msth_codec::OccupancyGrid::full(r);
+    for z in 0..r {
+        for y in 0..r {
+            for x in 0..r / 2 {
+                let i = (x + r * (y + r * z)) as usize;
+                grid.words[i / 32] &= !(1u32 << (i % 32));
+            }
+        }
+    }
+    let grid = std::sync::Arc::new(grid);
+    let settings = RenderSettings {
+        probes: 0,
+        reuse: Reuse::Rays,
+        ..Default::default()
+    };
+    let mut cpu = Renderer::new(&cfg, settings);
+    cpu.set_occupancy(Some(grid.clone()));
+    let mut gpu = GpuRenderer::new(context(), &cfg, settings).unwrap();
+    gpu.set_occupancy(Some(grid.clone())).unwrap();
+    let cam = test_camera(40, 30);
+    for (i, t) in [0.0f32, 0.4, 0.9].into_iter().enumerate() {
+        let a = cpu.render(&cam, t, &params);
+        let b = gpu.render(&cam, t, &params).unwrap();
+        assert_eq!(b.stats.full, i == 0);
+        let d = max_diff(&a, &b);
+        assert!(d < 2e-3, "frame {i}: max difference {d}");
+    }
+    // The grid matters: without it the frame differs.
+    let full = RenderSettings {
+        incremental: false,
+        ..settings
+    };
+    let mut plain = Renderer::new(&cfg, full);
+    let mut skipping = GpuRenderer::new(context(), &cfg, full).unwrap();
+    skipping.set_occupancy(Some(grid)).unwrap();
+    let a = plain.render(&cam, 0.4, &params);
+    let b = skipping.render(&cam, 0.4, &params).unwrap();
+    assert!(max_diff(&a, &b) > 0.05, "the grid changed nothing");
+    // No grid: every sample again.
+    skipping.set_occupancy(None).unwrap();
+    let b = skipping.render(&cam, 0.4, &params).unwrap();
+    let d = max_diff(&a, &b);
+    assert!(d < 2e-3, "without a grid: max difference {d}");
+    // A grid of the wrong size is an error, not a panic.
+    let bad = msth_codec::OccupancyGrid {
+        words: vec![0; 3],
+        ..msth_codec::OccupancyGrid::full(8)
+    };
+    let e = skipping
+        .set_occupancy(Some(std::sync::Arc::new(bad)))
+        .err()
+        .unwrap();
+    assert!(e.to_string().contains("occupancy grid"), "{e}");
 }
 
 /// PSNR (dB) of two frames.

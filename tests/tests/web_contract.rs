@@ -3,8 +3,10 @@
 //! sizes, section kinds and their order per version, block encodings, the shared-section tag,
 //! the occupancy payload's header), msth-codec's default `Limits`, the metadata's keys and
 //! quantisation modes, msth-core's layout constants (hash primes, slice alignment, direction
-//! encoding size, render cutoffs) and msth-gpu's blend codes, uniform sizes and field offsets,
-//! flags and kernel limits. The hand-written JavaScript imports them instead of keeping copies.
+//! encoding size, render cutoffs) and msth-gpu's blend codes, uniform sizes and field offsets
+//! (`Model`, `Level`, `Encoding`, `Grid`), flags, kernel limits and the per-sample passes'
+//! constants (batch scratch, indirect-size offsets, the `Pass` uniform's layout and flags). The
+//! hand-written JavaScript (format.js, renderer.js, ...) imports them instead of keeping copies.
 //!
 //! The test fails when the committed file differs from what the Rust code gives, naming the
 //! first differing line; `MSTH_UPDATE_WEB_CONTRACT=1` rewrites it (temporary file, rename).
@@ -86,9 +88,10 @@ fn param_align() -> usize {
 
 fn generate() -> String {
     use msth_gpu::layout::{
-        ModelU, ViewU, LEVEL_SLOTS, MAX_GEO, MAX_HIDDEN, MAX_PROPOSAL_SAMPLES, MAX_SAMPLES,
-        WORKGROUP,
+        EncodingU, GridU, LevelU, ModelU, ViewU, LEVEL_SLOTS, MAX_GEO, MAX_HIDDEN,
+        MAX_PROPOSAL_SAMPLES, MAX_SAMPLES, WORKGROUP,
     };
+    use msth_gpu::passes::{self, PassU};
     let mut o = String::new();
     let w = &mut o;
     let _ = writeln!(
@@ -286,6 +289,91 @@ fn generate() -> String {
     let _ = writeln!(w, "export const MAX_SAMPLES = {MAX_SAMPLES};");
     let _ = writeln!(w, "export const MAX_HIDDEN = {MAX_HIDDEN};");
     let _ = writeln!(w, "export const MAX_GEO = {MAX_GEO};");
+    let level_offsets = [
+        ("scale", std::mem::offset_of!(LevelU, scale)),
+        ("stride", std::mem::offset_of!(LevelU, stride)),
+        ("info", std::mem::offset_of!(LevelU, info)),
+    ];
+    let encoding_offsets = [
+        ("mode", std::mem::offset_of!(EncodingU, mode)),
+        ("dims", std::mem::offset_of!(EncodingU, dims)),
+        ("consts", std::mem::offset_of!(EncodingU, consts)),
+        ("h3", std::mem::offset_of!(EncodingU, h3)),
+        ("h4", std::mem::offset_of!(EncodingU, h4)),
+    ];
+    let grid_offsets = [
+        ("shape", std::mem::offset_of!(GridU, shape)),
+        ("loc", std::mem::offset_of!(GridU, loc)),
+    ];
+    let object = |v: &[(&str, usize)]| {
+        let items: Vec<String> = v.iter().map(|(n, o)| format!("{n}: {o}")).collect();
+        format!("{{ {} }}", items.join(", "))
+    };
+    let _ = writeln!(
+        w,
+        "/** Byte offsets inside one `Level` ({} bytes), `Encoding` and `Grid` of the `Model` uniform. */",
+        std::mem::size_of::<LevelU>()
+    );
+    let _ = writeln!(
+        w,
+        "export const LEVEL_BYTES = {};",
+        std::mem::size_of::<LevelU>()
+    );
+    let _ = writeln!(
+        w,
+        "export const LEVEL_OFFSETS = {};",
+        object(&level_offsets)
+    );
+    let _ = writeln!(
+        w,
+        "export const ENCODING_OFFSETS = {};",
+        object(&encoding_offsets)
+    );
+    let _ = writeln!(w, "export const GRID_OFFSETS = {};", object(&grid_offsets));
+    let _ = writeln!(
+        w,
+        "\n// ---- msth-gpu: the per-sample passes (gpu/src/passes.rs)"
+    );
+    let _ = writeln!(
+        w,
+        "/** Scratch memory one batch of rays may take. */\nexport const FRAME_WORK_BYTES = {};",
+        passes::FRAME_WORK_BYTES
+    );
+    let _ = writeln!(
+        w,
+        "/** Byte offsets of the indirect dispatch sizes `pass_args` writes, and the buffer's size. */"
+    );
+    let _ = writeln!(
+        w,
+        "export const PASS_ARGS = {{ proposal: {}, rays: {}, samples: {}, color: {}, dynamic: {}, bytes: {} }};",
+        passes::ARGS_PROPOSAL,
+        passes::ARGS_RAYS,
+        passes::ARGS_SAMPLES,
+        passes::ARGS_COLOR,
+        passes::ARGS_DYNAMIC,
+        passes::ARGS_BYTES
+    );
+    let pass_offsets = [
+        ("tile", std::mem::offset_of!(PassU, tile)),
+        ("reg0", std::mem::offset_of!(PassU, reg0)),
+        ("reg1", std::mem::offset_of!(PassU, reg1)),
+        ("reg2", std::mem::offset_of!(PassU, reg2)),
+        ("misc", std::mem::offset_of!(PassU, misc)),
+    ];
+    let _ = writeln!(
+        w,
+        "/** The `Pass` uniform: its size and field byte offsets. */\nexport const PASS_BYTES = {};",
+        std::mem::size_of::<PassU>()
+    );
+    let _ = writeln!(w, "export const PASS_OFFSETS = {};", object(&pass_offsets));
+    let _ = writeln!(
+        w,
+        "/** `Pass.tile.z` bits. */\nexport const PASS_FLAGS = {{ list: {}, compact: {}, cache: {}, wmax: {} }};",
+        msth_gpu::FLAG_LIST,
+        msth_gpu::FLAG_COMPACT,
+        passes::PASS_FLAG_CACHE,
+        passes::PASS_FLAG_WMAX
+    );
     o
 }
 
@@ -341,8 +429,23 @@ fn hand_written_javascript_keeps_no_copies_of_the_contract() {
         "VIEW_BYTES",
         "WORKGROUP",
         "RENDER_STATIC_CUTOFF",
+        "MAX_PROPOSAL_SAMPLES",
+        "MAX_SAMPLES",
+        "MAX_HIDDEN",
+        "MAX_GEO",
+        "FLAG_LIST",
+        "FRAME_WORK_BYTES",
+        "ARGS",
+        "PASS_ARGS",
+        "PASS_BYTES",
     ];
-    for file in ["format.js", "camera.js", "main.js", "stream.js"] {
+    for file in [
+        "format.js",
+        "camera.js",
+        "main.js",
+        "stream.js",
+        "renderer.js",
+    ] {
         let text = std::fs::read_to_string(dir.join(file)).unwrap();
         for n in names {
             for decl in ["const ", "let ", "var "] {

@@ -204,7 +204,7 @@ fn web_player_streams_renders_and_matches_native() {
     let base = format!("http://{}", server.addr());
     let results = dir.path().join("browser.json");
     // README screenshots (issue #17): `MSTH_UPDATE_SCREENSHOTS=1` writes the page, paused at
-    // t = 0.5 at the file's camera 0 (a training camera), to docs/images/web-player.png;
+    // t = 0.5 at the file's camera 0 (its first training camera), to docs/images/web-player.png;
     // `MSTH_SCREENSHOT_MODEL=FILE.msth` (e.g. `msth demo`'s scene.msth) is served beside the
     // test's model and shown instead.
     let screenshot = repo_root().join("docs/images/web-player.png");
@@ -214,6 +214,11 @@ fn web_player_streams_renders_and_matches_native() {
         if let Some(m) = std::env::var_os("MSTH_SCREENSHOT_MODEL") {
             std::fs::copy(&m, served.join("screenshot.msth")).unwrap();
             extra.extend(["--screenshot-model".into(), "screenshot.msth".into()]);
+        }
+        // Files exported before the trainer listed the training cameras first have the
+        // held-out camera at 0: `MSTH_SCREENSHOT_CAMERA=1` shows a training camera of those.
+        if let Ok(k) = std::env::var("MSTH_SCREENSHOT_CAMERA") {
+            extra.extend(["--screenshot-camera".into(), k]);
         }
     }
     let (ok, out) = run_node(

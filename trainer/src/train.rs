@@ -577,10 +577,12 @@ impl Trainer {
     }
 }
 
-/// Distinct camera poses of a dataset, test cameras first.
+/// Distinct camera poses of a dataset, training cameras first, then the held-out ones (at most
+/// 64): camera 0 of a checkpoint, and of the `.msth` file exported from it, is the first
+/// training camera, the view the players open at.
 pub fn playback_cameras(data: &Dataset) -> Vec<Camera> {
     let mut out: Vec<Camera> = Vec::new();
-    for v in data.test.iter().chain(&data.train) {
+    for v in data.train.iter().chain(&data.test) {
         let dup = out.iter().any(|c| {
             c.world_from_camera
                 .abs_diff_eq(v.camera.world_from_camera, 1e-5)
@@ -805,6 +807,24 @@ pub fn train(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn playback_cameras_list_the_training_cameras_first() {
+        let data = crate::synth::generate(&crate::synth::SynthConfig {
+            width: 8,
+            height: 6,
+            num_frames: 2,
+            num_train_cams: 3,
+            supersample: 1,
+            ..Default::default()
+        });
+        assert!(!data.test.is_empty());
+        let cams = playback_cameras(&data);
+        // The players open at camera 0: a training camera, the held-out one last.
+        assert_eq!(cams[0], data.train[0].camera);
+        assert_eq!(*cams.last().unwrap(), data.test[0].camera);
+        assert_eq!(cams.len(), 4);
+    }
 
     fn settings() -> TrainSettings {
         let model = ModelConfig::fast_on_white(10);

@@ -15,7 +15,8 @@
 // URL parameters: `model=NAME` (a name from /models), `camera=K` (start at the file's camera K,
 // the default: camera 0), `view=AZ,EL,DIST` (degrees, degrees, distance: the same viewpoint as
 // `msth play --path view:AZ,EL,DIST`, instead of a file camera), `t=T` (normalised time, starts
-// paused there), `size=WxH` (render size, as `msth play --size`), `play=0|1`.
+// paused there), `size=WxH` (render size, as `msth play --size`), `play=0|1`, `skip=0` (evaluate
+// every sample: the file's occupancy grid unused, as `msth play --no-skip-empty`).
 //
 // `window.msth` exposes the player's state to tests and to the console (see `hooks` below).
 
@@ -159,7 +160,8 @@ async function main() {
   const rig = makeRig(meta.model.bounds, cameras, template);
   const view = parseView(params.get("view"));
   const orbit = view ? new Orbit(rig, view[0], view[1], view[2]) : new Orbit(rig);
-  // The default view is one of the file's cameras (the training cameras `msth export` stores).
+  // The default view is one of the file's cameras: camera 0, the first training camera (the
+  // trainer lists the training cameras first, the held-out ones after them).
   const camSel = $("camera");
   cameras.forEach((c, i) => camSel.append(new Option(`camera ${i} (${c.width}x${c.height})`, String(i))));
   camSel.append(new Option("free orbit", "free"));
@@ -207,7 +209,7 @@ async function main() {
   stream.start();
   drawLoading(stream);
 
-  const gpu = await renderer.create(canvas, meta.model, stream.decoder.layout);
+  const gpu = await renderer.create(canvas, meta.model, stream.decoder.layout, hooks.timings);
   hooks.renderer = gpu;
   hooks.timings.pipeline = performance.now();
   const paramBuf = new Float32Array(stream.decoder.layout.total);
@@ -320,6 +322,8 @@ async function main() {
     if (chunk !== state.loadedChunk || state.paramsStale) {
       stream.decoder.paramsForTime(state.t, paramBuf);
       gpu.setParams(paramBuf);
+      // The occupancy section is one of the sections every frame needs: decoded by now.
+      if (state.loadedChunk === undefined && params.get("skip") !== "0") gpu.setOccupancy(stream.decoder.occupancy);
       state.loadedChunk = chunk;
       state.paramsStale = false;
       hooks.timings.params ??= performance.now();

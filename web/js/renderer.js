@@ -16,27 +16,25 @@
 // The kernel writes (r, g, b, depth) per pixel to a storage buffer; a small display pass (below,
 // not part of the renderer: it only copies that buffer to the canvas, clamped to [0, 1]) draws it.
 
-const LEVEL_SLOTS = 128;
-const MODEL_BYTES = 352 + 48 * LEVEL_SLOTS;
-const VIEW_BYTES = 112;
-const WORKGROUP = 64;
-/** `View.size.w` bit: invocation `i` renders pixel `list[i]`. */
-const FLAG_LIST = 1;
-const MAX_PROPOSAL_SAMPLES = 256;
-const MAX_SAMPLES = 128;
-const MAX_HIDDEN = 128;
-const MAX_GEO = 31;
-/** msth-core `pipeline::RENDER_STATIC_CUTOFF`. */
-const RENDER_STATIC_CUTOFF = 1e-3;
-const BLEND = { mst: 0, mt: 1, add: 2, four_d: 3, static: 4 };
+import {
+  LEVEL_SLOTS, LEVEL_BYTES, LEVEL_OFFSETS, ENCODING_OFFSETS, GRID_OFFSETS, MODEL_BYTES, MODEL_OFFSETS, VIEW_BYTES, WORKGROUP,
+  FLAG_LIST, MAX_PROPOSAL_SAMPLES, MAX_SAMPLES, MAX_HIDDEN, MAX_GEO, RENDER_STATIC_CUTOFF, BLEND,
+  FRAME_WORK_BYTES, PASS_ARGS as ARGS, PASS_BYTES, PASS_OFFSETS,
+} from "./generated/contract.js";
 
-/** Scratch memory one batch of rays may take (gpu/src/passes.rs `FRAME_WORK_BYTES`). */
-const FRAME_WORK_BYTES = 128 << 20;
-/** Byte offsets of the indirect dispatch sizes `pass_args` writes (passes.rs `ARGS_*`). */
-const ARGS = { proposal: 0, rays: 12, samples: 24, color: 36, dynamic: 48, bytes: 64 };
-/** `Pass` uniform bytes (passes.rs `PassU`). */
-const PASS_BYTES = 80;
 const PASS_ENTRIES = ["pass_setup", "pass_args", "pass_proposal", "pass_resample", "pass_density", "pass_visible", "pass_color", "pass_composite"];
+/** The dispatches of one batch, in order: entry point, and the offset of its indirect size (`null`: direct). */
+const PASS_STEPS = [
+  ["pass_setup", null],
+  ["pass_args", null],
+  ["pass_proposal", ARGS.proposal],
+  ["pass_resample", ARGS.rays],
+  ["pass_density", ARGS.samples],
+  ["pass_visible", ARGS.rays],
+  ["pass_args", null],
+  ["pass_color", ARGS.color],
+  ["pass_composite", ARGS.rays],
+];
 
 /**
  * Word offsets of the `work` regions for `rays` rays of `samples` samples (passes.rs `regions`,
@@ -101,9 +99,13 @@ export function gpuModel(cfg, layout) {
   const buf = new ArrayBuffer(MODEL_BYTES);
   const u = new Uint32Array(buf);
   const f = new Float32Array(buf);
-  // Word offsets of the struct members.
-  const SAMPLER = 0, LIMITS = 4, BOUNDS_A = 8, BOUNDS_B = 12, BACKGROUND = 16, DENSITY = 20, COLOR = 24, PROPOSAL = 28;
-  const FIELD = 32, PROP = 60, LEVELS = 88;
+  // Word offsets of the struct members (the generated contract's byte offsets / 4).
+  const M = Object.fromEntries(Object.entries(MODEL_OFFSETS).map(([k, v]) => [k, v / 4]));
+  const [SAMPLER, LIMITS, BOUNDS_A, BOUNDS_B, BACKGROUND, DENSITY, COLOR, PROPOSAL] = [M.sampler, M.limits, M.boundsA, M.boundsB, M.background, M.density, M.color, M.proposal];
+  const [FIELD, PROP, LEVELS] = [M.field, M.prop, M.levels];
+  const LV = { scale: LEVEL_OFFSETS.scale / 4, stride: LEVEL_OFFSETS.stride / 4, info: LEVEL_OFFSETS.info / 4, words: LEVEL_BYTES / 4 };
+  const EN = { mode: ENCODING_OFFSETS.mode / 4, dims: ENCODING_OFFSETS.dims / 4, consts: ENCODING_OFFSETS.consts / 4, h3: ENCODING_OFFSETS.h3 / 4, h4: ENCODING_OFFSETS.h4 / 4 };
+  const GR = { shape: GRID_OFFSETS.shape / 4, loc: GRID_OFFSETS.loc / 4 };
   const s = cfg.sampler;
   const b = cfg.bounds;
   u.set([s.num_proposal_samples, s.num_samples, s.spacing === "lin_disp" ? 1 : 0, b.kind === "contracted" ? 1 : 0], SAMPLER);
@@ -130,22 +132,22 @@ export function gpuModel(cfg, layout) {
     const first = nextSlot;
     if (first + g.levels.length > LEVEL_SLOTS) throw new Error("too many grid levels for the GPU renderer");
     g.levels.forEach((lv, k) => {
-      const o = LEVELS + 12 * (first + k);
-      f.set([...lv.scale, 0, 0, 0, 0].slice(0, 4), o);
-      u.set(lv.stride.slice(0, 4), o + 4);
-      u.set([base + lv.offset, lv.dense ? 1 : 0, lv.rows, 0], o + 8);
+      const o = LEVELS + LV.words * (first + k);
+      f.set([...lv.scale, 0, 0, 0, 0].slice(0, 4), o + LV.scale);
+      u.set(lv.stride.slice(0, 4), o + LV.stride);
+      u.set([base + lv.offset, lv.dense ? 1 : 0, lv.rows, 0], o + LV.info);
     });
     nextSlot += g.levels.length;
-    u.set([g.dims, g.features, g.levels.length, g.tableSize - 1], at);
-    u.set([buffer, first, 1, 0], at + 4);
+    u.set([g.dims, g.features, g.levels.length, g.tableSize - 1], at + GR.shape);
+    u.set([buffer, first, 1, 0], at + GR.loc);
   };
   const encoding = (e, buffers, at) => {
-    grid(e.h3, buffers[0], at + 12);
-    grid(e.h4, buffers[1], at + 20);
-    u.set(e.mask ? [BLEND[e.blend], 1, e.mask.res, e.mask.start - rest0] : [BLEND[e.blend], 0, 0, 0], at);
-    u.set([e.outDim, 0, 0, 0], at + 4);
+    grid(e.h3, buffers[0], at + EN.h3);
+    grid(e.h4, buffers[1], at + EN.h4);
+    u.set(e.mask ? [BLEND[e.blend], 1, e.mask.res, e.mask.start - rest0] : [BLEND[e.blend], 0, 0, 0], at + EN.mode);
+    u.set([e.outDim, 0, 0, 0], at + EN.dims);
     const noMask = e.blend === "static" ? 1 : e.blend === "four_d" ? 0 : 0.5;
-    f.set([noMask, RENDER_STATIC_CUTOFF, 0, 0], at + 8);
+    f.set([noMask, RENDER_STATIC_CUTOFF, 0, 0], at + EN.consts);
   };
   encoding(fe, [0, 1], FIELD);
   encoding(layout.proposal.encoding, [2, 2], PROP);
@@ -203,8 +205,12 @@ export class Renderer {
     });
   }
 
-  /** Binds the kernels to `canvas` for a model (`cfg` its config, `layout` format.js's). */
-  async create(canvas, cfg, layout) {
+  /**
+   * Binds the kernels to `canvas` for a model (`cfg` its config, `layout` format.js's). `marks`,
+   * when given, receives `module` (ms since navigation start: the WGSL compiled) and
+   * `pipelines` (every pipeline created).
+   */
+  async create(canvas, cfg, layout, marks = {}) {
     const device = this.device;
     const { uniform, split } = gpuModel(cfg, layout);
     const perRay = typeof location !== "undefined" && new URLSearchParams(location.search).get("kernel") === "ray";
@@ -213,9 +219,10 @@ export class Renderer {
     const info = await module.getCompilationInfo();
     const errors = info.messages.filter((m) => m.type === "error");
     if (errors.length) throw new Error(`render.wgsl: ${errors.map((m) => `${m.lineNum}:${m.linePos} ${m.message}`).join("; ")}`);
+    marks.module = performance.now();
     // One explicit layout for every entry point (web/shaders/README.md, "Bindings").
     const C = GPUShaderStage.COMPUTE;
-    const kinds = ["uniform", "uniform", "read-only-storage", "read-only-storage", "read-only-storage", "read-only-storage", "storage", "storage", "storage", "uniform"];
+    const kinds = ["uniform", "uniform", "read-only-storage", "read-only-storage", "read-only-storage", "read-only-storage", "storage", "storage", "storage", "uniform", "read-only-storage"];
     const bindLayout = device.createBindGroupLayout({
       label: "msth render bindings",
       entries: kinds.map((type, binding) => ({ binding, visibility: C, buffer: { type } })),
@@ -228,6 +235,7 @@ export class Renderer {
     names.forEach((n, i) => (pipelines[n] = made[i]));
     const err = await device.popErrorScope();
     if (err) throw new Error(`render.wgsl: ${err.message}`);
+    marks.pipelines = performance.now();
     return new GpuScene(this, canvas, { layout: bindLayout, pipelines, perRay }, uniform, split, cfg);
   }
 }
@@ -266,6 +274,10 @@ class GpuScene {
     this.noList = small(GPUBufferUsage.STORAGE, "no list");
     this.noWork = small(GPUBufferUsage.STORAGE, "no work");
     this.noCtrl = small(GPUBufferUsage.STORAGE, "no counters");
+    /** The file's occupancy grid (`setOccupancy`); a placeholder and resolution 0 without one. */
+    this.noOccupancy = small(GPUBufferUsage.STORAGE, "no occupancy grid");
+    this.occupancy = this.noOccupancy;
+    this.occupancyResolution = 0;
     this.storageLimit = limit;
     this.context = canvas.getContext("webgpu");
     this.format = navigator.gpu.getPreferredCanvasFormat();
@@ -282,6 +294,9 @@ class GpuScene {
     this.tile = 4096;
     this.work = null;
     this.capacity = 0;
+    this.profile = typeof location !== "undefined" && new URLSearchParams(location.search).get("profile") === "1";
+    /** With `?profile=1`: milliseconds spent per entry point, summed over frames. */
+    this.passMs = {};
   }
 
   #ensureFrame(w, h) {
@@ -328,6 +343,25 @@ class GpuScene {
     }
   }
 
+  /**
+   * Uses the file's occupancy grid (format.js `readOccupancy`: `{ resolution, words }`), or none
+   * (`null`: a version-1 file, or skipping off): the per-sample passes then evaluate the main
+   * field only at samples in occupied cells, as the native renderers do.
+   */
+  setOccupancy(grid) {
+    if (this.occupancy !== this.noOccupancy) this.occupancy.destroy();
+    this.occupancy = this.noOccupancy;
+    this.occupancyResolution = 0;
+    if (grid) {
+      const bytes = grid.words.byteLength;
+      if (bytes > this.storageLimit) throw new Error(`the occupancy grid needs ${bytes} bytes, more than this GPU's storage buffer limit ${this.storageLimit}`);
+      this.occupancy = this.device.createBuffer({ size: Math.max(16, Math.ceil(bytes / 16) * 16), usage: GPUBufferUsage.STORAGE | GPUBufferUsage.COPY_DST, label: "occupancy grid" });
+      this.device.queue.writeBuffer(this.occupancy, 0, grid.words.buffer, grid.words.byteOffset, bytes);
+      this.occupancyResolution = grid.resolution;
+    }
+    this.groups = null;
+  }
+
   /** Uploads the flat parameter buffer (a Float32Array of `param_count` values). */
   setParams(params) {
     const q = this.device.queue;
@@ -362,7 +396,7 @@ class GpuScene {
     const group = (work) =>
       this.device.createBindGroup({
         layout: this.kernels.layout,
-        entries: [this.model, this.view, this.tab3, this.tab4, this.rest, this.noList, this.frame, work, this.ctrl, this.pass].map((buffer, binding) => ({ binding, resource: { buffer } })),
+        entries: [this.model, this.view, this.tab3, this.tab4, this.rest, this.noList, this.frame, work, this.ctrl, this.pass, this.occupancy].map((buffer, binding) => ({ binding, resource: { buffer } })),
       });
     this.groups = { main: group(this.work), args: group(this.args) };
     return this.groups;
@@ -380,38 +414,39 @@ class GpuScene {
       const count = Math.min(this.tile, this.capacity, n - start);
       const groups = dispatchSize(count, maxDim);
       if (!groups) throw new Error(`${count} rays exceed this GPU's dispatch limits`);
-      const pass = new ArrayBuffer(PASS_BYTES);
-      new Uint32Array(pass, 0, 12).set([start, count, 0, this.samples, ...this.regions, 0, 0]);
+      const pass = new Uint32Array(PASS_BYTES / 4);
+      pass.set([start, count, 0, this.samples], PASS_OFFSETS.tile / 4);
+      // reg0, reg1: rays, hist, edges, samp, geo, clist (no cache regions); reg2.y: the occupancy resolution.
+      pass.set(this.regions, PASS_OFFSETS.reg0 / 4);
+      pass[PASS_OFFSETS.reg2 / 4 + 1] = this.occupancyResolution;
       device.queue.writeBuffer(this.pass, 0, pass);
       device.pushErrorScope("validation");
-      const enc = device.createCommandEncoder();
+      let enc = device.createCommandEncoder();
       enc.clearBuffer(this.ctrl);
-      const cp = enc.beginComputePass();
-      cp.setBindGroup(0, main);
-      cp.setPipeline(p.pass_setup);
-      cp.dispatchWorkgroups(groups[0], groups[1], 1);
-      const sizes = () => {
-        cp.setBindGroup(0, args);
-        cp.setPipeline(p.pass_args);
-        cp.dispatchWorkgroups(1);
-        cp.setBindGroup(0, main);
-      };
-      const indirect = (name, at) => {
-        cp.setPipeline(p[name]);
-        cp.dispatchWorkgroupsIndirect(this.args, at);
-      };
-      sizes();
-      indirect("pass_proposal", ARGS.proposal);
-      indirect("pass_resample", ARGS.rays);
-      indirect("pass_density", ARGS.samples);
-      indirect("pass_visible", ARGS.rays);
-      sizes();
-      indirect("pass_color", ARGS.color);
-      indirect("pass_composite", ARGS.rays);
-      cp.end();
-      this.#present(enc);
       const t0 = performance.now();
-      device.queue.submit([enc.finish()]);
+      // `?profile=1`: every dispatch its own submission, timed into `passMs` (ms per entry point).
+      for (let k = 0; k < PASS_STEPS.length; ) {
+        const end = this.profile ? k + 1 : PASS_STEPS.length;
+        const cp = enc.beginComputePass();
+        for (const [name, at] of PASS_STEPS.slice(k, end)) {
+          cp.setBindGroup(0, name === "pass_args" ? args : main);
+          cp.setPipeline(p[name]);
+          if (at !== null) cp.dispatchWorkgroupsIndirect(this.args, at);
+          else if (name === "pass_setup") cp.dispatchWorkgroups(groups[0], groups[1], 1);
+          else cp.dispatchWorkgroups(1);
+        }
+        cp.end();
+        if (end === PASS_STEPS.length) this.#present(enc);
+        const ts = performance.now();
+        device.queue.submit([enc.finish()]);
+        if (this.profile) {
+          await device.queue.onSubmittedWorkDone();
+          const name = PASS_STEPS[k][0];
+          this.passMs[name] = (this.passMs[name] || 0) + performance.now() - ts;
+          enc = device.createCommandEncoder();
+        }
+        k = end;
+      }
       const err = await device.popErrorScope();
       if (err) throw new Error(`render: ${err.message}`);
       await device.queue.onSubmittedWorkDone();
@@ -437,7 +472,7 @@ class GpuScene {
       device.pushErrorScope("validation");
       const bind = device.createBindGroup({
         layout: this.kernels.layout,
-        entries: [this.model, this.view, this.tab3, this.tab4, this.rest, this.order, this.frame, this.noWork, this.noCtrl, this.pass].map((buffer, binding) => ({
+        entries: [this.model, this.view, this.tab3, this.tab4, this.rest, this.order, this.frame, this.noWork, this.noCtrl, this.pass, this.noOccupancy].map((buffer, binding) => ({
           binding,
           resource: binding === 5 ? { buffer, offset: 4 * start, size: 4 * count } : { buffer },
         })),

@@ -7,6 +7,7 @@
 //
 //   node web/tests/bench_kernels.mjs --base http://127.0.0.1:8080 --model demo.msth \
 //     [--size 256x256] [--kernels passes,ray] [--timeout-s 1800] [--chromium /usr/bin/chromium]
+//     [--profile 1]   (each pass its own submission, timed: `?profile=1`)
 //
 // Needs a running `msth serve --web web DIR` and `npm ci --prefix web`.
 
@@ -35,10 +36,10 @@ async function firstFrame(kernel) {
     const page = await ctx.newPage();
     const logs = [];
     page.on("console", (m) => logs.push(m.text()));
-    const q = kernel === "ray" ? "&kernel=ray" : "";
+    const q = (kernel === "ray" ? "&kernel=ray" : "") + (a.profile === "1" ? "&profile=1" : "");
     await page.goto(`${a.base}/?model=${encodeURIComponent(a.model)}&size=${size}&play=0&t=0${q}`);
     await page.waitForFunction(() => window.msth && (window.msth.firstFrameMs !== null || window.msth.error || window.msth.noWebGpu), null, { timeout, polling: 250 });
-    const r = await page.evaluate(() => ({ ttff: window.msth.firstFrameMs, pipeline: window.msth.timings && window.msth.timings.pipeline, error: window.msth.error, kernel: window.msth.renderer && window.msth.renderer.kernel }));
+    const r = await page.evaluate(() => ({ ttff: window.msth.firstFrameMs, pipeline: window.msth.timings && window.msth.timings.pipeline, timings: window.msth.timings, passMs: window.msth.renderer && window.msth.renderer.passMs, error: window.msth.error, kernel: window.msth.renderer && window.msth.renderer.kernel }));
     if (r.error || r.ttff === null) throw new Error(`${kernel}: ${r.error || "no WebGPU"}\n${logs.join("\n")}`);
     const px = await page.evaluate(() => window.msth.readPixels());
     return { ...r, px: Array.from(px) };
@@ -54,6 +55,10 @@ for (const k of kernels) {
   out[k] = r;
   const render = r.pipeline ? r.ttff - r.pipeline : NaN;
   console.log(`${k} (${r.kernel}): ${size} first frame ${(r.ttff / 1000).toFixed(1)} s after navigation, ${(render / 1000).toFixed(1)} s of it rendering`);
+  // Milestones (s since navigation): adapter, prefix, module, pipeline, params, firstFrame.
+  const ms = Object.entries(r.timings || {}).sort((x, y) => x[1] - y[1]);
+  console.log(`  milestones: ${ms.map(([n, v]) => `${n} ${(v / 1000).toFixed(2)} s`).join(", ")}`);
+  if (r.passMs && Object.keys(r.passMs).length) console.log(`  per pass (--profile 1): ${Object.entries(r.passMs).map(([n, v]) => `${n} ${(v / 1000).toFixed(2)} s`).join(", ")}`);
 }
 if (out.passes && out.ray) {
   const [p, q] = [out.passes.px, out.ray.px];

@@ -4,7 +4,7 @@
 //
 //   node web/tests/browser.mjs --base http://127.0.0.1:8080 --model demo.msth \
 //     --view 30,25,4 --size 64x48 --native0 t0.png --native1 t1.png [--screenshot page.png] \
-//     [--screenshot-model NAME] \
+//     [--screenshot-model NAME] [--screenshot-camera K] \
 //     [--bench-size 256x256] [--out results.json] [--chromium /usr/bin/chromium]
 //
 // `--native0` / `--native1` are `msth play FILE --path view:VIEW --size SIZE --frames 1
@@ -275,8 +275,10 @@ async function main() {
     }
     if (a.screenshot) {
       // Paused: while SwiftShader renders, the page cannot composite a screenshot. The default
-      // view: the file's camera 0 (a training camera), at its own size.
-      const url = `${a.base}/?model=${encodeURIComponent(a["screenshot-model"] || a.model)}&t=0.5&play=0`;
+      // view: the file's camera 0 (the first training camera of files exported since the
+      // trainer lists them first), or `--screenshot-camera K`, at its own size.
+      const cam = a["screenshot-camera"] ? `&camera=${Number(a["screenshot-camera"])}` : "";
+      const url = `${a.base}/?model=${encodeURIComponent(a["screenshot-model"] || a.model)}&t=0.5&play=0${cam}`;
       await page.goto(url);
       await waitFirstFrame(page);
       await page.waitForFunction(() => window.msth.stream.progress().complete, null, { timeout: 300_000 });

@@ -13,8 +13,10 @@
 //! From then on each frame evaluates only the dynamic samples (or, with [`Reuse::Rays`], the
 //! dynamic pixels' whole rays) into the cached frame buffer, which is read back whole.
 
+use std::sync::Arc;
 use std::time::Instant;
 
+use msth_codec::OccupancyGrid;
 use msth_core::config::{Background, ModelConfig};
 use msth_core::field::ModelLayout;
 use msth_core::pipeline::{ray_limits, TimedRay};
@@ -75,6 +77,8 @@ pub struct GpuRenderer {
     /// Bound as `list` when a dispatch reads none.
     no_list: wgpu::Buffer,
     cache: Option<Cache>,
+    /// The file's occupancy grid: the per-sample passes skip samples in its empty cells.
+    occupancy: Option<Arc<OccupancyGrid>>,
 }
 
 impl GpuRenderer {
@@ -133,7 +137,24 @@ impl GpuRenderer {
             scratch: None,
             no_list,
             cache: None,
+            occupancy: None,
         })
+    }
+
+    /// Uses the file's occupancy grid to skip empty space, as the CPU renderer's
+    /// [`crate::render::Renderer::set_occupancy`] (`None`: a version-1 file, or skipping off):
+    /// the per-sample passes evaluate the main field only at samples in occupied cells; the
+    /// sample cache and the per-ray kernel evaluate every sample. Forgets the static cache.
+    pub fn set_occupancy(&mut self, grid: Option<Arc<OccupancyGrid>>) -> Result<(), GpuError> {
+        if let Some(g) = &grid {
+            msth_gpu::render::check_occupancy(g.resolution, &g.words)?;
+        }
+        self.occupancy = grid;
+        self.cache = None;
+        if let Some(scene) = &mut self.scene {
+            apply_occupancy(&self.ctx, scene, self.occupancy.as_deref())?;
+        }
+        Ok(())
     }
 
     /// The device this renderer uses.
@@ -178,7 +199,9 @@ impl GpuRenderer {
                 s.update(&self.ctx, params)?;
             }
             None => {
-                self.scene = Some(GpuScene::new(&self.ctx, self.gpu_model.clone(), params)?);
+                let mut scene = GpuScene::new(&self.ctx, self.gpu_model.clone(), params)?;
+                apply_occupancy(&self.ctx, &mut scene, self.occupancy.as_deref())?;
+                self.scene = Some(scene);
             }
         }
         Ok(())
@@ -427,6 +450,14 @@ impl GpuRenderer {
             pending: Some(p),
         }
     }
+}
+
+fn apply_occupancy(
+    ctx: &GpuContext,
+    scene: &mut GpuScene,
+    grid: Option<&OccupancyGrid>,
+) -> Result<(), GpuError> {
+    scene.set_occupancy(ctx, grid.map(|g| (g.resolution, g.words.as_slice())))
 }
 
 /// Renders the listed pixels of `camera` at `time` into a compact output and reads their colours

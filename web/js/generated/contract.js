@@ -65,3 +65,19 @@ export const MAX_PROPOSAL_SAMPLES = 256;
 export const MAX_SAMPLES = 128;
 export const MAX_HIDDEN = 128;
 export const MAX_GEO = 31;
+/** Byte offsets inside one `Level` (48 bytes), `Encoding` and `Grid` of the `Model` uniform. */
+export const LEVEL_BYTES = 48;
+export const LEVEL_OFFSETS = { scale: 0, stride: 16, info: 32 };
+export const ENCODING_OFFSETS = { mode: 0, dims: 16, consts: 32, h3: 48, h4: 80 };
+export const GRID_OFFSETS = { shape: 0, loc: 16 };
+
+// ---- msth-gpu: the per-sample passes (gpu/src/passes.rs)
+/** Scratch memory one batch of rays may take. */
+export const FRAME_WORK_BYTES = 134217728;
+/** Byte offsets of the indirect dispatch sizes `pass_args` writes, and the buffer's size. */
+export const PASS_ARGS = { proposal: 0, rays: 12, samples: 24, color: 36, dynamic: 48, bytes: 64 };
+/** The `Pass` uniform: its size and field byte offsets. */
+export const PASS_BYTES = 80;
+export const PASS_OFFSETS = { tile: 0, reg0: 16, reg1: 32, reg2: 48, misc: 64 };
+/** `Pass.tile.z` bits. */
+export const PASS_FLAGS = { list: 1, compact: 2, cache: 4, wmax: 8 };
