@@ -783,8 +783,9 @@ impl Colmap {
     }
 }
 
-/// The model in `sparse` (one sub-folder per model) with the most registered images, its
-/// folder and how many models there are; `None` without any.
+/// The model in `sparse` (one sub-folder per model, binary as the mapper writes it, or text)
+/// with the most registered images, its folder and how many models there are; `None` without
+/// any.
 fn largest_model(sparse: &Path) -> Result<Option<(Model, PathBuf, usize)>, DatasetError> {
     let entries = std::fs::read_dir(sparse).map_err(|source| DatasetError::Io {
         path: sparse.to_path_buf(),
@@ -793,13 +794,13 @@ fn largest_model(sparse: &Path) -> Result<Option<(Model, PathBuf, usize)>, Datas
     let mut dirs: Vec<PathBuf> = entries
         .flatten()
         .map(|e| e.path())
-        .filter(|p| p.join("cameras.bin").is_file())
+        .filter(|p| p.join("cameras.bin").is_file() || p.join("cameras.txt").is_file())
         .collect();
     dirs.sort();
     let num_models = dirs.len();
     let mut best: Option<(Model, PathBuf)> = None;
     for dir in dirs {
-        let model = binary::read_binary_model(&dir)?;
+        let model = read_model(&dir)?;
         if best
             .as_ref()
             .is_none_or(|(b, _)| model.images.len() > b.images.len())
@@ -867,10 +868,17 @@ pub fn rotation_disagreement_deg(a: &Model, b: &Model) -> Option<f64> {
     )
 }
 
-/// Which of several reconstructions of the same images to keep: among those registering the
-/// most images, the one that disagrees least with all the others (summed
-/// [`rotation_disagreement_deg`], 180 degrees where two share too few images), then the lower
-/// mean reprojection error. Also each one's mean disagreement with the others (`None` alone).
+/// Reconstructions whose [`rotation_disagreement_deg`] with the consensus one is below this
+/// agree with it (runs of one capture differ by a few tenths of a degree; the wrong
+/// reconstruction seen on the generated stage was 15 degrees off).
+pub const AGREEMENT_DEG: f64 = 2.0;
+
+/// Which of several reconstructions of the same images to keep. The consensus one is, among
+/// those registering the most images, the one disagreeing least with all the others (summed
+/// [`rotation_disagreement_deg`], 180 degrees where two share too few images); of those that
+/// register as many images and agree with it within [`AGREEMENT_DEG`], the one with the lowest
+/// mean reprojection error is kept. Also each one's mean disagreement with the others (`None`
+/// alone).
 pub fn choose_trial(models: &[&Model]) -> (usize, Vec<Option<f64>>) {
     let n = models.len();
     let mut d = vec![vec![0.0; n]; n];
@@ -883,16 +891,19 @@ pub fn choose_trial(models: &[&Model]) -> (usize, Vec<Option<f64>>) {
     }
     let most = models.iter().map(|m| m.images.len()).max().unwrap_or(0);
     let score = |i: usize| d[i].iter().sum::<f64>();
-    let chosen = (0..n)
-        .filter(|&i| models[i].images.len() == most)
+    let error = |i: usize| models[i].mean_reprojection_error_px();
+    let complete = || (0..n).filter(|&i| models[i].images.len() == most);
+    let consensus = complete()
         .min_by(|&i, &j| {
-            score(i).total_cmp(&score(j)).then(
-                models[i]
-                    .mean_reprojection_error_px()
-                    .total_cmp(&models[j].mean_reprojection_error_px()),
-            )
+            score(i)
+                .total_cmp(&score(j))
+                .then(error(i).total_cmp(&error(j)))
         })
         .unwrap_or(0);
+    let chosen = complete()
+        .filter(|&i| d[consensus][i] < AGREEMENT_DEG)
+        .min_by(|&i, &j| error(i).total_cmp(&error(j)))
+        .unwrap_or(consensus);
     let mean = (0..n)
         .map(|i| (n > 1).then(|| score(i) / (n - 1) as f64))
         .collect();
@@ -1082,6 +1093,14 @@ mod tests {
         let (chosen, _) = choose_trial(&[&a, &b, &posed(7, own, 2.0)]);
         assert_eq!(chosen, 2);
         assert_eq!(choose_trial(&[&a]), (0, vec![None]));
+        // All agree within AGREEMENT_DEG: the lowest reprojection error, even off the consensus.
+        let e = posed(
+            6,
+            |i| own(i) * DQuat::from_rotation_y(if i % 2 == 0 { 0.01 } else { -0.01 }),
+            0.3,
+        );
+        let (chosen, _) = choose_trial(&[&a, &b, &e]);
+        assert_eq!(chosen, 2);
         let mean = mean_rotation(&[g, -g]);
         assert!(angle_deg(mean.inverse() * g) < 1e-9);
     }
