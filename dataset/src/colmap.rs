@@ -930,16 +930,16 @@ fn last_line(log: &Path) -> String {
 mod tests {
     use super::*;
 
-    fn write_model(dir: &Path, cameras: &str, images: &str, points: &str) {
+    pub(super) fn write_model(dir: &Path, cameras: &str, images: &str, points: &str) {
         std::fs::write(dir.join("cameras.txt"), cameras).unwrap();
         std::fs::write(dir.join("images.txt"), images).unwrap();
         std::fs::write(dir.join("points3D.txt"), points).unwrap();
     }
 
-    const CAMERAS: &str = "# Camera list\n1 OPENCV 200 150 180 170 100 75 -0.1 0.02 0.001 -0.002\n2 SIMPLE_RADIAL 64 48 50 32 24 0.05\n";
+    pub(super) const CAMERAS: &str = "# Camera list\n1 OPENCV 200 150 180 170 100 75 -0.1 0.02 0.001 -0.002\n2 SIMPLE_RADIAL 64 48 50 32 24 0.05\n";
     // Image 1: identity rotation, camera at the origin; image 2: rotated 90 degrees about Y.
-    const IMAGES: &str = "# Image list\n1 1 0 0 0 0 0 0 1 cam00/t0000.png\n10 20 7 30 40 -1 50 60 7\n2 0.7071067811865476 0 0.7071067811865476 0 0 0 2 2 cam01/t0000.png\n\n";
-    const POINTS: &str = "7 0 0 2 255 0 0 0.5 1 0 2 0\n30 1 1 3 0 255 0 0.25 1 1\n";
+    pub(super) const IMAGES: &str = "# Image list\n1 1 0 0 0 0 0 0 1 cam00/t0000.png\n10 20 7 30 40 -1 50 60 7\n2 0.7071067811865476 0 0.7071067811865476 0 0 0 2 2 cam01/t0000.png\n\n";
+    pub(super) const POINTS: &str = "7 0 0 2 255 0 0 0.5 1 0 2 0\n30 1 1 3 0 255 0 0.25 1 1\n";
 
     #[test]
     fn reads_a_text_model_and_converts_poses() {
