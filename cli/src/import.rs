@@ -43,6 +43,10 @@ pub struct ImportArgs {
     /// (monocular).
     #[arg(long, default_value_t = 0.5)]
     pub min_registered: f64,
+    /// COLMAP mapper runs (different random seeds) to compare; the one agreeing best with the
+    /// others is kept. Default: 3, or 1 above 150 images.
+    #[arg(long)]
+    pub colmap_runs: Option<usize>,
 }
 
 const IMPORT_HELP: &str = "\
@@ -78,6 +82,7 @@ pub fn run(a: ImportArgs) -> Result<()> {
         camera_model: a.camera_model.parse().map_err(anyhow::Error::msg)?,
         shared_intrinsics: a.per_video_intrinsics.then_some(false),
         min_registered: a.min_registered,
+        mapper_runs: a.colmap_runs,
         threads: rayon::current_num_threads(),
         ..Default::default()
     };
@@ -103,6 +108,27 @@ pub fn run(a: ImportArgs) -> Result<()> {
             String::new()
         }
     );
+    if r.colmap_runs.len() > 1 {
+        let runs: Vec<String> = r
+            .colmap_runs
+            .iter()
+            .map(|t| {
+                format!(
+                    "seed {}: {} images, focal {:.1} px, {:.3} px, {:.2} deg off the others",
+                    t.seed,
+                    t.images_registered,
+                    t.focal_px,
+                    t.mean_reprojection_error_px,
+                    t.disagreement_deg.unwrap_or(0.0)
+                )
+            })
+            .collect();
+        println!(
+            "COLMAP mapper runs compared ({}); kept seed {}",
+            runs.join("; "),
+            r.colmap_seed
+        );
+    }
     if !r.unregistered.is_empty() {
         eprintln!(
             "warning: left out (not registered): {}",

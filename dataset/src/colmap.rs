@@ -1,12 +1,13 @@
 //! COLMAP: the structure-from-motion program that `msth import` runs, and a reader for the
 //! sparse models it writes.
 //!
-//! [`Colmap`] drives the `colmap` command line (feature extraction, matching, mapping and the
-//! conversion of the largest model to text), on the CPU, one log file per step. [`read_text_model`]
-//! reads the text model (`cameras.txt`, `images.txt`, `points3D.txt`, as written by
-//! `colmap model_converter --output_type TXT`), checking every line, into a [`Model`] whose image
-//! poses [`Model::world_from_camera`] turns into the OpenGL camera-to-world matrices the rest of
-//! `msth` uses.
+//! [`Colmap`] drives the `colmap` command line (feature extraction, matching, mapping), on the
+//! CPU, one log file per step. [`read_binary_model`] reads the binary model the mapper writes
+//! (`cameras.bin`, `images.bin`, `points3D.bin`; in [`binary`]), [`read_text_model`] the text one
+//! (`cameras.txt`, `images.txt`, `points3D.txt`, as written by `colmap model_converter
+//! --output_type TXT`), [`read_model`] whichever a folder holds; both check every entry and give
+//! the same [`Model`], whose image poses [`Model::world_from_camera`] turns into the OpenGL
+//! camera-to-world matrices the rest of `msth` uses.
 //!
 //! COLMAP conventions: an image's `QW QX QY QZ TX TY TZ` is the world-to-camera rotation and
 //! translation of an OpenCV camera (+X right, +Y down, looking down +Z); pixel `(0, 0)`'s centre
@@ -21,6 +22,9 @@ use std::time::{Duration, Instant};
 use glam::{DMat3, DMat4, DQuat, DVec3, DVec4};
 
 use crate::DatasetError;
+
+mod binary;
+pub use binary::{read_binary_model, BinaryModelError};
 
 /// Largest accepted line count per model file (a reconstruction of a long video has a few
 /// hundred thousand points; anything beyond is certainly not a COLMAP model).
@@ -129,9 +133,11 @@ impl ColmapCamera {
     }
 }
 
-/// One registered image of `images.txt`.
+/// One registered image of `images.txt` / `images.bin`.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ColmapImage {
+    /// COLMAP's image id (a model's images are kept in id order).
+    pub image_id: u32,
     /// World-to-camera rotation `(w, x, y, z)` and translation (OpenCV camera axes).
     pub qvec: [f64; 4],
     pub tvec: [f64; 3],
@@ -167,6 +173,19 @@ impl Model {
             return 0.0;
         }
         self.points.values().map(|p| p.error_px).sum::<f64>() / self.points.len() as f64
+    }
+
+    /// The mean of `fx` and `fy` over the cameras, pixels (0 without cameras).
+    pub fn mean_focal_px(&self) -> f64 {
+        let n = self.cameras.len().max(1) as f64;
+        self.cameras
+            .values()
+            .map(|c| {
+                let k = c.intrinsics();
+                0.5 * (k.fx + k.fy)
+            })
+            .sum::<f64>()
+            / n
     }
 
     /// The OpenGL camera-to-world matrix (+X right, +Y up, looking down -Z) of `image`.
@@ -231,7 +250,113 @@ fn finite(path: &Path, line: usize, what: &str, s: &str) -> Result<f64, DatasetE
     }
 }
 
-/// Reads `cameras.txt`, `images.txt` and `points3D.txt` from `dir`.
+/// Checks one camera (both readers): a non-empty image that fits `u32`, the model's parameter
+/// count, finite parameters and a positive focal length.
+fn camera_entry(
+    model: CameraModel,
+    width: u64,
+    height: u64,
+    params: Vec<f64>,
+) -> Result<ColmapCamera, String> {
+    if params.len() != model.num_params() {
+        return Err(format!(
+            "{} takes {} parameters, found {}",
+            model.name(),
+            model.num_params(),
+            params.len()
+        ));
+    }
+    if let Some(v) = params.iter().find(|v| !v.is_finite()) {
+        return Err(format!("parameter `{v}` is not finite"));
+    }
+    let (Ok(width), Ok(height)) = (u32::try_from(width), u32::try_from(height)) else {
+        return Err(format!("image size {width}x{height} is too large"));
+    };
+    if width == 0 || height == 0 || params[0] <= 0.0 {
+        return Err("empty image or non-positive focal length".into());
+    }
+    Ok(ColmapCamera {
+        model,
+        width,
+        height,
+        params,
+    })
+}
+
+/// Checks one image pose (both readers): finite values and a quaternion that is a rotation.
+fn pose_entry(q: &[f64; 4], t: &[f64; 3]) -> Result<(), String> {
+    if let Some(v) = q.iter().chain(t).find(|v| !v.is_finite()) {
+        return Err(format!("pose value `{v}` is not finite"));
+    }
+    let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+    if !(0.5..=2.0).contains(&norm) {
+        return Err(format!("the quaternion is not a rotation (norm {norm})"));
+    }
+    Ok(())
+}
+
+impl Model {
+    fn add_camera(&mut self, id: u32, camera: ColmapCamera) -> Result<(), String> {
+        match self.cameras.insert(id, camera) {
+            Some(_) => Err(format!("camera {id} appears twice")),
+            None => Ok(()),
+        }
+    }
+
+    /// Adds an image whose observed point ids (`None`: no 3D point) are deduplicated here.
+    fn add_image(
+        &mut self,
+        mut image: ColmapImage,
+        observed: impl Iterator<Item = Option<u64>>,
+    ) -> Result<(), String> {
+        if !self.cameras.contains_key(&image.camera_id) {
+            return Err(format!(
+                "camera {} is not in the camera list",
+                image.camera_id
+            ));
+        }
+        image.point_ids = observed.flatten().collect();
+        image.point_ids.sort_unstable();
+        image.point_ids.dedup();
+        self.images.push(image);
+        Ok(())
+    }
+
+    fn add_point(&mut self, id: u64, point: ColmapPoint) -> Result<(), String> {
+        if !(point.position.is_finite() && point.error_px.is_finite()) {
+            return Err(format!("point {id} is not finite"));
+        }
+        match self.points.insert(id, point) {
+            Some(_) => Err(format!("point {id} appears twice")),
+            None => Ok(()),
+        }
+    }
+
+    /// Images in id order; an id given twice is an error.
+    fn sort_images(&mut self) -> Result<(), String> {
+        self.images.sort_by_key(|i| i.image_id);
+        match self
+            .images
+            .windows(2)
+            .find(|w| w[0].image_id == w[1].image_id)
+        {
+            Some(w) => Err(format!("image {} appears twice", w[0].image_id)),
+            None => Ok(()),
+        }
+    }
+}
+
+/// Reads the model in `dir`: the binary one (`cameras.bin`, `images.bin`, `points3D.bin`) when
+/// `cameras.bin` is there, else the text one.
+pub fn read_model(dir: &Path) -> Result<Model, DatasetError> {
+    if dir.join("cameras.bin").is_file() {
+        binary::read_binary_model(dir)
+    } else {
+        read_text_model(dir)
+    }
+}
+
+/// Reads `cameras.txt`, `images.txt` and `points3D.txt` from `dir`; images in id order.
 pub fn read_text_model(dir: &Path) -> Result<Model, DatasetError> {
     let mut model = Model::default();
     let path = dir.join("cameras.txt");
@@ -253,38 +378,15 @@ pub fn read_text_model(dir: &Path) -> Result<Model, DatasetError> {
                 format!("line {n}: {m}; import with --camera-model opencv"),
             )
         })?;
-        let width: u32 = parse(&path, n, "width", f[2])?;
-        let height: u32 = parse(&path, n, "height", f[3])?;
+        let width: u64 = parse(&path, n, "width", f[2])?;
+        let height: u64 = parse(&path, n, "height", f[3])?;
         let params = f[4..]
             .iter()
             .map(|s| finite(&path, n, "parameter", s))
             .collect::<Result<Vec<_>, _>>()?;
-        if params.len() != model_kind.num_params() {
-            return Err(bad(
-                &path,
-                format!(
-                    "line {n}: {} takes {} parameters, found {}",
-                    model_kind.name(),
-                    model_kind.num_params(),
-                    params.len()
-                ),
-            ));
-        }
-        if width == 0 || height == 0 || params[0] <= 0.0 {
-            return Err(bad(
-                &path,
-                format!("line {n}: empty image or non-positive focal length"),
-            ));
-        }
-        let camera = ColmapCamera {
-            model: model_kind,
-            width,
-            height,
-            params,
-        };
-        if model.cameras.insert(id, camera).is_some() {
-            return Err(bad(&path, format!("line {n}: camera {id} appears twice")));
-        }
+        camera_entry(model_kind, width, height, params)
+            .and_then(|camera| model.add_camera(id, camera))
+            .map_err(|m| bad(&path, format!("line {n}: {m}")))?;
     }
     let path = dir.join("images.txt");
     let lines = data_lines(&path)?;
@@ -302,6 +404,7 @@ pub fn read_text_model(dir: &Path) -> Result<Model, DatasetError> {
                 format!("line {n}: expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME"),
             ));
         }
+        let image_id: u32 = parse(&path, n, "image id", f[0])?;
         let mut q = [0.0; 4];
         for (k, s) in f[1..5].iter().enumerate() {
             q[k] = finite(&path, n, "quaternion", s)?;
@@ -310,23 +413,18 @@ pub fn read_text_model(dir: &Path) -> Result<Model, DatasetError> {
         for (k, s) in f[5..8].iter().enumerate() {
             t[k] = finite(&path, n, "translation", s)?;
         }
-        let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
-        if !(0.5..=2.0).contains(&norm) {
-            return Err(bad(
-                &path,
-                format!("line {n}: the quaternion is not a rotation (norm {norm})"),
-            ));
-        }
+        pose_entry(&q, &t).map_err(|m| bad(&path, format!("line {n}: {m}")))?;
         let camera_id: u32 = parse(&path, n, "camera id", f[8])?;
-        if !model.cameras.contains_key(&camera_id) {
-            return Err(bad(
-                &path,
-                format!("line {n}: camera {camera_id} is not in cameras.txt"),
-            ));
-        }
-        let name = f[9..].join(" ");
+        let image = ColmapImage {
+            image_id,
+            qvec: q,
+            tvec: t,
+            camera_id,
+            name: f[9..].join(" "),
+            point_ids: Vec::new(),
+        };
         // The observations line (may be empty, or missing at the very end of the file).
-        let mut point_ids = Vec::new();
+        let mut observed = Vec::new();
         if let Some((m, obs)) = lines.get(i + 1) {
             let o: Vec<&str> = obs.split_whitespace().collect();
             if !o.len().is_multiple_of(3) {
@@ -337,22 +435,15 @@ pub fn read_text_model(dir: &Path) -> Result<Model, DatasetError> {
             }
             for tri in o.chunks_exact(3) {
                 let id: i64 = parse(&path, *m, "point id", tri[2])?;
-                if id >= 0 {
-                    point_ids.push(id as u64);
-                }
+                observed.push(u64::try_from(id).ok());
             }
-            point_ids.sort_unstable();
-            point_ids.dedup();
         }
-        model.images.push(ColmapImage {
-            qvec: q,
-            tvec: t,
-            camera_id,
-            name,
-            point_ids,
-        });
+        model
+            .add_image(image, observed.into_iter())
+            .map_err(|m| bad(&path, format!("line {n}: {m}")))?;
         i += 2;
     }
+    model.sort_images().map_err(|m| bad(&path, m))?;
     let path = dir.join("points3D.txt");
     for (n, line) in data_lines(&path)? {
         if line.is_empty() {
@@ -377,9 +468,9 @@ pub fn read_text_model(dir: &Path) -> Result<Model, DatasetError> {
             error_px,
             track_len: (f.len() - 8) / 2,
         };
-        if model.points.insert(id, point).is_some() {
-            return Err(bad(&path, format!("line {n}: point {id} appears twice")));
-        }
+        model
+            .add_point(id, point)
+            .map_err(|m| bad(&path, format!("line {n}: {m}")))?;
     }
     Ok(model)
 }
@@ -410,6 +501,9 @@ pub struct RunOptions {
     pub matching: Matching,
     /// CPU threads for every step.
     pub threads: usize,
+    /// Mapper runs on the same matches, with random seeds `0..mapper_runs` (at least one): the
+    /// one agreeing best with the others is kept ([`choose_trial`]).
+    pub mapper_runs: usize,
 }
 
 /// The `colmap` program: `colmap` from `PATH`, or the path in `MSTH_COLMAP`. Runs headless
@@ -434,10 +528,28 @@ impl Default for Colmap {
 pub struct Reconstruction {
     /// The largest model (most registered images).
     pub model: Model,
+    /// Where it is (`sparse/seedS/N`).
+    pub model_dir: PathBuf,
     /// Number of models COLMAP made (more than one: the images fell apart into groups).
     pub num_models: usize,
-    /// Wall time of the four steps.
+    /// Wall time of all steps.
     pub wall: Duration,
+    /// Every mapper run that made a model, in seed order, and which of them is [`Self::model`].
+    pub trials: Vec<TrialSummary>,
+    pub chosen: usize,
+}
+
+/// One mapper run of [`Colmap::reconstruct`].
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct TrialSummary {
+    pub seed: u32,
+    pub images_registered: usize,
+    pub points: usize,
+    pub mean_reprojection_error_px: f64,
+    /// Mean of `fx` and `fy` over the cameras, pixels.
+    pub focal_px: f64,
+    /// Mean [`rotation_disagreement_deg`] with the other runs (`None` for a single run).
+    pub disagreement_deg: Option<f64>,
 }
 
 /// Why running COLMAP failed.
@@ -525,7 +637,7 @@ impl Colmap {
     }
 
     /// Reconstructs the images under `images` (sub-folders allowed) in `work` (which must exist):
-    /// `database.db`, `sparse/N/`, `model/` (the largest model as text) and one log per step.
+    /// `database.db`, `sparse/N/` (COLMAP's binary models) and one log per step.
     /// `progress` receives a line before each step.
     pub fn reconstruct(
         &self,
@@ -539,13 +651,10 @@ impl Colmap {
         let s = |p: &Path| p.display().to_string();
         let db = work.join("database.db");
         let sparse = work.join("sparse");
-        let text = work.join("model");
-        for d in [&sparse, &text] {
-            std::fs::create_dir_all(d).map_err(|source| DatasetError::Io {
-                path: d.to_path_buf(),
-                source,
-            })?;
-        }
+        std::fs::create_dir_all(&sparse).map_err(|source| DatasetError::Io {
+            path: sparse.clone(),
+            source,
+        })?;
         let threads = opts.threads.max(1).to_string();
         let mut args: Vec<String> = vec![
             "feature_extractor".into(),
@@ -591,86 +700,214 @@ impl Colmap {
         ]);
         progress("COLMAP: matching features");
         self.step("matching", &args, &work.join("matching.log"))?;
-        progress("COLMAP: mapping (incremental structure from motion)");
-        let map_log = work.join("mapper.log");
-        let mapped = self.step(
-            "mapping",
-            &[
-                "mapper".into(),
-                "--database_path".into(),
-                s(&db),
-                "--image_path".into(),
-                s(images),
-                "--output_path".into(),
-                s(&sparse),
-                "--Mapper.num_threads".into(),
-                threads,
-                // Run the global bundle adjustments to convergence (as nerfstudio does): the
-                // default stops early, which costs accuracy on small captures.
-                "--Mapper.ba_global_function_tolerance".into(),
-                "1e-6".into(),
-            ],
-            &map_log,
-        );
-        if let Err(ColmapError::Failed { message, .. }) = &mapped {
-            if message.contains("failed to create sparse model") {
-                return Err(ColmapError::NoModel {
-                    why: "the mapper found no pair of images with enough matches to start from"
-                        .into(),
-                    log: map_log,
-                });
+        let runs = opts.mapper_runs.max(1);
+        let mut trials: Vec<(u32, Model, PathBuf, usize)> = Vec::new();
+        let mut first_log = None;
+        for seed in 0..runs as u32 {
+            progress(&format!(
+                "COLMAP: mapping (incremental structure from motion), run {} of {runs}",
+                seed + 1
+            ));
+            let out = sparse.join(format!("seed{seed}"));
+            std::fs::create_dir_all(&out).map_err(|source| DatasetError::Io {
+                path: out.clone(),
+                source,
+            })?;
+            let log = work.join(format!("mapper-seed{seed}.log"));
+            first_log.get_or_insert_with(|| log.clone());
+            let mapped = self.step(
+                "mapping",
+                &[
+                    "mapper".into(),
+                    "--database_path".into(),
+                    s(&db),
+                    "--image_path".into(),
+                    s(images),
+                    "--output_path".into(),
+                    s(&out),
+                    "--Mapper.num_threads".into(),
+                    threads.clone(),
+                    // The mapper is deterministic for a given database and seed; other seeds
+                    // give other RANSAC samples, hence independent reconstructions to compare.
+                    "--random_seed".into(),
+                    seed.to_string(),
+                    // Run the global bundle adjustments to convergence (as nerfstudio does):
+                    // the default stops early, which costs accuracy on small captures.
+                    "--Mapper.ba_global_function_tolerance".into(),
+                    "1e-6".into(),
+                ],
+                &log,
+            );
+            match mapped {
+                Err(ColmapError::Failed { message, .. })
+                    if message.contains("failed to create sparse model") =>
+                {
+                    continue
+                }
+                Err(e) => return Err(e),
+                Ok(()) => {}
+            }
+            if let Some((model, dir, n)) = largest_model(&out)? {
+                trials.push((seed, model, dir, n));
             }
         }
-        mapped?;
-        // The largest model: the one with the most images (binary `images.bin`: a u64 count first).
-        let mut best: Option<(u64, PathBuf)> = None;
-        let mut num_models = 0;
-        let entries = std::fs::read_dir(&sparse).map_err(|source| DatasetError::Io {
-            path: sparse.clone(),
-            source,
-        })?;
-        for e in entries.flatten() {
-            let p = e.path();
-            let Ok(bytes) = std::fs::read(p.join("images.bin")) else {
-                continue;
-            };
-            let Some(count) = bytes
-                .get(0..8)
-                .map(|b| u64::from_le_bytes(b.try_into().unwrap_or([0; 8])))
-            else {
-                continue;
-            };
-            num_models += 1;
-            if best.as_ref().is_none_or(|(c, _)| count > *c) {
-                best = Some((count, p));
-            }
-        }
-        let Some((_, best)) = best else {
+        if trials.is_empty() {
             return Err(ColmapError::NoModel {
-                why: "the mapper found no pair of images to start from (too little texture or overlap?)".into(),
-                log: map_log,
+                why: "the mapper found no pair of images with enough matches to start from (too little texture or overlap?)".into(),
+                log: first_log.unwrap_or_else(|| work.join("mapper-seed0.log")),
             });
-        };
-        self.step(
-            "model conversion",
-            &[
-                "model_converter".into(),
-                "--input_path".into(),
-                s(&best),
-                "--output_path".into(),
-                s(&text),
-                "--output_type".into(),
-                "TXT".into(),
-            ],
-            &work.join("convert.log"),
-        )?;
-        let model = read_text_model(&text)?;
+        }
+        let models: Vec<&Model> = trials.iter().map(|t| &t.1).collect();
+        let (chosen, disagreement) = choose_trial(&models);
+        let summaries = trials
+            .iter()
+            .zip(disagreement)
+            .map(|((seed, model, _, _), d)| TrialSummary {
+                seed: *seed,
+                images_registered: model.images.len(),
+                points: model.points.len(),
+                mean_reprojection_error_px: model.mean_reprojection_error_px(),
+                focal_px: model.mean_focal_px(),
+                disagreement_deg: d,
+            })
+            .collect();
+        let (_, model, model_dir, num_models) = trials.swap_remove(chosen);
         Ok(Reconstruction {
             model,
+            model_dir,
             num_models,
             wall: start.elapsed(),
+            trials: summaries,
+            chosen,
         })
     }
+}
+
+/// The model in `sparse` (one sub-folder per model, binary as the mapper writes it, or text)
+/// with the most registered images, its folder and how many models there are; `None` without
+/// any.
+fn largest_model(sparse: &Path) -> Result<Option<(Model, PathBuf, usize)>, DatasetError> {
+    let entries = std::fs::read_dir(sparse).map_err(|source| DatasetError::Io {
+        path: sparse.to_path_buf(),
+        source,
+    })?;
+    let mut dirs: Vec<PathBuf> = entries
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.join("cameras.bin").is_file() || p.join("cameras.txt").is_file())
+        .collect();
+    dirs.sort();
+    let num_models = dirs.len();
+    let mut best: Option<(Model, PathBuf)> = None;
+    for dir in dirs {
+        let model = read_model(&dir)?;
+        if best
+            .as_ref()
+            .is_none_or(|(b, _)| model.images.len() > b.images.len())
+        {
+            best = Some((model, dir));
+        }
+    }
+    Ok(best.map(|(m, d)| (m, d, num_models)))
+}
+
+/// The chordal mean of rotations: the quaternions, sign-aligned with the first, summed and
+/// normalised (identity for none).
+pub fn mean_rotation(rotations: &[DQuat]) -> DQuat {
+    let Some(&q0) = rotations.first() else {
+        return DQuat::IDENTITY;
+    };
+    let sum: DVec4 = rotations
+        .iter()
+        .map(|&q| {
+            let v = DVec4::from(q);
+            if q.dot(q0) < 0.0 {
+                -v
+            } else {
+                v
+            }
+        })
+        .sum();
+    DQuat::from_vec4(sum).normalize()
+}
+
+/// The angle of a rotation, degrees.
+fn angle_deg(q: DQuat) -> f64 {
+    (2.0 * q.w.abs().clamp(0.0, 1.0).acos()).to_degrees()
+}
+
+/// How much two reconstructions of the same images disagree on the cameras' relative
+/// orientations: over the images both registered (by name, at least two), the mean angle
+/// between each image's `world_a <- world_b` rotation and their mean, degrees. Independent of
+/// each reconstruction's own world frame; `None` with fewer than two common images.
+pub fn rotation_disagreement_deg(a: &Model, b: &Model) -> Option<f64> {
+    let quat = |im: &ColmapImage| {
+        let [w, x, y, z] = im.qvec;
+        DQuat::from_xyzw(x, y, z, w).normalize()
+    };
+    let in_b: BTreeMap<&str, DQuat> = b
+        .images
+        .iter()
+        .map(|i| (i.name.as_str(), quat(i)))
+        .collect();
+    let deltas: Vec<DQuat> = a
+        .images
+        .iter()
+        .filter_map(|i| in_b.get(i.name.as_str()).map(|qb| quat(i).inverse() * *qb))
+        .collect();
+    if deltas.len() < 2 {
+        return None;
+    }
+    let mean = mean_rotation(&deltas);
+    Some(
+        deltas
+            .iter()
+            .map(|d| angle_deg(mean.inverse() * *d))
+            .sum::<f64>()
+            / deltas.len() as f64,
+    )
+}
+
+/// Reconstructions whose [`rotation_disagreement_deg`] with the consensus one is below this
+/// agree with it (runs of one capture differ by a few tenths of a degree; the wrong
+/// reconstruction seen on the generated stage was 15 degrees off).
+pub const AGREEMENT_DEG: f64 = 2.0;
+
+/// Which of several reconstructions of the same images to keep. The consensus one is, among
+/// those registering the most images, the one disagreeing least with all the others (summed
+/// [`rotation_disagreement_deg`], 180 degrees where two share too few images); of those that
+/// register as many images and agree with it within [`AGREEMENT_DEG`], the one with the lowest
+/// mean reprojection error is kept. Also each one's mean disagreement with the others (`None`
+/// alone).
+pub fn choose_trial(models: &[&Model]) -> (usize, Vec<Option<f64>>) {
+    let n = models.len();
+    let mut d = vec![vec![0.0; n]; n];
+    for i in 0..n {
+        for j in i + 1..n {
+            let v = rotation_disagreement_deg(models[i], models[j]).unwrap_or(180.0);
+            d[i][j] = v;
+            d[j][i] = v;
+        }
+    }
+    let most = models.iter().map(|m| m.images.len()).max().unwrap_or(0);
+    let score = |i: usize| d[i].iter().sum::<f64>();
+    let error = |i: usize| models[i].mean_reprojection_error_px();
+    let complete = || (0..n).filter(|&i| models[i].images.len() == most);
+    let consensus = complete()
+        .min_by(|&i, &j| {
+            score(i)
+                .total_cmp(&score(j))
+                .then(error(i).total_cmp(&error(j)))
+        })
+        .unwrap_or(0);
+    let chosen = complete()
+        .filter(|&i| d[consensus][i] < AGREEMENT_DEG)
+        .min_by(|&i, &j| error(i).total_cmp(&error(j)))
+        .unwrap_or(consensus);
+    let mean = (0..n)
+        .map(|i| (n > 1).then(|| score(i) / (n - 1) as f64))
+        .collect();
+    (chosen, mean)
 }
 
 /// The last non-empty line of a log file (for messages).
@@ -693,16 +930,16 @@ fn last_line(log: &Path) -> String {
 mod tests {
     use super::*;
 
-    fn write_model(dir: &Path, cameras: &str, images: &str, points: &str) {
+    pub(super) fn write_model(dir: &Path, cameras: &str, images: &str, points: &str) {
         std::fs::write(dir.join("cameras.txt"), cameras).unwrap();
         std::fs::write(dir.join("images.txt"), images).unwrap();
         std::fs::write(dir.join("points3D.txt"), points).unwrap();
     }
 
-    const CAMERAS: &str = "# Camera list\n1 OPENCV 200 150 180 170 100 75 -0.1 0.02 0.001 -0.002\n2 SIMPLE_RADIAL 64 48 50 32 24 0.05\n";
+    pub(super) const CAMERAS: &str = "# Camera list\n1 OPENCV 200 150 180 170 100 75 -0.1 0.02 0.001 -0.002\n2 SIMPLE_RADIAL 64 48 50 32 24 0.05\n";
     // Image 1: identity rotation, camera at the origin; image 2: rotated 90 degrees about Y.
-    const IMAGES: &str = "# Image list\n1 1 0 0 0 0 0 0 1 cam00/t0000.png\n10 20 7 30 40 -1 50 60 7\n2 0.7071067811865476 0 0.7071067811865476 0 0 0 2 2 cam01/t0000.png\n\n";
-    const POINTS: &str = "7 0 0 2 255 0 0 0.5 1 0 2 0\n30 1 1 3 0 255 0 0.25 1 1\n";
+    pub(super) const IMAGES: &str = "# Image list\n1 1 0 0 0 0 0 0 1 cam00/t0000.png\n10 20 7 30 40 -1 50 60 7\n2 0.7071067811865476 0 0.7071067811865476 0 0 0 2 2 cam01/t0000.png\n\n";
+    pub(super) const POINTS: &str = "7 0 0 2 255 0 0 0.5 1 0 2 0\n30 1 1 3 0 255 0 0.25 1 1\n";
 
     #[test]
     fn reads_a_text_model_and_converts_poses() {
@@ -793,6 +1030,79 @@ mod tests {
         std::fs::remove_file(dir.path().join("images.txt")).unwrap();
         let e = read_text_model(dir.path()).unwrap_err().to_string();
         assert!(e.contains("images.txt"), "{e}");
+    }
+
+    /// A model of `n` images whose camera-from-world rotations are `rotation(i)`, and one point
+    /// with reprojection error `error_px`.
+    fn posed(n: usize, rotation: impl Fn(usize) -> DQuat, error_px: f64) -> Model {
+        let mut m = Model::default();
+        m.cameras.insert(
+            1,
+            ColmapCamera {
+                model: CameraModel::SimplePinhole,
+                width: 4,
+                height: 3,
+                params: vec![5.0, 2.0, 1.5],
+            },
+        );
+        for i in 0..n {
+            let q = rotation(i);
+            m.images.push(ColmapImage {
+                image_id: i as u32 + 1,
+                qvec: [q.w, q.x, q.y, q.z],
+                tvec: [0.0, 0.0, i as f64],
+                camera_id: 1,
+                name: format!("{i:04}.png"),
+                point_ids: vec![],
+            });
+        }
+        let point = ColmapPoint {
+            position: DVec3::ZERO,
+            error_px,
+            track_len: 2,
+        };
+        m.points.insert(1, point);
+        m
+    }
+
+    #[test]
+    fn the_reconstruction_agreeing_with_the_others_is_chosen() {
+        let own = |i: usize| DQuat::from_euler(glam::EulerRot::YXZ, 0.3 * i as f64, 0.1, 0.0);
+        let a = posed(6, own, 0.5);
+        // The same cameras in another world frame: x_b = G x_a, so R_b = R_a G^-1.
+        let g = DQuat::from_axis_angle(DVec3::new(1.0, 2.0, 3.0).normalize(), 1.0);
+        let b = posed(6, |i| own(i) * g.inverse(), 0.4);
+        // Wrong: every camera off by its own 10 degrees.
+        let c = posed(
+            6,
+            |i| {
+                own(i)
+                    * DQuat::from_rotation_x((if i % 2 == 0 { 10f64 } else { -10.0 }).to_radians())
+            },
+            0.1,
+        );
+        assert!(rotation_disagreement_deg(&a, &b).unwrap() < 1e-9);
+        let d = rotation_disagreement_deg(&a, &c).unwrap();
+        assert!((d - 10.0).abs() < 1e-6, "{d}");
+        assert_eq!(rotation_disagreement_deg(&a, &posed(1, own, 0.5)), None);
+        // a and b agree (tie broken by the lower reprojection error), c disagrees.
+        let (chosen, mean) = choose_trial(&[&c, &a, &b]);
+        assert_eq!(chosen, 2);
+        assert!((mean[0].unwrap() - 10.0).abs() < 1e-6 && mean[2].unwrap() < 5.1);
+        // More registered images come first; one run has no disagreement.
+        let (chosen, _) = choose_trial(&[&a, &b, &posed(7, own, 2.0)]);
+        assert_eq!(chosen, 2);
+        assert_eq!(choose_trial(&[&a]), (0, vec![None]));
+        // All agree within AGREEMENT_DEG: the lowest reprojection error, even off the consensus.
+        let e = posed(
+            6,
+            |i| own(i) * DQuat::from_rotation_y(if i % 2 == 0 { 0.01 } else { -0.01 }),
+            0.3,
+        );
+        let (chosen, _) = choose_trial(&[&a, &b, &e]);
+        assert_eq!(chosen, 2);
+        let mean = mean_rotation(&[g, -g]);
+        assert!(angle_deg(mean.inverse() * g) < 1e-9);
     }
 
     #[test]

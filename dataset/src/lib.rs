@@ -297,6 +297,12 @@ pub enum DatasetError {
         #[source]
         source: npy::NpyError,
     },
+    #[error("{path}: not a valid COLMAP binary model file: {source}")]
+    ColmapBinary {
+        path: PathBuf,
+        #[source]
+        source: colmap::BinaryModelError,
+    },
 }
 
 /// The on-disk layouts `msth` reads.

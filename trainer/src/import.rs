@@ -16,7 +16,8 @@
 //! frames/TTTT.png        monocular frames
 //! poses_bounds.npy       rig + a distortion-free camera model: DyNeRF rows with near/far
 //! import.json            what COLMAP registered, errors, near/far per camera, the normalisation
-//! colmap/                COLMAP's database, logs, sparse models and the chosen model as text
+//! colmap/                COLMAP's database, logs and binary models (sparse/seedS/N, one per
+//!                        mapper run; import.json names the one used)
 //! ```
 //! The world is rotated so that the average camera up vector is +Z, centred on the point
 //! closest to all optical axes (the mean camera centre when the axes are parallel) and scaled so
@@ -32,7 +33,8 @@ use msth_core::Camera;
 use serde_json::{json, Value};
 
 use crate::dataset::colmap::{
-    CameraModel, Colmap, ColmapError, Intrinsics, Matching, Model, RunOptions, Sharing,
+    mean_rotation, CameraModel, Colmap, ColmapError, Intrinsics, Matching, Model, RunOptions,
+    Sharing, TrialSummary,
 };
 use crate::dataset::video::{self, Tools};
 use crate::dataset::{dnerf, dynerf, DatasetError};
@@ -44,7 +46,11 @@ pub const CAMERA_DISTANCE: f64 = 4.0;
 pub const VIDEO_EXTENSIONS: [&str; 7] = ["mp4", "mov", "m4v", "mkv", "avi", "webm", "mpg"];
 
 /// Monocular videos with more frames than this are matched sequentially, not exhaustively.
-const EXHAUSTIVE_LIMIT: usize = 150;
+pub const EXHAUSTIVE_LIMIT: usize = 150;
+
+/// COLMAP mapper runs compared by default (one mapping takes seconds on a small capture; on
+/// the generated stage one run in seven converged to a wrong focal length, see docs/import.md).
+pub const DEFAULT_MAPPER_RUNS: usize = 3;
 
 /// One video per fixed camera, or one moving camera.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -86,6 +92,9 @@ pub struct ImportOptions {
     /// Fail when COLMAP registers fewer than this fraction of the cameras (rig) or frames
     /// (monocular).
     pub min_registered: f64,
+    /// COLMAP mapper runs (random seeds) compared, the one agreeing best with the others kept
+    /// (`None`: [`DEFAULT_MAPPER_RUNS`] up to [`EXHAUSTIVE_LIMIT`] images, else one).
+    pub mapper_runs: Option<usize>,
     pub threads: usize,
     pub colmap: Colmap,
     pub tools: Tools,
@@ -101,6 +110,7 @@ impl Default for ImportOptions {
             camera_model: CameraModel::Opencv,
             shared_intrinsics: None,
             min_registered: 0.5,
+            mapper_runs: None,
             threads: std::thread::available_parallelism().map_or(2, |n| n.get()),
             colmap: Colmap::default(),
             tools: Tools::default(),
@@ -122,6 +132,10 @@ pub struct ImportReport {
     pub mean_reprojection_error_px: f64,
     /// COLMAP made more than one model (only the largest is used).
     pub colmap_models: usize,
+    /// Every mapper run (seed, registered, points, error, focal, disagreement with the others
+    /// in degrees) and the seed of the one used.
+    pub colmap_runs: Vec<TrialSummary>,
+    pub colmap_seed: u32,
     pub colmap_seconds: f64,
     pub decode_seconds: f64,
     /// Time steps in the dataset and frames written.
@@ -240,9 +254,9 @@ pub fn import(
             "the minimum registered fraction must be in [0, 1]".into(),
         ));
     }
-    if opts.sync_times == 0 || opts.frames == Some(0) {
+    if opts.sync_times == 0 || opts.frames == Some(0) || opts.mapper_runs == Some(0) {
         return Err(ImportError::Invalid(
-            "--frames and --sync-times must be at least 1".into(),
+            "--frames, --sync-times and --colmap-runs must be at least 1".into(),
         ));
     }
     if out.exists() && (!out.is_dir() || std::fs::read_dir(out).map_err(io(out))?.next().is_some())
@@ -500,6 +514,13 @@ fn build(
             Matching::Exhaustive
         },
         threads: opts.threads,
+        mapper_runs: opts
+            .mapper_runs
+            .unwrap_or(if colmap_names.len() > EXHAUSTIVE_LIMIT {
+                1
+            } else {
+                DEFAULT_MAPPER_RUNS
+            }),
     };
     progress(&format!(
         "COLMAP: {} images ({} camera model, {})",
@@ -768,6 +789,8 @@ fn build(
         points: model.points.len(),
         mean_reprojection_error_px: model.mean_reprojection_error_px(),
         colmap_models: rec.num_models,
+        colmap_runs: rec.trials.clone(),
+        colmap_seed: rec.trials.get(rec.chosen).map_or(0, |t| t.seed),
         colmap_seconds: rec.wall.as_secs_f64(),
         decode_seconds,
         time_steps: steps,
@@ -809,17 +832,9 @@ fn percentile(sorted: &[f64], q: f64) -> f64 {
 /// The mean of camera-to-world poses: mean centre and the chordal mean rotation (sign-aligned
 /// quaternions averaged and normalised).
 pub fn average_pose(poses: &[DMat4]) -> DMat4 {
-    let q0 = DQuat::from_mat4(&poses[0]);
-    let mut q = glam::DVec4::ZERO;
-    let mut c = DVec3::ZERO;
-    for p in poses {
-        let qi = DQuat::from_mat4(p);
-        let v = glam::DVec4::from(qi);
-        q += if qi.dot(q0) < 0.0 { -v } else { v };
-        c += p.w_axis.truncate();
-    }
-    let q = DQuat::from_vec4(q).normalize();
-    let mut m = DMat4::from_quat(q);
+    let rotations: Vec<DQuat> = poses.iter().map(DQuat::from_mat4).collect();
+    let c = poses.iter().map(|p| p.w_axis.truncate()).sum::<DVec3>();
+    let mut m = DMat4::from_quat(mean_rotation(&rotations));
     m.w_axis = (c / poses.len() as f64).extend(1.0);
     m
 }
