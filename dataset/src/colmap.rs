@@ -250,6 +250,37 @@ fn finite(path: &Path, line: usize, what: &str, s: &str) -> Result<f64, DatasetE
     }
 }
 
+/// Why an entry of a COLMAP model (text or binary) was refused after it parsed.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum ModelEntryError {
+    #[error("{model} takes {expected} parameters, found {found}")]
+    ParameterCount {
+        model: &'static str,
+        expected: usize,
+        found: usize,
+    },
+    #[error("parameter `{0}` is not finite")]
+    NonFiniteParameter(f64),
+    #[error("image size {width}x{height} is too large")]
+    ImageTooLarge { width: u64, height: u64 },
+    #[error("empty image or non-positive focal length")]
+    EmptyImageOrFocal,
+    #[error("pose value `{0}` is not finite")]
+    NonFinitePose(f64),
+    #[error("the quaternion is not a rotation (norm {0})")]
+    NotARotation(f64),
+    #[error("camera {0} appears twice")]
+    DuplicateCamera(u32),
+    #[error("camera {0} is not in the camera list")]
+    UnknownCamera(u32),
+    #[error("point {0} is not finite")]
+    NonFinitePoint(u64),
+    #[error("point {0} appears twice")]
+    DuplicatePoint(u64),
+    #[error("image {0} appears twice")]
+    DuplicateImage(u32),
+}
+
 /// Checks one camera (both readers): a non-empty image that fits `u32`, the model's parameter
 /// count, finite parameters and a positive focal length.
 fn camera_entry(
@@ -257,48 +288,47 @@ fn camera_entry(
     width: u64,
     height: u64,
     params: Vec<f64>,
-) -> Result<ColmapCamera, String> {
+) -> Result<ColmapCamera, ModelEntryError> {
     if params.len() != model.num_params() {
-        return Err(format!(
-            "{} takes {} parameters, found {}",
-            model.name(),
-            model.num_params(),
-            params.len()
-        ));
+        return Err(ModelEntryError::ParameterCount {
+            model: model.name(),
+            expected: model.num_params(),
+            found: params.len(),
+        });
     }
-    if let Some(v) = params.iter().find(|v| !v.is_finite()) {
-        return Err(format!("parameter `{v}` is not finite"));
+    if let Some(&v) = params.iter().find(|v| !v.is_finite()) {
+        return Err(ModelEntryError::NonFiniteParameter(v));
     }
-    let (Ok(width), Ok(height)) = (u32::try_from(width), u32::try_from(height)) else {
-        return Err(format!("image size {width}x{height} is too large"));
+    let (Ok(w), Ok(h)) = (u32::try_from(width), u32::try_from(height)) else {
+        return Err(ModelEntryError::ImageTooLarge { width, height });
     };
-    if width == 0 || height == 0 || params[0] <= 0.0 {
-        return Err("empty image or non-positive focal length".into());
+    if w == 0 || h == 0 || params[0] <= 0.0 {
+        return Err(ModelEntryError::EmptyImageOrFocal);
     }
     Ok(ColmapCamera {
         model,
-        width,
-        height,
+        width: w,
+        height: h,
         params,
     })
 }
 
 /// Checks one image pose (both readers): finite values and a quaternion that is a rotation.
-fn pose_entry(q: &[f64; 4], t: &[f64; 3]) -> Result<(), String> {
-    if let Some(v) = q.iter().chain(t).find(|v| !v.is_finite()) {
-        return Err(format!("pose value `{v}` is not finite"));
+fn pose_entry(q: &[f64; 4], t: &[f64; 3]) -> Result<(), ModelEntryError> {
+    if let Some(&v) = q.iter().chain(t).find(|v| !v.is_finite()) {
+        return Err(ModelEntryError::NonFinitePose(v));
     }
     let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
     if !(0.5..=2.0).contains(&norm) {
-        return Err(format!("the quaternion is not a rotation (norm {norm})"));
+        return Err(ModelEntryError::NotARotation(norm));
     }
     Ok(())
 }
 
 impl Model {
-    fn add_camera(&mut self, id: u32, camera: ColmapCamera) -> Result<(), String> {
+    fn add_camera(&mut self, id: u32, camera: ColmapCamera) -> Result<(), ModelEntryError> {
         match self.cameras.insert(id, camera) {
-            Some(_) => Err(format!("camera {id} appears twice")),
+            Some(_) => Err(ModelEntryError::DuplicateCamera(id)),
             None => Ok(()),
         }
     }
@@ -308,12 +338,9 @@ impl Model {
         &mut self,
         mut image: ColmapImage,
         observed: impl Iterator<Item = Option<u64>>,
-    ) -> Result<(), String> {
+    ) -> Result<(), ModelEntryError> {
         if !self.cameras.contains_key(&image.camera_id) {
-            return Err(format!(
-                "camera {} is not in the camera list",
-                image.camera_id
-            ));
+            return Err(ModelEntryError::UnknownCamera(image.camera_id));
         }
         image.point_ids = observed.flatten().collect();
         image.point_ids.sort_unstable();
@@ -322,25 +349,25 @@ impl Model {
         Ok(())
     }
 
-    fn add_point(&mut self, id: u64, point: ColmapPoint) -> Result<(), String> {
+    fn add_point(&mut self, id: u64, point: ColmapPoint) -> Result<(), ModelEntryError> {
         if !(point.position.is_finite() && point.error_px.is_finite()) {
-            return Err(format!("point {id} is not finite"));
+            return Err(ModelEntryError::NonFinitePoint(id));
         }
         match self.points.insert(id, point) {
-            Some(_) => Err(format!("point {id} appears twice")),
+            Some(_) => Err(ModelEntryError::DuplicatePoint(id)),
             None => Ok(()),
         }
     }
 
     /// Images in id order; an id given twice is an error.
-    fn sort_images(&mut self) -> Result<(), String> {
+    fn sort_images(&mut self) -> Result<(), ModelEntryError> {
         self.images.sort_by_key(|i| i.image_id);
         match self
             .images
             .windows(2)
             .find(|w| w[0].image_id == w[1].image_id)
         {
-            Some(w) => Err(format!("image {} appears twice", w[0].image_id)),
+            Some(w) => Err(ModelEntryError::DuplicateImage(w[0].image_id)),
             None => Ok(()),
         }
     }
@@ -443,7 +470,7 @@ pub fn read_text_model(dir: &Path) -> Result<Model, DatasetError> {
             .map_err(|m| bad(&path, format!("line {n}: {m}")))?;
         i += 2;
     }
-    model.sort_images().map_err(|m| bad(&path, m))?;
+    model.sort_images().map_err(|m| bad(&path, m.to_string()))?;
     let path = dir.join("points3D.txt");
     for (n, line) in data_lines(&path)? {
         if line.is_empty() {

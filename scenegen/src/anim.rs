@@ -44,6 +44,28 @@ pub struct Sampler {
     interpolation: Interpolation,
 }
 
+/// Why a glTF animation sampler's keyframes were refused.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum KeyframeError {
+    #[error("sampler has no keyframes")]
+    NoKeyframes,
+    #[error("keyframe times decrease at keyframe {index} ({time} after {previous})")]
+    TimesDecrease {
+        index: usize,
+        time: f32,
+        previous: f32,
+    },
+    #[error(
+        "{times} keyframe times need {needed} output elements ({interpolation:?}), found {found}"
+    )]
+    OutputCount {
+        times: usize,
+        needed: usize,
+        interpolation: Interpolation,
+        found: usize,
+    },
+}
+
 impl Sampler {
     /// Checks the keyframes: at least one, finite, non-decreasing times, and the number of
     /// output values matching the number of times.
@@ -52,17 +74,16 @@ impl Sampler {
         output: Vec<f32>,
         k: usize,
         interpolation: Interpolation,
-    ) -> Result<Self, String> {
+    ) -> Result<Self, KeyframeError> {
         if input.is_empty() {
-            return Err("sampler has no keyframes".into());
+            return Err(KeyframeError::NoKeyframes);
         }
         if let Some(i) = input.windows(2).position(|w| w[1] < w[0]) {
-            return Err(format!(
-                "keyframe times decrease at keyframe {} ({} after {})",
-                i + 1,
-                input[i + 1],
-                input[i]
-            ));
+            return Err(KeyframeError::TimesDecrease {
+                index: i + 1,
+                time: input[i + 1],
+                previous: input[i],
+            });
         }
         let per_key = if interpolation == Interpolation::CubicSpline {
             3
@@ -71,13 +92,12 @@ impl Sampler {
         };
         let expected = input.len() * per_key * k;
         if output.len() != expected {
-            return Err(format!(
-                "{} keyframe times need {} output elements ({:?}), found {}",
-                input.len(),
-                input.len() * per_key,
+            return Err(KeyframeError::OutputCount {
+                times: input.len(),
+                needed: input.len() * per_key,
                 interpolation,
-                output.len() / k.max(1)
-            ));
+                found: output.len() / k.max(1),
+            });
         }
         Ok(Sampler {
             input,
@@ -433,7 +453,7 @@ mod tests {
         assert!(Sampler::new(vec![1.0, 0.0], vec![0.0; 6], 3, Interpolation::Linear).is_err());
         let e =
             Sampler::new(vec![0.0, 1.0], vec![0.0; 6], 3, Interpolation::CubicSpline).unwrap_err();
-        assert!(e.contains("6 output elements"), "{e}");
+        assert!(e.to_string().contains("6 output elements"), "{e}");
     }
 
     #[test]

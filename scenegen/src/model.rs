@@ -790,8 +790,8 @@ fn read_animation(
         let input = read_floats(path, &s.input(), buffers, 1, &format!("{what} input"))?;
         let k = property.components();
         let output = read_floats(path, &s.output(), buffers, k, &format!("{what} output"))?;
-        let sampler =
-            Sampler::new(input, output, k, interpolation).map_err(|m| invalid(path, &what, m))?;
+        let sampler = Sampler::new(input, output, k, interpolation)
+            .map_err(|m| invalid(path, &what, m.to_string()))?;
         channels.push(Channel {
             node,
             property,

@@ -19,7 +19,8 @@ use std::path::Path;
 use glam::DVec3;
 
 use super::{
-    bad, camera_entry, pose_entry, CameraModel, ColmapImage, ColmapPoint, Model, MAX_ENTRIES,
+    bad, camera_entry, pose_entry, CameraModel, ColmapImage, ColmapPoint, Model, ModelEntryError,
+    MAX_ENTRIES,
 };
 use crate::DatasetError;
 
@@ -186,10 +187,10 @@ pub fn read_binary_model(dir: &Path) -> Result<Model, DatasetError> {
     Ok(model)
 }
 
-/// An entry that parsed but does not make sense (the message of [`super::camera_entry`] & co).
+/// An entry that parsed but does not make sense, and where it starts.
 struct Semantic {
     offset: usize,
-    message: String,
+    error: ModelEntryError,
 }
 
 enum FileError {
@@ -203,8 +204,8 @@ impl From<BinaryModelError> for FileError {
     }
 }
 
-fn semantic(offset: usize) -> impl FnOnce(String) -> FileError {
-    move |message| FileError::Semantic(Semantic { offset, message })
+fn semantic(offset: usize) -> impl FnOnce(ModelEntryError) -> FileError {
+    move |error| FileError::Semantic(Semantic { offset, error })
 }
 
 fn read_file(
@@ -227,7 +228,7 @@ fn read_file(
                 path: path.to_path_buf(),
                 source,
             },
-            FileError::Semantic(s) => bad(path, format!("at byte {}: {}", s.offset, s.message)),
+            FileError::Semantic(s) => bad(path, format!("at byte {}: {}", s.offset, s.error)),
         })
 }
 
