@@ -29,13 +29,14 @@ fn read(rel: &str) -> String {
 fn wgsl_blend_mirrors_blend_coefficients() {
     let wgsl = read("gpu/shaders/render.wgsl");
     // Blend codes 0..4 are Mst, Mt, Add, FourD, Static (gpu/src/layout.rs, blend_code); the
-    // shader writes `v = a * h3 + b * h4` with the coefficients spelled out per code.
+    // shader writes `v = a * f3 + b * f4` per feature pair (`Feat(.a, .b)`, 4 samples at once)
+    // with the coefficients spelled out per code.
     let written = [
-        ("m * a + (1.0 - m) * b", (0.3, 0.7)),
-        ("a + (1.0 - m) * b", (1.0, 0.7)),
-        ("a + b", (1.0, 1.0)),
-        ("v = b;", (0.0, 1.0)),
-        ("var v = a;", (1.0, 0.0)),
+        ("m * f3.a + (1.0 - m) * f4.a", (0.3, 0.7)),
+        ("Feat(f3.a + (1.0 - m) * f4.a", (1.0, 0.7)),
+        ("Feat(f3.a + f4.a", (1.0, 1.0)),
+        ("v = f4;", (0.0, 1.0)),
+        ("var v = f3;", (1.0, 0.0)),
     ];
     for (mode, (text, coeffs)) in BlendMode::ALL.iter().zip(written) {
         assert!(wgsl.contains(text), "render.wgsl: no `{text}` ({mode:?})");
