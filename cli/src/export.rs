@@ -250,6 +250,12 @@ fn measure(
     data.rescale(ckpt.header.scene_scale());
     let model = &ckpt.header.model;
     let layout = ModelLayout::new(model);
+    // One occupancy grid for every encoding below.
+    let grid = msth_codec::encode::occupancy_grid(model, &layout, &ckpt.params, base);
+    let base = &EncodeOptions {
+        occupancy: Some(std::sync::Arc::new(grid)),
+        ..base.clone()
+    };
     let reference = held_out_psnr(&data, model, &layout, stride, &|_| ckpt.params.clone());
     let raw = 4 * ckpt.params.len() as u64;
     println!(

@@ -152,6 +152,24 @@ fn compress(raw: &[u8], level: i32) -> Result<Vec<u8>, EncodeError> {
     zstd::bulk::compress(raw, level).map_err(EncodeError::Compress)
 }
 
+/// The occupancy grid [`encode`] stores when `opts.occupancy` is `None`
+/// ([`crate::occupancy::compute`] at `opts.occupancy_resolution` and `opts.occupancy_alpha`).
+/// Compute it once for several encodings of one model and pass it as `opts.occupancy`.
+pub fn occupancy_grid(
+    model: &ModelConfig,
+    layout: &ModelLayout,
+    params: &[f32],
+    opts: &EncodeOptions,
+) -> OccupancyGrid {
+    crate::occupancy::compute(
+        model,
+        layout,
+        params,
+        opts.occupancy_resolution,
+        opts.occupancy_alpha,
+    )
+}
+
 /// Encodes a model into `.msth` bytes.
 pub fn encode(
     model: &ModelConfig,
@@ -256,13 +274,7 @@ pub fn encode(
                 .map_err(|e| EncodeError::InvalidOption(e.to_string()))?;
             (**g).clone()
         }
-        None => crate::occupancy::compute(
-            model,
-            &layout,
-            params,
-            opts.occupancy_resolution,
-            opts.occupancy_alpha,
-        ),
+        None => occupancy_grid(model, &layout, params, opts),
     };
     let raw = occupancy.to_payload();
     sections.push(SectionReport {

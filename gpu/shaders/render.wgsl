@@ -764,7 +764,8 @@ struct Pass {
     reg0: vec4<u32>,
     // Word offsets: x geo, y clist, z wmax, w pts.
     reg1: vec4<u32>,
-    // x: dlist, y: occupancy resolution R (0: no grid, every sample is evaluated), zw: 0.
+    // x: dlist, y: occupancy resolution R (0: no grid, every sample is evaluated), z: the live
+    // proposal samples' list, w: the live main samples' list (word offsets; with a grid).
     reg2: vec4<u32>,
     // x: static cutoff of `pass_build`, y: 1 = first time of `pass_wmax`, zw: 0.
     misc: vec4<f32>,
@@ -874,38 +875,97 @@ fn pass_setup(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
     }
 }
 
-// Indirect dispatch sizes, 3 words each: [0] rays x proposal samples / LANES, [3] rays,
-// [6] rays x S / LANES, [9] colour list / LANES, [12] dynamic samples.
+// Indirect dispatch sizes, 3 words each: [0] proposal samples / LANES, [3] rays,
+// [6] main samples / LANES, [9] colour list / LANES, [12] dynamic samples, [15] rays x proposal
+// samples, [18] rays x S. With an occupancy grid (`Pass.reg2.y` != 0) [0] and [6] count the
+// live lists `pass_live_proposal` and `pass_live_samples` built (`ctrl[3]`, `ctrl[4]`), else
+// every (ray, sample) pair.
 @compute @workgroup_size(1)
 fn pass_args() {
     let n = atomicLoad(&ctrl[0]);
-    write_groups(0u, (n * model.sampler.x + LANES - 1u) / LANES);
+    var np = n * model.sampler.x;
+    var ns = n * samples_per_ray();
+    write_groups(15u, np);
+    write_groups(18u, ns);
+    if pass_u.reg2.y != 0u {
+        np = atomicLoad(&ctrl[3]);
+        ns = atomicLoad(&ctrl[4]);
+    }
+    write_groups(0u, (np + LANES - 1u) / LANES);
     write_groups(3u, n);
-    write_groups(6u, (n * samples_per_ray() + LANES - 1u) / LANES);
+    write_groups(6u, (ns + LANES - 1u) / LANES);
     write_groups(9u, (atomicLoad(&ctrl[1]) + LANES - 1u) / LANES);
     write_groups(12u, atomicLoad(&ctrl[2]));
 }
 
+// Proposal sample e (ray-major over the batch's rays): its unit-cube point at the frame's time.
+fn proposal_point(e: u32) -> vec4<f32> {
+    let np = model.sampler.x;
+    let rec = ray_rec(e / np);
+    let ks = e % np;
+    let dir = pixel_ray_dir(ray_pixel(rec));
+    let t0 = t_of_s(f32(ks) / f32(np), rec.z, rec.w);
+    let t1 = t_of_s(f32(ks + 1u) / f32(np), rec.z, rec.w);
+    return sample_point(view.c2w[3].xyz, dir, t0, t1, field_time());
+}
+
+// With an occupancy grid, per (ray, proposal sample): a sample in an occupied cell is appended
+// to the live list (`Pass.reg2.z`, counted in `ctrl[3]`) that `pass_proposal` evaluates; the
+// others get density 0 here. So the proposal pass costs what the occupied space costs, however
+// the empty samples fall among neighbouring invocations.
+@compute @workgroup_size(64)
+fn pass_live_proposal(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let e = invocation(gid, groups);
+    if e < ray_count() * model.sampler.x {
+        if occupied(proposal_point(e).xyz) {
+            let slot = atomicAdd(&ctrl[3], 1u);
+            work[pass_u.reg2.z + slot] = bitcast<f32>(e);
+        } else {
+            work[pass_u.reg0.y + e] = 0.0;
+        }
+    }
+}
+
+// With an occupancy grid, per (ray, main sample): the live list of `pass_density`
+// (`Pass.reg2.w`, `ctrl[4]`); a sample in an empty cell gets density 0 here.
+@compute @workgroup_size(64)
+fn pass_live_samples(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let j = invocation(gid, groups);
+    let s = samples_per_ray();
+    if j < ray_count() * s {
+        let r = j / s;
+        if occupied(main_point(r, j % s, ray_rec(r)).xyz) {
+            let slot = atomicAdd(&ctrl[4], 1u);
+            work[pass_u.reg2.w + slot] = bitcast<f32>(j);
+        } else {
+            work[pass_u.reg0.w + 4u * j + 3u] = 0.0;
+        }
+    }
+}
+
 // Per invocation: the proposal field's density at LANES (ray, proposal sample) pairs, entries
-// LANES i .. LANES i + LANES - 1 of the batch's pairs (ray-major); encodings one by one, the MLP
-// for the LANES samples together (`dense_lanes`).
+// LANES i .. LANES i + LANES - 1 of the batch's pairs (ray-major), or of the live list when the
+// pass has an occupancy grid (`pass_live_proposal` gave the others density 0); encodings one by
+// one, the MLP for the LANES samples together (`dense_lanes`).
 @compute @workgroup_size(64)
 fn pass_proposal(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let i = invocation(gid, groups);
-    let np = model.sampler.x;
-    let n = ray_count() * np;
+    let live = pass_u.reg2.y != 0u;
+    var n = ray_count() * model.sampler.x;
+    if live {
+        n = atomicLoad(&ctrl[3]);
+    }
     if i * LANES < n {
         let used = min(n - i * LANES, LANES);
         let d = model.proposal;
+        var es = vec4<u32>(0u);
         for (var k = 0u; k < LANES; k++) {
-            let e = i * LANES + min(k, used - 1u);
-            let r = e / np;
-            let ks = e % np;
-            let rec = ray_rec(r);
-            let dir = pixel_ray_dir(ray_pixel(rec));
-            let t0 = t_of_s(f32(ks) / f32(np), rec.z, rec.w);
-            let t1 = t_of_s(f32(ks + 1u) / f32(np), rec.z, rec.w);
-            encode(model.prop, sample_point(view.c2w[3].xyz, dir, t0, t1, field_time()), model.prop.consts.y, 2u, 2u);
+            var e = i * LANES + min(k, used - 1u);
+            if live {
+                e = work_u(pass_u.reg2.z + e);
+            }
+            es[k] = e;
+            encode(model.prop, proposal_point(e), model.prop.consts.y, 2u, 2u);
             hid_to_lane(k, d.y);
         }
         dense_lanes(d.x, d.y, d.z, true);
@@ -915,7 +975,7 @@ fn pass_proposal(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wor
             sum += out4[j] * rest[w2 + j];
         }
         for (var k = 0u; k < used; k++) {
-            work[pass_u.reg0.y + i * LANES + k] = trunc_exp(sum[k]);
+            work[pass_u.reg0.y + es[k]] = trunc_exp(sum[k]);
         }
     }
 }
@@ -1026,30 +1086,30 @@ fn main_point(r: u32, k: u32, rec: vec4<f32>) -> vec4<f32> {
 }
 
 // Per invocation: the main field's density and geometry features at LANES (ray, sample) pairs,
-// entries LANES i .. of the batch's samples (ray-major); encodings one by one, the density MLP
-// for the LANES samples together. Samples in empty occupancy cells get density 0 and no
-// evaluation.
+// entries LANES i .. of the batch's samples (ray-major), or of the live list when the pass has
+// an occupancy grid (`pass_live_samples` gave the others density 0); encodings one by one, the
+// density MLP for the LANES samples together.
 @compute @workgroup_size(64)
 fn pass_density(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let i = invocation(gid, groups);
     let s = samples_per_ray();
-    let n = ray_count() * s;
+    let live = pass_u.reg2.y != 0u;
+    var n = ray_count() * s;
+    if live {
+        n = atomicLoad(&ctrl[4]);
+    }
     if i * LANES < n {
         let used = min(n - i * LANES, LANES);
         let d = model.density;
-        var live = vec4<bool>(false);
+        var js = vec4<u32>(0u);
         for (var k = 0u; k < LANES; k++) {
-            let j = i * LANES + min(k, used - 1u);
-            let r = j / s;
-            let p = main_point(r, j % s, ray_rec(r));
-            live[k] = occupied(p.xyz);
-            if live[k] {
-                encode(model.field, p, model.field.consts.y, 0u, 1u);
-            } else {
-                for (var q = 0u; q < d.y; q++) {
-                    hid[q] = 0.0;
-                }
+            var j = i * LANES + min(k, used - 1u);
+            if live {
+                j = work_u(pass_u.reg2.w + j);
             }
+            js[k] = j;
+            let r = j / s;
+            encode(model.field, main_point(r, j % s, ray_rec(r)), model.field.consts.y, 0u, 1u);
             hid_to_lane(k, d.y);
         }
         dense_lanes(d.x, d.y, d.z, true);
@@ -1057,8 +1117,8 @@ fn pass_density(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
         dense_lanes(d.x + d.y * d.z, d.z, d.w, false);
         let geo = model.color.w;
         for (var k = 0u; k < used; k++) {
-            let j = i * LANES + k;
-            work[pass_u.reg0.w + 4u * j + 3u] = select(0.0, trunc_exp(out4[0][k]), live[k]);
+            let j = js[k];
+            work[pass_u.reg0.w + 4u * j + 3u] = trunc_exp(out4[0][k]);
             for (var q = 0u; q < geo; q++) {
                 work[pass_u.reg1.x + j * geo + q] = out4[1u + q][k];
             }

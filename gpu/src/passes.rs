@@ -44,15 +44,19 @@ const P_WMAX: u32 = PASS_FLAG_WMAX;
 /// Scratch memory a frame's batch may take on the device; batches hold as many rays as fit.
 pub const FRAME_WORK_BYTES: u64 = 128 << 20;
 
-/// Byte offsets of the indirect dispatch sizes `pass_args` writes (3 u32 each): rays x
-/// proposal samples, rays, rays x samples, the colour list, the dynamic samples.
+/// Byte offsets of the indirect dispatch sizes `pass_args` writes (3 u32 each): the proposal
+/// samples / LANES (every pair, or the live list with an occupancy grid), rays, the main
+/// samples / LANES (likewise), the colour list, the dynamic samples, and every (ray, proposal
+/// sample) and (ray, main sample) pair, one per invocation (`pass_live_*`).
 pub const ARGS_PROPOSAL: u64 = 0;
 pub const ARGS_RAYS: u64 = 12;
 pub const ARGS_SAMPLES: u64 = 24;
 pub const ARGS_COLOR: u64 = 36;
 pub const ARGS_DYNAMIC: u64 = 48;
-/// Bytes of the indirect sizes buffer.
-pub const ARGS_BYTES: u64 = 64;
+pub const ARGS_PROPOSAL_PAIRS: u64 = 60;
+pub const ARGS_SAMPLE_PAIRS: u64 = 72;
+/// Bytes of the indirect sizes buffer (and of the counters, `ctrl`).
+pub const ARGS_BYTES: u64 = 96;
 
 /// The `Pass` uniform (80 bytes; `render.wgsl`).
 #[repr(C)]
@@ -64,7 +68,8 @@ pub struct PassU {
     pub reg0: [u32; 4],
     /// Word offsets `(geo, clist, wmax, pts)`.
     pub reg1: [u32; 4],
-    /// `(dlist, occupancy resolution (0: none), 0, 0)`.
+    /// `(dlist, occupancy resolution (0: none), plist, slist)`: with a grid, the live proposal
+    /// and main samples' lists.
     pub reg2: [u32; 4],
     /// `(build cutoff, first time of pass_wmax, 0, 0)`.
     pub misc: [f32; 4],
@@ -88,6 +93,11 @@ pub fn regions(model: &GpuModel, rays: u64, samples: u64, cache: bool) -> (PassU
     let samp = take(4 * samples * rays);
     let geo_o = take(geo * samples * rays);
     let clist = take(samples * rays);
+    let (plist, slist) = if cache {
+        (0, 0)
+    } else {
+        (take(np * rays), take(samples * rays))
+    };
     let (wmax, pts, dlist) = if cache {
         (
             take(np * rays),
@@ -101,7 +111,7 @@ pub fn regions(model: &GpuModel, rays: u64, samples: u64, cache: bool) -> (PassU
         tile: [0, 0, 0, samples as u32],
         reg0: [rays_o, hist, edges, samp],
         reg1: [geo_o, clist, wmax, pts],
-        reg2: [dlist, 0, 0, 0],
+        reg2: [dlist, 0, plist, slist],
         misc: [0.0; 4],
     };
     (pass, at.max(4))
@@ -112,7 +122,12 @@ pub fn words_per_ray(model: &GpuModel, samples: u64, cache: bool) -> u64 {
     let np = model.model.sampler[0] as u64;
     let geo = model.model.color[3] as u64;
     let frame = 4 + np + (samples + 1) + samples * (4 + geo + 1) + 16;
-    frame + if cache { np + 5 * samples } else { 0 }
+    frame
+        + if cache {
+            np + 5 * samples
+        } else {
+            np + samples
+        }
 }
 
 /// The pass pipelines, compiled with the per-ray kernels over one layout.
@@ -128,11 +143,26 @@ pub(crate) struct Pipelines {
     visible: wgpu::ComputePipeline,
     color: wgpu::ComputePipeline,
     composite: wgpu::ComputePipeline,
+    /// `pass_live_proposal` and `pass_live_samples`; `None` for a shader without them.
+    live: Option<LivePipelines>,
+}
+
+pub(crate) struct LivePipelines {
+    proposal: wgpu::ComputePipeline,
+    samples: wgpu::ComputePipeline,
 }
 
 impl Pipelines {
-    pub(crate) fn new(pipeline: impl Fn(&str) -> wgpu::ComputePipeline) -> Self {
+    /// The pipelines of `wgsl`'s entry points (`pipeline` compiles one).
+    pub(crate) fn new(wgsl: &str, pipeline: impl Fn(&str) -> wgpu::ComputePipeline) -> Self {
+        let live = wgsl
+            .contains("fn pass_live_proposal(")
+            .then(|| LivePipelines {
+                proposal: pipeline("pass_live_proposal"),
+                samples: pipeline("pass_live_samples"),
+            });
         Pipelines {
+            live,
             setup: pipeline("pass_setup"),
             args: pipeline("pass_args"),
             proposal: pipeline("pass_proposal"),
@@ -257,7 +287,7 @@ impl GpuContext {
 
     fn ctrl_and_args(&self) -> (wgpu::Buffer, wgpu::Buffer) {
         (
-            self.storage_rw("pass counters", 16, wgpu::BufferUsages::empty()),
+            self.storage_rw("pass counters", ARGS_BYTES, wgpu::BufferUsages::empty()),
             self.storage_rw(
                 "pass dispatch sizes",
                 ARGS_BYTES,
@@ -400,24 +430,43 @@ impl GpuContext {
         let p = &self.passes;
         // MSTH_GPU_PASS_PROFILE=1: every dispatch its own submission, timed (stderr).
         let profile = std::env::var("MSTH_GPU_PASS_PROFILE").as_deref() == Ok("1");
-        let steps: [(&str, &wgpu::ComputePipeline, Option<u64>); 9] = [
-            ("setup", &p.setup, None),
-            ("args", &p.args, None),
-            ("proposal", &p.proposal, Some(ARGS_PROPOSAL)),
-            ("resample", &p.resample, Some(ARGS_RAYS)),
+        // With an occupancy grid the two field passes run over the live samples, listed by
+        // `pass_live_*` (a shader without them, such as an older `render.wgsl` a benchmark
+        // compiles, evaluates every sample and skips none).
+        let live = match &p.live {
+            Some(l) if scene.occupancy_resolution != 0 => Some(l),
+            _ => None,
+        };
+        let mut steps: Vec<(&str, &wgpu::ComputePipeline, Option<u64>)> =
+            vec![("setup", &p.setup, None), ("args", &p.args, None)];
+        if let Some(l) = live {
+            steps.push(("live proposal", &l.proposal, Some(ARGS_PROPOSAL_PAIRS)));
+            steps.push(("args", &p.args, None));
+        }
+        steps.push(("proposal", &p.proposal, Some(ARGS_PROPOSAL)));
+        steps.push(("resample", &p.resample, Some(ARGS_RAYS)));
+        if let Some(l) = live {
+            steps.push(("live samples", &l.samples, Some(ARGS_SAMPLE_PAIRS)));
+            steps.push(("args", &p.args, None));
+        }
+        steps.extend([
             ("density", &p.density, Some(ARGS_SAMPLES)),
             ("visible", &p.visible, Some(ARGS_RAYS)),
             ("args", &p.args, None),
             ("color", &p.color, Some(ARGS_COLOR)),
             ("composite", &p.composite, Some(ARGS_RAYS)),
-        ];
-        let mut spent = [0f64; 9];
+        ]);
+        let mut spent = vec![0f64; steps.len()];
         let mut first = 0u32;
         while first < n {
             let count = scratch.capacity.min(n - first);
             let mut pass = scratch.base;
             pass.tile = [first, count, flags, scratch.samples];
-            pass.reg2[1] = scene.occupancy_resolution;
+            pass.reg2[1] = if live.is_some() {
+                scene.occupancy_resolution
+            } else {
+                0
+            };
             self.queue
                 .write_buffer(&pass_buf, 0, bytemuck::bytes_of(&pass));
             let (gx, gy) = self.direct_groups(count)?;
@@ -457,8 +506,8 @@ impl GpuContext {
         if profile {
             let line: Vec<String> = steps
                 .iter()
-                .zip(spent)
-                .map(|((name, _, _), s)| format!("{name} {:.3} s", s))
+                .zip(&spent)
+                .map(|((name, _, _), s)| format!("{name} {s:.3} s"))
                 .collect();
             eprintln!("per-sample passes ({n} pixels): {}", line.join(", "));
         }

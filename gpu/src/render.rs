@@ -289,7 +289,7 @@ impl GpuContext {
         };
         let render = pipeline("render");
         let eval = pipeline("eval_points");
-        let passes = crate::passes::Pipelines::new(pipeline);
+        let passes = crate::passes::Pipelines::new(wgsl, pipeline);
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(GpuError::Shader(e.to_string()));
         }

@@ -14,19 +14,23 @@
 //! `render.wgsl`, e.g. `git show a04e488:gpu/shaders/render.wgsl`, the kernels before the
 //! per-sample passes were optimised, and `MSTH_BENCH_OLD_KERNELS=passes` times that file's
 //! per-sample passes instead of its per-ray kernel; `MSTH_BENCH_SKIP_INCREMENTAL=1` stops after the full
-//! frames). Timings include the read-back of the frame; "cpu" is this process's CPU time over
+//! frames). A file's occupancy grid is used by every renderer (CPU and GPU, as `msth play`
+//! does; `MSTH_BENCH_NO_SKIP=1` turns it off), and the CPU frame without it is the quality
+//! reference printed beside. Timings include the read-back of the frame; "cpu" is this process's CPU time over
 //! the same span (all threads: lavapipe's included), which a busy machine inflates less than
 //! the wall time.
 
 use std::time::Instant;
 
 use glam::Vec3;
+use msth_codec::OccupancyGrid;
 use msth_core::config::{Background, ModelConfig, Preset};
 use msth_core::field::ModelLayout;
 use msth_core::rng::Rng;
 use msth_core::{Camera, SceneBounds};
 use msth_player::gpu::{AdapterPolicy, GpuContext, GpuKernels, GpuRenderer};
 use msth_player::{Frame, RenderSettings, Renderer};
+use std::sync::Arc;
 
 /// CPU seconds this process has used (user + system, all threads; Linux `/proc/self/stat`,
 /// 100 ticks per second), 0 where unavailable.
@@ -53,7 +57,12 @@ fn psnr(a: &Frame, b: &Frame) -> f64 {
     -10.0 * mse.max(1e-20).log10()
 }
 
-type Loaded = (ModelConfig, Camera, Box<dyn Fn(f32) -> Vec<f32>>);
+type Loaded = (
+    ModelConfig,
+    Camera,
+    Box<dyn Fn(f32) -> Vec<f32>>,
+    Option<Arc<OccupancyGrid>>,
+);
 
 /// The model, its first camera and its parameters at a time: from a file, or `small`.
 fn load(path: &str) -> Result<Loaded, Box<dyn std::error::Error>> {
@@ -84,14 +93,20 @@ fn load(path: &str) -> Result<Loaded, Box<dyn std::error::Error>> {
             }
         }
         let cam = Camera::look_at(64, 64, 0.9, Vec3::new(0.3, -3.5, 1.2), Vec3::ZERO, Vec3::Z);
-        return Ok((cfg, cam, Box::new(move |_| p.clone())));
+        return Ok((cfg, cam, Box::new(move |_| p.clone()), None));
     }
     let bytes = std::fs::read(path)?;
     let decoded = msth_codec::decode_all(&bytes)?;
     let meta = &decoded.metadata;
     let cfg = meta.model.clone();
     let cam = *meta.cameras.first().ok_or("the file has no cameras")?;
-    Ok((cfg, cam, Box::new(move |t| decoded.params_for_time(t))))
+    let grid = decoded.occupancy.clone().map(Arc::new);
+    Ok((
+        cfg,
+        cam,
+        Box::new(move |t| decoded.params_for_time(t)),
+        grid,
+    ))
 }
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -101,7 +116,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     };
     let size: u32 = args.get(1).map(|s| s.parse()).transpose()?.unwrap_or(256);
     let frames: usize = args.get(2).map(|s| s.parse()).transpose()?.unwrap_or(4);
-    let (cfg, mut cam, params_at) = load(path)?;
+    let (cfg, mut cam, params_at, grid) = load(path)?;
+    let grid = grid.filter(|_| std::env::var("MSTH_BENCH_NO_SKIP").as_deref() != Ok("1"));
     let s = size as f32 / cam.width.max(cam.height) as f32;
     cam.fx *= s;
     cam.fy *= s;
@@ -119,10 +135,22 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         incremental: false,
         ..Default::default()
     };
+    let unskipped = Renderer::new(&cfg, full).render(&cam, 0.0, &params0);
+    let mut cpu_r = Renderer::new(&cfg, full);
+    cpu_r.set_occupancy(grid.clone());
     let t = Instant::now();
-    let reference = Renderer::new(&cfg, full).render(&cam, 0.0, &params0);
+    let reference = cpu_r.render(&cam, 0.0, &params0);
     let cpu_s = t.elapsed().as_secs_f64();
-    println!("cpu full frame:                 {cpu_s:8.3} s");
+    match &grid {
+        Some(g) => println!(
+            "cpu full frame:                 {cpu_s:8.3} s (occupancy grid: {:.1}% of {}^3 cells occupied; {:.1} dB vs the frame without it, {:.3} s)",
+            100.0 * g.occupied_fraction(),
+            g.resolution,
+            psnr(&reference, &unskipped),
+            unskipped.stats.seconds
+        ),
+        None => println!("cpu full frame:                 {cpu_s:8.3} s (no occupancy grid)"),
+    }
 
     let old_source = match std::env::var_os("MSTH_BENCH_OLD_WGSL") {
         Some(p) => Some(std::fs::read_to_string(&p)?),
@@ -141,6 +169,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         };
         match GpuRenderer::with_kernels(ctx, &cfg, full, kernels) {
             Ok(mut old) => {
+                old.set_occupancy(grid.clone())?;
                 let (t, c) = (Instant::now(), cpu_seconds());
                 let f = old.render(&cam, 0.0, &params0)?;
                 let (secs, cpu) = (t.elapsed().as_secs_f64(), cpu_seconds() - c);
@@ -156,6 +185,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     }
     let ctx = GpuContext::open(AdapterPolicy::any())?;
     let mut new = GpuRenderer::new(ctx, &cfg, full)?;
+    new.set_occupancy(grid.clone())?;
     // The first frame compiles nothing more (pipelines are made with the context), but pays
     // the scratch allocation: time the first and a second frame.
     let (t, c) = (Instant::now(), cpu_seconds());
@@ -188,8 +218,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .map(|i| i as f32 / frames.max(1) as f32)
         .collect();
     let mut cpu = Renderer::new(&cfg, inc);
+    cpu.set_occupancy(grid.clone());
     let mut gpu = GpuRenderer::new(GpuContext::open(AdapterPolicy::any())?, &cfg, inc)?;
+    gpu.set_occupancy(grid.clone())?;
     let mut full_r = Renderer::new(&cfg, full);
+    full_r.set_occupancy(grid.clone());
     let (mut cs, mut gs, mut worst) = (Vec::new(), Vec::new(), f64::INFINITY);
     for (i, &tm) in times.iter().enumerate() {
         let p = params_at(tm);

@@ -345,12 +345,14 @@ fn generate() -> String {
     );
     let _ = writeln!(
         w,
-        "export const PASS_ARGS = {{ proposal: {}, rays: {}, samples: {}, color: {}, dynamic: {}, bytes: {} }};",
+        "export const PASS_ARGS = {{ proposal: {}, rays: {}, samples: {}, color: {}, dynamic: {}, proposalPairs: {}, samplePairs: {}, bytes: {} }};",
         passes::ARGS_PROPOSAL,
         passes::ARGS_RAYS,
         passes::ARGS_SAMPLES,
         passes::ARGS_COLOR,
         passes::ARGS_DYNAMIC,
+        passes::ARGS_PROPOSAL_PAIRS,
+        passes::ARGS_SAMPLE_PAIRS,
         passes::ARGS_BYTES
     );
     let pass_offsets = [

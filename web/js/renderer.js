@@ -22,7 +22,10 @@ import {
   FRAME_WORK_BYTES, PASS_ARGS as ARGS, PASS_BYTES, PASS_OFFSETS,
 } from "./generated/contract.js";
 
-const PASS_ENTRIES = ["pass_setup", "pass_args", "pass_proposal", "pass_resample", "pass_density", "pass_visible", "pass_color", "pass_composite"];
+const PASS_ENTRIES = [
+  "pass_setup", "pass_args", "pass_live_proposal", "pass_proposal", "pass_resample", "pass_live_samples", "pass_density",
+  "pass_visible", "pass_color", "pass_composite",
+];
 /** The dispatches of one batch, in order: entry point, and the offset of its indirect size (`null`: direct). */
 const PASS_STEPS = [
   ["pass_setup", null],
@@ -35,10 +38,30 @@ const PASS_STEPS = [
   ["pass_color", ARGS.color],
   ["pass_composite", ARGS.rays],
 ];
+/**
+ * With an occupancy grid (passes.rs `render_passes`): the proposal and density passes run over
+ * the live samples that `pass_live_proposal` and `pass_live_samples` list.
+ */
+const PASS_STEPS_LIVE = [
+  ["pass_setup", null],
+  ["pass_args", null],
+  ["pass_live_proposal", ARGS.proposalPairs],
+  ["pass_args", null],
+  ["pass_proposal", ARGS.proposal],
+  ["pass_resample", ARGS.rays],
+  ["pass_live_samples", ARGS.samplePairs],
+  ["pass_args", null],
+  ["pass_density", ARGS.samples],
+  ["pass_visible", ARGS.rays],
+  ["pass_args", null],
+  ["pass_color", ARGS.color],
+  ["pass_composite", ARGS.rays],
+];
 
 /**
  * Word offsets of the `work` regions for `rays` rays of `samples` samples (passes.rs `regions`,
- * frame batches): rays, hist, edges, samp, geo, clist; and the words they take.
+ * frame batches): rays, hist, edges, samp, geo, clist, then the live lists plist and slist;
+ * and the words they take.
  */
 export function passRegions(np, geo, rays, samples) {
   let at = 0;
@@ -48,12 +71,13 @@ export function passRegions(np, geo, rays, samples) {
     return o;
   };
   const r = [take(4 * rays), take(np * rays), take((samples + 1) * rays), take(4 * samples * rays), take(geo * samples * rays), take(samples * rays)];
-  return { offsets: r, words: Math.max(at, 4) };
+  const lists = [take(np * rays), take(samples * rays)];
+  return { offsets: r, lists, words: Math.max(at, 4) };
 }
 
 /** Words of `work` per ray of a frame batch (passes.rs `words_per_ray`). */
 function wordsPerRay(np, geo, samples) {
-  return 4 + np + (samples + 1) + samples * (4 + geo + 1) + 16;
+  return 4 + np + (samples + 1) + samples * (4 + geo + 1) + 16 + np + samples;
 }
 
 /** The browser has no usable WebGPU (the page says so instead of rendering). */
@@ -325,6 +349,7 @@ class GpuScene {
       this.capacity = Math.min(w * h, fit);
       const reg = passRegions(this.np, this.geo, this.capacity, this.samples);
       this.regions = reg.offsets;
+      this.lists = reg.lists;
       this.work = device.createBuffer({ size: 4 * reg.words, usage: GPUBufferUsage.STORAGE, label: "work" });
     }
     device.queue.writeBuffer(this.size, 0, new Uint32Array([w, h]));
@@ -416,19 +441,22 @@ class GpuScene {
       if (!groups) throw new Error(`${count} rays exceed this GPU's dispatch limits`);
       const pass = new Uint32Array(PASS_BYTES / 4);
       pass.set([start, count, 0, this.samples], PASS_OFFSETS.tile / 4);
-      // reg0, reg1: rays, hist, edges, samp, geo, clist (no cache regions); reg2.y: the occupancy resolution.
+      // reg0, reg1: rays, hist, edges, samp, geo, clist (no cache regions); reg2: the occupancy
+      // resolution and the live lists.
       pass.set(this.regions, PASS_OFFSETS.reg0 / 4);
       pass[PASS_OFFSETS.reg2 / 4 + 1] = this.occupancyResolution;
+      pass.set(this.lists, PASS_OFFSETS.reg2 / 4 + 2);
       device.queue.writeBuffer(this.pass, 0, pass);
       device.pushErrorScope("validation");
       let enc = device.createCommandEncoder();
       enc.clearBuffer(this.ctrl);
       const t0 = performance.now();
       // `?profile=1`: every dispatch its own submission, timed into `passMs` (ms per entry point).
-      for (let k = 0; k < PASS_STEPS.length; ) {
-        const end = this.profile ? k + 1 : PASS_STEPS.length;
+      const steps = this.occupancyResolution ? PASS_STEPS_LIVE : PASS_STEPS;
+      for (let k = 0; k < steps.length; ) {
+        const end = this.profile ? k + 1 : steps.length;
         const cp = enc.beginComputePass();
-        for (const [name, at] of PASS_STEPS.slice(k, end)) {
+        for (const [name, at] of steps.slice(k, end)) {
           cp.setBindGroup(0, name === "pass_args" ? args : main);
           cp.setPipeline(p[name]);
           if (at !== null) cp.dispatchWorkgroupsIndirect(this.args, at);
@@ -436,12 +464,12 @@ class GpuScene {
           else cp.dispatchWorkgroups(1);
         }
         cp.end();
-        if (end === PASS_STEPS.length) this.#present(enc);
+        if (end === steps.length) this.#present(enc);
         const ts = performance.now();
         device.queue.submit([enc.finish()]);
         if (this.profile) {
           await device.queue.onSubmittedWorkDone();
-          const name = PASS_STEPS[k][0];
+          const name = steps[k][0];
           this.passMs[name] = (this.passMs[name] || 0) + performance.now() - ts;
           enc = device.createCommandEncoder();
         }

@@ -29,6 +29,27 @@ pub fn playback_partition(
     samples: usize,
     ws: &mut Workspace,
 ) -> Partition {
+    playback_partition_where(cfg, layout, params, rays, times, samples, None, ws)
+}
+
+/// Which proposal samples [`playback_partition_where`] evaluates: `keep(unit point)`; the others
+/// get density 0 (an empty-space structure's test, such as the player's occupancy grid).
+pub type KeepPoint<'a> = &'a (dyn Fn([f32; 3]) -> bool + Sync);
+
+/// [`playback_partition`], evaluating the proposal field only at samples whose unit-cube point
+/// `keep` accepts (all of them when `keep` is `None`); a rejected sample has density 0, so it
+/// carries no proposal weight and the resampled samples move to the accepted ones.
+#[allow(clippy::too_many_arguments)]
+pub fn playback_partition_where(
+    cfg: &ModelConfig,
+    layout: &ModelLayout,
+    params: &[f32],
+    rays: &[TimedRay],
+    times: &[f32],
+    samples: usize,
+    keep: Option<KeepPoint<'_>>,
+    ws: &mut Workspace,
+) -> Partition {
     let n = rays.len();
     let np = cfg.sampler.num_proposal_samples;
     let samples = samples.max(1);
@@ -43,10 +64,39 @@ pub fn playback_partition(
         for k in 0..n * np {
             ws.pts_prop[k * 4 + 3] = t;
         }
-        layout
-            .proposal
-            .field
-            .forward_density(params, &ws.pts_prop, n * np, &mut ws.prop);
+        match keep {
+            None => {
+                layout
+                    .proposal
+                    .field
+                    .forward_density(params, &ws.pts_prop, n * np, &mut ws.prop)
+            }
+            Some(keep) => {
+                // Evaluate the kept samples only, packed, then spread their densities back.
+                ws.active.clear();
+                ws.pts_main.clear();
+                for k in 0..n * np {
+                    let p = &ws.pts_prop[k * 4..k * 4 + 4];
+                    if keep([p[0], p[1], p[2]]) {
+                        ws.active.push(k as u32);
+                        ws.pts_main.extend_from_slice(p);
+                    }
+                }
+                let m = ws.active.len();
+                if m > 0 {
+                    layout
+                        .proposal
+                        .field
+                        .forward_density(params, &ws.pts_main, m, &mut ws.prop);
+                }
+                ws.w_stat.clear();
+                ws.w_stat.resize(n * np, 0.0);
+                for (j, &k) in ws.active.iter().enumerate() {
+                    ws.w_stat[k as usize] = ws.prop.sigma[j];
+                }
+                std::mem::swap(&mut ws.w_stat, &mut ws.prop.sigma);
+            }
+        }
         for i in 0..n {
             let r = i * np..(i + 1) * np;
             render::weights(

@@ -510,3 +510,36 @@ fn playback_partition_at_one_time_is_the_render_samples() {
         assert!(both.deltas.iter().all(|&d| d >= 0.0));
     }
 }
+
+#[test]
+fn a_partition_skipping_proposal_samples_moves_the_samples_to_kept_space() {
+    let cfg = tiny_cfg();
+    let layout = ModelLayout::new(&cfg);
+    let p = perturbed_params(&layout);
+    let (rays, _) = rays();
+    let nf = cfg.sampler.num_samples;
+    let mut ws = Workspace::default();
+    let t = [0.3];
+    let all = playback_partition(&cfg, &layout, &p, &rays, &t, nf, &mut ws);
+    // Keeping every point is the plain partition, exactly.
+    let keep_all = |_: [f32; 3]| true;
+    let same = playback_partition_where(&cfg, &layout, &p, &rays, &t, nf, Some(&keep_all), &mut ws);
+    assert_eq!(same, all);
+    // Keeping the far half of the box (unit z < 0.5; the rays travel along -z): the proposal
+    // sees density only there, so the samples move there (up to the histogram's padding).
+    let far_half = |q: [f32; 3]| q[2] < 0.5;
+    let moved =
+        playback_partition_where(&cfg, &layout, &p, &rays, &t, nf, Some(&far_half), &mut ws);
+    let in_far = |part: &Partition| {
+        (0..rays.len() * nf)
+            .filter(|k| part.points[k * 4 + 2] < 0.5)
+            .count()
+    };
+    let (before, after) = (in_far(&all), in_far(&moved));
+    assert!(
+        after > before && after >= rays.len() * nf * 3 / 4,
+        "{before} -> {after} of {} samples in the kept half",
+        rays.len() * nf
+    );
+    assert!(moved.deltas.iter().all(|&d| d.is_finite() && d >= 0.0));
+}
