@@ -105,7 +105,7 @@ impl SampleCache {
             .map_init(
                 || (Workspace::default(), FieldScratch::default()),
                 |(ws, fs), c| {
-                    let part = playback_partition(cfg, layout, params, c, times, samples, ws);
+                    let part = playback_partition(cfg, layout, params, c, times, samples, None, ws);
                     Self::build_chunk(layout, params, c, &part, cutoff, fs)
                 },
             )
@@ -485,7 +485,7 @@ mod tests {
         r: &[TimedRay],
     ) -> Partition {
         let mut ws = Workspace::default();
-        playback_partition(cfg, layout, params, r, &TIMES, SAMPLES, &mut ws)
+        playback_partition(cfg, layout, params, r, &TIMES, SAMPLES, None, &mut ws)
     }
 
     const TIMES: [f32; 3] = [0.0, 0.5, 1.0];

@@ -1,7 +1,7 @@
 //! Empty-space skipping with the file's occupancy grid (format.md §6.5, `msth_codec::occupancy`).
 //!
 //! [`render_chunk_skipping`] renders a batch of rays as `msth_core::pipeline::render_chunk` does
-//! (samples resampled from the proposal's weights, through `playback_partition_where` at the
+//! (samples resampled from the proposal's weights, through `playback_partition` at the
 //! batch's one time) but evaluates both fields only at samples whose occupancy cell is set: the
 //! others get density 0 and no colour. The grid is the union over the model's frames of where
 //! the density reaches a threshold, dilated by one cell, so the skipped samples are those the
@@ -18,9 +18,8 @@ use msth_codec::OccupancyGrid;
 use msth_core::config::ModelConfig;
 use msth_core::field::{FieldScratch, ModelLayout};
 use msth_core::pipeline::{
-    composite_ray, direction_encodings, playback_partition_where, ray_limits, render_chunk,
-    RenderOutput, TimedRay, Workspace, HIDDEN_TRANSMITTANCE, RENDER_STATIC_CUTOFF,
-    VISIBLE_TRANSMITTANCE,
+    composite_ray, direction_encodings, playback_partition, ray_limits, render_chunk, RenderOutput,
+    TimedRay, Workspace, HIDDEN_TRANSMITTANCE, RENDER_STATIC_CUTOFF, VISIBLE_TRANSMITTANCE,
 };
 use msth_core::render;
 
@@ -76,7 +75,7 @@ pub fn render_chunk_skipping(
     // proposal evaluated in occupied cells only (its density is 0 in the others, so the
     // samples go to occupied cells).
     let keep = |p: [f32; 3]| grid.occupied_unit(p);
-    let part = playback_partition_where(
+    let part = playback_partition(
         cfg,
         layout,
         params,

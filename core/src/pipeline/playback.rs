@@ -15,32 +15,20 @@ pub struct Partition {
     pub deltas: Vec<f32>,
 }
 
+/// Which proposal samples [`playback_partition`] evaluates: `keep(unit point)`; the others get
+/// density 0 (an empty-space structure's test, such as the player's occupancy grid).
+pub type KeepPoint<'a> = &'a (dyn Fn([f32; 3]) -> bool + Sync);
+
 /// Builds a [`Partition`] of `rays` that serves every time in `times`: the proposal field is
 /// evaluated at its (deterministic, time-independent) samples at each of `times`, the weights of
 /// each bin are combined by their maximum over the times, and `samples` intervals are drawn
 /// from that histogram as rendering draws them from one time's. A surface that is anywhere
 /// along the ray at one of `times` thus gets samples; a static one gets the same as in a frame.
-pub fn playback_partition(
-    cfg: &ModelConfig,
-    layout: &ModelLayout,
-    params: &[f32],
-    rays: &[TimedRay],
-    times: &[f32],
-    samples: usize,
-    ws: &mut Workspace,
-) -> Partition {
-    playback_partition_where(cfg, layout, params, rays, times, samples, None, ws)
-}
-
-/// Which proposal samples [`playback_partition_where`] evaluates: `keep(unit point)`; the others
-/// get density 0 (an empty-space structure's test, such as the player's occupancy grid).
-pub type KeepPoint<'a> = &'a (dyn Fn([f32; 3]) -> bool + Sync);
-
-/// [`playback_partition`], evaluating the proposal field only at samples whose unit-cube point
-/// `keep` accepts (all of them when `keep` is `None`); a rejected sample has density 0, so it
-/// carries no proposal weight and the resampled samples move to the accepted ones.
+/// With `keep`, the proposal field is evaluated only at samples whose unit-cube point it
+/// accepts; a rejected sample has density 0, so it carries no proposal weight and the resampled
+/// samples move to the accepted ones.
 #[allow(clippy::too_many_arguments)]
-pub fn playback_partition_where(
+pub fn playback_partition(
     cfg: &ModelConfig,
     layout: &ModelLayout,
     params: &[f32],

@@ -494,7 +494,7 @@ fn playback_partition_at_one_time_is_the_render_samples() {
         );
         let rendered = ws.pts_main.clone();
         let deltas = ws.delta_main.clone();
-        let part = playback_partition(&cfg, &layout, &p, &[*r], &[r.time], nf, &mut ws);
+        let part = playback_partition(&cfg, &layout, &p, &[*r], &[r.time], nf, None, &mut ws);
         assert_eq!(part.samples, nf);
         assert_eq!(part.deltas, deltas[..nf]);
         for k in 0..nf {
@@ -502,10 +502,19 @@ fn playback_partition_at_one_time_is_the_render_samples() {
             assert_eq!(part.points[k * 4 + 3], 0.0);
         }
         // Weights combine by their maximum: a repeated time changes nothing.
-        let twice = playback_partition(&cfg, &layout, &p, &[*r], &[r.time; 2], nf, &mut ws);
+        let twice = playback_partition(&cfg, &layout, &p, &[*r], &[r.time; 2], nf, None, &mut ws);
         assert_eq!(twice, part);
         let other = (r.time + 0.5) % 1.0;
-        let both = playback_partition(&cfg, &layout, &p, &[*r], &[r.time, other], nf, &mut ws);
+        let both = playback_partition(
+            &cfg,
+            &layout,
+            &p,
+            &[*r],
+            &[r.time, other],
+            nf,
+            None,
+            &mut ws,
+        );
         assert!(both.points.iter().all(|v| v.is_finite()));
         assert!(both.deltas.iter().all(|&d| d >= 0.0));
     }
@@ -520,16 +529,15 @@ fn a_partition_skipping_proposal_samples_moves_the_samples_to_kept_space() {
     let nf = cfg.sampler.num_samples;
     let mut ws = Workspace::default();
     let t = [0.3];
-    let all = playback_partition(&cfg, &layout, &p, &rays, &t, nf, &mut ws);
+    let all = playback_partition(&cfg, &layout, &p, &rays, &t, nf, None, &mut ws);
     // Keeping every point is the plain partition, exactly.
     let keep_all = |_: [f32; 3]| true;
-    let same = playback_partition_where(&cfg, &layout, &p, &rays, &t, nf, Some(&keep_all), &mut ws);
+    let same = playback_partition(&cfg, &layout, &p, &rays, &t, nf, Some(&keep_all), &mut ws);
     assert_eq!(same, all);
     // Keeping the far half of the box (unit z < 0.5; the rays travel along -z): the proposal
     // sees density only there, so the samples move there (up to the histogram's padding).
     let far_half = |q: [f32; 3]| q[2] < 0.5;
-    let moved =
-        playback_partition_where(&cfg, &layout, &p, &rays, &t, nf, Some(&far_half), &mut ws);
+    let moved = playback_partition(&cfg, &layout, &p, &rays, &t, nf, Some(&far_half), &mut ws);
     let in_far = |part: &Partition| {
         (0..rays.len() * nf)
             .filter(|k| part.points[k * 4 + 2] < 0.5)
