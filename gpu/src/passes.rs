@@ -462,11 +462,9 @@ impl GpuContext {
             let count = scratch.capacity.min(n - first);
             let mut pass = scratch.base;
             pass.tile = [first, count, flags, scratch.samples];
-            pass.reg2[1] = if live.is_some() {
-                scene.occupancy_resolution
-            } else {
-                0
-            };
+            // The grid's resolution also for a shader without the listing passes: its
+            // `pass_density` skips empty cells by itself.
+            pass.reg2[1] = scene.occupancy_resolution;
             self.queue
                 .write_buffer(&pass_buf, 0, bytemuck::bytes_of(&pass));
             let (gx, gy) = self.direct_groups(count)?;
