@@ -135,20 +135,22 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         incremental: false,
         ..Default::default()
     };
-    let unskipped = Renderer::new(&cfg, full).render(&cam, 0.0, &params0);
     let mut cpu_r = Renderer::new(&cfg, full);
     cpu_r.set_occupancy(grid.clone());
     let t = Instant::now();
     let reference = cpu_r.render(&cam, 0.0, &params0);
     let cpu_s = t.elapsed().as_secs_f64();
     match &grid {
-        Some(g) => println!(
-            "cpu full frame:                 {cpu_s:8.3} s (occupancy grid: {:.1}% of {}^3 cells occupied; {:.1} dB vs the frame without it, {:.3} s)",
-            100.0 * g.occupied_fraction(),
-            g.resolution,
-            psnr(&reference, &unskipped),
-            unskipped.stats.seconds
-        ),
+        Some(g) => {
+            let unskipped = Renderer::new(&cfg, full).render(&cam, 0.0, &params0);
+            println!(
+                "cpu full frame:                 {cpu_s:8.3} s (occupancy grid: {:.1}% of {}^3 cells occupied; {:.1} dB vs the frame without it, {:.3} s)",
+                100.0 * g.occupied_fraction(),
+                g.resolution,
+                psnr(&reference, &unskipped),
+                unskipped.stats.seconds
+            )
+        }
         None => println!("cpu full frame:                 {cpu_s:8.3} s (no occupancy grid)"),
     }
 

@@ -11,7 +11,7 @@
 //! A proposal sample in an empty cell gets density 0 without evaluation, so it carries no
 //! proposal weight and the resampled samples land in occupied cells: that moves samples only
 //! where the proposal network put density in space the main field leaves empty, and frames stay
-//! within a few hundredths of a grey level of the unskipped render (64 dB on the object scene,
+//! within a fraction of a grey level of the unskipped render (64 dB on the object scene,
 //! docs/playback.md) while the empty space around an object costs nothing.
 
 use msth_codec::OccupancyGrid;

@@ -26,37 +26,29 @@ const PASS_ENTRIES = [
   "pass_setup", "pass_args", "pass_live_proposal", "pass_proposal", "pass_resample", "pass_live_samples", "pass_density",
   "pass_visible", "pass_color", "pass_composite",
 ];
-/** The dispatches of one batch, in order: entry point, and the offset of its indirect size (`null`: direct). */
-const PASS_STEPS = [
-  ["pass_setup", null],
-  ["pass_args", null],
-  ["pass_proposal", ARGS.proposal],
-  ["pass_resample", ARGS.rays],
-  ["pass_density", ARGS.samples],
-  ["pass_visible", ARGS.rays],
-  ["pass_args", null],
-  ["pass_color", ARGS.color],
-  ["pass_composite", ARGS.rays],
-];
 /**
- * With an occupancy grid (passes.rs `render_passes`): the proposal and density passes run over
- * the live samples that `pass_live_proposal` and `pass_live_samples` list.
+ * The dispatches of one batch, in order: entry point, and the offset of its indirect size
+ * (`null`: direct). With an occupancy grid (`live`, as passes.rs `render_passes`) the proposal
+ * and density passes run over the samples `pass_live_proposal` and `pass_live_samples` list.
  */
-const PASS_STEPS_LIVE = [
-  ["pass_setup", null],
-  ["pass_args", null],
-  ["pass_live_proposal", ARGS.proposalPairs],
-  ["pass_args", null],
-  ["pass_proposal", ARGS.proposal],
-  ["pass_resample", ARGS.rays],
-  ["pass_live_samples", ARGS.samplePairs],
-  ["pass_args", null],
-  ["pass_density", ARGS.samples],
-  ["pass_visible", ARGS.rays],
-  ["pass_args", null],
-  ["pass_color", ARGS.color],
-  ["pass_composite", ARGS.rays],
-];
+function passSteps(live) {
+  const listed = (entry, pairs) => (live ? [[entry, pairs], ["pass_args", null]] : []);
+  return [
+    ["pass_setup", null],
+    ["pass_args", null],
+    ...listed("pass_live_proposal", ARGS.proposalPairs),
+    ["pass_proposal", ARGS.proposal],
+    ["pass_resample", ARGS.rays],
+    ...listed("pass_live_samples", ARGS.samplePairs),
+    ["pass_density", ARGS.samples],
+    ["pass_visible", ARGS.rays],
+    ["pass_args", null],
+    ["pass_color", ARGS.color],
+    ["pass_composite", ARGS.rays],
+  ];
+}
+const PASS_STEPS = passSteps(false);
+const PASS_STEPS_LIVE = passSteps(true);
 
 /**
  * Word offsets of the `work` regions for `rays` rays of `samples` samples (passes.rs `regions`,

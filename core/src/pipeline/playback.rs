@@ -60,7 +60,9 @@ pub fn playback_partition(
                     .forward_density(params, &ws.pts_prop, n * np, &mut ws.prop)
             }
             Some(keep) => {
-                // Evaluate the kept samples only, packed, then spread their densities back.
+                // Evaluate the kept samples only, packed (into `pts_main`, unused by playback),
+                // then spread their densities over all samples in `w_stat` (a training-only
+                // buffer, free here) and swap it in as the proposal's densities.
                 ws.active.clear();
                 ws.pts_main.clear();
                 for k in 0..n * np {
