@@ -9,9 +9,10 @@
 // out[i * L * F + l * F + f].
 //
 // This prelude is shared by `hashgrid_forward.wgsl` and `hashgrid_backward.wgsl` (the host
-// concatenates them). Loops are bounded by 2^D * 8 <= 128 iterations per invocation; the
-// feature loops run to the constant 8 (guarded by F) so that compilers unroll them and keep the
-// accumulators in registers.
+// concatenates them, after `const DIMS: u32` and `const NF: u32`: one compiled variant per
+// grid shape). Loops run to those constants, 2^DIMS * NF <= 128 iterations per invocation, so
+// compilers unroll them, keep the accumulators in registers and issue a level's table reads
+// together.
 
 struct Level {
     scale: vec4<f32>,

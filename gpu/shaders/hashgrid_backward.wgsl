@@ -8,8 +8,8 @@
 @compute @workgroup_size(64)
 fn encode_backward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let idx = invocation(gid, groups);
-    let dims = grid.shape.x;
-    let nf = grid.shape.y;
+    let dims = DIMS;
+    let nf = NF;
     let nl = grid.shape.z;
     if idx < grid.run.x * nl {
         let i = idx / nl;
@@ -19,22 +19,20 @@ fn encode_backward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         let o = (i * nl + l) * nf;
         var d = array<f32, 8>(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
         var any = false;
-        for (var f = 0u; f < 8u; f++) {
-            if f < nf {
-                d[f] = d_features[o + f];
-                any = any || d[f] != 0.0;
-            }
+        for (var f = 0u; f < NF; f++) {
+            d[f] = d_features[o + f];
+            any = any || d[f] != 0.0;
         }
         // A sample whose features get no gradient (masked out, zero loss weight) issues no atomics.
         if any {
             let c = cell(lv, points[i], dims);
             let base = grid.run.y + lv.info.x;
-            for (var k = 0u; k < (1u << dims); k++) {
+            for (var k = 0u; k < (1u << DIMS); k++) {
                 let cr = corner(c, k, dense, grid.shape.w);
                 let at = base + cr.row * nf;
-                for (var f = 0u; f < 8u; f++) {
+                for (var f = 0u; f < NF; f++) {
                     let g = cr.w * d[f];
-                    if f < nf && g != 0.0 {
+                    if g != 0.0 {
                         add_grad(at + f, g);
                     }
                 }

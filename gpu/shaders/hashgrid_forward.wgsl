@@ -6,8 +6,8 @@
 @compute @workgroup_size(64)
 fn encode_forward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let idx = invocation(gid, groups);
-    let dims = grid.shape.x;
-    let nf = grid.shape.y;
+    let dims = DIMS;
+    let nf = NF;
     let nl = grid.shape.z;
     if idx < grid.run.x * nl {
         let i = idx / nl;
@@ -17,20 +17,16 @@ fn encode_forward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wo
         let c = cell(lv, points[i], dims);
         var acc = array<f32, 8>(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
         let base = grid.run.y + lv.info.x;
-        for (var k = 0u; k < (1u << dims); k++) {
+        for (var k = 0u; k < (1u << DIMS); k++) {
             let cr = corner(c, k, dense, grid.shape.w);
             let at = base + cr.row * nf;
-            for (var f = 0u; f < 8u; f++) {
-                if f < nf {
-                    acc[f] = acc[f] + cr.w * table[at + f];
-                }
+            for (var f = 0u; f < NF; f++) {
+                acc[f] = acc[f] + cr.w * table[at + f];
             }
         }
         let o = (i * nl + l) * nf;
-        for (var f = 0u; f < 8u; f++) {
-            if f < nf {
-                features[o + f] = acc[f];
-            }
+        for (var f = 0u; f < NF; f++) {
+            features[o + f] = acc[f];
         }
     }
 }

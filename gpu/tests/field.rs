@@ -8,9 +8,15 @@
 //!
 //! The demo's blend (`Mt`) and the paper's (`Mst`).
 //!
-//! Tolerances: sigma |gpu - cpu| <= 1e-5 sigma + 1e-6, rgb 2e-6 absolute; gradients per named
+//! Tolerances: sigma |gpu - cpu| <= 1e-4 sigma + 1e-6, rgb 2e-6 absolute; gradients per named
 //! slice: max |gpu - cpu| <= 1e-5 x max |cpu| over the slice (f32 sums in other orders,
-//! atomics in any order, the GPU's `exp`; lavapipe: within 4e-7).
+//! atomics in any order, the GPU's `exp`; lavapipe: within 4e-7) plus twice the entry's
+//! position-rounding floor: the largest change of the entry's CPU gradient when every sample
+//! coordinate moves by one unit in the last place, down or up. A GPU that fuses the scaled
+//! position's multiply-add rounds it differently from the CPU (seen on an NVIDIA H200: an `h3`
+//! entry 1.0e-5 of the slice maximum off; lavapipe does not fuse). The floor is per entry
+//! because it is uneven: a sample whose ReLU input sits within rounding of zero moves its
+//! entries' gradients by a few percent, every other entry by ~1e-4 of its value or less.
 //!
 //! Without an adapter they are reported as ignored, with the reason, unless `MSTH_REQUIRE_GPU=1`
 //! (then they fail): this binary runs on `msth-testkit`'s harness (`harness = false`), and
@@ -23,12 +29,9 @@ use msth_core::field::{FieldLayout, FieldScratch, ModelLayout};
 use msth_core::rng::Rng;
 use msth_core::sh::{sh4, SH_COEFFS};
 use msth_gpu::device::ComputeDevice;
-use msth_gpu::glue::{Blend, Columns, GlueKernels};
-use msth_gpu::hashgrid::{AtomicMode, GpuGrid, HashGridKernels};
-use msth_gpu::mask::{GpuMask, MaskKernels};
-use msth_gpu::mlp::{GpuMlp, MlpKernels, OutputActivation};
+use msth_gpu::field::{FieldKernels, GpuField};
+use msth_gpu::hashgrid::AtomicMode;
 use msth_gpu::presets::reference_model;
-use msth_gpu::sh::ShKernel;
 use msth_testkit::Tests;
 
 use common::{device, gpu_need};
@@ -41,7 +44,36 @@ fn main() -> std::process::ExitCode {
             "field_chain_matches_the_cpu_field",
             field_chain_matches_the_cpu_field,
         )
+        .needs(
+            &[&gpu],
+            "field_bad_input_is_an_error",
+            field_bad_input_is_an_error,
+        )
         .run()
+}
+
+/// A field the chain cannot run (no mask: the `Add` blend's models) and a batch larger than the
+/// buffers are errors that say so, not panics or out-of-bounds work.
+fn field_bad_input_is_an_error() {
+    let dev = device();
+    let model = ModelLayout::new(&reference_model(Preset::Fast));
+    let mut no_mask = model.field.clone();
+    no_mask.encoding.mask = None;
+    let e = GpuField::new(&no_mask)
+        .err()
+        .expect("a field without a mask");
+    assert!(e.to_string().contains("no mask"), "{e}");
+    let kernels = FieldKernels::new(&dev, AtomicMode::best(&dev)).unwrap();
+    let field = GpuField::new(&model.field).unwrap();
+    let bufs = field.buffers(&dev, 16).unwrap();
+    let params = dev.buffer_f32("params", &model.init_params(1)).unwrap();
+    let pts = dev.zeros_f32("points", 4 * 32).unwrap();
+    let dirs = dev.zeros_f32("dirs", 3 * 32).unwrap();
+    let e = field
+        .forward(&dev, &kernels, &params, &pts, &dirs, 32, &bufs)
+        .err()
+        .expect("32 samples in buffers for 16");
+    assert!(e.to_string().contains("made for 16"), "{e}");
 }
 
 fn field_chain_matches_the_cpu_field() {
@@ -57,14 +89,11 @@ fn field_chain_matches_the_cpu_field() {
 
 fn chain(dev: &ComputeDevice, model: &ModelLayout, field: &FieldLayout) {
     let enc = &field.encoding;
-    let (g3, r3) = enc.h3.clone().unwrap();
-    let (g4, r4) = enc.h4.clone().unwrap();
-    let (mg, rm) = enc.mask.clone().unwrap();
-    let (dm, dr) = field.density.clone();
-    let (cm, cr) = field.color.clone();
-    let e = enc.out_dim;
-    let geo = field.geo_features;
-    let cw = SH_COEFFS + geo;
+    let (_, r3) = enc.h3.clone().unwrap();
+    let (_, r4) = enc.h4.clone().unwrap();
+    let (_, rm) = enc.mask.clone().unwrap();
+    let (_, dr) = field.density.clone();
+    let (_, cr) = field.color.clone();
     let mut rng = Rng::new(41);
     let mut params = model.init_params(3);
     for r in [&r3, &r4] {
@@ -97,66 +126,39 @@ fn chain(dev: &ComputeDevice, model: &ModelLayout, field: &FieldLayout) {
     let (sigma_cpu, rgb_cpu) = (s.sigma.clone(), s.rgb.clone());
     let mut grad_cpu = vec![0f32; params.len()];
     field.backward(&params, &points, n, &mut s, &d_sigma, &d_rgb, &mut grad_cpu);
+    // The gradients' own sensitivity to one rounding of the sample positions: the CPU gradient
+    // again with every coordinate moved by one unit in the last place, down and up. A GPU that
+    // fuses `x * scale + 0.5` into one multiply-add (NVIDIA's compiler does; lavapipe does not)
+    // rounds each level's scaled position once where the CPU rounds twice, which moves the
+    // interpolation weights at the finest levels by up to ~2^-23 x 2048 (2.4e-4 relative),
+    // and a ReLU input within rounding of zero flips its derivative.
+    let mut noise = vec![0f32; params.len()];
+    for f in [1.0 - f32::EPSILON / 2.0, 1.0 + f32::EPSILON] {
+        let moved: Vec<f32> = points.iter().map(|v| v * f).collect();
+        let mut sm = FieldScratch::default();
+        field.forward(&params, &moved, &sh, &|i| i, n, &mut sm);
+        let mut g = vec![0f32; params.len()];
+        field.backward(&params, &moved, n, &mut sm, &d_sigma, &d_rgb, &mut g);
+        for (o, (a, b)) in noise.iter_mut().zip(g.iter().zip(&grad_cpu)) {
+            *o = o.max((a - b).abs());
+        }
+    }
 
     // GPU: forward.
     let mode = AtomicMode::best(dev);
-    let grid_k = HashGridKernels::new(dev, mode).unwrap();
-    let mask_k = MaskKernels::new(dev, mode).unwrap();
-    let mlp_k = MlpKernels::new(dev, mode).unwrap();
-    let glue = GlueKernels::new(dev).unwrap();
-    let sh_k = ShKernel::new(dev).unwrap();
+    let kernels = FieldKernels::new(dev, mode).unwrap();
+    let gpu_field = GpuField::new(field).unwrap();
+    let bufs = gpu_field.buffers(dev, n).unwrap();
     let buf = |what: &str, v: &[f32]| dev.buffer_f32(what, v).unwrap();
-    let zeros = |what: &str, len: usize| dev.zeros_f32(what, len).unwrap();
     let p_b = buf("params", &params);
     let pts_b = buf("points", &points);
     let dirs_b = buf("dirs", bytemuck::cast_slice(&dirs));
-    let (grid3, grid4) = (
-        GpuGrid::new(&g3, r3.start).unwrap(),
-        GpuGrid::new(&g4, r4.start).unwrap(),
-    );
-    let mask = GpuMask::new(mg, rm.start).unwrap();
-    let density = GpuMlp::new(&dm, dr.start, OutputActivation::Density).unwrap();
-    let colour = GpuMlp::new(&cm, cr.start, OutputActivation::Sigmoid).unwrap();
-    let (h3_b, h4_b, m_b, enc_b) = (
-        zeros("h3", n * e),
-        zeros("h4", n * e),
-        zeros("m", n),
-        zeros("enc", n * e),
-    );
-    grid_k.forward(dev, &grid3, &p_b, &pts_b, n, &h3_b).unwrap();
-    grid_k.forward(dev, &grid4, &p_b, &pts_b, n, &h4_b).unwrap();
-    mask_k.forward(dev, &mask, &p_b, &pts_b, n, &m_b).unwrap();
-    let blend = Blend {
-        mode: field.encoding.blend,
-        samples: n,
-        features: e,
-        h3: &h3_b,
-        h4: &h4_b,
-        m: &m_b,
-    };
-    glue.blend_forward(dev, &blend, &enc_b).unwrap();
-    let dw = dm.output_dim();
-    let (dens_b, dens_acts_b) = (
-        zeros("density out", n * dw),
-        zeros("density acts", n * density.acts_stride()),
-    );
-    mlp_k
-        .forward(dev, &density, &p_b, &enc_b, n, &dens_b, Some(&dens_acts_b))
+    gpu_field
+        .forward(dev, &kernels, &p_b, &pts_b, &dirs_b, n, &bufs)
         .unwrap();
-    let cin_b = zeros("colour in", n * cw);
-    sh_k.encode(dev, &dirs_b, n, &cin_b, cw, 0).unwrap();
-    let at = |stride, first| Columns { stride, first };
-    glue.copy_columns(dev, n, geo, &dens_b, at(dw, 1), &cin_b, at(cw, SH_COEFFS))
-        .unwrap();
-    let (rgb_b, col_acts_b) = (
-        zeros("rgb", 3 * n),
-        zeros("colour acts", n * colour.acts_stride()),
-    );
-    mlp_k
-        .forward(dev, &colour, &p_b, &cin_b, n, &rgb_b, Some(&col_acts_b))
-        .unwrap();
-    let dens = dev.read_f32(&dens_b, n * dw).unwrap();
-    let rgb = dev.read_f32(&rgb_b, 3 * n).unwrap();
+    let dw = field.density.0.output_dim();
+    let dens = dev.read_f32(&bufs.density, n * dw).unwrap();
+    let rgb = dev.read_f32(&bufs.rgb, 3 * n).unwrap();
     let (mut worst_sigma, mut worst_rgb) = (0f32, 0f32);
     for i in 0..n {
         let (g, c) = (dens[i * dw], sigma_cpu[i]);
@@ -173,56 +175,12 @@ fn chain(dev: &ComputeDevice, model: &ModelLayout, field: &FieldLayout) {
     }
 
     // GPU: backward, into one flat gradient.
-    let grad_b = zeros("grad", params.len());
+    let grad_b = dev.zeros_f32("grad", params.len()).unwrap();
     let (d_rgb_b, d_sigma_b) = (buf("d rgb", &d_rgb), buf("d sigma", &d_sigma));
-    let d_geo_b = zeros("d geo", n * geo);
-    mlp_k
+    gpu_field
         .backward(
-            dev,
-            &colour,
-            &p_b,
-            &cin_b,
-            &col_acts_b,
-            &d_rgb_b,
-            n,
-            &grad_b,
-            Some((SH_COEFFS, &d_geo_b)),
+            dev, &kernels, &p_b, &pts_b, n, &bufs, &d_sigma_b, &d_rgb_b, &grad_b,
         )
-        .unwrap();
-    let d_dens_b = zeros("d density out", n * dw);
-    glue.copy_columns(dev, n, 1, &d_sigma_b, at(1, 0), &d_dens_b, at(dw, 0))
-        .unwrap();
-    glue.copy_columns(dev, n, geo, &d_geo_b, at(geo, 0), &d_dens_b, at(dw, 1))
-        .unwrap();
-    let d_enc_b = zeros("d enc", n * e);
-    mlp_k
-        .backward(
-            dev,
-            &density,
-            &p_b,
-            &enc_b,
-            &dens_acts_b,
-            &d_dens_b,
-            n,
-            &grad_b,
-            Some((0, &d_enc_b)),
-        )
-        .unwrap();
-    let (d_h3_b, d_h4_b, m_dm_b) = (
-        zeros("d h3", n * e),
-        zeros("d h4", n * e),
-        zeros("m dm", 2 * n),
-    );
-    glue.blend_backward(dev, &blend, &d_enc_b, None, (&d_h3_b, &d_h4_b, &m_dm_b))
-        .unwrap();
-    grid_k
-        .backward(dev, &grid3, &pts_b, &d_h3_b, n, &grad_b)
-        .unwrap();
-    grid_k
-        .backward(dev, &grid4, &pts_b, &d_h4_b, n, &grad_b)
-        .unwrap();
-    mask_k
-        .backward(dev, &mask, &pts_b, &m_dm_b, n, &grad_b)
         .unwrap();
     let grad = dev.read_f32(&grad_b, params.len()).unwrap();
     for (name, r) in [
@@ -234,21 +192,25 @@ fn chain(dev: &ComputeDevice, model: &ModelLayout, field: &FieldLayout) {
     ] {
         let scale = grad_cpu[r.clone()].iter().fold(0f32, |a, v| a.max(v.abs()));
         assert!(scale > 0.0, "{name}: no gradient on the CPU");
-        let mut worst = 0f32;
+        let (mut worst, mut loosened) = (0f32, 0usize);
         for i in r.clone() {
             let err = (grad[i] - grad_cpu[i]).abs();
+            let tol = 1e-5 * scale + 2.0 * noise[i];
             assert!(
-                err <= 1e-5 * scale,
-                "{name}[{}]: gpu {} cpu {} (slice max {scale})",
+                err <= tol,
+                "{name}[{}]: gpu {} cpu {} (slice max {scale}, position-rounding floor {})",
                 i - r.start,
                 grad[i],
-                grad_cpu[i]
+                grad_cpu[i],
+                noise[i]
             );
             worst = worst.max(err / scale);
+            loosened += usize::from(2.0 * noise[i] > 1e-5 * scale);
         }
         println!(
-            "field {:?} gradient {name}: worst |gpu - cpu| / slice max {worst:.2e}",
-            field.encoding.blend
+            "field {:?} gradient {name}: worst |gpu - cpu| / slice max {worst:.2e}; {loosened} of {} entries with a position-rounding floor above 1e-5 of it",
+            field.encoding.blend,
+            r.len()
         );
     }
     // Nothing outside the field's slices (the proposal's) was written.

@@ -6,9 +6,12 @@
 //! differences of a loss computed through the CPU reference.
 //!
 //! Tolerances (tables and gradients of magnitude <= 1):
-//! - forward: |gpu - cpu| <= 2e-6 per feature (same operation order; the GPU may fuse
-//!   multiply-adds, the lower corner can differ at a cell boundary where both cells give the
-//!   same value);
+//! - forward: |gpu - cpu| <= 2e-6 + 2 eps sum_a (scale_a + 0.5) per feature of a level (same
+//!   operation order, but the GPU may fuse `x * scale + 0.5` into one multiply-add, as NVIDIA's
+//!   compiler does, rounding the scaled position once where the CPU rounds twice: each axis'
+//!   interpolation weight moves by up to eps (scale_a + 0.5), and the value by up to twice
+//!   that per axis for tables in [-1, 1]; the lower corner can differ at a cell boundary where
+//!   both cells give the same value);
 //! - backward: |gpu - cpu| <= 1e-5 * sum|contributions| + 1e-6 per entry (atomics add in any
 //!   order; f32 rounding grows with the number and size of the terms summed);
 //! - finite differences: |gpu - fd| <= 1e-3 per entry (the loss is linear in the table, so
@@ -132,22 +135,33 @@ fn forward_matches_the_cpu_reference() {
         let gpu = k.forward_host(&dev, &g, &table, &pts).unwrap();
         let dim = g.output_dim();
         assert_eq!(gpu.len(), pts.len() * dim);
+        // Per level: 2e-6, plus what one rounding of each axis' scaled position can move the
+        // interpolated value (|d value / d weight_a| <= 2 max|table| = 2).
+        let tol: Vec<f32> = g
+            .levels
+            .iter()
+            .map(|l| {
+                let pos: f32 = l.scale[..g.dims].iter().map(|s| s + 0.5).sum();
+                2e-6 + 2.0 * f32::EPSILON * pos
+            })
+            .collect();
         let mut worst = 0f32;
         for (i, p) in pts.iter().enumerate() {
             let cpu = g.encode_point_reference(&table, p);
             for (j, (a, b)) in gpu[i * dim..(i + 1) * dim].iter().zip(&cpu).enumerate() {
                 let e = (a - b).abs();
+                let t = tol[j / g.features];
                 assert!(
-                    e <= 2e-6,
-                    "dims {} F {}: point {i} {p:?} feature {j}: gpu {a} cpu {b}",
+                    e <= t,
+                    "dims {} F {}: point {i} {p:?} feature {j}: gpu {a} cpu {b} (tolerance {t:.2e})",
                     g.dims,
                     g.features
                 );
-                worst = worst.max(e);
+                worst = worst.max(e / t);
             }
         }
         println!(
-            "forward dims {} F {}: {} points, worst |gpu - cpu| {worst:.2e}",
+            "forward dims {} F {}: {} points, worst error / tolerance {worst:.3}",
             g.dims,
             g.features,
             pts.len()

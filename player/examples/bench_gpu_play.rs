@@ -1,0 +1,229 @@
+//! Playback rates of the GPU renderer at a real video size (issue #17): frames per second of
+//! the per-sample passes at W x H (default 1352x1014, the Plenoptic videos' size) for
+//!
+//! 1. full frames of a fixed camera, the timeline advancing (every pixel rendered each frame);
+//! 2. a moving camera: the file's first camera orbiting the scene's centre (a yaw of up to
+//!    +-10 degrees about the camera's up axis), the timeline advancing: every frame is a full
+//!    frame, as while a user drags the view;
+//! 3. incremental frames of a fixed camera (the static cache, sample-level reuse and probes:
+//!    `RenderSettings::default()`), after the frame that builds the cache;
+//!
+//! and, as the check that the adapter computes the right frames, the GPU frame against the CPU
+//! renderer's at a quarter of the size (PSNR) with both times.
+//!
+//! Frame times include the upload of the parameters for the frame's time and the read-back of
+//! the whole frame (a viewer would present it instead); the parameters for each time are
+//! decoded before the timed loop, as the player's streaming thread does ahead of playback.
+//! The file's occupancy grid is used (`MSTH_BENCH_NO_SKIP=1` turns it off);
+//! `MSTH_BENCH_PROFILE=1` ends with one full frame whose passes are timed one by one.
+//!
+//! `cargo run --release -p msth-player --example bench_gpu_play -- FILE.msth [WxH] [FRAMES]`
+//! (default 1352x1014, 24 frames per measurement). Any adapter is used (lavapipe included: use
+//! a small size there).
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use glam::{Mat4, Vec3};
+use msth_core::{Camera, SceneBounds};
+use msth_player::gpu::{AdapterPolicy, GpuContext, GpuRenderer};
+use msth_player::{Frame, RenderSettings, Renderer};
+
+fn psnr(a: &Frame, b: &Frame) -> f64 {
+    let mse = a
+        .rgb
+        .iter()
+        .zip(&b.rgb)
+        .map(|(x, y)| ((x.clamp(0.0, 1.0) - y.clamp(0.0, 1.0)) as f64).powi(2))
+        .sum::<f64>()
+        / a.rgb.len().max(1) as f64;
+    -10.0 * mse.max(1e-20).log10()
+}
+
+/// `cam` with its intrinsics scaled to `w x h` (each axis by its own factor).
+fn resized(cam: &Camera, w: u32, h: u32) -> Camera {
+    let (sx, sy) = (w as f32 / cam.width as f32, h as f32 / cam.height as f32);
+    Camera {
+        width: w,
+        height: h,
+        fx: cam.fx * sx,
+        fy: cam.fy * sy,
+        cx: cam.cx * sx,
+        cy: cam.cy * sy,
+        world_from_camera: cam.world_from_camera,
+    }
+}
+
+/// `cam` orbited by `degrees` about its own up axis through `pivot`.
+fn orbited(cam: &Camera, pivot: Vec3, degrees: f32) -> Camera {
+    let up = cam.world_from_camera.y_axis.truncate().normalize();
+    let r = Mat4::from_translation(pivot)
+        * Mat4::from_axis_angle(up, degrees.to_radians())
+        * Mat4::from_translation(-pivot);
+    Camera {
+        world_from_camera: r * cam.world_from_camera,
+        ..*cam
+    }
+}
+
+fn stats(ms: &[f64]) -> String {
+    let n = ms.len().max(1) as f64;
+    let mean = ms.iter().sum::<f64>() / n;
+    let mut s = ms.to_vec();
+    s.sort_by(f64::total_cmp);
+    let med = s.get(s.len() / 2).copied().unwrap_or(0.0);
+    let worst = s.last().copied().unwrap_or(0.0);
+    format!(
+        "{:7.1} FPS (mean {mean:.2} ms, median {med:.2} ms, worst {worst:.2} ms over {} frames)",
+        1000.0 / mean.max(1e-9),
+        ms.len()
+    )
+}
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let Some(path) = args.first() else {
+        return Err("usage: bench_gpu_play FILE.msth [WxH] [FRAMES]".into());
+    };
+    let (w, h) = match args.get(1) {
+        Some(s) => {
+            let (a, b) = s.split_once('x').ok_or("size: WxH, e.g. 1352x1014")?;
+            (a.parse::<u32>()?, b.parse::<u32>()?)
+        }
+        None => (1352, 1014),
+    };
+    let frames: usize = args.get(2).map(|s| s.parse()).transpose()?.unwrap_or(24);
+    let bytes = std::fs::read(path)?;
+    let decoded = msth_codec::decode_all(&bytes)?;
+    let cfg = decoded.metadata.model.clone();
+    let cam0 = *decoded
+        .metadata
+        .cameras
+        .first()
+        .ok_or("the file has no cameras")?;
+    let grid = decoded
+        .occupancy
+        .clone()
+        .map(Arc::new)
+        .filter(|_| std::env::var("MSTH_BENCH_NO_SKIP").as_deref() != Ok("1"));
+    let pivot = match cfg.bounds {
+        SceneBounds::Box { min, max } => 0.5 * (min + max),
+        SceneBounds::Contracted { center, .. } => center,
+    };
+    let cam = resized(&cam0, w, h);
+    println!(
+        "model {path}: {} proposal + {} main samples per ray, {} levels; {w}x{h} ({} pixels); occupancy grid: {}",
+        cfg.sampler.num_proposal_samples,
+        cfg.sampler.num_samples,
+        cfg.field.encoding.grid3.levels,
+        w * h,
+        match &grid {
+            Some(g) => format!("{:.1}% of {}^3 cells occupied", 100.0 * g.occupied_fraction(), g.resolution),
+            None => "none".into(),
+        }
+    );
+    let times: Vec<f32> = (0..frames)
+        .map(|i| i as f32 / frames.max(2).saturating_sub(1) as f32)
+        .collect();
+    let t = Instant::now();
+    let params: Vec<Vec<f32>> = times.iter().map(|&t| decoded.params_for_time(t)).collect();
+    println!(
+        "parameters for {frames} times decoded ahead: {:.2} ms each (host)",
+        1000.0 * t.elapsed().as_secs_f64() / frames.max(1) as f64
+    );
+
+    let full = RenderSettings {
+        incremental: false,
+        ..Default::default()
+    };
+    let ctx = GpuContext::open(AdapterPolicy::any())?;
+    println!("adapter: {}", ctx.adapter_name());
+
+    // Correctness on this adapter: GPU against CPU at a quarter of the size.
+    let small = resized(&cam0, (w / 4).max(1), (h / 4).max(1));
+    let mut cpu = Renderer::new(&cfg, full);
+    cpu.set_occupancy(grid.clone());
+    let t = Instant::now();
+    let reference = cpu.render(&small, 0.0, &params[0]);
+    let cpu_s = t.elapsed().as_secs_f64();
+    let mut gpu = GpuRenderer::new(ctx, &cfg, full)?;
+    gpu.set_occupancy(grid.clone())?;
+    gpu.render(&small, 0.0, &params[0])?;
+    let t = Instant::now();
+    let f = gpu.render(&small, 0.0, &params[0])?;
+    let gpu_s = t.elapsed().as_secs_f64();
+    println!(
+        "check at {}x{}: gpu vs cpu {:.1} dB; cpu {:.3} s ({} threads), gpu {:.4} s ({:.0}x)",
+        small.width,
+        small.height,
+        psnr(&f, &reference),
+        cpu_s,
+        rayon_threads(),
+        gpu_s,
+        cpu_s / gpu_s.max(1e-9)
+    );
+
+    // 1. Full frames, fixed camera.
+    let t = Instant::now();
+    let first = gpu.render(&cam, times[0], &params[0])?;
+    println!(
+        "first full frame {w}x{h}: {:.1} ms (scratch allocation included); {} rays rendered, {} empty",
+        1000.0 * t.elapsed().as_secs_f64(),
+        first.stats.rays_rendered,
+        first.stats.rays_empty
+    );
+    let mut ms = Vec::new();
+    for (i, &tm) in times.iter().enumerate() {
+        let t = Instant::now();
+        gpu.render(&cam, tm, &params[i])?;
+        ms.push(1000.0 * t.elapsed().as_secs_f64());
+    }
+    println!("full frames, fixed camera:   {}", stats(&ms));
+
+    // 2. Moving camera.
+    let mut ms = Vec::new();
+    for (i, &tm) in times.iter().enumerate() {
+        let phase = i as f32 / frames.max(1) as f32 * std::f32::consts::TAU;
+        let c = orbited(&cam, pivot, 10.0 * phase.sin());
+        let t = Instant::now();
+        gpu.render(&c, tm, &params[i])?;
+        ms.push(1000.0 * t.elapsed().as_secs_f64());
+    }
+    println!("full frames, moving camera:  {}", stats(&ms));
+
+    // 3. Incremental frames, fixed camera.
+    let ctx = GpuContext::open(AdapterPolicy::any())?;
+    let mut inc = GpuRenderer::new(ctx, &cfg, RenderSettings::default())?;
+    inc.set_occupancy(grid.clone())?;
+    let mut ms = Vec::new();
+    let (mut build_ms, mut rendered, mut samples) = (0.0, 0, 0);
+    for (i, &tm) in times.iter().enumerate() {
+        let t = Instant::now();
+        let f = inc.render(&cam, tm, &params[i])?;
+        let e = 1000.0 * t.elapsed().as_secs_f64();
+        match i {
+            0 => {}
+            1 => build_ms = e,
+            _ => {
+                ms.push(e);
+                rendered = f.stats.rays_rendered;
+                samples = f.stats.samples_evaluated;
+            }
+        }
+    }
+    println!(
+        "incremental, fixed camera:   {} (cache built in {build_ms:.1} ms; {rendered} dynamic rays, {samples} samples per frame)",
+        stats(&ms)
+    );
+
+    // MSTH_BENCH_PROFILE=1: one more full frame with every pass timed on its own (stderr).
+    if std::env::var("MSTH_BENCH_PROFILE").as_deref() == Ok("1") {
+        std::env::set_var("MSTH_GPU_PASS_PROFILE", "1");
+        gpu.render(&cam, times[0], &params[0])?;
+    }
+    Ok(())
+}
+
+fn rayon_threads() -> usize {
+    std::thread::available_parallelism().map_or(1, |n| n.get())
+}
