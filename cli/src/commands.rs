@@ -114,9 +114,14 @@ pub(crate) fn print_notes(pb: &ProgressBar, p: &Progress) {
 pub(crate) fn report(pb: &ProgressBar, p: &Progress) -> bool {
     print_notes(pb, p);
     pb.set_position(p.step as u64);
+    let t = &p.terms;
     let msg = format!(
-        "loss {:.5}  psnr {:.2} dB  {:.0}k samples/s",
+        "loss {:.5} (rgb {:.5} interlevel {:.5} distortion {:.5} mask {:.5})  psnr {:.2} dB  {:.0}k samples/s",
         p.loss,
+        t.rgb,
+        t.interlevel,
+        t.distortion,
+        t.mask,
         p.psnr,
         p.field_samples_per_sec / 1e3
     );
@@ -459,16 +464,7 @@ pub fn render(a: RenderArgs) -> Result<()> {
         if w == 0 || h == 0 || w > 16384 || h > 16384 {
             bail!("image size {w}x{h} must be between 1 and 16384 per side");
         }
-        let sy = h as f32 / cam.height as f32;
-        cam = Camera {
-            width: w,
-            height: h,
-            fx: cam.fx * sx,
-            fy: cam.fy * sy,
-            cx: cam.cx * sx,
-            cy: cam.cy * sy,
-            world_from_camera: cam.world_from_camera,
-        };
+        cam = cam.resized(w, h);
     }
     let layout = ModelLayout::new(&ckpt.header.model);
     let t = Instant::now();

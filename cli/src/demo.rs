@@ -28,7 +28,7 @@ use serde::Serialize;
 use msth_codec::{EncodeOptions, QuantMode};
 use msth_core::config::Preset;
 use msth_core::Camera;
-use msth_player::path::{resize, Rig};
+use msth_player::path::Rig;
 use msth_player::play::make_video;
 use msth_player::{play, BackendChoice, Frame, PlayOptions, PlayReport};
 use msth_server::BackgroundServer;
@@ -252,7 +252,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
         .header
         .cameras
         .first()
-        .map(|c| resize(c, pw, ph))
+        .map(|c| c.resized(pw, ph))
         .context("the checkpoint has no cameras to place the tour around")?;
     let rig = Rig::new(&ckpt.header.model.bounds, &ckpt.header.cameras, template);
     let tour = Tour::new(&rig, ckpt.header.model.num_frames, a.play_frames);

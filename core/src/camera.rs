@@ -100,6 +100,24 @@ impl Camera {
         ))
     }
 
+    /// The same pose with the image resized to `width x height`, keeping the horizontal field
+    /// of view and square pixels (both focal lengths scale with the width); the principal
+    /// point scales with each axis. Another aspect ratio shows more or less of the scene
+    /// vertically, never a stretched view.
+    pub fn resized(&self, width: u32, height: u32) -> Camera {
+        let sx = width as f32 / self.width as f32;
+        let sy = height as f32 / self.height as f32;
+        Camera {
+            width,
+            height,
+            fx: self.fx * sx,
+            fy: self.fy * sx,
+            cx: self.cx * sx,
+            cy: self.cy * sy,
+            world_from_camera: self.world_from_camera,
+        }
+    }
+
     /// The same camera with the image scaled by `factor` (e.g. 0.5 halves the resolution).
     pub fn scaled(&self, factor: f32) -> Camera {
         Camera {

@@ -71,8 +71,7 @@ fn field_bad_input_is_an_error() {
     let dirs = dev.zeros_f32("dirs", 3 * 32).unwrap();
     let e = field
         .forward(&dev, &kernels, &params, &pts, &dirs, 32, &bufs)
-        .err()
-        .expect("32 samples in buffers for 16");
+        .expect_err("32 samples in buffers for 16");
     assert!(e.to_string().contains("made for 16"), "{e}");
 }
 

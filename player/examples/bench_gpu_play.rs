@@ -27,32 +27,7 @@ use std::time::Instant;
 use glam::{Mat4, Vec3};
 use msth_core::{Camera, SceneBounds};
 use msth_player::gpu::{AdapterPolicy, GpuContext, GpuRenderer};
-use msth_player::{Frame, RenderSettings, Renderer};
-
-fn psnr(a: &Frame, b: &Frame) -> f64 {
-    let mse = a
-        .rgb
-        .iter()
-        .zip(&b.rgb)
-        .map(|(x, y)| ((x.clamp(0.0, 1.0) - y.clamp(0.0, 1.0)) as f64).powi(2))
-        .sum::<f64>()
-        / a.rgb.len().max(1) as f64;
-    -10.0 * mse.max(1e-20).log10()
-}
-
-/// `cam` with its intrinsics scaled to `w x h` (each axis by its own factor).
-fn resized(cam: &Camera, w: u32, h: u32) -> Camera {
-    let (sx, sy) = (w as f32 / cam.width as f32, h as f32 / cam.height as f32);
-    Camera {
-        width: w,
-        height: h,
-        fx: cam.fx * sx,
-        fy: cam.fy * sy,
-        cx: cam.cx * sx,
-        cy: cam.cy * sy,
-        world_from_camera: cam.world_from_camera,
-    }
-}
+use msth_player::{RenderSettings, Renderer};
 
 /// `cam` orbited by `degrees` about its own up axis through `pivot`.
 fn orbited(cam: &Camera, pivot: Vec3, degrees: f32) -> Camera {
@@ -110,7 +85,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         SceneBounds::Box { min, max } => 0.5 * (min + max),
         SceneBounds::Contracted { center, .. } => center,
     };
-    let cam = resized(&cam0, w, h);
+    let cam = cam0.resized(w, h);
     println!(
         "model {path}: {} proposal + {} main samples per ray, {} levels; {w}x{h} ({} pixels); occupancy grid: {}",
         cfg.sampler.num_proposal_samples,
@@ -140,7 +115,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     println!("adapter: {}", ctx.adapter_name());
 
     // Correctness on this adapter: GPU against CPU at a quarter of the size.
-    let small = resized(&cam0, (w / 4).max(1), (h / 4).max(1));
+    let small = cam0.resized((w / 4).max(1), (h / 4).max(1));
     let mut cpu = Renderer::new(&cfg, full);
     cpu.set_occupancy(grid.clone());
     let t = Instant::now();
@@ -156,7 +131,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         "check at {}x{}: gpu vs cpu {:.1} dB; cpu {:.3} s ({} threads), gpu {:.4} s ({:.0}x)",
         small.width,
         small.height,
-        psnr(&f, &reference),
+        f.psnr_displayed(&reference),
         cpu_s,
         rayon_threads(),
         gpu_s,

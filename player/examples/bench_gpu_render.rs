@@ -29,7 +29,7 @@ use msth_core::field::ModelLayout;
 use msth_core::rng::Rng;
 use msth_core::{Camera, SceneBounds};
 use msth_player::gpu::{AdapterPolicy, GpuContext, GpuKernels, GpuRenderer};
-use msth_player::{Frame, RenderSettings, Renderer};
+use msth_player::{RenderSettings, Renderer};
 use std::sync::Arc;
 
 /// CPU seconds this process has used (user + system, all threads; Linux `/proc/self/stat`,
@@ -44,17 +44,6 @@ fn cpu_seconds() -> f64 {
     let ticks = |i: usize| f.get(i).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
     // utime and stime are fields 14 and 15 of the line, 12 and 13 after the name.
     (ticks(11) + ticks(12)) / 100.0
-}
-
-fn psnr(a: &Frame, b: &Frame) -> f64 {
-    let mse = a
-        .rgb
-        .iter()
-        .zip(&b.rgb)
-        .map(|(x, y)| ((x.clamp(0.0, 1.0) - y.clamp(0.0, 1.0)) as f64).powi(2))
-        .sum::<f64>()
-        / a.rgb.len().max(1) as f64;
-    -10.0 * mse.max(1e-20).log10()
 }
 
 type Loaded = (
@@ -147,7 +136,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 "cpu full frame:                 {cpu_s:8.3} s (occupancy grid: {:.1}% of {}^3 cells occupied; {:.1} dB vs the frame without it, {:.3} s)",
                 100.0 * g.occupied_fraction(),
                 g.resolution,
-                psnr(&reference, &unskipped),
+                reference.psnr_displayed(&unskipped),
                 unskipped.stats.seconds
             )
         }
@@ -178,7 +167,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 println!(
                     "gpu full frame, {what} (old{}):    {secs:8.3} s (cpu {cpu:.1} s)  {:.1} dB vs cpu",
                     if old_source.is_some() { ", MSTH_BENCH_OLD_WGSL" } else { "" },
-                    psnr(&f, &reference)
+                    f.psnr_displayed(&reference)
                 );
                 old_s = Some((secs, cpu));
             }
@@ -198,7 +187,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let (new_s, new_cpu) = (t.elapsed().as_secs_f64(), cpu_seconds() - c);
     println!(
         "gpu full frame, per-sample passes (new): {first_s:8.3} s first (cpu {first_cpu:.1} s), {new_s:.3} s next (cpu {new_cpu:.1} s)  {:.1} dB vs cpu",
-        psnr(&f, &reference)
+        f.psnr_displayed(&reference)
     );
     if let Some((o, oc)) = old_s {
         println!(
@@ -235,7 +224,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             gs.push(b.stats.seconds);
         }
         let g = full_r.render(&cam, tm, &p);
-        let pg = psnr(&b, &a);
+        let pg = b.psnr_displayed(&a);
         worst = worst.min(pg);
         println!(
             "t = {tm:.2}: cpu {:.3} s, gpu {:.3} s ({} rays, {} samples; classify/build {:.3} s); gpu vs cpu incremental {pg:.1} dB, vs cpu full {:.1} dB",
@@ -244,7 +233,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             b.stats.rays_rendered,
             b.stats.samples_evaluated,
             b.stats.cache_seconds,
-            psnr(&b, &g)
+            b.psnr_displayed(&g)
         );
     }
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;

@@ -147,21 +147,6 @@ pub enum CameraPath {
     Keyframes(Vec<(Camera, Option<f32>)>),
 }
 
-/// Resizes a camera's image, keeping its horizontal field of view and principal point.
-pub fn resize(camera: &Camera, width: u32, height: u32) -> Camera {
-    let sx = width as f32 / camera.width as f32;
-    let sy = height as f32 / camera.height as f32;
-    Camera {
-        width,
-        height,
-        fx: camera.fx * sx,
-        fy: camera.fy * sx,
-        cx: camera.cx * sx,
-        cy: camera.cy * sy,
-        world_from_camera: camera.world_from_camera,
-    }
-}
-
 #[derive(Deserialize)]
 #[serde(untagged)]
 enum PathFile {
@@ -228,7 +213,7 @@ impl CameraPath {
         size: Option<(u32, u32)>,
     ) -> Result<Self, PathError> {
         let sized = |c: &Camera| match size {
-            Some((w, h)) => resize(c, w, h),
+            Some((w, h)) => c.resized(w, h),
             None => *c,
         };
         let template = sized(
@@ -331,7 +316,7 @@ impl CameraPath {
                 },
             };
             if let Some((w, h)) = size {
-                cam = resize(&cam, w, h);
+                cam = cam.resized(w, h);
             }
             cam.validate().map_err(|e| at(e.to_string()))?;
             if let Some(t) = f.time {

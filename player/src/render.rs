@@ -211,6 +211,19 @@ pub struct Frame {
 }
 
 impl Frame {
+    /// PSNR (dB) against `other` of the same size, of the colours as displayed (clamped to
+    /// `[0, 1]`); 200 dB for identical frames.
+    pub fn psnr_displayed(&self, other: &Frame) -> f64 {
+        let mse = self
+            .rgb
+            .iter()
+            .zip(&other.rgb)
+            .map(|(x, y)| ((x.clamp(0.0, 1.0) - y.clamp(0.0, 1.0)) as f64).powi(2))
+            .sum::<f64>()
+            / self.rgb.len().max(1) as f64;
+        -10.0 * mse.max(1e-20).log10()
+    }
+
     /// 8-bit RGB, rounded.
     pub fn to_rgb8(&self) -> Vec<u8> {
         self.rgb

@@ -322,10 +322,22 @@ pub struct Progress {
     pub step: usize,
     pub iters: usize,
     pub loss: f32,
+    /// The weighted terms that sum to `loss`, per ray: colour, interlevel (proposal), distortion,
+    /// and the mask terms (per-sample mask loss and any mask-learning objective).
+    pub terms: LossTerms,
     /// PSNR of the batch's colours.
     pub psnr: f32,
     pub elapsed_secs: f64,
     pub field_samples_per_sec: f64,
+}
+
+/// The weighted terms of a step's loss ([`Progress::terms`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct LossTerms {
+    pub rgb: f32,
+    pub interlevel: f32,
+    pub distortion: f32,
+    pub mask: f32,
 }
 
 #[derive(Clone, Debug)]
@@ -722,11 +734,15 @@ pub fn train(
         steps_run += 1;
         samples += l.field_samples;
         let mse = l.sq_err / l.rays.max(1) as f64;
-        let loss = (mse
-            + trainer.settings.interlevel_weight as f64 * l.interlevel / l.rays.max(1) as f64
-            + trainer.settings.distortion_weight as f64 * l.distortion / l.rays.max(1) as f64
-            + l.sample_mask / l.rays.max(1) as f64
-            + mask_learning_loss(&trainer.settings.mask_learning, &l)) as f32;
+        let per_ray = |v: f64| v / l.rays.max(1) as f64;
+        let terms = LossTerms {
+            rgb: mse as f32,
+            interlevel: (trainer.settings.interlevel_weight as f64 * per_ray(l.interlevel)) as f32,
+            distortion: (trainer.settings.distortion_weight as f64 * per_ray(l.distortion)) as f32,
+            mask: (per_ray(l.sample_mask) + mask_learning_loss(&trainer.settings.mask_learning, &l))
+                as f32,
+        };
+        let loss = terms.rgb + terms.interlevel + terms.distortion + terms.mask;
         if !loss.is_finite() {
             return Err(TrainError::Diverged {
                 step: trainer.step,
@@ -752,6 +768,7 @@ pub fn train(
             step: trainer.step,
             iters,
             loss,
+            terms,
             psnr: (-10.0 * mse.max(1e-12).log10()) as f32,
             elapsed_secs: elapsed,
             field_samples_per_sec: samples as f64 / elapsed.max(1e-9),
