@@ -110,31 +110,27 @@ pub(crate) fn print_notes(pb: &ProgressBar, p: &Progress) {
     }
 }
 
-/// Shows training progress: a bar with ETA on a terminal, a log line every 5% otherwise.
+/// Shows training progress: a bar with ETA on a terminal (loss, batch PSNR, throughput), a log
+/// line every 5% otherwise, which also splits the loss into its terms.
 pub(crate) fn report(pb: &ProgressBar, p: &Progress) -> bool {
     print_notes(pb, p);
     pb.set_position(p.step as u64);
-    let t = &p.terms;
-    let msg = format!(
-        "loss {:.5} (rgb {:.5} interlevel {:.5} distortion {:.5} mask {:.5})  psnr {:.2} dB  {:.0}k samples/s",
-        p.loss,
-        t.rgb,
-        t.interlevel,
-        t.distortion,
-        t.mask,
+    let rate = format!(
+        "psnr {:.2} dB  {:.0}k samples/s",
         p.psnr,
         p.field_samples_per_sec / 1e3
     );
     if pb.is_hidden() {
         let every = (p.iters / 20).max(1);
         if p.step.is_multiple_of(every) || p.step == p.iters {
+            let t = &p.terms;
             eprintln!(
-                "step {}/{} [{:.1} s] {msg}",
-                p.step, p.iters, p.elapsed_secs
+                "step {}/{} [{:.1} s] loss {:.5} (rgb {:.5} interlevel {:.5} distortion {:.5} mask {:.5})  {rate}",
+                p.step, p.iters, p.elapsed_secs, p.loss, t.rgb, t.interlevel, t.distortion, t.mask
             );
         }
     } else if p.step.is_multiple_of(10) || p.step == p.iters {
-        pb.set_message(msg);
+        pb.set_message(format!("loss {:.5}  {rate}", p.loss));
     }
     true
 }
