@@ -125,10 +125,13 @@ impl Adam {
                         for s in &overl {
                             if s.range.contains(&idx) {
                                 scale = s.lr_scale;
-                                let sg = sigmoid(p[i]);
-                                let n = s.range.len() as f32;
-                                gi += -s.weight * sg * (1.0 - sg) / n;
-                                loss += (s.weight * (1.0 - sg) / n) as f64;
+                                // Weight 0: a slice with its own learning rate and no mask loss.
+                                if s.weight != 0.0 {
+                                    let sg = sigmoid(p[i]);
+                                    let n = s.range.len() as f32;
+                                    gi += -s.weight * sg * (1.0 - sg) / n;
+                                    loss += (s.weight * (1.0 - sg) / n) as f64;
+                                }
                             }
                         }
                     }

@@ -78,6 +78,11 @@ pub struct TrainSettings {
     /// Weight of the per-sample mask loss (`StepSettings::sample_mask_weight`); 0: off.
     #[serde(default)]
     pub sample_mask_weight: f32,
+    /// Multiplies the learning rate of the proposal network (its grids and MLP; its mask, if
+    /// any, keeps `mask_lr_scale`): how fast the proposal follows the main field's surfaces
+    /// (docs/convergence.md: one seed in three loses that race on a stage). 1: the common rate.
+    #[serde(default = "one")]
+    pub proposal_lr_scale: f32,
     pub model: ModelConfig,
 }
 
@@ -157,6 +162,7 @@ impl TrainSettings {
             // 4D table lowers the image loss by more than its weight.
             mask_lr_scale: DEFAULT_MASK_LR_SCALE,
             sample_mask_weight: DEFAULT_SAMPLE_MASK_WEIGHT,
+            proposal_lr_scale: 1.0,
             model,
         }
     }
@@ -234,6 +240,7 @@ impl TrainSettings {
             ("mask_loss_weight", self.mask_loss_weight),
             ("mask_lr_scale", self.mask_lr_scale),
             ("sample_mask_weight", self.sample_mask_weight),
+            ("proposal_lr_scale", self.proposal_lr_scale),
         ] {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(SettingsError::Invalid(format!(
@@ -459,6 +466,22 @@ impl Trainer {
                 weight: settings.mask_loss_weight,
                 lr_scale: settings.mask_lr_scale,
             })
+            .chain(
+                layout
+                    .params
+                    .entries
+                    .iter()
+                    .filter(|e| {
+                        settings.proposal_lr_scale != 1.0
+                            && e.name.starts_with("proposal.")
+                            && !e.name.ends_with(".mask")
+                    })
+                    .map(|e| MaskLossSlice {
+                        range: e.range(),
+                        weight: 0.0,
+                        lr_scale: settings.proposal_lr_scale,
+                    }),
+            )
             .collect();
         Trainer {
             settings,
