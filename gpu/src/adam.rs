@@ -33,7 +33,7 @@ pub struct AdamHyper {
 }
 
 /// A slice of the parameter buffer with the mask loss `weight * mean(1 - sigmoid(x))` fused into
-/// its update and its step scaled by `lr_scale` (the trainer's `MaskLossSlice`).
+/// its update and its step scaled by `lr_scale` (the trainer's `ScaledSlice`).
 #[derive(Clone, Debug, PartialEq)]
 pub struct MaskSlice {
     pub range: Range<usize>,

@@ -29,7 +29,7 @@ use msth_gpu::GpuError;
 use msth_testkit::Tests;
 
 use common::{device, gpu_need};
-use msth_trainer::adam::{Adam, AdamConfig, MaskLossSlice};
+use msth_trainer::adam::{Adam, AdamConfig, ScaledSlice};
 
 fn main() -> std::process::ExitCode {
     let gpu = gpu_need();
@@ -49,14 +49,14 @@ fn main() -> std::process::ExitCode {
 
 const N: usize = 40_003;
 
-fn masks() -> Vec<MaskLossSlice> {
+fn masks() -> Vec<ScaledSlice> {
     vec![
-        MaskLossSlice {
+        ScaledSlice {
             range: 1_000..5_000,
             weight: 0.5,
             lr_scale: 10.0,
         },
-        MaskLossSlice {
+        ScaledSlice {
             range: 30_016..31_000,
             weight: 1.0,
             lr_scale: 1.0,

@@ -133,7 +133,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         small.height,
         f.psnr_displayed(&reference),
         cpu_s,
-        rayon_threads(),
+        rayon::current_num_threads(),
         gpu_s,
         cpu_s / gpu_s.max(1e-9)
     );
@@ -197,8 +197,4 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         gpu.render(&cam, times[0], &params[0])?;
     }
     Ok(())
-}
-
-fn rayon_threads() -> usize {
-    std::thread::available_parallelism().map_or(1, |n| n.get())
 }

@@ -50,16 +50,19 @@ pub struct Adam {
     pub step: u64,
 }
 
-/// A slice whose parameters also receive `weight * d/dx mean(1 - sigmoid(x))`, and whose Adam
-/// step is scaled by `lr_scale` (1: the common learning rate).
+/// A slice of the parameter buffer whose Adam step is scaled by `lr_scale` (1: the common
+/// learning rate) and, where `weight > 0` (the mask grids), whose parameters also receive the
+/// mask loss `weight * d/dx mean(1 - sigmoid(x))`. The trainer gives the mask grids one
+/// (`mask_lr_scale`, `mask_loss_weight`) and, when `proposal_lr_scale` is not 1, the proposal
+/// network's slices another (weight 0).
 ///
-/// Why a separate scale: Adam moves a parameter by at most about the learning rate per step
+/// Why a separate scale for the mask: Adam moves a parameter by at most about the learning rate per step
 /// whatever its gradient, so over a run a mask logit moves by at most `sum_t lr_t` (about
 /// `0.0025 * iters` with the default schedule). From the initial logit -1 (m = 0.27) a voxel
 /// needs +3.2 to pass m = 0.9 and -1.2 to fall below 0.1: short runs cannot decide the mask,
 /// whatever the mask loss weight (see docs/mask-learning.md).
 #[derive(Clone, Debug)]
-pub struct MaskLossSlice {
+pub struct ScaledSlice {
     pub range: Range<usize>,
     pub weight: f32,
     pub lr_scale: f32,
@@ -81,7 +84,7 @@ impl Adam {
         lr: f32,
         params: &mut [f32],
         grad: &[f32],
-        masks: &[MaskLossSlice],
+        slices: &[ScaledSlice],
     ) -> f32 {
         self.step += 1;
         let t = self.step as i32;
@@ -100,8 +103,8 @@ impl Adam {
             .map(|(c, (((p, g), m), v))| {
                 let base = c * CHUNK;
                 let mut loss = 0f64;
-                // Which mask slice (if any) overlaps this chunk: handle per element.
-                let overl: Vec<&MaskLossSlice> = masks
+                // Which slice (if any) overlaps this chunk: handle per element.
+                let overl: Vec<&ScaledSlice> = slices
                     .iter()
                     .filter(|s| s.range.start < base + p.len() && s.range.end > base)
                     .collect();
@@ -180,7 +183,7 @@ mod tests {
         let mut p = vec![-1f32; 40_000];
         let g = vec![0f32; 40_000];
         let mut adam = Adam::new(p.len());
-        let masks = [MaskLossSlice {
+        let masks = [ScaledSlice {
             range: 100..30_000,
             weight: 1.0,
             lr_scale: 1.0,
@@ -204,7 +207,7 @@ mod tests {
         let mut g = vec![0f32; 200];
         g[150] = 1.0;
         let mut adam = Adam::new(p.len());
-        let masks = [MaskLossSlice {
+        let masks = [ScaledSlice {
             range: 0..100,
             weight: 1.0,
             lr_scale: 10.0,

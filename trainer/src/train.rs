@@ -20,7 +20,7 @@ use msth_core::rng::Rng;
 use msth_core::uncertainty::{AuxLayout, InvalidMaskLearning, MaskLearningConfig};
 use msth_core::Camera;
 
-use crate::adam::{Adam, AdamConfig, MaskLossSlice};
+use crate::adam::{Adam, AdamConfig, ScaledSlice};
 use crate::checkpoint::{
     AuxCheckpoint, Checkpoint, CheckpointError, CheckpointFormatError, CheckpointHeader,
 };
@@ -71,7 +71,7 @@ pub struct TrainSettings {
     /// Which rays and times a batch draws (paper §3.4; `ray_sampling.rs`).
     #[serde(default)]
     pub sampling: SamplingConfig,
-    /// Multiplies the learning rate of the mask grids (see [`MaskLossSlice`]): Adam moves a
+    /// Multiplies the learning rate of the mask grids (see [`ScaledSlice`]): Adam moves a
     /// logit by at most about `lr` per step, so this bounds how far the mask can move in a run.
     #[serde(default = "one")]
     pub mask_lr_scale: f32,
@@ -382,7 +382,7 @@ pub struct Trainer {
     pub params: Vec<f32>,
     pub adam: Adam,
     pub step: usize,
-    mask_slices: Vec<MaskLossSlice>,
+    slices: Vec<ScaledSlice>,
     /// Training-only parameters of mask learning (uncertainty grid, MINE network) with their
     /// own optimiser state; never exported, not part of the checkpoint.
     pub aux: Option<AuxState>,
@@ -456,12 +456,12 @@ impl Trainer {
                 aux_grad: vec![0.0; aux_len],
             })
             .collect();
-        let mask_slices = layout
+        let slices = layout
             .params
             .entries
             .iter()
             .filter(|e| e.name.ends_with(".mask"))
-            .map(|e| MaskLossSlice {
+            .map(|e| ScaledSlice {
                 range: e.range(),
                 weight: settings.mask_loss_weight,
                 lr_scale: settings.mask_lr_scale,
@@ -476,7 +476,7 @@ impl Trainer {
                             && e.name.starts_with("proposal.")
                             && !e.name.ends_with(".mask")
                     })
-                    .map(|e| MaskLossSlice {
+                    .map(|e| ScaledSlice {
                         range: e.range(),
                         weight: 0.0,
                         lr_scale: settings.proposal_lr_scale,
@@ -489,7 +489,7 @@ impl Trainer {
             params,
             adam,
             step,
-            mask_slices,
+            slices,
             aux,
             workers,
             time_fraction: 0.0,
@@ -576,13 +576,8 @@ impl Trainer {
             .settings
             .adam
             .lr_at_fraction(by_steps.max(self.time_fraction));
-        self.adam.update(
-            &self.settings.adam,
-            lr,
-            &mut self.params,
-            g0,
-            &self.mask_slices,
-        );
+        self.adam
+            .update(&self.settings.adam, lr, &mut self.params, g0, &self.slices);
         if let Some(aux) = self.aux.as_mut() {
             let (first, rest) = self.workers.split_at_mut(1);
             let a0 = &mut first[0].aux_grad;
