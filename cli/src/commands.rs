@@ -13,6 +13,7 @@ use msth_core::{Camera, SceneBounds};
 use msth_trainer::autosize::{autosize, setting_paths};
 use msth_trainer::checkpoint::{write_atomic, Checkpoint};
 use msth_trainer::dataset::{dnerf, scale_camera, Dataset, Image8};
+use msth_trainer::device::TrainDevice;
 use msth_trainer::eval::{evaluate, render_image, Metrics};
 use msth_trainer::imageio::{colormap, save_png_atomic};
 use msth_trainer::synth::{generate, SynthConfig};
@@ -149,6 +150,7 @@ pub(crate) fn progress_bar(iters: usize) -> ProgressBar {
 /// Trains (and evaluates unless told not to); returns the metrics when evaluated.
 pub fn train(a: TrainArgs) -> Result<Option<Metrics>> {
     let preset: Preset = a.preset.parse().map_err(anyhow::Error::msg)?;
+    let device: TrainDevice = a.device.parse().map_err(anyhow::Error::msg)?;
     let t_load = Instant::now();
     let mut data = data::load(&a.data, &a.dataset, &a.out)?;
     let load_secs = t_load.elapsed().as_secs_f64();
@@ -200,6 +202,7 @@ pub fn train(a: TrainArgs) -> Result<Option<Metrics>> {
         return Ok(None);
     }
     settings.scale_world(&mut data);
+    settings.device = device;
     let layout = ModelLayout::new(&settings.model);
     match &sizing {
         Some(r) => {

@@ -133,6 +133,11 @@ pub struct TrainArgs {
     /// Continue from OUT/model.ckpt.
     #[arg(long)]
     pub resume: bool,
+    /// Where the steps run: `auto` (a hardware GPU when there is one, else the CPU), `cpu`, or
+    /// `gpu` (any GPU adapter, software ones included; an error without one). Checkpoints are
+    /// the same either way: a run resumes on either device.
+    #[arg(long, default_value = "auto")]
+    pub device: String,
     #[command(flatten)]
     pub dataset: data::DataArgs,
     /// Skip the evaluation at the end.

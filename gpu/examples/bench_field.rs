@@ -154,7 +154,7 @@ fn main() -> Result<(), GpuError> {
             let mut err = Ok(());
             let bwd = best_of(repeats, || {
                 if let Err(e) = gpu_field.backward(
-                    &dev, &kernels, &p_b, &pts_b, n, &bufs, &ds_b, &dr_b, &grad_b,
+                    &dev, &kernels, &p_b, &pts_b, n, &bufs, &ds_b, &dr_b, None, &grad_b,
                 ) {
                     err = Err(e);
                 }

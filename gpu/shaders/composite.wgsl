@@ -4,13 +4,34 @@
 // - sum_{i>k} d_w_i w_i - d_T T_N), with d_w_i = extra_i + dC . c_i, d c_i = dC w_i,
 // d_T = dC . bg.
 //
+// Flags (`run.y`) for training steps: FLAG_EXTRA_DW, an extra per-sample d_w (the losses on
+// the weights); FLAG_RAY_BG, a background per ray (forward: binding 6; backward: d_T comes
+// with dC as the `w` of each ray's d_ray, the colour loss having computed dC . bg);
+// FLAG_LAST_SAMPLE, the last sample's colour as the background (`Background::LastSample`);
+// FLAG_HIDE, samples behind optical depth `bg.w` get colour 0 and no colour gradient (as the
+// CPU, which evaluates no colour there: `HIDDEN_TRANSMITTANCE`).
+//
 // After `ray_scan.wgsl` (one workgroup per ray, scans along it).
 
 struct Composite {
-    // x: rays, y: flags (1: extra per-sample d_w given), z, w: 0.
+    // x: rays, y: flags, z, w: 0.
     run: vec4<u32>,
-    // rgb: background colour.
+    // rgb: background colour; w: the optical depth beyond which colours are hidden.
     bg: vec4<f32>,
+}
+
+const FLAG_EXTRA_DW: u32 = 1u;
+const FLAG_RAY_BG: u32 = 2u;
+const FLAG_LAST_SAMPLE: u32 = 4u;
+const FLAG_HIDE: u32 = 8u;
+
+fn has(flag: u32) -> bool {
+    return (u.run.y & flag) != 0u;
+}
+
+// Whether a sample whose optical depth before it is `before_tau` has its colour hidden.
+fn hidden(before_tau: f32) -> bool {
+    return has(FLAG_HIDE) && before_tau > u.bg.w;
 }
 
 @group(0) @binding(0) var<uniform> u: Composite;

@@ -3,6 +3,11 @@
 @group(0) @binding(4) var<storage, read_write> w_out: array<f32>;
 // (r, g, b, T_N) per ray.
 @group(0) @binding(5) var<storage, read_write> ray_out: array<vec4<f32>>;
+// The background per ray (FLAG_RAY_BG).
+@group(0) @binding(6) var<storage, read> ray_bg: array<vec4<f32>>;
+
+// The last sample's colour as it is composited (0 when hidden).
+var<workgroup> last_color: vec4<f32>;
 
 @compute @workgroup_size(64)
 fn composite_forward(inv: Invocation) {
@@ -12,6 +17,9 @@ fn composite_forward(inv: Invocation) {
     let end = ray_span(r, u.run.x).y;
     var carry = 0.0;
     var c = vec3<f32>(0.0);
+    if lid == 0u {
+        last_color = vec4<f32>(0.0);
+    }
     for (var k = 0u; k < (end - start + CH - 1u) / CH; k++) {
         let i = start + k * CH + lid;
         let live = i < end;
@@ -20,11 +28,19 @@ fn composite_forward(inv: Invocation) {
             tau = tau_of(sd[i]);
         }
         scan(tau, lid);
-        let t = exp(-(carry + before(lid)));
+        let tb = carry + before(lid);
+        let t = exp(-tb);
         if live {
             let w = t * one_minus_exp_neg(tau);
             w_out[i] = w;
-            c += w * color(i);
+            var col = color(i);
+            if hidden(tb) {
+                col = vec3<f32>(0.0);
+            }
+            c += w * col;
+            if i + 1u == end {
+                last_color = vec4<f32>(col, 0.0);
+            }
         }
         carry += sh[CH - 1u];
     }
@@ -40,6 +56,13 @@ fn composite_forward(inv: Invocation) {
     workgroupBarrier();
     if lid == 0u && r < u.run.x {
         let t_final = exp(-carry);
-        ray_out[r] = vec4<f32>(sh3[0].xyz + t_final * u.bg.xyz, t_final);
+        var bg = u.bg.xyz;
+        if has(FLAG_RAY_BG) {
+            bg = ray_bg[r].xyz;
+        }
+        if has(FLAG_LAST_SAMPLE) {
+            bg = last_color.xyz;
+        }
+        ray_out[r] = vec4<f32>(sh3[0].xyz + t_final * bg, t_final);
     }
 }

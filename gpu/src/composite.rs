@@ -71,6 +71,56 @@ impl GpuRays {
     }
 }
 
+const FLAG_EXTRA_DW: u32 = 1;
+const FLAG_RAY_BG: u32 = 2;
+const FLAG_LAST_SAMPLE: u32 = 4;
+const FLAG_HIDE: u32 = 8;
+
+/// How a batch's rays meet their background, and which colours count (the training step's
+/// choices; [`CompositeMode::color`] is plain compositing over one colour).
+#[derive(Clone, Copy, Debug)]
+pub struct CompositeMode<'a> {
+    pub bg: [f32; 3],
+    /// A background per ray (4 floats each, rgb used) instead of `bg`. The forward reads it;
+    /// the backward reads `d_T = dC . bg` from each ray's 4th `d_color` float instead (the
+    /// colour loss writes it there: [`crate::losses::ColorLossKernel::run`]).
+    pub ray_bg: Option<&'a wgpu::Buffer>,
+    /// The last sample's colour as the background (`Background::LastSample`).
+    pub last_sample: bool,
+    /// Samples behind this optical depth get colour 0 and no colour gradient, as the CPU
+    /// trainer, which evaluates no colour behind `HIDDEN_TRANSMITTANCE`.
+    pub hide_beyond: Option<f32>,
+}
+
+impl CompositeMode<'_> {
+    /// Over one background colour, every colour counted.
+    pub fn color(bg: [f32; 3]) -> Self {
+        CompositeMode {
+            bg,
+            ray_bg: None,
+            last_sample: false,
+            hide_beyond: None,
+        }
+    }
+
+    fn uniform(&self, rays: &GpuRays, extra_dw: bool) -> CompositeU {
+        let flag = |on: bool, f: u32| if on { f } else { 0 };
+        let flags = flag(extra_dw, FLAG_EXTRA_DW)
+            | flag(self.ray_bg.is_some(), FLAG_RAY_BG)
+            | flag(self.last_sample, FLAG_LAST_SAMPLE)
+            | flag(self.hide_beyond.is_some(), FLAG_HIDE);
+        CompositeU {
+            run: [rays.rays as u32, flags, 0, 0],
+            bg: [
+                self.bg[0],
+                self.bg[1],
+                self.bg[2],
+                self.hide_beyond.unwrap_or(0.0),
+            ],
+        }
+    }
+}
+
 /// The compiled compositing kernels of one device.
 pub struct CompositeKernels {
     forward_layout: wgpu::BindGroupLayout,
@@ -91,9 +141,9 @@ pub struct CompositeBuffers<'a> {
 
 impl CompositeKernels {
     pub fn new(dev: &ComputeDevice) -> Result<Self, GpuError> {
-        // Forward: 1 offsets, 2 (sigma, delta), 3 rgb, 4 w, 5 (C, T_N) per ray.
+        // Forward: 1 offsets, 2 (sigma, delta), 3 rgb, 4 w, 5 (C, T_N) per ray, 6 bg per ray.
         let forward_layout =
-            dev.bind_layout("composite forward", &[true, true, true, false, false]);
+            dev.bind_layout("composite forward", &[true, true, true, false, false, true]);
         // Backward: 1-3 as the forward, 4 w, 5 (C, T_N), 6 dC, 7 extra d_w, 8 d per sample.
         let backward_layout = dev.bind_layout(
             "composite backward",
@@ -116,7 +166,7 @@ impl CompositeKernels {
             backward_layout,
             forward,
             backward,
-            unused: dev.zeros_f32("unused", 1)?,
+            unused: dev.zeros_f32("unused", 4)?,
         })
     }
 
@@ -136,16 +186,34 @@ impl CompositeKernels {
         b: &CompositeBuffers,
         bg: [f32; 3],
     ) -> Result<(), GpuError> {
+        self.forward_with(dev, rays, b, &CompositeMode::color(bg))
+    }
+
+    /// [`CompositeKernels::forward`] with the background and hiding of `mode`.
+    pub fn forward_with(
+        &self,
+        dev: &ComputeDevice,
+        rays: &GpuRays,
+        b: &CompositeBuffers,
+        mode: &CompositeMode,
+    ) -> Result<(), GpuError> {
         Self::check(rays, b)?;
-        let u = CompositeU {
-            run: [rays.rays as u32, 0, 0, 0],
-            bg: [bg[0], bg[1], bg[2], 0.0],
-        };
+        if let Some(bg) = mode.ray_bg {
+            need_floats("backgrounds", bg, 4 * rays.rays as u64, rays.samples)?;
+        }
+        let u = mode.uniform(rays, false);
         dev.run(
             &self.forward,
             &self.forward_layout,
             bytemuck::bytes_of(&u),
-            &[&rays.offsets, b.sigma_delta, b.rgb, b.weights, b.ray_out],
+            &[
+                &rays.offsets,
+                b.sigma_delta,
+                b.rgb,
+                b.weights,
+                b.ray_out,
+                mode.ray_bg.unwrap_or(&self.unused),
+            ],
             rays.rays as u64 * RAY_GROUP,
         )
     }
@@ -164,6 +232,29 @@ impl CompositeKernels {
         d_w_extra: Option<&wgpu::Buffer>,
         d_sample: &wgpu::Buffer,
     ) -> Result<(), GpuError> {
+        self.backward_with(
+            dev,
+            rays,
+            b,
+            &CompositeMode::color(bg),
+            d_color,
+            d_w_extra,
+            d_sample,
+        )
+    }
+
+    /// [`CompositeKernels::backward`] with the background and hiding of `mode` (the forward's).
+    #[allow(clippy::too_many_arguments)]
+    pub fn backward_with(
+        &self,
+        dev: &ComputeDevice,
+        rays: &GpuRays,
+        b: &CompositeBuffers,
+        mode: &CompositeMode,
+        d_color: &wgpu::Buffer,
+        d_w_extra: Option<&wgpu::Buffer>,
+        d_sample: &wgpu::Buffer,
+    ) -> Result<(), GpuError> {
         Self::check(rays, b)?;
         let n = rays.samples;
         need_floats("d_color", d_color, 4 * rays.rays as u64, n)?;
@@ -171,10 +262,7 @@ impl CompositeKernels {
         if let Some(e) = d_w_extra {
             need_floats("extra d_w", e, n as u64, n)?;
         }
-        let u = CompositeU {
-            run: [rays.rays as u32, d_w_extra.is_some() as u32, 0, 0],
-            bg: [bg[0], bg[1], bg[2], 0.0],
-        };
+        let u = mode.uniform(rays, d_w_extra.is_some());
         dev.run(
             &self.backward,
             &self.backward_layout,

@@ -20,6 +20,9 @@ pub struct ComputeDevice {
     limits: wgpu::Limits,
     float_atomics: bool,
     state: Arc<Mutex<DeviceState>>,
+    /// While a batch is open ([`ComputeDevice::begin_batch`]): the encoder that dispatches and
+    /// clears are recorded into instead of being submitted one by one.
+    batch: Mutex<Option<wgpu::CommandEncoder>>,
 }
 
 impl std::fmt::Debug for ComputeDevice {
@@ -67,6 +70,7 @@ impl ComputeDevice {
             limits,
             float_atomics,
             state,
+            batch: Mutex::new(None),
         })
     }
 
@@ -149,6 +153,9 @@ impl ComputeDevice {
             )));
         }
         if !data.is_empty() {
+            // A write lands before every command submitted after it: submit what a batch has
+            // recorded so far, so the write also lands after those.
+            self.flush()?;
             self.queue.write_buffer(buf, 0, bytemuck::cast_slice(data));
         }
         Ok(())
@@ -156,6 +163,10 @@ impl ComputeDevice {
 
     /// Sets every byte of `buf` to zero (a gradient buffer before a backward pass).
     pub fn clear(&self, buf: &wgpu::Buffer) -> Result<(), GpuError> {
+        if let Some(enc) = self.recording().as_mut() {
+            enc.clear_buffer(buf, 0, None);
+            return Ok(());
+        }
         let mut enc = self
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
@@ -167,6 +178,7 @@ impl ComputeDevice {
 
     /// Reads the first `n` f32 of `buf` back.
     pub fn read_f32(&self, buf: &wgpu::Buffer, n: usize) -> Result<Vec<f32>, GpuError> {
+        self.flush()?;
         if n == 0 {
             return Ok(Vec::new());
         }
@@ -327,15 +339,74 @@ impl ComputeDevice {
             layout,
             entries: &entries,
         });
-        let mut enc = self
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
-        {
+        let record = |enc: &mut wgpu::CommandEncoder| {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor::default());
             pass.set_pipeline(pipeline);
             pass.set_bind_group(0, &bg, &[]);
             pass.dispatch_workgroups(gx, gy, 1);
+        };
+        if let Some(enc) = self.recording().as_mut() {
+            record(enc);
+            return match pollster::block_on(scope.pop()) {
+                Some(e) => Err(GpuError::Backend(e.to_string())),
+                None => Ok(()),
+            };
         }
+        let mut enc = self
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
+        record(&mut enc);
+        self.queue.submit([enc.finish()]);
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::Backend(e.to_string()));
+        }
+        self.wait()?;
+        check_state(&self.state)
+    }
+
+    fn recording(&self) -> std::sync::MutexGuard<'_, Option<wgpu::CommandEncoder>> {
+        self.batch.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Records the dispatches and clears that follow into one command encoder, submitted at
+    /// [`ComputeDevice::end_batch`] (or before a read or write that needs it): one submission
+    /// and no waits between kernels, where each call alone submits and waits (right for tests,
+    /// the per-operation synchronisation trap for a training step). Batches do not nest: a
+    /// second begin submits the first.
+    pub fn begin_batch(&self) -> Result<(), GpuError> {
+        self.flush()?;
+        *self.recording() = Some(self.device.create_command_encoder(
+            &wgpu::CommandEncoderDescriptor {
+                label: Some("batch"),
+            },
+        ));
+        Ok(())
+    }
+
+    /// Submits what the open batch recorded, waits for it, and closes the batch.
+    pub fn end_batch(&self) -> Result<(), GpuError> {
+        self.flush()?;
+        *self.recording() = None;
+        Ok(())
+    }
+
+    /// Submits what the open batch has recorded so far and waits for it; the batch stays open
+    /// (recording into a fresh encoder). Nothing to do without a batch.
+    fn flush(&self) -> Result<(), GpuError> {
+        let enc = {
+            let mut rec = self.recording();
+            match rec.as_mut() {
+                None => return Ok(()),
+                Some(enc) => std::mem::replace(
+                    enc,
+                    self.device
+                        .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                            label: Some("batch"),
+                        }),
+                ),
+            }
+        };
+        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
         self.queue.submit([enc.finish()]);
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(GpuError::Backend(e.to_string()));

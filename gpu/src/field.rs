@@ -49,7 +49,8 @@ pub struct GpuField {
     grid4: GpuGrid,
     mask: GpuMask,
     density: GpuMlp,
-    colour: GpuMlp,
+    /// None for a density-only field (the proposal's).
+    colour: Option<GpuMlp>,
 }
 
 /// Per-sample buffers of one batch of at most `capacity` samples: the forward's intermediates
@@ -58,7 +59,8 @@ pub struct FieldBuffers {
     capacity: usize,
     h3: wgpu::Buffer,
     h4: wgpu::Buffer,
-    m: wgpu::Buffer,
+    /// `m` per sample (the mask's values), for the per-sample mask loss.
+    pub m: wgpu::Buffer,
     enc: wgpu::Buffer,
     /// `[n, 1 + geo]`: sigma (after `trunc_exp`) and the geometry features.
     pub density: wgpu::Buffer,
@@ -79,6 +81,10 @@ impl GpuField {
     /// The field of `layout`; a field without a 3D grid, a 4D grid or a mask (the MSTH blends
     /// need all three) is a [`GpuError::Input`].
     pub fn new(layout: &FieldLayout) -> Result<Self, GpuError> {
+        Self::build(layout, true)
+    }
+
+    fn build(layout: &FieldLayout, with_colour: bool) -> Result<Self, GpuError> {
         let enc = &layout.encoding;
         let missing = |what: &str| {
             GpuError::Input(format!(
@@ -95,9 +101,27 @@ impl GpuField {
             grid4: GpuGrid::new(&g4, r4.start)?,
             mask: GpuMask::new(mg, rm.start)?,
             density: GpuMlp::new(&dm, dr.start, OutputActivation::Density)?,
-            colour: GpuMlp::new(&cm, cr.start, OutputActivation::Sigmoid)?,
+            colour: if with_colour {
+                Some(GpuMlp::new(&cm, cr.start, OutputActivation::Sigmoid)?)
+            } else {
+                None
+            },
             layout: layout.clone(),
         })
+    }
+
+    /// A field that has only a density (the proposal field: its density MLP's one output is
+    /// sigma, there are no geometry features and no colour). [`GpuField::forward`] and
+    /// [`GpuField::backward`] then run the density part only.
+    pub fn density_only(layout: &FieldLayout) -> Result<Self, GpuError> {
+        if layout.geo_features != 0 || layout.density.0.output_dim() != 1 {
+            return Err(GpuError::Input(format!(
+                "a density-only field has one density output and no geometry features, not {} and {}",
+                layout.density.0.output_dim(),
+                layout.geo_features
+            )));
+        }
+        Self::build(layout, false)
     }
 
     pub fn layout(&self) -> &FieldLayout {
@@ -116,6 +140,8 @@ impl GpuField {
         let (e, geo, dw, cw) = self.widths();
         let n = capacity;
         let z = |what: &str, len: usize| dev.zeros_f32(what, len.max(1));
+        // A density-only field needs no colour buffers.
+        let nc = if self.colour.is_some() { n } else { 0 };
         Ok(FieldBuffers {
             capacity,
             h3: z("h3", n * e)?,
@@ -124,9 +150,12 @@ impl GpuField {
             enc: z("enc", n * e)?,
             density: z("density out", n * dw)?,
             density_acts: z("density acts", n * self.density.acts_stride())?,
-            colour_in: z("colour in", n * cw)?,
-            rgb: z("rgb", 3 * n)?,
-            colour_acts: z("colour acts", n * self.colour.acts_stride())?,
+            colour_in: z("colour in", nc * cw)?,
+            rgb: z("rgb", 3 * nc)?,
+            colour_acts: z(
+                "colour acts",
+                nc * self.colour.as_ref().map_or(0, |c| c.acts_stride()),
+            )?,
             d_geo: z("d geo", n * geo)?,
             d_density: z("d density out", n * dw)?,
             d_enc: z("d enc", n * e)?,
@@ -159,7 +188,8 @@ impl GpuField {
 
     /// `(sigma, geometry features)` into `b.density` and rgb into `b.rgb` for `n` samples:
     /// `points` `(x, y, z, t)` per sample in the unit cube / unit time, `dirs` unit view
-    /// directions (`[n, 3]`), `params` the flat parameter buffer.
+    /// directions (`[n, 3]`), `params` the flat parameter buffer. A density-only field stops
+    /// after sigma (`dirs` unread).
     #[allow(clippy::too_many_arguments)]
     pub fn forward(
         &self,
@@ -186,6 +216,9 @@ impl GpuField {
             &b.density,
             Some(&b.density_acts),
         )?;
+        let Some(colour) = &self.colour else {
+            return Ok(());
+        };
         k.sh.encode(dev, dirs, n, &b.colour_in, cw, 0)?;
         let at = |stride, first| Columns { stride, first };
         k.glue.copy_columns(
@@ -199,7 +232,7 @@ impl GpuField {
         )?;
         k.mlp.forward(
             dev,
-            &self.colour,
+            colour,
             params,
             &b.colour_in,
             n,
@@ -209,8 +242,9 @@ impl GpuField {
     }
 
     /// Backward of the last [`GpuField::forward`] of these buffers: `d_sigma` `[n]` and `d_rgb`
-    /// `[n, 3]` in; every field slice's gradient added into `grad` (the flat parameter layout;
-    /// clear it first for a fresh gradient).
+    /// `[n, 3]` in (unread for a density-only field), and optionally an extra `dL/dm` per
+    /// sample (the per-sample mask loss); every field slice's gradient added into `grad` (the
+    /// flat parameter layout; clear it first for a fresh gradient).
     #[allow(clippy::too_many_arguments)]
     pub fn backward(
         &self,
@@ -222,26 +256,31 @@ impl GpuField {
         b: &FieldBuffers,
         d_sigma: &wgpu::Buffer,
         d_rgb: &wgpu::Buffer,
+        d_m_extra: Option<&wgpu::Buffer>,
         grad: &wgpu::Buffer,
     ) -> Result<(), GpuError> {
         self.check(b, n)?;
         let (_, geo, dw, _) = self.widths();
         let at = |stride, first| Columns { stride, first };
-        k.mlp.backward(
-            dev,
-            &self.colour,
-            params,
-            &b.colour_in,
-            &b.colour_acts,
-            d_rgb,
-            n,
-            grad,
-            Some((SH_COEFFS, &b.d_geo)),
-        )?;
+        if let Some(colour) = &self.colour {
+            k.mlp.backward(
+                dev,
+                colour,
+                params,
+                &b.colour_in,
+                &b.colour_acts,
+                d_rgb,
+                n,
+                grad,
+                Some((SH_COEFFS, &b.d_geo)),
+            )?;
+        }
         k.glue
             .copy_columns(dev, n, 1, d_sigma, at(1, 0), &b.d_density, at(dw, 0))?;
-        k.glue
-            .copy_columns(dev, n, geo, &b.d_geo, at(geo, 0), &b.d_density, at(dw, 1))?;
+        if geo > 0 {
+            k.glue
+                .copy_columns(dev, n, geo, &b.d_geo, at(geo, 0), &b.d_density, at(dw, 1))?;
+        }
         k.mlp.backward(
             dev,
             &self.density,
@@ -257,7 +296,7 @@ impl GpuField {
             dev,
             &self.blend(b, n),
             &b.d_enc,
-            None,
+            d_m_extra,
             (&b.d_h3, &b.d_h4, &b.m_dm),
         )?;
         k.grid

@@ -18,7 +18,10 @@
 //! - [`composite`]: volume rendering of ray batches, forward and backward (scans per ray);
 //! - [`glue`]: the encoding blend and column copies that chain a field's kernels;
 //! - [`losses`]: per-ray losses (colour MSE and its dC; distortion and interlevel losses, values
-//!   and gradients).
+//!   and gradients) and the per-sample mask loss;
+//! - [`sampling`]: where a step's samples go (stratified proposal samples, inverse-CDF
+//!   resampling, placement through the spacing and the contraction);
+//! - [`step`]: the whole training step on the device, and Adam.
 //!
 //! # The web page's copy of `render.wgsl`
 //! `shaders/render.wgsl` here is the one source. The browser page fetches
@@ -179,10 +182,19 @@
 //! where the next factor is; the paper's 4D table (58 MiB, beyond L2) is the other.
 //! Compiling the kernels per shape (constant loop bounds) changed nothing there.
 //!
-//! Not yet a step: each kernel call above submits its own dispatch and waits for it
-//! (`ComputeDevice::run`), which is right for tests and wrong for training (the
-//! per-op synchronisation trap of `../shared/docs/gpu-notes.md`); the step has to record all
-//! its passes into one command encoder and read back only the losses.
+//! # The training step
+//! [`step::GpuStep`] chains the kernels into the CPU trainer's step (proposal samples,
+//! proposal density and weights, resampling, main field, compositing, every loss, both
+//! backwards, Adam), recorded into one command encoder per step
+//! ([`device::ComputeDevice::begin_batch`]: one submission, no waits between its ~50
+//! dispatches; before, each kernel call submitted and waited, the per-operation
+//! synchronisation trap of `../shared/docs/gpu-notes.md`). The host draws the rays and their
+//! jitters ([`sampling::SampleRay`]: origin and time, direction, limits and two jitters, 48
+//! bytes a ray) so the device step uses the CPU trainer's random numbers; `tests/step.rs`
+//! checks its losses and every gradient slice against `msth_core::pipeline::train_chunk`.
+//! Sampling keeps the per-sample rule: placing samples is one invocation per sample, the
+//! resampling CDF a scan per ray (one workgroup, chunks of 64 bins), each new edge one
+//! invocation (a bisection over the CDF).
 
 pub mod adam;
 pub mod composite;
@@ -197,7 +209,9 @@ pub mod mlp;
 pub mod passes;
 pub mod presets;
 pub mod render;
+pub mod sampling;
 pub mod sh;
+pub mod step;
 
 pub use layout::{GpuLayoutError, GpuModel, ViewU, FLAG_COMPACT, FLAG_LIST};
 pub use passes::{FrameScratch, GpuSampleCache, Pixels};

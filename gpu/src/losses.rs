@@ -21,6 +21,8 @@ use crate::GpuError;
 pub const COLOR_LOSS_WGSL: &str = include_str!("../shaders/color_loss.wgsl");
 /// The kernel `interlevel` (after [`RAY_SCAN_WGSL`]).
 pub const INTERLEVEL_WGSL: &str = include_str!("../shaders/interlevel.wgsl");
+/// The kernel `sample_mask`.
+pub const SAMPLE_MASK_WGSL: &str = include_str!("../shaders/sample_mask.wgsl");
 /// The kernel `distortion` (after [`RAY_SCAN_WGSL`]).
 pub const DISTORTION_WGSL: &str = include_str!("../shaders/distortion.wgsl");
 
@@ -45,18 +47,25 @@ impl LossU {
 pub struct ColorLossKernel {
     layout: wgpu::BindGroupLayout,
     pipeline: wgpu::ComputePipeline,
+    unused: wgpu::Buffer,
 }
 
 impl ColorLossKernel {
     pub fn new(dev: &ComputeDevice) -> Result<Self, GpuError> {
-        // 1 (C, T_N) per ray, 2 targets (rgb per ray), 3 (dC, 0) per ray, 4 squared error.
-        let layout = dev.bind_layout("colour loss", &[true, true, false, false]);
+        // 1 (C, T_N) per ray, 2 targets (rgb per ray), 3 (dC, d_T) per ray, 4 squared error,
+        // 5 background per ray.
+        let layout = dev.bind_layout("colour loss", &[true, true, false, false, true]);
         let pipeline = dev.pipeline("colour loss", COLOR_LOSS_WGSL, "color_loss", &layout)?;
-        Ok(ColorLossKernel { layout, pipeline })
+        Ok(ColorLossKernel {
+            layout,
+            pipeline,
+            unused: dev.zeros_f32("unused", 4)?,
+        })
     }
 
     /// Per ray: the mean squared error of `ray_out`'s colour against `targets` (3 floats per
-    /// ray) into `sq_err`, and `dC = scale * d(mse)/dC` into `d_color` (4 floats per ray).
+    /// ray) into `sq_err`, and `dC = scale * d(mse)/dC` into `d_color` (4 floats per ray: dC,
+    /// and `d_T = dC . bg` over a black background).
     pub fn run(
         &self,
         dev: &ComputeDevice,
@@ -64,6 +73,22 @@ impl ColorLossKernel {
         ray_out: &wgpu::Buffer,
         targets: &wgpu::Buffer,
         scale: f32,
+        out: (&wgpu::Buffer, &wgpu::Buffer),
+    ) -> Result<(), GpuError> {
+        self.run_with(dev, rays, ray_out, targets, scale, ([0.0; 3], None), out)
+    }
+
+    /// [`ColorLossKernel::run`] with `d_T = dC . bg` for background `bg`, or with a background
+    /// per ray (4 floats each) when one is given.
+    #[allow(clippy::too_many_arguments)]
+    pub fn run_with(
+        &self,
+        dev: &ComputeDevice,
+        rays: &GpuRays,
+        ray_out: &wgpu::Buffer,
+        targets: &wgpu::Buffer,
+        scale: f32,
+        (bg, ray_bg): ([f32; 3], Option<&wgpu::Buffer>),
         (d_color, sq_err): (&wgpu::Buffer, &wgpu::Buffer),
     ) -> Result<(), GpuError> {
         let n = rays.rays();
@@ -71,12 +96,67 @@ impl ColorLossKernel {
         need_floats("targets", targets, 3 * n as u64, n)?;
         need_floats("d_color", d_color, 4 * n as u64, n)?;
         need_floats("squared error", sq_err, n as u64, n)?;
-        let u = LossU::new(rays, scale);
+        if let Some(b) = ray_bg {
+            need_floats("backgrounds", b, 4 * n as u64, n)?;
+        }
+        let mut u = LossU::new(rays, scale);
+        u.run[1] = ray_bg.is_some() as u32;
+        u.scale = [scale, bg[0], bg[1], bg[2]];
         dev.run(
             &self.pipeline,
             &self.layout,
             bytemuck::bytes_of(&u),
-            &[ray_out, targets, d_color, sq_err],
+            &[
+                ray_out,
+                targets,
+                d_color,
+                sq_err,
+                ray_bg.unwrap_or(&self.unused),
+            ],
+            n as u64,
+        )
+    }
+}
+
+/// The compiled per-sample mask-loss kernel of one device.
+pub struct SampleMaskKernel {
+    layout: wgpu::BindGroupLayout,
+    pipeline: wgpu::ComputePipeline,
+}
+
+impl SampleMaskKernel {
+    pub fn new(dev: &ComputeDevice) -> Result<Self, GpuError> {
+        // 1 w, 2 m, 3 d m, 4 loss per sample.
+        let layout = dev.bind_layout("sample mask loss", &[true, true, false, false]);
+        let pipeline =
+            dev.pipeline("sample mask loss", SAMPLE_MASK_WGSL, "sample_mask", &layout)?;
+        Ok(SampleMaskKernel { layout, pipeline })
+    }
+
+    /// For `n` samples with weights `w` and mask values `m`: `d_m = -weight * scale * w` (the
+    /// blend backward's extra mask gradient) and each sample's `weight * w (1 - m)` in `loss`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn run(
+        &self,
+        dev: &ComputeDevice,
+        n: usize,
+        (w, m): (&wgpu::Buffer, &wgpu::Buffer),
+        weight: f32,
+        scale: f32,
+        (d_m, loss): (&wgpu::Buffer, &wgpu::Buffer),
+    ) -> Result<(), GpuError> {
+        for (what, b) in [("weights", w), ("m", m), ("d m", d_m), ("loss", loss)] {
+            need_floats(what, b, n as u64, n)?;
+        }
+        let u = LossU {
+            run: [n as u32, 0, 0, 0],
+            scale: [weight, weight * scale, 0.0, 0.0],
+        };
+        dev.run(
+            &self.pipeline,
+            &self.layout,
+            bytemuck::bytes_of(&u),
+            &[w, m, d_m, loss],
             n as u64,
         )
     }

@@ -178,7 +178,7 @@ fn chain(dev: &ComputeDevice, model: &ModelLayout, field: &FieldLayout) {
     let (d_rgb_b, d_sigma_b) = (buf("d rgb", &d_rgb), buf("d sigma", &d_sigma));
     gpu_field
         .backward(
-            dev, &kernels, &p_b, &pts_b, n, &bufs, &d_sigma_b, &d_rgb_b, &grad_b,
+            dev, &kernels, &p_b, &pts_b, n, &bufs, &d_sigma_b, &d_rgb_b, None, &grad_b,
         )
         .unwrap();
     let grad = dev.read_f32(&grad_b, params.len()).unwrap();

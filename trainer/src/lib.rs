@@ -7,6 +7,7 @@
 //! - [`ray_sampling`]: uniform, dynamics-aware (paper §3.4) and static/dynamic batch samplers;
 //! - [`adam`], [`train`], [`checkpoint`], [`eval`]: the optimiser, the loop, the checkpoint file
 //!   and held-out evaluation;
+//! - [`device`]: where the steps run (`--device auto|cpu|gpu`; the GPU step is `msth-gpu`'s);
 //! - [`import`]: `msth import`, videos to a dataset with COLMAP's camera poses;
 //! - [`unreached`]: hash-table values no training ray reached (dropped on export).
 
@@ -18,6 +19,7 @@ pub use msth_dataset::imageio;
 pub mod adam;
 pub mod autosize;
 pub mod checkpoint;
+pub mod device;
 pub mod eval;
 pub mod import;
 pub mod metrics;

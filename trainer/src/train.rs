@@ -19,12 +19,16 @@ use msth_core::pipeline::{
 use msth_core::rng::Rng;
 use msth_core::uncertainty::{AuxLayout, InvalidMaskLearning, MaskLearningConfig};
 use msth_core::Camera;
+use msth_gpu::adam::{AdamHyper, MaskSlice};
+use msth_gpu::step::{GpuStep, HostBatch};
+use msth_gpu::GpuError;
 
 use crate::adam::{Adam, AdamConfig, ScaledSlice};
 use crate::checkpoint::{
     AuxCheckpoint, Checkpoint, CheckpointError, CheckpointFormatError, CheckpointHeader,
 };
 use crate::dataset::Dataset;
+use crate::device::{self, DeviceError, GpuTraining, TrainDevice};
 use crate::ray_sampling::{
     push_ray, InvalidSamplingConfig, RaySampler, SamplingConfig, SamplingError, SamplingMode,
 };
@@ -84,6 +88,10 @@ pub struct TrainSettings {
     #[serde(default = "one")]
     pub proposal_lr_scale: f32,
     pub model: ModelConfig,
+    /// Where the steps run (`msth train --device`): not a setting of the model or the run, so
+    /// not saved with it (a checkpoint resumes on either device).
+    #[serde(skip)]
+    pub device: TrainDevice,
 }
 
 /// Default of [`TrainSettings::mask_lr_scale`] (issue #16's measurements).
@@ -164,6 +172,7 @@ impl TrainSettings {
             sample_mask_weight: DEFAULT_SAMPLE_MASK_WEIGHT,
             proposal_lr_scale: 1.0,
             model,
+            device: TrainDevice::Cpu,
         }
     }
 
@@ -373,6 +382,8 @@ pub enum TrainError {
     },
     #[error("the dataset has no training views")]
     NoData,
+    #[error(transparent)]
+    Device(#[from] DeviceError),
 }
 
 /// The state of a run: parameters, optimiser, workers' buffers.
@@ -390,6 +401,8 @@ pub struct Trainer {
     /// Fraction of the time budget used (0 without a time limit); the learning rate follows
     /// whichever of steps and time is further along, so a time-limited run still decays fully.
     pub time_fraction: f32,
+    /// The model on a GPU, when the steps run there ([`Trainer::use_device`]).
+    gpu: Option<GpuTraining>,
 }
 
 struct Worker {
@@ -493,25 +506,156 @@ impl Trainer {
             aux,
             workers,
             time_fraction: 0.0,
+            gpu: None,
         }
     }
 
-    /// One optimisation step on the given rays; returns the summed chunk losses.
+    /// Runs the following steps on `device`; returns a line that says where they run. A GPU
+    /// takes the parameters and Adam's state as they are now. Errors: `gpu` without an adapter,
+    /// a model or batch the adapter's limits refuse (named), or settings the GPU step does not
+    /// have (uncertainty-guided mask learning).
+    pub fn use_device(&mut self, device: TrainDevice) -> Result<String, TrainError> {
+        self.sync()?;
+        self.gpu = None;
+        let Some(dev) = device::open(device)? else {
+            return Ok(match device {
+                TrainDevice::Auto => {
+                    "device: the CPU (auto: no hardware GPU adapter; --device gpu takes a software one)"
+                        .to_string()
+                }
+                _ => "device: the CPU".to_string(),
+            });
+        };
+        if self.aux.is_some() {
+            let why = "uncertainty-guided mask learning (mask_learning.uncertainty, mask_learning.mine) is not on the GPU step yet";
+            if device == TrainDevice::Auto {
+                return Ok(format!("device: the CPU (auto: {why})"));
+            }
+            return Err(DeviceError::Unsupported(why.into()).into());
+        }
+        let state = (self.adam.m.clone(), self.adam.v.clone(), self.adam.step);
+        let step = GpuStep::new(
+            &dev,
+            &self.settings.model,
+            &self.params,
+            Some(state),
+            self.settings.batch_rays,
+        )
+        .map_err(DeviceError::Gpu)?;
+        let line = format!("device: {}", dev.adapter_name());
+        self.gpu = Some(GpuTraining {
+            dev,
+            step,
+            stale: false,
+        });
+        Ok(line)
+    }
+
+    /// Whether the steps run on a GPU.
+    pub fn on_gpu(&self) -> bool {
+        self.gpu.is_some()
+    }
+
+    /// Brings the parameters and Adam's state back from the GPU (when the steps run there and
+    /// have moved them); `params` and `adam` are then current.
+    pub fn sync(&mut self) -> Result<(), TrainError> {
+        if let Some(g) = self.gpu.as_mut().filter(|g| g.stale) {
+            let read = |e: GpuError| TrainError::Device(DeviceError::Gpu(e));
+            self.params = g.step.params(&g.dev).map_err(read)?;
+            let (m, v, step) = g.step.adam_state(&g.dev).map_err(read)?;
+            self.adam = Adam { m, v, step };
+            g.stale = false;
+        }
+        Ok(())
+    }
+
+    fn step_settings(&self, rays: usize) -> StepSettings {
+        let s = &self.settings;
+        let f = (self.step as f32 / s.anneal_steps.max(1) as f32).min(1.0);
+        StepSettings {
+            anneal: 10.0 * f / (9.0 * f + 1.0),
+            interlevel_weight: s.interlevel_weight,
+            distortion_weight: s.distortion_weight,
+            loss_scale: 1.0 / rays.max(1) as f32,
+            sample_mask_weight: s.sample_mask_weight,
+        }
+    }
+
+    fn learning_rate(&self) -> f32 {
+        let by_steps = self.step as f32 / (self.settings.iters.max(2) - 1) as f32;
+        self.settings
+            .adam
+            .lr_at_fraction(by_steps.max(self.time_fraction))
+    }
+
+    /// [`Trainer::step_on`] on the GPU.
+    fn step_on_gpu(
+        &mut self,
+        rays: &[TimedRay],
+        targets: &[[f32; 3]],
+        backgrounds: Option<&[[f32; 3]]>,
+    ) -> Result<ChunkLosses, TrainError> {
+        let step_settings = self.step_settings(rays.len());
+        let lr = self.learning_rate();
+        let s = &self.settings;
+        let jitters = device::jitters(rays, s.chunk_rays, s.seed, self.step as u64);
+        let slices: Vec<MaskSlice> = self
+            .slices
+            .iter()
+            .map(|sl| MaskSlice {
+                range: sl.range.clone(),
+                weight: sl.weight,
+                lr_scale: sl.lr_scale,
+            })
+            .collect();
+        let hyper = AdamHyper {
+            beta1: s.adam.beta1,
+            beta2: s.adam.beta2,
+            eps: s.adam.eps,
+        };
+        let Some(g) = self.gpu.as_mut() else {
+            return Err(DeviceError::Unsupported("no GPU is set up".into()).into());
+        };
+        let batch = HostBatch {
+            rays,
+            targets,
+            backgrounds,
+            jitters: Some(&jitters),
+        };
+        let run = |g: &mut GpuTraining| -> Result<ChunkLosses, GpuError> {
+            g.step
+                .train_step(&g.dev, &batch, &step_settings, &hyper, lr, &slices)?;
+            g.step.losses(&g.dev)
+        };
+        let l = run(g).map_err(DeviceError::Gpu)?;
+        g.stale = true;
+        self.step += 1;
+        Ok(l)
+    }
+
+    /// One optimisation step on the given rays, on the device in use; returns the summed
+    /// chunk losses. Errors come only from a GPU.
+    pub fn try_step_on(
+        &mut self,
+        rays: &[TimedRay],
+        targets: &[[f32; 3]],
+        backgrounds: Option<&[[f32; 3]]>,
+    ) -> Result<ChunkLosses, TrainError> {
+        if self.gpu.is_some() {
+            return self.step_on_gpu(rays, targets, backgrounds);
+        }
+        Ok(self.step_on(rays, targets, backgrounds))
+    }
+
+    /// One optimisation step on the given rays on the CPU; returns the summed chunk losses.
     pub fn step_on(
         &mut self,
         rays: &[TimedRay],
         targets: &[[f32; 3]],
         backgrounds: Option<&[[f32; 3]]>,
     ) -> ChunkLosses {
+        let step_settings = self.step_settings(rays.len());
         let s = &self.settings;
-        let f = (self.step as f32 / s.anneal_steps.max(1) as f32).min(1.0);
-        let step_settings = StepSettings {
-            anneal: 10.0 * f / (9.0 * f + 1.0),
-            interlevel_weight: s.interlevel_weight,
-            distortion_weight: s.distortion_weight,
-            loss_scale: 1.0 / rays.len().max(1) as f32,
-            sample_mask_weight: s.sample_mask_weight,
-        };
         let chunk = s.chunk_rays;
         let n_chunks = rays.len().div_ceil(chunk);
         let n_workers = self.workers.len();
@@ -563,6 +707,7 @@ impl Trainer {
         for l in losses {
             total += l;
         }
+        let lr = self.learning_rate();
         // Sum worker gradients in a fixed order into the first buffer.
         let (first, rest) = self.workers.split_at_mut(1);
         let g0 = &mut first[0].grad;
@@ -571,11 +716,6 @@ impl Trainer {
                 .zip(w.grad.par_chunks(1 << 14))
                 .for_each(|(a, b)| a.iter_mut().zip(b).for_each(|(x, y)| *x += y));
         }
-        let by_steps = self.step as f32 / (self.settings.iters.max(2) - 1) as f32;
-        let lr = self
-            .settings
-            .adam
-            .lr_at_fraction(by_steps.max(self.time_fraction));
         self.adam
             .update(&self.settings.adam, lr, &mut self.params, g0, &self.slices);
         if let Some(aux) = self.aux.as_mut() {
@@ -724,6 +864,11 @@ pub fn train(
     let sampler =
         RaySampler::new(data, &trainer.settings.sampling).map_err(TrainError::Sampling)?;
     let mut notes: Vec<String> = sampler.note.iter().cloned().collect();
+    let device = trainer.settings.device;
+    let device_line = trainer.use_device(device)?;
+    if device != TrainDevice::Cpu {
+        notes.push(device_line);
+    }
     let mut rays = Vec::with_capacity(batch);
     let mut targets = Vec::with_capacity(batch);
     let use_bg = trainer.settings.random_background && data.train.iter().any(|v| v.alpha.is_some());
@@ -748,7 +893,7 @@ pub fn train(
         if time_limit > 0.0 {
             trainer.time_fraction = (start.elapsed().as_secs_f64() / time_limit) as f32;
         }
-        let l = trainer.step_on(&rays, &targets, use_bg.then_some(&backgrounds[..]));
+        let l = trainer.try_step_on(&rays, &targets, use_bg.then_some(&backgrounds[..]))?;
         steps_run += 1;
         samples += l.field_samples;
         let mse = l.sq_err / l.rays.max(1) as f64;
@@ -796,6 +941,7 @@ pub fn train(
         let out_of_time = (time_limit > 0.0 && elapsed >= time_limit) || !keep_going;
         let at_end = trainer.step >= iters || out_of_time;
         if at_end || (every > 0 && trainer.step % every == 0) {
+            trainer.sync()?;
             if let Some(i) = trainer.params.iter().position(|v| !v.is_finite()) {
                 let name = trainer
                     .layout
@@ -827,6 +973,7 @@ pub fn train(
             break;
         }
     }
+    trainer.sync()?;
     let secs = start.elapsed().as_secs_f64();
     let outcome = TrainOutcome {
         checkpoint: ckpt_path,

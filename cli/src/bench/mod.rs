@@ -33,6 +33,7 @@ use msth_core::field::ModelLayout;
 use msth_core::pipeline::TimedRay;
 use msth_core::rng::Rng;
 use msth_core::SceneBounds;
+use msth_trainer::device::TrainDevice;
 use msth_trainer::train::{TrainSettings, Trainer};
 
 #[derive(Args)]
@@ -57,6 +58,10 @@ enum BenchKind {
         /// Write the results as JSON here.
         #[arg(long)]
         json: Option<std::path::PathBuf>,
+        /// `cpu`, or `gpu`: the step on a GPU adapter (software ones included), with the CPU
+        /// step (all threads) timed in the same run as the baseline.
+        #[arg(long, default_value = "cpu")]
+        device: String,
     },
     /// Playback of a .msth file over loopback HTTP: time to first frame against the full
     /// download, incremental against full rendering (FPS and PSNR).
@@ -76,7 +81,15 @@ pub fn run(a: BenchArgs) -> Result<()> {
             batch_rays,
             only,
             json,
-        } => step(reps, batch_rays, only.as_deref(), json),
+            device,
+        } => {
+            let device: TrainDevice = device.parse().map_err(anyhow::Error::msg)?;
+            if device == TrainDevice::Gpu {
+                step_gpu(reps, batch_rays, only.as_deref(), json)
+            } else {
+                step(reps, batch_rays, only.as_deref(), json)
+            }
+        }
         BenchKind::Play(a) => play::run(a),
         BenchKind::Tradeoff(a) => tradeoff::run(*a),
         BenchKind::Ablation(a) => ablation::run(a).map(|_| ()),
@@ -129,25 +142,95 @@ struct StepResult {
 }
 
 fn time_steps(s: &TrainSettings, reps: usize) -> Result<StepResult> {
+    time_steps_on(s, reps, TrainDevice::Cpu).map(|(r, _)| r)
+}
+
+/// Times `reps` steps on `device` (after 2 warm-up steps; every step reads its losses back, as
+/// training does); also returns the line naming the device.
+fn time_steps_on(
+    s: &TrainSettings,
+    reps: usize,
+    device: TrainDevice,
+) -> Result<(StepResult, String)> {
     let mut trainer = Trainer::new(s.clone()).map_err(anyhow::Error::msg)?;
+    let line = trainer.use_device(device)?;
     let (r, t) = rays(s.batch_rays, 1);
     for _ in 0..2 {
-        trainer.step_on(&r, &t, None);
+        trainer.try_step_on(&r, &t, None)?;
     }
     let start = Instant::now();
     let mut fs = 0;
     let mut ps = 0;
     for _ in 0..reps {
-        let l = trainer.step_on(&r, &t, None);
+        let l = trainer.try_step_on(&r, &t, None)?;
         fs += l.field_samples;
         ps += l.proposal_samples;
     }
-    Ok(StepResult {
-        secs: start.elapsed().as_secs_f64(),
-        field_samples: fs,
-        proposal_samples: ps,
-        rays: reps * s.batch_rays,
-    })
+    Ok((
+        StepResult {
+            secs: start.elapsed().as_secs_f64(),
+            field_samples: fs,
+            proposal_samples: ps,
+            rays: reps * s.batch_rays,
+        },
+        line,
+    ))
+}
+
+/// `msth bench step --device gpu`: the step on the GPU against the CPU step (all threads) in
+/// the same run, at the demo and paper configurations. A configuration the adapter's limits
+/// refuse is reported as such (the limit named) and the next one runs.
+fn step_gpu(
+    reps: usize,
+    batch: Option<usize>,
+    only: Option<&str>,
+    json: Option<std::path::PathBuf>,
+) -> Result<()> {
+    let threads = rayon::current_num_threads();
+    println!("msth bench step --device gpu: one full training step (proposal + field, forward + backward + Adam, losses read back), against the CPU step on {threads} threads");
+    let mut rows = Vec::new();
+    for (name, preset) in [
+        ("demo (fast preset)", Preset::Fast),
+        ("paper (2^19 rows/level)", Preset::Paper),
+    ] {
+        if only.is_some_and(|o| !name.starts_with(o)) {
+            continue;
+        }
+        let s = settings(preset, batch);
+        let (gpu, line) = match time_steps_on(&s, reps, TrainDevice::Gpu) {
+            Ok(r) => r,
+            Err(e) => {
+                println!("{name:<26} GPU: {e:#}");
+                rows.push(serde_json::json!({"config": name, "gpu_error": format!("{e:#}")}));
+                continue;
+            }
+        };
+        let cpu = time_steps(&s, reps.div_ceil(2))?;
+        let gps = gpu.field_samples as f64 / gpu.secs;
+        let cps = cpu.field_samples as f64 / cpu.secs;
+        println!(
+            "{name:<26} batch {:>6} rays x {}+{} samples  GPU: {:>9.1} ms/step {:>11.0} field samples/s  | CPU: {:>9.1} ms/step {:>10.0} samples/s  | GPU / CPU {:.2}x  ({line})",
+            s.batch_rays,
+            s.model.sampler.num_proposal_samples,
+            s.model.sampler.num_samples,
+            gpu.secs / reps as f64 * 1e3,
+            gps,
+            cpu.secs / reps.div_ceil(2) as f64 * 1e3,
+            cps,
+            gps / cps
+        );
+        rows.push(serde_json::json!({
+            "config": name, "device": line, "cpu_threads": threads, "batch_rays": s.batch_rays,
+            "gpu_ms_per_step": gpu.secs / reps as f64 * 1e3, "gpu_field_samples_per_sec": gps,
+            "cpu_ms_per_step": cpu.secs / reps.div_ceil(2) as f64 * 1e3, "cpu_field_samples_per_sec": cps,
+            "gpu_over_cpu": gps / cps,
+        }));
+    }
+    if let Some(p) = json {
+        std::fs::write(&p, serde_json::to_vec_pretty(&rows)?)?;
+        println!("wrote {}", p.display());
+    }
+    Ok(())
 }
 
 fn step(
