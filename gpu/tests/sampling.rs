@@ -16,11 +16,10 @@
 mod common;
 
 use glam::Vec3;
-use msth_core::config::{Background, ModelConfig, Preset};
+use msth_core::config::ModelConfig;
 use msth_core::pipeline::{spacing_unit, TimedRay};
 use msth_core::rng::Rng;
-use msth_core::sampling::{sample_pdf, uniform_edges, Spacing};
-use msth_core::scene::SceneBounds;
+use msth_core::sampling::{sample_pdf, uniform_edges};
 use msth_gpu::composite::GpuRays;
 use msth_gpu::device::ComputeDevice;
 use msth_gpu::sampling::{LevelBuffers, SampleRay, SamplingKernels};
@@ -45,22 +44,11 @@ fn main() -> std::process::ExitCode {
 }
 
 fn box_model() -> ModelConfig {
-    let mut cfg = ModelConfig::fast_on_white(10);
-    cfg.sampler.set_samples(70, 33);
-    cfg
+    common::box_model(70, 33)
 }
 
 fn contracted_model() -> ModelConfig {
-    let bounds = SceneBounds::Contracted {
-        center: Vec3::new(0.0, 0.3, 0.9),
-        radius: 2.0,
-    };
-    let mut cfg = ModelConfig::preset(Preset::Fast, bounds, Background::LastSample, 10);
-    cfg.sampler.spacing = Spacing::LinDisp;
-    cfg.sampler.near = 0.2;
-    cfg.sampler.far = 500.0;
-    cfg.sampler.set_samples(70, 33);
-    cfg
+    common::stage_model(70, 33, (0.2, 500.0))
 }
 
 fn buf(dev: &ComputeDevice, what: &str, v: &[f32]) -> wgpu::Buffer {

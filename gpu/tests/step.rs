@@ -22,12 +22,10 @@
 mod common;
 
 use glam::Vec3;
-use msth_core::config::{Background, ModelConfig, Preset};
+use msth_core::config::ModelConfig;
 use msth_core::field::ModelLayout;
 use msth_core::pipeline::{train_chunk, StepSettings, TimedRay, Workspace};
 use msth_core::rng::Rng;
-use msth_core::sampling::Spacing;
-use msth_core::scene::SceneBounds;
 use msth_gpu::step::{GpuStep, HostBatch};
 use msth_testkit::Tests;
 
@@ -55,22 +53,11 @@ fn main() -> std::process::ExitCode {
 }
 
 fn box_model() -> ModelConfig {
-    let mut cfg = ModelConfig::fast_on_white(10);
-    cfg.sampler.set_samples(40, 20);
-    cfg
+    common::box_model(40, 20)
 }
 
 fn stage_model() -> ModelConfig {
-    let bounds = SceneBounds::Contracted {
-        center: Vec3::new(0.0, 0.3, 0.9),
-        radius: 2.0,
-    };
-    let mut cfg = ModelConfig::preset(Preset::Fast, bounds, Background::LastSample, 10);
-    cfg.sampler.spacing = Spacing::LinDisp;
-    cfg.sampler.near = 0.2;
-    cfg.sampler.far = 60.0;
-    cfg.sampler.set_samples(40, 20);
-    cfg
+    common::stage_model(40, 20, (0.2, 60.0))
 }
 
 /// Trained-looking parameters: hash tables U(-0.3, 0.3), mask logits U(-3, 3), the rest as

@@ -96,6 +96,16 @@ pub fn run(a: BenchArgs) -> Result<()> {
     }
 }
 
+/// The step bench's configurations, or the one whose name starts with `only`.
+fn configurations(only: Option<&str>) -> impl Iterator<Item = (&'static str, Preset)> + '_ {
+    [
+        ("demo (fast preset)", Preset::Fast),
+        ("paper (2^19 rows/level)", Preset::Paper),
+    ]
+    .into_iter()
+    .filter(move |(name, _)| only.is_none_or(|o| name.starts_with(o)))
+}
+
 fn settings(preset: Preset, batch: Option<usize>) -> TrainSettings {
     let model = ModelConfig::preset(
         preset,
@@ -189,13 +199,7 @@ fn step_gpu(
     let threads = rayon::current_num_threads();
     println!("msth bench step --device gpu: one full training step (proposal + field, forward + backward + Adam, losses read back), against the CPU step on {threads} threads");
     let mut rows = Vec::new();
-    for (name, preset) in [
-        ("demo (fast preset)", Preset::Fast),
-        ("paper (2^19 rows/level)", Preset::Paper),
-    ] {
-        if only.is_some_and(|o| !name.starts_with(o)) {
-            continue;
-        }
+    for (name, preset) in configurations(only) {
         let s = settings(preset, batch);
         let (gpu, line) = match time_steps_on(&s, reps, TrainDevice::Gpu) {
             Ok(r) => r,
@@ -242,15 +246,7 @@ fn step(
     let threads = rayon::current_num_threads();
     println!("msth bench step: one full training step (proposal + field, forward + backward + Adam), {threads} threads");
     let mut rows = Vec::new();
-    for (name, preset) in [
-        ("demo (fast preset)", Preset::Fast),
-        ("paper (2^19 rows/level)", Preset::Paper),
-    ] {
-        if let Some(o) = only {
-            if !name.starts_with(o) {
-                continue;
-            }
-        }
+    for (name, preset) in configurations(only) {
         let s = settings(preset, batch);
         let layout = ModelLayout::new(&s.model);
         let all = time_steps(&s, reps)?;

@@ -2,6 +2,10 @@
 //! and the atomic paths to test on it. Each test binary uses part of it.
 #![allow(dead_code)]
 
+use glam::Vec3;
+use msth_core::config::{Background, ModelConfig, Preset};
+use msth_core::sampling::Spacing;
+use msth_core::scene::SceneBounds;
 use msth_gpu::device::ComputeDevice;
 use msth_gpu::hashgrid::AtomicMode;
 use msth_gpu::{AdapterPolicy, GpuError};
@@ -35,4 +39,27 @@ pub fn modes(dev: &ComputeDevice) -> Vec<AtomicMode> {
         );
     }
     m
+}
+
+/// The built-in scene's set-up (a box, linear spacing, white) at the fast preset, with `np`
+/// proposal and `nf` field samples per ray.
+pub fn box_model(np: usize, nf: usize) -> ModelConfig {
+    let mut cfg = ModelConfig::fast_on_white(10);
+    cfg.sampler.set_samples(np, nf);
+    cfg
+}
+
+/// A stage's set-up at the fast preset: contraction, spacing linear in disparity from `near` to
+/// `far`, the last sample as the background.
+pub fn stage_model(np: usize, nf: usize, (near, far): (f32, f32)) -> ModelConfig {
+    let bounds = SceneBounds::Contracted {
+        center: Vec3::new(0.0, 0.3, 0.9),
+        radius: 2.0,
+    };
+    let mut cfg = ModelConfig::preset(Preset::Fast, bounds, Background::LastSample, 10);
+    cfg.sampler.spacing = Spacing::LinDisp;
+    cfg.sampler.near = near;
+    cfg.sampler.far = far;
+    cfg.sampler.set_samples(np, nf);
+    cfg
 }
