@@ -94,6 +94,11 @@ pub struct TrainSettings {
     pub device: TrainDevice,
 }
 
+/// The shortest proposal annealing of the presets above `fast` (`anneal_steps`): steps, not a
+/// share of `--iters`, because the race it settles (the proposal following the field's
+/// surfaces) is run in the first few hundred steps whatever the run's length.
+pub const MIN_ANNEAL_STEPS: usize = 2000;
+
 /// Default of [`TrainSettings::mask_lr_scale`] (issue #16's measurements).
 pub const DEFAULT_MASK_LR_SCALE: f32 = 10.0;
 /// Default of [`TrainSettings::sample_mask_weight`] (issue #16's measurements).
@@ -150,7 +155,14 @@ impl TrainSettings {
             interlevel_weight: 1.0,
             distortion_weight: 2e-3,
             mask_loss_weight: 1e-2,
-            anneal_steps: (iters / 4).max(1),
+            // A quarter of the preset's run, as the MSTH release (5000 of 20,000 steps), but at
+            // least MIN_ANNEAL_STEPS above the fast preset (docs/convergence.md, 2026-11-27:
+            // on a stage, annealing over 1000 steps let the proposal lose its race with the field
+            // in one seed of three; over 2000, three of three converged).
+            anneal_steps: match preset {
+                Preset::Fast => (iters / 4).max(1),
+                _ => (iters / 4).max(MIN_ANNEAL_STEPS),
+            },
             checkpoint_every: 1000,
             eval_stride: 1,
             time_limit_secs: 0.0,
