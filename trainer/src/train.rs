@@ -523,9 +523,9 @@ impl Trainer {
     }
 
     /// Runs the following steps on `device`; returns a line that says where they run. A GPU
-    /// takes the parameters and Adam's state as they are now. Errors: `gpu` without an adapter,
-    /// a model or batch the adapter's limits refuse (named), or settings the GPU step does not
-    /// have (uncertainty-guided mask learning).
+    /// takes the parameters and Adam's state as they are now. Errors (`gpu`; `auto` falls back
+    /// to the CPU and says why): no adapter, a model or batch the adapter's limits refuse
+    /// (named), or settings the GPU step does not have (uncertainty-guided mask learning).
     pub fn use_device(&mut self, device: TrainDevice) -> Result<String, TrainError> {
         self.sync()?;
         self.gpu = None;
@@ -546,14 +546,23 @@ impl Trainer {
             return Err(DeviceError::Unsupported(why.into()).into());
         }
         let state = (self.adam.m.clone(), self.adam.v.clone(), self.adam.step);
-        let step = GpuStep::new(
+        let step = match GpuStep::new(
             &dev,
             &self.settings.model,
             &self.params,
             Some(state),
             self.settings.batch_rays,
-        )
-        .map_err(DeviceError::Gpu)?;
+        ) {
+            Ok(s) => s,
+            // `auto` is best effort: a model the adapter cannot take trains on the CPU.
+            Err(e) if device == TrainDevice::Auto => {
+                return Ok(format!(
+                    "device: the CPU (auto: {} cannot take this model: {e})",
+                    dev.adapter_name()
+                ))
+            }
+            Err(e) => return Err(DeviceError::Gpu(e).into()),
+        };
         let line = format!("device: {}", dev.adapter_name());
         self.gpu = Some(GpuTraining {
             dev,
