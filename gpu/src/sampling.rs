@@ -10,7 +10,7 @@
 
 use bytemuck::{Pod, Zeroable};
 use msth_core::config::ModelConfig;
-use msth_core::pipeline::{ray_limits, spacing_unit, TimedRay};
+use msth_core::pipeline::{ray_limits, sample_time, spacing_unit, TimedRay};
 use msth_core::sampling::Spacing;
 use msth_core::scene::SceneBounds;
 
@@ -47,11 +47,7 @@ impl SampleRay {
     /// samples), with the two jitters the CPU trainer would draw for it.
     pub fn new(cfg: &ModelConfig, ray: &TimedRay, jitters: (f32, f32)) -> Self {
         let (near, far) = ray_limits(cfg, ray);
-        let time = if ray.time >= 0.0 {
-            ray.time.min(1.0)
-        } else {
-            0.0
-        };
+        let time = sample_time(ray.time);
         SampleRay {
             origin_time: [ray.origin.x, ray.origin.y, ray.origin.z, time],
             dir: [ray.dir.x, ray.dir.y, ray.dir.z, 0.0],

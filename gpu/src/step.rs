@@ -239,11 +239,6 @@ impl GpuStep {
         })
     }
 
-    /// The largest batch, in rays.
-    pub fn capacity(&self) -> usize {
-        self.capacity
-    }
-
     fn ranges(&mut self, dev: &ComputeDevice, n: usize) -> Result<(), GpuError> {
         if self.ranges.as_ref().is_some_and(|r| r.rays == n) {
             return Ok(());
@@ -606,11 +601,6 @@ impl GpuStep {
             &self.grad,
             slices,
         )
-    }
-
-    /// The mask loss of the last update ([`GpuAdam::mask_loss`]).
-    pub fn mask_loss(&self, dev: &ComputeDevice) -> Result<f32, GpuError> {
-        self.adam.mask_loss(dev)
     }
 
     /// The parameters, on the host.

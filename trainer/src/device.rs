@@ -86,14 +86,20 @@ pub fn open(device: TrainDevice) -> Result<Option<ComputeDevice>, DeviceError> {
     }
 }
 
+/// The random stream of chunk `chunk` of step `step`: the CPU trainer's chunks draw from it, and
+/// [`jitters`] draws the GPU step's numbers from it.
+pub fn chunk_stream(seed: u64, step: u64, chunk: usize) -> Rng {
+    Rng::stream(seed, (step << 20) | chunk as u64)
+}
+
 /// The jitters the CPU trainer draws for a batch (per ray: the proposal edges', then the
-/// resampling's), chunk by chunk from `Rng::stream(seed, (step << 20) | chunk)`: within a chunk
-/// first one proposal jitter per ray, then one resampling jitter per ray.
+/// resampling's), chunk by chunk from [`chunk_stream`]: within a chunk first one proposal
+/// jitter per ray, then one resampling jitter per ray.
 pub fn jitters(rays: &[TimedRay], chunk: usize, seed: u64, step: u64) -> Vec<(f32, f32)> {
     let chunk = chunk.max(1);
     let mut out = Vec::with_capacity(rays.len());
     for (c, part) in rays.chunks(chunk).enumerate() {
-        let mut rng = Rng::stream(seed, (step << 20) | c as u64);
+        let mut rng = chunk_stream(seed, step, c);
         let first: Vec<f32> = part.iter().map(|_| rng.f32()).collect();
         out.extend(first.into_iter().map(|p| (p, rng.f32())));
     }

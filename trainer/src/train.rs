@@ -654,9 +654,9 @@ impl Trainer {
         Ok(l)
     }
 
-    /// One optimisation step on the given rays, on the device in use; returns the summed
-    /// chunk losses. Errors come only from a GPU.
-    pub fn try_step_on(
+    /// One optimisation step on the given rays, on the device in use ([`Trainer::use_device`]);
+    /// returns the summed chunk losses. Errors come only from a GPU.
+    pub fn step_on(
         &mut self,
         rays: &[TimedRay],
         targets: &[[f32; 3]],
@@ -665,11 +665,11 @@ impl Trainer {
         if self.gpu.is_some() {
             return self.step_on_gpu(rays, targets, backgrounds);
         }
-        Ok(self.step_on(rays, targets, backgrounds))
+        Ok(self.step_on_cpu(rays, targets, backgrounds))
     }
 
-    /// One optimisation step on the given rays on the CPU; returns the summed chunk losses.
-    pub fn step_on(
+    /// [`Trainer::step_on`] on the CPU.
+    fn step_on_cpu(
         &mut self,
         rays: &[TimedRay],
         targets: &[[f32; 3]],
@@ -700,7 +700,7 @@ impl Trainer {
                 let mut c = w;
                 while c < n_chunks {
                     let r = c * chunk..((c + 1) * chunk).min(rays.len());
-                    let mut rng = Rng::stream(seed, (step << 20) | c as u64);
+                    let mut rng = device::chunk_stream(seed, step, c);
                     acc += train_chunk_with(
                         cfg,
                         layout,
@@ -914,7 +914,7 @@ pub fn train(
         if time_limit > 0.0 {
             trainer.time_fraction = (start.elapsed().as_secs_f64() / time_limit) as f32;
         }
-        let l = trainer.try_step_on(&rays, &targets, use_bg.then_some(&backgrounds[..]))?;
+        let l = trainer.step_on(&rays, &targets, use_bg.then_some(&backgrounds[..]))?;
         steps_run += 1;
         samples += l.field_samples;
         let mse = l.sq_err / l.rays.max(1) as f64;

@@ -167,6 +167,6 @@ mod train;
 use forward::forward_chunk;
 pub use forward::{composite_ray, render_chunk};
 pub use playback::{playback_partition, KeepPoint, Partition};
-pub use sampling::{direction_encodings, ray_limits, spacing_unit};
+pub use sampling::{direction_encodings, ray_limits, sample_time, spacing_unit};
 use sampling::{place_proposal_samples, place_samples};
 pub use train::{train_chunk, train_chunk_with, AuxStep};

@@ -31,6 +31,15 @@ pub fn ray_limits(cfg: &ModelConfig, r: &TimedRay) -> (f32, f32) {
     }
 }
 
+/// The time a ray's samples carry: its time clamped to `[0, 1]` (negative and NaN times: 0).
+pub fn sample_time(time: f32) -> f32 {
+    if time >= 0.0 {
+        time.min(1.0)
+    } else {
+        0.0
+    }
+}
+
 /// Places samples at the midpoints (in distance) of the intervals given by normalised `edges`.
 #[allow(clippy::too_many_arguments)]
 pub(super) fn place_samples(
@@ -51,7 +60,7 @@ pub(super) fn place_samples(
             near
         };
     }
-    let time = if r.time >= 0.0 { r.time.min(1.0) } else { 0.0 };
+    let time = sample_time(r.time);
     for k in 0..edges.len() - 1 {
         let (t0, t1) = (t_out[k], t_out[k + 1]);
         deltas[k] = (t1 - t0).max(0.0);
