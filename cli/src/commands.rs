@@ -125,8 +125,13 @@ pub(crate) fn report(pb: &ProgressBar, p: &Progress) -> bool {
         let every = (p.iters / 20).max(1);
         if p.step.is_multiple_of(every) || p.step == p.iters {
             let t = &p.terms;
+            let free = if t.free_space > 0.0 {
+                format!(" free space {:.5}", t.free_space)
+            } else {
+                String::new()
+            };
             eprintln!(
-                "step {}/{} [{:.1} s] loss {:.5} (rgb {:.5} interlevel {:.5} distortion {:.5} mask {:.5})  {rate}",
+                "step {}/{} [{:.1} s] loss {:.5} (rgb {:.5} interlevel {:.5} distortion {:.5} mask {:.5}{free})  {rate}",
                 p.step, p.iters, p.elapsed_secs, p.loss, t.rgb, t.interlevel, t.distortion, t.mask
             );
         }

@@ -898,6 +898,7 @@ mod pipeline {
             distortion_weight: 0.01,
             loss_scale: 1.0 / rays.len() as f32,
             sample_mask_weight: 0.0,
+            free_space_weight: 0.0,
         };
         let l = train_chunk(
             cfg,
@@ -1148,6 +1149,7 @@ mod pipeline {
             distortion_weight: 0.01,
             loss_scale: 1.0 / rays.len() as f32,
             sample_mask_weight: 0.0,
+            free_space_weight: 0.0,
         };
         let run = |p: &[f32], grad: &mut [f32]| {
             let l = train_chunk(

@@ -124,6 +124,13 @@ impl GpuField {
         Self::build(layout, false)
     }
 
+    /// A main field evaluated for its density alone (the free-space loss's points): the
+    /// forward stops after the density MLP (sigma and the unused geometry features), and the
+    /// backward takes `d_sigma` with no gradient into the geometry features.
+    pub fn density_of(layout: &FieldLayout) -> Result<Self, GpuError> {
+        Self::build(layout, false)
+    }
+
     pub fn layout(&self) -> &FieldLayout {
         &self.layout
     }

@@ -23,6 +23,8 @@ pub const COLOR_LOSS_WGSL: &str = include_str!("../shaders/color_loss.wgsl");
 pub const INTERLEVEL_WGSL: &str = include_str!("../shaders/interlevel.wgsl");
 /// The kernel `sample_mask`.
 pub const SAMPLE_MASK_WGSL: &str = include_str!("../shaders/sample_mask.wgsl");
+/// The kernel `free_space`.
+pub const FREE_SPACE_WGSL: &str = include_str!("../shaders/free_space.wgsl");
 /// The kernel `distortion` (after [`RAY_SCAN_WGSL`]).
 pub const DISTORTION_WGSL: &str = include_str!("../shaders/distortion.wgsl");
 
@@ -157,6 +159,50 @@ impl SampleMaskKernel {
             &self.layout,
             bytemuck::bytes_of(&u),
             &[w, m, d_m, loss],
+            n as u64,
+        )
+    }
+}
+
+/// The compiled free-space-loss kernel of one device.
+pub struct FreeSpaceKernel {
+    layout: wgpu::BindGroupLayout,
+    pipeline: wgpu::ComputePipeline,
+}
+
+impl FreeSpaceKernel {
+    pub fn new(dev: &ComputeDevice) -> Result<Self, GpuError> {
+        // 1 density rows, 2 d sigma, 3 loss per point.
+        let layout = dev.bind_layout("free-space loss", &[true, false, false]);
+        let pipeline = dev.pipeline("free-space loss", FREE_SPACE_WGSL, "free_space", &layout)?;
+        Ok(FreeSpaceKernel { layout, pipeline })
+    }
+
+    /// For `n` points whose density MLP output rows (`stride` floats, sigma first) are in
+    /// `density`: `d_sigma = weight * scale * delta * exp(-sigma delta)` and each point's
+    /// `weight * (1 - exp(-sigma delta))` in `loss` (`msth_core::pipeline`'s free-space loss).
+    #[allow(clippy::too_many_arguments)]
+    pub fn run(
+        &self,
+        dev: &ComputeDevice,
+        n: usize,
+        (density, stride): (&wgpu::Buffer, usize),
+        (weight, scale, delta): (f32, f32, f32),
+        (d_sigma, loss): (&wgpu::Buffer, &wgpu::Buffer),
+    ) -> Result<(), GpuError> {
+        need_floats("density rows", density, (n * stride) as u64, n)?;
+        for (what, b) in [("d sigma", d_sigma), ("loss", loss)] {
+            need_floats(what, b, n as u64, n)?;
+        }
+        let u = LossU {
+            run: [n as u32, stride as u32, 0, 0],
+            scale: [weight, weight * scale * delta, delta, 0.0],
+        };
+        dev.run(
+            &self.pipeline,
+            &self.layout,
+            bytemuck::bytes_of(&u),
+            &[density, d_sigma, loss],
             n as u64,
         )
     }

@@ -29,7 +29,9 @@
 
 use msth_core::config::{Background, ModelConfig};
 use msth_core::field::ModelLayout;
-use msth_core::pipeline::{ChunkLosses, StepSettings, TimedRay, HIDDEN_TRANSMITTANCE};
+use msth_core::pipeline::{
+    ChunkLosses, StepSettings, TimedRay, FREE_SPACE_STEP, HIDDEN_TRANSMITTANCE,
+};
 
 use crate::adam::{AdamHyper, AdamKernel, GpuAdam, MaskSlice};
 use crate::composite::{CompositeBuffers, CompositeKernels, CompositeMode, GpuRays};
@@ -38,7 +40,8 @@ use crate::field::{FieldBuffers, FieldKernels, GpuField};
 use crate::glue::Columns;
 use crate::hashgrid::AtomicMode;
 use crate::losses::{
-    ColorLossKernel, DistortionKernel, InterlevelKernel, LevelSamples, SampleMaskKernel,
+    ColorLossKernel, DistortionKernel, FreeSpaceKernel, InterlevelKernel, LevelSamples,
+    SampleMaskKernel,
 };
 use crate::sampling::{LevelBuffers, SampleRay, SamplingKernels};
 use crate::GpuError;
@@ -52,6 +55,7 @@ pub struct StepKernels {
     pub distortion: DistortionKernel,
     pub interlevel: InterlevelKernel,
     pub sample_mask: SampleMaskKernel,
+    pub free_space: FreeSpaceKernel,
     pub adam: AdamKernel,
 }
 
@@ -65,6 +69,7 @@ impl StepKernels {
             distortion: DistortionKernel::new(dev)?,
             interlevel: InterlevelKernel::new(dev)?,
             sample_mask: SampleMaskKernel::new(dev)?,
+            free_space: FreeSpaceKernel::new(dev)?,
             adam: AdamKernel::new(dev)?,
         })
     }
@@ -81,6 +86,10 @@ pub struct HostBatch<'a> {
     /// trainer draws them as `Rng::f32`); `None`: no jitter (the deterministic placement of
     /// rendering).
     pub jitters: Option<&'a [(f32, f32)]>,
+    /// The free-space loss's points `(x, y, z, t)` in the unit cube and clip, one per ray (the
+    /// CPU trainer draws them after the jitters, chunk by chunk); needed when
+    /// `StepSettings::free_space_weight` is not 0.
+    pub free_points: Option<&'a [[f32; 4]]>,
 }
 
 /// One level's per-sample buffers.
@@ -136,6 +145,8 @@ pub struct GpuStep {
     k: StepKernels,
     main: GpuField,
     prop: GpuField,
+    /// The main field evaluated for its density alone, at the free-space loss's points.
+    free: GpuField,
     n_params: usize,
     params: wgpu::Buffer,
     grad: wgpu::Buffer,
@@ -161,9 +172,22 @@ pub struct GpuStep {
     distortion: wgpu::Buffer,
     interlevel: wgpu::Buffer,
     sample_mask: wgpu::Buffer,
+    free_bufs: FieldBuffers,
+    free_points: wgpu::Buffer,
+    free_d_sigma: wgpu::Buffer,
+    free_loss: wgpu::Buffer,
     ranges: Option<Ranges>,
     /// What the last [`GpuStep::gradients`] computed, for [`GpuStep::losses`].
-    last: Option<(usize, bool, bool)>,
+    last: Option<Computed>,
+}
+
+/// Which terms the last [`GpuStep::gradients`] computed, over how many rays.
+#[derive(Clone, Copy, Debug)]
+struct Computed {
+    rays: usize,
+    distortion: bool,
+    sample_mask: bool,
+    free_space: bool,
 }
 
 /// Adam's state as checkpoints hold it: `(m, v, step)`.
@@ -199,6 +223,7 @@ impl GpuStep {
         }
         let main = GpuField::new(&layout.field)?;
         let prop = GpuField::density_only(&layout.proposal.field)?;
+        let free = GpuField::density_of(&layout.field)?;
         let k = StepKernels::new(dev, AtomicMode::best(dev))?;
         let adam = match adam {
             Some((m, v, step)) => GpuAdam::with_state(dev, &m, &v, step)?,
@@ -225,6 +250,10 @@ impl GpuStep {
             distortion: dev.zeros_f32("distortion", c)?,
             interlevel: dev.zeros_f32("interlevel", c)?,
             sample_mask: dev.zeros_f32("sample mask loss", cm)?,
+            free_bufs: free.buffers(dev, c)?,
+            free_points: dev.zeros_f32("free-space points", 4 * c)?,
+            free_d_sigma: dev.zeros_f32("free-space d sigma", c)?,
+            free_loss: dev.zeros_f32("free-space loss", c)?,
             n_params: params.len(),
             params: dev.buffer_f32("parameters", params)?,
             grad: dev.zeros_f32("gradient", params.len())?,
@@ -232,6 +261,7 @@ impl GpuStep {
             capacity,
             main,
             prop,
+            free,
             k,
             cfg: cfg.clone(),
             ranges: None,
@@ -263,7 +293,7 @@ impl GpuStep {
         batch: &HostBatch,
         step: &StepSettings,
     ) -> Result<(), GpuError> {
-        self.upload(dev, batch)?;
+        self.upload(dev, batch, step)?;
         dev.begin_batch()?;
         let r = self.record_gradients(dev, batch, step);
         let end = dev.end_batch();
@@ -282,7 +312,7 @@ impl GpuStep {
         lr: f32,
         slices: &[MaskSlice],
     ) -> Result<(), GpuError> {
-        self.upload(dev, batch)?;
+        self.upload(dev, batch, step)?;
         dev.begin_batch()?;
         let r = self
             .record_gradients(dev, batch, step)
@@ -291,8 +321,14 @@ impl GpuStep {
         r.and(end)
     }
 
-    /// Checks the batch and writes its rays, targets and backgrounds to the device.
-    fn upload(&mut self, dev: &ComputeDevice, batch: &HostBatch) -> Result<(), GpuError> {
+    /// Checks the batch and writes its rays, targets, backgrounds and free-space points to the
+    /// device.
+    fn upload(
+        &mut self,
+        dev: &ComputeDevice,
+        batch: &HostBatch,
+        step: &StepSettings,
+    ) -> Result<(), GpuError> {
         let n = batch.rays.len();
         if n == 0 || n > self.capacity {
             return Err(GpuError::Input(format!(
@@ -307,6 +343,18 @@ impl GpuStep {
             return Err(GpuError::Input(format!(
                 "{n} rays need {n} targets, backgrounds and jitters"
             )));
+        }
+        if step.free_space_weight != 0.0 {
+            match batch.free_points {
+                Some(p) if p.len() == n => {
+                    dev.write_f32(&self.free_points, bytemuck::cast_slice(p))?
+                }
+                _ => {
+                    return Err(GpuError::Input(format!(
+                        "the free-space loss needs {n} points for {n} rays"
+                    )))
+                }
+            }
         }
         self.ranges(dev, n)?;
         let cfg = &self.cfg;
@@ -544,14 +592,60 @@ impl GpuStep {
             None,
             &self.grad,
         )?;
-        self.last = Some((n, distortion, sample_mask));
+        // The free-space loss: the main field's density at the batch's random points.
+        let free_space = step.free_space_weight != 0.0;
+        if free_space {
+            self.free.forward(
+                dev,
+                &k.field,
+                &self.params,
+                &self.free_points,
+                &self.dirs,
+                n,
+                &self.free_bufs,
+            )?;
+            let (lo, hi) = cfg.bounds.extent();
+            let delta = (hi - lo).length() * FREE_SPACE_STEP;
+            let stride = self.free.layout().density.0.output_dim();
+            k.free_space.run(
+                dev,
+                n,
+                (&self.free_bufs.density, stride),
+                (step.free_space_weight, scale, delta),
+                (&self.free_d_sigma, &self.free_loss),
+            )?;
+            self.free.backward(
+                dev,
+                &k.field,
+                &self.params,
+                &self.free_points,
+                n,
+                &self.free_bufs,
+                &self.free_d_sigma,
+                &self.d_rgb,
+                None,
+                &self.grad,
+            )?;
+        }
+        self.last = Some(Computed {
+            rays: n,
+            distortion,
+            sample_mask,
+            free_space,
+        });
         Ok(())
     }
 
     /// The loss sums of the last [`GpuStep::gradients`], as the CPU trainer's chunks add them
     /// (read back from the device).
     pub fn losses(&self, dev: &ComputeDevice) -> Result<ChunkLosses, GpuError> {
-        let Some((n, distortion, sample_mask)) = self.last else {
+        let Some(Computed {
+            rays: n,
+            distortion,
+            sample_mask,
+            free_space,
+        }) = self.last
+        else {
             return Ok(ChunkLosses::default());
         };
         let nf = self.cfg.sampler.num_samples;
@@ -568,6 +662,11 @@ impl GpuStep {
             },
             sample_mask: if sample_mask {
                 sum(&self.sample_mask, n * nf)?
+            } else {
+                0.0
+            },
+            free_space: if free_space {
+                sum(&self.free_loss, n)?
             } else {
                 0.0
             },

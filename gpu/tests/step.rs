@@ -4,8 +4,8 @@
 //! - the built-in scene's set-up: a box, linear spacing, a random background per ray;
 //! - a stage's: contraction, spacing linear in disparity, the last sample as the background.
 //!
-//! Each with proposal annealing (`a` = 0.5, so `w^a` is exercised), distortion, interlevel and
-//! per-sample mask losses on, and trained-looking parameters (tables U(-0.3, 0.3), mask logits
+//! Each with proposal annealing (`a` = 0.5, so `w^a` is exercised), distortion, interlevel,
+//! per-sample mask and free-space losses on, and trained-looking parameters (tables U(-0.3, 0.3), mask logits
 //! U(-3, 3)).
 //!
 //! Tolerances: loss sums within 1e-4 relative (the colour and mask terms) and 2e-3 (distortion
@@ -24,7 +24,7 @@ mod common;
 use glam::Vec3;
 use msth_core::config::ModelConfig;
 use msth_core::field::ModelLayout;
-use msth_core::pipeline::{train_chunk, StepSettings, TimedRay, Workspace};
+use msth_core::pipeline::{free_space_point, train_chunk, StepSettings, TimedRay, Workspace};
 use msth_core::rng::Rng;
 use msth_gpu::step::{GpuStep, HostBatch};
 use msth_testkit::Tests;
@@ -117,14 +117,17 @@ fn step_matches_cpu(cfg: ModelConfig, random_backgrounds: bool) {
         distortion_weight: 0.01,
         loss_scale: 1.0 / n as f32,
         sample_mask_weight: 0.005,
+        free_space_weight: 0.5,
     };
 
-    // The CPU step draws one proposal jitter per ray, then one resampling jitter per ray.
+    // The CPU step draws one proposal jitter per ray, then one resampling jitter per ray, then
+    // one free-space point per ray.
     let stream = Rng::stream(3, 7);
     let mut draw = stream.clone();
     let jp: Vec<f32> = (0..n).map(|_| draw.f32()).collect();
     let jm: Vec<f32> = (0..n).map(|_| draw.f32()).collect();
     let jitters: Vec<(f32, f32)> = jp.into_iter().zip(jm).collect();
+    let free: Vec<[f32; 4]> = (0..n).map(|_| free_space_point(&mut draw)).collect();
 
     let mut grad_cpu = vec![0f32; p.len()];
     let mut ws = Workspace::default();
@@ -147,6 +150,7 @@ fn step_matches_cpu(cfg: ModelConfig, random_backgrounds: bool) {
         targets: &targets,
         backgrounds,
         jitters: Some(&jitters),
+        free_points: Some(&free),
     };
     gpu_step.gradients(&dev, &batch, &step).unwrap();
     let gpu = gpu_step.losses(&dev).unwrap();
@@ -155,6 +159,7 @@ fn step_matches_cpu(cfg: ModelConfig, random_backgrounds: bool) {
     for (name, g, c, tol) in [
         ("colour", gpu.sq_err, cpu.sq_err, 1e-4),
         ("sample mask", gpu.sample_mask, cpu.sample_mask, 1e-4),
+        ("free space", gpu.free_space, cpu.free_space, 1e-4),
         ("distortion", gpu.distortion, cpu.distortion, 2e-3),
         ("interlevel", gpu.interlevel, cpu.interlevel, 2e-3),
     ] {
@@ -219,12 +224,14 @@ fn step_bad_input_is_an_error() {
         distortion_weight: 0.0,
         loss_scale: 1.0 / 9.0,
         sample_mask_weight: 0.0,
+        free_space_weight: 0.0,
     };
     let batch = |n: usize, m: usize| HostBatch {
         rays: &r[..n],
         targets: &t[..m],
         backgrounds: None,
         jitters: None,
+        free_points: None,
     };
     let e = step
         .gradients(&dev, &batch(9, 9), &settings)
@@ -234,6 +241,17 @@ fn step_bad_input_is_an_error() {
         .gradients(&dev, &batch(4, 3), &settings)
         .expect_err("4 rays, 3 targets");
     assert!(e.to_string().contains("need 4 targets"), "{e}");
+    let free_space = StepSettings {
+        free_space_weight: 0.1,
+        ..settings
+    };
+    let e = step
+        .gradients(&dev, &batch(4, 4), &free_space)
+        .expect_err("the free-space loss without its points");
+    assert!(
+        e.to_string().contains("free-space loss needs 4 points"),
+        "{e}"
+    );
     step.gradients(&dev, &batch(4, 4), &settings).unwrap();
     let l = step.losses(&dev).unwrap();
     assert_eq!(l.rays, 4);

@@ -133,6 +133,7 @@ fn assert_gradient_finite(data: &Dataset, s: &TrainSettings, params: &[f32]) {
         distortion_weight: s.distortion_weight,
         loss_scale: 1.0 / rays.len() as f32,
         sample_mask_weight: 0.0,
+        free_space_weight: 0.0,
     };
     let l = train_chunk(
         &s.model,

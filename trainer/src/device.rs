@@ -2,7 +2,7 @@
 //! (`msth_gpu::step::GpuStep`: the whole step on the device, the ray batch drawn on the CPU).
 //!
 //! Both compute the same step from the same random numbers: the GPU step takes each ray's two
-//! jitters from the CPU trainer's per-chunk streams ([`jitters`]), so a seed draws the same
+//! jitters from the CPU trainer's per-chunk streams ([`host_draws`]), so a seed draws the same
 //! samples on either device, and the results differ only by rounding (`gpu/tests/step.rs`).
 //! Checkpoints hold the same parameters and Adam state whichever device wrote them, so a run
 //! moves between devices on `--resume`.
@@ -10,7 +10,7 @@
 use std::fmt;
 use std::str::FromStr;
 
-use msth_core::pipeline::TimedRay;
+use msth_core::pipeline::{free_space_point, TimedRay};
 use msth_core::rng::Rng;
 use msth_gpu::device::ComputeDevice;
 use msth_gpu::step::GpuStep;
@@ -87,21 +87,32 @@ pub fn open(device: TrainDevice) -> Result<Option<ComputeDevice>, DeviceError> {
 }
 
 /// The random stream of chunk `chunk` of step `step`: the CPU trainer's chunks draw from it, and
-/// [`jitters`] draws the GPU step's numbers from it.
+/// [`host_draws`] draws the GPU step's numbers from it.
 pub fn chunk_stream(seed: u64, step: u64, chunk: usize) -> Rng {
     Rng::stream(seed, (step << 20) | chunk as u64)
 }
 
-/// The jitters the CPU trainer draws for a batch (per ray: the proposal edges', then the
-/// resampling's), chunk by chunk from [`chunk_stream`]: within a chunk first one proposal
-/// jitter per ray, then one resampling jitter per ray.
-pub fn jitters(rays: &[TimedRay], chunk: usize, seed: u64, step: u64) -> Vec<(f32, f32)> {
+/// The random numbers the CPU trainer draws for a batch, chunk by chunk from [`chunk_stream`]:
+/// per ray the proposal edges' jitter and the resampling's (within a chunk first one proposal
+/// jitter per ray, then one resampling jitter per ray), then, when `free_space`, one
+/// free-space point per ray (`msth_core::pipeline::free_space_point`; empty otherwise).
+pub fn host_draws(
+    rays: &[TimedRay],
+    chunk: usize,
+    seed: u64,
+    step: u64,
+    free_space: bool,
+) -> (Vec<(f32, f32)>, Vec<[f32; 4]>) {
     let chunk = chunk.max(1);
-    let mut out = Vec::with_capacity(rays.len());
+    let mut jitters = Vec::with_capacity(rays.len());
+    let mut points = Vec::new();
     for (c, part) in rays.chunks(chunk).enumerate() {
         let mut rng = chunk_stream(seed, step, c);
         let first: Vec<f32> = part.iter().map(|_| rng.f32()).collect();
-        out.extend(first.into_iter().map(|p| (p, rng.f32())));
+        jitters.extend(first.into_iter().map(|p| (p, rng.f32())));
+        if free_space {
+            points.extend(part.iter().map(|_| free_space_point(&mut rng)));
+        }
     }
-    out
+    (jitters, points)
 }

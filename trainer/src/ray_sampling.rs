@@ -42,7 +42,8 @@ use crate::dataset::{Dataset, View};
 #[serde(rename_all = "snake_case")]
 pub enum SamplingMode {
     /// A random view, then a random pixel (the default of settings written before the
-    /// samplers existed; `msth train`'s presets use [`SamplingMode::Dynamics`]).
+    /// samplers existed; `msth train`'s presets use it on forward-facing captures and
+    /// [`SamplingMode::Dynamics`] on object-centred scenes: `crate::train::default_sampling_mode`).
     #[default]
     Uniform,
     /// The paper: `P(r) ∝ exp(std_t / tau1)`, `P(t | r) ∝ exp(|C - median| / tau2)`.

@@ -17,6 +17,7 @@ use msth_core::pipeline::{
     train_chunk_with, AuxStep, ChunkLosses, StepSettings, TimedRay, Workspace,
 };
 use msth_core::rng::Rng;
+use msth_core::scene::SceneBounds;
 use msth_core::uncertainty::{AuxLayout, InvalidMaskLearning, MaskLearningConfig};
 use msth_core::Camera;
 use msth_gpu::adam::{AdamHyper, MaskSlice};
@@ -87,6 +88,10 @@ pub struct TrainSettings {
     /// (docs/convergence.md: one seed in three loses that race on a stage). 1: the common rate.
     #[serde(default = "one")]
     pub proposal_lr_scale: f32,
+    /// Weight of the free-space loss (`StepSettings::free_space_weight`): random points of the
+    /// volume pulled empty, so space no training ray sees holds no density; 0: off.
+    #[serde(default)]
+    pub free_space_weight: f32,
     pub model: ModelConfig,
     /// Where the steps run (`msth train --device`): not a setting of the model or the run, so
     /// not saved with it (a checkpoint resumes on either device).
@@ -94,10 +99,27 @@ pub struct TrainSettings {
     pub device: TrainDevice,
 }
 
-/// The shortest proposal annealing of the presets above `fast` (`anneal_steps`): steps, not a
-/// share of `--iters`, because the race it settles (the proposal following the field's
+/// The shortest proposal annealing of the presets (`anneal_steps`; all but `fast` on an
+/// object-centred scene): steps, not a share of `--iters`, because the race it settles (the proposal following the field's
 /// surfaces) is run in the first few hundred steps whatever the run's length.
 pub const MIN_ANNEAL_STEPS: usize = 2000;
+
+/// The presets' ray sampler for a scene's bounds.
+///
+/// - An object-centred scene (a box; cameras around it): the paper's dynamics-aware sampler,
+///   the ablation's choice on the built-in scene (docs/mask-learning.md; monocular data falls
+///   back to uniform with a note).
+/// - A forward-facing capture (contracted bounds; cameras on one side, as in Plenoptic Video
+///   and the stages): uniform. There the dynamics-aware sampler fits the 4D part hardest where
+///   a shallow arc of cameras constrains depth least: on `box_animated_stage` one seed in three
+///   drew the moving box as ghosts only a new view sees (26.45 dB), while the uniform sampler
+///   converged on all three (30.40, 31.50, 31.53 dB; docs/convergence.md, 2026-11-27).
+pub fn default_sampling_mode(bounds: &SceneBounds) -> SamplingMode {
+    match bounds {
+        SceneBounds::Box { .. } => SamplingMode::Dynamics,
+        SceneBounds::Contracted { .. } => SamplingMode::Uniform,
+    }
+}
 
 /// Default of [`TrainSettings::mask_lr_scale`] (issue #16's measurements).
 pub const DEFAULT_MASK_LR_SCALE: f32 = 10.0;
@@ -156,11 +178,12 @@ impl TrainSettings {
             distortion_weight: 2e-3,
             mask_loss_weight: 1e-2,
             // A quarter of the preset's run, as the MSTH release (5000 of 20,000 steps), but at
-            // least MIN_ANNEAL_STEPS above the fast preset (docs/convergence.md, 2026-11-27:
-            // on a stage, annealing over 1000 steps let the proposal lose its race with the field
-            // in one seed of three; over 2000, three of three converged).
-            anneal_steps: match preset {
-                Preset::Fast => (iters / 4).max(1),
+            // least MIN_ANNEAL_STEPS, except for the fast preset on an object-centred scene (the
+            // demo's; docs/convergence.md, 2026-11-27: on a stage, annealing over 1000 steps let
+            // the proposal lose its race with the field in one seed of three, over 2000 three of
+            // three converged; the fast preset there went from 16.60 to 23.06 dB).
+            anneal_steps: match (preset, model.bounds) {
+                (Preset::Fast, SceneBounds::Box { .. }) => (iters / 4).max(1),
                 _ => (iters / 4).max(MIN_ANNEAL_STEPS),
             },
             checkpoint_every: 1000,
@@ -170,10 +193,8 @@ impl TrainSettings {
             pixel_jitter: false,
             mask_learning: MaskLearningConfig::default(),
             scene_scale: 1.0,
-            // The ablation's choice (docs/mask-learning.md): the paper's dynamics-aware sampler
-            // (monocular data falls back to uniform with a note).
             sampling: SamplingConfig {
-                mode: SamplingMode::Dynamics,
+                mode: default_sampling_mode(&model.bounds),
                 ..SamplingConfig::default()
             },
             // The mask decides (docs/mask-learning.md, "The mask decides", issue #16): a logit
@@ -183,6 +204,7 @@ impl TrainSettings {
             mask_lr_scale: DEFAULT_MASK_LR_SCALE,
             sample_mask_weight: DEFAULT_SAMPLE_MASK_WEIGHT,
             proposal_lr_scale: 1.0,
+            free_space_weight: 0.0,
             model,
             device: TrainDevice::Cpu,
         }
@@ -262,6 +284,7 @@ impl TrainSettings {
             ("mask_lr_scale", self.mask_lr_scale),
             ("sample_mask_weight", self.sample_mask_weight),
             ("proposal_lr_scale", self.proposal_lr_scale),
+            ("free_space_weight", self.free_space_weight),
         ] {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(SettingsError::Invalid(format!(
@@ -366,6 +389,8 @@ pub struct LossTerms {
     pub interlevel: f32,
     pub distortion: f32,
     pub mask: f32,
+    /// The free-space loss (0 when off).
+    pub free_space: f32,
 }
 
 #[derive(Clone, Debug)]
@@ -599,6 +624,7 @@ impl Trainer {
             distortion_weight: s.distortion_weight,
             loss_scale: 1.0 / rays.max(1) as f32,
             sample_mask_weight: s.sample_mask_weight,
+            free_space_weight: s.free_space_weight,
         }
     }
 
@@ -619,7 +645,13 @@ impl Trainer {
         let step_settings = self.step_settings(rays.len());
         let lr = self.learning_rate();
         let s = &self.settings;
-        let jitters = device::jitters(rays, s.chunk_rays, s.seed, self.step as u64);
+        let (jitters, free_points) = device::host_draws(
+            rays,
+            s.chunk_rays,
+            s.seed,
+            self.step as u64,
+            step_settings.free_space_weight != 0.0,
+        );
         let slices: Vec<MaskSlice> = self
             .slices
             .iter()
@@ -642,6 +674,7 @@ impl Trainer {
             targets,
             backgrounds,
             jitters: Some(&jitters),
+            free_points: Some(&free_points),
         };
         let run = |g: &mut GpuTraining| -> Result<ChunkLosses, GpuError> {
             g.step
@@ -925,8 +958,9 @@ pub fn train(
             distortion: (trainer.settings.distortion_weight as f64 * per_ray(l.distortion)) as f32,
             mask: (per_ray(l.sample_mask) + mask_learning_loss(&trainer.settings.mask_learning, &l))
                 as f32,
+            free_space: per_ray(l.free_space) as f32,
         };
-        let loss = terms.rgb + terms.interlevel + terms.distortion + terms.mask;
+        let loss = terms.rgb + terms.interlevel + terms.distortion + terms.mask + terms.free_space;
         if !loss.is_finite() {
             return Err(TrainError::Diverged {
                 step: trainer.step,
@@ -1032,6 +1066,37 @@ mod tests {
     fn settings() -> TrainSettings {
         let model = ModelConfig::fast_on_white(10);
         TrainSettings::for_model(Preset::Fast, model)
+    }
+
+    /// The presets sample forward-facing captures (contracted bounds) uniformly and
+    /// object-centred scenes (boxes) with the paper's dynamics-aware sampler, in every preset;
+    /// `--set sampling.mode` still overrides either. Every preset anneals over at least
+    /// `MIN_ANNEAL_STEPS` on a forward-facing capture; `fast` on an object over a quarter of
+    /// its run.
+    #[test]
+    fn the_presets_follow_the_scene_bounds() {
+        let stage = SceneBounds::Contracted {
+            center: glam::Vec3::ZERO,
+            radius: 4.0,
+        };
+        let bg = Background::Color { rgb: [0.0; 3] };
+        for preset in [Preset::Fast, Preset::Balanced, Preset::Paper] {
+            let object = ModelConfig::preset(preset, SceneBounds::dnerf_default(), bg, 10);
+            let s = TrainSettings::for_model(preset, object);
+            assert_eq!(s.sampling.mode, SamplingMode::Dynamics, "{preset:?}");
+            if preset == Preset::Fast {
+                assert_eq!(s.anneal_steps, s.iters / 4);
+            } else {
+                assert!(s.anneal_steps >= MIN_ANNEAL_STEPS);
+            }
+            let forward = ModelConfig::preset(preset, stage, bg, 10);
+            let mut s = TrainSettings::for_model(preset, forward);
+            assert_eq!(s.sampling.mode, SamplingMode::Uniform, "{preset:?}");
+            assert!(s.anneal_steps >= MIN_ANNEAL_STEPS, "{preset:?}");
+            s.apply_overrides(None, &["sampling.mode=dynamics".into()])
+                .unwrap();
+            assert_eq!(s.sampling.mode, SamplingMode::Dynamics);
+        }
     }
 
     #[test]

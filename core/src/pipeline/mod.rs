@@ -51,7 +51,18 @@ pub struct StepSettings {
     /// `w_i` held constant): pushes the mask toward static where rays see matter, scaled like
     /// the image loss, so a voxel stays dynamic only where the 4D grid pays for itself. 0: off.
     pub sample_mask_weight: f32,
+    /// Weight of the free-space loss: at one random point of the unit cube and clip per ray,
+    /// the main field's opacity over a step of [`FREE_SPACE_STEP`] of the scene's diagonal,
+    /// `mean_j (1 - exp(-sigma_j delta))`, scaled like the image loss. Space no training ray
+    /// constrains (behind walls, inside objects, floaters only a held-out view would see) is
+    /// pulled empty; where rays see matter the image loss outweighs it. 0: off.
+    pub free_space_weight: f32,
 }
+
+/// The free-space loss's step `delta` as a share of the diagonal of the scene's extent (the
+/// uncontracted cube of a contracted scene): 1/128, about half a cell of the export's 64^3
+/// occupancy grid, so the loss acts on the opacities the occupancy test reads.
+pub const FREE_SPACE_STEP: f32 = 1.0 / 128.0;
 
 /// Loss sums of one chunk (divide by the batch's ray count for means).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -62,6 +73,9 @@ pub struct ChunkLosses {
     pub distortion: f64,
     /// Sum over rays of the per-sample mask loss, its weight included.
     pub sample_mask: f64,
+    /// Sum over the chunk's free-space points (one per ray) of their opacity, its weight
+    /// included (0 when off).
+    pub free_space: f64,
     /// Sum over rays of the uncertainty loss `L_u` (mask learning; 0 when off).
     pub uncertainty: f64,
     /// Sum over chunks of the MINE estimate `I(m, u)` times the chunk's ray count (0 when off).
@@ -77,6 +91,7 @@ impl std::ops::AddAssign for ChunkLosses {
         self.interlevel += o.interlevel;
         self.distortion += o.distortion;
         self.sample_mask += o.sample_mask;
+        self.free_space += o.free_space;
         self.uncertainty += o.uncertainty;
         self.mine += o.mine;
         self.rays += o.rays;
@@ -151,6 +166,10 @@ pub struct Workspace {
     d_u_ray: Vec<f32>,
     perm: Vec<usize>,
     mine: MineScratch,
+    // The free-space loss (training only, empty otherwise).
+    free: FieldScratch,
+    pts_free: Vec<f32>,
+    d_sigma_free: Vec<f32>,
 }
 
 /// Samples whose transmittance has fallen below this get no colour evaluation: their weight,
@@ -169,4 +188,4 @@ pub use forward::{composite_ray, render_chunk};
 pub use playback::{playback_partition, KeepPoint, Partition};
 pub use sampling::{direction_encodings, ray_limits, sample_time, spacing_unit};
 use sampling::{place_proposal_samples, place_samples};
-pub use train::{train_chunk, train_chunk_with, AuxStep};
+pub use train::{free_space_point, train_chunk, train_chunk_with, AuxStep};

@@ -215,6 +215,7 @@ fn full_step(rays: usize, sample_mask_weight: f32) -> StepSettings {
         distortion_weight: 0.01,
         loss_scale: 1.0 / rays as f32,
         sample_mask_weight,
+        free_space_weight: 0.0,
     }
 }
 
@@ -366,6 +367,71 @@ fn sample_mask_loss_matches_finite_differences() {
     fd.largest(&p, mask, |i| (g_on[i] - g_off[i]) as f64, term);
 }
 
+/// The free-space loss: its value is the opacity over `FREE_SPACE_STEP` of the diagonal at
+/// points drawn after the forward pass (so the image terms are unchanged), its gradient matches
+/// finite differences, it reaches only the main field, and weight 0 is the plain step.
+#[test]
+fn free_space_loss_matches_finite_differences() {
+    let cfg = tiny_cfg();
+    let layout = ModelLayout::new(&cfg);
+    let mut p = perturbed_params(&layout);
+    // Density well inside the loss's range: raise the density MLP's output so that
+    // sigma * delta is of order one at the random points.
+    for v in &mut p[layout.field.density.1.clone()] {
+        *v *= 3.0;
+    }
+    let (rays, tg) = rays();
+    let lam = 0.7f32;
+    let run = |q: &[f32], lam: f32| {
+        let mut step = full_step(rays.len(), 0.0);
+        step.free_space_weight = lam;
+        let mut g = vec![0f32; q.len()];
+        let l = train_chunk(
+            &cfg,
+            &layout,
+            q,
+            &mut g,
+            &rays,
+            &tg,
+            None,
+            &step,
+            &mut Rng::new(5),
+            &mut Workspace::default(),
+        );
+        (l, g)
+    };
+    let (l_on, g_on) = run(&p, lam);
+    let (l_off, g_off) = run(&p, 0.0);
+    assert_eq!(l_off.free_space, 0.0);
+    assert_eq!(l_on.sq_err, l_off.sq_err);
+    assert_eq!(l_on.interlevel, l_off.interlevel);
+    assert!(
+        l_on.free_space > 1e-3 * lam as f64 * rays.len() as f64,
+        "the points must see density: {}",
+        l_on.free_space
+    );
+    for e in &layout.params.entries {
+        if !e.name.starts_with("field") {
+            for i in e.range() {
+                assert_eq!(g_on[i], g_off[i], "{} moved", e.name);
+            }
+        }
+    }
+    let scale = 1.0 / rays.len() as f64;
+    let term = |q: &[f32]| run(q, lam).0.free_space * scale;
+    let fd = FdCheck {
+        count: 6,
+        h: 1e-2,
+        tol_abs: 1e-6,
+        tol_rel: 2e-2,
+        min_grad: 1e-5,
+    };
+    for name in ["field.h3", "field.h4", "field.density_mlp", "field.mask"] {
+        let e = layout.params.get(name).unwrap();
+        fd.largest(&p, e.range(), |i| (g_on[i] - g_off[i]) as f64, term);
+    }
+}
+
 /// The whole step with mask learning at its extremes (uncertainty logits at +-60, so `u` at
 /// its floor or huge; MINE weights scaled up until its statistics saturate; `u_min = 0`):
 /// finite losses and gradients.
@@ -409,6 +475,7 @@ fn mask_learning_off_is_the_plain_step() {
         distortion_weight: 0.01,
         loss_scale: 0.25,
         sample_mask_weight: 0.0,
+        free_space_weight: 0.0,
     };
     let mc = MaskLearningConfig::default();
     let al = AuxLayout::new(&mc);

@@ -354,5 +354,59 @@ pub fn train_chunk_with(
             }
         }
     }
+    if step.free_space_weight > 0.0 && n > 0 {
+        out.free_space = free_space(cfg, layout, params, grad, n, step, rng, ws);
+    }
     out
+}
+
+/// One point of the free-space loss: `(x, y, z, t)` uniform over the grids' unit cube and the
+/// clip (a GPU step draws its points with this from the chunk's stream, after the jitters).
+pub fn free_space_point(rng: &mut Rng) -> [f32; 4] {
+    [rng.f32(), rng.f32(), rng.f32(), sample_time(rng.f32())]
+}
+
+/// The free-space loss of one chunk ([`StepSettings::free_space_weight`]): `n` points drawn
+/// uniformly over the grids' unit cube and the clip, the main field's density there, and its
+/// gradient into `grad`. Returns the chunk's loss sum, its weight included.
+#[allow(clippy::too_many_arguments)]
+fn free_space(
+    cfg: &ModelConfig,
+    layout: &ModelLayout,
+    params: &[f32],
+    grad: &mut [f32],
+    n: usize,
+    step: &StepSettings,
+    rng: &mut Rng,
+    ws: &mut Workspace,
+) -> f64 {
+    let (lo, hi) = cfg.bounds.extent();
+    let delta = (hi - lo).length() * FREE_SPACE_STEP;
+    ws.pts_free.clear();
+    for _ in 0..n {
+        ws.pts_free.extend_from_slice(&free_space_point(rng));
+    }
+    ws.free.enc.static_cutoff = 0.0;
+    ws.free.enc.d_m_extra.clear();
+    layout
+        .field
+        .forward_density(params, &ws.pts_free, n, &mut ws.free);
+    let lam = step.free_space_weight;
+    let g = lam * step.loss_scale * delta;
+    ws.d_sigma_free.clear();
+    let mut sum = 0f64;
+    for &sigma in &ws.free.sigma[..n] {
+        let e = (-sigma * delta).exp();
+        sum += (1.0 - e) as f64;
+        ws.d_sigma_free.push(g * e);
+    }
+    layout.field.backward_density(
+        params,
+        &ws.pts_free,
+        n,
+        &mut ws.free,
+        &ws.d_sigma_free,
+        grad,
+    );
+    sum * lam as f64
 }
