@@ -37,6 +37,31 @@ fn rays() -> (Vec<TimedRay>, Vec<[f32; 3]>) {
     (rays, tg)
 }
 
+/// One chunk of the training step over `rays` with the random stream every test here uses:
+/// its losses and its gradient.
+fn chunk(
+    cfg: &ModelConfig,
+    layout: &ModelLayout,
+    p: &[f32],
+    (rays, tg): (&[TimedRay], &[[f32; 3]]),
+    step: &StepSettings,
+) -> (ChunkLosses, Vec<f32>) {
+    let mut g = vec![0f32; p.len()];
+    let l = train_chunk(
+        cfg,
+        layout,
+        p,
+        &mut g,
+        rays,
+        tg,
+        None,
+        step,
+        &mut Rng::new(5),
+        &mut Workspace::default(),
+    );
+    (l, g)
+}
+
 /// The full training loss (colour + distortion + interlevel with weights) differentiated by
 /// finite differences, with fixed sample positions (same rng stream for every evaluation).
 /// Only parameters whose gradient does not move sample positions are exact: the main field's
@@ -51,37 +76,11 @@ fn train_chunk_gradient_matches_finite_differences_for_main_field() {
     let (rays, tg) = rays();
     let step = full_step(rays.len(), 0.0);
     let total = |p: &[f32]| -> f64 {
-        let mut ws = Workspace::default();
-        let mut g = vec![0f32; p.len()];
-        let l = train_chunk(
-            &cfg,
-            &layout,
-            p,
-            &mut g,
-            &rays,
-            &tg,
-            None,
-            &step,
-            &mut Rng::new(5),
-            &mut ws,
-        );
+        let (l, _) = chunk(&cfg, &layout, p, (&rays, &tg), &step);
         // only the terms that depend on the main field
         (l.sq_err + step.distortion_weight as f64 * l.distortion) / rays.len() as f64
     };
-    let mut ws = Workspace::default();
-    let mut grad = vec![0f32; p.len()];
-    train_chunk(
-        &cfg,
-        &layout,
-        &p,
-        &mut grad,
-        &rays,
-        &tg,
-        None,
-        &step,
-        &mut Rng::new(5),
-        &mut ws,
-    );
+    let (_, grad) = chunk(&cfg, &layout, &p, (&rays, &tg), &step);
     let mut checked = 0;
     for e in layout
         .params
@@ -385,20 +384,7 @@ fn free_space_loss_matches_finite_differences() {
     let run = |q: &[f32], lam: f32| {
         let mut step = full_step(rays.len(), 0.0);
         step.free_space_weight = lam;
-        let mut g = vec![0f32; q.len()];
-        let l = train_chunk(
-            &cfg,
-            &layout,
-            q,
-            &mut g,
-            &rays,
-            &tg,
-            None,
-            &step,
-            &mut Rng::new(5),
-            &mut Workspace::default(),
-        );
-        (l, g)
+        chunk(&cfg, &layout, q, (&rays, &tg), &step)
     };
     let (l_on, g_on) = run(&p, lam);
     let (l_off, g_off) = run(&p, 0.0);
