@@ -16,8 +16,9 @@
 //! 4. the main field (grids, mask, blend, MLPs, SH: [`GpuField`]) at the new samples;
 //! 5. compositing over the background (one colour, one per ray, or the last sample's), colours
 //!    behind the CPU's `HIDDEN_TRANSMITTANCE` hidden as the CPU hides them;
-//! 6. the losses: colour, distortion, per-sample mask, and the interlevel loss into the
-//!    proposal's weights;
+//! 6. the losses: colour, distortion, per-sample mask, the interlevel loss into the proposal's
+//!    weights, and the free-space loss (the main field's density at the host's random points,
+//!    [`HostBatch::free_points`]) when its weight is not 0;
 //! 7. both compositing backwards, then both fields' backwards, every gradient added into one
 //!    flat buffer in the parameter layout;
 //! 8. Adam ([`crate::adam`]) with the trainer's scaled slices (mask loss fused).

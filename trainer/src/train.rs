@@ -100,8 +100,9 @@ pub struct TrainSettings {
 }
 
 /// The shortest proposal annealing of the presets (`anneal_steps`; all but `fast` on an
-/// object-centred scene): steps, not a share of `--iters`, because the race it settles (the proposal following the field's
-/// surfaces) is run in the first few hundred steps whatever the run's length.
+/// object-centred scene): steps, not a share of `--iters`, because the race it settles (the
+/// proposal following the field's surfaces) is run in the first few hundred steps whatever the
+/// run's length.
 pub const MIN_ANNEAL_STEPS: usize = 2000;
 
 /// The presets' ray sampler for a scene's bounds.
