@@ -110,24 +110,18 @@ impl GpuField {
         })
     }
 
-    /// A field that has only a density (the proposal field: its density MLP's one output is
-    /// sigma, there are no geometry features and no colour). [`GpuField::forward`] and
-    /// [`GpuField::backward`] then run the density part only.
+    /// A field evaluated for its density alone: the proposal field (one output, sigma), or a
+    /// main field at points where only sigma matters (the free-space loss's). The forward
+    /// stops after the density MLP, and the backward takes `d_sigma` with no gradient into the
+    /// geometry features; there is no colour.
     pub fn density_only(layout: &FieldLayout) -> Result<Self, GpuError> {
-        if layout.geo_features != 0 || layout.density.0.output_dim() != 1 {
+        if layout.density.0.output_dim() != 1 + layout.geo_features {
             return Err(GpuError::Input(format!(
-                "a density-only field has one density output and no geometry features, not {} and {}",
+                "a density MLP of {} outputs for sigma and {} geometry features",
                 layout.density.0.output_dim(),
                 layout.geo_features
             )));
         }
-        Self::build(layout, false)
-    }
-
-    /// A main field evaluated for its density alone (the free-space loss's points): the
-    /// forward stops after the density MLP (sigma and the unused geometry features), and the
-    /// backward takes `d_sigma` with no gradient into the geometry features.
-    pub fn density_of(layout: &FieldLayout) -> Result<Self, GpuError> {
         Self::build(layout, false)
     }
 

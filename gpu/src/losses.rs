@@ -181,7 +181,6 @@ impl FreeSpaceKernel {
     /// For `n` points whose density MLP output rows (`stride` floats, sigma first) are in
     /// `density`: `d_sigma = weight * scale * delta * exp(-sigma delta)` and each point's
     /// `weight * (1 - exp(-sigma delta))` in `loss` (`msth_core::pipeline`'s free-space loss).
-    #[allow(clippy::too_many_arguments)]
     pub fn run(
         &self,
         dev: &ComputeDevice,

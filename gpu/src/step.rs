@@ -31,7 +31,7 @@
 use msth_core::config::{Background, ModelConfig};
 use msth_core::field::ModelLayout;
 use msth_core::pipeline::{
-    ChunkLosses, StepSettings, TimedRay, FREE_SPACE_STEP, HIDDEN_TRANSMITTANCE,
+    free_space_delta, ChunkLosses, StepSettings, TimedRay, HIDDEN_TRANSMITTANCE,
 };
 
 use crate::adam::{AdamHyper, AdamKernel, GpuAdam, MaskSlice};
@@ -224,7 +224,7 @@ impl GpuStep {
         }
         let main = GpuField::new(&layout.field)?;
         let prop = GpuField::density_only(&layout.proposal.field)?;
-        let free = GpuField::density_of(&layout.field)?;
+        let free = GpuField::density_only(&layout.field)?;
         let k = StepKernels::new(dev, AtomicMode::best(dev))?;
         let adam = match adam {
             Some((m, v, step)) => GpuAdam::with_state(dev, &m, &v, step)?,
@@ -605,8 +605,7 @@ impl GpuStep {
                 n,
                 &self.free_bufs,
             )?;
-            let (lo, hi) = cfg.bounds.extent();
-            let delta = (hi - lo).length() * FREE_SPACE_STEP;
+            let delta = free_space_delta(&cfg.bounds);
             let stride = self.free.layout().density.0.output_dim();
             k.free_space.run(
                 dev,

@@ -188,4 +188,4 @@ pub use forward::{composite_ray, render_chunk};
 pub use playback::{playback_partition, KeepPoint, Partition};
 pub use sampling::{direction_encodings, ray_limits, sample_time, spacing_unit};
 use sampling::{place_proposal_samples, place_samples};
-pub use train::{free_space_point, train_chunk, train_chunk_with, AuxStep};
+pub use train::{free_space_delta, free_space_point, train_chunk, train_chunk_with, AuxStep};

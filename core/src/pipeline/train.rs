@@ -366,6 +366,13 @@ pub fn free_space_point(rng: &mut Rng) -> [f32; 4] {
     [rng.f32(), rng.f32(), rng.f32(), sample_time(rng.f32())]
 }
 
+/// The free-space loss's step `delta` in world units: [`FREE_SPACE_STEP`] of the diagonal of
+/// the scene's extent (the uncontracted cube of a contracted scene).
+pub fn free_space_delta(bounds: &SceneBounds) -> f32 {
+    let (lo, hi) = bounds.extent();
+    (hi - lo).length() * FREE_SPACE_STEP
+}
+
 /// The free-space loss of one chunk ([`StepSettings::free_space_weight`]): `n` points drawn
 /// uniformly over the grids' unit cube and the clip, the main field's density there, and its
 /// gradient into `grad`. Returns the chunk's loss sum, its weight included.
@@ -380,8 +387,7 @@ fn free_space(
     rng: &mut Rng,
     ws: &mut Workspace,
 ) -> f64 {
-    let (lo, hi) = cfg.bounds.extent();
-    let delta = (hi - lo).length() * FREE_SPACE_STEP;
+    let delta = free_space_delta(&cfg.bounds);
     ws.pts_free.clear();
     for _ in 0..n {
         ws.pts_free.extend_from_slice(&free_space_point(rng));
