@@ -486,15 +486,27 @@ pub fn render(a: RenderArgs) -> Result<()> {
     );
     if a.extras {
         let stem = a.output.with_extension("");
-        let maxd = r.depth.iter().cloned().fold(1e-6f32, f32::max);
-        let depth: Vec<f32> = r.depth.iter().flat_map(|d| colormap(d / maxd)).collect();
+        // The colour scale ends at the 98th percentile: a few rays that see through to the far
+        // plane (thousands of units on a contracted scene) would otherwise make the rest black.
+        let mut sorted: Vec<f32> = r.depth.iter().copied().filter(|d| d.is_finite()).collect();
+        sorted.sort_by(f32::total_cmp);
+        let maxd = sorted
+            .get((sorted.len() * 98 / 100).min(sorted.len().saturating_sub(1)))
+            .copied()
+            .unwrap_or(1.0)
+            .max(1e-6);
+        let depth: Vec<f32> = r
+            .depth
+            .iter()
+            .flat_map(|d| colormap((d / maxd).min(1.0)))
+            .collect();
         let mask: Vec<f32> = r.mask.iter().flat_map(|m| colormap(1.0 - m)).collect();
         let dp = PathBuf::from(format!("{}_depth.png", stem.display()));
         let mp = PathBuf::from(format!("{}_dynamic.png", stem.display()));
         save_png_atomic(&dp, &Image8::from_f32(r.width, r.height, &depth))?;
         save_png_atomic(&mp, &Image8::from_f32(r.width, r.height, &mask))?;
         println!(
-            "depth: {}\ndynamic weight (1 - mask, bright = dynamic): {}",
+            "depth (0 to {maxd:.3} scene units, the 98th percentile): {}\ndynamic weight (1 - mask, bright = dynamic): {}",
             dp.display(),
             mp.display()
         );

@@ -20,6 +20,9 @@
 
 use serde::{Deserialize, Serialize};
 
+#[cfg(target_arch = "x86_64")]
+mod simd;
+
 /// Calls the local macro `$go!(D, F)` with the grid's dimension and features as constants.
 macro_rules! dispatch_shape {
     ($dims:expr, $features:expr, $go:ident) => {
@@ -320,10 +323,12 @@ impl GridLayout {
         let n = points.len() / point_stride;
         assert!(out.len() >= n * out_stride && out_offset + self.output_dim() <= out_stride);
         assert!(table.len() >= self.num_params);
+        let simd = simd_available();
         macro_rules! go {
             ($d:literal, $f:literal) => {
                 for (l, level) in self.levels.iter().enumerate() {
                     encode_level::<$d, $f>(
+                        simd,
                         self,
                         level,
                         &table[level.offset..level.offset + level.rows * $f],
@@ -351,10 +356,12 @@ impl GridLayout {
         grad_table: &mut [f32],
     ) {
         assert!(grad_table.len() >= self.num_params);
+        let simd = simd_available();
         macro_rules! go {
             ($d:literal, $f:literal) => {
                 for (l, level) in self.levels.iter().enumerate() {
                     backward_level::<$d, $f>(
+                        simd,
                         self,
                         level,
                         &mut grad_table[level.offset..level.offset + level.rows * $f],
@@ -433,8 +440,153 @@ fn corners<const D: usize, const DENSE: bool>(
     }
 }
 
+/// Whether the AVX2 kernels of `grid/simd.rs` run on this CPU.
+fn simd_available() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    return simd::available();
+    #[cfg(not(target_arch = "x86_64"))]
+    false
+}
+
+/// One hashed level pass for the AVX2 kernels of `grid/simd.rs`: a 3D level, a 4D level, or a
+/// pair of both (same table size and spatial scales, see [`pairable`]).
+#[derive(Clone, Copy)]
+enum Pass<'a> {
+    /// A 3D level.
+    Three(&'a LevelLayout),
+    /// A 4D level.
+    Four(&'a LevelLayout),
+    /// A 3D level and the 4D level with its spatial scales.
+    Pair(&'a LevelLayout, &'a LevelLayout),
+}
+
+impl<'a> Pass<'a> {
+    /// The level whose `x, y, z` scales make the corners, and the one whose `t` scale does.
+    fn levels(self) -> (&'a LevelLayout, Option<&'a LevelLayout>) {
+        match self {
+            Pass::Three(l) => (l, None),
+            Pass::Four(l) => (l, Some(l)),
+            Pass::Pair(l3, l4) => (l3, Some(l4)),
+        }
+    }
+}
+
+/// The AVX2 forward of the full eight-point blocks of a hashed level pass with two features
+/// (`table3` / `out3` for the 3D level, `table4` / `out4` for the 4D one; the other pair is
+/// unused). Returns how many leading points it encoded, 0 where the kernels do not apply; the
+/// caller's scalar kernel does the rest.
+#[allow(clippy::too_many_arguments)]
+fn simd_encode(
+    simd: bool,
+    layout: &GridLayout,
+    pass: Pass,
+    table3: &[f32],
+    table4: &[f32],
+    points: &[f32],
+    point_stride: usize,
+    out3: &mut [f32],
+    out4: &mut [f32],
+    out_stride: usize,
+    out_offset: usize,
+) -> usize {
+    #[cfg(target_arch = "x86_64")]
+    {
+        let mask = (layout.table_size - 1) as u32;
+        let (spatial, t_level) = pass.levels();
+        let (t3, t4) = match pass {
+            Pass::Three(_) => (Some(table3), None),
+            Pass::Four(_) => (None, Some(table4)),
+            Pass::Pair(..) => (Some(table3), Some(table4)),
+        };
+        let fits = t3.is_none_or(|t| simd::rows_fit(mask, t.len()))
+            && t4.is_none_or(|t| simd::rows_fit(mask, t.len()));
+        let dense = spatial.dense || t_level.is_some_and(|l| l.dense);
+        let dims = if t_level.is_some() { 4 } else { 3 };
+        if simd && layout.features == 2 && !dense && fits && point_stride >= dims {
+            // SAFETY: `simd` comes from `simd_available`, every masked row fits the tables, and
+            // `t_level` comes with `t4`.
+            return unsafe {
+                simd::encode_level(
+                    mask,
+                    spatial,
+                    t_level,
+                    t3,
+                    t4,
+                    points,
+                    point_stride,
+                    out3,
+                    out4,
+                    out_stride,
+                    out_offset,
+                )
+            };
+        }
+    }
+    let _ = (simd, layout, pass, table3, table4, points, point_stride);
+    let _ = (out3, out4, out_stride, out_offset);
+    0
+}
+
+/// The backward counterpart of [`simd_encode`]: scatters the full blocks, returns how many
+/// leading points it visited.
+#[allow(clippy::too_many_arguments)]
+fn simd_backward(
+    simd: bool,
+    layout: &GridLayout,
+    pass: Pass,
+    grad3: &mut [f32],
+    grad4: &mut [f32],
+    points: &[f32],
+    point_stride: usize,
+    d3: &[f32],
+    d4: &[f32],
+    d_stride: usize,
+    d_offset: usize,
+) -> usize {
+    #[cfg(target_arch = "x86_64")]
+    {
+        let mask = (layout.table_size - 1) as u32;
+        let (spatial, t_level) = pass.levels();
+        let (g3, g4) = match pass {
+            Pass::Three(_) => (Some(grad3), None),
+            Pass::Four(_) => (None, Some(grad4)),
+            Pass::Pair(..) => (Some(grad3), Some(grad4)),
+        };
+        let fits = g3.as_ref().is_none_or(|g| simd::rows_fit(mask, g.len()))
+            && g4.as_ref().is_none_or(|g| simd::rows_fit(mask, g.len()));
+        let dense = spatial.dense || t_level.is_some_and(|l| l.dense);
+        let dims = if t_level.is_some() { 4 } else { 3 };
+        if simd && layout.features == 2 && !dense && fits && point_stride >= dims {
+            // SAFETY: `simd` comes from `simd_available`, so the CPU has AVX2.
+            return unsafe {
+                simd::backward_level(
+                    mask,
+                    spatial,
+                    t_level,
+                    g3,
+                    g4,
+                    points,
+                    point_stride,
+                    d3,
+                    d4,
+                    d_stride,
+                    d_offset,
+                )
+            };
+        }
+        return 0;
+    }
+    #[allow(unreachable_code)]
+    {
+        let _ = (simd, layout, pass, grad3, grad4, points, point_stride);
+        let _ = (d3, d4, d_stride, d_offset);
+        0
+    }
+}
+
 #[allow(clippy::too_many_arguments)]
 fn encode_level<const D: usize, const F: usize>(
+    simd: bool,
     layout: &GridLayout,
     level: &LevelLayout,
     table: &[f32],
@@ -444,6 +596,51 @@ fn encode_level<const D: usize, const F: usize>(
     out_stride: usize,
     out_offset: usize,
 ) {
+    let (o, ps) = (out_offset, point_stride);
+    let done = if D == 3 {
+        let pass = Pass::Three(level);
+        simd_encode(
+            simd,
+            layout,
+            pass,
+            table,
+            &[],
+            points,
+            ps,
+            out,
+            &mut [],
+            out_stride,
+            o,
+        )
+    } else {
+        let pass = Pass::Four(level);
+        simd_encode(
+            simd,
+            layout,
+            pass,
+            &[],
+            table,
+            points,
+            ps,
+            &mut [],
+            out,
+            out_stride,
+            o,
+        )
+    };
+    if done > 0 {
+        return encode_level::<D, F>(
+            false,
+            layout,
+            level,
+            table,
+            &points[done * point_stride..],
+            point_stride,
+            &mut out[done * out_stride..],
+            out_stride,
+            out_offset,
+        );
+    }
     if level.dense {
         encode_level_impl::<D, F, true>(
             layout,
@@ -594,6 +791,7 @@ fn encode_level_impl<const D: usize, const F: usize, const DENSE: bool>(
 
 #[allow(clippy::too_many_arguments)]
 fn backward_level<const D: usize, const F: usize>(
+    simd: bool,
     layout: &GridLayout,
     level: &LevelLayout,
     grad: &mut [f32],
@@ -603,6 +801,51 @@ fn backward_level<const D: usize, const F: usize>(
     d_stride: usize,
     d_offset: usize,
 ) {
+    let (o, ps) = (d_offset, point_stride);
+    let done = if D == 3 {
+        let pass = Pass::Three(level);
+        simd_backward(
+            simd,
+            layout,
+            pass,
+            grad,
+            &mut [],
+            points,
+            ps,
+            d_out,
+            &[],
+            d_stride,
+            o,
+        )
+    } else {
+        let pass = Pass::Four(level);
+        simd_backward(
+            simd,
+            layout,
+            pass,
+            &mut [],
+            grad,
+            points,
+            ps,
+            &[],
+            d_out,
+            d_stride,
+            o,
+        )
+    };
+    if done > 0 {
+        return backward_level::<D, F>(
+            false,
+            layout,
+            level,
+            grad,
+            &points[done * point_stride..],
+            point_stride,
+            &d_out[(done * d_stride).min(d_out.len())..],
+            d_stride,
+            d_offset,
+        );
+    }
     if level.dense {
         backward_level_impl::<D, F, true>(
             layout,
@@ -737,6 +980,37 @@ pub fn encode_pair(
     out_stride: usize,
     out_offset: usize,
 ) {
+    let simd = simd_available();
+    encode_pair_with(
+        simd,
+        g3,
+        table3,
+        g4,
+        table4,
+        points,
+        point_stride,
+        out3,
+        out4,
+        out_stride,
+        out_offset,
+    )
+}
+
+/// [`encode_pair`] with the AVX2 kernels on (where the CPU has them) or off.
+#[allow(clippy::too_many_arguments)]
+fn encode_pair_with(
+    simd: bool,
+    g3: &GridLayout,
+    table3: &[f32],
+    g4: &GridLayout,
+    table4: &[f32],
+    points: &[f32],
+    point_stride: usize,
+    out3: &mut [f32],
+    out4: &mut [f32],
+    out_stride: usize,
+    out_offset: usize,
+) {
     assert!(pairable(g3, g4) && point_stride >= 4);
     let n = points.len() / point_stride;
     assert!(out3.len() >= n * out_stride && out4.len() >= n * out_stride);
@@ -749,11 +1023,11 @@ pub fn encode_pair(
                 let t4 = &table4[l4.offset..l4.offset + l4.rows * $f];
                 let off = out_offset + l * $f;
                 if !l3.dense && !l4.dense {
-                    encode_pair_level::<$f>(
+                    let done = simd_encode(
+                        simd,
                         g3,
-                        l3,
+                        Pass::Pair(l3, l4),
                         t3,
-                        l4,
                         t4,
                         points,
                         point_stride,
@@ -762,9 +1036,24 @@ pub fn encode_pair(
                         out_stride,
                         off,
                     );
+                    let o = done * out_stride;
+                    encode_pair_level::<$f>(
+                        g3,
+                        l3,
+                        t3,
+                        l4,
+                        t4,
+                        &points[done * point_stride..],
+                        point_stride,
+                        &mut out3[o..],
+                        &mut out4[o..],
+                        out_stride,
+                        off,
+                    );
                 } else {
-                    encode_level::<3, $f>(g3, l3, t3, points, point_stride, out3, out_stride, off);
-                    encode_level::<4, $f>(g4, l4, t4, points, point_stride, out4, out_stride, off);
+                    let (p, ps) = (points, point_stride);
+                    encode_level::<3, $f>(simd, g3, l3, t3, p, ps, out3, out_stride, off);
+                    encode_level::<4, $f>(simd, g4, l4, t4, p, ps, out4, out_stride, off);
                 }
             }
         };
@@ -793,6 +1082,37 @@ pub fn backward_pair(
     grad3: &mut [f32],
     grad4: &mut [f32],
 ) {
+    let simd = simd_available();
+    backward_pair_with(
+        simd,
+        g3,
+        g4,
+        points,
+        point_stride,
+        d3,
+        d4,
+        d_stride,
+        d_offset,
+        grad3,
+        grad4,
+    )
+}
+
+/// [`backward_pair`] with the AVX2 kernels on (where the CPU has them) or off.
+#[allow(clippy::too_many_arguments)]
+fn backward_pair_with(
+    simd: bool,
+    g3: &GridLayout,
+    g4: &GridLayout,
+    points: &[f32],
+    point_stride: usize,
+    d3: &[f32],
+    d4: &[f32],
+    d_stride: usize,
+    d_offset: usize,
+    grad3: &mut [f32],
+    grad4: &mut [f32],
+) {
     assert!(pairable(g3, g4) && point_stride >= 4);
     assert!(grad3.len() >= g3.num_params && grad4.len() >= g4.num_params);
     macro_rules! go {
@@ -802,11 +1122,11 @@ pub fn backward_pair(
                 let r4 = &mut grad4[l4.offset..l4.offset + l4.rows * $f];
                 let off = d_offset + l * $f;
                 if !l3.dense && !l4.dense {
-                    backward_pair_level::<$f>(
+                    let done = simd_backward(
+                        simd,
                         g3,
-                        l3,
+                        Pass::Pair(l3, l4),
                         r3,
-                        l4,
                         r4,
                         points,
                         point_stride,
@@ -815,9 +1135,24 @@ pub fn backward_pair(
                         d_stride,
                         off,
                     );
+                    let o = (done * d_stride).min(d3.len().min(d4.len()));
+                    backward_pair_level::<$f>(
+                        g3,
+                        l3,
+                        r3,
+                        l4,
+                        r4,
+                        &points[done * point_stride..],
+                        point_stride,
+                        &d3[o..],
+                        &d4[o..],
+                        d_stride,
+                        off,
+                    );
                 } else {
-                    backward_level::<3, $f>(g3, l3, r3, points, point_stride, d3, d_stride, off);
-                    backward_level::<4, $f>(g4, l4, r4, points, point_stride, d4, d_stride, off);
+                    let (p, ps) = (points, point_stride);
+                    backward_level::<3, $f>(simd, g3, l3, r3, p, ps, d3, d_stride, off);
+                    backward_level::<4, $f>(simd, g4, l4, r4, p, ps, d4, d_stride, off);
                 }
             }
         };
@@ -1260,6 +1595,68 @@ mod tests {
             &GridLayout::new(&cfg(3, 6, 9, 2)),
             &GridLayout::new(&c4)
         ));
+    }
+
+    /// The AVX2 kernels (`grid/simd.rs`) give the scalar kernels' bits, forward and backward, on
+    /// paired, 3D-only and 4D-only levels (the scalar pair equals the scalar separate passes, see
+    /// `pair_matches_separate_passes_exactly`): full blocks and a tail, NaN and out-of-range coordinates, zero
+    /// gradients on some points, point strides of 4 and 5, tables of 2^6 to 2^15 rows.
+    #[test]
+    fn simd_matches_scalar_exactly() {
+        if !simd_available() {
+            eprintln!("skipped: this CPU has no AVX2");
+            return;
+        }
+        let mut rng = Rng::new(5);
+        for (log2, n, ps) in [(6, 77, 4), (12, 64, 4), (15, 203, 5), (9, 5, 4)] {
+            let (g3, g4) = (
+                GridLayout::new(&cfg(3, 8, log2, 2)),
+                GridLayout::new(&cfg(4, 8, log2, 2)),
+            );
+            assert!(g3.levels.iter().any(|l| !l.dense) || log2 > 12);
+            let t3: Vec<f32> = (0..g3.num_params)
+                .map(|_| rng.range_f32(-1.0, 1.0))
+                .collect();
+            let t4: Vec<f32> = (0..g4.num_params)
+                .map(|_| rng.range_f32(-1.0, 1.0))
+                .collect();
+            let mut pts: Vec<f32> = (0..n * ps).map(|_| rng.range_f32(-0.2, 1.2)).collect();
+            pts[1] = f32::NAN;
+            pts[ps + 3] = f32::INFINITY;
+            pts[2 * ps] = -0.0;
+            let e = g3.output_dim() + 1;
+            let run = |simd: bool| {
+                let (mut o3, mut o4) = (vec![0f32; n * e], vec![0f32; n * e]);
+                encode_pair_with(simd, &g3, &t3, &g4, &t4, &pts, ps, &mut o3, &mut o4, e, 1);
+                (o3, o4)
+            };
+            let (scalar, fast) = (run(false), run(true));
+            assert_eq!(scalar, fast, "pair forward, 2^{log2} rows, {n} points");
+            let mut only3 = vec![0f32; n * e];
+            g3.encode(&t3, &pts, ps, &mut only3, e, 1);
+            assert_eq!(scalar.0, only3, "3D forward, 2^{log2} rows, {n} points");
+            let mut only4 = vec![0f32; n * e];
+            g4.encode(&t4, &pts, ps, &mut only4, e, 1);
+            assert_eq!(scalar.1, only4, "4D forward, 2^{log2} rows, {n} points");
+
+            let mut d3: Vec<f32> = (0..n * e).map(|_| rng.range_f32(-1.0, 1.0)).collect();
+            let mut d4: Vec<f32> = (0..n * e).map(|_| rng.range_f32(-1.0, 1.0)).collect();
+            d3[..3 * e].fill(0.0);
+            d4[2 * e..(5 * e).min(n * e)].fill(0.0);
+            let run = |simd: bool| {
+                let (mut s3, mut s4) = (vec![0f32; g3.num_params], vec![0f32; g4.num_params]);
+                backward_pair_with(simd, &g3, &g4, &pts, ps, &d3, &d4, e, 1, &mut s3, &mut s4);
+                (s3, s4)
+            };
+            let (scalar, fast) = (run(false), run(true));
+            assert_eq!(scalar, fast, "pair backward, 2^{log2} rows, {n} points");
+            let mut only3 = vec![0f32; g3.num_params];
+            g3.backward(&pts, ps, &d3, e, 1, &mut only3);
+            assert_eq!(scalar.0, only3, "3D backward, 2^{log2} rows, {n} points");
+            let mut only4 = vec![0f32; g4.num_params];
+            g4.backward(&pts, ps, &d4, e, 1, &mut only4);
+            assert_eq!(scalar.1, only4, "4D backward, 2^{log2} rows, {n} points");
+        }
     }
 
     /// The encoding is linear in the table, so the finite-difference check of the table gradient

@@ -401,6 +401,21 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset, DatasetError> {
             })
         }
     };
+    if let (Format::DNerf, Some(n)) = (format, opts.test_camera) {
+        let also = if dir.join("poses_bounds.npy").is_file() {
+            "; this folder also has poses_bounds.npy: add --format dynerf to read it as DyNeRF"
+        } else {
+            ""
+        };
+        return Err(DatasetError::Invalid {
+            path: dir.to_path_buf(),
+            message: format!(
+                "a held-out camera ({n}) was asked for, but this folder is read as D-NeRF JSON, \
+                 whose held-out views are transforms_test.json (--test-camera applies to DyNeRF \
+                 and multi-camera nerfstudio layouts){also}"
+            ),
+        });
+    }
     let json_opts = dnerf::LoadOptions {
         downscale: opts.downscale,
         bounds: opts.bounds,

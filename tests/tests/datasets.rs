@@ -139,6 +139,33 @@ fn stage_dynerf_cameras_equal_the_json_cameras() {
         }
         other => panic!("{other:?}"),
     }
+    // Both layouts in one folder: detection reads the JSON, which has no held-out camera to
+    // choose, so `--test-camera` is refused (it was silently ignored) and points to the DyNeRF
+    // reading, which takes it.
+    let out = tempfile::tempdir().unwrap();
+    let (d, o) = (dir.to_str().unwrap(), out.path().to_str().unwrap());
+    let e = msth(&[
+        "train",
+        d,
+        "--out",
+        o,
+        "--print-settings",
+        "--test-camera",
+        "1",
+    ])
+    .unwrap_err();
+    assert!(
+        e.contains("D-NeRF JSON") && e.contains("--format dynerf"),
+        "{e}"
+    );
+    let args = [
+        "--print-settings",
+        "--test-camera",
+        "1",
+        "--format",
+        "dynerf",
+    ];
+    msth(&[&["train", d, "--out", o][..], &args[..]].concat()).unwrap();
 }
 
 /// PSNR in dB between two 8-bit images.
