@@ -240,6 +240,22 @@ pub fn train(a: TrainArgs) -> Result<Option<Metrics>> {
         settings.model.sampler.num_proposal_samples,
         settings.model.sampler.num_samples
     );
+    println!(
+        "schedule: {:?} ray sampling, proposal annealing over {} steps{}{}",
+        settings.sampling.mode,
+        settings.anneal_steps,
+        match settings.level_ramp_steps {
+            0 => String::new(),
+            n => format!(
+                ", coarse-to-fine over {n} steps (from {:.0}% of the levels)",
+                100.0 * settings.level_ramp_start
+            ),
+        },
+        match settings.free_space_weight {
+            w if w > 0.0 => format!(", free-space loss {w}"),
+            _ => String::new(),
+        }
+    );
     let pb = progress_bar(settings.iters);
     let stride = settings.eval_stride;
     let (trainer, outcome) =

@@ -25,6 +25,12 @@ pub struct EncodingLayout {
     pub out_dim: usize,
 }
 
+/// The coarse-to-fine factor of level `level` when `active` levels are on:
+/// `clamp(active - level, 0, 1)` (1 for every level once `active` reaches the level count).
+pub fn level_factor(active: f32, level: usize) -> f32 {
+    (active - level as f32).clamp(0.0, 1.0)
+}
+
 /// Scratch buffers of one encoding pass.
 #[derive(Clone, Debug, Default)]
 pub struct EncodingScratch {
@@ -40,6 +46,11 @@ pub struct EncodingScratch {
     /// Training only: an extra `dL/dm` per point added in [`EncodingLayout::backward`] (the
     /// mutual-information term of mask learning); empty, the default, adds nothing.
     pub d_m_extra: Vec<f32>,
+    /// Training only: the coarse-to-fine factor of [`crate::pipeline::StepSettings::active_levels`];
+    /// `None`, the default, leaves every level on.
+    pub active_levels: Option<f32>,
+    /// `d_enc` scaled by the level factors (backward under `active_levels`).
+    d_enc_ramped: Vec<f32>,
     d_h3: Vec<f32>,
     d_h4: Vec<f32>,
     /// Points that get a 4D lookup under `static_cutoff`, and their packed inputs and outputs.
@@ -168,6 +179,26 @@ impl EncodingLayout {
                 self.forward_dynamic(params, points, n, s);
             }
         }
+        if let Some(active) = self.ramp(s) {
+            let f = self.features_per_level();
+            for row in s.enc[..n * e].chunks_exact_mut(e) {
+                for (k, v) in row.iter_mut().enumerate() {
+                    *v *= level_factor(active, k / f);
+                }
+            }
+        }
+    }
+
+    /// Features per level (of either grid: the blends need the same).
+    fn features_per_level(&self) -> usize {
+        let g = self.h3.as_ref().or(self.h4.as_ref());
+        g.map(|(g, _)| g.features).unwrap_or(1).max(1)
+    }
+
+    /// `s.active_levels` where it turns some level down (below the level count), else `None`.
+    fn ramp(&self, s: &EncodingScratch) -> Option<f32> {
+        let levels = (self.out_dim / self.features_per_level()) as f32;
+        s.active_levels.filter(|&a| a < levels)
     }
 
     /// The part of the encoding that does not depend on time: `s.h3` and the mask values `s.m`
@@ -296,6 +327,21 @@ impl EncodingLayout {
         grad: &mut [f32],
     ) {
         let e = self.out_dim;
+        let mut ramped = std::mem::take(&mut s.d_enc_ramped);
+        let d_enc = match self.ramp(s) {
+            Some(active) => {
+                let f = self.features_per_level();
+                ramped.clear();
+                ramped.extend(
+                    d_enc[..n * e]
+                        .iter()
+                        .enumerate()
+                        .map(|(k, &d)| d * level_factor(active, (k % e) / f)),
+                );
+                &ramped[..]
+            }
+            None => d_enc,
+        };
         let (use3, use4) = (self.h3.is_some(), self.h4.is_some());
         if use3 {
             s.d_h3.resize(n * e, 0.0);
@@ -374,6 +420,7 @@ impl EncodingLayout {
                 }
             }
         }
+        s.d_enc_ramped = ramped;
     }
 }
 

@@ -469,6 +469,24 @@ impl<'a> Pass<'a> {
             Pass::Pair(l3, l4) => (l3, Some(l4)),
         }
     }
+
+    /// `three` and `four` where the pass reads or writes the 3D and the 4D level.
+    fn sides<T>(self, three: T, four: T) -> (Option<T>, Option<T>) {
+        match self {
+            Pass::Three(_) => (Some(three), None),
+            Pass::Four(_) => (None, Some(four)),
+            Pass::Pair(..) => (Some(three), Some(four)),
+        }
+    }
+
+    /// Whether the AVX2 kernels take this pass (`simd`: the CPU has them): two features per
+    /// row, hashed levels, points with the pass's axes.
+    fn simd_applies(self, simd: bool, layout: &GridLayout, point_stride: usize) -> bool {
+        let (spatial, t_level) = self.levels();
+        let dense = spatial.dense || t_level.is_some_and(|l| l.dense);
+        let dims = if t_level.is_some() { 4 } else { 3 };
+        simd && layout.features == 2 && !dense && point_stride >= dims
+    }
 }
 
 /// The AVX2 forward of the full eight-point blocks of a hashed level pass with two features
@@ -493,16 +511,10 @@ fn simd_encode(
     {
         let mask = (layout.table_size - 1) as u32;
         let (spatial, t_level) = pass.levels();
-        let (t3, t4) = match pass {
-            Pass::Three(_) => (Some(table3), None),
-            Pass::Four(_) => (None, Some(table4)),
-            Pass::Pair(..) => (Some(table3), Some(table4)),
-        };
+        let (t3, t4) = pass.sides(table3, table4);
         let fits = t3.is_none_or(|t| simd::rows_fit(mask, t.len()))
             && t4.is_none_or(|t| simd::rows_fit(mask, t.len()));
-        let dense = spatial.dense || t_level.is_some_and(|l| l.dense);
-        let dims = if t_level.is_some() { 4 } else { 3 };
-        if simd && layout.features == 2 && !dense && fits && point_stride >= dims {
+        if fits && pass.simd_applies(simd, layout, point_stride) {
             // SAFETY: `simd` comes from `simd_available`, every masked row fits the tables, and
             // `t_level` comes with `t4`.
             return unsafe {
@@ -552,17 +564,11 @@ fn simd_backward(
     {
         let mask = (layout.table_size - 1) as u32;
         let (spatial, t_level) = pass.levels();
-        let (g3, g4) = match pass {
-            Pass::Three(_) => (Some(grad3), None),
-            Pass::Four(_) => (None, Some(grad4)),
-            Pass::Pair(..) => (Some(grad3), Some(grad4)),
-        };
+        let (g3, g4) = pass.sides(grad3, grad4);
         let fits = layout.table_size <= SIMD_SCATTER_MAX_ROWS
             && g3.as_ref().is_none_or(|g| simd::rows_fit(mask, g.len()))
             && g4.as_ref().is_none_or(|g| simd::rows_fit(mask, g.len()));
-        let dense = spatial.dense || t_level.is_some_and(|l| l.dense);
-        let dims = if t_level.is_some() { 4 } else { 3 };
-        if simd && layout.features == 2 && !dense && fits && point_stride >= dims {
+        if fits && pass.simd_applies(simd, layout, point_stride) {
             // SAFETY: `simd` comes from `simd_available`, so the CPU has AVX2.
             return unsafe {
                 simd::backward_level(

@@ -899,6 +899,7 @@ mod pipeline {
             loss_scale: 1.0 / rays.len() as f32,
             sample_mask_weight: 0.0,
             free_space_weight: 0.0,
+            active_levels: None,
         };
         let l = train_chunk(
             cfg,
@@ -1150,6 +1151,7 @@ mod pipeline {
             loss_scale: 1.0 / rays.len() as f32,
             sample_mask_weight: 0.0,
             free_space_weight: 0.0,
+            active_levels: None,
         };
         let run = |p: &[f32], grad: &mut [f32]| {
             let l = train_chunk(

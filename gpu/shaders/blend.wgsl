@@ -10,6 +10,9 @@ struct Blend {
     run: vec4<u32>,
     // x, y: the per-mode constants of a(m) = x0 + x1 m, b(m) = y0 + y1 m as (a0, a1, b0, b1).
     coef: vec4<f32>,
+    // Coarse-to-fine (`msth_core::field::level_factor`): x active levels, y features per level,
+    // z level count; features are scaled only while x < z.
+    ramp: vec4<f32>,
 }
 
 @group(0) @binding(0) var<uniform> bl: Blend;
@@ -24,4 +27,13 @@ fn sample_of(gid: vec3<u32>, groups: vec3<u32>) -> u32 {
 // (a, b) at m: a = 1 exactly where the mode's a is 1 (Mt, Add, Static), as the CPU's `h3 + ..`.
 fn coefficients(m: f32) -> vec2<f32> {
     return vec2<f32>(bl.coef.x + bl.coef.y * m, bl.coef.z + bl.coef.w * m);
+}
+
+// The coarse-to-fine factor of feature `j` of a sample: clamp(active - level, 0, 1).
+fn level_factor(j: u32) -> f32 {
+    if bl.ramp.x >= bl.ramp.z {
+        return 1.0;
+    }
+    let level = f32(j / u32(bl.ramp.y));
+    return clamp(bl.ramp.x - level, 0.0, 1.0);
 }

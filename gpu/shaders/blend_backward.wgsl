@@ -18,7 +18,7 @@ fn blend_backward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wo
     let ab = coefficients(m);
     var dm = 0.0;
     for (var k = i * e; k < (i + 1u) * e; k++) {
-        let d = d_enc[k];
+        let d = d_enc[k] * level_factor(k - i * e);
         if (bl.run.z & 1u) != 0u {
             d_h3[k] = ab.x * d;
             if bl.coef.y != 0.0 {

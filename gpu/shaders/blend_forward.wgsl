@@ -18,6 +18,6 @@ fn blend_forward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wor
         if (bl.run.z & 2u) != 0u {
             v += ab.y * h4[k];
         }
-        enc[k] = v;
+        enc[k] = v * level_factor(k - i * e);
     }
 }

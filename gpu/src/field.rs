@@ -51,6 +51,9 @@ pub struct GpuField {
     density: GpuMlp,
     /// None for a density-only field (the proposal's).
     colour: Option<GpuMlp>,
+    /// The coarse-to-fine factor of the next passes (`StepSettings::active_levels`); `None`
+    /// leaves every level on.
+    pub active_levels: Option<f32>,
 }
 
 /// Per-sample buffers of one batch of at most `capacity` samples: the forward's intermediates
@@ -107,6 +110,7 @@ impl GpuField {
                 None
             },
             layout: layout.clone(),
+            active_levels: None,
         })
     }
 
@@ -177,8 +181,15 @@ impl GpuField {
     }
 
     fn blend<'a>(&self, b: &'a FieldBuffers, n: usize) -> Blend<'a> {
+        let enc = &self.layout.encoding;
+        let per_level = enc
+            .h3
+            .as_ref()
+            .or(enc.h4.as_ref())
+            .map_or(1, |(g, _)| g.features);
         Blend {
             mode: self.layout.encoding.blend,
+            ramp: self.active_levels.map(|a| (a, per_level)),
             samples: n,
             features: self.layout.encoding.out_dim,
             h3: &b.h3,

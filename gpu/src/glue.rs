@@ -26,6 +26,7 @@ pub const COLUMNS_WGSL: &str = include_str!("../shaders/columns.wgsl");
 struct BlendU {
     run: [u32; 4],
     coef: [f32; 4],
+    ramp: [f32; 4],
 }
 
 #[repr(C)]
@@ -57,6 +58,9 @@ pub struct Columns {
 /// (`h3`/`h4` unread where the mode does not use the grid).
 pub struct Blend<'a> {
     pub mode: BlendMode,
+    /// Coarse-to-fine: `(active levels, features per level)`, level `l`'s features scaled by
+    /// `msth_core::field::level_factor` forward and backward; `None`: every level on.
+    pub ramp: Option<(f32, usize)>,
     pub samples: usize,
     pub features: usize,
     pub h3: &'a wgpu::Buffer,
@@ -123,9 +127,19 @@ impl GlueKernels {
         }
         need_floats("m", b.m, n as u64, n)?;
         let flags = mode.uses_h3() as u32 | (mode.uses_h4() as u32) << 1 | (extra as u32) << 2;
+        // (active levels, features per level, level count): the shader scales only while the
+        // first is below the last, as the CPU does (`EncodingLayout::forward`).
+        let ramp = match b.ramp {
+            Some((active, per_level)) if per_level > 0 && active.is_finite() => {
+                let levels = (features / per_level) as f32;
+                [active.min(levels), per_level as f32, levels, 0.0]
+            }
+            _ => [1.0, 1.0, 0.0, 0.0],
+        };
         Ok(BlendU {
             run: [n as u32, features as u32, flags, 0],
             coef: blend_coefficients(mode),
+            ramp,
         })
     }
 

@@ -381,6 +381,9 @@ impl GpuStep {
         batch: &HostBatch,
         step: &StepSettings,
     ) -> Result<(), GpuError> {
+        // The coarse-to-fine schedule acts on every evaluation of the main field's encoding.
+        self.main.active_levels = step.active_levels;
+        self.free.active_levels = step.active_levels;
         let n = batch.rays.len();
         let cfg = &self.cfg;
         let np = cfg.sampler.num_proposal_samples;

@@ -37,12 +37,12 @@ fn main() -> std::process::ExitCode {
         .needs(
             &[&gpu],
             "step_matches_the_cpu_step_in_a_box_on_random_backgrounds",
-            || step_matches_cpu(box_model(), true),
+            || step_matches_cpu(box_model(), true, false),
         )
         .needs(
             &[&gpu],
-            "step_matches_the_cpu_step_on_a_contracted_stage",
-            || step_matches_cpu(stage_model(), false),
+            "step_matches_the_cpu_step_on_a_contracted_stage_coarse_to_fine",
+            || step_matches_cpu(stage_model(), false, true),
         )
         .needs(
             &[&gpu],
@@ -101,7 +101,9 @@ fn rays(n: usize, rng: &mut Rng) -> Vec<TimedRay> {
         .collect()
 }
 
-fn step_matches_cpu(cfg: ModelConfig, random_backgrounds: bool) {
+/// One step on the device against the CPU step; `ramp`: with the coarse-to-fine factor at 60%
+/// of the main field's levels (one level partly on, the finer ones off).
+fn step_matches_cpu(cfg: ModelConfig, random_backgrounds: bool, ramp: bool) {
     let dev = device();
     let layout = ModelLayout::new(&cfg);
     let p = params(&cfg, 5);
@@ -118,6 +120,7 @@ fn step_matches_cpu(cfg: ModelConfig, random_backgrounds: bool) {
         loss_scale: 1.0 / n as f32,
         sample_mask_weight: 0.005,
         free_space_weight: 0.5,
+        active_levels: ramp.then_some(0.6 * cfg.field.encoding.grid3.levels as f32),
     };
 
     // The CPU step draws one proposal jitter per ray, then one resampling jitter per ray, then
@@ -225,6 +228,7 @@ fn step_bad_input_is_an_error() {
         loss_scale: 1.0 / 9.0,
         sample_mask_weight: 0.0,
         free_space_weight: 0.0,
+        active_levels: None,
     };
     let batch = |n: usize, m: usize| HostBatch {
         rays: &r[..n],
@@ -243,6 +247,7 @@ fn step_bad_input_is_an_error() {
     assert!(e.to_string().contains("need 4 targets"), "{e}");
     let free_space = StepSettings {
         free_space_weight: 0.1,
+        active_levels: None,
         ..settings
     };
     let e = step

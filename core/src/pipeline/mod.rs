@@ -57,6 +57,11 @@ pub struct StepSettings {
     /// constrains (behind walls, inside objects, floaters only a held-out view would see) is
     /// pulled empty; where rays see matter the image loss outweighs it. 0: off.
     pub free_space_weight: f32,
+    /// Coarse-to-fine over the main field's levels: with `Some(a)`, level `l`'s features (and
+    /// their gradients) are scaled by [`crate::field::level_factor`]`(a, l) = clamp(a - l, 0, 1)`,
+    /// so the first `a` levels are on, the next one partly, the finer ones off. `None` (and any
+    /// `a` at or above the level count) leaves the encoding as it is.
+    pub active_levels: Option<f32>,
 }
 
 /// The free-space loss's step `delta` as a share of the diagonal of the scene's extent (the

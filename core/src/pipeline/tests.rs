@@ -215,6 +215,7 @@ fn full_step(rays: usize, sample_mask_weight: f32) -> StepSettings {
         loss_scale: 1.0 / rays as f32,
         sample_mask_weight,
         free_space_weight: 0.0,
+        active_levels: None,
     }
 }
 
@@ -418,6 +419,66 @@ fn free_space_loss_matches_finite_differences() {
     }
 }
 
+/// Coarse-to-fine (`StepSettings::active_levels`): at 1.5 of the tiny model's 2 levels the
+/// gradient matches finite differences; at 1.0 the finer level's table rows get no gradient;
+/// at the level count the step is the plain one, bit for bit.
+#[test]
+fn level_ramp_matches_finite_differences() {
+    let cfg = tiny_cfg();
+    let layout = ModelLayout::new(&cfg);
+    let p = perturbed_params(&layout);
+    let (rays, tg) = rays();
+    let run = |q: &[f32], active: Option<f32>| {
+        let mut step = full_step(rays.len(), 0.0);
+        step.active_levels = active;
+        chunk(&cfg, &layout, q, (&rays, &tg), &step)
+    };
+    let levels = cfg.field.encoding.grid3.levels;
+    assert_eq!(levels, 2);
+    let (l_plain, g_plain) = run(&p, None);
+    let (l_all, g_all) = run(&p, Some(levels as f32));
+    assert_eq!(l_plain, l_all);
+    assert_eq!(g_plain, g_all);
+    // The finer level's rows of both grids: no gradient with one level on.
+    let (_, g_one) = run(&p, Some(1.0));
+    for (name, grid) in [
+        ("field.h3", &layout.field.encoding.h3),
+        ("field.h4", &layout.field.encoding.h4),
+    ] {
+        let (g, _) = grid.as_ref().unwrap();
+        let e = layout.params.get(name).unwrap();
+        let fine = &g.levels[1];
+        let rows = e.offset + fine.offset..e.offset + fine.offset + fine.rows * g.features;
+        assert!(
+            g_one[rows.clone()].iter().all(|&v| v == 0.0),
+            "{name}: level 1 moved"
+        );
+        assert!(
+            g_plain[rows].iter().any(|&v| v != 0.0),
+            "{name}: level 1 unused"
+        );
+    }
+    let (l_half, g_half) = run(&p, Some(1.5));
+    assert_ne!(l_half.sq_err, l_plain.sq_err);
+    let scale = 1.0 / rays.len() as f64;
+    let dw = full_step(rays.len(), 0.0).distortion_weight as f64;
+    let loss = |q: &[f32]| {
+        let l = run(q, Some(1.5)).0;
+        (l.sq_err + dw * l.distortion) * scale
+    };
+    let fd = FdCheck {
+        count: 5,
+        h: 2e-3,
+        tol_abs: 1e-4,
+        tol_rel: 5e-2,
+        min_grad: 1e-6,
+    };
+    for name in ["field.h3", "field.h4", "field.density_mlp", "field.mask"] {
+        let e = layout.params.get(name).unwrap();
+        fd.largest(&p, e.range(), |i| g_half[i] as f64, loss);
+    }
+}
+
 /// The whole step with mask learning at its extremes (uncertainty logits at +-60, so `u` at
 /// its floor or huge; MINE weights scaled up until its statistics saturate; `u_min = 0`):
 /// finite losses and gradients.
@@ -462,6 +523,7 @@ fn mask_learning_off_is_the_plain_step() {
         loss_scale: 0.25,
         sample_mask_weight: 0.0,
         free_space_weight: 0.0,
+        active_levels: None,
     };
     let mc = MaskLearningConfig::default();
     let al = AuxLayout::new(&mc);

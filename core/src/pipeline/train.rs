@@ -102,6 +102,10 @@ pub fn train_chunk_with(
     ws.prop.enc.static_cutoff = 0.0;
     ws.main.enc.static_cutoff = 0.0;
     ws.main.enc.d_m_extra.clear();
+    // The coarse-to-fine schedule acts on every evaluation of the main field's encoding.
+    for f in [&mut ws.main, &mut ws.stat, &mut ws.free] {
+        f.enc.active_levels = step.active_levels;
+    }
     forward_chunk(cfg, layout, params, rays, step.anneal, Some(rng), ws);
     let mut out = ChunkLosses {
         rays: n,
