@@ -135,8 +135,9 @@ pub fn default_sampling_mode(bounds: &SceneBounds) -> SamplingMode {
 /// forward-facing captures (contracted bounds) half the levels at first, all after 300 steps;
 /// off on object-centred scenes (not measured there). With the free-space loss
 /// ([`default_free_space_weight`]) it lifted a generated stage with finely textured walls from
-/// 22.40 to 25.08 dB held-out (docs/convergence.md, 2026-11-27, late): the ramp alone kept the
-/// walls' structure but left a haze of floaters, the free-space loss alone did not help.
+/// 19.06 to 22.60 dB held-out (mean of 3 seeds, each better) and cost `box_animated_stage`
+/// 0.97 dB (docs/convergence.md, 2026-11-27, late): the ramp alone kept the walls' structure
+/// but left a haze of floaters, the free-space loss alone did not help.
 pub fn default_level_ramp(bounds: &SceneBounds) -> (usize, f32) {
     match bounds {
         SceneBounds::Box { .. } => (0, 1.0),
