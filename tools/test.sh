@@ -14,7 +14,8 @@
 #   4. `cargo test --workspace --release --no-fail-fast` with MSTH_REQUIRE_ALL=1: a test whose
 #      need (GPU adapter, browser, ffmpeg, colmap, curl, font, shared data) is missing fails
 #      instead of being reported as ignored (testkit/src/lib.rs). Without ../shared/data
-#      beside the repository, MSTH_REQUIRE_DATA=0: those tests show as ignored.
+#      beside the repository, MSTH_REQUIRE_DATA=0: those tests show as ignored; so does the
+#      AVX2 kernel test on a CPU without AVX2 (MSTH_REQUIRE_AVX2=0).
 #
 # Usage: tools/test.sh [--no-install] [--no-lint] [-- ARGS for cargo test]
 #   --no-install   skip steps 1-2 (no root; what is missing then fails the run)
@@ -71,6 +72,9 @@ fi
 
 # Every need required: a missing one fails its tests instead of skipping them.
 export MSTH_REQUIRE_ALL=${MSTH_REQUIRE_ALL:-1}
+# AVX2 is the CPU's, not something step 1 can install: without it the comparison of the AVX2
+# hash-grid kernels with the scalar ones (core/tests/grid_simd.rs) shows as ignored.
+export MSTH_REQUIRE_AVX2=${MSTH_REQUIRE_AVX2:-0}
 if [ ! -d ../shared/data ] && [ -z "${MSTH_REQUIRE_DATA:-}" ]; then
   echo "note: no ../shared/data beside the repository: the tests that read it will show as ignored"
   export MSTH_REQUIRE_DATA=0

@@ -16,7 +16,9 @@
 //!
 //! [`GridLayout::encode_point_reference`] / [`GridLayout::backward_point_reference`] are the plain
 //! references; [`GridLayout::encode`] / [`GridLayout::backward`] are the batched, level-major fast
-//! paths (const-generic over dimension and features) that the trainer and player use.
+//! paths (const-generic over dimension and features) that the trainer and player use. On x86_64
+//! with AVX2, hashed levels with two features run eight points at a time (`grid/simd.rs`), with
+//! the scalar kernels' bits.
 
 use serde::{Deserialize, Serialize};
 
@@ -440,8 +442,9 @@ fn corners<const D: usize, const DENSE: bool>(
     }
 }
 
-/// Whether the AVX2 kernels of `grid/simd.rs` run on this CPU.
-fn simd_available() -> bool {
+/// Whether the AVX2 kernels of `grid/simd.rs` run on this CPU (x86_64 with AVX2, checked at run
+/// time); where they do not, every pass takes the scalar kernels.
+pub fn simd_available() -> bool {
     #[cfg(target_arch = "x86_64")]
     return simd::available();
     #[cfg(not(target_arch = "x86_64"))]
@@ -586,14 +589,10 @@ fn simd_backward(
                 )
             };
         }
-        return 0;
     }
-    #[allow(unreachable_code)]
-    {
-        let _ = (simd, layout, pass, grad3, grad4, points, point_stride);
-        let _ = (d3, d4, d_stride, d_offset);
-        0
-    }
+    let _ = (simd, layout, pass, points, point_stride);
+    let _ = (d3, d4, d_stride, d_offset);
+    0
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -1008,9 +1007,10 @@ pub fn encode_pair(
     )
 }
 
-/// [`encode_pair`] with the AVX2 kernels on (where the CPU has them) or off.
+/// [`encode_pair`] with the AVX2 kernels on (`simd`, where [`simd_available`]) or off: the
+/// same bits either way (`core/tests/grid_simd.rs`).
 #[allow(clippy::too_many_arguments)]
-fn encode_pair_with(
+pub fn encode_pair_with(
     simd: bool,
     g3: &GridLayout,
     table3: &[f32],
@@ -1110,9 +1110,10 @@ pub fn backward_pair(
     )
 }
 
-/// [`backward_pair`] with the AVX2 kernels on (where the CPU has them) or off.
+/// [`backward_pair`] with the AVX2 kernels on (`simd`, where [`simd_available`]) or off: the
+/// same sums either way.
 #[allow(clippy::too_many_arguments)]
-fn backward_pair_with(
+pub fn backward_pair_with(
     simd: bool,
     g3: &GridLayout,
     g4: &GridLayout,
@@ -1607,68 +1608,6 @@ mod tests {
             &GridLayout::new(&cfg(3, 6, 9, 2)),
             &GridLayout::new(&c4)
         ));
-    }
-
-    /// The AVX2 kernels (`grid/simd.rs`) give the scalar kernels' bits, forward and backward, on
-    /// paired, 3D-only and 4D-only levels (the scalar pair equals the scalar separate passes, see
-    /// `pair_matches_separate_passes_exactly`): full blocks and a tail, NaN and out-of-range coordinates, zero
-    /// gradients on some points, point strides of 4 and 5, tables of 2^6 to 2^15 rows.
-    #[test]
-    fn simd_matches_scalar_exactly() {
-        if !simd_available() {
-            eprintln!("skipped: this CPU has no AVX2");
-            return;
-        }
-        let mut rng = Rng::new(5);
-        for (log2, n, ps) in [(6, 77, 4), (12, 64, 4), (15, 203, 5), (9, 5, 4)] {
-            let (g3, g4) = (
-                GridLayout::new(&cfg(3, 8, log2, 2)),
-                GridLayout::new(&cfg(4, 8, log2, 2)),
-            );
-            assert!(g3.levels.iter().any(|l| !l.dense) || log2 > 12);
-            let t3: Vec<f32> = (0..g3.num_params)
-                .map(|_| rng.range_f32(-1.0, 1.0))
-                .collect();
-            let t4: Vec<f32> = (0..g4.num_params)
-                .map(|_| rng.range_f32(-1.0, 1.0))
-                .collect();
-            let mut pts: Vec<f32> = (0..n * ps).map(|_| rng.range_f32(-0.2, 1.2)).collect();
-            pts[1] = f32::NAN;
-            pts[ps + 3] = f32::INFINITY;
-            pts[2 * ps] = -0.0;
-            let e = g3.output_dim() + 1;
-            let run = |simd: bool| {
-                let (mut o3, mut o4) = (vec![0f32; n * e], vec![0f32; n * e]);
-                encode_pair_with(simd, &g3, &t3, &g4, &t4, &pts, ps, &mut o3, &mut o4, e, 1);
-                (o3, o4)
-            };
-            let (scalar, fast) = (run(false), run(true));
-            assert_eq!(scalar, fast, "pair forward, 2^{log2} rows, {n} points");
-            let mut only3 = vec![0f32; n * e];
-            g3.encode(&t3, &pts, ps, &mut only3, e, 1);
-            assert_eq!(scalar.0, only3, "3D forward, 2^{log2} rows, {n} points");
-            let mut only4 = vec![0f32; n * e];
-            g4.encode(&t4, &pts, ps, &mut only4, e, 1);
-            assert_eq!(scalar.1, only4, "4D forward, 2^{log2} rows, {n} points");
-
-            let mut d3: Vec<f32> = (0..n * e).map(|_| rng.range_f32(-1.0, 1.0)).collect();
-            let mut d4: Vec<f32> = (0..n * e).map(|_| rng.range_f32(-1.0, 1.0)).collect();
-            d3[..3 * e].fill(0.0);
-            d4[2 * e..(5 * e).min(n * e)].fill(0.0);
-            let run = |simd: bool| {
-                let (mut s3, mut s4) = (vec![0f32; g3.num_params], vec![0f32; g4.num_params]);
-                backward_pair_with(simd, &g3, &g4, &pts, ps, &d3, &d4, e, 1, &mut s3, &mut s4);
-                (s3, s4)
-            };
-            let (scalar, fast) = (run(false), run(true));
-            assert_eq!(scalar, fast, "pair backward, 2^{log2} rows, {n} points");
-            let mut only3 = vec![0f32; g3.num_params];
-            g3.backward(&pts, ps, &d3, e, 1, &mut only3);
-            assert_eq!(scalar.0, only3, "3D backward, 2^{log2} rows, {n} points");
-            let mut only4 = vec![0f32; g4.num_params];
-            g4.backward(&pts, ps, &d4, e, 1, &mut only4);
-            assert_eq!(scalar.1, only4, "4D backward, 2^{log2} rows, {n} points");
-        }
     }
 
     /// The encoding is linear in the table, so the finite-difference check of the table gradient

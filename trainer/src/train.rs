@@ -131,26 +131,33 @@ pub fn default_sampling_mode(bounds: &SceneBounds) -> SamplingMode {
     }
 }
 
-/// The default coarse-to-fine schedule, `(level_ramp_steps, level_ramp_start)`: on
-/// forward-facing captures (contracted bounds) half the levels at first, all after 300 steps;
-/// off on object-centred scenes (not measured there). With the free-space loss
-/// ([`default_free_space_weight`]) it lifted a generated stage with finely textured walls from
-/// 19.06 to 22.60 dB held-out (mean of 3 seeds, each better) and cost `box_animated_stage`
-/// 0.97 dB (docs/convergence.md, 2026-11-27, late): the ramp alone kept the walls' structure
-/// but left a haze of floaters, the free-space loss alone did not help.
-pub fn default_level_ramp(bounds: &SceneBounds) -> (usize, f32) {
-    match bounds {
-        SceneBounds::Box { .. } => (0, 1.0),
-        SceneBounds::Contracted { .. } => (300, 0.5),
-    }
+/// The priors against per-view overfitting that the presets set by the kind of scene
+/// (`TrainSettings::level_ramp_steps`, `level_ramp_start`, `free_space_weight`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ScenePriors {
+    pub level_ramp_steps: usize,
+    pub level_ramp_start: f32,
+    pub free_space_weight: f32,
 }
 
-/// The default free-space loss weight: `1e-3` on forward-facing captures (with the
-/// coarse-to-fine schedule of [`default_level_ramp`]), off on object-centred scenes.
-pub fn default_free_space_weight(bounds: &SceneBounds) -> f32 {
+/// On forward-facing captures (contracted bounds): coarse-to-fine from half the levels, all on
+/// after 300 steps, with the free-space loss at 1e-3; off on object-centred scenes (not measured
+/// there). Together they lifted a generated stage with finely textured walls from 19.06 to
+/// 22.60 dB held-out (mean of 3 seeds, each better) and cost `box_animated_stage` 0.97 dB
+/// (docs/convergence.md, 2026-11-27, late); the ramp alone kept the walls' structure but left a
+/// haze of floaters, the free-space loss alone did not help.
+pub fn default_priors(bounds: &SceneBounds) -> ScenePriors {
     match bounds {
-        SceneBounds::Box { .. } => 0.0,
-        SceneBounds::Contracted { .. } => 1e-3,
+        SceneBounds::Box { .. } => ScenePriors {
+            level_ramp_steps: 0,
+            level_ramp_start: 1.0,
+            free_space_weight: 0.0,
+        },
+        SceneBounds::Contracted { .. } => ScenePriors {
+            level_ramp_steps: 300,
+            level_ramp_start: 0.5,
+            free_space_weight: 1e-3,
+        },
     }
 }
 
@@ -200,6 +207,7 @@ impl TrainSettings {
             Preset::Quality => (10_000, 8192),
             Preset::Paper => (20_000, 16_384),
         };
+        let priors = default_priors(&model.bounds);
         TrainSettings {
             preset,
             iters,
@@ -237,9 +245,9 @@ impl TrainSettings {
             mask_lr_scale: DEFAULT_MASK_LR_SCALE,
             sample_mask_weight: DEFAULT_SAMPLE_MASK_WEIGHT,
             proposal_lr_scale: 1.0,
-            free_space_weight: default_free_space_weight(&model.bounds),
-            level_ramp_steps: default_level_ramp(&model.bounds).0,
-            level_ramp_start: default_level_ramp(&model.bounds).1,
+            free_space_weight: priors.free_space_weight,
+            level_ramp_steps: priors.level_ramp_steps,
+            level_ramp_start: priors.level_ramp_start,
             model,
             device: TrainDevice::Cpu,
         }

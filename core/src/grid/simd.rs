@@ -5,7 +5,7 @@
 //! They compute what the scalar kernels of `grid.rs` compute, to the bit: the same IEEE
 //! operations in the same order per point (multiplies and adds stay separate, as Rust never
 //! contracts them into FMAs), corners and points visited in the same order on the backward
-//! scatter. `grid::tests::simd_matches_scalar_exactly` checks it with `assert_eq!`. Used only
+//! scatter. `core/tests/grid_simd.rs` checks it with `assert_eq!`. Used only
 //! where the CPU has AVX2 (checked at run time) and every masked row lies inside the table.
 
 use std::arch::x86_64::*;
@@ -13,7 +13,7 @@ use std::arch::x86_64::*;
 use super::{clamp_unit, LevelLayout, PRIMES};
 
 /// Points per kernel block: one AVX2 lane each.
-pub(super) const LANES: usize = 8;
+const LANES: usize = 8;
 
 /// Whether this CPU runs these kernels (cached by the standard library).
 pub(super) fn available() -> bool {
