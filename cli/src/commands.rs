@@ -241,6 +241,16 @@ pub fn train(a: TrainArgs) -> Result<Option<Metrics>> {
         settings.model.sampler.num_samples
     );
     println!(
+        "rays: {:?} spacing from {:.3} to {:.0} world units{}",
+        settings.model.sampler.spacing,
+        settings.model.sampler.near,
+        settings.model.sampler.far,
+        match msth_trainer::train::capture_near(&data, &settings.model) {
+            Some(n) if n == settings.model.sampler.near => " (the capture's near bound)",
+            _ => "",
+        }
+    );
+    println!(
         "schedule: {:?} ray sampling, proposal annealing over {} steps{}{}",
         settings.sampling.mode,
         settings.anneal_steps,

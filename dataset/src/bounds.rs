@@ -1,8 +1,9 @@
 //! Scene bounds from camera rigs: the contraction around the point closest to all optical axes
 //! ([`contracted_bounds_from_cameras`], JSON datasets without a `scene_box`, `msth import`) and
-//! its forward-facing variant with LLFF near/far bounds ([`forward_facing_bounds`], DyNeRF).
+//! its forward-facing variant with LLFF near/far bounds ([`forward_facing_bounds`], DyNeRF), and
+//! the near bound of a JSON layout's cameras from LLFF rows beside it ([`near_from_llff_rows`]).
 
-use glam::{DMat3, DVec3, Vec3};
+use glam::{DMat3, DVec3, Mat4, Vec3};
 use msth_core::{Camera, SceneBounds};
 
 /// The point closest (least squares) to all cameras' optical axes, and the median camera distance
@@ -76,5 +77,78 @@ pub fn forward_facing_bounds(cameras: &[Camera], nears: &[f32], fars: &[f32]) ->
     SceneBounds::Contracted {
         center: mean_center + forward * mid,
         radius: mid,
+    }
+}
+
+/// The smallest near bound of the LLFF `rows` (camera-to-world pose, near, far) that describe
+/// `cameras`: `None` unless every camera has a row with the same centre (to 1e-4 of the rig's
+/// size) and the same viewing direction (to about 1 degree), so rows of another rig, or of the
+/// same rig in other units, are never used.
+pub fn near_from_llff_rows(cameras: &[Camera], rows: &[(Mat4, f32, f32)]) -> Option<f32> {
+    if cameras.is_empty() || rows.is_empty() {
+        return None;
+    }
+    let size = cameras
+        .iter()
+        .map(|c| c.center().abs().max_element())
+        .fold(1.0f32, f32::max);
+    let tolerance = 1e-4 * size;
+    let mut near = f32::INFINITY;
+    for c in cameras {
+        let forward = -c.world_from_camera.z_axis.truncate().normalize_or_zero();
+        let matched = rows.iter().find(|(pose, n, _)| {
+            let row_forward = -pose.z_axis.truncate().normalize_or_zero();
+            (pose.w_axis.truncate() - c.center()).length() <= tolerance
+                && forward.dot(row_forward) > 0.9998
+                && n.is_finite()
+                && *n > 0.0
+        })?;
+        near = near.min(matched.1);
+    }
+    near.is_finite().then_some(near)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn camera_at(center: Vec3) -> Camera {
+        Camera::look_at(64, 48, 0.8, center, Vec3::ZERO, Vec3::Y)
+    }
+
+    #[test]
+    fn near_comes_only_from_rows_of_the_same_cameras() {
+        let cams = [
+            camera_at(Vec3::new(0.0, 0.0, 4.0)),
+            camera_at(Vec3::new(1.0, 0.0, 4.0)),
+        ];
+        let rows: Vec<(Mat4, f32, f32)> = cams
+            .iter()
+            .zip([2.5, 2.0])
+            .map(|(c, n)| (c.world_from_camera, n, 9.0))
+            .collect();
+        assert_eq!(near_from_llff_rows(&cams, &rows), Some(2.0));
+        // A row more than the rig allows: still found, extra rows are ignored.
+        let mut more = rows.clone();
+        more.push((Mat4::IDENTITY, 0.1, 1.0));
+        assert_eq!(near_from_llff_rows(&cams, &more), Some(2.0));
+        // The same rig in other units (twice as large): no match, no near.
+        let scaled: Vec<(Mat4, f32, f32)> = rows
+            .iter()
+            .map(|(p, n, f)| {
+                let mut p = *p;
+                p.w_axis = (p.w_axis.truncate() * 2.0).extend(1.0);
+                (p, n * 2.0, f * 2.0)
+            })
+            .collect();
+        assert_eq!(near_from_llff_rows(&cams, &scaled), None);
+        // One camera without a row: no near.
+        assert_eq!(near_from_llff_rows(&cams, &rows[..1]), None);
+        // Same centre, another direction: no match.
+        let turned: Vec<(Mat4, f32, f32)> = rows
+            .iter()
+            .map(|(p, n, f)| (*p * Mat4::from_rotation_y(0.5), *n, *f))
+            .collect();
+        assert_eq!(near_from_llff_rows(&cams, &turned), None);
     }
 }

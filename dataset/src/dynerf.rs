@@ -315,6 +315,29 @@ fn parse_row(path: &Path, i: usize, r: &[f64]) -> Result<Row, DatasetError> {
     })
 }
 
+/// The cameras of a `poses_bounds.npy` as OpenGL camera-to-world poses with their near and far
+/// bounds, in the file's own units (no normalisation).
+pub fn read_pose_bounds(path: &Path) -> Result<Vec<(Mat4, f32, f32)>, DatasetError> {
+    let arr = crate::npy::read(path)?;
+    if arr.shape.len() != 2 || arr.shape[1] != 17 || arr.shape[0] > MAX_CAMERAS {
+        return Err(bad(
+            path,
+            format!(
+                "shape {:?}: expected (N, 17) with N <= {MAX_CAMERAS}, one row per camera of a 3x5 [R | t | hwf] matrix then near, far",
+                arr.shape
+            ),
+        ));
+    }
+    arr.data
+        .chunks_exact(17)
+        .enumerate()
+        .map(|(i, r)| {
+            let row = parse_row(path, i, r)?;
+            Ok((row.pose, row.near as f32, row.far as f32))
+        })
+        .collect()
+}
+
 /// The LLFF normalisation of poses with the given near bounds (see the module docs).
 pub fn llff_normalization(poses: &[Mat4], nears: &[f32]) -> Similarity {
     let min_near = nears.iter().copied().fold(f32::INFINITY, f32::min);
@@ -773,6 +796,13 @@ pub fn load_with_rig(
         bounds,
         background: [1.0; 3],
         num_frames: rig.frames,
+        // Every camera's, the held-out one's too: it renders from the same sampler.
+        near: rig
+            .cameras
+            .iter()
+            .map(|c| c.near)
+            .reduce(f32::min)
+            .filter(|n| n.is_finite() && *n > 0.0),
     };
     Ok((dataset, rig, stored))
 }

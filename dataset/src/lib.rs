@@ -248,6 +248,10 @@ pub struct Dataset {
     pub background: [f32; 3],
     /// Number of distinct time steps in the training set.
     pub num_frames: usize,
+    /// The nearest any content is to a training camera, in world units, where the capture
+    /// states it (LLFF near bounds: DyNeRF's `poses_bounds.npy`, or one beside a JSON layout
+    /// with the same cameras, [`bounds::near_from_llff_rows`]). Rays start there.
+    pub near: Option<f32>,
 }
 
 impl Dataset {
@@ -258,6 +262,7 @@ impl Dataset {
             v.camera = scale_camera(v.camera, s);
         }
         self.bounds = self.bounds.scaled(s);
+        self.near = self.near.map(|n| n * s);
     }
 }
 

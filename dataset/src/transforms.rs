@@ -10,7 +10,7 @@ use msth_core::{Camera, SceneBounds};
 use rayon::prelude::*;
 use serde_json::{Map, Value};
 
-use crate::bounds::contracted_bounds_from_cameras;
+use crate::bounds::{contracted_bounds_from_cameras, near_from_llff_rows};
 use crate::cache::{store_frames, CacheKey, Fingerprint, FrameStorage, ProgressFn};
 use crate::dnerf::LoadOptions;
 use crate::imageio::{load_image_undistorted, LoadedImage, MAX_SIDE};
@@ -711,6 +711,9 @@ pub(crate) fn assemble_with_storage(
         })
         .unwrap_or_else(|| "dataset".to_string());
 
+    // The held-out cameras' too: they render from the same sampler.
+    let cams: Vec<Camera> = train.iter().chain(&test).map(|v| v.camera).collect();
+    let near = near_from_sibling_llff(dir, &cams);
     Ok(Dataset {
         name,
         train,
@@ -718,7 +721,20 @@ pub(crate) fn assemble_with_storage(
         bounds,
         background: [1.0; 3],
         num_frames: times.len(),
+        near,
     })
+}
+
+/// The near bound of `cameras` from a `poses_bounds.npy` beside the JSON, when it describes the
+/// same cameras in the same units ([`near_from_llff_rows`]). A missing, unreadable or unrelated
+/// file gives `None`: it is not part of the JSON layout, so it never fails the load.
+fn near_from_sibling_llff(dir: &Path, cameras: &[Camera]) -> Option<f32> {
+    let path = dir.join("poses_bounds.npy");
+    if !path.is_file() {
+        return None;
+    }
+    let rows = crate::dynerf::read_pose_bounds(&path).ok()?;
+    near_from_llff_rows(cameras, &rows)
 }
 
 /// The image of one frame, undistorted when its intrinsics carry a distortion model.

@@ -421,6 +421,7 @@ fn generate_object(
         bounds: SceneBounds::dnerf_default(),
         background: [1.0, 1.0, 1.0],
         num_frames: s.frames,
+        near: None,
     };
     let staging = staging(out)?;
     dnerf::write(&dataset, staging.path())?;

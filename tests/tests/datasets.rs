@@ -9,11 +9,13 @@
 use std::path::Path;
 
 use glam::Vec3;
+use msth_core::config::Preset;
 use msth_core::{Camera, SceneBounds};
 use msth_testkit::{Need, Tests};
 use msth_tests::{msth, shared_dataset};
 use msth_trainer::dataset::dynerf::{self, DynerfOptions, FrameSource, Normalization};
 use msth_trainer::dataset::{dnerf, Dataset, View};
+use msth_trainer::train::TrainSettings;
 
 fn main() -> std::process::ExitCode {
     // The stage scene in both layouts (the JSON files and poses_bounds.npy).
@@ -139,6 +141,35 @@ fn stage_dynerf_cameras_equal_the_json_cameras() {
         }
         other => panic!("{other:?}"),
     }
+    // The near bound: the JSON reading takes it from the poses_bounds.npy beside it (the same
+    // cameras), the DyNeRF reading from its own rows, scaled with the normalisation; the stage's
+    // nearest content is its floor and props, between 1 and 4.6 units (the rig's distance).
+    let near = json
+        .near
+        .expect("the JSON reading finds the near bound beside it");
+    assert!(near > 1.0 && near < 4.6, "near {near}");
+    assert_eq!(raw.near, Some(near));
+    let normalised = norm.near.unwrap();
+    assert!((normalised - near * s.scale).abs() < 1e-4 * normalised);
+    // Training starts rays there, not at 5% of the contraction radius (unless told otherwise).
+    let settings = TrainSettings::for_preset(Preset::Balanced, &json);
+    assert_eq!(settings.model.sampler.near, near);
+    // A rig in other units does not match the rows: no near bound, the preset's default.
+    let mut scaled = json.clone();
+    scaled.rescale(2.0);
+    assert_eq!(scaled.near, Some(2.0 * near));
+    let moved = tempfile::tempdir().unwrap();
+    copy_json_layout(&dir, moved.path(), 2.0);
+    let other = dnerf::load(moved.path(), &dnerf::LoadOptions::default()).unwrap();
+    assert_eq!(other.near, None);
+    let settings = TrainSettings::for_preset(Preset::Balanced, &other);
+    match other.bounds {
+        SceneBounds::Contracted { radius, .. } => {
+            assert_eq!(settings.model.sampler.near, 0.05 * radius)
+        }
+        b => panic!("{b:?}"),
+    }
+
     // Both layouts in one folder: detection reads the JSON, which has no held-out camera to
     // choose, so `--test-camera` is refused (it was silently ignored) and points to the DyNeRF
     // reading, which takes it.
@@ -166,6 +197,32 @@ fn stage_dynerf_cameras_equal_the_json_cameras() {
         "dynerf",
     ];
     msth(&[&["train", d, "--out", o][..], &args[..]].concat()).unwrap();
+}
+
+/// The stage's JSON layout (transforms files and the images they name) copied to `to` with
+/// every camera centre scaled by `scale`, beside the original, unscaled `poses_bounds.npy`.
+fn copy_json_layout(from: &Path, to: &Path, scale: f32) {
+    for name in ["transforms_train.json", "transforms_test.json"] {
+        let text = std::fs::read_to_string(from.join(name)).unwrap();
+        let mut json: serde_json::Value = serde_json::from_str(&text).unwrap();
+        for frame in json["frames"].as_array_mut().unwrap() {
+            let path = frame["file_path"].as_str().unwrap();
+            // Absolute image paths: the copy keeps its images where they are.
+            let image = from.join(path.trim_start_matches("./"));
+            frame["file_path"] = image.to_str().unwrap().into();
+            for row in frame["transform_matrix"]
+                .as_array_mut()
+                .unwrap()
+                .iter_mut()
+                .take(3)
+            {
+                let t = row[3].as_f64().unwrap();
+                row[3] = (t * scale as f64).into();
+            }
+        }
+        std::fs::write(to.join(name), serde_json::to_vec(&json).unwrap()).unwrap();
+    }
+    std::fs::copy(from.join("poses_bounds.npy"), to.join("poses_bounds.npy")).unwrap();
 }
 
 /// PSNR in dB between two 8-bit images.

@@ -712,6 +712,7 @@ mod tests {
             bounds: SceneBounds::dnerf_default(),
             background: [1.0; 3],
             num_frames: frames,
+            near: None,
         }
     }
 

@@ -697,6 +697,7 @@ pub fn generate(cfg: &SynthConfig) -> Dataset {
         },
         background: [1.0; 3],
         num_frames: times.len(),
+        near: None,
     }
 }
 

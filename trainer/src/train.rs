@@ -161,6 +161,20 @@ pub fn default_priors(bounds: &SceneBounds) -> ScenePriors {
     }
 }
 
+/// Where rays start on a forward-facing capture that states its near bound ([`Dataset::near`]):
+/// there rather than at the preset's 5% of the contraction radius, which on a stage lies far in
+/// front of anything the cameras see and leaves the field free to put floaters there
+/// (docs/convergence.md, 2026-11-28). `None` on object-centred scenes (rays are clipped to the
+/// box) and where the data has no near bound.
+pub fn capture_near(data: &Dataset, model: &ModelConfig) -> Option<f32> {
+    match model.bounds {
+        SceneBounds::Contracted { .. } => data
+            .near
+            .filter(|n| n.is_finite() && *n > 0.0 && *n < model.sampler.far),
+        SceneBounds::Box { .. } => None,
+    }
+}
+
 /// Default of [`TrainSettings::mask_lr_scale`] (issue #16's measurements).
 pub const DEFAULT_MASK_LR_SCALE: f32 = 10.0;
 /// Default of [`TrainSettings::sample_mask_weight`] (issue #16's measurements).
@@ -195,7 +209,10 @@ impl TrainSettings {
         let background = Background::Color {
             rgb: data.background,
         };
-        let model = ModelConfig::preset(preset, data.bounds, background, data.num_frames);
+        let mut model = ModelConfig::preset(preset, data.bounds, background, data.num_frames);
+        if let Some(near) = capture_near(data, &model) {
+            model.sampler.near = near;
+        }
         Self::for_model(preset, model)
     }
 
