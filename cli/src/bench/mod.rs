@@ -31,7 +31,7 @@ use glam::Vec3;
 
 use msth_core::config::{Background, ModelConfig, Preset};
 use msth_core::field::ModelLayout;
-use msth_core::mlp::{MlpActivations, MlpKernels, MlpLayout};
+use msth_core::mlp::{MlpActivations, MlpKernels};
 use msth_core::pipeline::TimedRay;
 use msth_core::rng::Rng;
 use msth_core::SceneBounds;
@@ -333,7 +333,7 @@ fn mlp_kernels(
     let chunk = s.chunk_rays;
     let sampler = &s.model.sampler;
     let field = &layout.field;
-    let mlps: [(&str, &(MlpLayout, std::ops::Range<usize>), usize, usize); 3] = [
+    let mlps = [
         ("density", &field.density, chunk * sampler.num_samples, 0),
         (
             "colour",
