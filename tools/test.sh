@@ -14,8 +14,9 @@
 #   4. `cargo test --workspace --release --no-fail-fast` with MSTH_REQUIRE_ALL=1: a test whose
 #      need (GPU adapter, browser, ffmpeg, colmap, curl, font, shared data) is missing fails
 #      instead of being reported as ignored (testkit/src/lib.rs). Without ../shared/data
-#      beside the repository, MSTH_REQUIRE_DATA=0: those tests show as ignored; so does the
-#      AVX2 kernel test on a CPU without AVX2 (MSTH_REQUIRE_AVX2=0).
+#      beside the repository, MSTH_REQUIRE_DATA=0: those tests show as ignored; so do the
+#      SIMD kernel tests on a CPU without AVX2 or AVX-512 (MSTH_REQUIRE_AVX2=0,
+#      MSTH_REQUIRE_AVX512=0).
 #
 # Usage: tools/test.sh [--no-install] [--no-lint] [-- ARGS for cargo test]
 #   --no-install   skip steps 1-2 (no root; what is missing then fails the run)
@@ -72,9 +73,11 @@ fi
 
 # Every need required: a missing one fails its tests instead of skipping them.
 export MSTH_REQUIRE_ALL=${MSTH_REQUIRE_ALL:-1}
-# AVX2 is the CPU's, not something step 1 can install: without it the comparison of the AVX2
-# hash-grid kernels with the scalar ones (core/tests/grid_simd.rs) shows as ignored.
+# AVX2 and AVX-512 are the CPU's, not something step 1 can install: without them the comparisons
+# of the SIMD kernels with the scalar ones (core/tests/grid_simd.rs, core/tests/mlp_simd.rs) show
+# as ignored.
 export MSTH_REQUIRE_AVX2=${MSTH_REQUIRE_AVX2:-0}
+export MSTH_REQUIRE_AVX512=${MSTH_REQUIRE_AVX512:-0}
 if [ ! -d ../shared/data ] && [ -z "${MSTH_REQUIRE_DATA:-}" ]; then
   echo "note: no ../shared/data beside the repository: the tests that read it will show as ignored"
   export MSTH_REQUIRE_DATA=0

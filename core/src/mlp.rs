@@ -3,10 +3,61 @@
 //!
 //! Weights of layer `k` are stored row-major `[dims[k], dims[k + 1]]` so that a batch
 //! `X: [n, dims[k]]` maps to `X W: [n, dims[k + 1]]` with one GEMM. [`MlpLayout::forward_reference`]
-//! is the plain per-row reference; [`MlpLayout::forward`] / [`MlpLayout::backward`] use
-//! `matrixmultiply`'s SGEMM on whole batches.
+//! is the plain per-row reference; [`MlpLayout::forward`] / [`MlpLayout::backward`] run whole
+//! batches, on the SIMD kernels of `mlp/simd.rs` where the CPU has them (AVX-512F, else AVX2 +
+//! FMA, checked at run time: [`MlpKernels::best`]), else on `matrixmultiply`'s SGEMM ([`gemm`]).
+//! [`MlpLayout::forward_with`] / [`MlpLayout::backward_partial_with`] choose the kernels
+//! explicitly (tests and benches compare them).
 
 use crate::rng::Rng;
+
+#[cfg(target_arch = "x86_64")]
+mod simd;
+
+/// Which kernels an MLP pass runs on.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum MlpKernels {
+    /// `matrixmultiply`'s SGEMM ([`gemm`], which picks its own instruction set) and plain
+    /// loops for the ReLU: every CPU.
+    Gemm,
+    /// The AVX2 + FMA kernels of `mlp/simd.rs`.
+    Avx2,
+    /// The AVX-512F kernels of `mlp/simd.rs`.
+    Avx512,
+}
+
+impl MlpKernels {
+    /// Whether this CPU runs these kernels (x86_64 with the features, checked at run time and
+    /// cached by the standard library).
+    pub fn available(self) -> bool {
+        match self {
+            MlpKernels::Gemm => true,
+            #[cfg(target_arch = "x86_64")]
+            MlpKernels::Avx2 => simd::avx2::available(),
+            #[cfg(target_arch = "x86_64")]
+            MlpKernels::Avx512 => simd::avx512::available(),
+            #[cfg(not(target_arch = "x86_64"))]
+            _ => false,
+        }
+    }
+
+    /// The fastest kernels this CPU runs: AVX-512F, else AVX2 + FMA, else [`MlpKernels::Gemm`].
+    pub fn best() -> MlpKernels {
+        [MlpKernels::Avx512, MlpKernels::Avx2]
+            .into_iter()
+            .find(|k| k.available())
+            .unwrap_or(MlpKernels::Gemm)
+    }
+
+    /// `self` where this CPU runs it, else [`MlpKernels::Gemm`].
+    fn or_gemm(self) -> MlpKernels {
+        if self.available() {
+            self
+        } else {
+            MlpKernels::Gemm
+        }
+    }
+}
 
 /// `C = alpha * A B + beta * C` for row-major slices with explicit leading dimensions.
 /// `A: [m, k]` (row stride `lda`), `B: [k, n]` (row stride `ldb`), `C: [m, n]` (row stride `ldc`);
@@ -95,6 +146,11 @@ pub struct MlpActivations {
     pub acts: Vec<Vec<f32>>,
     /// Scratch gradients, one per layer output.
     grads: Vec<Vec<f32>>,
+    /// Scratch of the SIMD kernels: a layer's weights padded to whole vectors, or transposed.
+    packed: Vec<f32>,
+    /// Scratch of the SIMD kernels: one layer's weight gradient, summed over the batch before
+    /// it is added to the caller's.
+    dw: Vec<f32>,
 }
 
 impl MlpLayout {
@@ -164,32 +220,40 @@ impl MlpLayout {
     }
 
     /// Batched forward of `n` rows of `input` (row stride `dims[0]`); the output is
-    /// `acts.acts.last()`.
+    /// `acts.acts.last()`. Runs on [`MlpKernels::best`].
     pub fn forward(&self, params: &[f32], input: &[f32], n: usize, acts: &mut MlpActivations) {
+        self.forward_with(MlpKernels::best(), params, input, n, acts);
+    }
+
+    /// [`MlpLayout::forward`] on `kernels` ([`MlpKernels::Gemm`] where this CPU does not run
+    /// them): the same sums whichever, up to float rounding (`core/tests/mlp_simd.rs`).
+    pub fn forward_with(
+        &self,
+        kernels: MlpKernels,
+        params: &[f32],
+        input: &[f32],
+        n: usize,
+        acts: &mut MlpActivations,
+    ) {
+        let kernels = kernels.or_gemm();
         let layers = self.num_layers();
         acts.acts.resize_with(layers, Vec::new);
+        let MlpActivations {
+            acts: outs, packed, ..
+        } = acts;
         for k in 0..layers {
             let (fi, fo) = (self.dims[k], self.dims[k + 1]);
-            let (prev, rest) = acts.acts.split_at_mut(k);
+            let (prev, rest) = outs.split_at_mut(k);
             let x: &[f32] = if k == 0 { input } else { &prev[k - 1] };
             let y = &mut rest[0];
             y.resize(n * fo, 0.0);
-            gemm(
-                n,
-                fi,
-                fo,
-                1.0,
-                x,
-                fi,
-                false,
-                self.weights(params, k),
-                fo,
-                false,
-                0.0,
-                y,
-                fo,
-            );
-            if k + 1 < layers {
+            let relu = k + 1 < layers;
+            let w = self.weights(params, k);
+            if simd_forward_layer(kernels, w, fi, fo, x, n, y, relu, packed) {
+                continue;
+            }
+            gemm(n, fi, fo, 1.0, x, fi, false, w, fo, false, 0.0, y, fo);
+            if relu {
                 for v in y.iter_mut() {
                     *v = v.max(0.0);
                 }
@@ -227,7 +291,8 @@ impl MlpLayout {
 
     /// [`MlpLayout::backward`] where only the input columns `from..dims[0]` need a gradient:
     /// `d_input = Some((from, d))` writes them into `d` (`[n, dims[0] - from]`), skipping the
-    /// work for the others (the colour MLP needs none for its direction encoding).
+    /// work for the others (the colour MLP needs none for its direction encoding). Runs on
+    /// [`MlpKernels::best`].
     #[allow(clippy::too_many_arguments)]
     pub fn backward_partial(
         &self,
@@ -239,9 +304,41 @@ impl MlpLayout {
         grad: &mut [f32],
         d_input: Option<(usize, &mut [f32])>,
     ) {
+        self.backward_partial_with(
+            MlpKernels::best(),
+            params,
+            input,
+            n,
+            acts,
+            d_output,
+            grad,
+            d_input,
+        );
+    }
+
+    /// [`MlpLayout::backward_partial`] on `kernels` ([`MlpKernels::Gemm`] where this CPU does not
+    /// run them).
+    #[allow(clippy::too_many_arguments)]
+    pub fn backward_partial_with(
+        &self,
+        kernels: MlpKernels,
+        params: &[f32],
+        input: &[f32],
+        n: usize,
+        acts: &mut MlpActivations,
+        d_output: &[f32],
+        grad: &mut [f32],
+        d_input: Option<(usize, &mut [f32])>,
+    ) {
+        let kernels = kernels.or_gemm();
         let layers = self.num_layers();
         acts.grads.resize_with(layers, Vec::new);
-        let MlpActivations { acts: a, grads } = acts;
+        let MlpActivations {
+            acts: a,
+            grads,
+            packed,
+            dw,
+        } = acts;
         grads[layers - 1].clear();
         grads[layers - 1].extend_from_slice(&d_output[..n * self.output_dim()]);
         let mut d_input = d_input;
@@ -252,33 +349,29 @@ impl MlpLayout {
             let dy = &upper[0];
             // dW += x^T dy
             let off = self.offsets[k];
-            gemm(
-                fi,
-                n,
-                fo,
-                1.0,
-                x,
-                fi,
-                true,
-                dy,
-                fo,
-                false,
-                1.0,
-                &mut grad[off..off + fi * fo],
-                fo,
-            );
+            let g = &mut grad[off..off + fi * fo];
+            if !simd_weight_grad(kernels, x, fi, dy, fo, n, g, dw) {
+                gemm(fi, n, fo, 1.0, x, fi, true, dy, fo, false, 1.0, g, fo);
+            }
             let w = self.weights(params, k);
             if k > 0 {
                 let dx = &mut lower[k - 1];
                 dx.resize(n * fi, 0.0);
+                let act = &a[k - 1];
+                if simd_input_grad(kernels, w, fi, fo, 0, dy, n, dx, Some(act), packed) {
+                    continue;
+                }
                 gemm(n, fo, fi, 1.0, dy, fo, false, w, fo, true, 0.0, dx, fi);
                 // A select rather than a branch: about half the units are off, at random, so
                 // a branch mispredicts often; the select also vectorises.
-                for (d, &act) in dx.iter_mut().zip(&a[k - 1]) {
+                for (d, &act) in dx.iter_mut().zip(act) {
                     *d = if act > 0.0 { *d } else { 0.0 };
                 }
             } else if let Some((from, dx)) = d_input.as_mut() {
                 let (from, cols) = (*from, fi - (*from).min(fi));
+                if simd_input_grad(kernels, w, fi, fo, from, dy, n, dx, None, packed) {
+                    continue;
+                }
                 // Rows `from..` of W (`[fi, fo]`, row-major) are the ones those columns read.
                 gemm(
                     n,
@@ -298,6 +391,191 @@ impl MlpLayout {
             }
         }
     }
+}
+
+/// `c = epilogue(a b)` on the SIMD `kernels` (see `simd::avx2::gemm`).
+///
+/// # Safety
+/// This CPU runs `kernels`, which are not [`MlpKernels::Gemm`].
+#[cfg(target_arch = "x86_64")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn simd_gemm(
+    kernels: MlpKernels,
+    m: usize,
+    k: usize,
+    n: usize,
+    a: &[f32],
+    lda: usize,
+    b: &[f32],
+    ldb: usize,
+    c: &mut [f32],
+    ldc: usize,
+    epilogue: simd::Epilogue,
+) {
+    // SAFETY: the caller's contract.
+    unsafe {
+        match kernels {
+            MlpKernels::Avx2 => simd::avx2::gemm(m, k, n, a, lda, b, ldb, c, ldc, epilogue),
+            MlpKernels::Avx512 => simd::avx512::gemm(m, k, n, a, lda, b, ldb, c, ldc, epilogue),
+            MlpKernels::Gemm => unreachable!(),
+        }
+    }
+}
+
+/// `o += a^T b` over `rows` batch rows on the SIMD `kernels` (see `simd::avx2::at_b_accumulate`).
+///
+/// # Safety
+/// This CPU runs `kernels`, which are not [`MlpKernels::Gemm`].
+#[cfg(target_arch = "x86_64")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn simd_at_b(
+    kernels: MlpKernels,
+    rows: usize,
+    a: &[f32],
+    lda: usize,
+    ma: usize,
+    b: &[f32],
+    ldb: usize,
+    nb: usize,
+    o: &mut [f32],
+    ldo: usize,
+) {
+    // SAFETY: the caller's contract.
+    unsafe {
+        match kernels {
+            MlpKernels::Avx2 => simd::avx2::at_b_accumulate(rows, a, lda, ma, b, ldb, nb, o, ldo),
+            MlpKernels::Avx512 => {
+                simd::avx512::at_b_accumulate(rows, a, lda, ma, b, ldb, nb, o, ldo)
+            }
+            MlpKernels::Gemm => unreachable!(),
+        }
+    }
+}
+
+/// One layer's forward on the SIMD `kernels`, `y = x w` (`[n, fi] [fi, fo]`), ReLU when `relu`;
+/// the weights are padded to whole vectors in `packed` unless `fo` is a multiple of 16. Returns
+/// whether it ran (not for [`MlpKernels::Gemm`]; `kernels` come from [`MlpKernels::or_gemm`]).
+#[allow(clippy::too_many_arguments)]
+fn simd_forward_layer(
+    kernels: MlpKernels,
+    w: &[f32],
+    fi: usize,
+    fo: usize,
+    x: &[f32],
+    n: usize,
+    y: &mut [f32],
+    relu: bool,
+    packed: &mut Vec<f32>,
+) -> bool {
+    #[cfg(target_arch = "x86_64")]
+    if kernels != MlpKernels::Gemm {
+        let ld = simd::padded(fo);
+        let b: &[f32] = if ld == fo {
+            w
+        } else {
+            packed.clear();
+            packed.resize(fi * ld, 0.0);
+            for (dst, src) in packed.chunks_exact_mut(ld).zip(w.chunks_exact(fo)) {
+                dst[..fo].copy_from_slice(src);
+            }
+            packed
+        };
+        let epilogue = if relu {
+            simd::Epilogue::Relu
+        } else {
+            simd::Epilogue::Identity
+        };
+        // SAFETY: `kernels` come from `or_gemm`, so this CPU runs them.
+        unsafe { simd_gemm(kernels, n, fi, fo, x, fi, b, ld, y, fo, epilogue) };
+        return true;
+    }
+    let _ = (kernels, w, fi, fo, x, n, y, relu, packed);
+    false
+}
+
+/// One layer's weight gradient on the SIMD `kernels`: `g += x^T dy` (`x: [n, fi]`,
+/// `dy: [n, fo]`, `g: [fi, fo]`), summed over the batch in `dw` and then added to `g`. Where
+/// the layer narrows (`fo < fi`) it sums `dy^T x` instead, whose rows are the wider ones.
+/// Returns whether it ran (not for [`MlpKernels::Gemm`]; `kernels` come from
+/// [`MlpKernels::or_gemm`]).
+#[allow(clippy::too_many_arguments)]
+fn simd_weight_grad(
+    kernels: MlpKernels,
+    x: &[f32],
+    fi: usize,
+    dy: &[f32],
+    fo: usize,
+    n: usize,
+    g: &mut [f32],
+    dw: &mut Vec<f32>,
+) -> bool {
+    #[cfg(target_arch = "x86_64")]
+    if kernels != MlpKernels::Gemm {
+        if fo >= fi {
+            let ld = simd::padded(fo);
+            dw.clear();
+            dw.resize(fi * ld, 0.0);
+            // SAFETY: `kernels` come from `or_gemm`, so this CPU runs them.
+            unsafe { simd_at_b(kernels, n, x, fi, fi, dy, fo, fo, dw, ld) };
+            for (gr, dr) in g.chunks_exact_mut(fo).zip(dw.chunks_exact(ld)) {
+                for (gv, &dv) in gr.iter_mut().zip(dr) {
+                    *gv += dv;
+                }
+            }
+        } else {
+            let ld = simd::padded(fi);
+            dw.clear();
+            dw.resize(fo * ld, 0.0);
+            // SAFETY: as above.
+            unsafe { simd_at_b(kernels, n, dy, fo, fo, x, fi, fi, dw, ld) };
+            for (i, gr) in g.chunks_exact_mut(fo).enumerate() {
+                for (o, gv) in gr.iter_mut().enumerate() {
+                    *gv += dw[o * ld + i];
+                }
+            }
+        }
+        return true;
+    }
+    let _ = (kernels, x, fi, dy, fo, n, g, dw);
+    false
+}
+
+/// One layer's input gradient on the SIMD `kernels`: `dx = dy w^T` for the input columns
+/// `from..fi` (`dy: [n, fo]`, `dx: [n, fi - from]`), zero where `gate` (laid out as `dx`) is
+/// not positive (the ReLU backward). The transposed rows of `w` go to `packed`, padded to whole
+/// vectors. Returns whether it ran (not for [`MlpKernels::Gemm`]; `kernels` come from
+/// [`MlpKernels::or_gemm`]).
+#[allow(clippy::too_many_arguments)]
+fn simd_input_grad(
+    kernels: MlpKernels,
+    w: &[f32],
+    fi: usize,
+    fo: usize,
+    from: usize,
+    dy: &[f32],
+    n: usize,
+    dx: &mut [f32],
+    gate: Option<&[f32]>,
+    packed: &mut Vec<f32>,
+) -> bool {
+    #[cfg(target_arch = "x86_64")]
+    if kernels != MlpKernels::Gemm {
+        let cols = fi - from.min(fi);
+        let ld = simd::padded(cols);
+        packed.clear();
+        packed.resize(fo * ld, 0.0);
+        for (i, wr) in w.chunks_exact(fo).skip(from).enumerate() {
+            for (o, &v) in wr.iter().enumerate() {
+                packed[o * ld + i] = v;
+            }
+        }
+        let epilogue = gate.map_or(simd::Epilogue::Identity, simd::Epilogue::Gate);
+        // SAFETY: `kernels` come from `or_gemm`, so this CPU runs them.
+        unsafe { simd_gemm(kernels, n, fo, cols, dy, fo, packed, ld, dx, cols, epilogue) };
+        return true;
+    }
+    let _ = (kernels, w, fi, fo, from, dy, n, dx, gate, packed);
+    false
 }
 
 #[cfg(test)]

@@ -2,8 +2,9 @@
 //!
 //! - this file: `msth bench step`, the cost of one full training step (proposal and field,
 //!   forward, backward and Adam) at the demo (fast preset) and paper configurations, reported as
-//!   field samples per second, with two same-run baselines: the same step on one worker thread,
-//!   and the plain reference hash encoding against the batched one;
+//!   field samples per second, with three same-run baselines: the same step on one worker
+//!   thread, the plain reference hash encoding against the batched one, and the MLPs'
+//!   forward + backward on `matrixmultiply` against the SIMD kernels;
 //! - [`play`]: `msth bench play` (streamed playback, CPU and GPU);
 //! - [`tradeoff`], [`tradeoff_report`], [`tradeoff_plot`]: `msth bench tradeoff` (size, quality
 //!   and training time over model settings; tables and plots);
@@ -30,6 +31,7 @@ use glam::Vec3;
 
 use msth_core::config::{Background, ModelConfig, Preset};
 use msth_core::field::ModelLayout;
+use msth_core::mlp::{MlpActivations, MlpKernels};
 use msth_core::pipeline::TimedRay;
 use msth_core::rng::Rng;
 use msth_core::SceneBounds;
@@ -308,9 +310,94 @@ fn step(
         reference / fast
     );
     rows.push(serde_json::json!({"kernel": "hash4d_encode", "batched_points_per_sec": n as f64 / fast, "reference_points_per_sec": n as f64 / reference, "ratio": reference / fast}));
+    mlp_kernels(&s, &layout, &params, &mut rows);
     if let Some(p) = json {
         std::fs::write(&p, serde_json::to_vec_pretty(&rows)?)?;
         println!("wrote {}", p.display());
     }
     Ok(())
+}
+
+/// Kernel baseline: forward + backward of the demo model's three MLPs (the field's density and
+/// colour MLPs on one chunk's field samples, the proposal's density MLP on its proposal samples;
+/// the input gradients the training step asks for) on `matrixmultiply`
+/// ([`MlpKernels::Gemm`]) against the SIMD kernels ([`MlpKernels::best`]; where that is
+/// AVX-512, the AVX2 ones as well), one thread, best of 20 runs each, in ns per row.
+fn mlp_kernels(
+    s: &TrainSettings,
+    layout: &ModelLayout,
+    params: &[f32],
+    rows: &mut Vec<serde_json::Value>,
+) {
+    let best = MlpKernels::best();
+    let chunk = s.chunk_rays;
+    let sampler = &s.model.sampler;
+    let field = &layout.field;
+    let mlps = [
+        ("density", &field.density, chunk * sampler.num_samples, 0),
+        (
+            "colour",
+            &field.color,
+            chunk * sampler.num_samples,
+            msth_core::sh::SH_COEFFS,
+        ),
+        (
+            "proposal",
+            &layout.proposal.field.density,
+            chunk * sampler.num_proposal_samples,
+            0,
+        ),
+    ];
+    let mut rng = Rng::new(4);
+    let (mut total_gemm, mut total_best) = (0.0, 0.0);
+    for (name, (mlp, range), n, from) in mlps {
+        let p = &params[range.clone()];
+        let x: Vec<f32> = (0..n * mlp.input_dim())
+            .map(|_| rng.range_f32(-1.0, 1.0))
+            .collect();
+        let d: Vec<f32> = (0..n * mlp.output_dim())
+            .map(|_| rng.range_f32(-1.0, 1.0))
+            .collect();
+        let time = |kernels: MlpKernels| {
+            let mut acts = MlpActivations::default();
+            let mut grad = vec![0f32; mlp.num_params];
+            let mut dx = vec![0f32; n * (mlp.input_dim() - from)];
+            let mut best_secs = f64::MAX;
+            for _ in 0..20 {
+                let t = Instant::now();
+                mlp.forward_with(kernels, p, &x, n, &mut acts);
+                mlp.backward_partial_with(
+                    kernels,
+                    p,
+                    &x,
+                    n,
+                    &mut acts,
+                    &d,
+                    &mut grad,
+                    Some((from, &mut dx)),
+                );
+                best_secs = best_secs.min(t.elapsed().as_secs_f64());
+            }
+            best_secs / n as f64 * 1e9
+        };
+        let (gemm, fast) = (time(MlpKernels::Gemm), time(best));
+        // Where AVX-512 is the best, the AVX2 kernels too, for the record.
+        let avx2 = (best == MlpKernels::Avx512 && MlpKernels::Avx2.available())
+            .then(|| time(MlpKernels::Avx2));
+        total_gemm += gemm * n as f64;
+        total_best += fast * n as f64;
+        println!(
+            "MLP {name} {:?}, {n} rows, forward + backward, 1 thread: matrixmultiply {gemm:.1} ns/row, {best:?} kernels {fast:.1} ns/row, ratio {:.2}x{}",
+            mlp.dims,
+            gemm / fast,
+            avx2.map_or(String::new(), |t| format!(" (Avx2 kernels {t:.1} ns/row)"))
+        );
+        rows.push(serde_json::json!({"kernel": format!("mlp_{name}"), "dims": mlp.dims, "rows": n, "kernels": format!("{best:?}"), "gemm_ns_per_row": gemm, "simd_ns_per_row": fast, "ratio": gemm / fast, "avx2_ns_per_row": avx2}));
+    }
+    println!(
+        "MLPs of one chunk, forward + backward: matrixmultiply {:.2} ms, {best:?} kernels {:.2} ms, ratio {:.2}x",
+        total_gemm * 1e-6,
+        total_best * 1e-6,
+        total_gemm / total_best
+    );
 }
