@@ -315,27 +315,41 @@ fn parse_row(path: &Path, i: usize, r: &[f64]) -> Result<Row, DatasetError> {
     })
 }
 
-/// The cameras of a `poses_bounds.npy` as OpenGL camera-to-world poses with their near and far
-/// bounds, in the file's own units (no normalisation).
-pub fn read_pose_bounds(path: &Path) -> Result<Vec<(Mat4, f32, f32)>, DatasetError> {
+/// Every row of a `poses_bounds.npy`, checked: shape `(N, 17)` with `N` in `2..=MAX_CAMERAS`,
+/// finite values, an orthonormal right-handed rotation, a positive size and focal length,
+/// `0 < near < far`.
+fn read_rows(path: &Path) -> Result<Vec<Row>, DatasetError> {
     let arr = crate::npy::read(path)?;
-    if arr.shape.len() != 2 || arr.shape[1] != 17 || arr.shape[0] > MAX_CAMERAS {
+    if arr.shape.len() != 2 || arr.shape[1] != 17 {
         return Err(bad(
             path,
             format!(
-                "shape {:?}: expected (N, 17) with N <= {MAX_CAMERAS}, one row per camera of a 3x5 [R | t | hwf] matrix then near, far",
+                "shape {:?}: expected (N, 17), one row per camera of a 3x5 [R | t | hwf] matrix then near, far",
                 arr.shape
             ),
+        ));
+    }
+    let rows_n = arr.shape[0];
+    if !(2..=MAX_CAMERAS).contains(&rows_n) {
+        return Err(bad(
+            path,
+            format!("{rows_n} rows: need 2..={MAX_CAMERAS} cameras (one is held out)"),
         ));
     }
     arr.data
         .chunks_exact(17)
         .enumerate()
-        .map(|(i, r)| {
-            let row = parse_row(path, i, r)?;
-            Ok((row.pose, row.near as f32, row.far as f32))
-        })
+        .map(|(i, r)| parse_row(path, i, r))
         .collect()
+}
+
+/// The cameras of a `poses_bounds.npy` as OpenGL camera-to-world poses with their near and far
+/// bounds, in the file's own units (no normalisation).
+pub fn read_pose_bounds(path: &Path) -> Result<Vec<(Mat4, f32, f32)>, DatasetError> {
+    Ok(read_rows(path)?
+        .into_iter()
+        .map(|row| (row.pose, row.near as f32, row.far as f32))
+        .collect())
 }
 
 /// The LLFF normalisation of poses with the given near bounds (see the module docs).
@@ -377,29 +391,8 @@ pub fn llff_normalization(poses: &[Mat4], nears: &[f32]) -> Similarity {
 /// sizes and counts.
 pub fn read_rig(dir: &Path, opts: &DynerfOptions) -> Result<Rig, DatasetError> {
     let npy_path = dir.join("poses_bounds.npy");
-    let arr = crate::npy::read(&npy_path)?;
-    if arr.shape.len() != 2 || arr.shape[1] != 17 {
-        return Err(bad(
-            &npy_path,
-            format!(
-                "shape {:?}: expected (N, 17), one row per camera of a 3x5 [R | t | hwf] matrix then near, far",
-                arr.shape
-            ),
-        ));
-    }
-    let rows_n = arr.shape[0];
-    if !(2..=MAX_CAMERAS).contains(&rows_n) {
-        return Err(bad(
-            &npy_path,
-            format!("{rows_n} rows: need 2..={MAX_CAMERAS} cameras (one is held out)"),
-        ));
-    }
-    let rows: Vec<Row> = arr
-        .data
-        .chunks_exact(17)
-        .enumerate()
-        .map(|(i, r)| parse_row(&npy_path, i, r))
-        .collect::<Result<_, _>>()?;
+    let rows = read_rows(&npy_path)?;
+    let rows_n = rows.len();
 
     let (videos, folders) = discover(dir)?;
     let use_videos = match opts.frames {
