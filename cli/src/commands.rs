@@ -251,7 +251,7 @@ pub fn train(a: TrainArgs) -> Result<Option<Metrics>> {
         }
     );
     println!(
-        "schedule: {:?} ray sampling, proposal annealing over {} steps{}{}",
+        "schedule: {:?} ray sampling, proposal annealing over {} steps{}{}{}",
         settings.sampling.mode,
         settings.anneal_steps,
         match settings.level_ramp_steps {
@@ -264,6 +264,15 @@ pub fn train(a: TrainArgs) -> Result<Option<Metrics>> {
         match settings.free_space_weight {
             w if w > 0.0 => format!(", free-space loss {w}"),
             _ => String::new(),
+        },
+        match settings.distortion_ramp_start {
+            0 => String::new(),
+            a => format!(
+                ", distortion loss {} -> {} over steps {a}-{}",
+                settings.distortion_weight,
+                settings.distortion_late_weight,
+                a + settings.distortion_ramp_steps
+            ),
         }
     );
     let pb = progress_bar(settings.iters);

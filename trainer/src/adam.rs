@@ -86,23 +86,79 @@ impl Adam {
         grad: &[f32],
         slices: &[ScaledSlice],
     ) -> f32 {
+        let chunks: Vec<Vec<GradChunk>> = grad
+            .chunks(CHUNK)
+            .map(|g| vec![GradChunk::Read(g)])
+            .collect();
+        self.update_chunks(cfg, lr, params, chunks, slices)
+    }
+
+    /// [`Adam::update`] on the sum of `grads` (summed in their order, `grads[0] + grads[1] +
+    /// ...`, so the same values as summing them first), leaving every buffer zeroed for the next
+    /// step's accumulation. One pass: each block of the buffers is summed, used and cleared while
+    /// it is in cache, instead of a pass to clear, one to sum and one for Adam, each over memory.
+    pub fn update_summed_and_clear(
+        &mut self,
+        cfg: &AdamConfig,
+        lr: f32,
+        params: &mut [f32],
+        grads: &mut [&mut [f32]],
+        slices: &[ScaledSlice],
+    ) -> f32 {
+        assert!(grads.iter().all(|g| g.len() == params.len()));
+        let n_chunks = params.len().div_ceil(CHUNK);
+        let mut chunks: Vec<Vec<GradChunk>> = (0..n_chunks).map(|_| Vec::new()).collect();
+        for g in grads.iter_mut() {
+            for (c, gc) in g.chunks_mut(CHUNK).enumerate() {
+                chunks[c].push(GradChunk::Clear(gc));
+            }
+        }
+        self.update_chunks(cfg, lr, params, chunks, slices)
+    }
+
+    fn update_chunks(
+        &mut self,
+        cfg: &AdamConfig,
+        lr: f32,
+        params: &mut [f32],
+        grads: Vec<Vec<GradChunk>>,
+        slices: &[ScaledSlice],
+    ) -> f32 {
+        assert_eq!(grads.len(), params.len().div_ceil(CHUNK));
         self.step += 1;
         let t = self.step as i32;
         let bc1 = 1.0 - cfg.beta1.powi(t);
         let bc2 = 1.0 - cfg.beta2.powi(t);
         let step_size = lr / bc1;
         let inv_sqrt_bc2 = 1.0 / bc2.sqrt();
-        const CHUNK: usize = 1 << 14;
         let (b1, b2, eps) = (cfg.beta1, cfg.beta2, cfg.eps);
         let mask_loss: f64 = params
             .par_chunks_mut(CHUNK)
-            .zip(grad.par_chunks(CHUNK))
+            .zip(grads.into_par_iter())
             .zip(self.m.par_chunks_mut(CHUNK))
             .zip(self.v.par_chunks_mut(CHUNK))
             .enumerate()
-            .map(|(c, (((p, g), m), v))| {
+            .map(|(c, (((p, mut gs), m), v))| {
                 let base = c * CHUNK;
                 let mut loss = 0f64;
+                // Sum the buffers into the first, clearing the others (still in cache below).
+                let (first, rest) = gs.split_first_mut().expect("one gradient buffer at least");
+                for r in rest.iter_mut() {
+                    let GradChunk::Clear(r) = r else {
+                        unreachable!("several buffers are always summed and cleared")
+                    };
+                    let GradChunk::Clear(f) = first else {
+                        unreachable!("several buffers are always summed and cleared")
+                    };
+                    f.iter_mut().zip(r.iter_mut()).for_each(|(a, b)| {
+                        *a += *b;
+                        *b = 0.0;
+                    });
+                }
+                let g: &[f32] = match first {
+                    GradChunk::Read(g) => g,
+                    GradChunk::Clear(g) => g,
+                };
                 // Which slice (if any) overlaps this chunk: handle per element.
                 let overl: Vec<&ScaledSlice> = slices
                     .iter()
@@ -111,19 +167,18 @@ impl Adam {
                 if overl.is_empty() {
                     // The common case, in a loop the compiler vectorises: the same operations in
                     // the same order as below with `scale = 1`, so the same values.
-                    for (((p, &g), m), v) in p.iter_mut().zip(g).zip(m).zip(v) {
+                    for (((p, &g), m), v) in p.iter_mut().zip(g).zip(m.iter_mut()).zip(v.iter_mut())
+                    {
                         let gi = g.clamp(-MAX_GRADIENT, MAX_GRADIENT);
                         *m = b1 * *m + (1.0 - b1) * gi;
                         *v = b2 * *v + (1.0 - b2) * gi * gi;
                         let denom = v.sqrt() * inv_sqrt_bc2 + eps;
                         *p -= step_size * *m / denom;
                     }
-                    return loss;
-                }
-                for i in 0..p.len() {
-                    let mut gi = g[i];
-                    let mut scale = 1.0f32;
-                    if !overl.is_empty() {
+                } else {
+                    for i in 0..p.len() {
+                        let mut gi = g[i];
+                        let mut scale = 1.0f32;
                         let idx = base + i;
                         for s in &overl {
                             if s.range.contains(&idx) {
@@ -137,21 +192,35 @@ impl Adam {
                                 }
                             }
                         }
+                        // Adam only sees the gradient's scale through m / sqrt(v); beyond
+                        // ~1.8e19, gi * gi overflows to infinity and froze the parameter for
+                        // good (m / sqrt(inf) = 0 forever). Clamping keeps the direction and
+                        // the step.
+                        let gi = gi.clamp(-MAX_GRADIENT, MAX_GRADIENT);
+                        m[i] = b1 * m[i] + (1.0 - b1) * gi;
+                        v[i] = b2 * v[i] + (1.0 - b2) * gi * gi;
+                        let denom = v[i].sqrt() * inv_sqrt_bc2 + eps;
+                        p[i] -= step_size * scale * m[i] / denom;
                     }
-                    // Adam only sees the gradient's scale through m / sqrt(v); beyond ~1.8e19,
-                    // gi * gi overflows to infinity and froze the parameter for good
-                    // (m / sqrt(inf) = 0 forever). Clamping keeps the direction and the step.
-                    let gi = gi.clamp(-MAX_GRADIENT, MAX_GRADIENT);
-                    m[i] = b1 * m[i] + (1.0 - b1) * gi;
-                    v[i] = b2 * v[i] + (1.0 - b2) * gi * gi;
-                    let denom = v[i].sqrt() * inv_sqrt_bc2 + eps;
-                    p[i] -= step_size * scale * m[i] / denom;
+                }
+                if let GradChunk::Clear(f) = first {
+                    f.fill(0.0);
                 }
                 loss
             })
             .sum();
         mask_loss as f32
     }
+}
+
+/// Parameters per block of Adam's pass (64 KiB of each buffer: the gradient buffers of a block
+/// stay in L2 between their sum and the update).
+const CHUNK: usize = 1 << 14;
+
+/// One block of a gradient buffer: read only, or summed, used and cleared.
+enum GradChunk<'a> {
+    Read(&'a [f32]),
+    Clear(&'a mut [f32]),
 }
 
 #[cfg(test)]
@@ -221,5 +290,41 @@ mod tests {
         assert!((p[0] - (-1.0 + 2.0)).abs() < 0.05, "{}", p[0]);
         assert!((p[150] - (-1.0 - 0.2)).abs() < 1e-3, "{}", p[150]);
         assert_eq!(p[120], -1.0);
+    }
+
+    /// The fused pass gives the values of "sum the buffers in order, then update" to the bit,
+    /// with and without mask slices (blocks that straddle a slice's ends, a last short block),
+    /// and leaves every buffer zeroed.
+    #[test]
+    fn summed_update_equals_sum_then_update_and_clears() {
+        let n = 3 * CHUNK + 777;
+        let cfg = AdamConfig::default();
+        let slices = [ScaledSlice {
+            range: CHUNK - 5..CHUNK + 300,
+            weight: 0.3,
+            lr_scale: 7.0,
+        }];
+        for workers in 1..=3 {
+            let mut rng = msth_core::rng::Rng::new(workers as u64);
+            let mut pa: Vec<f32> = (0..n).map(|_| rng.f32() - 0.5).collect();
+            let mut pb = pa.clone();
+            let (mut a, mut b) = (Adam::new(n), Adam::new(n));
+            for step in 0..3 {
+                let mut grads: Vec<Vec<f32>> = (0..workers)
+                    .map(|_| (0..n).map(|_| (rng.f32() - 0.5) * 1e-3).collect())
+                    .collect();
+                let mut sum = grads[0].clone();
+                for g in &grads[1..] {
+                    sum.iter_mut().zip(g).for_each(|(x, y)| *x += y);
+                }
+                let la = a.update(&cfg, 1e-2, &mut pa, &sum, &slices);
+                let mut refs: Vec<&mut [f32]> = grads.iter_mut().map(|g| &mut g[..]).collect();
+                let lb = b.update_summed_and_clear(&cfg, 1e-2, &mut pb, &mut refs, &slices);
+                assert_eq!(la.to_bits(), lb.to_bits(), "workers {workers} step {step}");
+                assert!(pa.iter().zip(&pb).all(|(x, y)| x.to_bits() == y.to_bits()));
+                assert_eq!((a.m == b.m, a.v == b.v), (true, true));
+                assert!(grads.iter().all(|g| g.iter().all(|&x| x == 0.0)));
+            }
+        }
     }
 }
