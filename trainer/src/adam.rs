@@ -86,11 +86,8 @@ impl Adam {
         grad: &[f32],
         slices: &[ScaledSlice],
     ) -> f32 {
-        let chunks: Vec<Vec<GradChunk>> = grad
-            .chunks(CHUNK)
-            .map(|g| vec![GradChunk::Read(g)])
-            .collect();
-        self.update_chunks(cfg, lr, params, chunks, slices)
+        let blocks: Vec<Block> = grad.chunks(CHUNK).map(Block::One).collect();
+        self.update_blocks(cfg, lr, params, blocks, slices)
     }
 
     /// [`Adam::update`] on the sum of `grads` (summed in their order, `grads[0] + grads[1] +
@@ -105,23 +102,25 @@ impl Adam {
         grads: &mut [&mut [f32]],
         slices: &[ScaledSlice],
     ) -> f32 {
-        assert!(grads.iter().all(|g| g.len() == params.len()));
-        let n_chunks = params.len().div_ceil(CHUNK);
-        let mut chunks: Vec<Vec<GradChunk>> = (0..n_chunks).map(|_| Vec::new()).collect();
+        assert!(!grads.is_empty() && grads.iter().all(|g| g.len() == params.len()));
+        let mut blocks: Vec<Vec<&mut [f32]>> = (0..params.len().div_ceil(CHUNK))
+            .map(|_| Vec::with_capacity(grads.len()))
+            .collect();
         for g in grads.iter_mut() {
             for (c, gc) in g.chunks_mut(CHUNK).enumerate() {
-                chunks[c].push(GradChunk::Clear(gc));
+                blocks[c].push(gc);
             }
         }
-        self.update_chunks(cfg, lr, params, chunks, slices)
+        let blocks = blocks.into_iter().map(Block::Summed).collect();
+        self.update_blocks(cfg, lr, params, blocks, slices)
     }
 
-    fn update_chunks(
+    fn update_blocks(
         &mut self,
         cfg: &AdamConfig,
         lr: f32,
         params: &mut [f32],
-        grads: Vec<Vec<GradChunk>>,
+        grads: Vec<Block>,
         slices: &[ScaledSlice],
     ) -> f32 {
         assert_eq!(grads.len(), params.len().div_ceil(CHUNK));
@@ -138,44 +137,27 @@ impl Adam {
             .zip(self.m.par_chunks_mut(CHUNK))
             .zip(self.v.par_chunks_mut(CHUNK))
             .enumerate()
-            .map(|(c, (((p, mut gs), m), v))| {
+            .map(|(c, (((p, block), m), v))| {
                 let base = c * CHUNK;
-                let mut loss = 0f64;
-                // Sum the buffers into the first, clearing the others (still in cache below).
-                let (first, rest) = gs.split_first_mut().expect("one gradient buffer at least");
-                for r in rest.iter_mut() {
-                    let GradChunk::Clear(r) = r else {
-                        unreachable!("several buffers are always summed and cleared")
-                    };
-                    let GradChunk::Clear(f) = first else {
-                        unreachable!("several buffers are always summed and cleared")
-                    };
-                    f.iter_mut().zip(r.iter_mut()).for_each(|(a, b)| {
-                        *a += *b;
-                        *b = 0.0;
-                    });
-                }
-                let g: &[f32] = match first {
-                    GradChunk::Read(g) => g,
-                    GradChunk::Clear(g) => g,
-                };
-                // Which slice (if any) overlaps this chunk: handle per element.
-                let overl: Vec<&ScaledSlice> = slices
-                    .iter()
-                    .filter(|s| s.range.start < base + p.len() && s.range.end > base)
-                    .collect();
-                if overl.is_empty() {
-                    // The common case, in a loop the compiler vectorises: the same operations in
-                    // the same order as below with `scale = 1`, so the same values.
-                    for (((p, &g), m), v) in p.iter_mut().zip(g).zip(m.iter_mut()).zip(v.iter_mut())
-                    {
-                        let gi = g.clamp(-MAX_GRADIENT, MAX_GRADIENT);
-                        *m = b1 * *m + (1.0 - b1) * gi;
-                        *v = b2 * *v + (1.0 - b2) * gi * gi;
-                        let denom = v.sqrt() * inv_sqrt_bc2 + eps;
-                        *p -= step_size * *m / denom;
+                let update = |g: &[f32]| -> f64 {
+                    let mut loss = 0f64;
+                    // Which slice (if any) overlaps this chunk: handle per element.
+                    let overl: Vec<&ScaledSlice> = slices
+                        .iter()
+                        .filter(|s| s.range.start < base + p.len() && s.range.end > base)
+                        .collect();
+                    if overl.is_empty() {
+                        // The common case, in a loop the compiler vectorises: the same operations
+                        // in the same order as below with `scale = 1`, so the same values.
+                        for (((p, &g), m), v) in p.iter_mut().zip(g).zip(m).zip(v) {
+                            let gi = g.clamp(-MAX_GRADIENT, MAX_GRADIENT);
+                            *m = b1 * *m + (1.0 - b1) * gi;
+                            *v = b2 * *v + (1.0 - b2) * gi * gi;
+                            let denom = v.sqrt() * inv_sqrt_bc2 + eps;
+                            *p -= step_size * *m / denom;
+                        }
+                        return loss;
                     }
-                } else {
                     for i in 0..p.len() {
                         let mut gi = g[i];
                         let mut scale = 1.0f32;
@@ -202,11 +184,24 @@ impl Adam {
                         let denom = v[i].sqrt() * inv_sqrt_bc2 + eps;
                         p[i] -= step_size * scale * m[i] / denom;
                     }
+                    loss
+                };
+                match block {
+                    Block::One(g) => update(g),
+                    Block::Summed(mut gs) => {
+                        // Sum into the first buffer, clearing the others, while all are in cache.
+                        let (first, rest) = gs.split_first_mut().expect("one buffer at least");
+                        for r in rest.iter_mut() {
+                            first.iter_mut().zip(r.iter_mut()).for_each(|(a, b)| {
+                                *a += *b;
+                                *b = 0.0;
+                            });
+                        }
+                        let loss = update(first);
+                        first.fill(0.0);
+                        loss
+                    }
                 }
-                if let GradChunk::Clear(f) = first {
-                    f.fill(0.0);
-                }
-                loss
             })
             .sum();
         mask_loss as f32
@@ -217,10 +212,11 @@ impl Adam {
 /// stay in L2 between their sum and the update).
 const CHUNK: usize = 1 << 14;
 
-/// One block of a gradient buffer: read only, or summed, used and cleared.
-enum GradChunk<'a> {
-    Read(&'a [f32]),
-    Clear(&'a mut [f32]),
+/// One block of Adam's pass: the gradient, read only, or the same block of several buffers,
+/// summed, used and cleared.
+enum Block<'a> {
+    One(&'a [f32]),
+    Summed(Vec<&'a mut [f32]>),
 }
 
 #[cfg(test)]

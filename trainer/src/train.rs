@@ -140,16 +140,16 @@ pub fn default_sampling_mode(bounds: &SceneBounds) -> SamplingMode {
     }
 }
 
-/// The priors against per-view overfitting that the presets set by the kind of scene
-/// (`TrainSettings::level_ramp_steps`, `level_ramp_start`, `free_space_weight`).
+/// The priors against per-view overfitting that the presets set by the kind of scene (the
+/// [`TrainSettings`] fields of the same names).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ScenePriors {
     pub level_ramp_steps: usize,
     pub level_ramp_start: f32,
     pub free_space_weight: f32,
-    /// The distortion loss's ramp (`TrainSettings::distortion_ramp_start`, `_steps`,
-    /// `distortion_late_weight`).
-    pub distortion_ramp: (usize, usize, f32),
+    pub distortion_ramp_start: usize,
+    pub distortion_ramp_steps: usize,
+    pub distortion_late_weight: f32,
 }
 
 /// On forward-facing captures (contracted bounds): coarse-to-fine from half the levels, all on
@@ -170,13 +170,17 @@ pub fn default_priors(bounds: &SceneBounds) -> ScenePriors {
             level_ramp_steps: 0,
             level_ramp_start: 1.0,
             free_space_weight: 0.0,
-            distortion_ramp: (0, 0, 0.0),
+            distortion_ramp_start: 0,
+            distortion_ramp_steps: 0,
+            distortion_late_weight: 0.0,
         },
         SceneBounds::Contracted { .. } => ScenePriors {
             level_ramp_steps: 300,
             level_ramp_start: 0.5,
             free_space_weight: 1e-3,
-            distortion_ramp: (300, 300, 0.05),
+            distortion_ramp_start: 300,
+            distortion_ramp_steps: 300,
+            distortion_late_weight: 0.05,
         },
     }
 }
@@ -285,9 +289,9 @@ impl TrainSettings {
             free_space_weight: priors.free_space_weight,
             level_ramp_steps: priors.level_ramp_steps,
             level_ramp_start: priors.level_ramp_start,
-            distortion_ramp_start: priors.distortion_ramp.0,
-            distortion_ramp_steps: priors.distortion_ramp.1,
-            distortion_late_weight: priors.distortion_ramp.2,
+            distortion_ramp_start: priors.distortion_ramp_start,
+            distortion_ramp_steps: priors.distortion_ramp_steps,
+            distortion_late_weight: priors.distortion_late_weight,
             model,
             device: TrainDevice::Cpu,
         }
@@ -555,6 +559,8 @@ pub struct Trainer {
     gpu: Option<GpuTraining>,
 }
 
+/// One worker's scratch and gradient buffers. The gradients are zero between steps: a step
+/// accumulates into them and `Adam::update_summed_and_clear` clears them.
 struct Worker {
     ws: Workspace,
     grad: Vec<f32>,
@@ -841,8 +847,8 @@ impl Trainer {
             .par_iter_mut()
             .enumerate()
             .map(|(w, worker)| {
-                // `worker.grad` is zero here: Adam cleared it after the last step.
-                worker.aux_grad.fill(0.0);
+                // `worker.grad` and `worker.aux_grad` are zero here: Adam cleared them after
+                // the last step.
                 let mut acc = ChunkLosses::default();
                 let mut c = w;
                 while c < n_chunks {
@@ -886,13 +892,18 @@ impl Trainer {
             &self.slices,
         );
         if let Some(aux) = self.aux.as_mut() {
-            let (first, rest) = self.workers.split_at_mut(1);
-            let a0 = &mut first[0].aux_grad;
-            for w in rest.iter() {
-                a0.iter_mut().zip(&w.aux_grad).for_each(|(x, y)| *x += y);
-            }
-            aux.adam
-                .update(&self.settings.adam, lr, &mut aux.params, a0, &[]);
+            let mut grads: Vec<&mut [f32]> = self
+                .workers
+                .iter_mut()
+                .map(|w| &mut w.aux_grad[..])
+                .collect();
+            aux.adam.update_summed_and_clear(
+                &self.settings.adam,
+                lr,
+                &mut aux.params,
+                &mut grads,
+                &[],
+            );
         }
         self.step += 1;
         total
