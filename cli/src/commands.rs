@@ -251,7 +251,7 @@ pub fn train(a: TrainArgs) -> Result<Option<Metrics>> {
         }
     );
     println!(
-        "schedule: {:?} ray sampling, proposal annealing over {} steps{}{}{}",
+        "schedule: {:?} ray sampling, proposal annealing over {} steps{}{}{}{}",
         settings.sampling.mode,
         settings.anneal_steps,
         match settings.level_ramp_steps {
@@ -273,6 +273,10 @@ pub fn train(a: TrainArgs) -> Result<Option<Metrics>> {
                 settings.distortion_late_weight,
                 a + settings.distortion_ramp_steps
             ),
+        },
+        match settings.grid_decay {
+            w if w > 0.0 => format!(", hash-table weight decay {w}"),
+            _ => String::new(),
         }
     );
     let pb = progress_bar(settings.iters);

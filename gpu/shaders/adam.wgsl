@@ -1,14 +1,15 @@
 // Adam over the flat parameter buffer, one invocation per parameter: exactly the trainer's
 // `msth_trainer::adam::Adam::update` (same operations in the same order): the mask loss's
-// elementwise gradient added in the mask slices, the gradient clamped to +-max_gradient, the
-// moments, the bias-corrected step (step size and 1 / sqrt(bias correction 2) computed on the
-// host as the CPU does), a per-slice learning-rate scale. Each workgroup also writes the sum of
+// elementwise gradient and a slice's weight decay (`decay * x`) added in the slices, the
+// gradient clamped to +-max_gradient, the moments, the bias-corrected step (step size and
+// 1 / sqrt(bias correction 2) computed on the host as the CPU does), a per-slice learning-rate
+// scale. Each workgroup also writes the sum of
 // its parameters' mask-loss terms to `partials[workgroup]` (the host adds them in f64).
 
 struct MaskSlice {
     // x: first parameter, y: one past the last.
     range: vec4<u32>,
-    // x: loss weight, y: learning-rate scale, z: parameters in the slice (as f32), w: 0.
+    // x: loss weight, y: learning-rate scale, z: parameters in the slice (as f32), w: weight decay.
     vals: vec4<f32>,
 }
 
@@ -53,6 +54,7 @@ fn adam_step(
             let s = adam.slices[k];
             if i >= s.range.x && i < s.range.y {
                 scale = s.vals.y;
+                gi += s.vals.w * p;
                 let sg = sigmoid(p);
                 gi += -s.vals.x * sg * (1.0 - sg) / s.vals.z;
                 loss += s.vals.x * (1.0 - sg) / s.vals.z;

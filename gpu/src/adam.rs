@@ -33,12 +33,14 @@ pub struct AdamHyper {
 }
 
 /// A slice of the parameter buffer with the mask loss `weight * mean(1 - sigmoid(x))` fused into
-/// its update and its step scaled by `lr_scale` (the trainer's `ScaledSlice`).
+/// its update, its step scaled by `lr_scale` and `decay * x` added to its gradient (the trainer's
+/// `ScaledSlice`).
 #[derive(Clone, Debug, PartialEq)]
 pub struct MaskSlice {
     pub range: Range<usize>,
     pub weight: f32,
     pub lr_scale: f32,
+    pub decay: f32,
 }
 
 #[repr(C)]
@@ -161,7 +163,7 @@ impl GpuAdam {
             }
             *slot = MaskSliceU {
                 range: [s.range.start as u32, s.range.end as u32, 0, 0],
-                vals: [s.weight, s.lr_scale, s.range.len() as f32, 0.0],
+                vals: [s.weight, s.lr_scale, s.range.len() as f32, s.decay],
             };
         }
         // The trainer's bias correction, in the same f32 operations.

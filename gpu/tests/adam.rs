@@ -55,11 +55,20 @@ fn masks() -> Vec<ScaledSlice> {
             range: 1_000..5_000,
             weight: 0.5,
             lr_scale: 10.0,
+            decay: 0.0,
         },
         ScaledSlice {
             range: 30_016..31_000,
             weight: 1.0,
             lr_scale: 1.0,
+            decay: 0.0,
+        },
+        // Weight decay without a mask loss (the trainer's `grid_decay` slices).
+        ScaledSlice {
+            range: 20_000..25_000,
+            weight: 0.0,
+            lr_scale: 1.0,
+            decay: 0.37,
         },
     ]
 }
@@ -71,6 +80,7 @@ fn gpu_masks() -> Vec<MaskSlice> {
             range: s.range,
             weight: s.weight,
             lr_scale: s.lr_scale,
+            decay: s.decay,
         })
         .collect()
 }
@@ -221,6 +231,7 @@ fn adam_bad_input_is_an_error() {
         range: 90..101,
         weight: 1.0,
         lr_scale: 1.0,
+        decay: 0.0,
     }];
     for e in [
         adam.update(&dev, &kernel, &hyper, 1e-2, &small, &ok, &[])

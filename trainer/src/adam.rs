@@ -66,6 +66,9 @@ pub struct ScaledSlice {
     pub range: Range<usize>,
     pub weight: f32,
     pub lr_scale: f32,
+    /// Weight decay as a loss term: `decay * x` is added to each parameter's gradient
+    /// (the gradient of `decay / 2 * sum x^2`); 0: none.
+    pub decay: f32,
 }
 
 impl Adam {
@@ -158,6 +161,23 @@ impl Adam {
                         }
                         return loss;
                     }
+                    if let [s] = overl[..] {
+                        if s.weight == 0.0 && s.range.start <= base && s.range.end >= base + p.len()
+                        {
+                            // A block inside one slice without a mask loss (the hash tables'
+                            // weight decay, the proposal's learning rate): the loop below's
+                            // operations in its order, vectorised like the common case.
+                            let (scale, decay) = (s.lr_scale, s.decay);
+                            for (((p, &g), m), v) in p.iter_mut().zip(g).zip(m).zip(v) {
+                                let gi = (g + decay * *p).clamp(-MAX_GRADIENT, MAX_GRADIENT);
+                                *m = b1 * *m + (1.0 - b1) * gi;
+                                *v = b2 * *v + (1.0 - b2) * gi * gi;
+                                let denom = v.sqrt() * inv_sqrt_bc2 + eps;
+                                *p -= step_size * scale * *m / denom;
+                            }
+                            return loss;
+                        }
+                    }
                     for i in 0..p.len() {
                         let mut gi = g[i];
                         let mut scale = 1.0f32;
@@ -165,6 +185,7 @@ impl Adam {
                         for s in &overl {
                             if s.range.contains(&idx) {
                                 scale = s.lr_scale;
+                                gi += s.decay * p[i];
                                 // Weight 0: a slice with its own learning rate and no mask loss.
                                 if s.weight != 0.0 {
                                     let sg = sigmoid(p[i]);
@@ -252,6 +273,7 @@ mod tests {
             range: 100..30_000,
             weight: 1.0,
             lr_scale: 1.0,
+            decay: 0.0,
         }];
         let l0 = adam.update(&cfg, 1e-2, &mut p, &g, &masks);
         for _ in 0..50 {
@@ -276,6 +298,7 @@ mod tests {
             range: 0..100,
             weight: 1.0,
             lr_scale: 10.0,
+            decay: 0.0,
         }];
         for _ in 0..20 {
             adam.update(&cfg, 1e-2, &mut p, &g, &masks);
@@ -291,6 +314,51 @@ mod tests {
     /// The fused pass gives the values of "sum the buffers in order, then update" to the bit,
     /// with and without mask slices (blocks that straddle a slice's ends, a last short block),
     /// and leaves every buffer zeroed.
+    /// A slice's `decay` is `decay * x` added to its gradient before the moments, inside the
+    /// slice only, to the bit; blocks the slice covers whole (a vectorised loop) and blocks it
+    /// shares (the element-wise loop) give the same values, with a learning-rate scale too.
+    #[test]
+    fn decay_adds_decay_times_x_to_the_gradient() {
+        let n = 3 * CHUNK + 31;
+        let cfg = AdamConfig::default();
+        // Partial blocks at both ends, one whole block inside.
+        let range = CHUNK - 9..2 * CHUNK + 500;
+        for lr_scale in [1.0, 3.0] {
+            let slice = ScaledSlice {
+                range: range.clone(),
+                weight: 0.0,
+                lr_scale,
+                decay: 0.2,
+            };
+            // The same slice plus one that changes nothing, so every block is element-wise.
+            let split = [
+                slice.clone(),
+                ScaledSlice {
+                    decay: 0.0,
+                    ..slice.clone()
+                },
+            ];
+            let mut rng = msth_core::rng::Rng::new(5);
+            let mut pa: Vec<f32> = (0..n).map(|_| rng.f32() - 0.5).collect();
+            let (mut pb, mut pc) = (pa.clone(), pa.clone());
+            let (mut a, mut b, mut c) = (Adam::new(n), Adam::new(n), Adam::new(n));
+            for _ in 0..3 {
+                let g: Vec<f32> = (0..n).map(|_| (rng.f32() - 0.5) * 1e-3).collect();
+                let mut with_decay = g.clone();
+                for i in range.clone() {
+                    with_decay[i] += 0.2 * pb[i];
+                }
+                a.update(&cfg, 1e-2, &mut pa, &g, std::slice::from_ref(&slice));
+                b.update(&cfg, 1e-2, &mut pb, &with_decay, &[]);
+                c.update(&cfg, 1e-2, &mut pc, &g, &split);
+                assert!(pa.iter().zip(&pc).all(|(x, y)| x.to_bits() == y.to_bits()));
+                if lr_scale == 1.0 {
+                    assert!(pa.iter().zip(&pb).all(|(x, y)| x.to_bits() == y.to_bits()));
+                }
+            }
+        }
+    }
+
     #[test]
     fn summed_update_equals_sum_then_update_and_clears() {
         let n = 3 * CHUNK + 777;
@@ -299,6 +367,7 @@ mod tests {
             range: CHUNK - 5..CHUNK + 300,
             weight: 0.3,
             lr_scale: 7.0,
+            decay: 0.0,
         }];
         for workers in 1..=3 {
             let mut rng = msth_core::rng::Rng::new(workers as u64);

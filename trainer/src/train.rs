@@ -5,6 +5,7 @@
 //! Repeatability: for a given seed and worker count the run is bit-for-bit repeatable (each
 //! chunk draws from its own random stream; worker gradients are summed in a fixed order).
 
+use std::ops::Range;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -110,6 +111,10 @@ pub struct TrainSettings {
     pub distortion_ramp_steps: usize,
     #[serde(default)]
     pub distortion_late_weight: f32,
+    /// Weight decay of the main field's hash tables (Zip-NeRF): the loss
+    /// `grid_decay * sum_levels mean(x^2)` over the 3D and 4D tables; 0: off.
+    #[serde(default)]
+    pub grid_decay: f32,
     pub model: ModelConfig,
     /// Where the steps run (`msth train --device`): not a setting of the model or the run, so
     /// not saved with it (a checkpoint resumes on either device).
@@ -150,6 +155,7 @@ pub struct ScenePriors {
     pub distortion_ramp_start: usize,
     pub distortion_ramp_steps: usize,
     pub distortion_late_weight: f32,
+    pub grid_decay: f32,
 }
 
 /// On forward-facing captures (contracted bounds): coarse-to-fine from half the levels, all on
@@ -164,6 +170,10 @@ pub struct ScenePriors {
 /// far background: +0.49 dB held-out on the generated stage over 3 seeds, each better
 /// (docs/convergence.md, 2026-11-28, later). At 0.02 from the first step it collapsed the
 /// geometry before it formed.
+///
+/// The main field's hash tables decay toward zero (`grid_decay` 0.3, Zip-NeRF's weight decay on
+/// its grids): rows that few training rays reach no longer keep what one view fitted
+/// (docs/convergence.md, 2026-11-28, evening).
 pub fn default_priors(bounds: &SceneBounds) -> ScenePriors {
     match bounds {
         SceneBounds::Box { .. } => ScenePriors {
@@ -173,6 +183,7 @@ pub fn default_priors(bounds: &SceneBounds) -> ScenePriors {
             distortion_ramp_start: 0,
             distortion_ramp_steps: 0,
             distortion_late_weight: 0.0,
+            grid_decay: 0.0,
         },
         SceneBounds::Contracted { .. } => ScenePriors {
             level_ramp_steps: 300,
@@ -181,6 +192,7 @@ pub fn default_priors(bounds: &SceneBounds) -> ScenePriors {
             distortion_ramp_start: 300,
             distortion_ramp_steps: 300,
             distortion_late_weight: 0.05,
+            grid_decay: 0.3,
         },
     }
 }
@@ -292,6 +304,7 @@ impl TrainSettings {
             distortion_ramp_start: priors.distortion_ramp_start,
             distortion_ramp_steps: priors.distortion_ramp_steps,
             distortion_late_weight: priors.distortion_late_weight,
+            grid_decay: priors.grid_decay,
             model,
             device: TrainDevice::Cpu,
         }
@@ -540,6 +553,46 @@ pub enum TrainError {
     Device(#[from] DeviceError),
 }
 
+/// The slices of the main field's hash tables under `grid_decay` (its 3D and 4D tables), with
+/// the gradient of [`grid_decay_loss`]: `2 * grid_decay / (rows * features) * x`.
+fn grid_decay_slices(settings: &TrainSettings, layout: &ModelLayout) -> Vec<ScaledSlice> {
+    if settings.grid_decay == 0.0 {
+        return Vec::new();
+    }
+    decayed_grids(layout)
+        .map(|(range, slots)| ScaledSlice {
+            range,
+            weight: 0.0,
+            lr_scale: 1.0,
+            decay: 2.0 * settings.grid_decay / slots as f32,
+        })
+        .collect()
+}
+
+/// The main field's hash tables that `grid_decay` acts on: each table's parameter range and the
+/// floats of one full level (`rows * features`, the table size of a hashed level).
+fn decayed_grids(layout: &ModelLayout) -> impl Iterator<Item = (Range<usize>, usize)> + '_ {
+    let enc = &layout.field.encoding;
+    [enc.h3.as_ref(), enc.h4.as_ref()]
+        .into_iter()
+        .flatten()
+        .map(|(g, r)| (r.clone(), g.table_size * g.features))
+}
+
+/// The weight decay of the hash tables (Zip-NeRF's): `grid_decay * sum_levels mean(x^2)` over
+/// the main field's 3D and 4D tables, each level's mean taken over a full table's rows (a dense
+/// coarse level's unused rows count as zeros). It pulls toward zero the rows that few training
+/// rays reach, where the field would otherwise keep what it fitted to one view
+/// (docs/convergence.md, 2026-11-28, evening).
+pub fn grid_decay_loss(settings: &TrainSettings, layout: &ModelLayout, params: &[f32]) -> f64 {
+    decayed_grids(layout)
+        .map(|(range, slots)| {
+            let sum: f64 = params[range].iter().map(|&x| (x as f64) * (x as f64)).sum();
+            settings.grid_decay as f64 * sum / slots as f64
+        })
+        .sum()
+}
+
 /// The state of a run: parameters, optimiser, workers' buffers.
 pub struct Trainer {
     pub settings: TrainSettings,
@@ -634,6 +687,7 @@ impl Trainer {
                 range: e.range(),
                 weight: settings.mask_loss_weight,
                 lr_scale: settings.mask_lr_scale,
+                decay: 0.0,
             })
             .chain(
                 layout
@@ -649,8 +703,10 @@ impl Trainer {
                         range: e.range(),
                         weight: 0.0,
                         lr_scale: settings.proposal_lr_scale,
+                        decay: 0.0,
                     }),
             )
+            .chain(grid_decay_slices(&settings, &layout))
             .collect();
         Trainer {
             settings,
@@ -779,6 +835,7 @@ impl Trainer {
                 range: sl.range.clone(),
                 weight: sl.weight,
                 lr_scale: sl.lr_scale,
+                decay: sl.decay,
             })
             .collect();
         let hyper = AdamHyper {
@@ -1196,6 +1253,58 @@ mod tests {
         TrainSettings::for_model(Preset::Fast, model)
     }
 
+    /// `grid_decay` reaches Adam as slices over the main field's 3D and 4D tables (nothing else),
+    /// whose `decay * x` is the gradient of `grid_decay_loss` (central differences); off, no
+    /// slice decays.
+    #[test]
+    fn grid_decay_slices_carry_the_gradient_of_their_loss() {
+        let mut s = settings();
+        s.grid_decay = 0.0;
+        let t = Trainer::new(s.clone()).unwrap();
+        assert!(t.slices.iter().all(|sl| sl.decay == 0.0));
+        assert_eq!(grid_decay_loss(&s, &t.layout, &t.params), 0.0);
+        s.grid_decay = 0.3;
+        let t = Trainer::new(s.clone()).unwrap();
+        let decayed: Vec<&ScaledSlice> = t.slices.iter().filter(|sl| sl.decay != 0.0).collect();
+        let tables: Vec<Range<usize>> = ["field.h3", "field.h4"]
+            .iter()
+            .map(|n| t.layout.params.get(n).unwrap().range())
+            .collect();
+        let ranges: Vec<Range<usize>> = decayed.iter().map(|sl| sl.range.clone()).collect();
+        assert_eq!(ranges, tables);
+        let mut p = t.params.clone();
+        let outside = t
+            .layout
+            .params
+            .get("field.density_mlp")
+            .unwrap()
+            .range()
+            .start;
+        let mut checked = 0;
+        for sl in &decayed {
+            for i in [sl.range.start, sl.range.start + 7919, sl.range.end - 1] {
+                p[i] = 0.75;
+                let h = 1.0 / 64.0; // exact in f32 around 0.75
+                p[i] = 0.75 + h;
+                let up = grid_decay_loss(&s, &t.layout, &p);
+                p[i] = 0.75 - h;
+                let down = grid_decay_loss(&s, &t.layout, &p);
+                p[i] = 0.75;
+                let fd = (up - down) / (2.0 * h as f64);
+                let analytic = (sl.decay * 0.75) as f64;
+                assert!(
+                    (fd - analytic).abs() <= 1e-6 * analytic.abs(),
+                    "{fd} {analytic}"
+                );
+                checked += 1;
+            }
+        }
+        assert_eq!(checked, 6);
+        let base = grid_decay_loss(&s, &t.layout, &p);
+        p[outside] += 1.0;
+        assert_eq!(grid_decay_loss(&s, &t.layout, &p), base);
+    }
+
     /// The presets sample forward-facing captures (contracted bounds) uniformly and
     /// object-centred scenes (boxes) with the paper's dynamics-aware sampler, in every preset;
     /// `--set sampling.mode` still overrides either. Every preset anneals over at least
@@ -1214,6 +1323,7 @@ mod tests {
             let s = TrainSettings::for_model(preset, object);
             assert_eq!(s.sampling.mode, SamplingMode::Dynamics, "{preset:?}");
             assert_eq!((s.level_ramp_steps, s.free_space_weight), (0, 0.0));
+            assert_eq!(s.grid_decay, 0.0);
             assert_eq!(s.active_levels(0), None);
             assert_eq!(s.distortion_weight_at(100_000), s.distortion_weight);
             if preset == Preset::Fast {
@@ -1227,6 +1337,7 @@ mod tests {
             assert!(s.anneal_steps >= MIN_ANNEAL_STEPS, "{preset:?}");
             // Coarse-to-fine: half the levels at step 0, linear, all from the ramp's end on.
             assert_eq!((s.level_ramp_steps, s.free_space_weight), (300, 1e-3));
+            assert_eq!(s.grid_decay, 0.3);
             let levels = s.model.field.encoding.grid3.levels as f32;
             assert_eq!(s.active_levels(0), Some(0.5 * levels));
             assert_eq!(s.active_levels(150), Some(0.75 * levels));
