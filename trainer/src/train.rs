@@ -415,6 +415,7 @@ impl TrainSettings {
             ("proposal_lr_scale", self.proposal_lr_scale),
             ("free_space_weight", self.free_space_weight),
             ("distortion_late_weight", self.distortion_late_weight),
+            ("grid_decay", self.grid_decay),
         ] {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(SettingsError::Invalid(format!(
@@ -1303,6 +1304,10 @@ mod tests {
         let base = grid_decay_loss(&s, &t.layout, &p);
         p[outside] += 1.0;
         assert_eq!(grid_decay_loss(&s, &t.layout, &p), base);
+        for bad in [-0.1, f32::NAN, f32::INFINITY] {
+            s.grid_decay = bad;
+            assert!(s.validate().is_err(), "{bad}");
+        }
     }
 
     /// The presets sample forward-facing captures (contracted bounds) uniformly and
