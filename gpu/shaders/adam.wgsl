@@ -54,7 +54,9 @@ fn adam_step(
             let s = adam.slices[k];
             if i >= s.range.x && i < s.range.y {
                 scale = s.vals.y;
-                gi += s.vals.w * p;
+                if s.vals.w != 0.0 {
+                    gi += s.vals.w * p;
+                }
                 let sg = sigmoid(p);
                 gi += -s.vals.x * sg * (1.0 - sg) / s.vals.z;
                 loss += s.vals.x * (1.0 - sg) / s.vals.z;

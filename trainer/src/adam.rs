@@ -149,34 +149,30 @@ impl Adam {
                         .iter()
                         .filter(|s| s.range.start < base + p.len() && s.range.end > base)
                         .collect();
-                    if overl.is_empty() {
-                        // The common case, in a loop the compiler vectorises: the same operations
-                        // in the same order as below with `scale = 1`, so the same values.
+                    // A block that no slice touches (the common case), or that lies inside one
+                    // slice without a mask loss (the hash tables' weight decay, the proposal's
+                    // learning rate): one scale and decay for the whole block, in a loop the
+                    // compiler vectorises; the same operations in the same order as below.
+                    let whole = match overl[..] {
+                        [] => Some((1.0, 0.0)),
+                        [s] if s.weight == 0.0
+                            && s.range.start <= base
+                            && s.range.end >= base + p.len() =>
+                        {
+                            Some((s.lr_scale, s.decay))
+                        }
+                        _ => None,
+                    };
+                    if let Some((scale, decay)) = whole {
                         for (((p, &g), m), v) in p.iter_mut().zip(g).zip(m).zip(v) {
-                            let gi = g.clamp(-MAX_GRADIENT, MAX_GRADIENT);
+                            let gi = if decay != 0.0 { g + decay * *p } else { g };
+                            let gi = gi.clamp(-MAX_GRADIENT, MAX_GRADIENT);
                             *m = b1 * *m + (1.0 - b1) * gi;
                             *v = b2 * *v + (1.0 - b2) * gi * gi;
                             let denom = v.sqrt() * inv_sqrt_bc2 + eps;
-                            *p -= step_size * *m / denom;
+                            *p -= step_size * scale * *m / denom;
                         }
                         return loss;
-                    }
-                    if let [s] = overl[..] {
-                        if s.weight == 0.0 && s.range.start <= base && s.range.end >= base + p.len()
-                        {
-                            // A block inside one slice without a mask loss (the hash tables'
-                            // weight decay, the proposal's learning rate): the loop below's
-                            // operations in its order, vectorised like the common case.
-                            let (scale, decay) = (s.lr_scale, s.decay);
-                            for (((p, &g), m), v) in p.iter_mut().zip(g).zip(m).zip(v) {
-                                let gi = (g + decay * *p).clamp(-MAX_GRADIENT, MAX_GRADIENT);
-                                *m = b1 * *m + (1.0 - b1) * gi;
-                                *v = b2 * *v + (1.0 - b2) * gi * gi;
-                                let denom = v.sqrt() * inv_sqrt_bc2 + eps;
-                                *p -= step_size * scale * *m / denom;
-                            }
-                            return loss;
-                        }
                     }
                     for i in 0..p.len() {
                         let mut gi = g[i];
@@ -185,7 +181,9 @@ impl Adam {
                         for s in &overl {
                             if s.range.contains(&idx) {
                                 scale = s.lr_scale;
-                                gi += s.decay * p[i];
+                                if s.decay != 0.0 {
+                                    gi += s.decay * p[i];
+                                }
                                 // Weight 0: a slice with its own learning rate and no mask loss.
                                 if s.weight != 0.0 {
                                     let sg = sigmoid(p[i]);
