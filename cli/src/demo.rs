@@ -227,7 +227,14 @@ pub fn run(a: DemoArgs) -> Result<()> {
         quant,
         ..EncodeOptions::default()
     };
-    let (enc, _) = write_msth(&mut ckpt, &ckpt_path, &scene, &opts, false)?;
+    let (enc, _) = write_msth(
+        &mut ckpt,
+        &ckpt_path,
+        &scene,
+        &opts,
+        false,
+        Some(msth_codec::occupancy::DEFAULT_SEEN_WEIGHT),
+    )?;
     stage(
         "export",
         t,

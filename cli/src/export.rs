@@ -59,11 +59,39 @@ pub struct ExportArgs {
     /// density just below it would reach this opacity (samples below it are skipped).
     #[arg(long, default_value_t = msth_codec::occupancy::DEFAULT_OCCUPANCY_ALPHA)]
     pub occupancy_alpha: f32,
+    /// Which cells of the occupancy grid stay occupied: `cameras` keeps the cells with density
+    /// that the checkpoint's training cameras see (a sample of rendering weight at least
+    /// --seen-weight on one of their rays at some frame, dilated by one cell); `density` keeps
+    /// every cell with density.
+    #[arg(long, value_enum, default_value_t = OccupancyFrom::Cameras)]
+    pub occupancy_from: OccupancyFrom,
+    /// The rendering weight a sample must carry for its cell to count as seen
+    /// (`--occupancy-from cameras`).
+    #[arg(long, default_value_t = msth_codec::occupancy::DEFAULT_SEEN_WEIGHT)]
+    pub seen_weight: f32,
+}
+
+/// Where `msth export`'s occupancy grid comes from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum OccupancyFrom {
+    Cameras,
+    Density,
+}
+
+impl ExportArgs {
+    /// The weight of `--occupancy-from cameras`, `None` for `density`.
+    fn seen_weight(&self) -> Result<Option<f32>> {
+        if !(self.seen_weight.is_finite() && (0.0..1.0).contains(&self.seen_weight)) {
+            bail!("--seen-weight {}: must lie in [0, 1)", self.seen_weight);
+        }
+        Ok((self.occupancy_from == OccupancyFrom::Cameras).then_some(self.seen_weight))
+    }
 }
 
 pub fn export(a: ExportArgs) -> Result<()> {
     let mut ckpt = Checkpoint::load(&a.checkpoint)?;
     let quant: QuantMode = a.quant.parse().map_err(anyhow::Error::msg)?;
+    let seen = a.seen_weight()?;
     let opts = EncodeOptions {
         quant,
         chunk_frames: a.chunk_frames,
@@ -76,13 +104,13 @@ pub fn export(a: ExportArgs) -> Result<()> {
     };
     if let Some(d) = &a.measure {
         let dir = a.checkpoint.parent().unwrap_or(std::path::Path::new("."));
-        return measure(&ckpt, d, dir, a.stride, &opts);
+        return measure(&ckpt, d, dir, a.stride, &opts, seen);
     }
     let Some(out) = &a.output else {
         bail!("-o OUTPUT is required (or --measure DATA)");
     };
-    let (report, unreached) = write_msth(&mut ckpt, &a.checkpoint, out, &opts, a.keep_unreached)?;
-    if let Some(line) = unreached {
+    let (report, lines) = write_msth(&mut ckpt, &a.checkpoint, out, &opts, a.keep_unreached, seen)?;
+    for line in lines {
         println!("{line}");
     }
     print_summary(&report, out);
@@ -90,20 +118,92 @@ pub fn export(a: ExportArgs) -> Result<()> {
 }
 
 /// What `msth export CKPT -o OUT` does, without printing: zeroes the table values no training ray
-/// reached (unless `keep_unreached`), encodes `ckpt` (read from `ckpt_path`) with `opts` and
-/// writes `out` atomically. Returns the encoder's report and a line saying what was zeroed.
+/// reached (unless `keep_unreached`), restricts the occupancy grid to what the training cameras
+/// see (with `seen_weight`, unless `opts` brings a grid), encodes `ckpt` (read from `ckpt_path`)
+/// with `opts` and writes `out` atomically. Returns the encoder's report and lines saying what
+/// was zeroed and how the grid was made.
 pub(crate) fn write_msth(
     ckpt: &mut Checkpoint,
     ckpt_path: &Path,
     out: &Path,
     opts: &EncodeOptions,
     keep_unreached: bool,
-) -> Result<(EncodeReport, Option<String>)> {
-    let unreached = drop_unreached(ckpt, keep_unreached, ckpt_path)?;
-    let (bytes, report) = encode(&ckpt.header.model, &ckpt.params, &ckpt.header.cameras, opts)
-        .with_context(|| format!("encoding {}", ckpt_path.display()))?;
+    seen_weight: Option<f32>,
+) -> Result<(EncodeReport, Vec<String>)> {
+    let mut lines: Vec<String> = drop_unreached(ckpt, keep_unreached, ckpt_path)?
+        .into_iter()
+        .collect();
+    let mut opts = opts.clone();
+    if let (None, Some(w)) = (&opts.occupancy, seen_weight) {
+        let (grid, line) = seen_occupancy(ckpt, &opts, w);
+        opts.occupancy = Some(std::sync::Arc::new(grid));
+        lines.push(line);
+    }
+    let (bytes, report) = encode(
+        &ckpt.header.model,
+        &ckpt.params,
+        &ckpt.header.cameras,
+        &opts,
+    )
+    .with_context(|| format!("encoding {}", ckpt_path.display()))?;
     write_atomic(out, &bytes).with_context(|| format!("writing {}", out.display()))?;
-    Ok((report, unreached))
+    Ok((report, lines))
+}
+
+/// The occupancy grid of `opts` (the density grid) restricted to the cells the checkpoint's
+/// training cameras see with samples of weight `>= min_weight`
+/// ([`msth_codec::occupancy::seen_cells`]), and a line saying what was cast and kept.
+pub(crate) fn seen_occupancy(
+    ckpt: &Checkpoint,
+    opts: &EncodeOptions,
+    min_weight: f32,
+) -> (msth_codec::OccupancyGrid, String) {
+    let t = Instant::now();
+    let model = &ckpt.header.model;
+    let layout = ModelLayout::new(model);
+    let mut grid = msth_codec::encode::occupancy_grid(model, &layout, &ckpt.params, opts);
+    let dense = grid.occupied_cells();
+    let cams = ckpt.header.training_cameras();
+    let (seen, r) = msth_codec::occupancy::seen_cells(
+        model,
+        &layout,
+        &ckpt.params,
+        cams,
+        grid.resolution,
+        min_weight,
+    );
+    grid.intersect(&seen);
+    let which = match ckpt.header.train_cameras {
+        Some(_) => "training cameras",
+        None => "cameras (this checkpoint does not say which trained)",
+    };
+    let line = format!(
+        "occupancy grid from what the {which} see: {} cells lie wholly in their views; {} rays ({} cameras x {} times, \
+         every {} pixel per side) put weight >= {min_weight} in {} cells; with density: {dense} -> {} of {} cells ({:.1}%), in {:.1} s",
+        r.covered_cells,
+        r.rays,
+        r.cameras,
+        r.times,
+        ordinal(r.stride),
+        r.seen_cells,
+        grid.occupied_cells(),
+        grid.cells(),
+        100.0 * grid.occupied_fraction(),
+        t.elapsed().as_secs_f64()
+    );
+    (grid, line)
+}
+
+/// `1st`, `2nd`, `3rd`, `4th`, ...
+fn ordinal(n: u32) -> String {
+    let suffix = match (n % 10, n % 100) {
+        (_, 11..=13) => "th",
+        (1, _) => "st",
+        (2, _) => "nd",
+        (3, _) => "rd",
+        _ => "th",
+    };
+    format!("{n}{suffix}")
 }
 
 /// Zeroes the hash-table values no training ray reached (unless `keep`); the line saying how
@@ -245,13 +345,21 @@ fn measure(
     ckpt_dir: &std::path::Path,
     stride: usize,
     base: &EncodeOptions,
+    seen_weight: Option<f32>,
 ) -> Result<()> {
     let mut data = data::load(data_arg, &data::DataArgs::with_downscale(1), ckpt_dir)?;
     data.rescale(ckpt.header.scene_scale());
     let model = &ckpt.header.model;
     let layout = ModelLayout::new(model);
     // One occupancy grid for every encoding below.
-    let grid = msth_codec::encode::occupancy_grid(model, &layout, &ckpt.params, base);
+    let grid = match seen_weight {
+        Some(w) => {
+            let (grid, line) = seen_occupancy(ckpt, base, w);
+            println!("{line}");
+            grid
+        }
+        None => msth_codec::encode::occupancy_grid(model, &layout, &ckpt.params, base),
+    };
     let base = &EncodeOptions {
         occupancy: Some(std::sync::Arc::new(grid)),
         ..base.clone()

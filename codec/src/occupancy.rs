@@ -12,8 +12,9 @@
 
 use msth_core::config::ModelConfig;
 use msth_core::field::{FieldScratch, ModelLayout};
-use msth_core::pipeline::RENDER_STATIC_CUTOFF;
+use msth_core::pipeline::{weighted_samples, TimedRay, Workspace, RENDER_STATIC_CUTOFF};
 use msth_core::scene::SceneBounds;
+use msth_core::Camera;
 use rayon::prelude::*;
 
 use crate::error::DecodeError;
@@ -86,6 +87,53 @@ impl OccupancyGrid {
 
     fn set(&mut self, i: usize) {
         self.words[i >> 5] |= 1 << (i & 31);
+    }
+
+    /// The index `x + R (y + R z)` of the cell holding unit-cube point `p` (clamped to the
+    /// cube; a coordinate of exactly 1 belongs to the last cell).
+    #[inline]
+    pub fn cell_index_unit(&self, p: [f32; 3]) -> usize {
+        let r = self.resolution;
+        let c = |v: f32| ((v.clamp(0.0, 1.0) * r as f32) as u32).min(r - 1) as usize;
+        let r = r as usize;
+        c(p[0]) + r * (c(p[1]) + r * c(p[2]))
+    }
+
+    /// This grid with every cell next to an occupied one (26 neighbours) occupied too.
+    pub fn dilated(&self) -> OccupancyGrid {
+        let r = self.resolution as usize;
+        let mut out = OccupancyGrid {
+            words: vec![0; self.words.len()],
+            ..*self
+        };
+        let range = |c: usize| c.saturating_sub(1)..=(c + 1).min(r - 1);
+        for z in 0..r {
+            for y in 0..r {
+                for x in 0..r {
+                    if self.cell(x as u32, y as u32, z as u32) {
+                        for nz in range(z) {
+                            for ny in range(y) {
+                                for nx in range(x) {
+                                    out.set(nx + r * (ny + r * nz));
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        out
+    }
+
+    /// Keeps only the cells also occupied in `other` (of the same resolution).
+    pub fn intersect(&mut self, other: &OccupancyGrid) {
+        assert_eq!(
+            self.resolution, other.resolution,
+            "grids of different sizes"
+        );
+        for (a, b) in self.words.iter_mut().zip(&other.words) {
+            *a &= b;
+        }
     }
 
     /// Whether the cell holding unit-cube point `p` is occupied (`p` is clamped to the cube; a
@@ -300,9 +348,219 @@ pub fn compute(
     grid
 }
 
+/// The rendering weight a main sample must carry for [`seen_cells`] to count its cell as seen.
+pub const DEFAULT_SEEN_WEIGHT: f32 = 1e-3;
+/// The most rays [`seen_cells`] casts (pixels are strided evenly to stay below it).
+pub const SEEN_RAY_BUDGET: u64 = 1 << 19;
+
+/// What [`seen_cells`] cast.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SeenReport {
+    pub cameras: usize,
+    pub times: usize,
+    /// Every `stride`-th pixel per side, at its centre.
+    pub stride: u32,
+    pub rays: u64,
+    /// Cells seen before the dilation.
+    pub seen_cells: u64,
+    /// Cells wholly in view of one of the cameras; the others are kept whatever was seen.
+    pub covered_cells: u64,
+}
+
+/// What the cameras leave worth drawing: the cells of an `R^3` grid over the unit cube that hold
+/// a main sample of weight `>= min_weight` on a ray of one of `cameras` at one of the model's
+/// frame times ([`evaluation_times`]), sampled as the renderers sample (`pipeline::
+/// weighted_samples`), through every `stride`-th pixel per side (the stride chosen so that at
+/// most [`SEEN_RAY_BUDGET`] rays are cast), dilated by one cell (26 neighbours); and every cell
+/// not wholly in view of one of the cameras (all 8 corners in front of it and inside its image),
+/// about which they say nothing.
+///
+/// `msth export` keeps the cells of the density grid ([`compute`]) that are also in this grid:
+/// density the training cameras look through or never reach past a surface, such as haze
+/// between the cameras and the surfaces (weights too small to count) or what lies behind a
+/// wall, is skipped; space outside their views keeps what the density test found, so a wider
+/// view still shows the model's extrapolation there.
+pub fn seen_cells(
+    cfg: &ModelConfig,
+    layout: &ModelLayout,
+    params: &[f32],
+    cameras: &[Camera],
+    resolution: u32,
+    min_weight: f32,
+) -> (OccupancyGrid, SeenReport) {
+    let r = resolution.max(1);
+    let times = evaluation_times(cfg.num_frames.max(1));
+    let pixels: u64 = cameras
+        .iter()
+        .map(|c| c.width as u64 * c.height as u64)
+        .sum::<u64>()
+        * times.len() as u64;
+    let mut stride = 1u32;
+    while pixels.div_ceil(stride as u64 * stride as u64) > SEEN_RAY_BUDGET {
+        stride += 1;
+    }
+    let jobs: Vec<(usize, f32)> = (0..cameras.len())
+        .flat_map(|c| times.iter().map(move |&t| (c, t)))
+        .collect();
+    let cells = (r as usize).pow(3);
+    let blank = || OccupancyGrid {
+        resolution: r,
+        density_threshold: 0.0,
+        frames: times.len() as u32,
+        words: vec![0; cells.div_ceil(32)],
+    };
+    let (seen, rays) = jobs
+        .par_iter()
+        .fold(
+            || (blank(), 0u64, Workspace::default(), Vec::new()),
+            |(mut grid, mut count, mut ws, mut rays), &(c, t)| {
+                let cam = &cameras[c];
+                let time = msth_core::pipeline::sample_time(t);
+                let mut y = stride / 2;
+                while y < cam.height {
+                    rays.clear();
+                    let mut x = stride / 2;
+                    while x < cam.width {
+                        let ray = cam.ray_at(x as f32 + 0.5, y as f32 + 0.5);
+                        rays.push(TimedRay {
+                            origin: ray.origin,
+                            dir: ray.dir,
+                            time,
+                        });
+                        x += stride;
+                    }
+                    count += rays.len() as u64;
+                    weighted_samples(cfg, layout, params, &rays, min_weight, &mut ws, |p| {
+                        let i = grid.cell_index_unit(p);
+                        grid.set(i);
+                    });
+                    y += stride;
+                }
+                (grid, count, ws, rays)
+            },
+        )
+        .map(|(g, n, _, _)| (g, n))
+        .reduce(
+            || (blank(), 0),
+            |(mut a, na), (b, nb)| {
+                for (wa, wb) in a.words.iter_mut().zip(&b.words) {
+                    *wa |= wb;
+                }
+                (a, na + nb)
+            },
+        );
+    let mut keep = seen.dilated();
+    let covered = covered_cells(&cfg.bounds, cameras, r);
+    for (k, c) in keep.words.iter_mut().zip(&covered.words) {
+        *k |= !c;
+    }
+    let tail = cells % 32;
+    if tail != 0 {
+        *keep.words.last_mut().unwrap() &= (1u32 << tail) - 1;
+    }
+    let report = SeenReport {
+        cameras: cameras.len(),
+        times: times.len(),
+        stride,
+        rays,
+        seen_cells: seen.occupied_cells(),
+        covered_cells: covered.occupied_cells(),
+    };
+    (keep, report)
+}
+
+/// The cells of an `R^3` grid that lie wholly in the view of one of `cameras`: all 8 corners
+/// (in world space, [`SceneBounds::from_unit`]) in front of it and inside its image.
+fn covered_cells(bounds: &SceneBounds, cameras: &[Camera], resolution: u32) -> OccupancyGrid {
+    let r = resolution as usize;
+    let v = r + 1;
+    // Per vertex, one bit per camera (the first 64; more cameras add nothing here).
+    let views: Vec<(glam::Mat4, &Camera)> = cameras
+        .iter()
+        .take(64)
+        .map(|c| (c.world_from_camera.inverse(), c))
+        .collect();
+    let inside: Vec<u64> = (0..v * v * v)
+        .into_par_iter()
+        .map(|i| {
+            let u = glam::Vec3::new(
+                (i % v) as f32 / r as f32,
+                ((i / v) % v) as f32 / r as f32,
+                (i / (v * v)) as f32 / r as f32,
+            );
+            let w = bounds.from_unit(u);
+            let mut bits = 0u64;
+            for (k, (camera_from_world, c)) in views.iter().enumerate() {
+                let p = camera_from_world.transform_point3(w);
+                if p.z < 0.0 {
+                    let x = c.cx + c.fx * p.x / -p.z;
+                    let y = c.cy - c.fy * p.y / -p.z;
+                    if (0.0..=c.width as f32).contains(&x) && (0.0..=c.height as f32).contains(&y) {
+                        bits |= 1 << k;
+                    }
+                }
+            }
+            bits
+        })
+        .collect();
+    let mut grid = OccupancyGrid {
+        resolution,
+        density_threshold: 0.0,
+        frames: 0,
+        words: vec![0; (r * r * r).div_ceil(32)],
+    };
+    for z in 0..r {
+        for y in 0..r {
+            for x in 0..r {
+                let mut all = u64::MAX;
+                for (dx, dy, dz) in (0..8).map(|c| (c & 1, (c >> 1) & 1, c >> 2)) {
+                    all &= inside[(x + dx) + v * ((y + dy) + v * (z + dz))];
+                }
+                if all != 0 {
+                    grid.set(x + r * (y + r * z));
+                }
+            }
+        }
+    }
+    grid
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn dilation_intersection_and_cell_of_a_point() {
+        let r = 5u32;
+        let mut g = OccupancyGrid {
+            words: vec![0; 125usize.div_ceil(32)],
+            ..OccupancyGrid::full(r)
+        };
+        // A corner cell and an inner one.
+        g.set(g.cell_index_unit([0.0, 0.0, 0.0]));
+        g.set(g.cell_index_unit([0.5, 0.5, 0.5]));
+        assert!(g.cell(0, 0, 0) && g.cell(2, 2, 2));
+        assert_eq!(g.cell_index_unit([1.0, 1.0, 1.0]), 124);
+        assert_eq!(g.cell_index_unit([-1.0, 0.99, 0.0]), 4 * 5);
+        let d = g.dilated();
+        // 2^3 around the corner, 3^3 around (2, 2, 2), sharing (1, 1, 1).
+        assert_eq!(d.occupied_cells(), 8 + 27 - 1);
+        for (x, y, z) in [(0, 0, 0), (1, 1, 1), (3, 3, 3), (3, 1, 2)] {
+            assert!(d.cell(x, y, z), "({x}, {y}, {z})");
+        }
+        for (x, y, z) in [(4, 4, 4), (2, 0, 0), (0, 0, 2)] {
+            assert!(!d.cell(x, y, z), "({x}, {y}, {z})");
+        }
+        let mut full = OccupancyGrid::full(r);
+        full.intersect(&d);
+        assert_eq!(full, d);
+        let mut empty = d.clone();
+        empty.intersect(&OccupancyGrid {
+            words: vec![0; d.words.len()],
+            ..OccupancyGrid::full(r)
+        });
+        assert_eq!(empty.occupied_cells(), 0);
+    }
 
     #[test]
     fn payload_round_trips_and_rejects_bad_bits() {

@@ -99,6 +99,29 @@ impl SceneBounds {
         }
     }
 
+    /// The world point of a unit-cube point: the inverse of [`SceneBounds::to_unit`] inside the
+    /// cube (`u` is clamped to it). A contracted scene's outer faces lie at infinity; points
+    /// within 1e-4 of them map to 10,000 radii from the centre.
+    pub fn from_unit(&self, u: Vec3) -> Vec3 {
+        let u = u.clamp(Vec3::ZERO, Vec3::ONE);
+        match *self {
+            SceneBounds::Box { min, max } => min + u * (max - min),
+            SceneBounds::Contracted { center, radius } => {
+                let c = u * 4.0 - 2.0;
+                let n = c.abs().max_element();
+                let y = if n <= 1.0 {
+                    c
+                } else {
+                    // |c| = 2 - 1/m for |y| = m >= 1, and c = (2 - 1/m) y / m.
+                    let n = n.min(2.0 - 1e-4);
+                    let m = 1.0 / (2.0 - n);
+                    c / n * m
+                };
+                center + y * radius
+            }
+        }
+    }
+
     /// The part of the ray the scene occupies, or `None` when the ray misses a box.
     pub fn ray_interval(&self, ray: &Ray, near_min: f32, far_max: f32) -> Option<RayInterval> {
         match *self {
@@ -157,6 +180,36 @@ mod tests {
         assert_eq!(b.to_unit(Vec3::new(-1.0, -2.0, 0.0)), Vec3::ZERO);
         assert_eq!(b.to_unit(Vec3::new(1.0, 2.0, 4.0)), Vec3::ONE);
         assert_eq!(b.to_unit(Vec3::new(0.0, 0.0, 2.0)), Vec3::splat(0.5));
+    }
+
+    #[test]
+    fn from_unit_inverts_to_unit() {
+        let bounds = [
+            SceneBounds::Box {
+                min: Vec3::new(-1.0, -2.0, 0.0),
+                max: Vec3::new(1.0, 2.0, 4.0),
+            },
+            SceneBounds::Contracted {
+                center: Vec3::new(0.5, -1.0, 2.0),
+                radius: 2.0,
+            },
+        ];
+        let mut rng = crate::rng::Rng::new(3);
+        for b in bounds {
+            for _ in 0..1000 {
+                let u = Vec3::new(rng.f32(), rng.f32(), rng.f32()) * 0.998 + 0.001;
+                let w = b.from_unit(u);
+                let back = b.to_unit(w);
+                assert!(
+                    (back - u).abs().max_element() < 1e-4,
+                    "{b:?}: {u} -> {w} -> {back}"
+                );
+            }
+            // The cube's faces stay finite.
+            for u in [Vec3::ZERO, Vec3::ONE, Vec3::new(0.0, 0.5, 1.0)] {
+                assert!(b.from_unit(u).is_finite());
+            }
+        }
     }
 
     #[test]

@@ -198,3 +198,102 @@ fn occupancy_skipping_keeps_frames_within_40_db() {
         grid.resolution
     );
 }
+
+/// `msth export`'s default grid (issue #17): the density grid restricted to the cells the
+/// file's cameras see ([`msth_codec::occupancy::seen_cells`]). It is a subset of the density
+/// grid and of the dilated cells that hold the cast rays' weighted samples; every such sample's
+/// cell is kept; and frames of those cameras rendered with it stay within 40 dB of unskipped
+/// ones at several times (the property the export relies on).
+#[test]
+fn the_grid_of_what_the_cameras_see_keeps_their_frames() {
+    use msth_codec::occupancy::{compute, seen_cells, DEFAULT_SEEN_WEIGHT};
+    use msth_core::pipeline::{weighted_samples, TimedRay, Workspace};
+    use msth_player::{RenderSettings, Renderer};
+    let d = decode_all(&std::fs::read(fixtures().join("v2.msth")).unwrap()).unwrap();
+    let density = compute(&d.config, &d.layout, &d.params, 64, 1e-2);
+    let (seen, report) = seen_cells(
+        &d.config,
+        &d.layout,
+        &d.params,
+        &d.cameras,
+        64,
+        DEFAULT_SEEN_WEIGHT,
+    );
+    assert!(report.rays > 0 && report.seen_cells > 0, "{report:?}");
+    assert!(seen.occupied_cells() >= report.seen_cells);
+    let mut grid = density.clone();
+    grid.intersect(&seen);
+    for (k, (&g, (&a, &b))) in grid
+        .words
+        .iter()
+        .zip(density.words.iter().zip(&seen.words))
+        .enumerate()
+    {
+        assert_eq!(g, a & b, "word {k}");
+    }
+    println!(
+        "{report:?}: density {:.1}% of cells, seen {:.1}%, both {:.1}%",
+        100.0 * density.occupied_fraction(),
+        100.0 * seen.occupied_fraction(),
+        100.0 * grid.occupied_fraction()
+    );
+    // The weighted samples of a few of the cast rays lie in seen cells (the first camera's
+    // pixel centres on the stride, at the first frame).
+    let cam = d.cameras[0];
+    let s = report.stride;
+    let rays: Vec<TimedRay> = (0..cam.width / s)
+        .map(|x| {
+            let r = cam.ray_at((x * s + s / 2) as f32 + 0.5, (s / 2) as f32 + 0.5);
+            TimedRay {
+                origin: r.origin,
+                dir: r.dir,
+                time: 0.0,
+            }
+        })
+        .collect();
+    let mut found = 0;
+    weighted_samples(
+        &d.config,
+        &d.layout,
+        &d.params,
+        &rays,
+        DEFAULT_SEEN_WEIGHT,
+        &mut Workspace::default(),
+        |p| {
+            found += 1;
+            assert!(
+                seen.occupied_unit(p),
+                "{p:?} carries weight in a cell marked unseen"
+            );
+        },
+    );
+    assert!(found > 0, "no weighted sample on the first row of rays");
+    let settings = RenderSettings {
+        incremental: false,
+        ..Default::default()
+    };
+    let grid = std::sync::Arc::new(grid);
+    // Each camera as it is, and with twice its field of view: what lies outside every
+    // camera's view keeps the density grid's cells, so a wider view loses nothing either.
+    let wide: Vec<msth_core::Camera> = d
+        .cameras
+        .iter()
+        .map(|c| msth_core::Camera {
+            fx: c.fx * 0.4,
+            fy: c.fy * 0.4,
+            ..*c
+        })
+        .collect();
+    for (c, camera) in d.cameras.iter().chain(&wide).enumerate() {
+        for t in [0.0f32, 0.5, 1.0] {
+            let params = d.params_for_time(t);
+            let a = Renderer::new(&d.config, settings).render(camera, t, &params);
+            let mut skipping = Renderer::new(&d.config, settings);
+            skipping.set_occupancy(Some(grid.clone()));
+            let b = skipping.render(camera, t, &params);
+            let p = psnr(&a.rgb, &b.rgb);
+            println!("camera {c}, t = {t}: {p:.2} dB against unskipped");
+            assert!(p >= 40.0, "camera {c}, t = {t}: {p:.2} dB");
+        }
+    }
+}

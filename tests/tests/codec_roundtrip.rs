@@ -146,3 +146,46 @@ fn export_command_writes_a_decodable_file() {
     assert_eq!(d.metadata.chunk_frames, 3);
     assert!(export_cmd(&ckpt, &out, &["--quant", "q9"]).is_err());
 }
+
+/// The checkpoint says which of its cameras trained, and `msth export` keeps only the occupancy
+/// cells those cameras see by default: a subset of what `--occupancy-from density` keeps.
+#[test]
+fn export_keeps_the_occupancy_cells_the_training_cameras_see() {
+    let (dir, ckpt, data) = trained();
+    let n_train = ckpt.header.train_cameras.expect("a new checkpoint says");
+    assert!(n_train >= 1 && n_train < ckpt.header.cameras.len());
+    assert_eq!(ckpt.header.training_cameras()[0], data.train[0].camera);
+    let path = dir.path().join("model.ckpt");
+    let grid = |extra: &[&str]| {
+        let out = dir.path().join("g.msth");
+        export_cmd(&path, &out, extra).unwrap();
+        decode_all(&std::fs::read(&out).unwrap())
+            .unwrap()
+            .occupancy
+            .expect("a grid")
+    };
+    let seen = grid(&[]);
+    let density = grid(&["--occupancy-from", "density"]);
+    assert!(seen.occupied_cells() > 0);
+    for (a, b) in seen.words.iter().zip(&density.words) {
+        assert_eq!(a & !b, 0, "a seen cell the density grid calls empty");
+    }
+    println!(
+        "occupied: {} seen, {} by density, of {}",
+        seen.occupied_cells(),
+        density.occupied_cells(),
+        seen.cells()
+    );
+    // Every cell a sample of weight 0 or more lies in: at least the seen cells of 1e-3.
+    let all = grid(&["--seen-weight", "0"]);
+    for (a, b) in seen.words.iter().zip(&all.words) {
+        assert_eq!(a & !b, 0);
+    }
+    let out = dir.path().join("bad.msth");
+    for bad in ["1", "-0.5", "NaN"] {
+        let arg = format!("--seen-weight={bad}");
+        let e = export_cmd(&path, &out, &[&arg]).unwrap_err();
+        assert!(e.to_string().contains("--seen-weight"), "{e}");
+    }
+    assert!(!out.exists());
+}

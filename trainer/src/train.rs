@@ -968,13 +968,15 @@ impl Trainer {
     }
 
     pub fn checkpoint(&self, data: &Dataset, train_seconds: f64) -> Checkpoint {
+        let cameras = playback_cameras_split(data);
         Checkpoint {
             header: CheckpointHeader {
                 model: self.settings.model.clone(),
                 train: serde_json::to_value(&self.settings).unwrap_or_default(),
                 step: self.step as u64,
                 dataset: data.name.clone(),
-                cameras: playback_cameras(data),
+                cameras: cameras.0,
+                train_cameras: Some(cameras.1),
                 train_seconds,
             },
             params: self.params.clone(),
@@ -987,8 +989,17 @@ impl Trainer {
 /// 64): camera 0 of a checkpoint, and of the `.msth` file exported from it, is the first
 /// training camera, the view the players open at.
 pub fn playback_cameras(data: &Dataset) -> Vec<Camera> {
+    playback_cameras_split(data).0
+}
+
+/// [`playback_cameras`] and how many of them (the first ones) are training cameras.
+pub fn playback_cameras_split(data: &Dataset) -> (Vec<Camera>, usize) {
     let mut out: Vec<Camera> = Vec::new();
-    for v in data.train.iter().chain(&data.test) {
+    let mut train = 0;
+    for (k, v) in data.train.iter().chain(&data.test).enumerate() {
+        if k == data.train.len() {
+            train = out.len();
+        }
         let dup = out.iter().any(|c| {
             c.world_from_camera
                 .abs_diff_eq(v.camera.world_from_camera, 1e-5)
@@ -1001,7 +1012,10 @@ pub fn playback_cameras(data: &Dataset) -> Vec<Camera> {
             break;
         }
     }
-    out
+    if data.test.is_empty() || out.len() >= 64 && train == 0 {
+        train = out.len();
+    }
+    (out, train)
 }
 
 /// Draws a batch of random (view, pixel) rays with their colours. With `backgrounds`, views that
@@ -1247,6 +1261,7 @@ mod tests {
         assert_eq!(cams[0], data.train[0].camera);
         assert_eq!(*cams.last().unwrap(), data.test[0].camera);
         assert_eq!(cams.len(), 4);
+        assert_eq!(playback_cameras_split(&data).1, 3);
     }
 
     fn settings() -> TrainSettings {

@@ -10,6 +10,44 @@ pub(super) fn forward_chunk(
     params: &[f32],
     rays: &[TimedRay],
     anneal: f32,
+    rng: Option<&mut Rng>,
+    ws: &mut Workspace,
+) {
+    forward_geometry(cfg, layout, params, rays, anneal, rng, ws);
+    let n = rays.len();
+    let nf = cfg.sampler.num_samples;
+    // Colour only where light can still arrive: a sample behind optical depth
+    // `ln(1 / HIDDEN_TRANSMITTANCE)` has weight and gradient below that transmittance.
+    let tau_hidden = (1.0 / HIDDEN_TRANSMITTANCE).ln();
+    ws.active.clear();
+    for i in 0..n {
+        let mut tau = 0f32;
+        for k in 0..nf {
+            let idx = i * nf + k;
+            if tau > tau_hidden {
+                break;
+            }
+            ws.active.push(idx as u32);
+            tau += render::tau_of(ws.main.sigma[idx], ws.delta_main[idx]);
+        }
+    }
+    layout.field.forward_color(
+        params,
+        &ws.sh,
+        &|j| j / nf,
+        Some(&ws.active),
+        n * nf,
+        &mut ws.main,
+    );
+}
+
+/// The proposal field, the resampling and the main field's density of a chunk (no colour).
+fn forward_geometry(
+    cfg: &ModelConfig,
+    layout: &ModelLayout,
+    params: &[f32],
+    rays: &[TimedRay],
+    anneal: f32,
     mut rng: Option<&mut Rng>,
     ws: &mut Workspace,
 ) {
@@ -66,30 +104,38 @@ pub(super) fn forward_chunk(
     layout
         .field
         .forward_density(params, &ws.pts_main, n * nf, &mut ws.main);
-    // Colour only where light can still arrive: a sample behind optical depth
-    // `ln(1 / HIDDEN_TRANSMITTANCE)` has weight and gradient below that transmittance.
-    let tau_hidden = (1.0 / HIDDEN_TRANSMITTANCE).ln();
-    ws.active.clear();
-    for i in 0..n {
-        let mut tau = 0f32;
-        for k in 0..nf {
-            let idx = i * nf + k;
-            if tau > tau_hidden {
-                break;
+    ws.w_main.resize(n * nf, 0.0);
+}
+
+/// Where a chunk's light comes from: calls `seen` with the grids' coordinates `(x, y, z)` of
+/// every main sample whose rendering weight is at least `min_weight`, sampling as
+/// [`render_chunk`] does (the main field's colour is not evaluated). `msth export` marks the
+/// occupancy grid's cells that its training cameras see this way.
+pub fn weighted_samples(
+    cfg: &ModelConfig,
+    layout: &ModelLayout,
+    params: &[f32],
+    rays: &[TimedRay],
+    min_weight: f32,
+    ws: &mut Workspace,
+    mut seen: impl FnMut([f32; 3]),
+) {
+    let nf = cfg.sampler.num_samples;
+    ws.prop.enc.static_cutoff = RENDER_STATIC_CUTOFF;
+    ws.main.enc.static_cutoff = RENDER_STATIC_CUTOFF;
+    forward_geometry(cfg, layout, params, rays, 1.0, None, ws);
+    for i in 0..rays.len() {
+        let fs = i * nf..(i + 1) * nf;
+        let w = &mut ws.w_main[fs.clone()];
+        render::weights(&ws.main.sigma[fs.clone()], &ws.delta_main[fs.clone()], w);
+        for (k, &wk) in w.iter().enumerate() {
+            // NaN weights count as seen: nothing is skipped on their account.
+            if wk >= min_weight || wk.is_nan() {
+                let p = &ws.pts_main[(i * nf + k) * 4..];
+                seen([p[0], p[1], p[2]]);
             }
-            ws.active.push(idx as u32);
-            tau += render::tau_of(ws.main.sigma[idx], ws.delta_main[idx]);
         }
     }
-    layout.field.forward_color(
-        params,
-        &ws.sh,
-        &|j| j / nf,
-        Some(&ws.active),
-        n * nf,
-        &mut ws.main,
-    );
-    ws.w_main.resize(n * nf, 0.0);
 }
 
 /// Composites one ray: `C = sum w_i c_i + T_N * bg`, the background being the configured colour
