@@ -151,8 +151,9 @@ pub(crate) fn write_msth(
 }
 
 /// The occupancy grid of `opts` (the density grid) restricted to the cells the checkpoint's
-/// training cameras see with samples of weight `>= min_weight`
-/// ([`msth_codec::occupancy::seen_cells`]), and a line saying what was cast and kept.
+/// training cameras see with samples of weight `>= min_weight`, or that lie outside their views
+/// ([`msth_codec::occupancy::seen_cells`]), and a line saying what was cast and kept. A
+/// checkpoint that does not list every training camera keeps the density grid.
 pub(crate) fn seen_occupancy(
     ckpt: &Checkpoint,
     opts: &EncodeOptions,
@@ -163,7 +164,14 @@ pub(crate) fn seen_occupancy(
     let layout = ModelLayout::new(model);
     let mut grid = msth_codec::encode::occupancy_grid(model, &layout, &ckpt.params, opts);
     let dense = grid.occupied_cells();
-    let cams = ckpt.header.training_cameras();
+    let Some(cams) = ckpt.header.training_cameras() else {
+        let line = format!(
+            "occupancy grid from density alone ({dense} of {} cells): this checkpoint does not list every \
+             training camera (written before 2026-11-28, or more than 64 training poses), so what they saw is unknown",
+            grid.cells()
+        );
+        return (grid, line);
+    };
     let (seen, r) = msth_codec::occupancy::seen_cells(
         model,
         &layout,
@@ -173,12 +181,8 @@ pub(crate) fn seen_occupancy(
         min_weight,
     );
     grid.intersect(&seen);
-    let which = match ckpt.header.train_cameras {
-        Some(_) => "training cameras",
-        None => "cameras (this checkpoint does not say which trained)",
-    };
     let line = format!(
-        "occupancy grid from what the {which} see: {} cells lie wholly in their views; {} rays ({} cameras x {} times, \
+        "occupancy grid from what the training cameras see: {} cells lie wholly in their views; {} rays ({} cameras x {} times, \
          every {} pixel per side) put weight >= {min_weight} in {} cells; with density: {dense} -> {} of {} cells ({:.1}%), in {:.1} s",
         r.covered_cells,
         r.rays,

@@ -154,7 +154,10 @@ fn export_keeps_the_occupancy_cells_the_training_cameras_see() {
     let (dir, ckpt, data) = trained();
     let n_train = ckpt.header.train_cameras.expect("a new checkpoint says");
     assert!(n_train >= 1 && n_train < ckpt.header.cameras.len());
-    assert_eq!(ckpt.header.training_cameras()[0], data.train[0].camera);
+    assert_eq!(
+        ckpt.header.training_cameras().unwrap()[0],
+        data.train[0].camera
+    );
     let path = dir.path().join("model.ckpt");
     let grid = |extra: &[&str]| {
         let out = dir.path().join("g.msth");
@@ -181,6 +184,19 @@ fn export_keeps_the_occupancy_cells_the_training_cameras_see() {
     for (a, b) in seen.words.iter().zip(&all.words) {
         assert_eq!(a & !b, 0);
     }
+    // A checkpoint that does not list its training cameras (an older one) keeps the density
+    // grid.
+    let mut old = Checkpoint::load(&path).unwrap();
+    old.header.train_cameras = None;
+    let old_path = dir.path().join("old.ckpt");
+    old.save(&old_path).unwrap();
+    let out = dir.path().join("old.msth");
+    export_cmd(&old_path, &out, &[]).unwrap();
+    let from_old = decode_all(&std::fs::read(&out).unwrap())
+        .unwrap()
+        .occupancy
+        .unwrap();
+    assert_eq!(from_old, density);
     let out = dir.path().join("bad.msth");
     for bad in ["1", "-0.5", "NaN"] {
         let arg = format!("--seen-weight={bad}");

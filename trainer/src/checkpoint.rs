@@ -33,18 +33,19 @@ pub struct CheckpointHeader {
     pub dataset: String,
     /// Cameras worth playing back from (the dataset's test and training poses, deduplicated).
     pub cameras: Vec<Camera>,
-    /// How many of `cameras` (the first ones) are training cameras; absent in checkpoints
-    /// written before 2026-11-28.
+    /// How many of `cameras` (the first ones) are the poses of every training view; absent in
+    /// checkpoints written before 2026-11-28 and where the 64 cameras could not hold every
+    /// training pose.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub train_cameras: Option<usize>,
     pub train_seconds: f64,
 }
 
 impl CheckpointHeader {
-    /// The training cameras among `cameras` (all of them when the checkpoint does not say).
-    pub fn training_cameras(&self) -> &[Camera] {
-        let n = self.train_cameras.unwrap_or(self.cameras.len());
-        &self.cameras[..n.min(self.cameras.len())]
+    /// The poses of every training view, when the checkpoint lists them.
+    pub fn training_cameras(&self) -> Option<&[Camera]> {
+        self.train_cameras
+            .map(|n| &self.cameras[..n.min(self.cameras.len())])
     }
 }
 

@@ -976,7 +976,7 @@ impl Trainer {
                 step: self.step as u64,
                 dataset: data.name.clone(),
                 cameras: cameras.0,
-                train_cameras: Some(cameras.1),
+                train_cameras: cameras.1,
                 train_seconds,
             },
             params: self.params.clone(),
@@ -992,13 +992,15 @@ pub fn playback_cameras(data: &Dataset) -> Vec<Camera> {
     playback_cameras_split(data).0
 }
 
-/// [`playback_cameras`] and how many of them (the first ones) are training cameras.
-pub fn playback_cameras_split(data: &Dataset) -> (Vec<Camera>, usize) {
+/// [`playback_cameras`] and how many of them (the first ones) are the training views' poses:
+/// `None` when the list stopped at 64 before every training pose was in it (monocular data with
+/// a pose per frame), so that the list cannot stand for what training saw.
+pub fn playback_cameras_split(data: &Dataset) -> (Vec<Camera>, Option<usize>) {
     let mut out: Vec<Camera> = Vec::new();
-    let mut train = 0;
+    let mut train = None;
     for (k, v) in data.train.iter().chain(&data.test).enumerate() {
         if k == data.train.len() {
-            train = out.len();
+            train = Some(out.len());
         }
         let dup = out.iter().any(|c| {
             c.world_from_camera
@@ -1012,9 +1014,20 @@ pub fn playback_cameras_split(data: &Dataset) -> (Vec<Camera>, usize) {
             break;
         }
     }
-    if data.test.is_empty() || out.len() >= 64 && train == 0 {
-        train = out.len();
-    }
+    // Every training view visited (the loop ended or reached the held-out ones).
+    let all_train = train.is_some()
+        || data.train.iter().all(|v| {
+            out.iter().any(|c| {
+                c.world_from_camera
+                    .abs_diff_eq(v.camera.world_from_camera, 1e-5)
+                    && c.width == v.camera.width
+            })
+        });
+    let train = match train {
+        Some(n) => Some(n),
+        None if all_train => Some(out.len()),
+        None => None,
+    };
     (out, train)
 }
 
@@ -1261,7 +1274,28 @@ mod tests {
         assert_eq!(cams[0], data.train[0].camera);
         assert_eq!(*cams.last().unwrap(), data.test[0].camera);
         assert_eq!(cams.len(), 4);
-        assert_eq!(playback_cameras_split(&data).1, 3);
+        assert_eq!(playback_cameras_split(&data).1, Some(3));
+        // More training poses than the list holds: it cannot say what training saw.
+        let many = crate::synth::generate(&crate::synth::SynthConfig {
+            width: 4,
+            height: 3,
+            num_frames: 1,
+            num_train_cams: 70,
+            supersample: 1,
+            ..Default::default()
+        });
+        let (cams, train) = playback_cameras_split(&many);
+        assert_eq!((cams.len(), train), (64, None));
+        // Exactly as many as it holds, held-out ones after them: all listed.
+        let full = crate::synth::generate(&crate::synth::SynthConfig {
+            width: 4,
+            height: 3,
+            num_frames: 1,
+            num_train_cams: 64,
+            supersample: 1,
+            ..Default::default()
+        });
+        assert_eq!(playback_cameras_split(&full).1, Some(64));
     }
 
     fn settings() -> TrainSettings {
