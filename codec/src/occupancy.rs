@@ -474,7 +474,8 @@ pub fn seen_cells(
 fn covered_cells(bounds: &SceneBounds, cameras: &[Camera], resolution: u32) -> OccupancyGrid {
     let r = resolution as usize;
     let v = r + 1;
-    // Per vertex, one bit per camera (the first 64; more cameras add nothing here).
+    // Per vertex, one bit per camera: the first 64 (a cell only later ones see stays
+    // uncovered, so it is kept: the safe side).
     let views: Vec<(glam::Mat4, &Camera)> = cameras
         .iter()
         .take(64)
