@@ -80,7 +80,7 @@ pub enum OccupancyFrom {
 
 impl ExportArgs {
     /// The weight of `--occupancy-from cameras`, `None` for `density`.
-    fn seen_weight(&self) -> Result<Option<f32>> {
+    fn carving_weight(&self) -> Result<Option<f32>> {
         if !(self.seen_weight.is_finite() && (0.0..1.0).contains(&self.seen_weight)) {
             bail!("--seen-weight {}: must lie in [0, 1)", self.seen_weight);
         }
@@ -91,7 +91,7 @@ impl ExportArgs {
 pub fn export(a: ExportArgs) -> Result<()> {
     let mut ckpt = Checkpoint::load(&a.checkpoint)?;
     let quant: QuantMode = a.quant.parse().map_err(anyhow::Error::msg)?;
-    let seen = a.seen_weight()?;
+    let seen = a.carving_weight()?;
     let opts = EncodeOptions {
         quant,
         chunk_frames: a.chunk_frames,

@@ -65,6 +65,16 @@ impl OccupancyGrid {
         }
     }
 
+    /// A grid with no cell occupied (everything may be skipped).
+    pub fn empty(resolution: u32) -> Self {
+        OccupancyGrid {
+            resolution,
+            density_threshold: 0.0,
+            frames: 0,
+            words: vec![0; (resolution as usize).pow(3).div_ceil(32)],
+        }
+    }
+
     pub fn cells(&self) -> u64 {
         (self.resolution as u64).pow(3)
     }
@@ -103,8 +113,9 @@ impl OccupancyGrid {
     pub fn dilated(&self) -> OccupancyGrid {
         let r = self.resolution as usize;
         let mut out = OccupancyGrid {
-            words: vec![0; self.words.len()],
-            ..*self
+            density_threshold: self.density_threshold,
+            frames: self.frames,
+            ..OccupancyGrid::empty(self.resolution)
         };
         let range = |c: usize| c.saturating_sub(1)..=(c + 1).min(r - 1);
         for z in 0..r {
@@ -140,9 +151,8 @@ impl OccupancyGrid {
     /// coordinate of exactly 1 belongs to the last cell).
     #[inline]
     pub fn occupied_unit(&self, p: [f32; 3]) -> bool {
-        let r = self.resolution;
-        let c = |v: f32| ((v.clamp(0.0, 1.0) * r as f32) as u32).min(r - 1);
-        self.cell(c(p[0]), c(p[1]), c(p[2]))
+        let i = self.cell_index_unit(p);
+        (self.words[i >> 5] >> (i & 31)) & 1 == 1
     }
 
     /// The section payload (format.md §6.5).
@@ -404,10 +414,8 @@ pub fn seen_cells(
         .collect();
     let cells = (r as usize).pow(3);
     let blank = || OccupancyGrid {
-        resolution: r,
-        density_threshold: 0.0,
         frames: times.len() as u32,
-        words: vec![0; cells.div_ceil(32)],
+        ..OccupancyGrid::empty(r)
     };
     let (seen, rays) = jobs
         .par_iter()
@@ -492,10 +500,8 @@ fn covered_cells(bounds: &SceneBounds, cameras: &[Camera], resolution: u32) -> O
             let w = bounds.from_unit(u);
             let mut bits = 0u64;
             for (k, (camera_from_world, c)) in views.iter().enumerate() {
-                let p = camera_from_world.transform_point3(w);
-                if p.z < 0.0 {
-                    let x = c.cx + c.fx * p.x / -p.z;
-                    let y = c.cy - c.fy * p.y / -p.z;
+                if let Some((x, y)) = c.project_camera_point(camera_from_world.transform_point3(w))
+                {
                     if (0.0..=c.width as f32).contains(&x) && (0.0..=c.height as f32).contains(&y) {
                         bits |= 1 << k;
                     }
@@ -504,12 +510,7 @@ fn covered_cells(bounds: &SceneBounds, cameras: &[Camera], resolution: u32) -> O
             bits
         })
         .collect();
-    let mut grid = OccupancyGrid {
-        resolution,
-        density_threshold: 0.0,
-        frames: 0,
-        words: vec![0; (r * r * r).div_ceil(32)],
-    };
+    let mut grid = OccupancyGrid::empty(resolution);
     for z in 0..r {
         for y in 0..r {
             for x in 0..r {
@@ -533,10 +534,7 @@ mod tests {
     #[test]
     fn dilation_intersection_and_cell_of_a_point() {
         let r = 5u32;
-        let mut g = OccupancyGrid {
-            words: vec![0; 125usize.div_ceil(32)],
-            ..OccupancyGrid::full(r)
-        };
+        let mut g = OccupancyGrid::empty(r);
         // A corner cell and an inner one.
         g.set(g.cell_index_unit([0.0, 0.0, 0.0]));
         g.set(g.cell_index_unit([0.5, 0.5, 0.5]));
@@ -556,10 +554,7 @@ mod tests {
         full.intersect(&d);
         assert_eq!(full, d);
         let mut empty = d.clone();
-        empty.intersect(&OccupancyGrid {
-            words: vec![0; d.words.len()],
-            ..OccupancyGrid::full(r)
-        });
+        empty.intersect(&OccupancyGrid::empty(r));
         assert_eq!(empty.occupied_cells(), 0);
     }
 

@@ -87,10 +87,16 @@ impl Camera {
 
     /// Projects a world point to image coordinates `(u, v)`; `None` behind the camera.
     pub fn project(&self, point_in_world: Vec3) -> Option<(f32, f32)> {
-        let p = self
-            .world_from_camera
-            .inverse()
-            .transform_point3(point_in_world);
+        self.project_camera_point(
+            self.world_from_camera
+                .inverse()
+                .transform_point3(point_in_world),
+        )
+    }
+
+    /// [`Camera::project`] of a point already in camera space (`world_from_camera` inverted
+    /// once by the caller, for many points).
+    pub fn project_camera_point(&self, p: Vec3) -> Option<(f32, f32)> {
         if p.z >= 0.0 {
             return None;
         }

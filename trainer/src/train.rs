@@ -996,38 +996,32 @@ pub fn playback_cameras(data: &Dataset) -> Vec<Camera> {
 /// `None` when the list stopped at 64 before every training pose was in it (monocular data with
 /// a pose per frame), so that the list cannot stand for what training saw.
 pub fn playback_cameras_split(data: &Dataset) -> (Vec<Camera>, Option<usize>) {
+    let listed = |out: &[Camera], v: &Camera| {
+        out.iter().any(|c| {
+            c.world_from_camera.abs_diff_eq(v.world_from_camera, 1e-5) && c.width == v.width
+        })
+    };
     let mut out: Vec<Camera> = Vec::new();
     let mut train = None;
     for (k, v) in data.train.iter().chain(&data.test).enumerate() {
         if k == data.train.len() {
             train = Some(out.len());
         }
-        let dup = out.iter().any(|c| {
-            c.world_from_camera
-                .abs_diff_eq(v.camera.world_from_camera, 1e-5)
-                && c.width == v.camera.width
-        });
-        if !dup {
+        if !listed(&out, &v.camera) {
             out.push(v.camera);
         }
         if out.len() >= 64 {
             break;
         }
     }
-    // Every training view visited (the loop ended or reached the held-out ones).
-    let all_train = train.is_some()
-        || data.train.iter().all(|v| {
-            out.iter().any(|c| {
-                c.world_from_camera
-                    .abs_diff_eq(v.camera.world_from_camera, 1e-5)
-                    && c.width == v.camera.width
-            })
-        });
-    let train = match train {
-        Some(n) => Some(n),
-        None if all_train => Some(out.len()),
-        None => None,
-    };
+    // Every training view visited (the loop reached the held-out ones), or every training
+    // pose listed before the cap.
+    let train = train.or_else(|| {
+        data.train
+            .iter()
+            .all(|v| listed(&out, &v.camera))
+            .then_some(out.len())
+    });
     (out, train)
 }
 
