@@ -12,7 +12,9 @@
 //! 2. **Motion**: the dynamic fraction of the video decides the 4D table. No measurable motion
 //!    (or a single frame) gives the `static` blend: no 4D table and no mask at all, in the
 //!    trained model and in the exported file. Otherwise the 4D tables shrink with the fraction:
-//!    `rows4 = rows3 * 2^round(log2(2 f))`, between 1/16 of the 3D table and all of it.
+//!    `rows4 = rows3 * 2^round(log2 f)`, between 1/64 of the 3D table and all of it, at least
+//!    2^10 rows (docs/sizing.md, "How many 4D rows": half the rows of the earlier rule `2 f`
+//!    gained held-out PSNR once the mask decides).
 //! 3. **Finest spatial resolution**: twice the number of pixel footprints across the scene (the
 //!    footprint of the most detailed training camera at the scene centre), rounded up to a
 //!    power of two, never above the preset's.
@@ -58,8 +60,15 @@ pub const MAX_MOTION_PIXELS: usize = 16_384;
 pub const MIN_LOG2_TABLE: u32 = 14;
 /// Smallest finest spatial resolution the sizing picks.
 pub const MIN_FINEST: f32 = 64.0;
-/// The 4D table is at most this many times (2^4) smaller than the 3D one.
-pub const MAX_H4_SHRINK_LOG2: i32 = 4;
+/// The 4D table is at most this many times (2^6) smaller than the 3D one.
+pub const MAX_H4_SHRINK_LOG2: i32 = 6;
+/// Smallest 4D table the sizing picks (2^10 rows).
+pub const MIN_LOG2_H4_TABLE: u32 = 10;
+/// 4D rows per 3D row, per unit of dynamic fraction: `rows4 = rows3 * H4_ROWS_PER_DYNAMIC * f`
+/// (rounded to a power of two in the log). The 4D table holds what moves and the mask keeps the
+/// rest in 3D; measured on the built-in scene and `box_animated_stage` (docs/sizing.md, "How many
+/// 4D rows"): 1 against the earlier 2, and 1/2 and 1/8 below it.
+pub const H4_ROWS_PER_DYNAMIC: f64 = 1.0;
 
 /// How the motion of the video was measured.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -541,7 +550,10 @@ fn plan(settings: &TrainSettings, m: &Measurements) -> Vec<Planned> {
                     },
                 ));
             } else {
-                let shift = (2.0 * df).log2().round().clamp(-(MAX_H4_SHRINK_LOG2 as f64), 0.0) as i32;
+                let shift = (H4_ROWS_PER_DYNAMIC * df)
+                    .log2()
+                    .round()
+                    .clamp(-(MAX_H4_SHRINK_LOG2 as f64), 0.0) as i32;
                 let shift_u = (-shift) as u32;
                 let p3 = preset.proposal.encoding.grid3.log2_table_size;
                 out.push(planned(
@@ -553,17 +565,17 @@ fn plan(settings: &TrainSettings, m: &Measurements) -> Vec<Planned> {
                     ),
                     format!(
                         "3D rows / 2^{shift_u} (proposal 2^{})",
-                        p3.saturating_sub(shift_u).max(MIN_LOG2_TABLE.min(p3))
+                        p3.saturating_sub(shift_u).max(MIN_LOG2_H4_TABLE.min(p3))
                     ),
                     stat,
-                    "only the dynamic part of the scene reaches the 4D table (the mask keeps the rest in 3D): rows scale with twice the dynamic fraction, rounded to a power of two, at most 16 times fewer than the 3D table",
+                    "only the dynamic part of the scene needs the 4D table (the mask keeps the rest in 3D): rows scale with the dynamic fraction, rounded to a power of two, at most 64 times fewer than the 3D table, at least 2^10",
                     move |c| {
                         let l3 = c.field.encoding.grid3.log2_table_size;
                         c.field.encoding.grid4.log2_table_size =
-                            l3.saturating_sub(shift_u).max(MIN_LOG2_TABLE.min(l3));
+                            l3.saturating_sub(shift_u).max(MIN_LOG2_H4_TABLE.min(l3));
                         let p3 = c.proposal.encoding.grid3.log2_table_size;
                         c.proposal.encoding.grid4.log2_table_size =
-                            p3.saturating_sub(shift_u).max(MIN_LOG2_TABLE.min(p3));
+                            p3.saturating_sub(shift_u).max(MIN_LOG2_H4_TABLE.min(p3));
                     },
                 ));
             }
@@ -752,7 +764,7 @@ mod tests {
 
     #[test]
     fn small_dynamic_region_shrinks_the_4d_table() {
-        // 4 of 64 columns move: 6.25% -> 2f = 0.125 -> 2^-3.
+        // 4 of 64 columns move: 6.25% -> 2^-4.
         let d = video(10, 4, true);
         let mut st = paper(10);
         // Keep the 3D table at the preset's 2^19 (as a user setting) to see the shift whole.
@@ -772,15 +784,29 @@ mod tests {
         let e = &m.field.encoding;
         assert_eq!(e.blend, BlendMode::Mt);
         assert_eq!(e.grid3.log2_table_size, 19);
-        assert_eq!(e.grid4.log2_table_size, 16);
-        assert_eq!(m.proposal.encoding.grid4.log2_table_size, 15);
+        assert_eq!(e.grid4.log2_table_size, 15);
+        assert_eq!(m.proposal.encoding.grid4.log2_table_size, 14);
         m.validate().unwrap();
-        // With the sized 3D table (2^16) the 4D table stops at the 2^14 floor.
+        // With the sized 3D table (2^16) the shift is the same.
         let mut st = paper(10);
         autosize(&d, &mut st, &[]);
         let m = &st.model;
         assert_eq!(m.field.encoding.grid3.log2_table_size, 16);
-        assert_eq!(m.field.encoding.grid4.log2_table_size, 14);
+        assert_eq!(m.field.encoding.grid4.log2_table_size, 12);
+        // One column of 64 moves: 1.6% -> 2^-6, the most the sizing shrinks.
+        let d = video(10, 1, true);
+        let mut st = paper(10);
+        autosize(&d, &mut st, &keep);
+        let m = &st.model;
+        assert_eq!(m.field.encoding.grid4.log2_table_size, 19 - 6);
+        // A user's 2^14 3D table: 2^8 would be below the 2^10 floor.
+        let mut st = paper(10);
+        st.model.field.encoding.grid3.log2_table_size = 14;
+        autosize(&d, &mut st, &keep);
+        assert_eq!(
+            st.model.field.encoding.grid4.log2_table_size,
+            MIN_LOG2_H4_TABLE
+        );
     }
 
     #[test]
