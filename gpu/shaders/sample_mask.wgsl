@@ -1,10 +1,11 @@
 // The per-sample mask loss for training (`msth_core::pipeline`'s `sample_mask_weight`):
-// L = weight x sum_i w_i (1 - m_i) with the rendering weights w_i held constant, so
-// dL/dm_i = -weight x scale x w_i, written where the blend backward adds it to the mask's
+// L = weight x sum_i f_r(i) w_i (1 - m_i) with the rendering weights w_i held constant and f_r
+// the factor of sample i's ray r (0 for rays through pixels that change over time), so
+// dL/dm_i = -weight x scale x f_r x w_i, written where the blend backward adds it to the mask's
 // gradient; each sample's share of the loss beside it. One invocation per sample.
 
 struct SampleMask {
-    // x: samples, y, z, w: 0.
+    // x: samples, y: samples per ray, z, w: 0.
     run: vec4<u32>,
     // x: weight, y: weight x loss scale, z, w: 0.
     k: vec4<f32>,
@@ -22,6 +23,7 @@ fn sample_mask(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     if i >= smu.run.x {
         return;
     }
-    d_m[i] = -smu.k.y * w[i];
-    loss[i] = w[i] * (1.0 - m[i]) * smu.k.x;
+    let f = ray_factor[i / smu.run.y];
+    d_m[i] = -smu.k.y * f * w[i];
+    loss[i] = f * w[i] * (1.0 - m[i]) * smu.k.x;
 }

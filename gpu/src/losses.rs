@@ -128,37 +128,45 @@ pub struct SampleMaskKernel {
 
 impl SampleMaskKernel {
     pub fn new(dev: &ComputeDevice) -> Result<Self, GpuError> {
-        // 1 w, 2 m, 3 d m, 4 loss per sample.
-        let layout = dev.bind_layout("sample mask loss", &[true, true, false, false]);
+        // 1 w, 2 m, 3 d m, 4 loss per sample, 5 factor per ray.
+        let layout = dev.bind_layout("sample mask loss", &[true, true, false, false, true]);
         let pipeline =
             dev.pipeline("sample mask loss", SAMPLE_MASK_WGSL, "sample_mask", &layout)?;
         Ok(SampleMaskKernel { layout, pipeline })
     }
 
-    /// For `n` samples with weights `w` and mask values `m`: `d_m = -weight * scale * w` (the
-    /// blend backward's extra mask gradient) and each sample's `weight * w (1 - m)` in `loss`.
+    /// For `n` samples (`per_ray` per ray, rays in order) with weights `w`, mask values `m` and
+    /// one factor `f` per ray: `d_m = -weight * f * scale * w` (the blend backward's extra mask
+    /// gradient) and each sample's `weight * f * w (1 - m)` in `loss`.
     #[allow(clippy::too_many_arguments)]
     pub fn run(
         &self,
         dev: &ComputeDevice,
         n: usize,
-        (w, m): (&wgpu::Buffer, &wgpu::Buffer),
+        (w, m, f): (&wgpu::Buffer, &wgpu::Buffer, &wgpu::Buffer),
+        per_ray: usize,
         weight: f32,
         scale: f32,
         (d_m, loss): (&wgpu::Buffer, &wgpu::Buffer),
     ) -> Result<(), GpuError> {
+        if per_ray == 0 || !n.is_multiple_of(per_ray) {
+            return Err(GpuError::Input(format!(
+                "sample mask loss: {n} samples are not whole rays of {per_ray}"
+            )));
+        }
         for (what, b) in [("weights", w), ("m", m), ("d m", d_m), ("loss", loss)] {
             need_floats(what, b, n as u64, n)?;
         }
+        need_floats("ray factors", f, (n / per_ray) as u64, n / per_ray)?;
         let u = LossU {
-            run: [n as u32, 0, 0, 0],
+            run: [n as u32, per_ray as u32, 0, 0],
             scale: [weight, weight * scale, 0.0, 0.0],
         };
         dev.run(
             &self.pipeline,
             &self.layout,
             bytemuck::bytes_of(&u),
-            &[w, m, d_m, loss],
+            &[w, m, d_m, loss, f],
             n as u64,
         )
     }

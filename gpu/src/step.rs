@@ -91,6 +91,9 @@ pub struct HostBatch<'a> {
     /// CPU trainer draws them after the jitters, chunk by chunk); needed when
     /// `StepSettings::free_space_weight` is not 0.
     pub free_points: Option<&'a [[f32; 4]]>,
+    /// Per ray, the factor of its per-sample mask loss terms (the CPU trainer's `mask_weights`
+    /// of `train_chunk_with`); `None`: 1 for every ray.
+    pub mask_weights: Option<&'a [f32]>,
 }
 
 /// One level's per-sample buffers.
@@ -173,6 +176,8 @@ pub struct GpuStep {
     distortion: wgpu::Buffer,
     interlevel: wgpu::Buffer,
     sample_mask: wgpu::Buffer,
+    /// Per ray, the factor of its per-sample mask loss ([`HostBatch::mask_weights`]).
+    mask_weights: wgpu::Buffer,
     free_bufs: FieldBuffers,
     free_points: wgpu::Buffer,
     free_d_sigma: wgpu::Buffer,
@@ -251,6 +256,7 @@ impl GpuStep {
             distortion: dev.zeros_f32("distortion", c)?,
             interlevel: dev.zeros_f32("interlevel", c)?,
             sample_mask: dev.zeros_f32("sample mask loss", cm)?,
+            mask_weights: dev.zeros_f32("mask loss factors", c)?,
             free_bufs: free.buffers(dev, c)?,
             free_points: dev.zeros_f32("free-space points", 4 * c)?,
             free_d_sigma: dev.zeros_f32("free-space d sigma", c)?,
@@ -340,10 +346,17 @@ impl GpuStep {
         if batch.targets.len() != n
             || batch.backgrounds.is_some_and(|b| b.len() != n)
             || batch.jitters.is_some_and(|j| j.len() != n)
+            || batch.mask_weights.is_some_and(|m| m.len() != n)
         {
             return Err(GpuError::Input(format!(
-                "{n} rays need {n} targets, backgrounds and jitters"
+                "{n} rays need {n} targets, backgrounds, jitters and mask weights"
             )));
+        }
+        if step.sample_mask_weight > 0.0 {
+            match batch.mask_weights {
+                Some(m) => dev.write_f32(&self.mask_weights, m)?,
+                None => dev.write_f32(&self.mask_weights, &vec![1.0; n])?,
+            }
         }
         if step.free_space_weight != 0.0 {
             match batch.free_points {
@@ -526,7 +539,8 @@ impl GpuStep {
             k.sample_mask.run(
                 dev,
                 n_m,
-                (&lm.weights, &self.main_bufs.m),
+                (&lm.weights, &self.main_bufs.m, &self.mask_weights),
+                nf,
                 step.sample_mask_weight,
                 scale,
                 (&self.d_m, &self.sample_mask),

@@ -24,7 +24,7 @@ mod common;
 use glam::Vec3;
 use msth_core::config::ModelConfig;
 use msth_core::field::ModelLayout;
-use msth_core::pipeline::{free_space_point, train_chunk, StepSettings, TimedRay, Workspace};
+use msth_core::pipeline::{free_space_point, train_chunk_with, StepSettings, TimedRay, Workspace};
 use msth_core::rng::Rng;
 use msth_gpu::step::{GpuStep, HostBatch};
 use msth_testkit::Tests;
@@ -132,9 +132,13 @@ fn step_matches_cpu(cfg: ModelConfig, random_backgrounds: bool, ramp: bool) {
     let jitters: Vec<(f32, f32)> = jp.into_iter().zip(jm).collect();
     let free: Vec<[f32; 4]> = (0..n).map(|_| free_space_point(&mut draw)).collect();
 
+    // Every third ray is spared the per-sample mask loss, as the trainer spares rays through
+    // pixels that change over time.
+    let mask_weights: Vec<f32> = (0..n).map(|i| (i % 3 != 0) as u8 as f32).collect();
+
     let mut grad_cpu = vec![0f32; p.len()];
     let mut ws = Workspace::default();
-    let cpu = train_chunk(
+    let cpu = train_chunk_with(
         &cfg,
         &layout,
         &p,
@@ -142,9 +146,11 @@ fn step_matches_cpu(cfg: ModelConfig, random_backgrounds: bool, ramp: bool) {
         &rays,
         &targets,
         backgrounds,
+        Some(&mask_weights),
         &step,
         &mut stream.clone(),
         &mut ws,
+        None,
     );
 
     let mut gpu_step = GpuStep::new(&dev, &cfg, &p, None, n).unwrap();
@@ -154,6 +160,7 @@ fn step_matches_cpu(cfg: ModelConfig, random_backgrounds: bool, ramp: bool) {
         backgrounds,
         jitters: Some(&jitters),
         free_points: Some(&free),
+        mask_weights: Some(&mask_weights),
     };
     gpu_step.gradients(&dev, &batch, &step).unwrap();
     let gpu = gpu_step.losses(&dev).unwrap();
@@ -236,6 +243,7 @@ fn step_bad_input_is_an_error() {
         backgrounds: None,
         jitters: None,
         free_points: None,
+        mask_weights: None,
     };
     let e = step
         .gradients(&dev, &batch(9, 9), &settings)

@@ -64,6 +64,14 @@ pub const MIN_FINEST: f32 = 64.0;
 pub const MAX_H4_SHRINK_LOG2: i32 = 6;
 /// Smallest 4D table the sizing picks (2^10 rows).
 pub const MIN_LOG2_H4_TABLE: u32 = 10;
+
+/// The 4D table's `log2` rows for a 3D table of `2^log2_3d` rows shrunk `2^shift` times: never
+/// below [`MIN_LOG2_H4_TABLE`], unless the 3D table itself is smaller.
+fn shrunk_h4(log2_3d: u32, shift: u32) -> u32 {
+    log2_3d
+        .saturating_sub(shift)
+        .max(MIN_LOG2_H4_TABLE.min(log2_3d))
+}
 /// 4D rows per 3D row, per unit of dynamic fraction: `rows4 = rows3 * H4_ROWS_PER_DYNAMIC * f`
 /// (rounded to a power of two in the log). The 4D table holds what moves and the mask keeps the
 /// rest in 3D; measured on the built-in scene and `box_animated_stage` (docs/sizing.md, "How many
@@ -565,17 +573,15 @@ fn plan(settings: &TrainSettings, m: &Measurements) -> Vec<Planned> {
                     ),
                     format!(
                         "3D rows / 2^{shift_u} (proposal 2^{})",
-                        p3.saturating_sub(shift_u).max(MIN_LOG2_H4_TABLE.min(p3))
+                        shrunk_h4(p3, shift_u)
                     ),
                     stat,
                     "only the dynamic part of the scene needs the 4D table (the mask keeps the rest in 3D): rows scale with the dynamic fraction, rounded to a power of two, at most 64 times fewer than the 3D table, at least 2^10",
                     move |c| {
                         let l3 = c.field.encoding.grid3.log2_table_size;
-                        c.field.encoding.grid4.log2_table_size =
-                            l3.saturating_sub(shift_u).max(MIN_LOG2_H4_TABLE.min(l3));
+                        c.field.encoding.grid4.log2_table_size = shrunk_h4(l3, shift_u);
                         let p3 = c.proposal.encoding.grid3.log2_table_size;
-                        c.proposal.encoding.grid4.log2_table_size =
-                            p3.saturating_sub(shift_u).max(MIN_LOG2_H4_TABLE.min(p3));
+                        c.proposal.encoding.grid4.log2_table_size = shrunk_h4(p3, shift_u);
                     },
                 ));
             }

@@ -622,7 +622,8 @@ impl RaySampler {
     }
 
     /// Draws a batch of `n` rays with their colours (see [`push_ray`] for backgrounds and
-    /// jitter); `fraction` is how far the run is (0..1).
+    /// jitter); `fraction` is how far the run is (0..1). With `pixels`, the `(view, x, y)` of
+    /// each ray is recorded there (for [`PixelMotion::mask_weights`]).
     #[allow(clippy::too_many_arguments)]
     pub fn sample_batch(
         &self,
@@ -634,17 +635,19 @@ impl RaySampler {
         targets: &mut Vec<[f32; 3]>,
         mut backgrounds: Option<&mut Vec<[f32; 3]>>,
         jitter: bool,
+        pixels: Option<&mut Vec<[u32; 3]>>,
     ) {
         if let Kind::Uniform = self.kind {
             // The original sampler, draw for draw.
-            return crate::train::sample_batch(data, n, rng, rays, targets, backgrounds, jitter);
+            return sample_uniform(data, n, rng, rays, targets, backgrounds, jitter, pixels);
         }
         rays.clear();
         targets.clear();
         if let Some(b) = backgrounds.as_deref_mut() {
             b.clear();
         }
-        for [v, x, y] in self.draw(data, n, fraction, rng) {
+        let drawn = self.draw(data, n, fraction, rng);
+        for &[v, x, y] in &drawn {
             push_ray(
                 data,
                 &data.train[v as usize],
@@ -657,6 +660,108 @@ impl RaySampler {
                 backgrounds.as_deref_mut(),
             );
         }
+        if let Some(p) = pixels {
+            p.clear();
+            p.extend(drawn);
+        }
+    }
+}
+
+/// The plain NeRF sampler: a random training view, then a random pixel, for each of `n` rays
+/// (with its colour: [`push_ray`]); with `pixels`, each ray's `(view, x, y)` is recorded there.
+#[allow(clippy::too_many_arguments)]
+pub fn sample_uniform(
+    data: &Dataset,
+    n: usize,
+    rng: &mut Rng,
+    rays: &mut Vec<TimedRay>,
+    targets: &mut Vec<[f32; 3]>,
+    mut backgrounds: Option<&mut Vec<[f32; 3]>>,
+    jitter: bool,
+    mut pixels: Option<&mut Vec<[u32; 3]>>,
+) {
+    rays.clear();
+    targets.clear();
+    if let Some(b) = backgrounds.as_deref_mut() {
+        b.clear();
+    }
+    if let Some(p) = pixels.as_deref_mut() {
+        p.clear();
+    }
+    let views = &data.train;
+    for _ in 0..n {
+        let vi = rng.below(views.len() as u64) as usize;
+        let v = &views[vi];
+        let px = rng.below(v.image.width as u64) as u32;
+        let py = rng.below(v.image.height as u64) as u32;
+        push_ray(
+            data,
+            v,
+            px,
+            py,
+            rng,
+            jitter,
+            rays,
+            targets,
+            backgrounds.as_deref_mut(),
+        );
+        if let Some(p) = pixels.as_deref_mut() {
+            p.push([vi as u32, px, py]);
+        }
+    }
+}
+
+/// The temporal standard deviation of every training pixel, looked up by `(view, x, y)`: which
+/// rays the per-sample mask loss spares (`TrainSettings::sample_mask_moving_std`).
+pub struct PixelMotion {
+    stats: PixelStats,
+    /// The camera group of each training view.
+    group_of_view: Vec<u32>,
+}
+
+impl PixelMotion {
+    /// The statistics of `data.train` (one pass over its images); `None` when no training camera
+    /// films more than one frame (monocular data: nothing is known about motion per pixel).
+    pub fn new(data: &Dataset) -> Result<Option<Self>, SamplingError> {
+        let stats = PixelStats::new(&data.train, false)?;
+        if !stats.has_video() {
+            return Ok(None);
+        }
+        let mut group_of_view = vec![0u32; data.train.len()];
+        for (g, grp) in stats.groups.iter().enumerate() {
+            for &v in &grp.views {
+                group_of_view[v] = g as u32;
+            }
+        }
+        Ok(Some(PixelMotion {
+            stats,
+            group_of_view,
+        }))
+    }
+
+    /// The temporal std of pixel `(x, y)` of training view `v` (0 for a single-frame camera).
+    pub fn std_at(&self, [v, x, y]: [u32; 3]) -> f32 {
+        let g = &self.stats.groups[self.group_of_view[v as usize] as usize];
+        self.stats.std[g.pixel_offset + y as usize * g.width as usize + x as usize]
+    }
+
+    /// The share of training pixels (over cameras, not frames) whose std exceeds `moving_std`.
+    pub fn moving_share(&self, moving_std: f32) -> f64 {
+        let n = self.stats.std.len().max(1);
+        self.stats.std.iter().filter(|&&s| s > moving_std).count() as f64 / n as f64
+    }
+
+    /// One factor per ray for the per-sample mask loss: 0 for a pixel whose std exceeds
+    /// `moving_std`, else 1.
+    pub fn mask_weights(&self, pixels: &[[u32; 3]], moving_std: f32, out: &mut Vec<f32>) {
+        out.clear();
+        out.extend(pixels.iter().map(|&p| {
+            if self.std_at(p) > moving_std {
+                0.0
+            } else {
+                1.0
+            }
+        }));
     }
 }
 
@@ -958,6 +1063,86 @@ mod tests {
             *c.entry(px).or_insert(0u64) += 1;
         }
         c
+    }
+
+    /// `PixelMotion` spares exactly the pixels whose temporal std exceeds the threshold, each
+    /// sampler records the pixel each ray went through (its target is that pixel's colour), and
+    /// a monocular dataset has no motion to spare.
+    #[test]
+    fn mask_loss_spares_the_pixels_that_change() {
+        // Camera 0: column 0 still (grey), column 1 blinking; camera 1: still everywhere.
+        let data = video(2, 6, 2, 3, |c, f, x, _| {
+            if c == 0 && x == 1 && f % 2 == 0 {
+                [250, 250, 250]
+            } else {
+                [90, 90, 90]
+            }
+        });
+        let motion = PixelMotion::new(&data).unwrap().expect("a video");
+        assert!((motion.moving_share(0.02) - 3.0 / 12.0).abs() < 1e-12);
+        for mode in [SamplingMode::Uniform, SamplingMode::Dynamics] {
+            let cfg = SamplingConfig {
+                mode,
+                ..SamplingConfig::default()
+            };
+            let sampler = RaySampler::new(&data, &cfg).unwrap();
+            let (mut rays, mut targets, mut pixels, mut w) =
+                (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+            sampler.sample_batch(
+                &data,
+                500,
+                0.5,
+                &mut Rng::new(3),
+                &mut rays,
+                &mut targets,
+                None,
+                false,
+                Some(&mut pixels),
+            );
+            assert_eq!(pixels.len(), 500);
+            motion.mask_weights(&pixels, 0.02, &mut w);
+            let (mut spared, mut kept) = (0, 0);
+            for ((&[v, x, y], t), &wi) in pixels.iter().zip(&targets).zip(&w) {
+                let view = &data.train[v as usize];
+                assert_eq!(
+                    *t,
+                    view.image.get(x, y),
+                    "{mode:?}: the target is the pixel's"
+                );
+                let moving = view.camera_id == Some(0) && x == 1;
+                assert_eq!(
+                    wi,
+                    if moving { 0.0 } else { 1.0 },
+                    "{mode:?} view {v} x {x}"
+                );
+                if moving {
+                    spared += 1;
+                } else {
+                    kept += 1;
+                }
+            }
+            assert!(
+                spared > 0 && kept > 0,
+                "{mode:?}: {spared} spared, {kept} kept"
+            );
+            // Without the record the same draws give the same rays.
+            let (mut rays2, mut targets2) = (Vec::new(), Vec::new());
+            sampler.sample_batch(
+                &data,
+                500,
+                0.5,
+                &mut Rng::new(3),
+                &mut rays2,
+                &mut targets2,
+                None,
+                false,
+                None,
+            );
+            assert_eq!(targets2, targets);
+        }
+        // One frame per camera: nothing is known about motion.
+        let still = video(3, 1, 2, 2, |_, _, _, _| [10, 20, 30]);
+        assert!(PixelMotion::new(&still).unwrap().is_none());
     }
 
     #[test]

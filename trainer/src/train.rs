@@ -32,7 +32,7 @@ use crate::checkpoint::{
 use crate::dataset::Dataset;
 use crate::device::{self, DeviceError, GpuTraining, TrainDevice};
 use crate::ray_sampling::{
-    push_ray, InvalidSamplingConfig, RaySampler, SamplingConfig, SamplingError, SamplingMode,
+    InvalidSamplingConfig, PixelMotion, RaySampler, SamplingConfig, SamplingError, SamplingMode,
 };
 
 /// Every knob of a training run. Presets fill it; a config file and `--set key=value` override
@@ -84,6 +84,13 @@ pub struct TrainSettings {
     /// Weight of the per-sample mask loss (`StepSettings::sample_mask_weight`); 0: off.
     #[serde(default)]
     pub sample_mask_weight: f32,
+    /// Rays through a pixel whose colour's temporal standard deviation (over its camera's
+    /// frames, colour units in `[0, 1]`, as the dynamics-aware sampler measures it) exceeds this
+    /// get no per-sample mask loss: the loss pulls toward static only what the data shows still,
+    /// so a moving object seen by few rays is not pulled static (docs/mask-learning.md, "Sparing
+    /// the moving pixels"). 0: every ray gets the loss (settings written before it existed).
+    #[serde(default)]
+    pub sample_mask_moving_std: f32,
     /// Multiplies the learning rate of the proposal network (its grids and MLP; its mask, if
     /// any, keeps `mask_lr_scale`): how fast the proposal follows the main field's surfaces
     /// (docs/convergence.md: one seed in three loses that race on a stage). 1: the common rate.
@@ -215,6 +222,11 @@ pub fn capture_near(data: &Dataset, model: &ModelConfig) -> Option<f32> {
 pub const DEFAULT_MASK_LR_SCALE: f32 = 10.0;
 /// Default of [`TrainSettings::sample_mask_weight`] (issue #16's measurements).
 pub const DEFAULT_SAMPLE_MASK_WEIGHT: f32 = 5e-3;
+/// Default of [`TrainSettings::sample_mask_moving_std`] (docs/mask-learning.md, "Sparing the
+/// moving pixels"): half the temporal std above which `msth bench ablation` counts a held-out
+/// pixel as dynamic, so faint moving shadows are spared too (0.02 left a third of
+/// `box_animated_stage`'s dynamic held-out pixels cached as static, 0.01 a quarter).
+pub const DEFAULT_SAMPLE_MASK_MOVING_STD: f32 = 0.01;
 
 /// Why [`TrainSettings::validate`] or [`TrainSettings::apply_overrides`] refused settings; the
 /// message names the setting.
@@ -297,6 +309,7 @@ impl TrainSettings {
             // 4D table lowers the image loss by more than its weight.
             mask_lr_scale: DEFAULT_MASK_LR_SCALE,
             sample_mask_weight: DEFAULT_SAMPLE_MASK_WEIGHT,
+            sample_mask_moving_std: DEFAULT_SAMPLE_MASK_MOVING_STD,
             proposal_lr_scale: 1.0,
             free_space_weight: priors.free_space_weight,
             level_ramp_steps: priors.level_ramp_steps,
@@ -412,6 +425,7 @@ impl TrainSettings {
             ("mask_loss_weight", self.mask_loss_weight),
             ("mask_lr_scale", self.mask_lr_scale),
             ("sample_mask_weight", self.sample_mask_weight),
+            ("sample_mask_moving_std", self.sample_mask_moving_std),
             ("proposal_lr_scale", self.proposal_lr_scale),
             ("free_space_weight", self.free_space_weight),
             ("distortion_late_weight", self.distortion_late_weight),
@@ -550,6 +564,8 @@ pub enum TrainError {
     },
     #[error("the dataset has no training views")]
     NoData,
+    #[error("a training batch: {0}")]
+    Batch(String),
     #[error(transparent)]
     Device(#[from] DeviceError),
 }
@@ -818,6 +834,7 @@ impl Trainer {
         rays: &[TimedRay],
         targets: &[[f32; 3]],
         backgrounds: Option<&[[f32; 3]]>,
+        mask_weights: Option<&[f32]>,
     ) -> Result<ChunkLosses, TrainError> {
         let step_settings = self.step_settings(rays.len());
         let lr = self.learning_rate();
@@ -853,6 +870,7 @@ impl Trainer {
             backgrounds,
             jitters: Some(&jitters),
             free_points: Some(&free_points),
+            mask_weights,
         };
         let run = |g: &mut GpuTraining| -> Result<ChunkLosses, GpuError> {
             g.step
@@ -872,11 +890,19 @@ impl Trainer {
         rays: &[TimedRay],
         targets: &[[f32; 3]],
         backgrounds: Option<&[[f32; 3]]>,
+        mask_weights: Option<&[f32]>,
     ) -> Result<ChunkLosses, TrainError> {
-        if self.gpu.is_some() {
-            return self.step_on_gpu(rays, targets, backgrounds);
+        if mask_weights.is_some_and(|m| m.len() != rays.len()) {
+            return Err(TrainError::Batch(format!(
+                "{} rays need {} mask-loss factors",
+                rays.len(),
+                rays.len()
+            )));
         }
-        Ok(self.step_on_cpu(rays, targets, backgrounds))
+        if self.gpu.is_some() {
+            return self.step_on_gpu(rays, targets, backgrounds, mask_weights);
+        }
+        Ok(self.step_on_cpu(rays, targets, backgrounds, mask_weights))
     }
 
     /// [`Trainer::step_on`] on the CPU.
@@ -885,6 +911,7 @@ impl Trainer {
         rays: &[TimedRay],
         targets: &[[f32; 3]],
         backgrounds: Option<&[[f32; 3]]>,
+        mask_weights: Option<&[f32]>,
     ) -> ChunkLosses {
         let step_settings = self.step_settings(rays.len());
         let s = &self.settings;
@@ -919,7 +946,8 @@ impl Trainer {
                         &mut worker.grad,
                         &rays[r.clone()],
                         &targets[r.clone()],
-                        backgrounds.map(|b| &b[r]),
+                        backgrounds.map(|b| &b[r.clone()]),
+                        mask_weights.map(|m| &m[r]),
                         &step_settings,
                         &mut rng,
                         &mut worker.ws,
@@ -1034,31 +1062,10 @@ pub fn sample_batch(
     rng: &mut Rng,
     rays: &mut Vec<TimedRay>,
     targets: &mut Vec<[f32; 3]>,
-    mut backgrounds: Option<&mut Vec<[f32; 3]>>,
+    backgrounds: Option<&mut Vec<[f32; 3]>>,
     jitter: bool,
 ) {
-    rays.clear();
-    targets.clear();
-    if let Some(b) = backgrounds.as_deref_mut() {
-        b.clear();
-    }
-    let views = &data.train;
-    for _ in 0..n {
-        let v = &views[rng.below(views.len() as u64) as usize];
-        let px = rng.below(v.image.width as u64) as u32;
-        let py = rng.below(v.image.height as u64) as u32;
-        push_ray(
-            data,
-            v,
-            px,
-            py,
-            rng,
-            jitter,
-            rays,
-            targets,
-            backgrounds.as_deref_mut(),
-        );
-    }
+    crate::ray_sampling::sample_uniform(data, n, rng, rays, targets, backgrounds, jitter, None)
 }
 
 /// Runs a whole training: `iters` steps (or until the time limit), checkpoints to
@@ -1121,6 +1128,21 @@ pub fn train(
     let sampler =
         RaySampler::new(data, &trainer.settings.sampling).map_err(TrainError::Sampling)?;
     let mut notes: Vec<String> = sampler.note.iter().cloned().collect();
+    // The per-sample mask loss spares rays through pixels that change over time.
+    let moving_std = trainer.settings.sample_mask_moving_std;
+    let motion = if trainer.settings.sample_mask_weight > 0.0 && moving_std > 0.0 {
+        PixelMotion::new(data).map_err(TrainError::Sampling)?
+    } else {
+        None
+    };
+    if let Some(m) = &motion {
+        notes.push(format!(
+            "per-sample mask loss: spares rays through the {:.1}% of training pixels whose colour changes over time (temporal std > {moving_std})",
+            100.0 * m.moving_share(moving_std)
+        ));
+    }
+    let mut pixels: Vec<[u32; 3]> = Vec::with_capacity(if motion.is_some() { batch } else { 0 });
+    let mut mask_weights: Vec<f32> = Vec::new();
     let device = trainer.settings.device;
     let device_line = trainer.use_device(device)?;
     if device != TrainDevice::Cpu {
@@ -1146,11 +1168,20 @@ pub fn train(
             &mut targets,
             use_bg.then_some(&mut backgrounds),
             trainer.settings.pixel_jitter,
+            motion.is_some().then_some(&mut pixels),
         );
+        if let Some(m) = &motion {
+            m.mask_weights(&pixels, moving_std, &mut mask_weights);
+        }
         if time_limit > 0.0 {
             trainer.time_fraction = (start.elapsed().as_secs_f64() / time_limit) as f32;
         }
-        let l = trainer.step_on(&rays, &targets, use_bg.then_some(&backgrounds[..]))?;
+        let l = trainer.step_on(
+            &rays,
+            &targets,
+            use_bg.then_some(&backgrounds[..]),
+            motion.is_some().then_some(&mask_weights[..]),
+        )?;
         steps_run += 1;
         samples += l.field_samples;
         let mse = l.sq_err / l.rays.max(1) as f64;

@@ -168,13 +168,13 @@ fn time_steps_on(
     let line = trainer.use_device(device)?;
     let (r, t) = rays(s.batch_rays, 1);
     for _ in 0..2 {
-        trainer.step_on(&r, &t, None)?;
+        trainer.step_on(&r, &t, None, None)?;
     }
     let start = Instant::now();
     let mut fs = 0;
     let mut ps = 0;
     for _ in 0..reps {
-        let l = trainer.step_on(&r, &t, None)?;
+        let l = trainer.step_on(&r, &t, None, None)?;
         fs += l.field_samples;
         ps += l.proposal_samples;
     }

@@ -147,6 +147,7 @@ fn aux_chunk(
         &rays,
         &tg,
         None,
+        None,
         &step,
         &mut Rng::new(5),
         &mut Workspace::default(),
@@ -297,7 +298,8 @@ fn mine_gradient_reaches_the_mask_grid() {
 }
 
 /// The per-sample mask loss: its gradient is that of `lambda * mean_r sum_i w_i (1 - m_i)`
-/// with the rendering weights held constant (finite differences over the mask logits), it
+/// with the rendering weights held constant (finite differences over the mask logits), also with
+/// per-ray factors (each ray's terms scaled by its factor; factors of 1 are no factors), it
 /// reaches nothing but the mask, and weight 0 is the plain step.
 #[test]
 fn sample_mask_loss_matches_finite_differences() {
@@ -306,7 +308,7 @@ fn sample_mask_loss_matches_finite_differences() {
     let p = perturbed_params(&layout);
     let (rays, tg) = rays();
     let lam = 0.5f32;
-    let run = |lam: f32, ws: &mut Workspace| {
+    let run = |lam: f32, mask_weights: Option<&[f32]>, ws: &mut Workspace| {
         let step = full_step(rays.len(), lam);
         let mut g = vec![0f32; p.len()];
         let l = train_chunk_with(
@@ -317,6 +319,7 @@ fn sample_mask_loss_matches_finite_differences() {
             &rays,
             &tg,
             None,
+            mask_weights,
             &step,
             &mut Rng::new(5),
             ws,
@@ -324,47 +327,62 @@ fn sample_mask_loss_matches_finite_differences() {
         );
         (l, g)
     };
-    let mut ws = Workspace::default();
-    let (l_on, g_on) = run(lam, &mut ws);
-    let (l_off, g_off) = run(0.0, &mut Workspace::default());
+    let (l_off, g_off) = run(0.0, None, &mut Workspace::default());
     assert_eq!(l_off.sample_mask, 0.0);
-    assert_eq!(l_on.sq_err, l_off.sq_err);
-    let mask = layout.params.get("field.mask").unwrap().range();
-    for i in 0..p.len() {
-        if !mask.contains(&i) {
-            assert_eq!(g_on[i], g_off[i], "parameter {i} outside the mask moved");
+    // Per-ray factors of 1 are the unweighted loss, to the bit.
+    let ones = vec![1f32; rays.len()];
+    let (l_ones, g_ones) = run(lam, Some(&ones), &mut Workspace::default());
+    // One ray spared, one at half weight (the trainer gives 0 or 1; the loss is linear in them).
+    let spared: Vec<f32> = (0..rays.len())
+        .map(|i| [1.0, 0.0, 0.5, 1.0][i % 4])
+        .collect();
+    for mask_weights in [None, Some(&spared[..])] {
+        let mut ws = Workspace::default();
+        let (l_on, g_on) = run(lam, mask_weights, &mut ws);
+        if mask_weights.is_none() {
+            assert_eq!(l_on, l_ones);
+            assert_eq!(g_on, g_ones);
         }
+        assert_eq!(l_on.sq_err, l_off.sq_err);
+        let mask = layout.params.get("field.mask").unwrap().range();
+        for i in 0..p.len() {
+            if !mask.contains(&i) {
+                assert_eq!(g_on[i], g_off[i], "parameter {i} outside the mask moved");
+            }
+        }
+        // The run's weights and sample points, held fixed.
+        let w = ws.w_main.clone();
+        let pts = ws.pts_main.clone();
+        let stride = pts.len() / w.len();
+        let nf = w.len() / rays.len();
+        let enc = &layout.field.encoding;
+        let scale = 1.0 / rays.len() as f64;
+        let ray_factor = |j: usize| mask_weights.map_or(1.0, |mw| mw[j / nf] as f64);
+        let term = |q: &[f32]| -> f64 {
+            (0..w.len())
+                .map(|j| {
+                    let m = enc.mask_at(q, &pts[j * stride..j * stride + 3]) as f64;
+                    ray_factor(j) * w[j] as f64 * (1.0 - m)
+                })
+                .sum::<f64>()
+                * lam as f64
+                * scale
+        };
+        let t0 = term(&p);
+        assert!(
+            (t0 - l_on.sample_mask * scale).abs() < 1e-5 * t0.abs().max(1e-3),
+            "loss {} vs {t0}",
+            l_on.sample_mask * scale
+        );
+        let fd = FdCheck {
+            count: 8,
+            h: 1e-3,
+            tol_abs: 1e-6,
+            tol_rel: 1e-2,
+            min_grad: 1e-4,
+        };
+        fd.largest(&p, mask.clone(), |i| (g_on[i] - g_off[i]) as f64, term);
     }
-    // The run's weights and sample points, held fixed.
-    let w = ws.w_main.clone();
-    let pts = ws.pts_main.clone();
-    let stride = pts.len() / w.len();
-    let enc = &layout.field.encoding;
-    let scale = 1.0 / rays.len() as f64;
-    let term = |q: &[f32]| -> f64 {
-        (0..w.len())
-            .map(|j| {
-                let m = enc.mask_at(q, &pts[j * stride..j * stride + 3]) as f64;
-                w[j] as f64 * (1.0 - m)
-            })
-            .sum::<f64>()
-            * lam as f64
-            * scale
-    };
-    let t0 = term(&p);
-    assert!(
-        (t0 - l_on.sample_mask * scale).abs() < 1e-5 * t0.abs().max(1e-3),
-        "loss {} vs {t0}",
-        l_on.sample_mask * scale
-    );
-    let fd = FdCheck {
-        count: 8,
-        h: 1e-3,
-        tol_abs: 1e-6,
-        tol_rel: 1e-2,
-        min_grad: 1e-4,
-    };
-    fd.largest(&p, mask, |i| (g_on[i] - g_off[i]) as f64, term);
 }
 
 /// The free-space loss: its value is the opacity over `FREE_SPACE_STEP` of the diagonal at
@@ -551,6 +569,7 @@ fn mask_learning_off_is_the_plain_step() {
         &mut g2,
         &rays,
         &tg,
+        None,
         None,
         &step,
         &mut Rng::new(5),

@@ -28,6 +28,7 @@ pub fn train_chunk(
         rays,
         targets,
         backgrounds,
+        None,
         step,
         rng,
         ws,
@@ -81,6 +82,11 @@ fn background_backward(
 /// uncertainty grid) and the mutual-information term `-gamma * I(m, u)` (per-ray pairs of the
 /// weight-averaged mask `sum w_i m_i` and the ray uncertainty `U`, marginals by shuffling `U`
 /// within the chunk). Without `aux`, or with every term off, it is exactly [`train_chunk`].
+///
+/// `mask_weights`, when given, holds one factor per ray for the per-sample mask loss (ray `i`'s
+/// terms are scaled by `mask_weights[i]`): the trainer gives 0 to rays through pixels that
+/// change over time, so the loss pulls toward static only what the data shows still. `None` is
+/// a factor of 1 for every ray.
 #[allow(clippy::too_many_arguments)]
 pub fn train_chunk_with(
     cfg: &ModelConfig,
@@ -90,12 +96,17 @@ pub fn train_chunk_with(
     rays: &[TimedRay],
     targets: &[[f32; 3]],
     backgrounds: Option<&[[f32; 3]]>,
+    mask_weights: Option<&[f32]>,
     step: &StepSettings,
     rng: &mut Rng,
     ws: &mut Workspace,
     mut aux: Option<AuxStep<'_>>,
 ) -> ChunkLosses {
     let n = rays.len();
+    assert!(
+        mask_weights.is_none_or(|mw| mw.len() == n),
+        "train_chunk_with: {n} rays need {n} mask weights"
+    );
     let np = cfg.sampler.num_proposal_samples;
     let nf = cfg.sampler.num_samples;
     // Training evaluates every point exactly (the gradients need every h4).
@@ -279,11 +290,13 @@ pub fn train_chunk_with(
                 }
             }
         }
-        if sample_mask {
-            let lam = step.sample_mask_weight * scale;
+        let ray_mask_weight = mask_weights.map_or(1.0, |mw| mw[i]);
+        if sample_mask && ray_mask_weight != 0.0 {
+            let weight = step.sample_mask_weight * ray_mask_weight;
+            let lam = weight * scale;
             for k in 0..nf {
                 let m = ws.main.enc.m[i * nf + k];
-                out.sample_mask += (w[k] * (1.0 - m)) as f64 * step.sample_mask_weight as f64;
+                out.sample_mask += (w[k] * (1.0 - m)) as f64 * weight as f64;
                 ws.main.enc.d_m_extra[i * nf + k] -= lam * w[k];
             }
         }
