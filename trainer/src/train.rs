@@ -884,7 +884,10 @@ impl Trainer {
     }
 
     /// One optimisation step on the given rays, on the device in use ([`Trainer::use_device`]);
-    /// returns the summed chunk losses. Errors come only from a GPU.
+    /// returns the summed chunk losses. `mask_weights`: one factor per ray for the per-sample
+    /// mask loss (`train` gives 0 to rays through pixels that change over time:
+    /// [`PixelMotion::mask_weights`]); `None` is 1 for every ray. Errors: a GPU's, or factors
+    /// that do not match the rays.
     pub fn step_on(
         &mut self,
         rays: &[TimedRay],
