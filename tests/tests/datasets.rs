@@ -366,7 +366,7 @@ fn layout_detection_and_dataset_options() {
 fn sampler_speed_memory_vs_cache() {
     use msth_core::rng::Rng;
     use msth_trainer::dataset::cache::FrameStorage;
-    use msth_trainer::train::sample_batch;
+    use msth_trainer::ray_sampling::sample_uniform;
     let dir = stage();
     let cache = tempfile::tempdir().unwrap();
     for storage in [
@@ -387,7 +387,16 @@ fn sampler_speed_memory_vs_cache() {
         let t = std::time::Instant::now();
         let n = 200;
         for _ in 0..n {
-            sample_batch(&d, 2048, &mut rng, &mut rays, &mut targets, None, false);
+            sample_uniform(
+                &d,
+                2048,
+                &mut rng,
+                &mut rays,
+                &mut targets,
+                None,
+                false,
+                None,
+            );
         }
         println!(
             "{storage:?}: {:.0} us per batch of 2048 rays",

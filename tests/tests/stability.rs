@@ -14,7 +14,8 @@ use msth_trainer::dataset::dnerf::{load, LoadOptions};
 use msth_trainer::dataset::{Dataset, Image8};
 use msth_trainer::eval::{evaluate, render_image};
 use msth_trainer::imageio::encode_png;
-use msth_trainer::train::{sample_batch, train, TrainSettings};
+use msth_trainer::ray_sampling::sample_uniform;
+use msth_trainer::train::{train, TrainSettings};
 
 const SIDE: u32 = 8;
 const FOV_X: f32 = 0.35;
@@ -125,7 +126,16 @@ fn assert_gradient_finite(data: &Dataset, s: &TrainSettings, params: &[f32]) {
     let mut rays = Vec::new();
     let mut targets = Vec::new();
     let mut rng = Rng::new(17);
-    sample_batch(data, 256, &mut rng, &mut rays, &mut targets, None, true);
+    sample_uniform(
+        data,
+        256,
+        &mut rng,
+        &mut rays,
+        &mut targets,
+        None,
+        true,
+        None,
+    );
     let mut grad = vec![0f32; params.len()];
     let step = StepSettings {
         anneal: 1.0,

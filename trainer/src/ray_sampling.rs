@@ -668,7 +668,8 @@ impl RaySampler {
 }
 
 /// The plain NeRF sampler: a random training view, then a random pixel, for each of `n` rays
-/// (with its colour: [`push_ray`]); with `pixels`, each ray's `(view, x, y)` is recorded there.
+/// (with its colour and, with `backgrounds`, its background: [`push_ray`]); with `pixels`, each
+/// ray's `(view, x, y)` is recorded there.
 #[allow(clippy::too_many_arguments)]
 pub fn sample_uniform(
     data: &Dataset,
@@ -713,17 +714,24 @@ pub fn sample_uniform(
 
 /// The temporal standard deviation of every training pixel, looked up by `(view, x, y)`: which
 /// rays the per-sample mask loss spares (`TrainSettings::sample_mask_moving_std`).
-pub struct PixelMotion {
-    stats: PixelStats,
+pub struct PixelMotion<'a> {
+    /// The sampler's statistics when it keeps them, else computed here.
+    stats: std::borrow::Cow<'a, PixelStats>,
     /// The camera group of each training view.
     group_of_view: Vec<u32>,
 }
 
-impl PixelMotion {
-    /// The statistics of `data.train` (one pass over its images); `None` when no training camera
+impl<'a> PixelMotion<'a> {
+    /// The statistics of `data.train`: borrowed from `sampler` when it keeps them (the
+    /// dynamics-aware samplers), else one pass over the images. `None` when no training camera
     /// films more than one frame (monocular data: nothing is known about motion per pixel).
-    pub fn new(data: &Dataset) -> Result<Option<Self>, SamplingError> {
-        let stats = PixelStats::new(&data.train, false)?;
+    pub fn new(data: &Dataset, sampler: &'a RaySampler) -> Result<Option<Self>, SamplingError> {
+        let stats = match &sampler.kind {
+            Kind::Dynamics { stats, .. } | Kind::StaticDynamic { stats, .. } => {
+                std::borrow::Cow::Borrowed(stats)
+            }
+            Kind::Uniform => std::borrow::Cow::Owned(PixelStats::new(&data.train, false)?),
+        };
         if !stats.has_video() {
             return Ok(None);
         }
@@ -1078,14 +1086,15 @@ mod tests {
                 [90, 90, 90]
             }
         });
-        let motion = PixelMotion::new(&data).unwrap().expect("a video");
-        assert!((motion.moving_share(0.02) - 3.0 / 12.0).abs() < 1e-12);
         for mode in [SamplingMode::Uniform, SamplingMode::Dynamics] {
             let cfg = SamplingConfig {
                 mode,
                 ..SamplingConfig::default()
             };
             let sampler = RaySampler::new(&data, &cfg).unwrap();
+            // Computed for the uniform sampler, borrowed from the dynamics-aware one.
+            let motion = PixelMotion::new(&data, &sampler).unwrap().expect("a video");
+            assert!((motion.moving_share(0.02) - 3.0 / 12.0).abs() < 1e-12);
             let (mut rays, mut targets, mut pixels, mut w) =
                 (Vec::new(), Vec::new(), Vec::new(), Vec::new());
             sampler.sample_batch(
@@ -1142,7 +1151,8 @@ mod tests {
         }
         // One frame per camera: nothing is known about motion.
         let still = video(3, 1, 2, 2, |_, _, _, _| [10, 20, 30]);
-        assert!(PixelMotion::new(&still).unwrap().is_none());
+        let uniform = RaySampler::new(&still, &SamplingConfig::default()).unwrap();
+        assert!(PixelMotion::new(&still, &uniform).unwrap().is_none());
     }
 
     #[test]

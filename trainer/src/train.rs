@@ -1056,21 +1056,6 @@ pub fn playback_cameras_split(data: &Dataset) -> (Vec<Camera>, Option<usize>) {
     (out, train)
 }
 
-/// Draws a batch of random (view, pixel) rays with their colours. With `backgrounds`, views that
-/// have alpha are composited on a random colour per ray (recorded in `backgrounds`; views
-/// without alpha record the dataset background).
-pub fn sample_batch(
-    data: &Dataset,
-    n: usize,
-    rng: &mut Rng,
-    rays: &mut Vec<TimedRay>,
-    targets: &mut Vec<[f32; 3]>,
-    backgrounds: Option<&mut Vec<[f32; 3]>>,
-    jitter: bool,
-) {
-    crate::ray_sampling::sample_uniform(data, n, rng, rays, targets, backgrounds, jitter, None)
-}
-
 /// Runs a whole training: `iters` steps (or until the time limit), checkpoints to
 /// `out_dir/model.ckpt`, reporting progress after every step. `progress` returns `false` to stop
 /// early (the run is checkpointed and can be resumed exactly).
@@ -1134,7 +1119,7 @@ pub fn train(
     // The per-sample mask loss spares rays through pixels that change over time.
     let moving_std = trainer.settings.sample_mask_moving_std;
     let motion = if trainer.settings.sample_mask_weight > 0.0 && moving_std > 0.0 {
-        PixelMotion::new(data).map_err(TrainError::Sampling)?
+        PixelMotion::new(data, &sampler).map_err(TrainError::Sampling)?
     } else {
         None
     };
