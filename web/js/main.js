@@ -9,7 +9,10 @@
 // side, adapted frame by frame so that a frame fits its budget (1/30 s while moving, one model
 // frame while playing);
 // when the camera stops (STILL_MS after the last input) and playback is paused, the view is
-// drawn again at full resolution. The timeline advances with the clock at the model's frame
+// drawn again one step finer per frame (1/8, 1/4, 1/2, full) until it is at full resolution.
+// The page's first frame is drawn at 1/8 and refined the same way, so that a slow GPU shows a
+// picture after 1/64 of a full frame's work instead of nothing until the full frame is done.
+// The timeline advances with the clock at the model's frame
 // rate; when the GPU cannot keep up even at 1/8, frames are dropped, not slowed down.
 //
 // URL parameters: `model=NAME` (a name from /models), `camera=K` (start at the file's camera K,
@@ -34,8 +37,12 @@ const STILL_MS = 250;
 const params = new URLSearchParams(location.search);
 
 const hooks = {
-  /** Set once the first frame has been rendered (ms since navigation start). */
+  /** Set once the first frame (drawn at 1/8 of the full size per side) has been rendered (ms since navigation start). */
   firstFrameMs: null,
+  /** Set once the first frame at full size has been rendered (ms since navigation start). */
+  firstFullFrameMs: null,
+  /** The size the first frame was drawn at. */
+  firstFrameSize: null,
   /** Frames rendered so far. */
   frames: 0,
   error: null,
@@ -182,7 +189,8 @@ async function main() {
     `Resolution: while you move the camera, frames are drawn at 1/2 to 1/8 of ${template.width}x${template.height} per side, ` +
     `adapted so that a frame takes at most ${MOVING_BUDGET_MS.toFixed(0)} ms; while the video plays, at full size when a frame fits one model frame ` +
     `(${(1000 / modelFps).toFixed(0)} ms at ${modelFps} fps), else reduced the same way; ` +
-    `${STILL_MS} ms after the camera stops, paused, the view is drawn again at full resolution. ` +
+    `${STILL_MS} ms after the camera stops, paused, the view is refined one step per frame (1/8, 1/4, 1/2, full) up to full resolution; ` +
+    `the first frame starts at 1/8 the same way. ` +
     `The timeline runs at the model's ${modelFps} fps: frames the GPU cannot draw in time are skipped.`;
 
   const tParam = params.get("t");
@@ -194,8 +202,12 @@ async function main() {
     rendering: false,
     /** When the camera last moved (ms, performance.now()). */
     lastInput: -Infinity,
-    /** Index into SCALES used while moving or playing (adapted to the frame budget). */
-    level: 0,
+    /** Index into SCALES used while moving or playing (adapted to the frame budget); the
+     * first frames start at the coarsest. */
+    level: SCALES.length - 1,
+    /** Index into SCALES of the next frame drawn while the camera is still and the video
+     * paused: one step finer than the last frame, down to 0 (full size). */
+    refineLevel: SCALES.length - 1,
     /** Per-side scale of the last frame drawn. */
     scale: 1,
     /** The last frame was reduced: draw it again at full resolution when the camera is still. */
@@ -332,8 +344,10 @@ async function main() {
     // The resolution policy (top of this file): reduced while moving or playing, full when still.
     const moving = performance.now() - state.lastInput < STILL_MS;
     // Moving: at most half size per side (a drag should answer at once); playing: full size as
-    // long as a frame fits one model frame.
-    const scale = moving ? SCALES[Math.max(state.level, 1)] : state.playing ? SCALES[state.level] : 1;
+    // long as a frame fits one model frame; still and paused: one step finer than the last
+    // frame (progressive refinement).
+    const level = moving ? Math.max(state.level, 1) : state.playing ? state.level : state.refineLevel;
+    const scale = SCALES[level];
     const w = Math.max(1, Math.round(full.width * scale));
     const h = Math.max(1, Math.round(full.height * scale));
     const cam = scale === 1 ? full : resize(full, w, h);
@@ -348,8 +362,9 @@ async function main() {
       if (ms > budget && state.level < SCALES.length - 1) state.level++;
       else if (ms * 4 < 0.7 * budget && state.level > 0) state.level--;
     }
-    // A reduced frame is drawn again at full resolution once the camera stops and playback is
+    // A reduced frame is drawn again, one step finer, once the camera stops and playback is
     // paused.
+    state.refineLevel = Math.max(level - 1, 0);
     state.refine = scale !== 1;
     hooks.lastScale = scale;
     hooks.lastSize = [w, h];
@@ -360,7 +375,13 @@ async function main() {
     if (hooks.firstFrameMs === null) {
       hooks.firstFrameMs = t1;
       hooks.timings.firstFrame = t1;
-      console.log(`first frame after ${t1.toFixed(0)} ms`);
+      hooks.firstFrameSize = [w, h];
+      console.log(`first frame (${w}x${h}) after ${t1.toFixed(0)} ms`);
+    }
+    if (hooks.firstFullFrameMs === null && scale === 1) {
+      hooks.firstFullFrameMs = t1;
+      hooks.timings.firstFullFrame = t1;
+      console.log(`first full-size frame (${w}x${h}) after ${t1.toFixed(0)} ms`);
     }
     recent.push(t1);
     while (recent.length && recent[0] < t1 - 1000) recent.shift();
@@ -401,7 +422,8 @@ async function main() {
     if (hooks.lastSize) {
       const [rw, rh] = hooks.lastSize;
       const s = state.scale;
-      $("res").textContent = `· ${rw}x${rh}${s === 1 ? " (full)" : ` (1/${Math.round(1 / s)}${state.playing ? ", playing" : ", moving"})`}`;
+      const why = state.playing ? "playing" : performance.now() - state.lastInput < STILL_MS ? "moving" : "refining";
+      $("res").textContent = `· ${rw}x${rh}${s === 1 ? " (full)" : ` (1/${Math.round(1 / s)}, ${why})`}`;
     }
     if (performance.now() - (recent[n - 1] ?? 0) > 1000) recent.length = 0;
     if (!hooks.error) requestAnimationFrame(tick);

@@ -1,13 +1,16 @@
 // Old against new in one run (issue #17), in headless Chromium on SwiftShader: the page's first
 // frame with the per-sample passes (the default) and with the one-invocation-per-ray `render`
 // kernel (`?kernel=ray`), same model, size, view and time, one fresh browser each. Prints the
-// time to first frame (navigation to frame) and the render time of that frame (compiled
-// pipelines to frame), and the PSNR between the two frames. For the record only: nothing
-// passes or fails on timing.
+// time to the first full-size frame (navigation to frame) and its render time (compiled
+// pipelines to frame), the time to the first picture (pages since the progressive start draw
+// their first frame at 1/8 of the size per side and refine it; older pages draw it at full
+// size), and the PSNR between the two full-size frames. For the record only: nothing passes or
+// fails on timing.
 //
 //   node web/tests/bench_kernels.mjs --base http://127.0.0.1:8080 --model demo.msth \
 //     [--size 256x256] [--kernels passes,ray] [--timeout-s 1800] [--chromium /usr/bin/chromium]
 //     [--profile 1]   (each pass its own submission, timed: `?profile=1`)
+//     [--first-only 1]   (stop at the first picture, however small; no full-size frame)
 //
 // Needs a running `msth serve --web web DIR` and `npm ci --prefix web`.
 
@@ -38,8 +41,11 @@ async function firstFrame(kernel) {
     page.on("console", (m) => logs.push(m.text()));
     const q = (kernel === "ray" ? "&kernel=ray" : "") + (a.profile === "1" ? "&profile=1" : "");
     await page.goto(`${a.base}/?model=${encodeURIComponent(a.model)}&size=${size}&play=0&t=0${q}`);
-    await page.waitForFunction(() => window.msth && (window.msth.firstFrameMs !== null || window.msth.error || window.msth.noWebGpu), null, { timeout, polling: 250 });
-    const r = await page.evaluate(() => ({ ttff: window.msth.firstFrameMs, pipeline: window.msth.timings && window.msth.timings.pipeline, timings: window.msth.timings, passMs: window.msth.renderer && window.msth.renderer.passMs, error: window.msth.error, kernel: window.msth.renderer && window.msth.renderer.kernel }));
+    // Pages without `firstFullFrameMs` (before the progressive start) draw their first frame at full size.
+    const full =
+      a["first-only"] === "1" ? () => window.msth.firstFrameMs : () => (window.msth.firstFullFrameMs === undefined ? window.msth.firstFrameMs : window.msth.firstFullFrameMs);
+    await page.waitForFunction((f) => window.msth && (eval(f)() !== null || window.msth.error || window.msth.noWebGpu), full.toString(), { timeout, polling: 250 });
+    const r = await page.evaluate((f) => ({ ttff: eval(f)(), firstPicture: window.msth.firstFrameMs, firstSize: window.msth.firstFrameSize, pipeline: window.msth.timings && window.msth.timings.pipeline, timings: window.msth.timings, passMs: window.msth.renderer && window.msth.renderer.passMs, error: window.msth.error, kernel: window.msth.renderer && window.msth.renderer.kernel }), full.toString());
     if (r.error || r.ttff === null) throw new Error(`${kernel}: ${r.error || "no WebGPU"}\n${logs.join("\n")}`);
     const px = await page.evaluate(() => window.msth.readPixels());
     return { ...r, px: Array.from(px) };
@@ -54,7 +60,7 @@ for (const k of kernels) {
   const r = await firstFrame(k);
   out[k] = r;
   const render = r.pipeline ? r.ttff - r.pipeline : NaN;
-  console.log(`${k} (${r.kernel}): ${size} first frame ${(r.ttff / 1000).toFixed(1)} s after navigation, ${(render / 1000).toFixed(1)} s of it rendering`);
+  console.log(`${k} (${r.kernel}): ${size} first ${a["first-only"] === "1" ? "frame drawn" : "full-size frame"} ${(r.ttff / 1000).toFixed(1)} s after navigation, ${(render / 1000).toFixed(1)} s of it rendering; first picture (${r.firstSize ? r.firstSize.join("x") : size}) after ${(r.firstPicture / 1000).toFixed(1)} s`);
   // Milestones (s since navigation): adapter, prefix, module, pipeline, params, firstFrame.
   const ms = Object.entries(r.timings || {}).sort((x, y) => x[1] - y[1]);
   console.log(`  milestones: ${ms.map(([n, v]) => `${n} ${(v / 1000).toFixed(2)} s`).join(", ")}`);
