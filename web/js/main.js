@@ -210,7 +210,7 @@ async function main() {
     refineLevel: SCALES.length - 1,
     /** Per-side scale of the last frame drawn. */
     scale: 1,
-    /** The last frame was reduced: draw it again at full resolution when the camera is still. */
+    /** The last frame was reduced: draw it again, one step finer, when the camera is still. */
     refine: false,
   };
   hooks.state = state;
@@ -341,7 +341,8 @@ async function main() {
       hooks.timings.params ??= performance.now();
     }
     const full = orbit.camera();
-    // The resolution policy (top of this file): reduced while moving or playing, full when still.
+    // The resolution policy (top of this file): reduced while moving or playing, refined step by
+    // step to full size when still.
     const moving = performance.now() - state.lastInput < STILL_MS;
     // Moving: at most half size per side (a drag should answer at once); playing: full size as
     // long as a frame fits one model frame; still and paused: one step finer than the last
