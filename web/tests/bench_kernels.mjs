@@ -41,11 +41,20 @@ async function firstFrame(kernel) {
     page.on("console", (m) => logs.push(m.text()));
     const q = (kernel === "ray" ? "&kernel=ray" : "") + (a.profile === "1" ? "&profile=1" : "");
     await page.goto(`${a.base}/?model=${encodeURIComponent(a.model)}&size=${size}&play=0&t=0${q}`);
-    // Pages without `firstFullFrameMs` (before the progressive start) draw their first frame at full size.
-    const full =
-      a["first-only"] === "1" ? () => window.msth.firstFrameMs : () => (window.msth.firstFullFrameMs === undefined ? window.msth.firstFrameMs : window.msth.firstFullFrameMs);
-    await page.waitForFunction((f) => window.msth && (eval(f)() !== null || window.msth.error || window.msth.noWebGpu), full.toString(), { timeout, polling: 250 });
-    const r = await page.evaluate((f) => ({ ttff: eval(f)(), firstPicture: window.msth.firstFrameMs, firstSize: window.msth.firstFrameSize, pipeline: window.msth.timings && window.msth.timings.pipeline, timings: window.msth.timings, passMs: window.msth.renderer && window.msth.renderer.passMs, error: window.msth.error, kernel: window.msth.renderer && window.msth.renderer.kernel }), full.toString());
+    // The frame timed: the first full-size one (pages before the progressive start draw their
+    // first frame at full size and have no `firstFullFrameMs`), or with --first-only the first one.
+    const firstOnly = a["first-only"] === "1";
+    const r = await page.waitForFunction(
+      (only) => {
+        const m = window.msth;
+        if (!m) return null;
+        const ttff = only || m.firstFullFrameMs === undefined ? m.firstFrameMs : m.firstFullFrameMs;
+        if (ttff === null && !m.error && !m.noWebGpu) return null;
+        return { ttff, firstPicture: m.firstFrameMs, firstSize: m.firstFrameSize, pipeline: m.timings && m.timings.pipeline, timings: m.timings, passMs: m.renderer && m.renderer.passMs, error: m.error, kernel: m.renderer && m.renderer.kernel };
+      },
+      firstOnly,
+      { timeout, polling: 250 },
+    ).then((h) => h.jsonValue());
     if (r.error || r.ttff === null) throw new Error(`${kernel}: ${r.error || "no WebGPU"}\n${logs.join("\n")}`);
     const px = await page.evaluate(() => window.msth.readPixels());
     return { ...r, px: Array.from(px) };
@@ -66,7 +75,8 @@ for (const k of kernels) {
   console.log(`  milestones: ${ms.map(([n, v]) => `${n} ${(v / 1000).toFixed(2)} s`).join(", ")}`);
   if (r.passMs && Object.keys(r.passMs).length) console.log(`  per pass (--profile 1): ${Object.entries(r.passMs).map(([n, v]) => `${n} ${(v / 1000).toFixed(2)} s`).join(", ")}`);
 }
-if (out.passes && out.ray) {
+// (With --first-only the frames may be of different sizes: no comparison.)
+if (out.passes && out.ray && a["first-only"] !== "1") {
   const [p, q] = [out.passes.px, out.ray.px];
   let se = 0;
   let n = 0;
