@@ -91,7 +91,7 @@ pub struct SynthArgs {
     /// or held-out test views (object layout).
     #[arg(long)]
     pub cameras: Option<usize>,
-    /// With --gltf: samples per pixel along each axis (default 3, i.e. 9 per pixel).
+    /// With --gltf: samples per pixel along each axis (default 6, i.e. 36 per pixel, 1..=16).
     #[arg(long)]
     pub supersample: Option<u32>,
     /// With --gltf: seed of the random cameras and the stage textures.

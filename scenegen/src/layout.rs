@@ -88,7 +88,8 @@ pub struct SynthSettings {
 
 impl SynthSettings {
     /// The defaults of a layout: object 200x200, 100 frames, 20 test views; stage 200x150,
-    /// 30 frames, 8 training cameras. Both 3x3 supersampling, 30 fps, `ffmpeg` from `PATH`.
+    /// 30 frames, 8 training cameras. Both 6x6 supersampling (`scene::sample_pattern`), 30 fps,
+    /// `ffmpeg` from `PATH`.
     pub fn new(layout: Layout) -> Self {
         let (width, height, frames, cameras) = match layout {
             Layout::Object => (200, 200, 100, 20),
@@ -100,7 +101,7 @@ impl SynthSettings {
             height,
             frames,
             cameras,
-            supersample: 3,
+            supersample: 6,
             seed: 0,
             fps: 30,
             ffmpeg: Some(PathBuf::from("ffmpeg")),
@@ -129,8 +130,8 @@ impl SynthSettings {
         if self.cameras == 0 || self.cameras > 99 {
             return bad(format!("cameras = {} must be 1..=99", self.cameras));
         }
-        if self.supersample == 0 || self.supersample > 8 {
-            return bad(format!("supersample = {} must be 1..=8", self.supersample));
+        if self.supersample == 0 || self.supersample > 16 {
+            return bad(format!("supersample = {} must be 1..=16", self.supersample));
         }
         if self.fps == 0 {
             return bad("fps must be at least 1".into());
@@ -337,6 +338,7 @@ fn meta_common(model: &Model, s: &SynthSettings, norm: &Normalisation, kind: &st
             "width": s.width,
             "height": s.height,
             "supersample": s.supersample,
+            "pixel_samples": "supersample^2 per pixel, one per cell of the supersample grid with distinct positions along each axis (multi-jittered canonical arrangement), averaged in linear light",
             "shading": "Lambert: one directional light + hemispheric ambient, no shadows; sRGB output",
             "seed": s.seed,
         },

@@ -96,7 +96,7 @@ pub struct Scene {
 /// Settings of one render.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct RenderOptions {
-    /// Samples per pixel along each axis (`supersample^2` per pixel, a regular grid).
+    /// Samples per pixel along each axis (`supersample^2` per pixel, [`sample_pattern`]).
     pub supersample: u32,
     /// Near clipping distance.
     pub near: f32,
@@ -105,7 +105,7 @@ pub struct RenderOptions {
 impl Default for RenderOptions {
     fn default() -> Self {
         RenderOptions {
-            supersample: 3,
+            supersample: 6,
             near: 0.05,
         }
     }
@@ -173,56 +173,73 @@ pub fn shade(scene: &Scene, tri: &Triangle, bary: Vec3, back_facing: bool) -> Ve
     rgb * (ambient + diffuse)
 }
 
-/// Renders `scene` from `camera`: rasterise at `supersample` times the resolution, shade the
-/// visible samples, average each pixel's samples in linear light, encode sRGB. With a
-/// transparent background, alpha is the covered fraction and colour the mean of the covered
-/// samples (straight alpha).
+/// Sub-pixel sample positions of one pixel, `s^2` of them in `[0, 1)^2` (pixel corner at 0):
+/// one sample in each cell of an `s x s` grid, shifted inside its cell so that the `s^2`
+/// samples also have `s^2` distinct x and `s^2` distinct y coordinates (the canonical
+/// arrangement of multi-jittered sampling, Kensler 2013). A regular grid gives an edge parallel
+/// to an image axis (mortar lines, checker squares, the horizon) only `s + 1` coverage levels;
+/// this pattern gives it `s^2 + 1`, at the same cost. `s = 1` is the pixel centre.
+pub fn sample_pattern(s: u32) -> Vec<(f32, f32)> {
+    let s = s.max(1);
+    let n = s as f32;
+    let mut out = Vec::with_capacity((s * s) as usize);
+    for sy in 0..s {
+        for sx in 0..s {
+            out.push((
+                (sx as f32 + (sy as f32 + 0.5) / n) / n,
+                (sy as f32 + (sx as f32 + 0.5) / n) / n,
+            ));
+        }
+    }
+    out
+}
+
+/// Renders `scene` from `camera`: `supersample^2` samples per pixel at the positions of
+/// [`sample_pattern`] (one rasterisation of the whole image per position, the camera's
+/// principal point shifted by the sample's offset), the visible samples shaded and each
+/// pixel's samples averaged in linear light (a box filter over the pixel, what the trainer's
+/// rays jittered inside their pixel integrate), encoded as sRGB. With a transparent background,
+/// alpha is the covered fraction and colour the mean of the covered samples (straight alpha).
 pub fn render(scene: &Scene, camera: &Camera, opts: &RenderOptions) -> RgbaImage8 {
-    let s = opts.supersample.max(1);
-    let fine = Camera {
-        width: camera.width * s,
-        height: camera.height * s,
-        fx: camera.fx * s as f32,
-        fy: camera.fy * s as f32,
-        cx: camera.cx * s as f32,
-        cy: camera.cy * s as f32,
-        world_from_camera: camera.world_from_camera,
-    };
+    let pattern = sample_pattern(opts.supersample);
     let raster = raster_triangles(scene);
-    let frags = rasterize(&fine, &raster, opts.near);
     let (w, h) = (camera.width as usize, camera.height as usize);
-    let fw = fine.width as usize;
-    let mut data = Vec::with_capacity(w * h * 4);
-    for y in 0..h {
-        for x in 0..w {
-            let mut sum = Vec3::ZERO;
-            let mut covered = 0u32;
-            for sy in 0..s as usize {
-                for sx in 0..s as usize {
-                    let f = frags[(y * s as usize + sy) * fw + x * s as usize + sx];
-                    if f.tri == EMPTY {
-                        if let Some(bg) = scene.background {
-                            sum += bg;
-                            covered += 1;
-                        }
-                        continue;
-                    }
-                    let tri = &scene.triangles[f.tri as usize];
-                    sum += shade(scene, tri, f.bary, f.back_facing);
-                    covered += 1;
+    let mut sum = vec![Vec3::ZERO; w * h];
+    let mut covered = vec![0u32; w * h];
+    for &(ox, oy) in &pattern {
+        // The rasteriser samples pixel centres (i + 0.5); shifting the principal point by
+        // 0.5 - offset puts that sample at i + offset of `camera`'s pixel grid.
+        let shifted = Camera {
+            cx: camera.cx + 0.5 - ox,
+            cy: camera.cy + 0.5 - oy,
+            ..*camera
+        };
+        let frags = rasterize(&shifted, &raster, opts.near);
+        for (k, f) in frags.iter().enumerate() {
+            if f.tri == EMPTY {
+                if let Some(bg) = scene.background {
+                    sum[k] += bg;
+                    covered[k] += 1;
                 }
-            }
-            let total = s * s;
-            if covered == 0 {
-                data.extend_from_slice(&[0, 0, 0, 0]);
                 continue;
             }
-            let mean = sum / covered as f32;
-            for c in mean.to_array() {
-                data.push((linear_to_srgb(c) * 255.0 + 0.5) as u8);
-            }
-            data.push(((covered as f32 / total as f32) * 255.0 + 0.5) as u8);
+            let tri = &scene.triangles[f.tri as usize];
+            sum[k] += shade(scene, tri, f.bary, f.back_facing);
+            covered[k] += 1;
         }
+    }
+    let total = pattern.len() as f32;
+    let mut data = Vec::with_capacity(w * h * 4);
+    for (sum, &covered) in sum.iter().zip(&covered) {
+        if covered == 0 {
+            data.extend_from_slice(&[0, 0, 0, 0]);
+            continue;
+        }
+        let mean = *sum / covered as f32;
+        for c in mean.to_array() {
+            data.push((linear_to_srgb(c) * 255.0 + 0.5) as u8);
+        }
+        data.push(((covered as f32 / total) * 255.0 + 0.5) as u8);
     }
     RgbaImage8 {
         width: camera.width,
@@ -428,6 +445,117 @@ impl Normalisation {
             translation,
             bbox_min: lo * scale + translation,
             bbox_max: hi * scale + translation,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sample_pattern_has_one_sample_per_cell_and_per_axis_stratum() {
+        assert_eq!(sample_pattern(1), vec![(0.5, 0.5)]);
+        for s in 1..=16u32 {
+            let p = sample_pattern(s);
+            let n = (s * s) as usize;
+            assert_eq!(p.len(), n);
+            let mut cells = vec![0u32; n];
+            let mut xs = vec![0u32; n];
+            let mut ys = vec![0u32; n];
+            for &(x, y) in &p {
+                assert!(
+                    (0.0..1.0).contains(&x) && (0.0..1.0).contains(&y),
+                    "{s}: {x} {y}"
+                );
+                let (cx, cy) = ((x * s as f32) as usize, (y * s as f32) as usize);
+                cells[cy * s as usize + cx] += 1;
+                xs[(x * n as f32) as usize] += 1;
+                ys[(y * n as f32) as usize] += 1;
+            }
+            assert!(cells.iter().all(|&c| c == 1), "{s}: cells {cells:?}");
+            assert!(xs.iter().all(|&c| c == 1), "{s}: x strata {xs:?}");
+            assert!(ys.iter().all(|&c| c == 1), "{s}: y strata {ys:?}");
+        }
+    }
+
+    /// A quad at z = -1 in front of a camera at the origin looking down -Z, covering the image
+    /// up to pixel coordinate `u_edge` (vertical edge) or `v_edge` (horizontal edge).
+    fn half_plane(edge_u: Option<f32>, edge_v: Option<f32>) -> (Scene, Camera) {
+        let cam = Camera {
+            width: 8,
+            height: 8,
+            fx: 10.0,
+            fy: 10.0,
+            cx: 4.0,
+            cy: 4.0,
+            world_from_camera: Mat4::IDENTITY,
+        };
+        // u = cx + fx x / -z, v = cy - fy y / -z, at z = -1.
+        let x1 = edge_u.map_or(10.0, |u| (u - cam.cx) / cam.fx);
+        let y0 = edge_v.map_or(-10.0, |v| (cam.cy - v) / cam.fy);
+        let (x0, y1) = (-10.0, 10.0);
+        let corner = |x: f32, y: f32| Vec3::new(x, y, -1.0);
+        let tri = |positions: [Vec3; 3]| Triangle {
+            positions,
+            normals: [Vec3::Z; 3],
+            uvs: [Vec2::ZERO; 3],
+            colors: [Vec4::ONE; 3],
+            material: 0,
+        };
+        let scene = Scene {
+            triangles: vec![
+                tri([corner(x0, y0), corner(x1, y0), corner(x1, y1)]),
+                tri([corner(x0, y0), corner(x1, y1), corner(x0, y1)]),
+            ],
+            materials: vec![SurfaceMaterial {
+                base_color: Vec4::ONE,
+                texture: None,
+                procedural: None,
+                double_sided: true,
+            }],
+            lighting: Lighting::default(),
+            background: None,
+        };
+        (scene, cam)
+    }
+
+    /// Pixels an edge parallel to an image axis crosses get the covered fraction as alpha to
+    /// within `1 / (2 s^2)` (and the 8-bit rounding), not the `1 / (2 s)` of a regular grid of
+    /// samples: such edges (mortar lines, checker squares) are where a regular grid aliases.
+    #[test]
+    fn edges_parallel_to_the_axes_get_their_covered_fraction() {
+        for s in [3u32, 6] {
+            let tol = 0.5 / (s * s) as f32 + 1.0 / 255.0;
+            for frac in [0.1f32, 0.3, 0.45, 0.7, 0.93] {
+                for vertical in [true, false] {
+                    let edge = 5.0 + frac;
+                    let (scene, cam) = if vertical {
+                        half_plane(Some(edge), None)
+                    } else {
+                        half_plane(None, Some(edge))
+                    };
+                    let img = render(
+                        &scene,
+                        &cam,
+                        &RenderOptions {
+                            supersample: s,
+                            near: 0.05,
+                        },
+                    );
+                    let alpha = |x: usize, y: usize| img.data[(y * 8 + x) * 4 + 3] as f32 / 255.0;
+                    let (edge_px, inside, outside) = if vertical {
+                        (alpha(5, 3), alpha(4, 3), alpha(6, 3))
+                    } else {
+                        (alpha(3, 5), alpha(3, 4), alpha(3, 6))
+                    };
+                    assert_eq!((inside, outside), (1.0, 0.0), "s {s}, frac {frac}");
+                    assert!(
+                        (edge_px - frac).abs() <= tol,
+                        "s {s}, vertical {vertical}: covered fraction {frac}, alpha {edge_px}"
+                    );
+                }
+            }
         }
     }
 }
