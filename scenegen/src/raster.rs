@@ -12,7 +12,8 @@
 //! Two implementations produce the same buffer bit for bit: [`rasterize_reference`] (every
 //! sample against every triangle, the plain definition) and [`rasterize`] (bounding boxes and
 //! incremental edge functions, the one used for datasets). Samples lie at `(i + 0.5, j + 0.5)`
-//! of the camera's pixel grid; supersampling is done by the caller with a scaled camera.
+//! of the camera's pixel grid; supersampling is done by the caller, one
+//! rasterisation per sub-pixel offset with the principal point shifted (`scene::render`).
 
 use glam::{Mat4, Vec3};
 use msth_core::Camera;
