@@ -3,6 +3,7 @@
 use std::process::ExitCode;
 
 fn main() -> ExitCode {
+    quiet_device_select();
     quiet_on_closed_stdout();
     match msth_cli::run(std::env::args_os()) {
         Ok(()) => ExitCode::SUCCESS,
@@ -10,6 +11,22 @@ fn main() -> ExitCode {
             eprintln!("error: {e:#}");
             ExitCode::FAILURE
         }
+    }
+}
+
+/// Mesa's `VK_LAYER_MESA_device_select` (an implicit Vulkan layer that comes with
+/// `mesa-vulkan-drivers`) asks the Wayland compositor for the default GPU whenever a Vulkan
+/// instance is created, and without a desktop session (`XDG_RUNTIME_DIR` unset: containers, CI,
+/// ssh) libwayland prints "error: XDG_RUNTIME_DIR is invalid or not set in the environment." to
+/// stderr, once per instance: `msth demo` printed it twice between its steps, an error that is
+/// none. Without a session there is no compositor to ask, and msth ranks the adapters itself
+/// (`msth_gpu::AdapterPolicy`), so the layer is turned off (`NODEVICE_SELECT=1`) unless the user
+/// set `NODEVICE_SELECT` or has a session. First thing in `main`, before any thread exists.
+fn quiet_device_select() {
+    if std::env::var_os("XDG_RUNTIME_DIR").is_none()
+        && std::env::var_os("NODEVICE_SELECT").is_none()
+    {
+        std::env::set_var("NODEVICE_SELECT", "1");
     }
 }
 
