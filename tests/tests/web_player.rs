@@ -3,7 +3,7 @@
 //! `web/tests/browser.mjs` through playwright-core) loads the page, which streams the file with
 //! Range requests, decodes it in JavaScript and renders it with WebGPU (SwiftShader) using the
 //! native renderer's WGSL. The page's frames must match `msth play` of the same camera and time
-//! (PSNR >= 35 dB); dragging must orbit; scrubbing must change the dynamic pixels and not the
+//! (PSNR >= 35 dB), for a `balanced`-preset model as well; dragging must orbit; scrubbing must change the dynamic pixels and not the
 //! static ones; without WebGPU the page must say so. The JavaScript decoder is also checked
 //! bit-exactly against msth-codec's flat parameter buffers (`web/tests/decode.mjs`).
 //!
@@ -17,11 +17,12 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
+use msth_core::config::Preset;
 use msth_player::path::Rig;
 use msth_server::{BackgroundServer, ServerConfig};
 use msth_testkit::{Need, Tests};
 use msth_tests::{export_cmd, fixture_run, msth, read_json, tiny_scene};
-use msth_trainer::train::train;
+use msth_trainer::train::{train, TrainSettings};
 
 fn main() -> std::process::ExitCode {
     let browser = Need::new("browser", || prerequisites().map(drop));
@@ -136,6 +137,26 @@ fn web_player_streams_renders_and_matches_native() {
     let q8 = ["--quant", "q8", "--chunk-frames", "2"];
     export_cmd(&train_dir.join("model.ckpt"), &file, &q8).unwrap();
 
+    // A balanced-preset model (#17: the page renders its layout as the native renderers do:
+    // 16 levels, 2^17-row tables, 96 proposal + 32 main samples per ray). A few steps: what is
+    // checked is that the renderers agree, not what the model learnt.
+    let mut sb = TrainSettings::for_preset(Preset::Balanced, &data);
+    (
+        sb.iters,
+        sb.batch_rays,
+        sb.anneal_steps,
+        sb.checkpoint_every,
+    ) = (8, 256, 2, 0);
+    let train_balanced = dir.path().join("train_balanced");
+    train(&data, sb, &train_balanced, None, &mut |_| true).unwrap();
+    let balanced = served.join("balanced.msth");
+    export_cmd(
+        &train_balanced.join("model.ckpt"),
+        &balanced,
+        &["--quant", "q8"],
+    )
+    .unwrap();
+
     // The JavaScript decoder reproduces msth-codec's flat parameter buffers bit for bit.
     let bytes = std::fs::read(&file).unwrap();
     let decoded = msth_codec::decode_all(&bytes).unwrap();
@@ -171,11 +192,15 @@ fn web_player_streams_renders_and_matches_native() {
     let view = format!("30,25,{:.3}", 1.4 * rig.radius);
     let size = format!("{}x{}", SIZE.0, SIZE.1);
     let mut natives = Vec::new();
-    for t in ["0", "1"] {
-        let out = dir.path().join(format!("native_{t}"));
+    for (name, src, t) in [
+        ("0", &file, "0"),
+        ("1", &file, "1"),
+        ("balanced", &balanced, "0"),
+    ] {
+        let out = dir.path().join(format!("native_{name}"));
         msth(&[
             "play",
-            file.to_str().unwrap(),
+            src.to_str().unwrap(),
             "--path",
             &format!("view:{view}"),
             "--size",
@@ -236,6 +261,10 @@ fn web_player_streams_renders_and_matches_native() {
             natives[0].to_str().unwrap(),
             "--native1",
             natives[1].to_str().unwrap(),
+            "--model2",
+            "balanced.msth",
+            "--native2",
+            natives[2].to_str().unwrap(),
             "--chromium",
             chromium.to_str().unwrap(),
             "--out",
@@ -250,9 +279,10 @@ fn web_player_streams_renders_and_matches_native() {
     let r = read_json(&results);
     let checks = r["checks"].as_array().unwrap();
     assert!(
-        checks.len() >= 11 && checks.iter().all(|c| c["ok"] == true),
+        checks.len() >= 12 && checks.iter().all(|c| c["ok"] == true),
         "{r:#}"
     );
     assert!(r["figures"]["psnr_vs_native_t0"].as_f64().unwrap() >= 35.0);
+    assert!(r["figures"]["psnr_model2_vs_native"].as_f64().unwrap() >= 35.0);
     println!("figures: {:#}", r["figures"]);
 }

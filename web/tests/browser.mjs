@@ -5,7 +5,8 @@
 //   node web/tests/browser.mjs --base http://127.0.0.1:8080 --model demo.msth \
 //     --view 30,25,4 --size 64x48 --native0 t0.png --native1 t1.png [--screenshot page.png] \
 //     [--screenshot-model NAME] [--screenshot-camera K] \
-//     [--bench-size 256x256] [--out results.json] [--chromium /usr/bin/chromium]
+//     [--model2 NAME --native2 t0.png] [--bench-size 256x256] [--out results.json] \
+//     [--chromium /usr/bin/chromium]
 //
 // `--native0` / `--native1` are `msth play FILE --path view:VIEW --size SIZE --frames 1
 // --time T:T` frames at t = 0 and t = 1. Checks, each printed as PASS/FAIL with its figures:
@@ -17,7 +18,9 @@
 //     first frame comes back;
 //  4. scrubbing the timeline to t = 1 changes the dynamic pixels (those that differ between the
 //     native renders at t = 0 and 1) and not the static ones, and matches the native t = 1 frame;
-//  5. without WebGPU the page says so.
+//  5. with `--model2`: a second model (the Rust test's balanced-preset file) matches its native
+//     render (`--native2`, same view, t = 0; PSNR >= 35 dB);
+//  6. without WebGPU the page says so.
 // Also reports time to first frame and frames per second at `--bench-size` (for the record:
 // timing decides nothing). Exit status 1 when a check fails, 2 on a usage or setup error.
 
@@ -272,6 +275,26 @@ async function main() {
     results.figures.scrub = { static_pixels: stat.length, dynamic_pixels: dyn.length, static_mean_change: sMean, static_p99_change: s99, dynamic_mean_change: dMean, dynamic_native_mean_change: dNative };
     check("scrubbing leaves static pixels alone", enough && sMean <= 1 && s99 <= 3, `${stat.length} static pixels (native t=0 vs t=1 within 1/255): mean change ${sMean.toFixed(3)}/255, 99th percentile ${s99}/255`);
     check("scrubbing changes dynamic pixels", enough && dMean >= 0.5 * dNative, `${dyn.length} dynamic pixels (native change >= 24/255): mean change ${dMean.toFixed(1)}/255 in the page, ${dNative.toFixed(1)}/255 natively`);
+
+    // ---- a second model at the same view and time (the Rust test passes a balanced-preset
+    // file: its layout, 16 levels, 2^17-row tables and 96 + 32 samples per ray, renders in the
+    // page as natively)
+    if (a.model2) {
+      await page.goto(`${a.base}/?model=${encodeURIComponent(a.model2)}&view=${a.view}&t=0&size=${a.size}&play=0`);
+      await waitFirstFrame(page);
+      await settled(page);
+      const nat2 = await decodePng(page, a.native2);
+      const full2 = await page.evaluate(() => ({ ms: window.msth.firstFullFrameMs, size: window.msth.lastSize }));
+      const px2 = await pixels(page);
+      const p2 = px2.length === 4 * n && nat2.w === w && nat2.h === h ? psnr(px2, nat2.px, n) : 0;
+      // Not a blank frame: the share of pixels more than 8/255 from the corner pixel's colour.
+      let busy = 0;
+      for (let i = 0; i < 4 * n; i += 4) if ([0, 1, 2].some((c) => Math.abs(nat2.px[i + c] - nat2.px[c]) > 8)) busy++;
+      results.figures.model2_busy_pixels = busy / n;
+      results.figures.psnr_model2_vs_native = Math.min(p2, 99);
+      results.figures.model2_time_to_full_frame_ms = Math.round(full2.ms);
+      check(`${a.model2} matches the native render`, p2 >= PSNR_MIN && busy >= 0.1 * n, `PSNR ${p2.toFixed(2)} dB against msth play at view:${a.view} t=0 (>= ${PSNR_MIN}); ${(100 * busy / n).toFixed(1)}% of the native frame's pixels differ from its corner's colour (>= 10%); full size (${full2.size.join("x")}) after ${full2.ms.toFixed(0)} ms`);
+    }
 
     // ---- for the record: frames per second at the bench size, and the README screenshot
     if (a["bench-size"]) {
