@@ -12,6 +12,9 @@
 // drawn again one step finer per frame (1/8, 1/4, 1/2, full) until it is at full resolution.
 // The page's first frame is drawn at 1/8 and refined the same way, so that a slow GPU shows a
 // picture after 1/64 of a full frame's work instead of nothing until the full frame is done.
+// Reduced frames are interlaced (renderer.js): a still view refined from 1/8 to full size
+// renders each pixel once, so its full-size frame costs what a frame drawn at full size at once
+// costs.
 // The timeline advances with the clock at the model's frame
 // rate; when the GPU cannot keep up even at 1/8, frames are dropped, not slowed down.
 //
@@ -24,7 +27,7 @@
 // `window.msth` exposes the player's state to tests and to the console (see `hooks` below).
 
 import { ModelStream } from "./stream.js";
-import { cameraFromJson, makeRig, Orbit, resize, templateCamera } from "./camera.js";
+import { cameraFromJson, makeRig, Orbit, templateCamera } from "./camera.js";
 import { Renderer, NoWebGpu } from "./renderer.js";
 
 const $ = (id) => document.getElementById(id);
@@ -212,6 +215,12 @@ async function main() {
     scale: 1,
     /** The last frame was reduced: draw it again, one step finer, when the camera is still. */
     refine: false,
+    /** The view (camera and time) the frame buffer holds a finished lattice of, and its
+     * spacing: a refinement of the same view renders only the pixels that lattice lacks. */
+    drawnKey: null,
+    drawnStride: 0,
+    /** Parameter uploads so far (part of a view's key: new parameters, a new frame). */
+    uploads: 0,
   };
   hooks.state = state;
   hooks.orbit = orbit;
@@ -338,6 +347,7 @@ async function main() {
       if (state.loadedChunk === undefined && params.get("skip") !== "0") gpu.setOccupancy(stream.decoder.occupancy);
       state.loadedChunk = chunk;
       state.paramsStale = false;
+      state.uploads++;
       hooks.timings.params ??= performance.now();
     }
     const full = orbit.camera();
@@ -349,13 +359,21 @@ async function main() {
     // frame (progressive refinement).
     const level = moving ? Math.max(state.level, 1) : state.playing ? state.level : state.refineLevel;
     const scale = SCALES[level];
-    const w = Math.max(1, Math.round(full.width * scale));
-    const h = Math.max(1, Math.round(full.height * scale));
-    const cam = scale === 1 ? full : resize(full, w, h);
+    // Reduced frames render every stride-th pixel per side of the full-size camera (the
+    // renderer's interlaced lattice): w x h of them.
+    const stride = Math.round(1 / scale);
+    const w = Math.ceil(full.width / stride);
+    const h = Math.ceil(full.height / stride);
+    const key = JSON.stringify([full, state.t, state.uploads]);
+    const done = key === state.drawnKey ? state.drawnStride : 0;
     const t0 = performance.now();
-    // New input (orbit, zoom, scrub) abandons a frame still in progress.
-    if (!(await gpu.render(cam, state.t, () => state.dirty))) return;
+    // New input (orbit, zoom, scrub) abandons a frame still in progress (and what the frame
+    // buffer holds then is no finished lattice).
+    state.drawnKey = null;
+    if (!(await gpu.render(full, state.t, () => state.dirty, stride, done))) return;
     const t1 = performance.now();
+    state.drawnKey = key;
+    state.drawnStride = Math.min(stride, done || stride);
     state.scale = scale;
     if (moving || state.playing) {
       const budget = moving ? MOVING_BUDGET_MS : 1000 / modelFps;
@@ -372,7 +390,7 @@ async function main() {
     hooks.frames++;
     hooks.lastFrameMs = t1 - t0;
     hooks.lastTime = state.t;
-    hooks.lastCamera = cam;
+    hooks.lastCamera = full;
     if (hooks.firstFrameMs === null) {
       hooks.firstFrameMs = t1;
       hooks.timings.firstFrame = t1;

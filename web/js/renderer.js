@@ -15,12 +15,45 @@
 //
 // The kernel writes (r, g, b, depth) per pixel to a storage buffer; a small display pass (below,
 // not part of the renderer: it only copies that buffer to the canvas, clamped to [0, 1]) draws it.
+//
+// Reduced frames are interlaced: a frame at 1/s of the size per side renders the pixels of the
+// full-size camera whose coordinates are multiples of s (one ray per s x s block, through the
+// block's first pixel), and the display pass fills each block from its nearest rendered pixel.
+// The pixels are ordered coarsest lattice first (`interlacedOrder`), so refining a still view
+// from 1/8 to 1/4, 1/2 and full size renders only the pixels the coarser frames did not: the
+// full-size frame costs one frame's work in all, not 1/64 + 1/16 + 1/4 + 1.
 
 import {
   LEVEL_SLOTS, LEVEL_BYTES, LEVEL_OFFSETS, ENCODING_OFFSETS, GRID_OFFSETS, MODEL_BYTES, MODEL_OFFSETS, VIEW_BYTES, WORKGROUP,
   FLAG_LIST, MAX_PROPOSAL_SAMPLES, MAX_SAMPLES, MAX_HIDDEN, MAX_GEO, RENDER_STATIC_CUTOFF, BLEND,
-  FRAME_WORK_BYTES, PASS_ARGS as ARGS, PASS_BYTES, PASS_OFFSETS,
+  FRAME_WORK_BYTES, PASS_ARGS as ARGS, PASS_BYTES, PASS_OFFSETS, PASS_FLAGS,
 } from "./generated/contract.js";
+
+/** Lattice spacings of reduced frames (pixels per side of a block), finest first. */
+export const STRIDES = [1, 2, 4, 8];
+
+/**
+ * The pixels of a w x h frame (row-major indices) ordered coarsest lattice first: the pixels
+ * whose x and y are multiples of 8, then those of the multiples of 4 not yet listed, then of 2,
+ * then the rest. `ends[s]` is the length of the prefix that holds the whole lattice of spacing s.
+ */
+export function interlacedOrder(w, h) {
+  const ids = new Uint32Array(w * h);
+  const ends = {};
+  let k = 0;
+  for (let j = STRIDES.length - 1; j >= 0; j--) {
+    const s = STRIDES[j];
+    const coarser = j + 1 < STRIDES.length ? STRIDES[j + 1] : 0;
+    for (let y = 0; y < h; y += s) {
+      for (let x = 0; x < w; x += s) {
+        if (coarser && x % coarser === 0 && y % coarser === 0) continue;
+        ids[k++] = y * w + x;
+      }
+    }
+    ends[s] = k;
+  }
+  return { ids, ends };
+}
 
 const PASS_ENTRIES = [
   "pass_setup", "pass_args", "pass_live_proposal", "pass_proposal", "pass_resample", "pass_live_samples", "pass_density",
@@ -76,7 +109,9 @@ function wordsPerRay(np, geo, samples) {
 export class NoWebGpu extends Error {}
 
 const DISPLAY_WGSL = `
-struct Size { w: u32, h: u32 }
+// s: the lattice spacing of the frame (1: every pixel rendered); each pixel shows the nearest
+// rendered one.
+struct Size { w: u32, h: u32, s: u32, pad: u32 }
 @group(0) @binding(0) var<storage, read> frame: array<vec4<f32>>;
 @group(0) @binding(1) var<uniform> size: Size;
 @vertex fn vs(@builtin(vertex_index) i: u32) -> @builtin(position) vec4<f32> {
@@ -84,8 +119,9 @@ struct Size { w: u32, h: u32 }
   return vec4<f32>(p * 2.0 - 1.0, 0.0, 1.0);
 }
 @fragment fn fs(@builtin(position) pos: vec4<f32>) -> @location(0) vec4<f32> {
-  let x = min(u32(pos.x), size.w - 1u);
-  let y = min(u32(pos.y), size.h - 1u);
+  let s = max(size.s, 1u);
+  let x = min((min(u32(pos.x), size.w - 1u) + s / 2u) / s * s, (size.w - 1u) / s * s);
+  let y = min((min(u32(pos.y), size.h - 1u) + s / 2u) / s * s, (size.h - 1u) / s * s);
   return vec4<f32>(clamp(frame[y * size.w + x].rgb, vec3<f32>(0.0), vec3<f32>(1.0)), 1.0);
 }`;
 
@@ -282,7 +318,7 @@ class GpuScene {
     this.model = device.createBuffer({ size: modelUniform.byteLength, usage: GPUBufferUsage.UNIFORM | GPUBufferUsage.COPY_DST, label: "Model" });
     device.queue.writeBuffer(this.model, 0, modelUniform);
     this.view = device.createBuffer({ size: VIEW_BYTES, usage: GPUBufferUsage.UNIFORM | GPUBufferUsage.COPY_DST, label: "View" });
-    this.size = device.createBuffer({ size: 8, usage: GPUBufferUsage.UNIFORM | GPUBufferUsage.COPY_DST, label: "display size" });
+    this.size = device.createBuffer({ size: 16, usage: GPUBufferUsage.UNIFORM | GPUBufferUsage.COPY_DST, label: "display size" });
     this.pass = device.createBuffer({ size: PASS_BYTES, usage: GPUBufferUsage.UNIFORM | GPUBufferUsage.COPY_DST, label: "Pass" });
     const small = (usage, label) => device.createBuffer({ size: ARGS.bytes, usage, label });
     this.ctrl = small(GPUBufferUsage.STORAGE | GPUBufferUsage.COPY_DST, "pass counters");
@@ -313,10 +349,13 @@ class GpuScene {
     this.profile = typeof location !== "undefined" && new URLSearchParams(location.search).get("profile") === "1";
     /** With `?profile=1`: milliseconds spent per entry point, summed over frames. */
     this.passMs = {};
+    /** Rays rendered so far, all frames together. */
+    this.rays = 0;
   }
 
+  /** Sizes the frame buffers for w x h; true when they were (re)created (their content lost). */
   #ensureFrame(w, h) {
-    if (this.frameSize && this.frameSize[0] === w && this.frameSize[1] === h) return;
+    if (this.frameSize && this.frameSize[0] === w && this.frameSize[1] === h) return false;
     const device = this.device;
     this.frame?.destroy();
     this.readback?.destroy();
@@ -324,16 +363,14 @@ class GpuScene {
     this.frame = device.createBuffer({ size: bytes, usage: GPUBufferUsage.STORAGE | GPUBufferUsage.COPY_SRC, label: "frame" });
     this.readback = device.createBuffer({ size: bytes, usage: GPUBufferUsage.MAP_READ | GPUBufferUsage.COPY_DST, label: "readback" });
     this.order?.destroy();
-    this.order = null;
     this.work?.destroy();
     this.work = null;
-    if (this.kernels.perRay) {
-      // The pixel list of the tiles: 0, 1, ..., w * h - 1 (each tile binds its part).
-      this.order = device.createBuffer({ size: 4 * w * h, usage: GPUBufferUsage.STORAGE, mappedAtCreation: true, label: "pixel order" });
-      const ids = new Uint32Array(this.order.getMappedRange());
-      for (let i = 0; i < ids.length; i++) ids[i] = i;
-      this.order.unmap();
-    } else {
+    // The pixel list of every frame: coarsest lattice first (each batch or tile renders a range).
+    const { ids, ends } = interlacedOrder(w, h);
+    this.order = device.createBuffer({ size: 4 * w * h, usage: GPUBufferUsage.STORAGE | GPUBufferUsage.COPY_DST, label: "pixel order" });
+    device.queue.writeBuffer(this.order, 0, ids);
+    this.orderEnds = ends;
+    if (!this.kernels.perRay) {
       // Scratch of one batch: as many rays as fit FRAME_WORK_BYTES and the binding limit.
       const perRay = 4 * wordsPerRay(this.np, this.geo, this.samples);
       const fit = Math.floor(Math.min(FRAME_WORK_BYTES, this.storageLimit) / perRay);
@@ -344,7 +381,6 @@ class GpuScene {
       this.lists = reg.lists;
       this.work = device.createBuffer({ size: 4 * reg.words, usage: GPUBufferUsage.STORAGE, label: "work" });
     }
-    device.queue.writeBuffer(this.size, 0, new Uint32Array([w, h]));
     this.displayBind = device.createBindGroup({
       layout: this.display.getBindGroupLayout(0),
       entries: [
@@ -358,6 +394,7 @@ class GpuScene {
       this.canvas.width = w;
       this.canvas.height = h;
     }
+    return true;
   }
 
   /**
@@ -394,17 +431,28 @@ class GpuScene {
    * Renders `cam` at time `t` to the canvas; resolves when the GPU has finished, to `true`, or
    * to `false` when `abort()` (checked between tiles) asked to stop early.
    *
+   * `stride` (one of STRIDES): render the lattice of that spacing (a frame reduced to 1/stride
+   * per side), shown block by block. `done` (a coarser stride, or 0): the frame buffer already
+   * holds that lattice of this very camera, time and parameters (the previous frame, not
+   * aborted), so only the pixels it lacks are rendered (the per-ray kernel renders the whole
+   * lattice again).
+   *
    * A frame is rendered in tiles of consecutive pixels (the kernel's pixel-list mode, `flags = 1`,
    * with the list bound at the tile's offset), each its own submission, and the canvas is
    * updated after each: a slow GPU (SwiftShader) then keeps the page responsive and shows the
    * frame as it progresses. The tile size adapts to about 50 ms of GPU work; on a real GPU a
    * frame is one tile.
    */
-  async render(cam, t, abort = () => false) {
+  async render(cam, t, abort = () => false, stride = 1, done = 0) {
     if (this.r.lost) throw new Error(this.r.lost);
+    if (!STRIDES.includes(stride)) throw new Error(`render: stride ${stride} is not one of ${STRIDES.join(", ")}`);
     const { width: w, height: h } = cam;
-    this.#ensureFrame(w, h);
-    return this.kernels.perRay ? this.#renderPerRay(cam, t, abort) : this.#renderPasses(cam, t, abort);
+    const fresh = this.#ensureFrame(w, h);
+    this.device.queue.writeBuffer(this.size, 0, new Uint32Array([w, h, stride, 0]));
+    const end = this.orderEnds[stride];
+    const keep = !fresh && done > stride && this.orderEnds[done] !== undefined && !this.kernels.perRay;
+    const begin = keep ? this.orderEnds[done] : 0;
+    return this.kernels.perRay ? this.#renderPerRay(cam, t, abort, end) : this.#renderPasses(cam, t, abort, begin, end);
   }
 
   /** Bind groups of the passes: `main` (work at binding 7) and `args` (the dispatch sizes there). */
@@ -413,13 +461,13 @@ class GpuScene {
     const group = (work) =>
       this.device.createBindGroup({
         layout: this.kernels.layout,
-        entries: [this.model, this.view, this.tab3, this.tab4, this.rest, this.noList, this.frame, work, this.ctrl, this.pass, this.occupancy].map((buffer, binding) => ({ binding, resource: { buffer } })),
+        entries: [this.model, this.view, this.tab3, this.tab4, this.rest, this.order, this.frame, work, this.ctrl, this.pass, this.occupancy].map((buffer, binding) => ({ binding, resource: { buffer } })),
       });
     this.groups = { main: group(this.work), args: group(this.args) };
     return this.groups;
   }
 
-  async #renderPasses(cam, t, abort) {
+  async #renderPasses(cam, t, abort, begin, end) {
     const [w, h] = this.frameSize;
     const n = w * h;
     const device = this.device;
@@ -427,12 +475,13 @@ class GpuScene {
     const { main, args } = this.#passGroups();
     const maxDim = device.limits.maxComputeWorkgroupsPerDimension;
     device.queue.writeBuffer(this.view, 0, viewUniform(cam, t, n, 0));
-    for (let start = 0; start < n; ) {
-      const count = Math.min(this.tile, this.capacity, n - start);
+    for (let start = begin; start < end; ) {
+      const count = Math.min(this.tile, this.capacity, end - start);
       const groups = dispatchSize(count, maxDim);
       if (!groups) throw new Error(`${count} rays exceed this GPU's dispatch limits`);
       const pass = new Uint32Array(PASS_BYTES / 4);
-      pass.set([start, count, 0, this.samples], PASS_OFFSETS.tile / 4);
+      // Rays render the pixels order[start ..] (the pixel list), each into frame[pixel].
+      pass.set([start, count, PASS_FLAGS.list, this.samples], PASS_OFFSETS.tile / 4);
       // reg0, reg1: rays, hist, edges, samp, geo, clist (no cache regions); reg2: the occupancy
       // resolution and the live lists.
       pass.set(this.regions, PASS_OFFSETS.reg0 / 4);
@@ -474,18 +523,17 @@ class GpuScene {
       // The next batches aim at ~50 ms each.
       this.tile = Math.min(1 << 22, Math.max(64, Math.round((count * 50) / ms / 64) * 64));
       start += count;
-      if (start < n && abort()) return false;
+      this.rays += count;
+      if (start < end && abort()) return false;
     }
     return true;
   }
 
-  async #renderPerRay(cam, t, abort) {
-    const [w, h] = this.frameSize;
-    const n = w * h;
+  async #renderPerRay(cam, t, abort, end) {
     const device = this.device;
     const maxDim = device.limits.maxComputeWorkgroupsPerDimension;
-    for (let start = 0; start < n; ) {
-      const count = Math.min(this.tile, n - start);
+    for (let start = 0; start < end; ) {
+      const count = Math.min(this.tile, end - start);
       const groups = dispatchSize(count, maxDim);
       if (!groups) throw new Error(`${count} rays exceed this GPU's dispatch limits`);
       device.queue.writeBuffer(this.view, 0, viewUniform(cam, t, count, FLAG_LIST));
@@ -513,7 +561,8 @@ class GpuScene {
       // The next tiles aim at ~50 ms each (multiples of 64 rays: the binding offset alignment).
       this.tile = Math.min(1 << 22, Math.max(64, Math.round((count * 50) / ms / 64) * 64));
       start += count;
-      if (start < n && abort()) return false;
+      this.rays += count;
+      if (start < end && abort()) return false;
     }
     return true;
   }
