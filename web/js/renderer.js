@@ -29,6 +29,14 @@ import {
   FRAME_WORK_BYTES, PASS_ARGS as ARGS, PASS_BYTES, PASS_OFFSETS, PASS_FLAGS,
 } from "./generated/contract.js";
 
+/**
+ * GPU time a batch of rays aims at, where a frame takes longer than that (software GPUs; on a
+ * hardware GPU a frame is one batch): new input abandons a frame between batches, and each
+ * batch costs its dispatches' fixed overhead (about 9 ms of CPU per batch on SwiftShader, where
+ * 50 ms batches made a 256x256 frame 1.2x slower than 200 ms ones: docs/playback.md).
+ */
+const TILE_MS = 200;
+
 /** Lattice spacings of reduced frames (pixels per side of a block), finest first. */
 export const STRIDES = [1, 2, 4, 8];
 
@@ -440,7 +448,7 @@ class GpuScene {
    * A frame is rendered in tiles of consecutive pixels (the kernel's pixel-list mode, `flags = 1`,
    * with the list bound at the tile's offset), each its own submission, and the canvas is
    * updated after each: a slow GPU (SwiftShader) then keeps the page responsive and shows the
-   * frame as it progresses. The tile size adapts to about 50 ms of GPU work; on a real GPU a
+   * frame as it progresses. The tile size adapts to about TILE_MS of GPU work; on a real GPU a
    * frame is one tile.
    */
   async render(cam, t, abort = () => false, stride = 1, done = 0) {
@@ -520,8 +528,8 @@ class GpuScene {
       if (err) throw new Error(`render: ${err.message}`);
       await device.queue.onSubmittedWorkDone();
       const ms = Math.max(performance.now() - t0, 0.1);
-      // The next batches aim at ~50 ms each.
-      this.tile = Math.min(1 << 22, Math.max(64, Math.round((count * 50) / ms / 64) * 64));
+      // The next batches aim at TILE_MS each.
+      this.tile = Math.min(1 << 22, Math.max(64, Math.round((count * TILE_MS) / ms / 64) * 64));
       start += count;
       this.rays += count;
       if (start < end && abort()) return false;
@@ -558,8 +566,8 @@ class GpuScene {
       if (err) throw new Error(`render: ${err.message}`);
       await device.queue.onSubmittedWorkDone();
       const ms = Math.max(performance.now() - t0, 0.1);
-      // The next tiles aim at ~50 ms each (multiples of 64 rays: the binding offset alignment).
-      this.tile = Math.min(1 << 22, Math.max(64, Math.round((count * 50) / ms / 64) * 64));
+      // The next tiles aim at TILE_MS each (multiples of 64 rays: the binding offset alignment).
+      this.tile = Math.min(1 << 22, Math.max(64, Math.round((count * TILE_MS) / ms / 64) * 64));
       start += count;
       this.rays += count;
       if (start < end && abort()) return false;
