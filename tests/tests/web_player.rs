@@ -3,8 +3,8 @@
 //! `web/tests/browser.mjs` through playwright-core) loads the page, which streams the file with
 //! Range requests, decodes it in JavaScript and renders it with WebGPU (SwiftShader) using the
 //! native renderer's WGSL. The page's frames must match `msth play` of the same camera and time
-//! (PSNR >= 35 dB), for a `balanced`-preset model as well; dragging must orbit; scrubbing must change the dynamic pixels and not the
-//! static ones; without WebGPU the page must say so. The JavaScript decoder is also checked
+//! (PSNR >= 35 dB), for a `balanced`-preset model as well; dragging must orbit; scrubbing must
+//! change the dynamic pixels and not the static ones; without WebGPU the page must say so. The JavaScript decoder is also checked
 //! bit-exactly against msth-codec's flat parameter buffers (`web/tests/decode.mjs`).
 //!
 //! Needs `node`, Chromium (`MSTH_CHROMIUM`, else `/usr/bin/chromium` or `chromium` on `PATH`)

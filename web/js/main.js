@@ -340,13 +340,12 @@ async function main() {
   const frameDone = [];
   async function renderNow() {
     const chunk = stream.decoder.chunkForTime(state.t);
-    if (chunk !== state.loadedChunk || state.paramsStale) {
+    if (chunk !== state.loadedChunk) {
       stream.decoder.paramsForTime(state.t, paramBuf);
       gpu.setParams(paramBuf);
       // The occupancy section is one of the sections every frame needs: decoded by now.
       if (state.loadedChunk === undefined && params.get("skip") !== "0") gpu.setOccupancy(stream.decoder.occupancy);
       state.loadedChunk = chunk;
-      state.paramsStale = false;
       state.uploads++;
       hooks.timings.params ??= performance.now();
     }
