@@ -331,7 +331,6 @@ class GpuScene {
     const small = (usage, label) => device.createBuffer({ size: ARGS.bytes, usage, label });
     this.ctrl = small(GPUBufferUsage.STORAGE | GPUBufferUsage.COPY_DST, "pass counters");
     this.args = small(GPUBufferUsage.STORAGE | GPUBufferUsage.INDIRECT, "pass dispatch sizes");
-    this.noList = small(GPUBufferUsage.STORAGE, "no list");
     this.noWork = small(GPUBufferUsage.STORAGE, "no work");
     this.noCtrl = small(GPUBufferUsage.STORAGE, "no counters");
     /** The file's occupancy grid (`setOccupancy`); a placeholder and resolution 0 without one. */
@@ -445,8 +444,8 @@ class GpuScene {
    * aborted), so only the pixels it lacks are rendered (the per-ray kernel renders the whole
    * lattice again).
    *
-   * A frame is rendered in tiles of consecutive pixels (the kernel's pixel-list mode, `flags = 1`,
-   * with the list bound at the tile's offset), each its own submission, and the canvas is
+   * A frame is rendered in tiles, each a run of consecutive entries of the interlaced pixel
+   * order (the kernels' pixel-list mode) and its own submission, and the canvas is
    * updated after each: a slow GPU (SwiftShader) then keeps the page responsive and shows the
    * frame as it progresses. The tile size adapts to about TILE_MS of GPU work; on a real GPU a
    * frame is one tile.
