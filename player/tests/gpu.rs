@@ -35,6 +35,11 @@ fn main() -> std::process::ExitCode {
         )
         .needs(
             &[&gpu],
+            "eval_points_match_the_cpu_reference_for_every_feature_count",
+            eval_points_match_the_cpu_reference_for_every_feature_count,
+        )
+        .needs(
+            &[&gpu],
             "buffers_beyond_the_adapter_limits_are_clear_errors",
             buffers_beyond_the_adapter_limits_are_clear_errors,
         )
@@ -156,91 +161,110 @@ fn eval_points_matches_the_cpu_reference_for_every_blend() {
         BlendMode::FourD,
         BlendMode::Static,
     ] {
-        let cfg = config(blend);
-        let layout = ModelLayout::new(&cfg);
-        let (g3, _) = layout
-            .field
-            .encoding
-            .h3
-            .clone()
-            .or(layout.field.encoding.h4.clone())
-            .unwrap();
-        assert!(g3.levels.iter().any(|l| l.dense) && g3.levels.iter().any(|l| !l.dense));
-        let params = random_params(&layout, 3);
-        let gm = GpuModel::new(&cfg).unwrap();
-        let scene = GpuScene::new(&ctx, gm, &params).unwrap();
-        let mut rng = Rng::new(11);
-        let n = 300;
-        let mut words = Vec::with_capacity(n * 8);
-        let mut pts = Vec::new();
-        for j in 0..n {
-            let p = [rng.f32(), rng.f32(), rng.f32(), rng.f32()];
-            // A few points on the cube's faces and corners.
-            let p = if j < 8 {
-                [
-                    (j & 1) as f32,
-                    ((j >> 1) & 1) as f32,
-                    ((j >> 2) & 1) as f32,
-                    (j & 1) as f32,
-                ]
-            } else {
-                p
-            };
-            let d = glam::Vec3::new(rng.f32() - 0.5, rng.f32() - 0.5, rng.f32() - 0.5)
-                .normalize_or(glam::Vec3::Z);
-            let which = (j % 3 == 2) as u32 as f32;
-            for v in [p[0], p[1], p[2], p[3], d.x, d.y, d.z, which] {
-                words.push(v.to_bits());
-            }
-            pts.push((p, d, which));
+        eval_points_match(&ctx, config(blend), &format!("{blend:?}"));
+    }
+}
+
+/// The kernels accumulate features 0 and 1 of a level apart from features 2..: every allowed
+/// number of features per level against the CPU reference.
+fn eval_points_match_the_cpu_reference_for_every_feature_count() {
+    let ctx = context();
+    for features in [1, 4, 8] {
+        let mut cfg = config(BlendMode::Mst);
+        for enc in [&mut cfg.field.encoding, &mut cfg.proposal.encoding] {
+            enc.grid3.features_per_level = features;
+            enc.grid4.features_per_level = features;
         }
-        let list = ctx
-            .storage_buffer("points", bytemuck::cast_slice(&words), false)
-            .unwrap();
-        let out = ctx.output_buffer("values", n).unwrap();
-        let cam = Camera::look_at(
-            1,
-            1,
-            1.0,
-            glam::Vec3::Z * 3.0,
-            glam::Vec3::ZERO,
-            glam::Vec3::Y,
-        );
-        let view = ViewU::new(&cam, 0.0, n as u32, FLAG_COMPACT);
-        ctx.dispatch(Kernel::EvalPoints, &scene, &view, &list, &out)
-            .unwrap();
-        let got = ctx.read_vec4(&out, n).unwrap();
-        for (j, (p, d, which)) in pts.iter().enumerate() {
-            let g = got[j];
-            if *which == 1.0 {
-                let f = &layout.proposal.field;
-                let (enc, m) = f.encoding.encode_point_reference(&params, p);
-                let o = f
-                    .density
-                    .0
-                    .forward_reference(&params[f.density.1.clone()], &enc);
-                let sigma = msth_core::activation::trunc_exp(o[0]);
+        eval_points_match(&ctx, cfg, &format!("{features} features per level"));
+    }
+}
+
+/// Evaluates 300 points (field and proposal, faces and corners of the cube among them) with
+/// `Kernel::EvalPoints` and compares them with the CPU reference; `what` names the case.
+fn eval_points_match(ctx: &GpuContext, cfg: ModelConfig, what: &str) {
+    let layout = ModelLayout::new(&cfg);
+    let (g3, _) = layout
+        .field
+        .encoding
+        .h3
+        .clone()
+        .or(layout.field.encoding.h4.clone())
+        .unwrap();
+    assert!(g3.levels.iter().any(|l| l.dense) && g3.levels.iter().any(|l| !l.dense));
+    let params = random_params(&layout, 3);
+    let gm = GpuModel::new(&cfg).unwrap();
+    let scene = GpuScene::new(ctx, gm, &params).unwrap();
+    let mut rng = Rng::new(11);
+    let n = 300;
+    let mut words = Vec::with_capacity(n * 8);
+    let mut pts = Vec::new();
+    for j in 0..n {
+        let p = [rng.f32(), rng.f32(), rng.f32(), rng.f32()];
+        // A few points on the cube's faces and corners.
+        let p = if j < 8 {
+            [
+                (j & 1) as f32,
+                ((j >> 1) & 1) as f32,
+                ((j >> 2) & 1) as f32,
+                (j & 1) as f32,
+            ]
+        } else {
+            p
+        };
+        let d = glam::Vec3::new(rng.f32() - 0.5, rng.f32() - 0.5, rng.f32() - 0.5)
+            .normalize_or(glam::Vec3::Z);
+        let which = (j % 3 == 2) as u32 as f32;
+        for v in [p[0], p[1], p[2], p[3], d.x, d.y, d.z, which] {
+            words.push(v.to_bits());
+        }
+        pts.push((p, d, which));
+    }
+    let list = ctx
+        .storage_buffer("points", bytemuck::cast_slice(&words), false)
+        .unwrap();
+    let out = ctx.output_buffer("values", n).unwrap();
+    let cam = Camera::look_at(
+        1,
+        1,
+        1.0,
+        glam::Vec3::Z * 3.0,
+        glam::Vec3::ZERO,
+        glam::Vec3::Y,
+    );
+    let view = ViewU::new(&cam, 0.0, n as u32, FLAG_COMPACT);
+    ctx.dispatch(Kernel::EvalPoints, &scene, &view, &list, &out)
+        .unwrap();
+    let got = ctx.read_vec4(&out, n).unwrap();
+    for (j, (p, d, which)) in pts.iter().enumerate() {
+        let g = got[j];
+        if *which == 1.0 {
+            let f = &layout.proposal.field;
+            let (enc, m) = f.encoding.encode_point_reference(&params, p);
+            let o = f
+                .density
+                .0
+                .forward_reference(&params[f.density.1.clone()], &enc);
+            let sigma = msth_core::activation::trunc_exp(o[0]);
+            assert!(
+                (g[3] - sigma).abs() <= 1e-4 * sigma.max(1.0),
+                "{what} proposal point {j}: sigma {} vs {sigma}",
+                g[3]
+            );
+            assert!((g[0] - m).abs() < 1e-5, "{what} proposal mask");
+        } else {
+            let mut sh = vec![0f32; SH_COEFFS];
+            sh4([d.x, d.y, d.z], &mut sh);
+            let (sigma, rgb, _) = layout.field.eval_point_reference(&params, p, &sh);
+            assert!(
+                (g[3] - sigma).abs() <= 1e-4 * sigma.max(1.0),
+                "{what} point {j} {p:?}: sigma {} vs {sigma}",
+                g[3]
+            );
+            for c in 0..3 {
                 assert!(
-                    (g[3] - sigma).abs() <= 1e-4 * sigma.max(1.0),
-                    "{blend:?} proposal point {j}: sigma {} vs {sigma}",
-                    g[3]
+                    (g[c] - rgb[c]).abs() < 1e-5,
+                    "{what} point {j}: rgb {g:?} vs {rgb:?}"
                 );
-                assert!((g[0] - m).abs() < 1e-5, "{blend:?} proposal mask");
-            } else {
-                let mut sh = vec![0f32; SH_COEFFS];
-                sh4([d.x, d.y, d.z], &mut sh);
-                let (sigma, rgb, _) = layout.field.eval_point_reference(&params, p, &sh);
-                assert!(
-                    (g[3] - sigma).abs() <= 1e-4 * sigma.max(1.0),
-                    "{blend:?} point {j} {p:?}: sigma {} vs {sigma}",
-                    g[3]
-                );
-                for c in 0..3 {
-                    assert!(
-                        (g[c] - rgb[c]).abs() < 1e-5,
-                        "{blend:?} point {j}: rgb {g:?} vs {rgb:?}"
-                    );
-                }
             }
         }
     }

@@ -448,7 +448,8 @@ class GpuScene {
    * order (the kernels' pixel-list mode) and its own submission, and the canvas is
    * updated after each: a slow GPU (SwiftShader) then keeps the page responsive and shows the
    * frame as it progresses. The tile size adapts to about TILE_MS of GPU work; on a real GPU a
-   * frame is one tile.
+   * frame is one tile. Two tiles are queued at a time, so an abandoned frame still finishes the
+   * tile after the one in flight.
    */
   async render(cam, t, abort = () => false, stride = 1, done = 0) {
     if (this.r.lost) throw new Error(this.r.lost);
@@ -482,7 +483,24 @@ class GpuScene {
     const { main, args } = this.#passGroups();
     const maxDim = device.limits.maxComputeWorkgroupsPerDimension;
     device.queue.writeBuffer(this.view, 0, viewUniform(cam, t, n, 0));
-    for (let start = begin; start < end; ) {
+    // Two batches at a time: the next one is submitted before the page waits for the one before
+    // it, so the GPU does not idle while the page learns of a completion and prepares the next
+    // batch (on SwiftShader about 1.1x sooner full-size frames, less than the host's noise in
+    // one of three comparisons: docs/playback.md). The queue runs the batches in order, so they
+    // share the pass uniform and the work buffers.
+    let queued = null; // the batch submitted before the last one: { done, t0, count }
+    let lastDone = 0;
+    const finish = async (b) => {
+      await b.done;
+      // Its GPU time: from its submission, or from the end of the batch before it.
+      const now = performance.now();
+      const ms = Math.max(now - Math.max(b.t0, lastDone), 0.1);
+      lastDone = now;
+      // The next batches aim at TILE_MS each.
+      this.tile = Math.min(1 << 22, Math.max(64, Math.round((b.count * TILE_MS) / ms / 64) * 64));
+    };
+    let start = begin;
+    while (start < end) {
       const count = Math.min(this.tile, this.capacity, end - start);
       const groups = dispatchSize(count, maxDim);
       if (!groups) throw new Error(`${count} rays exceed this GPU's dispatch limits`);
@@ -525,15 +543,15 @@ class GpuScene {
       }
       const err = await device.popErrorScope();
       if (err) throw new Error(`render: ${err.message}`);
-      await device.queue.onSubmittedWorkDone();
-      const ms = Math.max(performance.now() - t0, 0.1);
-      // The next batches aim at TILE_MS each.
-      this.tile = Math.min(1 << 22, Math.max(64, Math.round((count * TILE_MS) / ms / 64) * 64));
+      const batch = { done: device.queue.onSubmittedWorkDone(), t0, count };
       start += count;
       this.rays += count;
-      if (start < end && abort()) return false;
+      if (queued) await finish(queued);
+      queued = batch;
+      if (start < end && abort()) break;
     }
-    return true;
+    if (queued) await finish(queued);
+    return start >= end;
   }
 
   async #renderPerRay(cam, t, abort, end) {

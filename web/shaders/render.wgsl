@@ -318,6 +318,13 @@ struct Feat {
 // corners, dense or hashed indexing; the table is in buffer `buf` (0 tab3, 1 tab4, 2 rest),
 // a constant at every call site so that the compiler can drop `table`'s branches. Per-axis
 // values in vectors and features in two vec4 (no indexed private arrays).
+//
+// Written for software adapters, where a shader's cost is about the operations it runs
+// (SwiftShader runs each one for a group of invocations, both sides of every `if` included, and
+// hoists nothing out of loops: docs/playback.md): what does not change from corner to corner is
+// computed once before the corner loop, both row rules are computed and one is selected, and
+// features 0 and 1 (every preset has 2 per level) are accumulated without the per-feature
+// selects that features 2..7 need.
 fn grid_level(g: Grid, l: u32, p: vec4<f32>, buf: u32) -> Feat {
     let lv = model.levels[g.loc.y + l];
     let four = g.shape.x == 4u;
@@ -326,30 +333,31 @@ fn grid_level(g: Grid, l: u32, p: vec4<f32>, buf: u32) -> Feat {
     let q = clamp_unit4(p) * lv.scale + 0.5;
     let iv = vec4<u32>(q); // q >= 0.5: truncation is floor
     let fr = q - vec4<f32>(iv);
+    // The weights of the low corner per axis; a 3D grid's fourth axis weighs 1 (its corners
+    // never take the high side there).
+    let gr = vec4<f32>(1.0 - fr.xyz, select(1.0, 1.0 - fr.w, four));
     let primes = vec4<u32>(1u, 2654435761u, 805459861u, 3674653429u);
+    // A 3D grid: lv.stride.w = 0, and iv.w = 0 (scale.w = 0), so lo.w = 0.
     let lo = select(iv * primes, iv * lv.stride, dense);
     let hi = select((iv + 1u) * primes, lo + lv.stride, dense);
+    let hash_mask = g.shape.w;
+    let off = lv.info.x;
+    let second = min(1u, nf - 1u); // feature 1, or feature 0 again when nf = 1 (then unused)
     var fa = vec4<f32>(0.0);
     var fb = vec4<f32>(0.0);
     let corners = select(8u, 16u, four);
-    // Per corner: its weight and row once, then its features.
+    let bits = vec4<u32>(1u, 2u, 4u, 8u);
     for (var c = 0u; c < corners; c++) {
-        let u = vec4<bool>((c & 1u) != 0u, (c & 2u) != 0u, (c & 4u) != 0u, (c & 8u) != 0u);
-        let wv = select(1.0 - fr, fr, u);
-        var w = wv.x * wv.y * wv.z;
-        if four {
-            w *= wv.w;
-        }
+        let u = (vec4<u32>(c) & bits) != vec4<u32>(0u);
+        let wv = select(gr, fr, u);
+        let w = wv.x * wv.y * wv.z * wv.w; // the CPU's order; * 1 on a 3D grid is exact
         let cv = select(lo, hi, u);
-        let v3 = select(0u, cv.w, four);
-        var row: u32;
-        if dense {
-            row = cv.x + cv.y + cv.z + v3;
-        } else {
-            row = (cv.x ^ cv.y ^ cv.z ^ v3) & g.shape.w;
-        }
-        let base = lv.info.x + row * nf;
-        for (var f = 0u; f < nf; f++) {
+        let row = select((cv.x ^ cv.y ^ cv.z ^ cv.w) & hash_mask, cv.x + cv.y + cv.z + cv.w, dense);
+        let base = off + row * nf;
+        fa.x += w * table(buf, base);
+        fa.y += w * table(buf, base + second);
+        // Features 2.. (no trips at 1 or 2 features per level).
+        for (var f = 2u; f < nf; f++) {
             let t = w * table(buf, base + f);
             let fv = vec4<u32>(f);
             fa = select(fa, fa + t, fv == vec4<u32>(0u, 1u, 2u, 3u));
@@ -367,8 +375,15 @@ fn encode(e: Encoding, p: vec4<f32>, cutoff: f32, buf3: u32, buf4: u32) -> f32 {
     let blend = e.mode.x;
     let use3 = e.h3.loc.z == 1u;
     let use4 = e.h4.loc.z == 1u;
-    // Skip the 4D lookup where the mask leaves (almost) nothing dynamic (Mst/Mt with a mask).
-    let skip4 = cutoff > 0.0 && e.mode.y == 1u && blend <= 1u && (1.0 - m) < cutoff;
+    // Skip the 4D lookup where the mask leaves (almost) nothing dynamic (Mst/Mt with a mask), and
+    // the lookup a blend does not read (static: 4D; 4d: 3D).
+    let skip4 = blend == 4u || (cutoff > 0.0 && e.mode.y == 1u && blend <= 1u && (1.0 - m) < cutoff);
+    let skip3 = blend == 3u;
+    // The blend as v = k3 f3 + k4 f4 (mst: m, 1 - m; mt: 1, 1 - m; add: 1, 1; 4d: 0, 1;
+    // static: 1, 0): the CPU's sums, since 1 x = x and a skipped lookup's features are 0; no
+    // branch per blend (software adapters run every branch).
+    let k3 = select(select(1.0, m, blend == 0u), 0.0, blend == 3u);
+    let k4 = select(select(1.0 - m, 1.0, blend >= 2u), 0.0, blend == 4u);
     var levels = 0u;
     var nf = 1u;
     if use3 {
@@ -378,28 +393,25 @@ fn encode(e: Encoding, p: vec4<f32>, cutoff: f32, buf3: u32, buf4: u32) -> f32 {
         levels = e.h4.shape.z;
         nf = e.h4.shape.y;
     }
+    let second = min(1u, nf - 1u);
     let zero = Feat(vec4<f32>(0.0), vec4<f32>(0.0));
     for (var l = 0u; l < levels; l++) {
         var f3 = zero;
         var f4 = zero;
-        if use3 {
+        if use3 && !skip3 {
             f3 = grid_level(e.h3, l, p, buf3);
         }
         if use4 && !skip4 {
             f4 = grid_level(e.h4, l, p, buf4);
         }
-        var v = f3;
-        if blend == 0u {
-            v = Feat(m * f3.a + (1.0 - m) * f4.a, m * f3.b + (1.0 - m) * f4.b);
-        } else if blend == 1u {
-            v = Feat(f3.a + (1.0 - m) * f4.a, f3.b + (1.0 - m) * f4.b);
-        } else if blend == 2u {
-            v = Feat(f3.a + f4.a, f3.b + f4.b);
-        } else if blend == 3u {
-            v = f4;
-        }
-        for (var f = 0u; f < nf; f++) {
-            hid[l * nf + f] = select(v.b[f & 3u], v.a[f & 3u], f < 4u);
+        let va = k3 * f3.a + k4 * f4.a;
+        let at = l * nf;
+        // Features 0 and 1 (with one feature per level, the second write puts feature 0 back).
+        hid[at + second] = va.y;
+        hid[at] = va.x;
+        for (var f = 2u; f < nf; f++) {
+            let vb = k3 * f3.b + k4 * f4.b;
+            hid[at + f] = select(vb[f & 3u], va[f & 3u], f < 4u);
         }
     }
     return m;
@@ -413,6 +425,13 @@ fn w4(b: u32, left: u32) -> vec4<f32> {
         select(0.0, rest[b + 2u], left > 2u),
         select(0.0, rest[b + 3u], left > 3u),
     );
+}
+
+// rest[b .. b + 4], unconditionally: in `dense_lanes` the components past a layer's last output
+// are other parameters (or, past the buffer's end, what robust buffer access returns) and reach
+// only outputs that are not stored.
+fn r4(b: u32) -> vec4<f32> {
+    return vec4<f32>(rest[b], rest[b + 1u], rest[b + 2u], rest[b + 3u]);
 }
 
 // a - b, or 0 when b > a.
@@ -1294,11 +1313,11 @@ var<private> out4: array<vec4<f32>, MAX_HIDDEN>;
 
 // out4[0..nout] = hid4[0..nin] W per sample (W [nin, nout] row-major at `off` in `rest`), ReLU
 // when `relu`; each output summed over the inputs in order, as on the CPU. Eight outputs at a
-// time in registers: one read of a weight serves the LANES samples.
+// time in registers: one read of a weight serves the LANES samples; the weights are read
+// without bounds selects (`r4`).
 fn dense_lanes(off: u32, nin: u32, nout: u32, relu: bool) {
     for (var o0 = 0u; o0 < nout; o0 += 8u) {
         let left = nout - o0;
-        let l1 = sub_sat(left, 4u);
         var a0 = vec4<f32>(0.0);
         var a1 = vec4<f32>(0.0);
         var a2 = vec4<f32>(0.0);
@@ -1310,8 +1329,8 @@ fn dense_lanes(off: u32, nin: u32, nout: u32, relu: bool) {
         var row = off + o0;
         for (var i = 0u; i < nin; i++) {
             let x = hid4[i];
-            let w = w4(row, left);
-            let v = w4(row + 4u, l1);
+            let w = r4(row);
+            let v = r4(row + 4u);
             a0 += x * w.x;
             a1 += x * w.y;
             a2 += x * w.z;

@@ -11,6 +11,7 @@
 //     [--size 256x256] [--kernels passes,ray] [--timeout-s 1800] [--chromium /usr/bin/chromium]
 //     [--profile 1]   (each pass its own submission, timed: `?profile=1`)
 //     [--first-only 1]   (stop at the first picture, however small; no full-size frame)
+//     [--query K=V&...]   (more URL parameters for the page, e.g. an experiment's switch)
 //
 // Needs a running `msth serve --web web DIR` and `npm ci --prefix web`.
 
@@ -39,7 +40,7 @@ async function firstFrame(kernel) {
     const page = await ctx.newPage();
     const logs = [];
     page.on("console", (m) => logs.push(m.text()));
-    const q = (kernel === "ray" ? "&kernel=ray" : "") + (a.profile === "1" ? "&profile=1" : "");
+    const q = (kernel === "ray" ? "&kernel=ray" : "") + (a.profile === "1" ? "&profile=1" : "") + (a.query ? `&${a.query}` : "");
     await page.goto(`${a.base}/?model=${encodeURIComponent(a.model)}&size=${size}&play=0&t=0${q}`);
     // The frame timed: the first full-size one (pages before the progressive start draw their
     // first frame at full size and have no `firstFullFrameMs`), or with --first-only the first one.
