@@ -5,8 +5,8 @@
 //!
 //! | copy | mirrors |
 //! |---|---|
-//! | `gpu/shaders/render.wgsl`, `encode_into_hidden`: `v = ...` per blend code | `BlendMode::coefficients` |
-//! | `gpu/shaders/render.wgsl`, `encode_into_hidden`: `skip4` | `BlendMode::is_dynamic` |
+//! | `gpu/shaders/render.wgsl`, `encode`: `k3`, `k4` per blend code | `BlendMode::coefficients` |
+//! | `gpu/shaders/render.wgsl`, `encode`: `skip4` | `BlendMode::is_dynamic` |
 //! | `gpu/src/layout.rs`: `consts.x` of the encoding uniform | `BlendMode::no_mask_value` |
 //! | `web/js/renderer.js`: `noMask` | `BlendMode::no_mask_value` |
 //! | `web/js/renderer.js`: `RENDER_STATIC_CUTOFF` | `pipeline::RENDER_STATIC_CUTOFF` |
@@ -29,19 +29,25 @@ fn read(rel: &str) -> String {
 fn wgsl_blend_mirrors_blend_coefficients() {
     let wgsl = read("gpu/shaders/render.wgsl");
     // Blend codes 0..4 are Mst, Mt, Add, FourD, Static (gpu/src/layout.rs, blend_code); the
-    // shader writes `v = a * f3 + b * f4` per feature pair (`Feat(.a, .b)`, 4 samples at once)
-    // with the coefficients spelled out per code.
-    let written = [
-        ("m * f3.a + (1.0 - m) * f4.a", (0.3, 0.7)),
-        ("Feat(f3.a + (1.0 - m) * f4.a", (1.0, 0.7)),
-        ("Feat(f3.a + f4.a", (1.0, 1.0)),
-        ("v = f4;", (0.0, 1.0)),
-        ("var v = f3;", (1.0, 0.0)),
-    ];
-    for (mode, (text, coeffs)) in BlendMode::ALL.iter().zip(written) {
-        assert!(wgsl.contains(text), "render.wgsl: no `{text}` ({mode:?})");
-        assert_eq!(mode.coefficients(0.3), coeffs, "{mode:?}");
+    // shader blends `v = k3 f3 + k4 f4` with the two coefficients chosen per code by these
+    // lines, transcribed below (WGSL `select(f, t, c)` is `if c { t } else { f }`).
+    let k3 = "let k3 = select(select(1.0, m, blend == 0u), 0.0, blend == 3u);";
+    let k4 = "let k4 = select(select(1.0 - m, 1.0, blend >= 2u), 0.0, blend == 4u);";
+    for text in [k3, k4] {
+        assert!(wgsl.contains(text), "render.wgsl: no `{text}`");
     }
+    assert!(wgsl.contains("let va = k3 * f3.a + k4 * f4.a;"));
+    let select = |f: f32, t: f32, c: bool| if c { t } else { f };
+    for (code, mode) in BlendMode::ALL.iter().enumerate() {
+        for m in [0.0f32, 0.3, 1.0] {
+            let k3 = select(select(1.0, m, code == 0), 0.0, code == 3);
+            let k4 = select(select(1.0 - m, 1.0, code >= 2), 0.0, code == 4);
+            assert_eq!((k3, k4), mode.coefficients(m), "{mode:?} at m = {m}");
+        }
+    }
+    // A blend's unread lookup is skipped: Static never reads 4D (k4 = 0), FourD never 3D (k3 = 0).
+    assert!(wgsl.contains("let skip4 = blend == 4u ||"));
+    assert!(wgsl.contains("let skip3 = blend == 3u;"));
     // skip4: only Mst/Mt (codes <= 1) with a mask skip h4, where 1 - m < cutoff.
     assert!(wgsl.contains("blend <= 1u && (1.0 - m) < cutoff"));
     // (Static has no h4 to skip: it is never dynamic.)
