@@ -496,8 +496,7 @@ class GpuScene {
       const now = performance.now();
       const ms = Math.max(now - Math.max(b.t0, lastDone), 0.1);
       lastDone = now;
-      // The next batches aim at TILE_MS each.
-      this.tile = Math.min(1 << 22, Math.max(64, Math.round((b.count * TILE_MS) / ms / 64) * 64));
+      this.#adaptTile(b.count, ms);
     };
     let start = begin;
     while (start < end) {
@@ -554,6 +553,12 @@ class GpuScene {
     return start >= end;
   }
 
+  /** Sizes the next batches to about TILE_MS of GPU work, from `count` rays that took `ms`
+   * (multiples of 64 rays: the per-ray kernel's binding offset alignment). */
+  #adaptTile(count, ms) {
+    this.tile = Math.min(1 << 22, Math.max(64, Math.round((count * TILE_MS) / ms / 64) * 64));
+  }
+
   async #renderPerRay(cam, t, abort, end) {
     const device = this.device;
     const maxDim = device.limits.maxComputeWorkgroupsPerDimension;
@@ -583,8 +588,7 @@ class GpuScene {
       if (err) throw new Error(`render: ${err.message}`);
       await device.queue.onSubmittedWorkDone();
       const ms = Math.max(performance.now() - t0, 0.1);
-      // The next tiles aim at TILE_MS each (multiples of 64 rays: the binding offset alignment).
-      this.tile = Math.min(1 << 22, Math.max(64, Math.round((count * TILE_MS) / ms / 64) * 64));
+      this.#adaptTile(count, ms);
       start += count;
       this.rays += count;
       if (start < end && abort()) return false;
