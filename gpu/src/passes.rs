@@ -428,7 +428,8 @@ impl GpuContext {
         );
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
         let p = &self.passes;
-        // MSTH_GPU_PASS_PROFILE=1: every dispatch its own submission, timed (stderr).
+        // MSTH_GPU_PASS_PROFILE=1: every dispatch its own submission, timed, and the counters
+        // (rays, colour list, live samples) summed over the batches (stderr).
         let profile = std::env::var("MSTH_GPU_PASS_PROFILE").as_deref() == Ok("1");
         // With an occupancy grid the two field passes run over the live samples, listed by
         // `pass_live_*` (a shader without them, such as an older `render.wgsl` a benchmark
@@ -457,6 +458,7 @@ impl GpuContext {
             ("composite", &p.composite, Some(ARGS_RAYS)),
         ]);
         let mut spent = vec![0f64; steps.len()];
+        let mut counted = [0u64; 5];
         let mut first = 0u32;
         while first < n {
             let count = scratch.capacity.min(n - first);
@@ -499,6 +501,11 @@ impl GpuContext {
                     .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
                 k = k_end;
             }
+            if profile {
+                for (sum, c) in counted.iter_mut().zip(self.read_u32(&scratch.ctrl, 5)?) {
+                    *sum += u64::from(c);
+                }
+            }
             first += count;
         }
         if profile {
@@ -508,6 +515,13 @@ impl GpuContext {
                 .map(|((name, _, _), s)| format!("{name} {s:.3} s"))
                 .collect();
             eprintln!("per-sample passes ({n} pixels): {}", line.join(", "));
+            let [rays, colour, _, live_proposal, live_samples] = counted;
+            let live = if live.is_some() {
+                format!(", live proposal samples {live_proposal}, live main samples {live_samples}")
+            } else {
+                String::new()
+            };
+            eprintln!("  counts: rays {rays}{live}, colour list {colour}");
         }
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(GpuError::Backend(e.to_string()));
