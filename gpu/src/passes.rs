@@ -516,12 +516,12 @@ impl GpuContext {
                 .collect();
             eprintln!("per-sample passes ({n} pixels): {}", line.join(", "));
             let [rays, colour, _, live_proposal, live_samples] = counted;
-            let live = if live.is_some() {
+            let lists = if live.is_some() {
                 format!(", live proposal samples {live_proposal}, live main samples {live_samples}")
             } else {
                 String::new()
             };
-            eprintln!("  counts: rays {rays}{live}, colour list {colour}");
+            eprintln!("  counts: rays {rays}{lists}, colour list {colour}");
         }
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(GpuError::Backend(e.to_string()));
