@@ -7,7 +7,7 @@ use anyhow::{bail, Context, Result};
 use glam::{Mat4, Vec3};
 use indicatif::{ProgressBar, ProgressStyle};
 
-use msth_core::config::Preset;
+use msth_core::config::{PlaySamples, Preset};
 use msth_core::field::ModelLayout;
 use msth_core::{Camera, SceneBounds};
 use msth_trainer::autosize::{autosize, setting_paths};
@@ -361,8 +361,29 @@ fn print_metrics(m: &Metrics, path: &Path) {
     }
 }
 
+/// `model` rendered with `samples` per ray (`--samples`), within the bounds of a checkpoint's
+/// own sampler; says so when they differ from the model's.
+fn with_samples(
+    model: &msth_core::config::ModelConfig,
+    samples: PlaySamples,
+) -> Result<msth_core::config::ModelConfig> {
+    let max = msth_core::config::MAX_SAMPLES_PER_RAY;
+    let m = samples
+        .apply(model, max, max)
+        .map_err(|e| anyhow::anyhow!("--{e}"))?;
+    let (s, s0) = (&m.sampler, &model.sampler);
+    if (s.num_proposal_samples, s.num_samples) != (s0.num_proposal_samples, s0.num_samples) {
+        println!(
+            "samples per ray: {} proposal + {} main (the model's: {} + {})",
+            s.num_proposal_samples, s.num_samples, s0.num_proposal_samples, s0.num_samples
+        );
+    }
+    Ok(m)
+}
+
 pub fn eval(a: EvalArgs) -> Result<()> {
-    let ckpt = Checkpoint::load(&a.checkpoint)?;
+    let mut ckpt = Checkpoint::load(&a.checkpoint)?;
+    ckpt.header.model = with_samples(&ckpt.header.model, a.samples)?;
     let out = a.out.clone().unwrap_or_else(|| {
         a.checkpoint
             .parent()
@@ -509,9 +530,10 @@ pub fn render(a: RenderArgs) -> Result<()> {
         }
         cam = cam.resized(w, h);
     }
-    let layout = ModelLayout::new(&ckpt.header.model);
+    let model = with_samples(&ckpt.header.model, a.samples)?;
+    let layout = ModelLayout::new(&model);
     let t = Instant::now();
-    let r = render_image(&ckpt.header.model, &layout, &ckpt.params, &cam, a.time);
+    let r = render_image(&model, &layout, &ckpt.params, &cam, a.time);
     let secs = t.elapsed().as_secs_f64();
     let img = Image8::from_f32(r.width, r.height, &r.rgb);
     save_png_atomic(&a.output, &img).with_context(|| format!("writing {}", a.output.display()))?;

@@ -21,6 +21,7 @@ use std::ffi::OsString;
 use std::path::PathBuf;
 
 use clap::{Args, Parser, Subcommand};
+use msth_core::config::PlaySamples;
 
 #[derive(Parser)]
 #[command(
@@ -165,6 +166,10 @@ pub struct EvalArgs {
     /// Evaluate every N-th test view.
     #[arg(long, default_value_t = 1)]
     pub stride: usize,
+    /// Samples per ray: full (the model's own), fast, faster or P,M, as `msth play --samples`:
+    /// measures what fewer samples cost on the held-out views.
+    #[arg(long, default_value = "full", value_parser = play::parse_samples)]
+    pub samples: PlaySamples,
     #[command(flatten)]
     pub dataset: data::DataArgs,
 }
@@ -207,6 +212,9 @@ pub struct RenderArgs {
     /// Also write the depth and the mask (1 = static) as pictures next to the output.
     #[arg(long)]
     pub extras: bool,
+    /// Samples per ray: full (the model's own), fast, faster or P,M, as `msth play --samples`.
+    #[arg(long, default_value = "full", value_parser = play::parse_samples)]
+    pub samples: PlaySamples,
     #[arg(long)]
     pub list_cameras: bool,
 }

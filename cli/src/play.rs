@@ -10,6 +10,7 @@ use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
+use msth_core::config::PlaySamples;
 use msth_player::render::MAX_PARTITION_TIMES;
 use msth_player::{
     play, BackendChoice, FrameRecord, HttpOptions, PlayOptions, PlayReport, RenderSettings, Reuse,
@@ -55,6 +56,11 @@ pub struct PlayArgs {
     /// Evaluate every sample, also in the cells the file's occupancy grid marks empty.
     #[arg(long)]
     pub no_skip_empty: bool,
+    /// Samples per ray: full (the model's own), fast (2/3 of the proposal and 3/4 of the main
+    /// samples), faster (half of each) or P,M. Fewer samples render faster and less accurately
+    /// (docs/tradeoff.md); `msth eval --samples` measures the loss on held-out views
+    #[arg(long, default_value = "full", value_parser = parse_samples)]
+    pub samples: PlaySamples,
     /// A ray is static when the mask is at least this along its visible part.
     #[arg(long, default_value_t = RenderSettings::default().static_threshold)]
     pub static_threshold: f32,
@@ -142,6 +148,10 @@ impl ReuseArgs {
     }
 }
 
+pub(crate) fn parse_samples(s: &str) -> Result<PlaySamples, String> {
+    s.parse()
+}
+
 pub(crate) fn parse_size(s: &str) -> Result<(u32, u32), String> {
     let (w, h) = s
         .split_once(['x', 'X'])
@@ -197,6 +207,7 @@ pub fn options(a: &PlayArgs) -> Result<PlayOptions> {
     o.video = !a.no_video;
     o.render.incremental = !a.no_incremental;
     o.skip_empty = !a.no_skip_empty;
+    o.samples = a.samples;
     o.backend = backend_choice(a.cpu, a.gpu);
     o.render.static_threshold = a.static_threshold;
     o.render.trust_threshold = a.trust_threshold;
@@ -278,6 +289,12 @@ fn summary(r: &PlayReport, threshold: f32) {
             .as_ref()
             .map_or(String::new(), |n| format!("; {n}"))
     );
+    if r.samples != r.model_samples {
+        println!(
+            "samples per ray: {} proposal + {} main (the model's: {} + {})",
+            r.samples.0, r.samples.1, r.model_samples.0, r.model_samples.1
+        );
+    }
     println!(
         "{n} frames in {:.2} s; time to first frame {:.3} s",
         r.seconds, r.time_to_first_frame

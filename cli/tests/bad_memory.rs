@@ -165,4 +165,24 @@ fn valid_files_play_under_the_same_cap_and_huge_sizes_are_refused() {
         capped(&play_args(f, &["--size", "16384x16384"])),
     );
     assert!(line.contains("16777216"), "{line}");
+    // Samples per ray beyond what a file may hold are refused with the bound, not attempted;
+    // a spec that is none of the forms names them.
+    let line = expect_error(
+        "--samples 100000,8",
+        capped(&play_args(f, &["--samples", "100000,8"])),
+    );
+    assert!(
+        line.contains("--samples 100000,8") && line.contains("1..=1024"),
+        "{line}"
+    );
+    let line = expect_error(
+        "--samples half",
+        capped(&play_args(f, &["--samples", "half"])),
+    );
+    assert!(line.contains("full, fast, faster or P,M"), "{line}");
+    // Fewer samples than the file's play.
+    match capped(&play_args(f, &["--samples", "faster"])) {
+        End::Ok => {}
+        other => panic!("--samples faster: expected to play, got {other:?}"),
+    }
 }

@@ -161,6 +161,112 @@ impl SamplerConfig {
     }
 }
 
+/// A named playback level of [`PlaySamples`]: a fraction of the model's proposal and main samples
+/// per ray. The page offers the same levels (`web/js/generated/contract.js`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SampleLevel {
+    /// The model's own counts, the ones it was trained with.
+    Full,
+    /// 2/3 of the proposal samples and 3/4 of the main samples.
+    Fast,
+    /// Half of each.
+    Faster,
+}
+
+impl SampleLevel {
+    pub const ALL: [SampleLevel; 3] = [SampleLevel::Full, SampleLevel::Fast, SampleLevel::Faster];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            SampleLevel::Full => "full",
+            SampleLevel::Fast => "fast",
+            SampleLevel::Faster => "faster",
+        }
+    }
+
+    /// `(numerator, denominator)` of the proposal samples' and the main samples' fraction.
+    pub fn fractions(self) -> [(usize, usize); 2] {
+        match self {
+            SampleLevel::Full => [(1, 1), (1, 1)],
+            SampleLevel::Fast => [(2, 3), (3, 4)],
+            SampleLevel::Faster => [(1, 2), (1, 2)],
+        }
+    }
+}
+
+/// Samples per ray at play time (`msth play --samples`, `msth eval --samples`, the page's
+/// samples menu). Fewer samples than the model was trained with trade accuracy for speed; the
+/// trade is measured in docs/tradeoff.md ("Samples per ray at play time").
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PlaySamples {
+    Level(SampleLevel),
+    /// Exact counts: proposal samples, main samples.
+    Counts(usize, usize),
+}
+
+impl Default for PlaySamples {
+    fn default() -> Self {
+        PlaySamples::Level(SampleLevel::Full)
+    }
+}
+
+impl std::str::FromStr for PlaySamples {
+    type Err = String;
+
+    /// `full`, `fast`, `faster` or `P,M` (proposal and main samples per ray).
+    fn from_str(s: &str) -> Result<Self, String> {
+        if let Some(l) = SampleLevel::ALL.into_iter().find(|l| l.name() == s) {
+            return Ok(PlaySamples::Level(l));
+        }
+        let parsed = s
+            .split_once(',')
+            .and_then(|(p, m)| Some((p.trim().parse().ok()?, m.trim().parse().ok()?)));
+        match parsed {
+            Some((p, m)) if p >= 1 && m >= 1 => Ok(PlaySamples::Counts(p, m)),
+            _ => Err(format!(
+                "samples {s:?}: full, fast, faster or P,M (proposal and main samples per ray, each at least 1)"
+            )),
+        }
+    }
+}
+
+impl PlaySamples {
+    /// The proposal and main samples per ray for a model whose sampler is `model`: a level's
+    /// fraction of each count, rounded up (at least 1), or the exact counts.
+    pub fn counts(self, model: &SamplerConfig) -> (usize, usize) {
+        match self {
+            PlaySamples::Counts(p, m) => (p, m),
+            PlaySamples::Level(l) => {
+                let [(pn, pd), (mn, md)] = l.fractions();
+                let scale = |n: usize, num: usize, den: usize| (n * num).div_ceil(den).max(1);
+                (
+                    scale(model.num_proposal_samples, pn, pd),
+                    scale(model.num_samples, mn, md),
+                )
+            }
+        }
+    }
+
+    /// `model` with its sampler's counts replaced by [`PlaySamples::counts`], checked against
+    /// `max_proposal` and `max_main` (the bounds a file's own counts must meet).
+    pub fn apply(
+        self,
+        model: &ModelConfig,
+        max_proposal: usize,
+        max_main: usize,
+    ) -> Result<ModelConfig, String> {
+        let (p, m) = self.counts(&model.sampler);
+        if !(1..=max_proposal).contains(&p) || !(1..=max_main).contains(&m) {
+            return Err(format!(
+                "samples {p},{m}: proposal samples must lie in 1..={max_proposal} and main samples in 1..={max_main}"
+            ));
+        }
+        let mut out = model.clone();
+        out.sampler.set_samples(p, m);
+        Ok(out)
+    }
+}
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ModelConfig {
     pub field: FieldConfig,
@@ -435,6 +541,46 @@ impl ModelConfig {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn play_samples_parse_scale_and_bound_the_counts() {
+        let white = Background::Color { rgb: [1.0; 3] };
+        let fast = ModelConfig::preset(Preset::Fast, SceneBounds::dnerf_default(), white, 7);
+        let balanced =
+            ModelConfig::preset(Preset::Balanced, SceneBounds::dnerf_default(), white, 7);
+        let counts =
+            |s: &str, c: &ModelConfig| s.parse::<PlaySamples>().unwrap().counts(&c.sampler);
+        assert_eq!(counts("full", &fast), (48, 24));
+        assert_eq!(counts("fast", &fast), (32, 18));
+        assert_eq!(counts("faster", &fast), (24, 12));
+        assert_eq!(counts("fast", &balanced), (64, 24));
+        assert_eq!(counts("faster", &balanced), (48, 16));
+        assert_eq!(counts("7, 3", &fast), (7, 3));
+        // Rounded up, never to zero.
+        let mut tiny = fast.clone();
+        tiny.sampler.set_samples(1, 1);
+        assert_eq!(counts("faster", &tiny), (1, 1));
+        tiny.sampler.set_samples(5, 3);
+        assert_eq!(counts("fast", &tiny), (4, 3));
+        for bad in ["", "half", "0,4", "4,0", "4", "4,x", "-1,2", "4,4,4"] {
+            let e = bad.parse::<PlaySamples>().unwrap_err();
+            assert!(e.contains("full, fast, faster or P,M"), "{bad}: {e}");
+        }
+        let m = PlaySamples::Counts(64, 8).apply(&fast, 1024, 512).unwrap();
+        assert_eq!(
+            (m.sampler.num_proposal_samples, m.sampler.num_samples),
+            (64, 8)
+        );
+        // Nothing but the counts moves.
+        let mut back = m.clone();
+        back.sampler.set_samples(48, 24);
+        assert_eq!(back, fast);
+        let e = PlaySamples::Counts(2000, 8)
+            .apply(&fast, 1024, 512)
+            .unwrap_err();
+        assert!(e.contains("1..=1024"), "{e}");
+        assert!(PlaySamples::Counts(8, 513).apply(&fast, 1024, 512).is_err());
+    }
 
     #[test]
     fn small_model_helpers_set_what_they_name() {

@@ -15,6 +15,7 @@
 //! the whole frame (a viewer would present it instead); the parameters for each time are
 //! decoded before the timed loop, as the player's streaming thread does ahead of playback.
 //! The file's occupancy grid is used (`MSTH_BENCH_NO_SKIP=1` turns it off);
+//! `MSTH_BENCH_SAMPLES=fast|faster|P,M` renders with fewer samples per ray than the model's;
 //! `MSTH_BENCH_PROFILE=1` ends with one full frame whose passes are timed one by one.
 //!
 //! `cargo run --release -p msth-player --example bench_gpu_play -- FILE.msth [WxH] [FRAMES]`
@@ -42,6 +43,9 @@ fn orbited(cam: &Camera, pivot: Vec3, degrees: f32) -> Camera {
 }
 
 fn stats(ms: &[f64]) -> String {
+    if ms.is_empty() {
+        return "no frames timed (give more FRAMES)".into();
+    }
     let n = ms.len().max(1) as f64;
     let mean = ms.iter().sum::<f64>() / n;
     let mut s = ms.to_vec();
@@ -70,7 +74,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let frames: usize = args.get(2).map(|s| s.parse()).transpose()?.unwrap_or(24);
     let bytes = std::fs::read(path)?;
     let decoded = msth_codec::decode_all(&bytes)?;
-    let cfg = decoded.metadata.model.clone();
+    // `MSTH_BENCH_SAMPLES=fast|faster|P,M`: fewer samples per ray than the model's, as `msth
+    // play --samples`.
+    let samples: msth_core::config::PlaySamples = std::env::var("MSTH_BENCH_SAMPLES")
+        .unwrap_or_else(|_| "full".into())
+        .parse()?;
+    let cfg = samples.apply(&decoded.metadata.model, 1024, 512)?;
     let cam0 = *decoded
         .metadata
         .cameras

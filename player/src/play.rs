@@ -5,6 +5,7 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use msth_codec::Limits;
+use msth_core::config::PlaySamples;
 use msth_dataset::video::{self, EncodeError};
 
 use crate::backend::{BackendChoice, BackendInfo, FrameRenderer};
@@ -44,6 +45,8 @@ pub struct PlayOptions {
     /// GPU renderer's per-sample passes; files of format version 1 have no grid and skip
     /// nothing).
     pub skip_empty: bool,
+    /// Samples per ray: the model's own (the default) or fewer, for speed.
+    pub samples: PlaySamples,
 }
 
 impl PlayOptions {
@@ -63,6 +66,7 @@ impl PlayOptions {
             limits: Limits::default(),
             section_timeout: Duration::from_secs(120),
             skip_empty: true,
+            samples: PlaySamples::default(),
         }
     }
 }
@@ -113,6 +117,10 @@ pub struct PlayReport {
     pub video_note: Option<String>,
     /// The renderer used (CPU or GPU, and which adapter).
     pub backend: BackendInfo,
+    /// Proposal and main samples per ray rendered (`PlayOptions::samples` of the model's).
+    pub samples: (usize, usize),
+    /// The model's own proposal and main samples per ray.
+    pub model_samples: (usize, usize),
 }
 
 impl PlayReport {
@@ -221,7 +229,23 @@ pub fn play(
         let t = t.clamp(0.0, 1.0);
         (lo.min(t), hi.max(t))
     });
-    let (mut renderer, backend) = FrameRenderer::new(&meta.model, render_settings, opts.backend)?;
+    let model = opts
+        .samples
+        .apply(
+            &meta.model,
+            opts.limits.max_proposal_samples as usize,
+            opts.limits.max_samples as usize,
+        )
+        .map_err(|e| PlayError::Options(format!("--{e}")))?;
+    let samples = (
+        model.sampler.num_proposal_samples,
+        model.sampler.num_samples,
+    );
+    let model_samples = (
+        meta.model.sampler.num_proposal_samples,
+        meta.model.sampler.num_samples,
+    );
+    let (mut renderer, backend) = FrameRenderer::new(&model, render_settings, opts.backend)?;
     let mut params = Vec::new();
     let mut loaded: Option<Option<usize>> = None;
     let mut records = Vec::with_capacity(n);
@@ -296,6 +320,8 @@ pub fn play(
         video,
         video_note,
         backend,
+        samples,
+        model_samples,
     })
 }
 

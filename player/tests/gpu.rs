@@ -8,7 +8,7 @@
 //! as ignored, with the reason, unless `MSTH_REQUIRE_GPU=1` (then they fail): this binary runs
 //! on `msth-testkit`'s harness (`harness = false`), and [`main`] lists every test.
 
-use msth_core::config::{Background, BlendMode, ModelConfig, Preset};
+use msth_core::config::{Background, BlendMode, ModelConfig, PlaySamples, Preset, SampleLevel};
 use msth_core::field::ModelLayout;
 use msth_core::rng::Rng;
 use msth_core::sh::{sh4, SH_COEFFS};
@@ -647,6 +647,36 @@ fn balanced_preset_frames_match_the_cpu_full_and_incremental() {
             assert!(p >= 40.0, "{reuse:?} frame {i}: {p:.1} dB");
             assert_eq!(a.stats.rays_rendered, b.stats.rays_rendered);
         }
+    }
+    // Fewer samples per ray (`msth play --samples faster`, the page's samples menu): the GPU
+    // renders the model with the CPU's counts, and the frame is not the full-samples one.
+    // Counts that are no multiple of the passes' 4 samples per invocation as well.
+    let settings = RenderSettings {
+        incremental: false,
+        ..Default::default()
+    };
+    let full = Renderer::new(&cfg, settings).render(&cam, 0.5, &params);
+    for (samples, counts) in [
+        (PlaySamples::Level(SampleLevel::Faster), (48, 16)),
+        (PlaySamples::Level(SampleLevel::Fast), (64, 24)),
+        (PlaySamples::Counts(33, 18), (33, 18)),
+        (PlaySamples::Counts(7, 5), (7, 5)),
+    ] {
+        let fewer = samples.apply(&cfg, 1024, 512).unwrap();
+        let s = &fewer.sampler;
+        assert_eq!((s.num_proposal_samples, s.num_samples), counts);
+        let a = Renderer::new(&fewer, settings).render(&cam, 0.5, &params);
+        let b = GpuRenderer::new(context(), &fewer, settings)
+            .unwrap()
+            .render(&cam, 0.5, &params)
+            .unwrap();
+        let (p, p_full) = (psnr(&a, &b), psnr(&a, &full));
+        println!(
+            "balanced, samples {counts:?}: {p:.1} dB against the CPU (max {:.2e}), {p_full:.1} dB against full samples",
+            max_diff(&a, &b)
+        );
+        assert!(p >= 40.0, "samples {counts:?}: {p:.1} dB");
+        assert!(max_diff(&a, &full) > 1e-3 && p_full < p, "{p_full:.1} dB");
     }
 }
 

@@ -236,6 +236,23 @@ fn generate() -> String {
     );
     let _ = writeln!(
         w,
+        "/** Samples per ray at play time (msth_core::config::SampleLevel): per level, the \
+         [numerator, denominator] of the proposal and of the main samples' fraction, rounded up. */"
+    );
+    let levels: Vec<String> = msth_core::config::SampleLevel::ALL
+        .iter()
+        .map(|l| {
+            let [(pn, pd), (mn, md)] = l.fractions();
+            format!("{}: [[{pn}, {pd}], [{mn}, {md}]]", l.name())
+        })
+        .collect();
+    let _ = writeln!(
+        w,
+        "export const SAMPLE_LEVELS = {{ {} }};",
+        levels.join(", ")
+    );
+    let _ = writeln!(
+        w,
         "\n// ---- msth-gpu: the render kernel's uniforms (gpu/src/layout.rs)"
     );
     let blends: Vec<String> = BLENDS
@@ -431,6 +448,7 @@ fn hand_written_javascript_keeps_no_copies_of_the_contract() {
         "VIEW_BYTES",
         "WORKGROUP",
         "RENDER_STATIC_CUTOFF",
+        "SAMPLE_LEVELS",
         "MAX_PROPOSAL_SAMPLES",
         "MAX_SAMPLES",
         "MAX_HIDDEN",

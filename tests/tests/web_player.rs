@@ -3,7 +3,8 @@
 //! `web/tests/browser.mjs` through playwright-core) loads the page, which streams the file with
 //! Range requests, decodes it in JavaScript and renders it with WebGPU (SwiftShader) using the
 //! native renderer's WGSL. The page's frames must match `msth play` of the same camera and time
-//! (PSNR >= 35 dB), for a `balanced`-preset model as well; dragging must orbit; scrubbing must
+//! (PSNR >= 35 dB), for a `balanced`-preset model as well, also with the samples menu at
+//! `faster` against `msth play --samples faster`; dragging must orbit; scrubbing must
 //! change the dynamic pixels and not the static ones; without WebGPU the page must say so. The JavaScript decoder is also checked
 //! bit-exactly against msth-codec's flat parameter buffers (`web/tests/decode.mjs`).
 //!
@@ -192,10 +193,12 @@ fn web_player_streams_renders_and_matches_native() {
     let view = format!("30,25,{:.3}", 1.4 * rig.radius);
     let size = format!("{}x{}", SIZE.0, SIZE.1);
     let mut natives = Vec::new();
-    for (name, src, t) in [
-        ("0", &file, "0"),
-        ("1", &file, "1"),
-        ("balanced", &balanced, "0"),
+    for (name, src, t, samples) in [
+        // The page starts at `fast` on a software adapter (SwiftShader here).
+        ("0", &file, "0", "fast"),
+        ("1", &file, "1", "fast"),
+        ("balanced", &balanced, "0", "full"),
+        ("balanced_faster", &balanced, "0", "faster"),
     ] {
         let out = dir.path().join(format!("native_{name}"));
         msth(&[
@@ -214,6 +217,8 @@ fn web_player_streams_renders_and_matches_native() {
             "--no-video",
             "--quiet",
             "--cpu",
+            "--samples",
+            samples,
         ])
         .unwrap();
         natives.push(out.join("frame_00000.png"));
@@ -265,6 +270,8 @@ fn web_player_streams_renders_and_matches_native() {
             "balanced.msth",
             "--native2",
             natives[2].to_str().unwrap(),
+            "--native2-faster",
+            natives[3].to_str().unwrap(),
             "--chromium",
             chromium.to_str().unwrap(),
             "--out",
@@ -279,10 +286,16 @@ fn web_player_streams_renders_and_matches_native() {
     let r = read_json(&results);
     let checks = r["checks"].as_array().unwrap();
     assert!(
-        checks.len() >= 12 && checks.iter().all(|c| c["ok"] == true),
+        checks.len() >= 14 && checks.iter().all(|c| c["ok"] == true),
         "{r:#}"
     );
     assert!(r["figures"]["psnr_vs_native_t0"].as_f64().unwrap() >= 35.0);
     assert!(r["figures"]["psnr_model2_vs_native"].as_f64().unwrap() >= 35.0);
+    assert!(
+        r["figures"]["psnr_model2_faster_vs_native"]
+            .as_f64()
+            .unwrap()
+            >= 35.0
+    );
     println!("figures: {:#}", r["figures"]);
 }

@@ -17,18 +17,22 @@
 // costs.
 // The timeline advances with the clock at the model's frame
 // rate; when the GPU cannot keep up even at 1/8, frames are dropped, not slowed down.
+// Samples per ray (also stated on the page): the model's own on a hardware GPU, `fast` (fewer,
+// docs/tradeoff.md) on a fallback (software) adapter; the samples menu changes them.
 //
 // URL parameters: `model=NAME` (a name from /models), `camera=K` (start at the file's camera K,
 // the default: camera 0), `view=AZ,EL,DIST` (degrees, degrees, distance: the same viewpoint as
 // `msth play --path view:AZ,EL,DIST`, instead of a file camera), `t=T` (normalised time, starts
 // paused there), `size=WxH` (render size, as `msth play --size`), `play=0|1`, `skip=0` (evaluate
-// every sample: the file's occupancy grid unused, as `msth play --no-skip-empty`).
+// every sample: the file's occupancy grid unused, as `msth play --no-skip-empty`),
+// `samples=full|fast|faster|P,M` (samples per ray, as `msth play --samples`; the samples menu).
 //
 // `window.msth` exposes the player's state to tests and to the console (see `hooks` below).
 
 import { ModelStream } from "./stream.js";
 import { cameraFromJson, makeRig, Orbit, templateCamera } from "./camera.js";
-import { Renderer, NoWebGpu } from "./renderer.js";
+import { Renderer, NoWebGpu, playSamples } from "./renderer.js";
+import { LIMITS, SAMPLE_LEVELS } from "./generated/contract.js";
 
 const $ = (id) => document.getElementById(id);
 /** Reduced resolutions (per side) while moving or playing, finest first. */
@@ -230,7 +234,35 @@ async function main() {
   stream.start();
   drawLoading(stream);
 
-  const gpu = await renderer.create(canvas, meta.model, stream.decoder.layout, hooks.timings);
+  // ---- samples per ray (the menu, `?samples=`): the model's own or fewer, for speed
+  const sampleSel = $("samples");
+  const model = meta.model.sampler;
+  for (const level of Object.keys(SAMPLE_LEVELS)) {
+    const [p, m] = playSamples(level, model);
+    sampleSel.append(new Option(`${level} (${p} + ${m})`, level));
+  }
+  // A fallback adapter (a software GPU such as Chromium's SwiftShader) starts at `fast`, where
+  // a frame takes about two thirds of the time for 0.1-0.2 dB less on held-out views
+  // (docs/tradeoff.md); a hardware GPU starts at the model's own counts.
+  const fallback = Boolean(renderer.adapter.info?.isFallbackAdapter);
+  hooks.fallbackAdapter = fallback;
+  hooks.modelSamples = [model.num_proposal_samples, model.num_samples];
+  let samplesSpec = params.get("samples") ?? (fallback ? "fast" : "full");
+  let samples = playSamples(samplesSpec, model);
+  if (!samples || samples[0] > LIMITS.maxProposalSamples || samples[1] > LIMITS.maxSamples) {
+    throw new Error(`samples=${samplesSpec}: full, fast, faster or P,M (proposal and main samples per ray, at most ${LIMITS.maxProposalSamples} and ${LIMITS.maxSamples})`);
+  }
+  if (!Object.hasOwn(SAMPLE_LEVELS, samplesSpec)) sampleSel.append(new Option(`${samples[0]} + ${samples[1]}`, samplesSpec));
+  sampleSel.value = samplesSpec;
+  hooks.samples = samples;
+  hooks.samplesSpec = samplesSpec;
+  $("policy").textContent +=
+    ` Samples per ray (menu): full is the model's own ${model.num_proposal_samples} proposal + ${model.num_samples} main samples; ` +
+    `fast and faster render with fewer, faster and less accurately (docs/tradeoff.md)` +
+    (fallback && params.get("samples") === null ? `; this GPU is a software one, so the page started at fast.` : ".");
+  const withSamples = (cfg, [p, m]) => ({ ...cfg, sampler: { ...cfg.sampler, num_proposal_samples: p, num_samples: m } });
+
+  const gpu = await renderer.create(canvas, withSamples(meta.model, samples), stream.decoder.layout, hooks.timings);
   hooks.renderer = gpu;
   hooks.timings.pipeline = performance.now();
   const paramBuf = new Float32Array(stream.decoder.layout.total);
@@ -327,6 +359,29 @@ async function main() {
     camSel.value = "free";
     state.dirty = true;
   };
+  /** Renders with samples `spec` (`full`, `fast`, `faster` or `P,M`) from the next frame on, as the samples menu does. */
+  const setSamples = (spec) => {
+    const next = playSamples(spec, model);
+    if (!next) throw new Error(`samples ${spec}: full, fast, faster or P,M`);
+    gpu.setSamples(next[0], next[1]);
+    samplesSpec = spec;
+    samples = next;
+    hooks.samples = next;
+    hooks.samplesSpec = spec;
+    if (sampleSel.value !== spec) {
+      if (![...sampleSel.options].some((o) => o.value === spec)) sampleSel.append(new Option(`${next[0]} + ${next[1]}`, spec));
+      sampleSel.value = spec;
+    }
+    state.dirty = true;
+  };
+  sampleSel.onchange = () => {
+    try {
+      setSamples(sampleSel.value);
+    } catch (e) {
+      fail(e);
+    }
+  };
+  hooks.setSamples = setSamples;
   /** Shows the file's camera `k`, as the view menu does. */
   hooks.setCamera = (k) => {
     orbit.setCamera(cameras[k]);
@@ -363,7 +418,7 @@ async function main() {
     const stride = Math.round(1 / scale);
     const w = Math.ceil(full.width / stride);
     const h = Math.ceil(full.height / stride);
-    const key = JSON.stringify([full, state.t, state.uploads]);
+    const key = JSON.stringify([full, state.t, state.uploads, samples]);
     const done = key === state.drawnKey ? state.drawnStride : 0;
     const t0 = performance.now();
     // New input (orbit, zoom, scrub) abandons a frame still in progress (and what the frame
@@ -441,7 +496,8 @@ async function main() {
       const [rw, rh] = hooks.lastSize;
       const s = state.scale;
       const why = state.playing ? "playing" : performance.now() - state.lastInput < STILL_MS ? "moving" : "refining";
-      $("res").textContent = `· ${rw}x${rh}${s === 1 ? " (full)" : ` (1/${Math.round(1 / s)}, ${why})`}`;
+      const fewer = samples[0] !== model.num_proposal_samples || samples[1] !== model.num_samples;
+      $("res").textContent = `· ${rw}x${rh}${s === 1 ? " (full)" : ` (1/${Math.round(1 / s)}, ${why})`}${fewer ? ` · ${samples[0]} + ${samples[1]} samples` : ""}`;
     }
     if (performance.now() - (recent[n - 1] ?? 0) > 1000) recent.length = 0;
     if (!hooks.error) requestAnimationFrame(tick);

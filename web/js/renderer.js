@@ -26,7 +26,7 @@
 import {
   LEVEL_SLOTS, LEVEL_BYTES, LEVEL_OFFSETS, ENCODING_OFFSETS, GRID_OFFSETS, MODEL_BYTES, MODEL_OFFSETS, VIEW_BYTES, WORKGROUP,
   FLAG_LIST, MAX_PROPOSAL_SAMPLES, MAX_SAMPLES, MAX_HIDDEN, MAX_GEO, RENDER_STATIC_CUTOFF, BLEND,
-  FRAME_WORK_BYTES, PASS_ARGS as ARGS, PASS_BYTES, PASS_OFFSETS, PASS_FLAGS,
+  FRAME_WORK_BYTES, PASS_ARGS as ARGS, PASS_BYTES, PASS_OFFSETS, PASS_FLAGS, SAMPLE_LEVELS,
 } from "./generated/contract.js";
 
 /**
@@ -114,6 +114,23 @@ function wordsPerRay(np, geo, samples) {
 }
 
 /** The browser has no usable WebGPU (the page says so instead of rendering). */
+/**
+ * Proposal and main samples per ray for `spec` and a model's `sampler`, as `msth play --samples`
+ * (msth_core::config::PlaySamples): a level of SAMPLE_LEVELS (`full`, `fast`, `faster`: a
+ * fraction of the model's counts, rounded up) or `P,M`; null when `spec` is neither.
+ */
+export function playSamples(spec, sampler) {
+  if (Object.hasOwn(SAMPLE_LEVELS, spec ?? "")) {
+    const [[pn, pd], [mn, md]] = SAMPLE_LEVELS[spec];
+    const scale = (n, num, den) => Math.max(1, Math.ceil((n * num) / den));
+    return [scale(sampler.num_proposal_samples, pn, pd), scale(sampler.num_samples, mn, md)];
+  }
+  const m = /^\s*\+?(\d+)\s*,\s*\+?(\d+)\s*$/.exec(spec ?? "");
+  if (!m) return null;
+  const [p, n] = [Number(m[1]), Number(m[2])];
+  return p >= 1 && n >= 1 ? [p, n] : null;
+}
+
 export class NoWebGpu extends Error {}
 
 const DISPLAY_WGSL = `
@@ -349,6 +366,8 @@ class GpuScene {
       primitive: { topology: "triangle-list" },
     });
     this.frameSize = null;
+    /** The sample counts changed (`setSamples`): the next frame sizes its buffers anew. */
+    this.stale = false;
     /** Rays per batch (adapted after each). */
     this.tile = 4096;
     this.work = null;
@@ -360,9 +379,25 @@ class GpuScene {
     this.rays = 0;
   }
 
+  /**
+   * Renders with `np` proposal and `samples` main samples per ray from the next frame on (the
+   * page's samples menu); the frame buffers are sized anew, so the next frame is drawn whole.
+   */
+  setSamples(np, samples) {
+    if (np > MAX_PROPOSAL_SAMPLES || samples > MAX_SAMPLES || np < 1 || samples < 1) {
+      throw new Error(`samples ${np},${samples}: the GPU renderer supports 1..${MAX_PROPOSAL_SAMPLES} proposal and 1..${MAX_SAMPLES} main samples per ray`);
+    }
+    if (np === this.np && samples === this.samples) return;
+    this.np = np;
+    this.samples = samples;
+    this.device.queue.writeBuffer(this.model, MODEL_OFFSETS.sampler, new Uint32Array([np, samples]));
+    this.stale = true;
+  }
+
   /** Sizes the frame buffers for w x h; true when they were (re)created (their content lost). */
   #ensureFrame(w, h) {
-    if (this.frameSize && this.frameSize[0] === w && this.frameSize[1] === h) return false;
+    if (!this.stale && this.frameSize && this.frameSize[0] === w && this.frameSize[1] === h) return false;
+    this.stale = false;
     const device = this.device;
     this.frame?.destroy();
     this.readback?.destroy();

@@ -13,6 +13,9 @@
 //     [--first-only 1]   (stop at the first picture, however small; no full-size frame)
 //     [--query K=V&...]   (more URL parameters for the page, e.g. an experiment's switch)
 //
+// On SwiftShader (a fallback adapter) the page starts at `fast` samples per ray: `--query
+// samples=full` times the model's own counts. The line printed names the samples used.
+//
 // Needs a running `msth serve --web web DIR` and `npm ci --prefix web`.
 
 import { mkdtempSync, rmSync } from "node:fs";
@@ -51,7 +54,7 @@ async function firstFrame(kernel) {
         if (!m) return null;
         const ttff = only || m.firstFullFrameMs === undefined ? m.firstFrameMs : m.firstFullFrameMs;
         if (ttff === null && !m.error && !m.noWebGpu) return null;
-        return { ttff, firstPicture: m.firstFrameMs, firstSize: m.firstFrameSize, pipeline: m.timings && m.timings.pipeline, timings: m.timings, passMs: m.renderer && m.renderer.passMs, error: m.error, kernel: m.renderer && m.renderer.kernel };
+        return { ttff, firstPicture: m.firstFrameMs, firstSize: m.firstFrameSize, pipeline: m.timings && m.timings.pipeline, timings: m.timings, passMs: m.renderer && m.renderer.passMs, error: m.error, kernel: m.renderer && m.renderer.kernel, samples: m.samples, samplesSpec: m.samplesSpec };
       },
       firstOnly,
       { timeout, polling: 250 },
@@ -70,7 +73,8 @@ for (const k of kernels) {
   const r = await firstFrame(k);
   out[k] = r;
   const render = r.pipeline ? r.ttff - r.pipeline : NaN;
-  console.log(`${k} (${r.kernel}): ${size} first ${a["first-only"] === "1" ? "frame drawn" : "full-size frame"} ${(r.ttff / 1000).toFixed(1)} s after navigation, ${(render / 1000).toFixed(1)} s of it rendering; first picture (${r.firstSize ? r.firstSize.join("x") : size}) after ${(r.firstPicture / 1000).toFixed(1)} s`);
+  const samples = r.samples ? `, samples ${r.samplesSpec} (${r.samples.join(" + ")} per ray)` : "";
+  console.log(`${k} (${r.kernel}${samples}): ${size} first ${a["first-only"] === "1" ? "frame drawn" : "full-size frame"} ${(r.ttff / 1000).toFixed(1)} s after navigation, ${(render / 1000).toFixed(1)} s of it rendering; first picture (${r.firstSize ? r.firstSize.join("x") : size}) after ${(r.firstPicture / 1000).toFixed(1)} s`);
   // Milestones (s since navigation): adapter, prefix, module, pipeline, params, firstFrame.
   const ms = Object.entries(r.timings || {}).sort((x, y) => x[1] - y[1]);
   console.log(`  milestones: ${ms.map(([n, v]) => `${n} ${(v / 1000).toFixed(2)} s`).join(", ")}`);

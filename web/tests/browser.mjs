@@ -9,7 +9,8 @@
 //     [--chromium /usr/bin/chromium]
 //
 // `--native0` / `--native1` are `msth play FILE --path view:VIEW --size SIZE --frames 1
-// --time T:T` frames at t = 0 and t = 1. Checks, each printed as PASS/FAIL with its figures:
+// --time T:T --samples fast` frames at t = 0 and t = 1 (the page starts at `fast` on a software
+// adapter, as in headless Chromium here). Checks, each printed as PASS/FAIL with its figures:
 //  1. the page loads the model from the server and the first frame appears (in the renderer's
 //     output and on the canvas);
 //  2. the first frame matches the native render of the same camera and time (PSNR >= 35 dB);
@@ -19,7 +20,8 @@
 //  4. scrubbing the timeline to t = 1 changes the dynamic pixels (those that differ between the
 //     native renders at t = 0 and 1) and not the static ones, and matches the native t = 1 frame;
 //  5. with `--model2`: a second model (the Rust test's balanced-preset file) matches its native
-//     render (`--native2`, same view, t = 0; PSNR >= 35 dB);
+//     render (`--native2`, same view, t = 0; PSNR >= 35 dB); with `--native2-faster` (the same
+//     render with `msth play --samples faster`), the samples menu's `faster` matches it;
 //  6. without WebGPU the page says so.
 // Also reports time to first frame and frames per second at `--bench-size` (for the record:
 // timing decides nothing). Exit status 1 when a check fails, 2 on a usage or setup error.
@@ -174,6 +176,15 @@ async function main() {
     }, shot.toString("base64"));
     const pShown = psnr(shown, px0, n);
     check("first frame appears", nonBackground && pShown >= 30, `after ${ttff.toFixed(0)} ms (navigation to frame; full size after ${full.ms.toFixed(0)} ms), ${net.requests} Range requests, ${net.bytesReceived} bytes; the canvas on screen matches the renderer's output at ${pShown.toFixed(1)} dB`);
+    // The samples per ray the page starts at: `fast` on a software adapter (SwiftShader here;
+    // the native references are rendered with `--samples fast`), the model's own on a hardware one.
+    const st = await page.evaluate(() => ({ fallback: window.msth.fallbackAdapter, spec: window.msth.samplesSpec, samples: window.msth.samples, model: window.msth.modelSamples, menu: document.getElementById("samples").value, policy: document.getElementById("policy").textContent }));
+    const want = st.fallback ? [Math.ceil((2 * st.model[0]) / 3), Math.ceil((3 * st.model[1]) / 4)] : st.model;
+    check(
+      "the page starts at the samples its GPU calls for",
+      st.spec === (st.fallback ? "fast" : "full") && st.menu === st.spec && st.samples.join() === want.join() && (!st.fallback || st.policy.includes("software one, so the page started at fast")),
+      `${st.fallback ? "software" : "hardware"} adapter: ${st.spec}, ${st.samples.join(" + ")} samples per ray of the model's ${st.model.join(" + ")}`,
+    );
     const p0 = psnr(px0, nat0.px, n);
     results.figures.psnr_vs_native_t0 = Math.min(p0, 99);
     check("first frame matches the native render", p0 >= PSNR_MIN, `PSNR ${p0.toFixed(2)} dB against msth play at view:${a.view} t=0 (>= ${PSNR_MIN})`);
@@ -283,7 +294,7 @@ async function main() {
     // file: its layout, 16 levels, 2^17-row tables and 96 + 32 samples per ray, renders in the
     // page as natively)
     if (a.model2) {
-      await page.goto(`${a.base}/?model=${encodeURIComponent(a.model2)}&view=${a.view}&t=0&size=${a.size}&play=0`);
+      await page.goto(`${a.base}/?model=${encodeURIComponent(a.model2)}&view=${a.view}&t=0&size=${a.size}&play=0&samples=full`);
       await waitFirstFrame(page);
       await settled(page);
       const nat2 = await decodePng(page, a.native2);
@@ -297,6 +308,27 @@ async function main() {
       results.figures.psnr_model2_vs_native = Math.min(p2, 99);
       results.figures.model2_time_to_full_frame_ms = Math.round(full2.ms);
       check(`${a.model2} matches the native render`, p2 >= PSNR_MIN && busy >= 0.1 * n, `PSNR ${p2.toFixed(2)} dB against msth play at view:${a.view} t=0 (>= ${PSNR_MIN}); ${(100 * busy / n).toFixed(1)}% of the native frame's pixels differ from its corner's colour (>= 10%); full size (${full2.size.join("x")}) after ${full2.ms.toFixed(0)} ms`);
+
+      // ---- the samples menu: `faster` renders the model with half its samples per ray, as
+      // `msth play --samples faster` does (`--native2-faster`)
+      if (a["native2-faster"]) {
+        const before = await page.evaluate(() => window.msth.samples.slice());
+        await page.selectOption("#samples", "faster");
+        await settled(page);
+        const after = await page.evaluate(() => ({ samples: window.msth.samples.slice(), res: document.getElementById("res").textContent }));
+        const natF = await decodePng(page, a["native2-faster"]);
+        const pxF = await pixels(page);
+        const pF = pxF.length === 4 * n && natF.w === w && natF.h === h ? psnr(pxF, natF.px, n) : 0;
+        const pFull = psnr(pxF, px2, n);
+        results.figures.psnr_model2_faster_vs_native = Math.min(pF, 99);
+        results.figures.psnr_model2_faster_vs_full = Math.min(pFull, 99);
+        const halved = after.samples[0] === Math.ceil(before[0] / 2) && after.samples[1] === Math.ceil(before[1] / 2);
+        check(
+          "the samples menu renders with fewer samples, as msth play --samples does",
+          halved && pF >= PSNR_MIN && pFull < pF && after.res.includes(`${after.samples[0]} + ${after.samples[1]} samples`),
+          `${before.join(" + ")} -> ${after.samples.join(" + ")} samples per ray; PSNR ${pF.toFixed(2)} dB against msth play --samples faster (>= ${PSNR_MIN}), ${pFull.toFixed(2)} dB against the page's full-samples frame (lower: the menu changed the frame); HUD "${after.res}"`,
+        );
+      }
     }
 
     // ---- for the record: frames per second at the bench size, and the README screenshot

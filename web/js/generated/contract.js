@@ -49,6 +49,8 @@ export const SH_COEFFS = 16;
 export const RENDER_STATIC_CUTOFF = 0.001;
 export const VISIBLE_TRANSMITTANCE = 0.001;
 export const HIDDEN_TRANSMITTANCE = 0.0001;
+/** Samples per ray at play time (msth_core::config::SampleLevel): per level, the [numerator, denominator] of the proposal and of the main samples' fraction, rounded up. */
+export const SAMPLE_LEVELS = { full: [[1, 1], [1, 1]], fast: [[2, 3], [3, 4]], faster: [[1, 2], [1, 2]] };
 
 // ---- msth-gpu: the render kernel's uniforms (gpu/src/layout.rs)
 /** `Model.field.mode.x` per blend mode. */
