@@ -251,6 +251,19 @@ fn generate() -> String {
         "export const SAMPLE_LEVELS = {{ {} }};",
         levels.join(", ")
     );
+    let probe = msth_player::RenderSettings::default();
+    let _ = writeln!(
+        w,
+        "/** The static cache's probes (msth-player's `RenderSettings` defaults): renders at `count` \
+         times spread over the time range, ends included; a pixel whose colour moves by more than \
+         `tolerance` in a channel at any of them is re-rendered every frame. */"
+    );
+    let _ = writeln!(
+        w,
+        "export const PROBES = {{ count: {}, tolerance: {} }};",
+        probe.probes,
+        js_f32(probe.probe_tolerance)
+    );
     let _ = writeln!(
         w,
         "\n// ---- msth-gpu: the render kernel's uniforms (gpu/src/layout.rs)"
@@ -449,6 +462,7 @@ fn hand_written_javascript_keeps_no_copies_of_the_contract() {
         "WORKGROUP",
         "RENDER_STATIC_CUTOFF",
         "SAMPLE_LEVELS",
+        "PROBES",
         "MAX_PROPOSAL_SAMPLES",
         "MAX_SAMPLES",
         "MAX_HIDDEN",

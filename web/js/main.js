@@ -17,6 +17,13 @@
 // costs.
 // The timeline advances with the clock at the model's frame
 // rate; when the GPU cannot keep up even at 1/8, frames are dropped, not slowed down.
+// Incremental playback (stated on the page): when the time moves (playing or scrubbing) under a
+// camera that has been still for STILL_MS, the page renders the full-size frame and PROBES.count
+// probe frames at times spread over [0, 1] (`msth play`'s probes); pixels whose colour moves by at
+// most PROBES.tolerance at every probe keep their colour, and later frames of that camera
+// re-render only the others, at full size. Moving the camera drops the cache. Only where the
+// base frame and the probes take at most CACHE_BUDGET_MS at the GPU's measured rate (on a
+// software GPU, small sizes only).
 // Samples per ray (also stated on the page): the model's own on a hardware GPU, `fast` (fewer,
 // docs/tradeoff.md) on a fallback (software) adapter; the samples menu changes them.
 //
@@ -25,14 +32,15 @@
 // `msth play --path view:AZ,EL,DIST`, instead of a file camera), `t=T` (normalised time, starts
 // paused there), `size=WxH` (render size, as `msth play --size`), `play=0|1`, `skip=0` (evaluate
 // every sample: the file's occupancy grid unused, as `msth play --no-skip-empty`),
-// `samples=full|fast|faster|P,M` (samples per ray, as `msth play --samples`; the samples menu).
+// `samples=full|fast|faster|P,M` (samples per ray, as `msth play --samples`; the samples menu),
+// `incremental=0` (no static cache: every frame re-renders every pixel).
 //
 // `window.msth` exposes the player's state to tests and to the console (see `hooks` below).
 
 import { ModelStream } from "./stream.js";
 import { cameraFromJson, makeRig, Orbit, templateCamera } from "./camera.js";
 import { Renderer, NoWebGpu, playSamples } from "./renderer.js";
-import { LIMITS, SAMPLE_LEVELS } from "./generated/contract.js";
+import { LIMITS, PROBES, SAMPLE_LEVELS } from "./generated/contract.js";
 
 const $ = (id) => document.getElementById(id);
 /** Reduced resolutions (per side) while moving or playing, finest first. */
@@ -41,6 +49,9 @@ const SCALES = [1, 1 / 2, 1 / 4, 1 / 8];
 const MOVING_BUDGET_MS = 1000 / 30;
 /** The camera counts as still this long after the last input (ms). */
 const STILL_MS = 250;
+/** The static cache (incremental playback) is built only where its frames (the base and the
+ * probes) take at most this long at the GPU's measured rate (ms). */
+const CACHE_BUDGET_MS = 10_000;
 const params = new URLSearchParams(location.search);
 
 const hooks = {
@@ -198,7 +209,9 @@ async function main() {
     `(${(1000 / modelFps).toFixed(0)} ms at ${modelFps} fps), else reduced the same way; ` +
     `${STILL_MS} ms after the camera stops, paused, the view is refined one step per frame (1/8, 1/4, 1/2, full) up to full resolution; ` +
     `the first frame starts at 1/8 the same way. ` +
-    `The timeline runs at the model's ${modelFps} fps: frames the GPU cannot draw in time are skipped.`;
+    `The timeline runs at the model's ${modelFps} fps: frames the GPU cannot draw in time are skipped. ` +
+    `When the time moves under a still camera, the page renders ${PROBES.count} probe frames (t = 0 to 1) and then re-renders only the pixels whose colour changes by more than ${PROBES.tolerance} ` +
+    `(where the GPU draws those frames within ${CACHE_BUDGET_MS / 1000} s).`;
 
   const tParam = params.get("t");
   const state = {
@@ -225,6 +238,13 @@ async function main() {
     drawnStride: 0,
     /** Parameter uploads so far (part of a view's key: new parameters, a new frame). */
     uploads: 0,
+    /** The camera and samples of the last finished frame, and its time: the static cache is
+     * built when the time moves under a still camera. */
+    drawnView: null,
+    drawnT: null,
+    /** The static cache: `{ view, dynamic, pixels }` (view: the camera and samples it belongs
+     * to), or null. */
+    cache: null,
   };
   hooks.state = state;
   hooks.orbit = orbit;
@@ -390,6 +410,7 @@ async function main() {
   };
 
   // ---- frame loop
+  const incremental = params.get("incremental") !== "0";
   let last = performance.now();
   const recent = [];
   const frameDone = [];
@@ -408,6 +429,14 @@ async function main() {
     // The resolution policy (top of this file): reduced while moving or playing, refined step by
     // step to full size when still.
     const moving = performance.now() - state.lastInput < STILL_MS;
+    // Incremental playback (top of this file): a still camera whose time moves re-renders only
+    // the pixels the probes found dynamic.
+    const view = JSON.stringify([full, samples]);
+    if (state.cache && (state.cache.view !== view || moving || !gpu.hasStaticCache)) state.cache = null;
+    if (!moving && incremental && (state.cache || wantCache(view, full))) {
+      await renderIncremental(full, view);
+      return;
+    }
     // Moving: at most half size per side (a drag should answer at once); playing: full size as
     // long as a frame fits one model frame; still and paused: one step finer than the last
     // frame (progressive refinement).
@@ -428,6 +457,8 @@ async function main() {
     const t1 = performance.now();
     state.drawnKey = key;
     state.drawnStride = Math.min(stride, done || stride);
+    state.drawnView = view;
+    state.drawnT = state.t;
     state.scale = scale;
     if (moving || state.playing) {
       const budget = moving ? MOVING_BUDGET_MS : 1000 / modelFps;
@@ -439,6 +470,13 @@ async function main() {
     // paused.
     state.refineLevel = Math.max(level - 1, 0);
     state.refine = scale !== 1;
+    hooks.lastRays = w * h - (done ? Math.ceil(full.width / done) * Math.ceil(full.height / done) : 0);
+    hooks.lastIncremental = false;
+    finishFrame(full, scale, w, h, t0, t1);
+  }
+
+  /** The bookkeeping after any finished frame: hooks, first-frame marks, the FPS window. */
+  function finishFrame(full, scale, w, h, t0, t1) {
     hooks.lastScale = scale;
     hooks.lastSize = [w, h];
     hooks.frames++;
@@ -460,6 +498,62 @@ async function main() {
     while (recent.length && recent[0] < t1 - 1000) recent.shift();
     for (const f of frameDone.splice(0)) f();
   }
+  /** The probe times: PROBES.count times spread over [0, 1], ends included (as `msth play`'s
+   * probes over the time range played). */
+  const probeTimes = Array.from({ length: PROBES.count }, (_, j) => (PROBES.count > 1 ? j / (PROBES.count - 1) : 0.5));
+  /**
+   * Whether to build the static cache for `view` now: the last finished frame showed this very
+   * camera (still since) at another time, the probes' chunks have arrived, and the base frame
+   * and the probes fit CACHE_BUDGET_MS at the GPU's measured rate (a software GPU at a large
+   * size keeps drawing whole frames instead).
+   */
+  function wantCache(view, full) {
+    if (state.drawnView !== view || state.drawnT === state.t || gpu.kernel !== "passes") return false;
+    if (!probeTimes.every((t) => stream.readyFor(t))) return false;
+    const n = full.width * full.height;
+    return gpu.raysPerMs > 0 && ((1 + PROBES.count) * n) / gpu.raysPerMs <= CACHE_BUDGET_MS;
+  }
+
+  /** A frame of the still camera `full` from the static cache, building the cache first (the
+   * base frame at this time, then the probes) when there is none. */
+  async function renderIncremental(full, view) {
+    const inputAt = state.lastInput;
+    const samplesAt = samples;
+    const abort = () => state.lastInput !== inputAt || samples !== samplesAt;
+    const w = full.width;
+    const h = full.height;
+    const t0 = performance.now();
+    if (!state.cache) {
+      hooks.cacheBuilds = (hooks.cacheBuilds || 0) + 1;
+      $("status").textContent = `caching the static pixels (${PROBES.count} probe frames)…`;
+      state.drawnKey = null;
+      if (!(await gpu.render(full, state.t, abort, 1, 0))) return;
+      const scratch = new Float32Array(stream.decoder.layout.total);
+      const probes = probeTimes.map((t) => ({
+        t,
+        params: stream.decoder.chunkForTime(t) === state.loadedChunk ? null : () => (stream.decoder.paramsForTime(t, scratch), scratch),
+      }));
+      const built = await gpu.buildStaticCache(full, probes, PROBES.tolerance, abort, () => gpu.setParams(paramBuf));
+      if (!built) return;
+      state.cache = { view, ...built };
+      hooks.cache = { ...built, ms: performance.now() - t0 };
+      hooks.lastRays = w * h;
+    } else {
+      if (!(await gpu.renderDynamic(full, state.t, abort))) return;
+      hooks.lastRays = state.cache.dynamic;
+    }
+    const t1 = performance.now();
+    state.drawnKey = JSON.stringify([full, state.t, state.uploads, samples]);
+    state.drawnStride = 1;
+    state.drawnView = view;
+    state.drawnT = state.t;
+    state.scale = 1;
+    state.refine = false;
+    state.refineLevel = 0;
+    hooks.lastIncremental = true;
+    finishFrame(full, 1, w, h, t0, t1);
+  }
+
   // Resolves after the next frame that starts after this call.
   hooks.nextFrame = () => new Promise((r) => frameDone.push(r));
 
@@ -497,7 +591,8 @@ async function main() {
       const s = state.scale;
       const why = state.playing ? "playing" : performance.now() - state.lastInput < STILL_MS ? "moving" : "refining";
       const fewer = samples[0] !== model.num_proposal_samples || samples[1] !== model.num_samples;
-      $("res").textContent = `· ${rw}x${rh}${s === 1 ? " (full)" : ` (1/${Math.round(1 / s)}, ${why})`}${fewer ? ` · ${samples[0]} + ${samples[1]} samples` : ""}`;
+      const shown = hooks.lastIncremental && state.cache ? ` (full, incremental: ${state.cache.dynamic} of ${state.cache.pixels} pixels re-rendered)` : s === 1 ? " (full)" : ` (1/${Math.round(1 / s)}, ${why})`;
+      $("res").textContent = `· ${rw}x${rh}${shown}${fewer ? ` · ${samples[0]} + ${samples[1]} samples` : ""}`;
     }
     if (performance.now() - (recent[n - 1] ?? 0) > 1000) recent.length = 0;
     if (!hooks.error) requestAnimationFrame(tick);

@@ -368,6 +368,13 @@ class GpuScene {
     this.frameSize = null;
     /** The sample counts changed (`setSamples`): the next frame sizes its buffers anew. */
     this.stale = false;
+    /** The static cache (`buildStaticCache`): its probe frame, its dynamic pixels and their
+     * count (-1: no cache). */
+    this.probeFrame = null;
+    this.dynOrder = null;
+    this.dynamicCount = -1;
+    /** Rays per millisecond of the last batch (the measured rate the page plans with). */
+    this.raysPerMs = 0;
     /** Rays per batch (adapted after each). */
     this.tile = 4096;
     this.work = null;
@@ -407,6 +414,12 @@ class GpuScene {
     this.order?.destroy();
     this.work?.destroy();
     this.work = null;
+    // The static cache belongs to the frame it was built on.
+    this.probeFrame?.destroy();
+    this.dynOrder?.destroy();
+    this.probeFrame = null;
+    this.dynOrder = null;
+    this.dynamicCount = -1;
     // The pixel list of every frame: coarsest lattice first (each batch or tile renders a range).
     const { ids, ends } = interlacedOrder(w, h);
     this.order = device.createBuffer({ size: 4 * w * h, usage: GPUBufferUsage.STORAGE | GPUBufferUsage.COPY_DST, label: "pixel order" });
@@ -491,6 +504,8 @@ class GpuScene {
     if (!STRIDES.includes(stride)) throw new Error(`render: stride ${stride} is not one of ${STRIDES.join(", ")}`);
     const { width: w, height: h } = cam;
     const fresh = this.#ensureFrame(w, h);
+    // A full or refining frame overwrites what the static cache's pixels hold.
+    this.dynamicCount = -1;
     this.device.queue.writeBuffer(this.size, 0, new Uint32Array([w, h, stride, 0]));
     const end = this.orderEnds[stride];
     const keep = !fresh && done > stride && this.orderEnds[done] !== undefined && !this.kernels.perRay;
@@ -498,24 +513,32 @@ class GpuScene {
     return this.kernels.perRay ? this.#renderPerRay(cam, t, abort, end) : this.#renderPasses(cam, t, abort, begin, end);
   }
 
-  /** Bind groups of the passes: `main` (work at binding 7) and `args` (the dispatch sizes there). */
-  #passGroups() {
-    if (this.groups) return this.groups;
+  /**
+   * Bind groups of the passes for a `target`: `frame` (the interlaced pixel order into the frame
+   * buffer), `probe` (the same order into the probe buffer) or `dynamic` (the static cache's
+   * dynamic pixels into the frame buffer); each `main` (work at binding 7) and `args` (the
+   * dispatch sizes there).
+   */
+  #passGroups(target = "frame") {
+    this.groups ??= {};
+    if (this.groups[target]) return this.groups[target];
+    const order = target === "dynamic" ? this.dynOrder : this.order;
+    const frame = target === "probe" ? this.probeFrame : this.frame;
     const group = (work) =>
       this.device.createBindGroup({
         layout: this.kernels.layout,
-        entries: [this.model, this.view, this.tab3, this.tab4, this.rest, this.order, this.frame, work, this.ctrl, this.pass, this.occupancy].map((buffer, binding) => ({ binding, resource: { buffer } })),
+        entries: [this.model, this.view, this.tab3, this.tab4, this.rest, order, frame, work, this.ctrl, this.pass, this.occupancy].map((buffer, binding) => ({ binding, resource: { buffer } })),
       });
-    this.groups = { main: group(this.work), args: group(this.args) };
-    return this.groups;
+    this.groups[target] = { main: group(this.work), args: group(this.args) };
+    return this.groups[target];
   }
 
-  async #renderPasses(cam, t, abort, begin, end) {
+  async #renderPasses(cam, t, abort, begin, end, target = "frame") {
     const [w, h] = this.frameSize;
     const n = w * h;
     const device = this.device;
     const p = this.kernels.pipelines;
-    const { main, args } = this.#passGroups();
+    const { main, args } = this.#passGroups(target);
     const maxDim = device.limits.maxComputeWorkgroupsPerDimension;
     device.queue.writeBuffer(this.view, 0, viewUniform(cam, t, n, 0));
     // Two batches at a time: the next one is submitted before the page waits for the one before
@@ -591,6 +614,7 @@ class GpuScene {
   /** Sizes the next batches to about TILE_MS of GPU work, from `count` rays that took `ms`
    * (multiples of 64 rays: the per-ray kernel's binding offset alignment). */
   #adaptTile(count, ms) {
+    this.raysPerMs = count / ms;
     this.tile = Math.min(1 << 22, Math.max(64, Math.round((count * TILE_MS) / ms / 64) * 64));
   }
 
@@ -629,6 +653,99 @@ class GpuScene {
       if (start < end && abort()) return false;
     }
     return true;
+  }
+
+  /**
+   * Builds the static cache of a fixed camera (incremental playback; `msth play`'s probes
+   * without its mask test): the frame buffer holds a complete full-size frame of `cam` (the
+   * base, from `render` with stride 1); each of `probes` (`{ t, params }`: a time and, when that
+   * time's chunk is not the one uploaded, a function that returns its flat parameter buffer)
+   * renders `cam` once more into
+   * a second buffer, and a pixel whose colour differs from the base by more than `tolerance` in a
+   * channel at any probe is dynamic. `restore()` uploads the current parameters again
+   * afterwards. Resolves to `{ dynamic, pixels }`, or null when `abort()` stopped it (no cache).
+   * `renderDynamic` then re-renders only the dynamic pixels; any other `render` call, a new size
+   * or new samples drop the cache.
+   */
+  async buildStaticCache(cam, probes, tolerance, abort, restore) {
+    if (this.kernels.perRay) throw new Error("the static cache needs the per-sample passes");
+    const [w, h] = this.frameSize;
+    const n = w * h;
+    this.dynamicCount = -1;
+    if (!this.probeFrame) {
+      this.probeFrame = this.device.createBuffer({ size: n * 16, usage: GPUBufferUsage.STORAGE | GPUBufferUsage.COPY_SRC, label: "probe frame" });
+      this.dynOrder = this.device.createBuffer({ size: n * 4, usage: GPUBufferUsage.STORAGE | GPUBufferUsage.COPY_DST, label: "dynamic pixels" });
+      if (this.groups) {
+        delete this.groups.probe;
+        delete this.groups.dynamic;
+      }
+    }
+    const base = await this.#readFrame(this.frame);
+    const dynamic = new Uint8Array(n);
+    let foreign = false; // another time's parameters are uploaded
+    try {
+      for (const probe of probes) {
+        const params = probe.params ? probe.params() : null;
+        if (params) this.setParams(params);
+        else if (foreign) restore();
+        foreign = Boolean(params);
+        if (!(await this.#renderPasses(cam, probe.t, abort, 0, n, "probe"))) return null;
+        const px = await this.#readFrame(this.probeFrame);
+        for (let i = 0; i < n; i++) {
+          if (dynamic[i]) continue;
+          for (let c = 0; c < 3; c++) {
+            if (Math.abs(px[4 * i + c] - base[4 * i + c]) > tolerance) {
+              dynamic[i] = 1;
+              break;
+            }
+          }
+        }
+      }
+    } finally {
+      if (foreign) restore();
+    }
+    const list = new Uint32Array(n);
+    let k = 0;
+    for (let i = 0; i < n; i++) if (dynamic[i]) list[k++] = i;
+    if (k) this.device.queue.writeBuffer(this.dynOrder, 0, list.buffer, 0, 4 * k);
+    this.dynamicCount = k;
+    return { dynamic: k, pixels: n };
+  }
+
+  /** Whether `buildStaticCache` built a cache for the current frame buffer. */
+  get hasStaticCache() {
+    return this.dynamicCount >= 0;
+  }
+
+  /**
+   * An incremental frame: `cam` (the camera of the static cache) at time `t`, re-rendering only
+   * the cache's dynamic pixels; the others keep the base frame's colour. Resolves like `render`.
+   */
+  async renderDynamic(cam, t, abort = () => false) {
+    if (this.r.lost) throw new Error(this.r.lost);
+    if (!this.hasStaticCache) throw new Error("renderDynamic: no static cache");
+    const [w, h] = this.frameSize;
+    this.device.queue.writeBuffer(this.size, 0, new Uint32Array([w, h, 1, 0]));
+    if (this.dynamicCount === 0) {
+      const enc = this.device.createCommandEncoder();
+      this.#present(enc);
+      this.device.queue.submit([enc.finish()]);
+      await this.device.queue.onSubmittedWorkDone();
+      return true;
+    }
+    return this.#renderPasses(cam, t, abort, 0, this.dynamicCount, "dynamic");
+  }
+
+  /** The RGBA f32 values of a frame-sized buffer. */
+  async #readFrame(buffer) {
+    const [w, h] = this.frameSize;
+    const enc = this.device.createCommandEncoder();
+    enc.copyBufferToBuffer(buffer, 0, this.readback, 0, w * h * 16);
+    this.device.queue.submit([enc.finish()]);
+    await this.readback.mapAsync(GPUMapMode.READ);
+    const px = new Float32Array(this.readback.getMappedRange().slice(0));
+    this.readback.unmap();
+    return px;
   }
 
   #present(enc) {

@@ -12,6 +12,7 @@
 //     [--profile 1]   (each pass its own submission, timed: `?profile=1`)
 //     [--first-only 1]   (stop at the first picture, however small; no full-size frame)
 //     [--query K=V&...]   (more URL parameters for the page, e.g. an experiment's switch)
+//     [--playback N]   (then N time steps of the still camera, timed: incremental playback)
 //
 // On SwiftShader (a fallback adapter) the page starts at `fast` samples per ray: `--query
 // samples=full` times the model's own counts. The line printed names the samples used.
@@ -61,7 +62,29 @@ async function firstFrame(kernel) {
     ).then((h) => h.jsonValue());
     if (r.error || r.ttff === null) throw new Error(`${kernel}: ${r.error || "no WebGPU"}\n${logs.join("\n")}`);
     const px = await page.evaluate(() => window.msth.readPixels());
-    return { ...r, px: Array.from(px) };
+    // --playback N: then N frames of the still camera at t = 0.5, 0.5 + 0.4/N, ... (the first one
+    // builds the page's static cache unless `--query incremental=0`), each timed from the time
+    // change to the finished frame.
+    const steps = Number(a.playback || 0);
+    let playback = null;
+    if (steps > 0) {
+      playback = { ms: [], rays: [] };
+      for (let i = 0; i < steps; i++) {
+        const t = 0.5 + (0.4 * i) / steps;
+        const f = await page.evaluate(async (t) => {
+          const m = window.msth;
+          const t0 = performance.now();
+          m.setTime(t);
+          await m.nextFrame();
+          while (m.state.dirty || m.state.rendering || m.state.refine) await new Promise((r) => setTimeout(r, 5));
+          return { ms: performance.now() - t0, rays: m.lastRays, incremental: m.lastIncremental, cache: m.cache };
+        }, t);
+        playback.ms.push(f.ms);
+        playback.rays.push(f.rays);
+        playback.cache = f.cache;
+      }
+    }
+    return { ...r, px: Array.from(px), playback };
   } finally {
     await ctx.close();
     rmSync(dir, { recursive: true, force: true });
@@ -78,6 +101,12 @@ for (const k of kernels) {
   // Milestones (s since navigation): adapter, prefix, module, pipeline, params, firstFrame.
   const ms = Object.entries(r.timings || {}).sort((x, y) => x[1] - y[1]);
   console.log(`  milestones: ${ms.map(([n, v]) => `${n} ${(v / 1000).toFixed(2)} s`).join(", ")}`);
+  if (r.playback) {
+    const [first, ...rest] = r.playback.ms;
+    const mean = rest.length ? rest.reduce((x, y) => x + y, 0) / rest.length : NaN;
+    const c = r.playback.cache;
+    console.log(`  playback (--playback ${r.playback.ms.length}): first time step ${(first / 1000).toFixed(2)} s, then ${(mean / 1000).toFixed(3)} s per frame on average (${rest.map((v) => (v / 1000).toFixed(3)).join(", ")} s); rays per frame ${r.playback.rays.join(", ")}${c ? `; static cache: ${c.dynamic} of ${c.pixels} pixels dynamic, built in ${(c.ms / 1000).toFixed(2)} s` : "; no static cache"}`);
+  }
   if (r.passMs && Object.keys(r.passMs).length) console.log(`  per pass (--profile 1): ${Object.entries(r.passMs).map(([n, v]) => `${n} ${(v / 1000).toFixed(2)} s`).join(", ")}`);
 }
 // (With --first-only the frames may be of different sizes: no comparison.)

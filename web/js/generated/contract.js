@@ -51,6 +51,8 @@ export const VISIBLE_TRANSMITTANCE = 0.001;
 export const HIDDEN_TRANSMITTANCE = 0.0001;
 /** Samples per ray at play time (msth_core::config::SampleLevel): per level, the [numerator, denominator] of the proposal and of the main samples' fraction, rounded up. */
 export const SAMPLE_LEVELS = { full: [[1, 1], [1, 1]], fast: [[2, 3], [3, 4]], faster: [[1, 2], [1, 2]] };
+/** The static cache's probes (msth-player's `RenderSettings` defaults): renders at `count` times spread over the time range, ends included; a pixel whose colour moves by more than `tolerance` in a channel at any of them is re-rendered every frame. */
+export const PROBES = { count: 3, tolerance: 0.03 };
 
 // ---- msth-gpu: the render kernel's uniforms (gpu/src/layout.rs)
 /** `Model.field.mode.x` per blend mode. */
