@@ -660,9 +660,8 @@ class GpuScene {
    * without its mask test): the frame buffer holds a complete full-size frame of `cam` (the
    * base, from `render` with stride 1); each of `probes` (`{ t, params }`: a time and, when that
    * time's chunk is not the one uploaded, a function that returns its flat parameter buffer)
-   * renders `cam` once more into
-   * a second buffer, and a pixel whose colour differs from the base by more than `tolerance` in a
-   * channel at any probe is dynamic. `restore()` uploads the current parameters again
+   * renders `cam` once more into a second buffer, and a pixel whose colour differs from the base
+   * by more than `tolerance` in a channel at any probe is dynamic. `restore()` uploads the current parameters again
    * afterwards. Resolves to `{ dynamic, pixels }`, or null when `abort()` stopped it (no cache).
    * `renderDynamic` then re-renders only the dynamic pixels; any other `render` call, a new size
    * or new samples drop the cache.
