@@ -661,6 +661,8 @@ fn balanced_preset_frames_match_the_cpu_full_and_incremental() {
         (PlaySamples::Level(SampleLevel::Fast), (64, 24)),
         (PlaySamples::Counts(33, 18), (33, 18)),
         (PlaySamples::Counts(7, 5), (7, 5)),
+        // The extreme: one sample of each (no NaN, the same frame on both).
+        (PlaySamples::Counts(1, 1), (1, 1)),
     ] {
         let fewer = samples.apply(&cfg, 1024, 512).unwrap();
         let s = &fewer.sampler;
