@@ -23,7 +23,8 @@
 // most PROBES.tolerance at every probe keep their colour, and later frames of that camera
 // re-render only the others, at full size. Moving the camera drops the cache. Only where the
 // base frame and the probes take at most CACHE_BUDGET_MS at the GPU's measured rate (on a
-// software GPU, small sizes only).
+// software GPU, small sizes only), and while playing only where a full-size frame takes at most
+// PLAY_CACHE_FRAMES model frames (the frame rate comes first; paused, scrubbing uses it).
 // Samples per ray (also stated on the page): the model's own on a hardware GPU, `fast` (fewer,
 // docs/tradeoff.md) on a fallback (software) adapter; the samples menu changes them.
 //
@@ -52,6 +53,9 @@ const STILL_MS = 250;
 /** The static cache (incremental playback) is built only where its frames (the base and the
  * probes) take at most this long at the GPU's measured rate (ms). */
 const CACHE_BUDGET_MS = 10_000;
+/** While playing, the static cache is used only where a full-size frame takes at most this many
+ * model frames at the GPU's measured rate. */
+const PLAY_CACHE_FRAMES = 4;
 const params = new URLSearchParams(location.search);
 
 const hooks = {
@@ -211,7 +215,7 @@ async function main() {
     `the first frame starts at 1/8 the same way. ` +
     `The timeline runs at the model's ${modelFps} fps: frames the GPU cannot draw in time are skipped. ` +
     `When the time moves under a still camera, the page renders ${PROBES.count} probe frames (t = 0 to 1) and then re-renders only the pixels whose colour changes by more than ${PROBES.tolerance} ` +
-    `(where the GPU draws those frames within ${CACHE_BUDGET_MS / 1000} s).`;
+    `(where the GPU draws those frames within ${CACHE_BUDGET_MS / 1000} s; while the video plays, only where a full-size frame takes at most ${PLAY_CACHE_FRAMES} model frames).`;
 
   const tParam = params.get("t");
   const state = {
@@ -511,7 +515,12 @@ async function main() {
     if (state.drawnView !== view || state.drawnT === state.t || gpu.kernel !== "passes") return false;
     if (!probeTimes.every((t) => stream.readyFor(t))) return false;
     const n = full.width * full.height;
-    return gpu.raysPerMs > 0 && ((1 + PROBES.count) * n) / gpu.raysPerMs <= CACHE_BUDGET_MS;
+    if (!(gpu.raysPerMs > 0 && ((1 + PROBES.count) * n) / gpu.raysPerMs <= CACHE_BUDGET_MS)) return false;
+    // While the video plays, the frame rate comes first (the resolution policy): the cache's
+    // full-size frames are used only where a whole full-size frame takes at most PLAY_CACHE_FRAMES
+    // model frames (incremental frames re-render a fraction of it); else playback stays at the
+    // reduced resolutions, and the cache is built when paused and scrubbed.
+    return !state.playing || n / gpu.raysPerMs <= (PLAY_CACHE_FRAMES * 1000) / modelFps;
   }
 
   /** A frame of the still camera `full` from the static cache, building the cache first (the
