@@ -383,12 +383,24 @@ fn with_samples(
 
 pub fn eval(a: EvalArgs) -> Result<()> {
     let mut ckpt = Checkpoint::load(&a.checkpoint)?;
+    let own = &ckpt.header.model.sampler;
+    let own = (own.num_proposal_samples, own.num_samples);
     ckpt.header.model = with_samples(&ckpt.header.model, a.samples)?;
+    let s = &ckpt.header.model.sampler;
+    let samples = (s.num_proposal_samples, s.num_samples);
     let out = a.out.clone().unwrap_or_else(|| {
-        a.checkpoint
+        let dir = a
+            .checkpoint
             .parent()
             .map(Path::to_path_buf)
-            .unwrap_or_else(|| PathBuf::from("."))
+            .unwrap_or_else(|| PathBuf::from("."));
+        // Fewer samples than the model's own: a subfolder, so that the checkpoint's own
+        // metrics.json (from training) is not replaced.
+        if samples == own {
+            dir
+        } else {
+            dir.join(format!("eval-samples-{}-{}", samples.0, samples.1))
+        }
     });
     let mut data = data::load(&a.data, &a.dataset, &out)?;
     data.rescale(ckpt.header.scene_scale());

@@ -160,7 +160,8 @@ pub struct EvalArgs {
     /// Dataset folder, or `builtin`.
     #[arg(long)]
     pub data: String,
-    /// Output folder for metrics.json and pictures (default: the checkpoint's folder).
+    /// Output folder for metrics.json and pictures (default: the checkpoint's folder; with
+    /// `--samples` other than the model's own, its subfolder `eval-samples-P-M`).
     #[arg(long)]
     pub out: Option<PathBuf>,
     /// Evaluate every N-th test view.

@@ -97,6 +97,10 @@ pub struct Metrics {
     pub rays_per_sec: f64,
     pub render_seconds: f64,
     pub pictures: Vec<PathBuf>,
+    /// Proposal and main samples per ray the views were rendered with (`msth eval --samples`
+    /// may set fewer than the model's own).
+    #[serde(default)]
+    pub samples_per_ray: [usize; 2],
 }
 
 /// Evaluates every `stride`-th test view, writing pictures of three of them into `pictures_dir`.
@@ -160,6 +164,7 @@ pub fn evaluate(
         rays_per_sec: 0.0,
         render_seconds: start.elapsed().as_secs_f64(),
         pictures,
+        samples_per_ray: [cfg.sampler.num_proposal_samples, cfg.sampler.num_samples],
     })
 }
 
