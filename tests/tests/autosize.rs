@@ -225,6 +225,26 @@ fn scene_scale_is_recorded_and_applied_by_eval() {
         (trained - evaluated).abs() < 1e-6,
         "{trained} vs {evaluated}"
     );
+    // `--samples faster` without `--out`: half the samples per ray, into a subfolder beside the
+    // checkpoint; the training's own metrics stay.
+    let own = &ckpt.header.model.sampler;
+    let (p, m) = (
+        own.num_proposal_samples.div_ceil(2),
+        own.num_samples.div_ceil(2),
+    );
+    msth(&[
+        "eval",
+        out.join("model.ckpt").to_str().unwrap(),
+        "--data",
+        data.to_str().unwrap(),
+        "--samples",
+        "faster",
+    ])
+    .unwrap();
+    let fewer = read_json(&out.join(format!("eval-samples-{p}-{m}/metrics.json")));
+    assert_eq!(fewer["samples_per_ray"], serde_json::json!([p, m]));
+    assert!(fewer["psnr"].as_f64().unwrap().is_finite());
+    assert_eq!(psnr(&out.join("metrics.json")), trained);
     // `--set scene_scale=1` keeps the dataset's units (the user's value wins).
     let out1 = dir.path().join("unscaled");
     let unscaled = ["--set", "scene_scale=1", "--no-eval"];
