@@ -362,44 +362,38 @@ fn print_metrics(m: &Metrics, path: &Path) {
 }
 
 /// `model` rendered with `samples` per ray (`--samples`), within the bounds of a checkpoint's
-/// own sampler; says so when they differ from the model's.
+/// own sampler, and the counts when they differ from the model's (which it then prints).
 fn with_samples(
     model: &msth_core::config::ModelConfig,
     samples: PlaySamples,
-) -> Result<msth_core::config::ModelConfig> {
+) -> Result<(msth_core::config::ModelConfig, Option<(usize, usize)>)> {
     let max = msth_core::config::MAX_SAMPLES_PER_RAY;
     let m = samples
         .apply(model, max, max)
         .map_err(|e| anyhow::anyhow!("--{e}"))?;
-    let (s, s0) = (&m.sampler, &model.sampler);
-    if (s.num_proposal_samples, s.num_samples) != (s0.num_proposal_samples, s0.num_samples) {
-        println!(
-            "samples per ray: {} proposal + {} main (the model's: {} + {})",
-            s.num_proposal_samples, s.num_samples, s0.num_proposal_samples, s0.num_samples
-        );
-    }
-    Ok(m)
+    let counts = |s: &msth_core::config::SamplerConfig| (s.num_proposal_samples, s.num_samples);
+    let fewer = crate::play::samples_note(counts(&m.sampler), counts(&model.sampler)).map(|note| {
+        println!("{note}");
+        counts(&m.sampler)
+    });
+    Ok((m, fewer))
 }
 
 pub fn eval(a: EvalArgs) -> Result<()> {
     let mut ckpt = Checkpoint::load(&a.checkpoint)?;
-    let own = &ckpt.header.model.sampler;
-    let own = (own.num_proposal_samples, own.num_samples);
-    ckpt.header.model = with_samples(&ckpt.header.model, a.samples)?;
-    let s = &ckpt.header.model.sampler;
-    let samples = (s.num_proposal_samples, s.num_samples);
+    let (model, fewer) = with_samples(&ckpt.header.model, a.samples)?;
+    ckpt.header.model = model;
     let out = a.out.clone().unwrap_or_else(|| {
         let dir = a
             .checkpoint
             .parent()
             .map(Path::to_path_buf)
             .unwrap_or_else(|| PathBuf::from("."));
-        // Fewer samples than the model's own: a subfolder, so that the checkpoint's own
+        // Other samples than the model's own: a subfolder, so that the checkpoint's own
         // metrics.json (from training) is not replaced.
-        if samples == own {
-            dir
-        } else {
-            dir.join(format!("eval-samples-{}-{}", samples.0, samples.1))
+        match fewer {
+            Some((p, m)) => dir.join(format!("eval-samples-{p}-{m}")),
+            None => dir,
         }
     });
     let mut data = data::load(&a.data, &a.dataset, &out)?;
@@ -542,7 +536,7 @@ pub fn render(a: RenderArgs) -> Result<()> {
         }
         cam = cam.resized(w, h);
     }
-    let model = with_samples(&ckpt.header.model, a.samples)?;
+    let (model, _) = with_samples(&ckpt.header.model, a.samples)?;
     let layout = ModelLayout::new(&model);
     let t = Instant::now();
     let r = render_image(&model, &layout, &ckpt.params, &cam, a.time);

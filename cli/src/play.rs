@@ -152,6 +152,16 @@ pub(crate) fn parse_samples(s: &str) -> Result<PlaySamples, String> {
     s.parse()
 }
 
+/// The line saying that `now` (proposal, main samples per ray) are not the model's `own`.
+pub(crate) fn samples_note(now: (usize, usize), own: (usize, usize)) -> Option<String> {
+    (now != own).then(|| {
+        format!(
+            "samples per ray: {} proposal + {} main (the model's: {} + {})",
+            now.0, now.1, own.0, own.1
+        )
+    })
+}
+
 pub(crate) fn parse_size(s: &str) -> Result<(u32, u32), String> {
     let (w, h) = s
         .split_once(['x', 'X'])
@@ -289,11 +299,8 @@ fn summary(r: &PlayReport, threshold: f32) {
             .as_ref()
             .map_or(String::new(), |n| format!("; {n}"))
     );
-    if r.samples != r.model_samples {
-        println!(
-            "samples per ray: {} proposal + {} main (the model's: {} + {})",
-            r.samples.0, r.samples.1, r.model_samples.0, r.model_samples.1
-        );
+    if let Some(note) = samples_note(r.samples, r.model_samples) {
+        println!("{note}");
     }
     println!(
         "{n} frames in {:.2} s; time to first frame {:.3} s",
