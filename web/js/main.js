@@ -18,11 +18,11 @@
 // The timeline advances with the clock at the model's frame
 // rate; when the GPU cannot keep up even at 1/8, frames are dropped, not slowed down.
 // Incremental playback (stated on the page): when the time moves (playing or scrubbing) under a
-// camera that has been still for STILL_MS, the page renders the full-size frame and PROBES.count
-// probe frames at times spread over [0, 1] (`msth play`'s probes); pixels whose colour moves by at
-// most PROBES.tolerance at every probe keep their colour, and later frames of that camera
-// re-render only the others, at full size. Moving the camera drops the cache. Only where the
-// base frame and the probes take at most CACHE_BUDGET_MS at the GPU's measured rate (on a
+// camera that has been still for STILL_MS, the page renders PROBES.count full-size probe frames
+// at times spread over [0, 1] (`msth play`'s probes); pixels whose colour moves by at most
+// PROBES.tolerance from the first probe's at every other probe keep the first probe's colour, and
+// every frame of that camera re-renders only the others, at full size. Moving the camera drops
+// the cache. Only where the probes take at most CACHE_BUDGET_MS at the GPU's measured rate (on a
 // software GPU, small sizes only), and while playing only where a full-size frame takes at most
 // PLAY_CACHE_FRAMES model frames (the frame rate comes first; paused, scrubbing uses it).
 // Samples per ray (also stated on the page): the model's own on a hardware GPU, `fast` (fewer,
@@ -50,8 +50,8 @@ const SCALES = [1, 1 / 2, 1 / 4, 1 / 8];
 const MOVING_BUDGET_MS = 1000 / 30;
 /** The camera counts as still this long after the last input (ms). */
 const STILL_MS = 250;
-/** The static cache (incremental playback) is built only where its frames (the base and the
- * probes) take at most this long at the GPU's measured rate (ms). */
+/** The static cache (incremental playback) is built only where its probe frames take at most
+ * this long at the GPU's measured rate (ms). */
 const CACHE_BUDGET_MS = 10_000;
 /** While playing, the static cache is used only where a full-size frame takes at most this many
  * model frames at the GPU's measured rate. */
@@ -244,10 +244,10 @@ async function main() {
     uploads: 0,
     /** The camera and samples of the last finished frame, and its time: the static cache is
      * built when the time moves under a still camera. */
-    drawnView: null,
+    drawnCamKey: null,
     drawnT: null,
-    /** The static cache: `{ view, dynamic, pixels }` (view: the camera and samples it belongs
-     * to), or null. */
+    /** The static cache: `{ camKey, dynamic, pixels }` (camKey: the camera and samples it
+     * belongs to), or null. */
     cache: null,
   };
   hooks.state = state;
@@ -435,10 +435,10 @@ async function main() {
     const moving = performance.now() - state.lastInput < STILL_MS;
     // Incremental playback (top of this file): a still camera whose time moves re-renders only
     // the pixels the probes found dynamic.
-    const view = JSON.stringify([full, samples]);
-    if (state.cache && (state.cache.view !== view || moving || !gpu.hasStaticCache)) state.cache = null;
-    if (!moving && incremental && (state.cache || wantCache(view, full))) {
-      await renderIncremental(full, view);
+    const camKey = JSON.stringify([full, samples]);
+    if (state.cache && (state.cache.camKey !== camKey || moving || !gpu.hasStaticCache)) state.cache = null;
+    if (!moving && incremental && (state.cache || wantCache(camKey, full))) {
+      await renderIncremental(full, camKey);
       return;
     }
     // Moving: at most half size per side (a drag should answer at once); playing: full size as
@@ -451,7 +451,7 @@ async function main() {
     const stride = Math.round(1 / scale);
     const w = Math.ceil(full.width / stride);
     const h = Math.ceil(full.height / stride);
-    const key = JSON.stringify([full, state.t, state.uploads, samples]);
+    const key = frameKey(camKey);
     const done = key === state.drawnKey ? state.drawnStride : 0;
     const t0 = performance.now();
     // New input (orbit, zoom, scrub) abandons a frame still in progress (and what the frame
@@ -461,7 +461,7 @@ async function main() {
     const t1 = performance.now();
     state.drawnKey = key;
     state.drawnStride = Math.min(stride, done || stride);
-    state.drawnView = view;
+    state.drawnCamKey = camKey;
     state.drawnT = state.t;
     state.scale = scale;
     if (moving || state.playing) {
@@ -502,20 +502,22 @@ async function main() {
     while (recent.length && recent[0] < t1 - 1000) recent.shift();
     for (const f of frameDone.splice(0)) f();
   }
+  /** What a finished frame of `camKey` (its camera and samples) holds: also its time and parameters. */
+  const frameKey = (camKey) => JSON.stringify([camKey, state.t, state.uploads]);
   /** The probe times: PROBES.count times spread over [0, 1], ends included (as `msth play`'s
    * probes over the time range played). */
   const probeTimes = Array.from({ length: PROBES.count }, (_, j) => (PROBES.count > 1 ? j / (PROBES.count - 1) : 0.5));
   /**
-   * Whether to build the static cache for `view` now: the last finished frame showed this very
-   * camera (still since) at another time, the probes' chunks have arrived, and the base frame
-   * and the probes fit CACHE_BUDGET_MS at the GPU's measured rate (a software GPU at a large
+   * Whether to build the static cache for `camKey` now: the last finished frame showed this very
+   * camera (still since) at another time, the probes' chunks have arrived, and the probes fit
+   * CACHE_BUDGET_MS at the GPU's measured rate (a software GPU at a large
    * size keeps drawing whole frames instead).
    */
-  function wantCache(view, full) {
-    if (state.drawnView !== view || state.drawnT === state.t || gpu.kernel !== "passes") return false;
+  function wantCache(camKey, full) {
+    if (state.drawnCamKey !== camKey || state.drawnT === state.t || gpu.kernel !== "passes") return false;
     if (!probeTimes.every((t) => stream.readyFor(t))) return false;
     const n = full.width * full.height;
-    if (!(gpu.raysPerMs > 0 && ((1 + PROBES.count) * n) / gpu.raysPerMs <= CACHE_BUDGET_MS)) return false;
+    if (!(gpu.raysPerMs > 0 && (PROBES.count * n) / gpu.raysPerMs <= CACHE_BUDGET_MS)) return false;
     // While the video plays, the frame rate comes first (the resolution policy): the cache's
     // full-size frames are used only where a whole full-size frame takes at most PLAY_CACHE_FRAMES
     // model frames (incremental frames re-render a fraction of it); else playback stays at the
@@ -524,8 +526,8 @@ async function main() {
   }
 
   /** A frame of the still camera `full` from the static cache, building the cache first (the
-   * base frame at this time, then the probes) when there is none. */
-  async function renderIncremental(full, view) {
+   * probe frames) when there is none. */
+  async function renderIncremental(full, camKey) {
     const inputAt = state.lastInput;
     const samplesAt = samples;
     const abort = () => state.lastInput !== inputAt || samples !== samplesAt;
@@ -535,8 +537,8 @@ async function main() {
     if (!state.cache) {
       hooks.cacheBuilds = (hooks.cacheBuilds || 0) + 1;
       $("status").textContent = `caching the static pixels (${PROBES.count} probe frames)…`;
+      // The probes overwrite the frame buffer: no finished lattice until the cache is built.
       state.drawnKey = null;
-      if (!(await gpu.render(full, state.t, abort, 1, 0))) return;
       const scratch = new Float32Array(stream.decoder.layout.total);
       const probes = probeTimes.map((t) => ({
         t,
@@ -544,17 +546,16 @@ async function main() {
       }));
       const built = await gpu.buildStaticCache(full, probes, PROBES.tolerance, abort, () => gpu.setParams(paramBuf));
       if (!built) return;
-      state.cache = { view, ...built };
+      state.cache = { camKey, ...built };
       hooks.cache = { ...built, ms: performance.now() - t0 };
-      hooks.lastRays = w * h;
-    } else {
-      if (!(await gpu.renderDynamic(full, state.t, abort))) return;
-      hooks.lastRays = state.cache.dynamic;
     }
+    // The frame at this time: the dynamic pixels over the first probe's static ones.
+    if (!(await gpu.renderDynamic(full, state.t, abort))) return;
+    hooks.lastRays = state.cache.dynamic;
     const t1 = performance.now();
-    state.drawnKey = JSON.stringify([full, state.t, state.uploads, samples]);
+    state.drawnKey = frameKey(camKey);
     state.drawnStride = 1;
-    state.drawnView = view;
+    state.drawnCamKey = camKey;
     state.drawnT = state.t;
     state.scale = 1;
     state.refine = false;

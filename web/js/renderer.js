@@ -656,19 +656,22 @@ class GpuScene {
   }
 
   /**
-   * Builds the static cache of a fixed camera (incremental playback; `msth play`'s probes
-   * without its mask test): the frame buffer holds a complete full-size frame of `cam` (the
-   * base, from `render` with stride 1); each of `probes` (`{ t, params }`: a time and, when that
-   * time's chunk is not the one uploaded, a function that returns its flat parameter buffer)
-   * renders `cam` once more into a second buffer, and a pixel whose colour differs from the base
-   * by more than `tolerance` in a channel at any probe is dynamic. `restore()` uploads the current parameters again
+   * Builds the static cache of `cam` (incremental playback; `msth play`'s probes without its
+   * mask test). Each of `probes` (`{ t, params }`: a time and, when that time's chunk is not the
+   * one uploaded, a function that returns its flat parameter buffer) renders the whole frame:
+   * the first one into the frame buffer (the base: the colour the static pixels keep), the others
+   * into a second buffer. A pixel whose colour differs from the base by more than `tolerance` in
+   * a channel at any later probe is dynamic. `restore()` uploads the current parameters again
    * afterwards. Resolves to `{ dynamic, pixels }`, or null when `abort()` stopped it (no cache).
    * `renderDynamic` then re-renders only the dynamic pixels; any other `render` call, a new size
    * or new samples drop the cache.
    */
   async buildStaticCache(cam, probes, tolerance, abort, restore) {
     if (this.kernels.perRay) throw new Error("the static cache needs the per-sample passes");
-    const [w, h] = this.frameSize;
+    if (this.r.lost) throw new Error(this.r.lost);
+    const { width: w, height: h } = cam;
+    this.#ensureFrame(w, h);
+    this.device.queue.writeBuffer(this.size, 0, new Uint32Array([w, h, 1, 0]));
     const n = w * h;
     this.dynamicCount = -1;
     if (!this.probeFrame) {
@@ -679,7 +682,7 @@ class GpuScene {
         delete this.groups.dynamic;
       }
     }
-    const base = await this.#readFrame(this.frame);
+    let base = null;
     const dynamic = new Uint8Array(n);
     let foreign = false; // another time's parameters are uploaded
     try {
@@ -688,8 +691,13 @@ class GpuScene {
         if (params) this.setParams(params);
         else if (foreign) restore();
         foreign = Boolean(params);
-        if (!(await this.#renderPasses(cam, probe.t, abort, 0, n, "probe"))) return null;
-        const px = await this.#readFrame(this.probeFrame);
+        const target = base ? "probe" : "frame";
+        if (!(await this.#renderPasses(cam, probe.t, abort, 0, n, target))) return null;
+        const px = await this.#readFrame(target === "frame" ? this.frame : this.probeFrame);
+        if (!base) {
+          base = px;
+          continue;
+        }
         for (let i = 0; i < n; i++) {
           if (dynamic[i]) continue;
           for (let c = 0; c < 3; c++) {
