@@ -291,11 +291,15 @@ fn summary(r: &PlayReport, threshold: f32) {
     let n = r.frames.len();
     let rays: usize = r.frames.iter().map(|f| f.stats.rays_rendered).sum();
     println!(
-        "renderer: {} ({}){}",
+        "renderer: {} ({}){}{}",
         r.backend.kind,
         r.backend.device,
         r.backend
             .note
+            .as_ref()
+            .map_or(String::new(), |n| format!("; {n}")),
+        r.backend
+            .mlps
             .as_ref()
             .map_or(String::new(), |n| format!("; {n}"))
     );

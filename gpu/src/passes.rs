@@ -46,7 +46,7 @@ pub const FRAME_WORK_BYTES: u64 = 128 << 20;
 
 /// Byte offsets of the indirect dispatch sizes `pass_args` writes (3 u32 each): the proposal
 /// samples / LANES (every pair, or the live list with an occupancy grid), rays, the main
-/// samples / LANES (likewise), the colour list, the dynamic samples, and every (ray, proposal
+/// samples / LANES (likewise), the colour list / LANES, the dynamic samples / LANES, and every (ray, proposal
 /// sample) and (ray, main sample) pair, one per invocation (`pass_live_*`).
 pub const ARGS_PROPOSAL: u64 = 0;
 pub const ARGS_RAYS: u64 = 12;
@@ -150,6 +150,42 @@ pub(crate) struct Pipelines {
 pub(crate) struct LivePipelines {
     proposal: wgpu::ComputePipeline,
     samples: wgpu::ComputePipeline,
+}
+
+/// The three passes that run MLPs, compiled from a `render.wgsl` whose MLPs were specialised
+/// to one model (`crate::specialise`); a [`GpuScene`] that has them uses them instead of the
+/// context's generic ones.
+pub(crate) struct MlpPipelines {
+    proposal: wgpu::ComputePipeline,
+    density: wgpu::ComputePipeline,
+    color: wgpu::ComputePipeline,
+}
+
+impl MlpPipelines {
+    pub(crate) fn new(pipeline: impl Fn(&str) -> wgpu::ComputePipeline) -> Self {
+        MlpPipelines {
+            proposal: pipeline("pass_proposal"),
+            density: pipeline("pass_density"),
+            color: pipeline("pass_color"),
+        }
+    }
+}
+
+impl Pipelines {
+    /// `(proposal, density, colour)`: `scene`'s specialised pipelines, or the generic ones.
+    fn mlps<'a>(
+        &'a self,
+        scene: &'a GpuScene,
+    ) -> (
+        &'a wgpu::ComputePipeline,
+        &'a wgpu::ComputePipeline,
+        &'a wgpu::ComputePipeline,
+    ) {
+        match &scene.mlps {
+            Some(m) => (&m.proposal, &m.density, &m.color),
+            None => (&self.proposal, &self.density, &self.color),
+        }
+    }
 }
 
 impl Pipelines {
@@ -428,6 +464,7 @@ impl GpuContext {
         );
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
         let p = &self.passes;
+        let (proposal, density, color) = p.mlps(scene);
         // MSTH_GPU_PASS_PROFILE=1: every dispatch its own submission, timed, and the counters
         // (rays, colour list, live samples) summed over the batches (stderr).
         let profile = std::env::var("MSTH_GPU_PASS_PROFILE").as_deref() == Ok("1");
@@ -444,17 +481,17 @@ impl GpuContext {
             steps.push(("live proposal", &l.proposal, Some(ARGS_PROPOSAL_PAIRS)));
             steps.push(("args", &p.args, None));
         }
-        steps.push(("proposal", &p.proposal, Some(ARGS_PROPOSAL)));
+        steps.push(("proposal", proposal, Some(ARGS_PROPOSAL)));
         steps.push(("resample", &p.resample, Some(ARGS_RAYS)));
         if let Some(l) = live {
             steps.push(("live samples", &l.samples, Some(ARGS_SAMPLE_PAIRS)));
             steps.push(("args", &p.args, None));
         }
         steps.extend([
-            ("density", &p.density, Some(ARGS_SAMPLES)),
+            ("density", density, Some(ARGS_SAMPLES)),
             ("visible", &p.visible, Some(ARGS_RAYS)),
             ("args", &p.args, None),
-            ("color", &p.color, Some(ARGS_COLOR)),
+            ("color", color, Some(ARGS_COLOR)),
             ("composite", &p.composite, Some(ARGS_RAYS)),
         ]);
         let mut spent = vec![0f64; steps.len()];
@@ -606,7 +643,7 @@ impl GpuContext {
                     cp.dispatch_workgroups(gx, gy, 1);
                     sizes(&mut cp);
                 }
-                ind(&mut cp, &p.proposal, ARGS_PROPOSAL);
+                ind(&mut cp, p.mlps(scene).0, ARGS_PROPOSAL);
                 ind(&mut cp, &p.wmax, ARGS_RAYS);
             }
             self.queue.submit([enc.finish()]);
@@ -690,7 +727,7 @@ impl GpuContext {
             ind(&mut cp, &p.dynamic, ARGS_DYNAMIC);
             ind(&mut cp, &p.visible, ARGS_RAYS);
             sizes(&mut cp);
-            ind(&mut cp, &p.color, ARGS_COLOR);
+            ind(&mut cp, p.mlps(scene).2, ARGS_COLOR);
             ind(&mut cp, &p.composite, ARGS_RAYS);
         }
         self.queue.submit([enc.finish()]);

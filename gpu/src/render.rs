@@ -177,6 +177,10 @@ pub struct GpuContext {
     eval: wgpu::ComputePipeline,
     /// The per-sample passes' pipelines ([`crate::passes`]).
     pub(crate) passes: crate::passes::Pipelines,
+    /// The layout every kernel uses, and the WGSL the kernels were compiled from (for the
+    /// pipelines of specialised MLPs, [`GpuScene::specialise`]).
+    pipeline_layout: wgpu::PipelineLayout,
+    source: String,
     /// Bound at bindings 7-10 by the per-ray kernels, which use none of them.
     pub(crate) placeholders: crate::passes::Placeholders,
     pub(crate) state: Arc<Mutex<DeviceState>>,
@@ -303,6 +307,8 @@ impl GpuContext {
             render,
             eval,
             passes,
+            pipeline_layout: pl,
+            source: wgsl.to_string(),
             placeholders,
             state,
         })
@@ -549,6 +555,9 @@ pub struct GpuScene {
     pub(crate) occupancy_resolution: u32,
     /// The parameters last uploaded (to notice a new chunk).
     uploaded: Vec<f32>,
+    /// The passes that run MLPs, specialised to this scene's MLPs ([`GpuScene::specialise`]);
+    /// `None`: the context's generic ones.
+    pub(crate) mlps: Option<crate::passes::MlpPipelines>,
 }
 
 impl GpuScene {
@@ -586,6 +595,7 @@ impl GpuScene {
             occupancy,
             occupancy_resolution: 0,
             uploaded: params.to_vec(),
+            mlps: None,
         })
     }
 
@@ -613,6 +623,57 @@ impl GpuScene {
         Ok(())
     }
 
+    /// Compiles the passes that run MLPs with this scene's MLP weights as constants
+    /// ([`crate::specialise`]), which the frames then use. `Ok(Err(why))`: the model's MLPs
+    /// are not specialised (too large, or a weight is not finite) and the generic passes stay;
+    /// `Ok(Ok(seconds))`: the time it took to compile them. New MLP weights ([`GpuScene::update`])
+    /// drop them again.
+    pub fn specialise(
+        &mut self,
+        ctx: &GpuContext,
+    ) -> Result<Result<f64, crate::specialise::SpecialiseError>, GpuError> {
+        let t = std::time::Instant::now();
+        let rest = &self.uploaded[self.gpu_model.split.rest.clone()];
+        let source = match crate::specialise::specialise_wgsl(&ctx.source, &self.gpu_model, rest) {
+            Ok(s) => s,
+            Err(e) => return Ok(Err(e)),
+        };
+        let scope = ctx.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let module = ctx
+            .device
+            .create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some("render.wgsl, specialised MLPs"),
+                source: wgpu::ShaderSource::Wgsl(source.into()),
+            });
+        let mlps = crate::passes::MlpPipelines::new(|entry| {
+            ctx.device
+                .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                    label: Some(entry),
+                    layout: Some(&ctx.pipeline_layout),
+                    module: &module,
+                    entry_point: Some(entry),
+                    compilation_options: Default::default(),
+                    cache: None,
+                })
+        });
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::Shader(e.to_string()));
+        }
+        ctx.check_state()?;
+        self.mlps = Some(mlps);
+        Ok(Ok(t.elapsed().as_secs_f64()))
+    }
+
+    /// Drops the specialised pipelines: the frames use the generic passes again.
+    pub fn mlps_generic(&mut self) {
+        self.mlps = None;
+    }
+
+    /// Whether the frames use MLPs specialised to this scene ([`GpuScene::specialise`]).
+    pub fn is_specialised(&self) -> bool {
+        self.mlps.is_some()
+    }
+
     /// The occupancy grid's resolution in use (0: none).
     pub fn occupancy_resolution(&self) -> u32 {
         self.occupancy_resolution
@@ -629,6 +690,15 @@ impl GpuScene {
                 self.uploaded.len(),
                 params.len()
             )));
+        }
+        // New MLP weights (a model's are the same at every time; this is another model's
+        // buffer): the specialised pipelines no longer apply.
+        let rest0 = self.gpu_model.split.rest.start;
+        for r in crate::specialise::mlp_ranges(&self.gpu_model) {
+            let r = rest0 + r.start..rest0 + r.end;
+            if params.get(r.clone()) != self.uploaded.get(r) {
+                self.mlps = None;
+            }
         }
         let split = &self.gpu_model.split;
         for (buf, r) in [

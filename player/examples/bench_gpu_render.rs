@@ -13,7 +13,9 @@
 //! for large frames; `MSTH_BENCH_OLD_WGSL=FILE` compiles the old kernel from another version of
 //! `render.wgsl`, e.g. `git show a04e488:gpu/shaders/render.wgsl`, the kernels before the
 //! per-sample passes were optimised, and `MSTH_BENCH_OLD_KERNELS=passes` times that file's
-//! per-sample passes instead of its per-ray kernel; `MSTH_BENCH_SKIP_INCREMENTAL=1` stops after the full
+//! per-sample passes instead of its per-ray kernel, `MSTH_BENCH_OLD_KERNELS=generic` the passes
+//! with generic MLPs (weights read from the parameter buffer) against the new passes' MLPs
+//! compiled for the model (`msth_gpu::specialise`; the first new frame includes compiling them); `MSTH_BENCH_SKIP_INCREMENTAL=1` stops after the full
 //! frames). A file's occupancy grid is used by every renderer (CPU and GPU, as `msth play`
 //! does; `MSTH_BENCH_NO_SKIP=1` turns it off), and the CPU frame without it is the quality
 //! reference printed beside. Timings include the read-back of the frame; "cpu" is this process's CPU time over
@@ -28,7 +30,7 @@ use msth_core::config::{Background, ModelConfig, Preset};
 use msth_core::field::ModelLayout;
 use msth_core::rng::Rng;
 use msth_core::{Camera, SceneBounds};
-use msth_player::gpu::{AdapterPolicy, GpuContext, GpuKernels, GpuRenderer};
+use msth_player::gpu::{AdapterPolicy, GpuContext, GpuKernels, GpuMlps, GpuRenderer};
 use msth_player::{RenderSettings, Renderer};
 use std::sync::Arc;
 
@@ -156,10 +158,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     if std::env::var("MSTH_BENCH_SKIP_PER_RAY").as_deref() != Ok("1") {
         let (kernels, what) = match std::env::var("MSTH_BENCH_OLD_KERNELS").as_deref() {
             Ok("passes") => (GpuKernels::PerSample, "per-sample passes"),
+            Ok("generic") => (GpuKernels::PerSample, "passes, generic MLPs"),
             _ => (GpuKernels::PerRay, "per-ray kernel"),
         };
         match GpuRenderer::with_kernels(ctx, &cfg, full, kernels) {
             Ok(mut old) => {
+                if std::env::var("MSTH_BENCH_OLD_KERNELS").as_deref() == Ok("generic") {
+                    old.set_mlps(GpuMlps::Generic);
+                }
                 old.set_occupancy(grid.clone())?;
                 let (t, c) = (Instant::now(), cpu_seconds());
                 let f = old.render(&cam, 0.0, &params0)?;
@@ -186,8 +192,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     new.render(&cam, 0.0, &params0)?;
     let (new_s, new_cpu) = (t.elapsed().as_secs_f64(), cpu_seconds() - c);
     println!(
-        "gpu full frame, per-sample passes (new): {first_s:8.3} s first (cpu {first_cpu:.1} s), {new_s:.3} s next (cpu {new_cpu:.1} s)  {:.1} dB vs cpu",
-        f.psnr_displayed(&reference)
+        "gpu full frame, per-sample passes (new): {first_s:8.3} s first (cpu {first_cpu:.1} s), {new_s:.3} s next (cpu {new_cpu:.1} s)  {:.1} dB vs cpu; {}",
+        f.psnr_displayed(&reference),
+        new.mlp_status()
     );
     if let Some((o, oc)) = old_s {
         println!(

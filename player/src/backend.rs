@@ -41,6 +41,9 @@ pub struct BackendInfo {
     /// Why the automatic choice fell back to the CPU, when it did, or what the chosen backend
     /// does differently from the settings.
     pub note: Option<String>,
+    /// GPU: whether the passes' MLPs were compiled for the model (and in how long) or stayed
+    /// generic, and why (`GpuRenderer::mlp_status`, after the first frame).
+    pub mlps: Option<String>,
 }
 
 impl FrameRenderer {
@@ -57,6 +60,7 @@ impl FrameRenderer {
                     kind: "cpu",
                     device: format!("{} threads", rayon::current_num_threads()),
                     note,
+                    mlps: None,
                 },
             )
         };
@@ -72,6 +76,7 @@ impl FrameRenderer {
                     kind: "gpu",
                     device,
                     note,
+                    mlps: None,
                 },
             ))
         };
@@ -108,6 +113,14 @@ impl FrameRenderer {
         match self {
             FrameRenderer::Cpu(r) => Ok(r.render_probing(camera, time, params, params_at)),
             FrameRenderer::Gpu(r) => r.render_probing(camera, time, params, params_at),
+        }
+    }
+
+    /// GPU: how the passes run the MLPs ([`GpuRenderer::mlp_status`]); `None` on the CPU.
+    pub fn mlp_note(&self) -> Option<String> {
+        match self {
+            FrameRenderer::Cpu(_) => None,
+            FrameRenderer::Gpu(r) => Some(r.mlp_status().to_string()),
         }
     }
 

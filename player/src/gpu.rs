@@ -4,8 +4,9 @@
 
 mod renderer;
 
+pub use msth_gpu::specialise;
 pub use msth_gpu::{
     layout, AdapterPolicy, FrameScratch, GpuContext, GpuError, GpuModel, GpuSampleCache, GpuScene,
     Kernel, Pixels, ViewU, ALLOW_SOFTWARE_ENV, FLAG_COMPACT, FLAG_LIST, RENDER_WGSL,
 };
-pub use renderer::{GpuKernels, GpuRenderer};
+pub use renderer::{GpuKernels, GpuMlps, GpuRenderer, MlpStatus};

@@ -310,6 +310,8 @@ pub fn play(
         _ => (None, None),
     };
     let progress = stream.progress();
+    let mut backend = backend;
+    backend.mlps = renderer.mlp_note();
     Ok(PlayReport {
         frames: records,
         time_to_first_frame: first_frame.unwrap_or(0.0),

@@ -14,8 +14,8 @@ use msth_core::rng::Rng;
 use msth_core::sh::{sh4, SH_COEFFS};
 use msth_core::{Camera, SceneBounds};
 use msth_player::gpu::{
-    AdapterPolicy, GpuContext, GpuError, GpuKernels, GpuModel, GpuRenderer, GpuScene, Kernel,
-    ViewU, FLAG_COMPACT,
+    AdapterPolicy, GpuContext, GpuError, GpuKernels, GpuMlps, GpuModel, GpuRenderer, GpuScene,
+    Kernel, MlpStatus, ViewU, FLAG_COMPACT,
 };
 use msth_player::{Frame, RenderSettings, Renderer, Reuse};
 use msth_testkit::{Need, Skip, Tests};
@@ -56,6 +56,11 @@ fn main() -> std::process::ExitCode {
             &[&gpu],
             "gpu_frames_match_cpu_frames_full_and_incremental",
             gpu_frames_match_cpu_frames_full_and_incremental,
+        )
+        .needs(
+            &[&gpu],
+            "specialised_and_generic_mlps_render_the_same_frames",
+            specialised_and_generic_mlps_render_the_same_frames,
         )
         .needs(
             &[&gpu],
@@ -680,6 +685,103 @@ fn balanced_preset_frames_match_the_cpu_full_and_incremental() {
         assert!(p >= 40.0, "samples {counts:?}: {p:.1} dB");
         assert!(max_diff(&a, &full) > 1e-3 && p_full < p, "{p_full:.1} dB");
     }
+}
+
+/// The passes' MLPs compiled for the model (`msth_gpu::specialise`, the default) and the generic
+/// ones render the same frames as the CPU, full and incremental (the sample cache's dynamic
+/// samples go through `density_mlp4` too); a model outside the specialiser's limits keeps the
+/// generic passes and says why; new MLP weights are compiled anew, not rendered with the old.
+fn specialised_and_generic_mlps_render_the_same_frames() {
+    let cfg = ModelConfig::preset(
+        Preset::Balanced,
+        SceneBounds::dnerf_default(),
+        Background::Color { rgb: [1.0; 3] },
+        30,
+    );
+    let layout = ModelLayout::new(&cfg);
+    let mut params = random_params(&layout, 5);
+    centre_dynamic(&cfg, &mut params);
+    // Random MLP weights of the initialiser's scale, so that every output depends on them.
+    let cam = test_camera(32, 24);
+    let settings = RenderSettings {
+        probes: 0,
+        reuse: Reuse::Samples,
+        ..Default::default()
+    };
+    let mut cpu = Renderer::new(&cfg, settings);
+    let mut spec = GpuRenderer::new(context(), &cfg, settings).unwrap();
+    let mut generic = GpuRenderer::new(context(), &cfg, settings).unwrap();
+    generic.set_mlps(GpuMlps::Generic);
+    for (i, t) in [0.0f32, 0.5, 1.0].into_iter().enumerate() {
+        let a = cpu.render(&cam, t, &params);
+        let b = spec.render(&cam, t, &params).unwrap();
+        let c = generic.render(&cam, t, &params).unwrap();
+        let (pb, pc, pbc) = (psnr(&a, &b), psnr(&a, &c), psnr(&b, &c));
+        println!(
+            "balanced frame {i} ({}): specialised {pb:.1} dB, generic {pc:.1} dB against the CPU; {pbc:.1} dB between them (max {:.2e}); {} samples evaluated",
+            if i == 0 { "full" } else { "incremental" },
+            max_diff(&b, &c),
+            b.stats.samples_evaluated
+        );
+        assert!(pb >= 40.0 && pc >= 40.0 && pbc >= 40.0);
+        assert_eq!(b.stats.samples_evaluated, c.stats.samples_evaluated);
+    }
+    assert!(
+        matches!(spec.mlp_status(), MlpStatus::Specialised(_)),
+        "{}",
+        spec.mlp_status()
+    );
+    assert_eq!(generic.mlp_status(), &MlpStatus::Generic);
+    assert!(spec
+        .mlp_status()
+        .to_string()
+        .starts_with("MLPs compiled for this model"));
+
+    // Another model's MLP weights on the same renderer (the same layout): compiled anew.
+    let mut other = params.clone();
+    let (_, r) = layout.field.color.clone();
+    let mut rng = Rng::new(11);
+    for v in &mut other[r] {
+        *v = rng.range_f32(-0.3, 0.3);
+    }
+    let full = RenderSettings {
+        incremental: false,
+        ..Default::default()
+    };
+    let mut cpu = Renderer::new(&cfg, full);
+    let mut spec = GpuRenderer::new(context(), &cfg, full).unwrap();
+    let first = spec.render(&cam, 0.5, &params).unwrap();
+    let a = cpu.render(&cam, 0.5, &other);
+    let b = spec.render(&cam, 0.5, &other).unwrap();
+    println!(
+        "new colour weights: {:.1} dB against the CPU, {:.1} dB against the old weights' frame",
+        psnr(&a, &b),
+        psnr(&first, &b)
+    );
+    assert!(psnr(&a, &b) >= 40.0);
+    assert!(psnr(&first, &b) < 40.0);
+    assert!(matches!(spec.mlp_status(), MlpStatus::Specialised(_)));
+
+    // A colour layer of 128 inputs: the generic passes, and the reason.
+    let mut wide = config(BlendMode::Mst);
+    small(&mut wide);
+    wide.field.color_hidden = 128;
+    wide.field.color_layers = 1;
+    let layout = ModelLayout::new(&wide);
+    let params = random_params(&layout, 6);
+    let mut gpu = GpuRenderer::new(context(), &wide, full).unwrap();
+    let b = gpu.render(&cam, 0.5, &params).unwrap();
+    let a = Renderer::new(&wide, full).render(&cam, 0.5, &params);
+    let status = gpu.mlp_status().to_string();
+    println!(
+        "128-wide colour layer: {status}; {:.1} dB against the CPU",
+        psnr(&a, &b)
+    );
+    assert_eq!(
+        status,
+        "generic MLPs (an MLP layer has 128 inputs; at most 64 are specialised)"
+    );
+    assert!(psnr(&a, &b) >= 40.0);
 }
 
 /// Probes render with the parameters of their own time (a file streamed in chunks): a still

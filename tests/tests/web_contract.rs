@@ -319,6 +319,13 @@ fn generate() -> String {
     let _ = writeln!(w, "export const MAX_SAMPLES = {MAX_SAMPLES};");
     let _ = writeln!(w, "export const MAX_HIDDEN = {MAX_HIDDEN};");
     let _ = writeln!(w, "export const MAX_GEO = {MAX_GEO};");
+    // The MLP specialiser's limits (msth-gpu specialise.rs; web/js/specialise.js).
+    let _ = writeln!(
+        w,
+        "export const MAX_SPECIALISED_WEIGHTS = {};\nexport const MAX_SPECIALISED_INPUTS = {};",
+        msth_gpu::specialise::MAX_SPECIALISED_WEIGHTS,
+        msth_gpu::specialise::MAX_SPECIALISED_INPUTS
+    );
     let level_offsets = [
         ("scale", std::mem::offset_of!(LevelU, scale)),
         ("stride", std::mem::offset_of!(LevelU, stride)),
@@ -467,6 +474,8 @@ fn hand_written_javascript_keeps_no_copies_of_the_contract() {
         "MAX_SAMPLES",
         "MAX_HIDDEN",
         "MAX_GEO",
+        "MAX_SPECIALISED_WEIGHTS",
+        "MAX_SPECIALISED_INPUTS",
         "FLAG_LIST",
         "FRAME_WORK_BYTES",
         "ARGS",
@@ -479,6 +488,7 @@ fn hand_written_javascript_keeps_no_copies_of_the_contract() {
         "main.js",
         "stream.js",
         "renderer.js",
+        "specialise.js",
     ] {
         let text = std::fs::read_to_string(dir.join(file)).unwrap();
         for n in names {

@@ -41,7 +41,7 @@
 import { ModelStream } from "./stream.js";
 import { cameraFromJson, makeRig, Orbit, templateCamera } from "./camera.js";
 import { Renderer, NoWebGpu, playSamples } from "./renderer.js";
-import { LIMITS, PROBES, SAMPLE_LEVELS } from "./generated/contract.js";
+import { KIND, LIMITS, PROBES, SAMPLE_LEVELS } from "./generated/contract.js";
 
 const $ = (id) => document.getElementById(id);
 /** Reduced resolutions (per side) while moving or playing, finest first. */
@@ -286,7 +286,13 @@ async function main() {
     (fallback && params.get("samples") === null ? `; this GPU is a software one, so the page started at fast.` : ".");
   const withSamples = (cfg, [p, m]) => ({ ...cfg, sampler: { ...cfg.sampler, num_proposal_samples: p, num_samples: m } });
 
-  const gpu = await renderer.create(canvas, withSamples(meta.model, samples), stream.decoder.layout, hooks.timings);
+  // The passes' MLPs are compiled with the model's weights as constants (specialise.js), so the
+  // kernels wait for the MLP section (a few KiB, in the first request after the prefix).
+  await stream.waitForKind(KIND.mlp);
+  hooks.timings.mlp = performance.now();
+  const gpu = await renderer.create(canvas, withSamples(meta.model, samples), stream.decoder.layout, hooks.timings, stream.decoder.base);
+  hooks.mlpNote = gpu.mlpNote;
+  $("info").textContent += `; ${gpu.mlpNote}`;
   hooks.renderer = gpu;
   hooks.timings.pipeline = performance.now();
   const paramBuf = new Float32Array(stream.decoder.layout.total);

@@ -28,6 +28,7 @@ import {
   FLAG_LIST, MAX_PROPOSAL_SAMPLES, MAX_SAMPLES, MAX_HIDDEN, MAX_GEO, RENDER_STATIC_CUTOFF, BLEND,
   FRAME_WORK_BYTES, PASS_ARGS as ARGS, PASS_BYTES, PASS_OFFSETS, PASS_FLAGS, SAMPLE_LEVELS,
 } from "./generated/contract.js";
+import { specialiseWgsl } from "./specialise.js";
 
 /**
  * GPU time a batch of rays aims at, where a frame takes longer than that (software GPUs; on a
@@ -197,10 +198,16 @@ export function gpuModel(cfg, layout) {
   f.set(bg.kind === "color" ? [...bg.rgb, 1] : [0, 0, 0, 0], BACKGROUND);
   const rel = (r) => r.start - rest0;
   const d = layout.field.density;
-  u.set([rel(d), d.dims[0], d.dims[1], d.dims[2]], DENSITY);
-  u.set([rel(layout.field.color), cfg.field.color_hidden, cfg.field.color_layers, cfg.field.geo_features], COLOR);
   const p = layout.proposal.density;
-  u.set([rel(p), p.dims[0], p.dims[1], 0], PROPOSAL);
+  // The MLPs' rows of the uniform (also what `specialise.js` reads).
+  const mlps = {
+    proposal: [rel(p), p.dims[0], p.dims[1]],
+    density: [rel(d), d.dims[0], d.dims[1], d.dims[2]],
+    color: [rel(layout.field.color), cfg.field.color_hidden, cfg.field.color_layers, cfg.field.geo_features],
+  };
+  u.set(mlps.density, DENSITY);
+  u.set(mlps.color, COLOR);
+  u.set([...mlps.proposal, 0], PROPOSAL);
 
   let nextSlot = 0;
   const grid = (g, buffer, at) => {
@@ -228,7 +235,7 @@ export function gpuModel(cfg, layout) {
   };
   encoding(fe, [0, 1], FIELD);
   encoding(layout.proposal.encoding, [2, 2], PROP);
-  return { uniform: buf, split };
+  return { uniform: buf, split, mlps };
 }
 
 /** The `View` uniform for `cam` (camera.js) at time `t`, `count` invocations, `flags`. */
@@ -285,14 +292,30 @@ export class Renderer {
   /**
    * Binds the kernels to `canvas` for a model (`cfg` its config, `layout` format.js's). `marks`,
    * when given, receives `module` (ms since navigation start: the WGSL compiled) and
-   * `pipelines` (every pipeline created).
+   * `pipelines` (every pipeline created). `params`, when given, is the parameter buffer with at
+   * least the MLP section decoded: the passes' MLPs are then compiled with the model's weights as
+   * constants (`specialise.js`), unless `?mlp=generic` or the model's MLPs are too large;
+   * `mlpNote` on the scene says which.
    */
-  async create(canvas, cfg, layout, marks = {}) {
+  async create(canvas, cfg, layout, marks = {}, params = null) {
     const device = this.device;
-    const { uniform, split } = gpuModel(cfg, layout);
-    const perRay = typeof location !== "undefined" && new URLSearchParams(location.search).get("kernel") === "ray";
+    const { uniform, split, mlps } = gpuModel(cfg, layout);
+    const query = typeof location !== "undefined" ? new URLSearchParams(location.search) : new URLSearchParams();
+    const perRay = query.get("kernel") === "ray";
+    let code = this.source;
+    let mlpNote = "generic MLPs";
+    if (perRay) mlpNote = "per-ray kernel";
+    else if (query.get("mlp") === "generic") mlpNote = "generic MLPs (?mlp=generic)";
+    else if (params) {
+      try {
+        code = specialiseWgsl(this.source, mlps, params.subarray(split.rest[0]));
+        mlpNote = "MLPs compiled for this model";
+      } catch (e) {
+        mlpNote = `generic MLPs (${e.message})`;
+      }
+    }
     device.pushErrorScope("validation");
-    const module = device.createShaderModule({ code: this.source, label: "render.wgsl" });
+    const module = device.createShaderModule({ code, label: "render.wgsl" });
     const info = await module.getCompilationInfo();
     const errors = info.messages.filter((m) => m.type === "error");
     if (errors.length) throw new Error(`render.wgsl: ${errors.map((m) => `${m.lineNum}:${m.linePos} ${m.message}`).join("; ")}`);
@@ -313,7 +336,10 @@ export class Renderer {
     const err = await device.popErrorScope();
     if (err) throw new Error(`render.wgsl: ${err.message}`);
     marks.pipelines = performance.now();
-    return new GpuScene(this, canvas, { layout: bindLayout, pipelines, perRay }, uniform, split, cfg);
+    const scene = new GpuScene(this, canvas, { layout: bindLayout, pipelines, perRay }, uniform, split, cfg);
+    /** How the passes run the MLPs (compiled for the model, or generic and why). */
+    scene.mlpNote = mlpNote;
+    return scene;
   }
 }
 

@@ -180,6 +180,27 @@ export class ModelStream {
     });
   }
 
+  /**
+   * Resolves when every section of `kind` (format.js `KIND`) is decoded: the MLP section, for
+   * compiling the MLPs with the model's weights (renderer.js `create`), comes in the first
+   * request after the prefix.
+   */
+  waitForKind(kind) {
+    return new Promise((resolve, reject) => {
+      const check = () => {
+        if (this.error) {
+          off();
+          reject(this.error);
+        } else if (this.decoder.sections.every((s, i) => s.kind !== kind || this.decoder.decoded[i])) {
+          off();
+          resolve();
+        }
+      };
+      const off = this.onChange(check);
+      check();
+    });
+  }
+
   /** Runs the fetch loop until the whole file is in, an error, or `stop()`. */
   start() {
     this.done = this.#loop().catch((e) => {

@@ -895,7 +895,7 @@ fn pass_setup(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
 }
 
 // Indirect dispatch sizes, 3 words each: [0] proposal samples / LANES, [3] rays,
-// [6] main samples / LANES, [9] colour list / LANES, [12] dynamic samples, [15] rays x proposal
+// [6] main samples / LANES, [9] colour list / LANES, [12] dynamic samples / LANES, [15] rays x proposal
 // samples, [18] rays x S. With an occupancy grid (`Pass.reg2.y` != 0) [0] and [6] count the
 // live lists `pass_live_proposal` and `pass_live_samples` built (`ctrl[3]`, `ctrl[4]`), else
 // every (ray, sample) pair.
@@ -914,7 +914,7 @@ fn pass_args() {
     write_groups(3u, n);
     write_groups(6u, (ns + LANES - 1u) / LANES);
     write_groups(9u, (atomicLoad(&ctrl[1]) + LANES - 1u) / LANES);
-    write_groups(12u, atomicLoad(&ctrl[2]));
+    write_groups(12u, (atomicLoad(&ctrl[2]) + LANES - 1u) / LANES);
 }
 
 // Proposal sample e (ray-major over the batch's rays): its unit-cube point at the frame's time.
@@ -987,12 +987,7 @@ fn pass_proposal(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wor
             encode(model.prop, proposal_point(e), model.prop.consts.y, 2u, 2u);
             hid_to_lane(k, d.y);
         }
-        dense_lanes(d.x, d.y, d.z, true);
-        let w2 = d.x + d.y * d.z;
-        var sum = vec4<f32>(0.0);
-        for (var j = 0u; j < d.z; j++) {
-            sum += out4[j] * rest[w2 + j];
-        }
+        let sum = proposal_mlp4();
         for (var k = 0u; k < used; k++) {
             work[pass_u.reg0.y + es[k]] = trunc_exp(sum[k]);
         }
@@ -1089,11 +1084,16 @@ fn pass_resample(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wor
     }
 }
 
-fn store_density(j: u32, sigma: f32) {
-    work[pass_u.reg0.w + 4u * j + 3u] = sigma;
+// The density and geometry features of the LANES samples `js` (the first `used` of them) from
+// `density_mlp4`'s output.
+fn store_density_lanes(js: vec4<u32>, used: u32) {
     let geo = model.color.w;
-    for (var q = 0u; q < geo; q++) {
-        work[pass_u.reg1.x + j * geo + q] = dout[1u + q];
+    for (var k = 0u; k < used; k++) {
+        let j = js[k];
+        work[pass_u.reg0.w + 4u * j + 3u] = trunc_exp(out4[0][k]);
+        for (var q = 0u; q < geo; q++) {
+            work[pass_u.reg1.x + j * geo + q] = out4[1u + q][k];
+        }
     }
 }
 
@@ -1131,17 +1131,8 @@ fn pass_density(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
             encode(model.field, main_point(r, j % s, ray_rec(r)), model.field.consts.y, 0u, 1u);
             hid_to_lane(k, d.y);
         }
-        dense_lanes(d.x, d.y, d.z, true);
-        out4_to_hid4(d.z);
-        dense_lanes(d.x + d.y * d.z, d.z, d.w, false);
-        let geo = model.color.w;
-        for (var k = 0u; k < used; k++) {
-            let j = js[k];
-            work[pass_u.reg0.w + 4u * j + 3u] = trunc_exp(out4[0][k]);
-            for (var q = 0u; q < geo; q++) {
-                work[pass_u.reg1.x + j * geo + q] = out4[1u + q][k];
-            }
-        }
+        density_mlp4();
+        store_density_lanes(js, used);
     }
 }
 
@@ -1206,17 +1197,25 @@ fn build_sample(j: u32) {
     }
 }
 
-// Per listed dynamic sample of the cache: density at the frame's time (the 4D lookup always).
+// Per invocation: LANES listed dynamic samples of the cache (entries LANES i .. of the list):
+// density at the frame's time (the 4D lookup always), the density MLP for the LANES samples
+// together, as `pass_density`.
 @compute @workgroup_size(64)
 fn pass_dynamic(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let i = invocation(gid, groups);
-    if i < atomicLoad(&ctrl[2]) {
-        let j = work_u(pass_u.reg2.x + i);
-        let at = pass_u.reg1.w + 4u * j;
-        let p = vec4<f32>(work[at], work[at + 1u], work[at + 2u], field_time());
-        var m = 1.0;
-        let sigma = field_density(p, 0.0, &m);
-        store_density(j, sigma);
+    let n = atomicLoad(&ctrl[2]);
+    if i * LANES < n {
+        let used = min(n - i * LANES, LANES);
+        var js = vec4<u32>(0u);
+        for (var k = 0u; k < LANES; k++) {
+            let j = work_u(pass_u.reg2.x + i * LANES + min(k, used - 1u));
+            js[k] = j;
+            let at = pass_u.reg1.w + 4u * j;
+            encode(model.field, vec4<f32>(work[at], work[at + 1u], work[at + 2u], field_time()), 0.0, 0u, 1u);
+            hid_to_lane(k, model.density.y);
+        }
+        density_mlp4();
+        store_density_lanes(js, used);
     }
 }
 
@@ -1292,7 +1291,7 @@ fn pass_color(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
                 hid4[16u + q][k] = work[pass_u.reg1.x + j * geo + q];
             }
         }
-        let c = field_color_lanes();
+        let c = color_mlp4();
         for (var k = 0u; k < used; k++) {
             let sp = pass_u.reg0.w + 4u * js[k];
             work[sp] = c[0][k];
@@ -1302,14 +1301,25 @@ fn pass_color(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
     }
 }
 
-// ---- MLPs of LANES samples at once (`pass_color`) ----------------------------------------------
+// ---- MLPs of LANES samples at once -------------------------------------------------------------
 
-// Samples per invocation of `pass_color`.
+// Samples per invocation of `pass_proposal`, `pass_density` and `pass_color`.
 const LANES: u32 = 4u;
-// Activations, component k for sample k: the input and hidden layers in `hid4`, each layer's
-// output in `out4`.
+// Activations, component k for sample k: the MLPs' input in `hid4`, the density MLP's output in
+// `out4` (the generic MLPs below also keep their hidden layers there).
 var<private> hid4: array<vec4<f32>, MAX_HIDDEN>; // also the colour input: 16 + MAX_GEO < MAX_HIDDEN
 var<private> out4: array<vec4<f32>, MAX_HIDDEN>;
+
+// The three MLPs of the passes, `proposal_mlp4`, `density_mlp4` and `color_mlp4`, lie between the
+// two `specialise` lines. These generic versions read the weights from `rest`; a host may replace
+// the region by versions generated for one model, with its weights as constants and the
+// activations in named values (msth-gpu `specialise.rs`, the page's `specialise.js`), which
+// software adapters run without a gather per read.
+fn sigmoid4(x: vec4<f32>) -> vec4<f32> {
+    return vec4<f32>(sigmoid(x.x), sigmoid(x.y), sigmoid(x.z), sigmoid(x.w));
+}
+
+// ---- specialise: begin
 
 // out4[0..nout] = hid4[0..nin] W per sample (W [nin, nout] row-major at `off` in `rest`), ReLU
 // when `relu`; each output summed over the inputs in order, as on the CPU. Eight outputs at a
@@ -1359,13 +1369,9 @@ fn out4_to_hid4(n: u32) {
     }
 }
 
-fn sigmoid4(x: vec4<f32>) -> vec4<f32> {
-    return vec4<f32>(sigmoid(x.x), sigmoid(x.y), sigmoid(x.z), sigmoid(x.w));
-}
-
 // The colours of the LANES samples whose colour inputs (SH coefficients, then the geo
 // features) are in hid4, as `field_color`: red, green, blue, component k for sample k.
-fn field_color_lanes() -> array<vec4<f32>, 3> {
+fn color_mlp4() -> array<vec4<f32>, 3> {
     let c = model.color;
     let hidden = c.y;
     let nin = 16u + c.w;
@@ -1381,6 +1387,30 @@ fn field_color_lanes() -> array<vec4<f32>, 3> {
     dense_lanes(off, hidden, 3u, false);
     return array<vec4<f32>, 3>(sigmoid4(out4[0]), sigmoid4(out4[1]), sigmoid4(out4[2]));
 }
+
+// The proposal density MLP of the LANES samples whose encodings are in hid4: the log density
+// (before `trunc_exp`), component k for sample k.
+fn proposal_mlp4() -> vec4<f32> {
+    let d = model.proposal;
+    dense_lanes(d.x, d.y, d.z, true);
+    let w2 = d.x + d.y * d.z;
+    var sum = vec4<f32>(0.0);
+    for (var j = 0u; j < d.z; j++) {
+        sum += out4[j] * rest[w2 + j];
+    }
+    return sum;
+}
+
+// The density MLP of the LANES samples whose encodings are in hid4: out4[0] the log density,
+// out4[1 ..= geo] the geometry features.
+fn density_mlp4() {
+    let d = model.density;
+    dense_lanes(d.x, d.y, d.z, true);
+    out4_to_hid4(d.z);
+    dense_lanes(d.x + d.y * d.z, d.z, d.w, false);
+}
+// ---- specialise: end
+
 // Per ray: C = sum w_k c_k + T * background, and the visible depth, into frame[output index].
 @compute @workgroup_size(64)
 fn pass_composite(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {

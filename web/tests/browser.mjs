@@ -339,6 +339,22 @@ async function main() {
           `${before.join(" + ")} -> ${after.samples.join(" + ")} samples per ray; PSNR ${pF.toFixed(2)} dB against msth play --samples faster (>= ${PSNR_MIN}), ${pFull.toFixed(2)} dB against the page's full-samples frame (lower: the menu changed the frame); HUD "${after.res}"`,
         );
       }
+
+      // ---- the MLPs compiled for the model (specialise.js) render what the generic ones do
+      const note2 = await page.evaluate(() => window.msth.mlpNote);
+      await page.goto(`${a.base}/?model=${encodeURIComponent(a.model2)}&view=${a.view}&t=0&size=${a.size}&play=0&samples=full&mlp=generic`);
+      await waitFirstFrame(page);
+      await settled(page);
+      const generic = await page.evaluate(() => ({ note: window.msth.mlpNote, info: document.getElementById("info").textContent }));
+      const pxG = await pixels(page);
+      const pG = pxG.length === 4 * n ? psnr(pxG, px2, n) : 0;
+      const pGn = pxG.length === 4 * n && nat2.w === w && nat2.h === h ? psnr(pxG, nat2.px, n) : 0;
+      results.figures.psnr_model2_generic_vs_specialised = Math.min(pG, 99);
+      check(
+        "the MLPs compiled for the model render what the generic MLPs do",
+        note2 === "MLPs compiled for this model" && /generic MLPs/.test(generic.note) && generic.info.includes(generic.note) && pG >= 50 && pGn >= PSNR_MIN,
+        `"${note2}" against "${generic.note}" (?mlp=generic): PSNR ${pG.toFixed(2)} dB between them (>= 50), generic ${pGn.toFixed(2)} dB against msth play`,
+      );
     }
 
     // ---- for the record: frames per second at the bench size, and the README screenshot

@@ -41,6 +41,40 @@ pub enum GpuKernels {
     PerRay,
 }
 
+/// How the per-sample passes run the model's MLPs.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum GpuMlps {
+    /// Compiled for the model, its weights as constants (`msth_gpu::specialise`), when its
+    /// first parameters are uploaded; the generic passes where its MLPs are too large.
+    #[default]
+    Specialised,
+    /// The generic passes: weights read from the parameter buffer (for comparisons).
+    Generic,
+}
+
+/// What became of [`GpuMlps::Specialised`].
+#[derive(Clone, Debug, PartialEq)]
+pub enum MlpStatus {
+    /// Not asked for ([`GpuMlps::Generic`], the per-ray kernel) or no parameters uploaded yet.
+    Generic,
+    /// Specialised; compiling took this many seconds.
+    Specialised(f64),
+    /// The generic passes, because of this.
+    Refused(msth_gpu::specialise::SpecialiseError),
+}
+
+impl std::fmt::Display for MlpStatus {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            MlpStatus::Generic => write!(f, "generic MLPs"),
+            MlpStatus::Specialised(s) => {
+                write!(f, "MLPs compiled for this model ({s:.2} s)")
+            }
+            MlpStatus::Refused(e) => write!(f, "generic MLPs ({e})"),
+        }
+    }
+}
+
 struct Pending {
     pixels: Vec<u32>,
     rays: Vec<TimedRay>,
@@ -79,6 +113,8 @@ pub struct GpuRenderer {
     cache: Option<Cache>,
     /// The file's occupancy grid: the per-sample passes skip samples in its empty cells.
     occupancy: Option<Arc<OccupancyGrid>>,
+    mlps: GpuMlps,
+    mlp_status: MlpStatus,
 }
 
 impl GpuRenderer {
@@ -138,7 +174,26 @@ impl GpuRenderer {
             no_list,
             cache: None,
             occupancy: None,
+            mlps: GpuMlps::default(),
+            mlp_status: MlpStatus::Generic,
         })
+    }
+
+    /// How the passes run the MLPs from the next parameter upload on (the default:
+    /// [`GpuMlps::Specialised`]).
+    pub fn set_mlps(&mut self, mlps: GpuMlps) {
+        self.mlps = mlps;
+        if mlps == GpuMlps::Generic {
+            if let Some(s) = &mut self.scene {
+                s.mlps_generic();
+            }
+            self.mlp_status = MlpStatus::Generic;
+        }
+    }
+
+    /// Whether the frames use MLPs compiled for the model, and how long that took.
+    pub fn mlp_status(&self) -> &MlpStatus {
+        &self.mlp_status
     }
 
     /// Uses the file's occupancy grid to skip empty space, as the CPU renderer's
@@ -202,6 +257,16 @@ impl GpuRenderer {
                 let mut scene = GpuScene::new(&self.ctx, self.gpu_model.clone(), params)?;
                 apply_occupancy(&self.ctx, &mut scene, self.occupancy.as_deref())?;
                 self.scene = Some(scene);
+            }
+        }
+        let want = self.mlps == GpuMlps::Specialised && self.kernels == GpuKernels::PerSample;
+        if let Some(scene) = &mut self.scene {
+            if want && !scene.is_specialised() && !matches!(self.mlp_status, MlpStatus::Refused(_))
+            {
+                self.mlp_status = match scene.specialise(&self.ctx)? {
+                    Ok(secs) => MlpStatus::Specialised(secs),
+                    Err(why) => MlpStatus::Refused(why),
+                };
             }
         }
         Ok(())

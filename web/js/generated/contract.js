@@ -69,6 +69,8 @@ export const MAX_PROPOSAL_SAMPLES = 256;
 export const MAX_SAMPLES = 128;
 export const MAX_HIDDEN = 128;
 export const MAX_GEO = 31;
+export const MAX_SPECIALISED_WEIGHTS = 16384;
+export const MAX_SPECIALISED_INPUTS = 64;
 /** Byte offsets inside one `Level` (48 bytes), `Encoding` and `Grid` of the `Model` uniform. */
 export const LEVEL_BYTES = 48;
 export const LEVEL_OFFSETS = { scale: 0, stride: 16, info: 32 };

@@ -1,0 +1,283 @@
+//! MLPs specialised to one model (issue #17): `render.wgsl`'s three MLPs of the per-sample
+//! passes (`proposal_mlp4`, `density_mlp4`, `color_mlp4`, between its two `specialise` lines)
+//! rewritten with the model's weights as constants and every activation a named value.
+//!
+//! # Why
+//! The generic MLPs read each weight from the `rest` storage buffer and each activation from an
+//! indexed private array. A GPU keeps neither in registers, and a software adapter (SwiftShader
+//! in Chromium, lavapipe) turns every such read into a per-lane gather. A model's decoders are
+//! small (the presets' are 2,000-9,000 weights), so the whole of them fits in the shader's code:
+//! straight-line multiply-adds with literal weights, no loads, no loops. The values are the same
+//! as the generic MLPs' up to the float rounding a compiler's contraction may change: each
+//! output is summed over its inputs in order, as on the CPU.
+//!
+//! # The text, and its twin
+//! The page generates the same text in `web/js/specialise.js` from the file it streamed; the
+//! test `tests/web_specialise.rs` runs that script under node and fails when its output differs
+//! from [`specialise_wgsl`]'s by a byte. Weights are written as `bitcast<f32>(0x........u)`:
+//! exact, and the same in both languages without a float formatter (a decimal's shortest
+//! round-trip form differs between them).
+//!
+//! Models whose MLPs hold more than [`MAX_SPECIALISED_WEIGHTS`] weights keep the generic MLPs
+//! (their code would grow past what compilers take in reasonable time).
+
+use crate::layout::GpuModel;
+
+/// The line that opens the replaceable region of `render.wgsl`.
+pub const BEGIN: &str = "// ---- specialise: begin\n";
+/// The line that closes it.
+pub const END: &str = "// ---- specialise: end\n";
+
+/// At most this many MLP weights (proposal, density and colour together) are written into a
+/// shader; larger models keep the generic MLPs.
+pub const MAX_SPECIALISED_WEIGHTS: usize = 16384;
+
+/// Layers with more inputs than this keep the generic MLPs (each output is one expression of
+/// that many terms; every preset's layers have at most 64).
+pub const MAX_SPECIALISED_INPUTS: usize = 64;
+
+/// Why a model's MLPs were not specialised.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum SpecialiseError {
+    #[error("the shader has no `specialise` region")]
+    NoRegion,
+    #[error(
+        "the model's MLPs hold {0} weights; at most {MAX_SPECIALISED_WEIGHTS} are specialised"
+    )]
+    TooLarge(usize),
+    #[error("an MLP layer has {0} inputs; at most {MAX_SPECIALISED_INPUTS} are specialised")]
+    TooWide(usize),
+    #[error("an MLP weight is not finite")]
+    NotFinite,
+    #[error("the parameter buffer's `rest` holds {have} values; the MLPs need {need}")]
+    Short { have: usize, need: usize },
+}
+
+/// The weights the three MLPs of `model` hold.
+pub fn mlp_weights(model: &GpuModel) -> usize {
+    mlp_ranges(model).iter().map(|r| r.len()).sum()
+}
+
+/// Where the three MLPs' weights lie in `rest` (proposal, density, colour).
+pub fn mlp_ranges(model: &GpuModel) -> [std::ops::Range<usize>; 3] {
+    let m = &model.model;
+    let c = m.color;
+    let at = |off: u32, n: u32| off as usize..off as usize + n as usize;
+    [
+        at(m.proposal[0], m.proposal[1] * m.proposal[2] + m.proposal[2]),
+        at(
+            m.density[0],
+            m.density[1] * m.density[2] + m.density[2] * m.density[3],
+        ),
+        at(
+            c[0],
+            (16 + c[3]) * c[1] + c[2].saturating_sub(1) * c[1] * c[1] + c[1] * 3,
+        ),
+    ]
+}
+
+/// `source` (a `render.wgsl`) with its `specialise` region replaced by `model`'s MLPs, their
+/// weights read from `rest` (the parameter buffer's part after the field's tables, as uploaded
+/// to the `rest` binding).
+pub fn specialise_wgsl(
+    source: &str,
+    model: &GpuModel,
+    rest: &[f32],
+) -> Result<String, SpecialiseError> {
+    let begin = source.find(BEGIN).ok_or(SpecialiseError::NoRegion)?;
+    let end = source[begin..]
+        .find(END)
+        .map(|e| begin + e + END.len())
+        .ok_or(SpecialiseError::NoRegion)?;
+    let mlps = specialised_mlps(model, rest)?;
+    let mut out = String::with_capacity(source.len() + mlps.len());
+    out.push_str(&source[..begin]);
+    out.push_str(&mlps);
+    out.push_str(&source[end..]);
+    Ok(out)
+}
+
+/// The region's replacement: the `specialise` lines around the three generated functions.
+///
+/// Each function loops over the invocation's LANES samples and evaluates one sample's MLP per
+/// trip in scalars: `let` values and literal weights, no loads but the inputs. (A first version
+/// kept the LANES samples together in `vec4`s: four times the code, which crashed Chromium's GPU
+/// process on the colour MLP. One sample per trip costs nothing more once no weight is read.)
+pub fn specialised_mlps(model: &GpuModel, rest: &[f32]) -> Result<String, SpecialiseError> {
+    let total = mlp_weights(model);
+    if total > MAX_SPECIALISED_WEIGHTS {
+        return Err(SpecialiseError::TooLarge(total));
+    }
+    let m = &model.model;
+    let c = m.color;
+    let widest = [
+        m.proposal[1],
+        m.proposal[2],
+        m.density[1],
+        m.density[2],
+        16 + c[3],
+        c[1],
+    ]
+    .into_iter()
+    .max()
+    .unwrap_or(0) as usize;
+    if widest > MAX_SPECIALISED_INPUTS {
+        return Err(SpecialiseError::TooWide(widest));
+    }
+    let need = mlp_ranges(model)
+        .into_iter()
+        .map(|r| r.end)
+        .max()
+        .unwrap_or(0);
+    if rest.len() < need {
+        return Err(SpecialiseError::Short {
+            have: rest.len(),
+            need,
+        });
+    }
+    let mut w = Writer {
+        out: String::new(),
+        rest,
+        finite: true,
+    };
+    w.out.push_str(BEGIN);
+    w.out.push_str(
+        "// Generated for one model (msth-gpu specialise.rs, web/js/specialise.js): the MLPs with\n\
+         // its weights as constants, one sample per trip, activations in named values.\n",
+    );
+    // Proposal: in -> hidden (ReLU) -> 1.
+    let (off, nin, hidden) = (
+        m.proposal[0] as usize,
+        m.proposal[1] as usize,
+        m.proposal[2] as usize,
+    );
+    w.out
+        .push_str("fn proposal_mlp4() -> vec4<f32> {\n    var r: vec4<f32>;\n");
+    w.out.push_str(LOOP);
+    w.inputs(nin);
+    w.layer("x", "h", off, nin, hidden, true);
+    w.sum_line(
+        "        r[k] = ",
+        "h",
+        off + nin * hidden,
+        hidden,
+        1,
+        0,
+        ";\n",
+    );
+    w.out.push_str("    }\n    return r;\n}\n\n");
+    // Density: in -> hidden (ReLU) -> 1 + geo, into out4.
+    let (off, nin, hidden, nout) = (
+        m.density[0] as usize,
+        m.density[1] as usize,
+        m.density[2] as usize,
+        m.density[3] as usize,
+    );
+    w.out.push_str("fn density_mlp4() {\n");
+    w.out.push_str(LOOP);
+    w.inputs(nin);
+    w.layer("x", "h", off, nin, hidden, true);
+    for o in 0..nout {
+        w.sum_line(
+            &format!("        out4[{o}][k] = "),
+            "h",
+            off + nin * hidden,
+            hidden,
+            nout,
+            o,
+            ";\n",
+        );
+    }
+    w.out.push_str("    }\n}\n\n");
+    // Colour: 16 + geo -> hidden (ReLU) x layers -> 3, sigmoid.
+    let (mut off, hidden, layers, nin) = (
+        c[0] as usize,
+        c[1] as usize,
+        c[2] as usize,
+        16 + c[3] as usize,
+    );
+    w.out
+        .push_str("fn color_mlp4() -> array<vec4<f32>, 3> {\n    var r: array<vec4<f32>, 3>;\n");
+    w.out.push_str(LOOP);
+    w.inputs(nin);
+    w.layer("x", "a0_", off, nin, hidden, true);
+    off += nin * hidden;
+    for k in 1..layers {
+        let (from, to) = (format!("a{}_", k - 1), format!("a{k}_"));
+        w.layer(&from, &to, off, hidden, hidden, true);
+        off += hidden * hidden;
+    }
+    w.layer(&format!("a{}_", layers - 1), "c", off, hidden, 3, false);
+    w.out.push_str(
+        "        r[0][k] = sigmoid(c0);\n        r[1][k] = sigmoid(c1);\n        r[2][k] = sigmoid(c2);\n",
+    );
+    w.out.push_str("    }\n    return r;\n}\n");
+    w.out.push_str(END);
+    if !w.finite {
+        return Err(SpecialiseError::NotFinite);
+    }
+    Ok(w.out)
+}
+
+/// The loop over an invocation's samples that each function's body sits in.
+const LOOP: &str = "    for (var k = 0u; k < LANES; k++) {\n";
+
+struct Writer<'a> {
+    out: String,
+    rest: &'a [f32],
+    finite: bool,
+}
+
+impl Writer<'_> {
+    /// `let x0 = hid4[0][k];` ... one line.
+    fn inputs(&mut self, n: usize) {
+        self.out.push_str("       ");
+        for i in 0..n {
+            self.out.push_str(&format!(" let x{i} = hid4[{i}][k];"));
+        }
+        self.out.push('\n');
+    }
+
+    /// The weight at `i` of `rest` as a WGSL expression.
+    fn weight(&mut self, i: usize) -> String {
+        let v = self.rest[i];
+        self.finite &= v.is_finite();
+        format!("bitcast<f32>({:#010x}u)", v.to_bits())
+    }
+
+    /// One output of a layer: `prefix` then `in_0 * W[0, o] + in_1 * W[1, o] + ...` (W
+    /// `[nin, nout]` row-major at `off`) then `suffix`. Left to right, as the CPU sums.
+    #[allow(clippy::too_many_arguments)]
+    fn sum_line(
+        &mut self,
+        prefix: &str,
+        input: &str,
+        off: usize,
+        nin: usize,
+        nout: usize,
+        o: usize,
+        suffix: &str,
+    ) {
+        self.out.push_str(prefix);
+        for i in 0..nin {
+            if i > 0 {
+                self.out.push_str(" + ");
+            }
+            let wt = self.weight(off + i * nout + o);
+            self.out.push_str(&format!("{input}{i} * {wt}"));
+        }
+        self.out.push_str(suffix);
+    }
+
+    /// A layer: `let {to}o = max(sum, 0.0);` per output (ReLU), or `let {to}o = sum;`.
+    fn layer(&mut self, from: &str, to: &str, off: usize, nin: usize, nout: usize, relu: bool) {
+        for o in 0..nout {
+            let (pre, post) = if relu {
+                (format!("        let {to}{o} = max("), ", 0.0);\n")
+            } else {
+                (format!("        let {to}{o} = "), ";\n")
+            };
+            self.sum_line(&pre, from, off, nin, nout, o, post);
+        }
+    }
+}

@@ -1,0 +1,163 @@
+//! The page and the native player compile the same specialised MLPs: `web/js/specialise.js`
+//! (run under node by `web/tests/specialise.mjs`, on the page's own decoder and `gpuModel`)
+//! writes byte for byte the text of msth-gpu's `specialise::specialised_mlps` for the same
+//! `.msth` file, and refuses the same models with the same message. Models: the `fast` and
+//! `balanced` presets, three colour layers, one feature per level, and two that are not
+//! specialised (a 128-wide colour layer; more weights than the cap).
+//!
+//! Needs `node`; without it the test is reported as ignored with the reason, unless
+//! `MSTH_REQUIRE_NODE=1` (CI sets `MSTH_REQUIRE_ALL=1`).
+
+use std::path::Path;
+use std::process::Command;
+
+use msth_core::config::{Background, ModelConfig, Preset};
+use msth_core::field::ModelLayout;
+use msth_core::rng::Rng;
+use msth_core::SceneBounds;
+use msth_gpu::specialise::{specialised_mlps, MAX_SPECIALISED_WEIGHTS};
+use msth_gpu::GpuModel;
+use msth_testkit::{Need, Tests};
+
+fn main() -> std::process::ExitCode {
+    let node = Need::program("node", Some("MSTH_NODE"), "node", &["--version"]);
+    Tests::new(file!())
+        .needs(
+            &[&node],
+            "javascript_and_rust_specialise_the_same_text",
+            javascript_and_rust_specialise_the_same_text,
+        )
+        .run()
+}
+
+fn config(name: &str) -> ModelConfig {
+    let preset = if name == "balanced" {
+        Preset::Balanced
+    } else {
+        Preset::Fast
+    };
+    let mut c = ModelConfig::preset(
+        preset,
+        SceneBounds::dnerf_default(),
+        Background::Color { rgb: [1.0; 3] },
+        4,
+    );
+    // Small tables: the file's size does not matter here, only its MLPs.
+    for enc in [&mut c.field.encoding, &mut c.proposal.encoding] {
+        let levels = enc.grid3.levels;
+        enc.resize(levels, 8, 16.0, 8);
+    }
+    match name {
+        "three_layers" => c.field.color_layers = 3,
+        "one_feature" => {
+            c.field.encoding.grid3.features_per_level = 1;
+            c.field.encoding.grid4.features_per_level = 1;
+        }
+        "wide" => {
+            c.field.color_hidden = 128;
+            c.field.color_layers = 1;
+        }
+        "many_weights" => {
+            c.field.color_hidden = 64;
+            c.field.color_layers = 4;
+        }
+        _ => {}
+    }
+    c
+}
+
+fn javascript_and_rust_specialise_the_same_text() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let dir = tempfile::tempdir().unwrap();
+    let mut specialised = 0;
+    for name in [
+        "fast",
+        "balanced",
+        "three_layers",
+        "one_feature",
+        "wide",
+        "many_weights",
+    ] {
+        let cfg = config(name);
+        let layout = ModelLayout::new(&cfg);
+        let mut params = layout.init_params(7);
+        // Weights of every sign and magnitude, zeros and subnormals among them.
+        let mut rng = Rng::new(3);
+        for (i, v) in params.iter_mut().enumerate() {
+            *v = match i % 97 {
+                0 => 0.0,
+                1 => -0.0,
+                2 => 1e-41,
+                _ => rng.range_f32(-2.0, 2.0),
+            };
+        }
+        let cam = msth_core::Camera::look_at(
+            8,
+            8,
+            0.8,
+            glam::Vec3::new(0.0, -4.0, 1.0),
+            glam::Vec3::ZERO,
+            glam::Vec3::Z,
+        );
+        let opts = msth_codec::EncodeOptions {
+            quant: msth_codec::QuantMode::F32,
+            ..Default::default()
+        };
+        let (bytes, _) = msth_codec::encode(&cfg, &params, &[cam], &opts).unwrap();
+        let file = dir.path().join(format!("{name}.msth"));
+        std::fs::write(&file, &bytes).unwrap();
+
+        let decoded = msth_codec::decode_all(&bytes).unwrap();
+        let p = decoded.params_for_time(0.0);
+        let gm = GpuModel::new(&cfg).unwrap();
+        let rust = match specialised_mlps(&gm, &p[gm.split.rest.clone()]) {
+            Ok(text) => {
+                specialised += 1;
+                text
+            }
+            Err(e) => format!("error: {e}\n"),
+        };
+        let out = Command::new("node")
+            .current_dir(&root)
+            .arg("web/tests/specialise.mjs")
+            .arg(&file)
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{name}: node failed:\n{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let js = String::from_utf8(out.stdout).unwrap();
+        if js != rust {
+            let line = js
+                .lines()
+                .zip(rust.lines())
+                .position(|(a, b)| a != b)
+                .unwrap_or(js.lines().count().min(rust.lines().count()));
+            panic!(
+                "{name}: specialise.js and specialise.rs differ from line {} on:\njs:   {}\nrust: {}",
+                line + 1,
+                js.lines().nth(line).unwrap_or("(end)"),
+                rust.lines().nth(line).unwrap_or("(end)")
+            );
+        }
+        let what = if rust.starts_with("error: ") {
+            rust.trim_end().to_string()
+        } else {
+            format!("{} bytes of WGSL", rust.len())
+        };
+        println!("{name}: the same in both languages ({what})");
+        match name {
+            "wide" => assert!(rust.contains("at most 64 are specialised"), "{rust}"),
+            "many_weights" => assert!(
+                rust.contains(&format!(
+                    "at most {MAX_SPECIALISED_WEIGHTS} are specialised"
+                )),
+                "{rust}"
+            ),
+            _ => assert!(!rust.starts_with("error: "), "{name}: {rust}"),
+        }
+    }
+    assert_eq!(specialised, 4);
+}

@@ -1,0 +1,127 @@
+// MLPs specialised to one model: `render.wgsl`'s three MLPs of the per-sample passes
+// (`proposal_mlp4`, `density_mlp4`, `color_mlp4`, between its two `specialise` lines) rewritten
+// with the model's weights as constants and every activation a named value, so that SwiftShader
+// runs them without a per-lane gather for each weight and activation read.
+//
+// The twin of msth-gpu's `gpu/src/specialise.rs`, which documents why: this file must write the
+// same text byte for byte, and `tests/tests/web_specialise.rs` runs `web/tests/specialise.mjs`
+// under node to check that it does. Weights are written as `bitcast<f32>(0x........u)` (exact,
+// and the same in both languages).
+
+import { MAX_SPECIALISED_INPUTS, MAX_SPECIALISED_WEIGHTS } from "./generated/contract.js";
+
+export const BEGIN = "// ---- specialise: begin\n";
+export const END = "// ---- specialise: end\n";
+
+// The limits (generated from specialise.rs): at most MAX_SPECIALISED_WEIGHTS weights are written
+// into a shader, and no layer may have more than MAX_SPECIALISED_INPUTS inputs.
+
+/**
+ * Where the three MLPs' weights lie in `rest` (offsets relative to it): `[start, end]` of the
+ * proposal, density and colour MLPs. `m` holds the `Model` uniform's rows: `proposal` (offset,
+ * inputs, hidden), `density` (offset, inputs, hidden, outputs), `color` (offset, hidden, layers,
+ * geo features).
+ */
+export function mlpRanges(m) {
+  const [po, pi, ph] = m.proposal;
+  const [dof, di, dh, dout] = m.density;
+  const [co, ch, cl, geo] = m.color;
+  return [
+    [po, po + pi * ph + ph],
+    [dof, dof + di * dh + dh * dout],
+    [co, co + (16 + geo) * ch + Math.max(cl - 1, 0) * ch * ch + ch * 3],
+  ];
+}
+
+/** The weights of the three MLPs. */
+export const mlpWeights = (m) => mlpRanges(m).reduce((n, [a, b]) => n + b - a, 0);
+
+/**
+ * The replacement of the `specialise` region for model `m` (as `mlpRanges`) whose `rest` values
+ * (a Float32Array: the parameter buffer from the end of the field's tables) are given: each
+ * function loops over the invocation's LANES samples, one sample's MLP per trip in scalars.
+ * Throws an Error saying why a model is not specialised.
+ */
+export function specialisedMlps(m, rest) {
+  const total = mlpWeights(m);
+  if (total > MAX_SPECIALISED_WEIGHTS) {
+    throw new Error(`the model's MLPs hold ${total} weights; at most ${MAX_SPECIALISED_WEIGHTS} are specialised`);
+  }
+  const widest = Math.max(m.proposal[1], m.proposal[2], m.density[1], m.density[2], 16 + m.color[3], m.color[1]);
+  if (widest > MAX_SPECIALISED_INPUTS) throw new Error(`an MLP layer has ${widest} inputs; at most ${MAX_SPECIALISED_INPUTS} are specialised`);
+  const need = Math.max(...mlpRanges(m).map(([, b]) => b));
+  if (rest.length < need) throw new Error(`the parameter buffer's \`rest\` holds ${rest.length} values; the MLPs need ${need}`);
+  const bits = new Uint32Array(rest.buffer, rest.byteOffset, rest.length);
+  const parts = [];
+  let finite = true;
+  const weight = (i) => {
+    finite &&= Number.isFinite(rest[i]);
+    return `bitcast<f32>(0x${bits[i].toString(16).padStart(8, "0")}u)`;
+  };
+  const inputs = (n) => {
+    let line = "       ";
+    for (let i = 0; i < n; i++) line += ` let x${i} = hid4[${i}][k];`;
+    parts.push(line + "\n");
+  };
+  // One output: `prefix` then in_0 * W[0, o] + in_1 * W[1, o] + ... (W [nin, nout] row-major at
+  // `off`), then `suffix`; left to right, as the CPU sums.
+  const sumLine = (prefix, input, off, nin, nout, o, suffix) => {
+    const terms = [];
+    for (let i = 0; i < nin; i++) terms.push(`${input}${i} * ${weight(off + i * nout + o)}`);
+    parts.push(prefix + terms.join(" + ") + suffix);
+  };
+  const layer = (from, to, off, nin, nout, relu) => {
+    for (let o = 0; o < nout; o++) {
+      if (relu) sumLine(`        let ${to}${o} = max(`, from, off, nin, nout, o, ", 0.0);\n");
+      else sumLine(`        let ${to}${o} = `, from, off, nin, nout, o, ";\n");
+    }
+  };
+  const LOOP = "    for (var k = 0u; k < LANES; k++) {\n";
+  parts.push(BEGIN);
+  parts.push(
+    "// Generated for one model (msth-gpu specialise.rs, web/js/specialise.js): the MLPs with\n" +
+      "// its weights as constants, one sample per trip, activations in named values.\n",
+  );
+  {
+    const [off, nin, hidden] = m.proposal;
+    parts.push("fn proposal_mlp4() -> vec4<f32> {\n    var r: vec4<f32>;\n", LOOP);
+    inputs(nin);
+    layer("x", "h", off, nin, hidden, true);
+    sumLine("        r[k] = ", "h", off + nin * hidden, hidden, 1, 0, ";\n");
+    parts.push("    }\n    return r;\n}\n\n");
+  }
+  {
+    const [off, nin, hidden, nout] = m.density;
+    parts.push("fn density_mlp4() {\n", LOOP);
+    inputs(nin);
+    layer("x", "h", off, nin, hidden, true);
+    for (let o = 0; o < nout; o++) sumLine(`        out4[${o}][k] = `, "h", off + nin * hidden, hidden, nout, o, ";\n");
+    parts.push("    }\n}\n\n");
+  }
+  {
+    let [off, hidden, layers, geo] = m.color;
+    const nin = 16 + geo;
+    parts.push("fn color_mlp4() -> array<vec4<f32>, 3> {\n    var r: array<vec4<f32>, 3>;\n", LOOP);
+    inputs(nin);
+    layer("x", "a0_", off, nin, hidden, true);
+    off += nin * hidden;
+    for (let k = 1; k < layers; k++) {
+      layer(`a${k - 1}_`, `a${k}_`, off, hidden, hidden, true);
+      off += hidden * hidden;
+    }
+    layer(`a${layers - 1}_`, "c", off, hidden, 3, false);
+    parts.push("        r[0][k] = sigmoid(c0);\n        r[1][k] = sigmoid(c1);\n        r[2][k] = sigmoid(c2);\n");
+    parts.push("    }\n    return r;\n}\n");
+  }
+  parts.push(END);
+  if (!finite) throw new Error("an MLP weight is not finite");
+  return parts.join("");
+}
+
+/** `source` (a `render.wgsl`) with its `specialise` region replaced (`specialisedMlps`). */
+export function specialiseWgsl(source, m, rest) {
+  const begin = source.indexOf(BEGIN);
+  const endAt = begin < 0 ? -1 : source.indexOf(END, begin);
+  if (endAt < 0) throw new Error("the shader has no `specialise` region");
+  return source.slice(0, begin) + specialisedMlps(m, rest) + source.slice(endAt + END.length);
+}
