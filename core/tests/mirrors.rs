@@ -5,8 +5,8 @@
 //!
 //! | copy | mirrors |
 //! |---|---|
-//! | `gpu/shaders/render.wgsl`, `encode`: `k3`, `k4` per blend code | `BlendMode::coefficients` |
-//! | `gpu/shaders/render.wgsl`, `encode`: `skip4` | `BlendMode::is_dynamic` |
+//! | `gpu/shaders/render.wgsl`, `blend_of` (used by `encode` and the specialised encodings): `k3`, `k4` per blend code | `BlendMode::coefficients` |
+//! | `gpu/shaders/render.wgsl`, `blend_of`: `skip4` | `BlendMode::is_dynamic` |
 //! | `gpu/src/layout.rs`: `consts.x` of the encoding uniform | `BlendMode::no_mask_value` |
 //! | `web/js/renderer.js`: `noMask` | `BlendMode::no_mask_value` |
 //! | `web/js/renderer.js`: `RENDER_STATIC_CUTOFF` | `pipeline::RENDER_STATIC_CUTOFF` |

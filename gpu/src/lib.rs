@@ -6,8 +6,8 @@
 //!   and one model's buffers on the device;
 //! - [`passes`]: rendering through per-sample passes over compacted work lists (frames, probes,
 //!   and the sample cache of incremental playback);
-//! - [`specialise`]: the passes' three MLPs rewritten for one model, its weights as constants
-//!   (the page writes the same text in `web/js/specialise.js`);
+//! - [`specialise`]: the passes' encodings and MLPs rewritten for one model, its level values
+//!   and weights as constants (the page writes the same text in `web/js/specialise.js`);
 //! - [`layout`]: the render kernels' uniforms and parameter-buffer split, byte for byte;
 //! - [`device`]: a compute device for the training kernels (f32 atomics when the adapter has
 //!   them), buffers, dispatches, read-back;

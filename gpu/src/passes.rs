@@ -152,13 +152,14 @@ pub(crate) struct LivePipelines {
     samples: wgpu::ComputePipeline,
 }
 
-/// The three passes that run MLPs, compiled from a `render.wgsl` whose MLPs were specialised
-/// to one model (`crate::specialise`); a [`GpuScene`] that has them uses them instead of the
-/// context's generic ones.
+/// The passes that evaluate fields, compiled from a `render.wgsl` whose `specialise` region was
+/// written for one model (`crate::specialise`); a [`GpuScene`] that has them uses them instead
+/// of the context's generic ones.
 pub(crate) struct MlpPipelines {
     proposal: wgpu::ComputePipeline,
     density: wgpu::ComputePipeline,
     color: wgpu::ComputePipeline,
+    dynamic: wgpu::ComputePipeline,
 }
 
 impl MlpPipelines {
@@ -167,12 +168,14 @@ impl MlpPipelines {
             proposal: pipeline("pass_proposal"),
             density: pipeline("pass_density"),
             color: pipeline("pass_color"),
+            dynamic: pipeline("pass_dynamic"),
         }
     }
 }
 
 impl Pipelines {
-    /// `(proposal, density, colour)`: `scene`'s specialised pipelines, or the generic ones.
+    /// `(proposal, density, colour, dynamic)`: `scene`'s specialised pipelines, or the
+    /// generic ones.
     fn mlps<'a>(
         &'a self,
         scene: &'a GpuScene,
@@ -180,10 +183,11 @@ impl Pipelines {
         &'a wgpu::ComputePipeline,
         &'a wgpu::ComputePipeline,
         &'a wgpu::ComputePipeline,
+        &'a wgpu::ComputePipeline,
     ) {
         match &scene.mlps {
-            Some(m) => (&m.proposal, &m.density, &m.color),
-            None => (&self.proposal, &self.density, &self.color),
+            Some(m) => (&m.proposal, &m.density, &m.color, &m.dynamic),
+            None => (&self.proposal, &self.density, &self.color, &self.dynamic),
         }
     }
 }
@@ -464,7 +468,7 @@ impl GpuContext {
         );
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
         let p = &self.passes;
-        let (proposal, density, color) = p.mlps(scene);
+        let (proposal, density, color, _) = p.mlps(scene);
         // MSTH_GPU_PASS_PROFILE=1: every dispatch its own submission, timed, and the counters
         // (rays, colour list, live samples) summed over the batches (stderr).
         let profile = std::env::var("MSTH_GPU_PASS_PROFILE").as_deref() == Ok("1");
@@ -724,7 +728,7 @@ impl GpuContext {
                 cp.dispatch_workgroups_indirect(&cache.args, at);
             };
             sizes(&mut cp);
-            ind(&mut cp, &p.dynamic, ARGS_DYNAMIC);
+            ind(&mut cp, p.mlps(scene).3, ARGS_DYNAMIC);
             ind(&mut cp, &p.visible, ARGS_RAYS);
             sizes(&mut cp);
             ind(&mut cp, p.mlps(scene).2, ARGS_COLOR);

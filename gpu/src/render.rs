@@ -178,7 +178,7 @@ pub struct GpuContext {
     /// The per-sample passes' pipelines ([`crate::passes`]).
     pub(crate) passes: crate::passes::Pipelines,
     /// The layout every kernel uses, and the WGSL the kernels were compiled from (for the
-    /// pipelines of specialised MLPs, [`GpuScene::specialise`]).
+    /// pipelines of the kernels specialised to a model, [`GpuScene::specialise`]).
     pipeline_layout: wgpu::PipelineLayout,
     source: String,
     /// Bound at bindings 7-10 by the per-ray kernels, which use none of them.
@@ -555,7 +555,7 @@ pub struct GpuScene {
     pub(crate) occupancy_resolution: u32,
     /// The parameters last uploaded (to notice a new chunk).
     uploaded: Vec<f32>,
-    /// The passes that run MLPs, specialised to this scene's MLPs ([`GpuScene::specialise`]);
+    /// The passes that evaluate fields, specialised to this scene ([`GpuScene::specialise`]);
     /// `None`: the context's generic ones.
     pub(crate) mlps: Option<crate::passes::MlpPipelines>,
 }
@@ -623,11 +623,12 @@ impl GpuScene {
         Ok(())
     }
 
-    /// Compiles the passes that run MLPs with this scene's MLP weights as constants
-    /// ([`crate::specialise`]), which the frames then use. `Ok(Err(why))`: the model's MLPs
-    /// are not specialised (too large, or a weight is not finite) and the generic passes stay;
-    /// `Ok(Ok(seconds))`: the time it took to compile them. New MLP weights ([`GpuScene::update`])
-    /// drop them again.
+    /// Compiles the passes that evaluate fields (`pass_proposal`, `pass_density`, `pass_color`,
+    /// and `pass_dynamic` of the sample cache) with this scene's level values and MLP weights as
+    /// constants ([`crate::specialise`]), which the frames then use. `Ok(Err(why))`: the model
+    /// is not specialised (MLPs too large, or a weight is not finite) and the generic passes
+    /// stay; `Ok(Ok(seconds))`: the time it took to create them (a driver may compile later, at
+    /// the first dispatch: lavapipe does). New MLP weights ([`GpuScene::update`]) drop them again.
     pub fn specialise(
         &mut self,
         ctx: &GpuContext,
@@ -642,7 +643,7 @@ impl GpuScene {
         let module = ctx
             .device
             .create_shader_module(wgpu::ShaderModuleDescriptor {
-                label: Some("render.wgsl, specialised MLPs"),
+                label: Some("render.wgsl, specialised to the model"),
                 source: wgpu::ShaderSource::Wgsl(source.into()),
             });
         let mlps = crate::passes::MlpPipelines::new(|entry| {
@@ -669,7 +670,7 @@ impl GpuScene {
         self.mlps = None;
     }
 
-    /// Whether the frames use MLPs specialised to this scene ([`GpuScene::specialise`]).
+    /// Whether the frames use passes specialised to this scene ([`GpuScene::specialise`]).
     pub fn is_specialised(&self) -> bool {
         self.mlps.is_some()
     }

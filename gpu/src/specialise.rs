@@ -1,25 +1,37 @@
-//! MLPs specialised to one model (issue #17): `render.wgsl`'s three MLPs of the per-sample
-//! passes (`proposal_mlp4`, `density_mlp4`, `color_mlp4`, between its two `specialise` lines)
-//! rewritten with the model's weights as constants and every activation a named value.
+//! Kernels specialised to one model (issue #17): the region of `render.wgsl` between its two
+//! `specialise` lines, which holds the per-sample passes' encodings (`encode_field4`,
+//! `encode_proposal4`) and MLPs (`proposal_mlp4`, `density_mlp4`, `color_mlp4`), rewritten with
+//! the model's level values and MLP weights as constants.
 //!
 //! # Why
-//! The generic MLPs read each weight from the `rest` storage buffer and each activation from an
-//! indexed private array. A GPU keeps neither in registers, and a software adapter (SwiftShader
-//! in Chromium, lavapipe) turns every such read into a per-lane gather. A model's decoders are
-//! small (the presets' are 2,000-9,000 weights), so the whole of them fits in the shader's code:
-//! straight-line multiply-adds with literal weights, no loads, no loops. The values are the same
-//! as the generic MLPs' up to the float rounding a compiler's contraction may change: each
+//! The generic versions read each level's scale, strides and offset from the `Model` uniform at
+//! an index that changes with the level, each weight from the `rest` storage buffer and each
+//! activation from an indexed private array. A software adapter (SwiftShader in Chromium,
+//! lavapipe) turns each such read into a per-lane gather, and a GPU keeps neither weights nor
+//! indexed arrays in registers. A model's decoders are small (the presets' hold 6,000-9,500
+//! weights) and the same in every frame and chunk of a file, so they fit in the shader's code:
+//! - **encodings**: the level loop unrolled, each level's uniform row a literal `Level(...)`
+//!   passed to `grid_level_at`, so the compiler folds the dense/hashed and 3D/4D choices and
+//!   the feature loop; the features go straight into lane `k` of `hid4`;
+//! - **MLPs**: a loop over the invocation's LANES samples whose body is one sample's MLP in
+//!   named scalars, weights as literals: no loads but the inputs. (A first version kept the
+//!   four samples together in `vec4`s, as the generic MLPs do to share each weight read: four
+//!   times the code, which crashed Chromium's GPU process compiling the colour MLP.)
+//!
+//! The values are the generic kernels' (the frames on lavapipe are bit-identical): each MLP
 //! output is summed over its inputs in order, as on the CPU.
 //!
 //! # The text, and its twin
 //! The page generates the same text in `web/js/specialise.js` from the file it streamed; the
 //! test `tests/web_specialise.rs` runs that script under node and fails when its output differs
-//! from [`specialise_wgsl`]'s by a byte. Weights are written as `bitcast<f32>(0x........u)`:
-//! exact, and the same in both languages without a float formatter (a decimal's shortest
-//! round-trip form differs between them).
+//! from [`specialised_region`]'s by a byte. Numbers are written as hexadecimal words
+//! (`bitcast<f32>(0x........u)`, `vec4<u32>(0x........u, ...)`): exact, and the same in both
+//! languages without a float formatter (a decimal's shortest round-trip form differs between
+//! them).
 //!
-//! Models whose MLPs hold more than [`MAX_SPECIALISED_WEIGHTS`] weights keep the generic MLPs
-//! (their code would grow past what compilers take in reasonable time).
+//! Models whose MLPs hold more than [`MAX_SPECIALISED_WEIGHTS`] weights, or with a layer of more
+//! than [`MAX_SPECIALISED_INPUTS`] inputs, keep the generic region (their code would grow past
+//! what compilers take in reasonable time).
 
 use crate::layout::GpuModel;
 
@@ -36,7 +48,7 @@ pub const MAX_SPECIALISED_WEIGHTS: usize = 16384;
 /// that many terms; every preset's layers have at most 64).
 pub const MAX_SPECIALISED_INPUTS: usize = 64;
 
-/// Why a model's MLPs were not specialised.
+/// Why a model's kernels were not specialised.
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
 pub enum SpecialiseError {
     #[error("the shader has no `specialise` region")]
@@ -76,9 +88,9 @@ pub fn mlp_ranges(model: &GpuModel) -> [std::ops::Range<usize>; 3] {
     ]
 }
 
-/// `source` (a `render.wgsl`) with its `specialise` region replaced by `model`'s MLPs, their
-/// weights read from `rest` (the parameter buffer's part after the field's tables, as uploaded
-/// to the `rest` binding).
+/// `source` (a `render.wgsl`) with its `specialise` region replaced by [`specialised_region`]:
+/// `model`'s encodings and MLPs, the weights read from `rest` (the parameter buffer's part after
+/// the field's tables, as uploaded to the `rest` binding).
 pub fn specialise_wgsl(
     source: &str,
     model: &GpuModel,
@@ -89,7 +101,7 @@ pub fn specialise_wgsl(
         .find(END)
         .map(|e| begin + e + END.len())
         .ok_or(SpecialiseError::NoRegion)?;
-    let mlps = specialised_mlps(model, rest)?;
+    let mlps = specialised_region(model, rest)?;
     let mut out = String::with_capacity(source.len() + mlps.len());
     out.push_str(&source[..begin]);
     out.push_str(&mlps);
@@ -97,13 +109,9 @@ pub fn specialise_wgsl(
     Ok(out)
 }
 
-/// The region's replacement: the `specialise` lines around the three generated functions.
-///
-/// Each function loops over the invocation's LANES samples and evaluates one sample's MLP per
-/// trip in scalars: `let` values and literal weights, no loads but the inputs. (A first version
-/// kept the LANES samples together in `vec4`s: four times the code, which crashed Chromium's GPU
-/// process on the colour MLP. One sample per trip costs nothing more once no weight is read.)
-pub fn specialised_mlps(model: &GpuModel, rest: &[f32]) -> Result<String, SpecialiseError> {
+/// The region's replacement: the `specialise` lines around the five generated functions (the
+/// two encodings, then the three MLPs; see the module's documentation).
+pub fn specialised_region(model: &GpuModel, rest: &[f32]) -> Result<String, SpecialiseError> {
     let total = mlp_weights(model);
     if total > MAX_SPECIALISED_WEIGHTS {
         return Err(SpecialiseError::TooLarge(total));
@@ -142,9 +150,11 @@ pub fn specialised_mlps(model: &GpuModel, rest: &[f32]) -> Result<String, Specia
     };
     w.out.push_str(BEGIN);
     w.out.push_str(
-        "// Generated for one model (msth-gpu specialise.rs, web/js/specialise.js): the MLPs with\n\
-         // its weights as constants, one sample per trip, activations in named values.\n",
+        "// Generated for one model (msth-gpu specialise.rs, web/js/specialise.js): the encodings\n\
+         // with every level's values as constants, the MLPs with the weights as constants.\n",
     );
+    w.encoding("encode_field4", &m.field, m, [0, 1], true);
+    w.encoding("encode_proposal4", &m.prop, m, [2, 2], false);
     // Proposal: in -> hidden (ReLU) -> 1.
     let (off, nin, hidden) = (
         m.proposal[0] as usize,
@@ -222,6 +232,14 @@ pub fn specialised_mlps(model: &GpuModel, rest: &[f32]) -> Result<String, Specia
 /// The loop over an invocation's samples that each function's body sits in.
 const LOOP: &str = "    for (var k = 0u; k < LANES; k++) {\n";
 
+/// `vec4<u32>(0x........u, ...)`.
+fn words(w: [u32; 4]) -> String {
+    format!(
+        "vec4<u32>({:#010x}u, {:#010x}u, {:#010x}u, {:#010x}u)",
+        w[0], w[1], w[2], w[3]
+    )
+}
+
 struct Writer<'a> {
     out: String,
     rest: &'a [f32],
@@ -229,6 +247,79 @@ struct Writer<'a> {
 }
 
 impl Writer<'_> {
+    /// An encoding function (`encode_field4`, `encode_proposal4`): `encode` with every level's
+    /// uniform values written as constants, the level loop unrolled, the features stored straight
+    /// into lane `k` of `hid4`. `buffers`: the tables' binding numbers, as at `encode`'s call
+    /// sites; `returns`: whether it returns the mask value.
+    fn encoding(
+        &mut self,
+        name: &str,
+        e: &crate::layout::EncodingU,
+        m: &crate::layout::ModelU,
+        buffers: [u32; 2],
+        returns: bool,
+    ) {
+        let o = &mut self.out;
+        let uniform = if name == "encode_field4" {
+            "field"
+        } else {
+            "prop"
+        };
+        o.push_str(&format!(
+            "fn {name}(p: vec4<f32>, cutoff: f32, k: u32){} {{\n",
+            if returns { " -> f32" } else { "" }
+        ));
+        o.push_str(&format!(
+            "    let e = model.{uniform};\n    let m = mask_at(e, p.xyz);\n    let b = blend_of(e, m, cutoff);\n"
+        ));
+        o.push_str(
+            "    let z = Feat(vec4<f32>(0.0), vec4<f32>(0.0));\n    var f3 = z;\n    var f4 = z;\n",
+        );
+        let grids = [
+            (&e.h3, "f3", "b.z", buffers[0]),
+            (&e.h4, "f4", "b.w", buffers[1]),
+        ];
+        let shape = if e.h3.loc[2] == 1 {
+            e.h3.shape
+        } else {
+            e.h4.shape
+        };
+        let (nf, levels) = (shape[1], shape[2]);
+        for l in 0..levels {
+            o.push_str(&format!("    // level {l}\n"));
+            for (g, f, on, buf) in grids {
+                if g.loc[2] != 1 {
+                    continue;
+                }
+                let lv = &m.levels[(g.loc[1] + l) as usize];
+                o.push_str(&format!(
+                    "    {f} = z;\n    if {on} != 0.0 {{ {f} = grid_level_at(Level(bitcast<vec4<f32>>({}), {}, {}), {}, p, {buf}u); }}\n",
+                    words(lv.scale.map(f32::to_bits)),
+                    words(lv.stride),
+                    words(lv.info),
+                    words(g.shape)
+                ));
+            }
+            o.push_str(&format!("    let va{l} = b.x * f3.a + b.y * f4.a;\n"));
+            if nf > 2 {
+                o.push_str(&format!("    let vb{l} = b.x * f3.b + b.y * f4.b;\n"));
+            }
+            for f in 0..nf {
+                let (v, c) = if f < 4 { ("va", f) } else { ("vb", f - 4) };
+                o.push_str(&format!(
+                    "    hid4[{}][k] = {v}{l}.{};\n",
+                    l * nf + f,
+                    ["x", "y", "z", "w"][c as usize]
+                ));
+            }
+        }
+        o.push_str(if returns {
+            "    return m;\n}\n\n"
+        } else {
+            "}\n\n"
+        });
+    }
+
     /// `let x0 = hid4[0][k];` ... one line.
     fn inputs(&mut self, n: usize) {
         self.out.push_str("       ");

@@ -13,9 +13,10 @@
 //! for large frames; `MSTH_BENCH_OLD_WGSL=FILE` compiles the old kernel from another version of
 //! `render.wgsl`, e.g. `git show a04e488:gpu/shaders/render.wgsl`, the kernels before the
 //! per-sample passes were optimised, and `MSTH_BENCH_OLD_KERNELS=passes` times that file's
-//! per-sample passes instead of its per-ray kernel, `MSTH_BENCH_OLD_KERNELS=generic` the passes
-//! with generic MLPs (weights read from the parameter buffer) against the new passes' MLPs
-//! compiled for the model (`msth_gpu::specialise`; the first new frame includes compiling them); `MSTH_BENCH_SKIP_INCREMENTAL=1` stops after the full
+//! per-sample passes instead of its per-ray kernel, `MSTH_BENCH_OLD_KERNELS=generic` the generic
+//! passes (level values and weights read from buffers) against the passes compiled for the model
+//! (`msth_gpu::specialise`; lavapipe compiles at the first dispatch, so the first new frame
+//! includes compiling them); `MSTH_BENCH_SKIP_INCREMENTAL=1` stops after the full
 //! frames). A file's occupancy grid is used by every renderer (CPU and GPU, as `msth play`
 //! does; `MSTH_BENCH_NO_SKIP=1` turns it off), and the CPU frame without it is the quality
 //! reference printed beside. Timings include the read-back of the frame; "cpu" is this process's CPU time over
@@ -158,7 +159,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     if std::env::var("MSTH_BENCH_SKIP_PER_RAY").as_deref() != Ok("1") {
         let (kernels, what) = match std::env::var("MSTH_BENCH_OLD_KERNELS").as_deref() {
             Ok("passes") => (GpuKernels::PerSample, "per-sample passes"),
-            Ok("generic") => (GpuKernels::PerSample, "passes, generic MLPs"),
+            Ok("generic") => (GpuKernels::PerSample, "passes, generic kernels"),
             _ => (GpuKernels::PerRay, "per-ray kernel"),
         };
         match GpuRenderer::with_kernels(ctx, &cfg, full, kernels) {

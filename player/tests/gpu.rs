@@ -59,8 +59,8 @@ fn main() -> std::process::ExitCode {
         )
         .needs(
             &[&gpu],
-            "specialised_and_generic_mlps_render_the_same_frames",
-            specialised_and_generic_mlps_render_the_same_frames,
+            "specialised_and_generic_kernels_render_the_same_frames",
+            specialised_and_generic_kernels_render_the_same_frames,
         )
         .needs(
             &[&gpu],
@@ -687,11 +687,12 @@ fn balanced_preset_frames_match_the_cpu_full_and_incremental() {
     }
 }
 
-/// The passes' MLPs compiled for the model (`msth_gpu::specialise`, the default) and the generic
-/// ones render the same frames as the CPU, full and incremental (the sample cache's dynamic
-/// samples go through `density_mlp4` too); a model outside the specialiser's limits keeps the
-/// generic passes and says why; new MLP weights are compiled anew, not rendered with the old.
-fn specialised_and_generic_mlps_render_the_same_frames() {
+/// The passes compiled for the model (`msth_gpu::specialise`: encodings and MLPs, the default)
+/// and the generic ones render the same frames as the CPU, full and incremental (the sample
+/// cache's dynamic samples go through them too), for every blend; a model outside the
+/// specialiser's limits keeps the generic passes and says why; new MLP weights are compiled
+/// anew, not rendered with the old.
+fn specialised_and_generic_kernels_render_the_same_frames() {
     let cfg = ModelConfig::preset(
         Preset::Balanced,
         SceneBounds::dnerf_default(),
@@ -735,7 +736,7 @@ fn specialised_and_generic_mlps_render_the_same_frames() {
     assert!(spec
         .mlp_status()
         .to_string()
-        .starts_with("MLPs compiled for this model"));
+        .starts_with("kernels compiled for this model"));
 
     // Another model's MLP weights on the same renderer (the same layout): compiled anew.
     let mut other = params.clone();
@@ -762,6 +763,38 @@ fn specialised_and_generic_mlps_render_the_same_frames() {
     assert!(psnr(&first, &b) < 40.0);
     assert!(matches!(spec.mlp_status(), MlpStatus::Specialised(_)));
 
+    // Every blend (the specialised encodings drop the lookups a blend does not make), and one
+    // feature per level.
+    for blend in BlendMode::ALL {
+        let counts: &[usize] = if blend == BlendMode::Mst {
+            &[2, 1]
+        } else {
+            &[2]
+        };
+        for &features in counts {
+            let mut c = config(blend);
+            small(&mut c);
+            for g in [&mut c.field.encoding.grid3, &mut c.field.encoding.grid4] {
+                g.features_per_level = features;
+            }
+            let layout = ModelLayout::new(&c);
+            let mut params = random_params(&layout, 9);
+            if layout.field.encoding.mask.is_some() {
+                centre_dynamic(&c, &mut params);
+            }
+            let mut gpu = GpuRenderer::new(context(), &c, full).unwrap();
+            let b = gpu.render(&cam, 0.5, &params).unwrap();
+            let a = Renderer::new(&c, full).render(&cam, 0.5, &params);
+            println!(
+                "{blend:?}, {features} feature(s) per level: {:.1} dB against the CPU; {}",
+                psnr(&a, &b),
+                gpu.mlp_status()
+            );
+            assert!(psnr(&a, &b) >= 40.0, "{blend:?}");
+            assert!(matches!(gpu.mlp_status(), MlpStatus::Specialised(_)));
+        }
+    }
+
     // A colour layer of 128 inputs: the generic passes, and the reason.
     let mut wide = config(BlendMode::Mst);
     small(&mut wide);
@@ -779,7 +812,7 @@ fn specialised_and_generic_mlps_render_the_same_frames() {
     );
     assert_eq!(
         status,
-        "generic MLPs (an MLP layer has 128 inputs; at most 64 are specialised)"
+        "generic kernels (an MLP layer has 128 inputs; at most 64 are specialised)"
     );
     assert!(psnr(&a, &b) >= 40.0);
 }

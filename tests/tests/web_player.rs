@@ -4,7 +4,7 @@
 //! Range requests, decodes it in JavaScript and renders it with WebGPU (SwiftShader) using the
 //! native renderer's WGSL. The page's frames must match `msth play` of the same camera and time
 //! (PSNR >= 35 dB), for a `balanced`-preset model as well, also with the samples menu at
-//! `faster` against `msth play --samples faster`, and with its MLPs compiled for the model as
+//! `faster` against `msth play --samples faster`, and with its kernels compiled for the model as
 //! with the generic ones (`?mlp=generic`); dragging must orbit; scrubbing must
 //! change the dynamic pixels and not the static ones, re-rendering only the dynamic pixels once
 //! the static cache is built; without WebGPU the page must say so. The JavaScript decoder is also checked

@@ -1,9 +1,11 @@
-//! The page and the native player compile the same specialised MLPs: `web/js/specialise.js`
+//! The page and the native player compile the same specialised kernels (encodings and MLPs
+//! written for one model): `web/js/specialise.js`
 //! (run under node by `web/tests/specialise.mjs`, on the page's own decoder and `gpuModel`)
-//! writes byte for byte the text of msth-gpu's `specialise::specialised_mlps` for the same
+//! writes byte for byte the text of msth-gpu's `specialise::specialised_region` for the same
 //! `.msth` file, and refuses the same models with the same message. Models: the `fast` and
-//! `balanced` presets, three colour layers, one feature per level, and two that are not
-//! specialised (a 128-wide colour layer; more weights than the cap).
+//! `balanced` presets, three colour layers, one feature per level, the static, 4D-only and
+//! additive blends, and two that are not specialised (a 128-wide colour layer; more weights than
+//! the cap).
 //!
 //! Needs `node`; without it the test is reported as ignored with the reason, unless
 //! `MSTH_REQUIRE_NODE=1` (CI sets `MSTH_REQUIRE_ALL=1`).
@@ -15,7 +17,7 @@ use msth_core::config::{Background, ModelConfig, Preset};
 use msth_core::field::ModelLayout;
 use msth_core::rng::Rng;
 use msth_core::SceneBounds;
-use msth_gpu::specialise::{specialised_mlps, MAX_SPECIALISED_WEIGHTS};
+use msth_gpu::specialise::{specialised_region, MAX_SPECIALISED_WEIGHTS};
 use msth_gpu::GpuModel;
 use msth_testkit::{Need, Tests};
 
@@ -53,6 +55,9 @@ fn config(name: &str) -> ModelConfig {
             c.field.encoding.grid3.features_per_level = 1;
             c.field.encoding.grid4.features_per_level = 1;
         }
+        "static" => c.field.encoding.blend = msth_core::config::BlendMode::Static,
+        "four_d" => c.field.encoding.blend = msth_core::config::BlendMode::FourD,
+        "add" => c.field.encoding.blend = msth_core::config::BlendMode::Add,
         "wide" => {
             c.field.color_hidden = 128;
             c.field.color_layers = 1;
@@ -75,6 +80,9 @@ fn javascript_and_rust_specialise_the_same_text() {
         "balanced",
         "three_layers",
         "one_feature",
+        "static",
+        "four_d",
+        "add",
         "wide",
         "many_weights",
     ] {
@@ -110,7 +118,7 @@ fn javascript_and_rust_specialise_the_same_text() {
         let decoded = msth_codec::decode_all(&bytes).unwrap();
         let p = decoded.params_for_time(0.0);
         let gm = GpuModel::new(&cfg).unwrap();
-        let rust = match specialised_mlps(&gm, &p[gm.split.rest.clone()]) {
+        let rust = match specialised_region(&gm, &p[gm.split.rest.clone()]) {
             Ok(text) => {
                 specialised += 1;
                 text
@@ -159,5 +167,5 @@ fn javascript_and_rust_specialise_the_same_text() {
             _ => assert!(!rust.starts_with("error: "), "{name}: {rust}"),
         }
     }
-    assert_eq!(specialised, 4);
+    assert_eq!(specialised, 7);
 }

@@ -286,8 +286,9 @@ async function main() {
     (fallback && params.get("samples") === null ? `; this GPU is a software one, so the page started at fast.` : ".");
   const withSamples = (cfg, [p, m]) => ({ ...cfg, sampler: { ...cfg.sampler, num_proposal_samples: p, num_samples: m } });
 
-  // The passes' MLPs are compiled with the model's weights as constants (specialise.js), so the
-  // kernels wait for the MLP section (a few KiB, in the first request after the prefix).
+  // The passes' encodings and MLPs are compiled with the model's level values and weights as
+  // constants (specialise.js), so the kernels wait for the MLP section (a few KiB, in the first
+  // request after the prefix).
   await stream.waitForKind(KIND.mlp);
   hooks.timings.mlp = performance.now();
   const gpu = await renderer.create(canvas, withSamples(meta.model, samples), stream.decoder.layout, hooks.timings, stream.decoder.base);

@@ -199,7 +199,7 @@ export function gpuModel(cfg, layout) {
   const rel = (r) => r.start - rest0;
   const d = layout.field.density;
   const p = layout.proposal.density;
-  // The MLPs' rows of the uniform (also what `specialise.js` reads).
+  // The MLPs' rows of the uniform (`specialise.js` reads them, and the uniform's levels).
   const mlps = {
     proposal: [rel(p), p.dims[0], p.dims[1]],
     density: [rel(d), d.dims[0], d.dims[1], d.dims[2]],
@@ -293,9 +293,9 @@ export class Renderer {
    * Binds the kernels to `canvas` for a model (`cfg` its config, `layout` format.js's). `marks`,
    * when given, receives `module` (ms since navigation start: the WGSL compiled) and
    * `pipelines` (every pipeline created). `params`, when given, is the parameter buffer with at
-   * least the MLP section decoded: the passes' MLPs are then compiled with the model's weights as
-   * constants (`specialise.js`), unless `?mlp=generic` or the model's MLPs are too large;
-   * `mlpNote` on the scene says which.
+   * least the MLP section decoded: the passes' encodings and MLPs are then compiled with the
+   * model's level values and weights as constants (`specialise.js`), unless `?mlp=generic` or
+   * the model's MLPs are too large; `mlpNote` on the scene says which.
    */
   async create(canvas, cfg, layout, marks = {}, params = null) {
     const device = this.device;
@@ -303,15 +303,15 @@ export class Renderer {
     const query = typeof location !== "undefined" ? new URLSearchParams(location.search) : new URLSearchParams();
     const perRay = query.get("kernel") === "ray";
     let code = this.source;
-    let mlpNote = "generic MLPs";
+    let mlpNote = "generic kernels";
     if (perRay) mlpNote = "per-ray kernel";
-    else if (query.get("mlp") === "generic") mlpNote = "generic MLPs (?mlp=generic)";
+    else if (query.get("mlp") === "generic") mlpNote = "generic kernels (?mlp=generic)";
     else if (params) {
       try {
-        code = specialiseWgsl(this.source, mlps, params.subarray(split.rest[0]));
-        mlpNote = "MLPs compiled for this model";
+        code = specialiseWgsl(this.source, { mlps, uniform }, params.subarray(split.rest[0]));
+        mlpNote = "kernels compiled for this model";
       } catch (e) {
-        mlpNote = `generic MLPs (${e.message})`;
+        mlpNote = `generic kernels (${e.message})`;
       }
     }
     device.pushErrorScope("validation");

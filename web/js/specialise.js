@@ -1,14 +1,18 @@
-// MLPs specialised to one model: `render.wgsl`'s three MLPs of the per-sample passes
-// (`proposal_mlp4`, `density_mlp4`, `color_mlp4`, between its two `specialise` lines) rewritten
-// with the model's weights as constants and every activation a named value, so that SwiftShader
-// runs them without a per-lane gather for each weight and activation read.
+// Kernels specialised to one model: the region of `render.wgsl` between its two `specialise`
+// lines (the passes' encodings `encode_field4`, `encode_proposal4` and MLPs `proposal_mlp4`,
+// `density_mlp4`, `color_mlp4`) rewritten with the model's level values and MLP weights as
+// constants, so that SwiftShader runs them without a per-lane gather for each level row, weight
+// and activation read.
 //
 // The twin of msth-gpu's `gpu/src/specialise.rs`, which documents why: this file must write the
 // same text byte for byte, and `tests/tests/web_specialise.rs` runs `web/tests/specialise.mjs`
-// under node to check that it does. Weights are written as `bitcast<f32>(0x........u)` (exact,
-// and the same in both languages).
+// under node to check that it does. Numbers are written as hexadecimal words
+// (`bitcast<f32>(0x........u)`, `vec4<u32>(0x........u, ...)`: exact, and the same in both
+// languages).
 
-import { MAX_SPECIALISED_INPUTS, MAX_SPECIALISED_WEIGHTS } from "./generated/contract.js";
+import {
+  MAX_SPECIALISED_INPUTS, MAX_SPECIALISED_WEIGHTS, MODEL_OFFSETS, ENCODING_OFFSETS, GRID_OFFSETS, LEVEL_OFFSETS, LEVEL_BYTES,
+} from "./generated/contract.js";
 
 export const BEGIN = "// ---- specialise: begin\n";
 export const END = "// ---- specialise: end\n";
@@ -37,12 +41,15 @@ export function mlpRanges(m) {
 export const mlpWeights = (m) => mlpRanges(m).reduce((n, [a, b]) => n + b - a, 0);
 
 /**
- * The replacement of the `specialise` region for model `m` (as `mlpRanges`) whose `rest` values
- * (a Float32Array: the parameter buffer from the end of the field's tables) are given: each
- * function loops over the invocation's LANES samples, one sample's MLP per trip in scalars.
- * Throws an Error saying why a model is not specialised.
+ * The replacement of the `specialise` region for model `gm` (renderer.js `gpuModel`'s `mlps`,
+ * as `mlpRanges` reads them, and `uniform`, the `Model` uniform) whose `rest` values (a
+ * Float32Array: the parameter buffer from the end of the field's tables) are given: the two
+ * encodings with their levels unrolled, then the three MLPs, each a loop over the invocation's
+ * LANES samples, one sample's MLP per trip in scalars. Throws an Error saying why a model is not
+ * specialised.
  */
-export function specialisedMlps(m, rest) {
+export function specialisedRegion(gm, rest) {
+  const m = gm.mlps;
   const total = mlpWeights(m);
   if (total > MAX_SPECIALISED_WEIGHTS) {
     throw new Error(`the model's MLPs hold ${total} weights; at most ${MAX_SPECIALISED_WEIGHTS} are specialised`);
@@ -77,11 +84,49 @@ export function specialisedMlps(m, rest) {
     }
   };
   const LOOP = "    for (var k = 0u; k < LANES; k++) {\n";
+  // The `Model` uniform's words (gpuModel), for the encodings' levels.
+  const u = new Uint32Array(gm.uniform);
+  const at = (byte) => byte / 4;
+  const words = (w) => `vec4<u32>(${Array.from(w, (x) => `0x${x.toString(16).padStart(8, "0")}u`).join(", ")})`;
+  const row = (byte) => u.subarray(at(byte), at(byte) + 4);
+  // `encode` with every level's uniform values written as constants, the level loop unrolled,
+  // the features stored straight into lane k of hid4 (specialise.rs `encoding`).
+  const encoding = (name, which, buffers, returns) => {
+    const base = MODEL_OFFSETS[which];
+    const grid = (g) => ({ shape: row(base + ENCODING_OFFSETS[g] + GRID_OFFSETS.shape), loc: row(base + ENCODING_OFFSETS[g] + GRID_OFFSETS.loc) });
+    const h3 = grid("h3");
+    const h4 = grid("h4");
+    parts.push(`fn ${name}(p: vec4<f32>, cutoff: f32, k: u32)${returns ? " -> f32" : ""} {\n`);
+    parts.push(`    let e = model.${which};\n    let m = mask_at(e, p.xyz);\n    let b = blend_of(e, m, cutoff);\n`);
+    parts.push("    let z = Feat(vec4<f32>(0.0), vec4<f32>(0.0));\n    var f3 = z;\n    var f4 = z;\n");
+    const shape = h3.loc[2] === 1 ? h3.shape : h4.shape;
+    const [nf, levels] = [shape[1], shape[2]];
+    for (let l = 0; l < levels; l++) {
+      parts.push(`    // level ${l}\n`);
+      for (const [g, f, on, buf] of [[h3, "f3", "b.z", buffers[0]], [h4, "f4", "b.w", buffers[1]]]) {
+        if (g.loc[2] !== 1) continue;
+        const lv = MODEL_OFFSETS.levels + LEVEL_BYTES * (g.loc[1] + l);
+        parts.push(
+          `    ${f} = z;\n    if ${on} != 0.0 { ${f} = grid_level_at(Level(bitcast<vec4<f32>>(${words(row(lv + LEVEL_OFFSETS.scale))}), ` +
+            `${words(row(lv + LEVEL_OFFSETS.stride))}, ${words(row(lv + LEVEL_OFFSETS.info))}), ${words(g.shape)}, p, ${buf}u); }\n`,
+        );
+      }
+      parts.push(`    let va${l} = b.x * f3.a + b.y * f4.a;\n`);
+      if (nf > 2) parts.push(`    let vb${l} = b.x * f3.b + b.y * f4.b;\n`);
+      for (let f = 0; f < nf; f++) {
+        const [v, c] = f < 4 ? ["va", f] : ["vb", f - 4];
+        parts.push(`    hid4[${l * nf + f}][k] = ${v}${l}.${"xyzw"[c]};\n`);
+      }
+    }
+    parts.push(returns ? "    return m;\n}\n\n" : "}\n\n");
+  };
   parts.push(BEGIN);
   parts.push(
-    "// Generated for one model (msth-gpu specialise.rs, web/js/specialise.js): the MLPs with\n" +
-      "// its weights as constants, one sample per trip, activations in named values.\n",
+    "// Generated for one model (msth-gpu specialise.rs, web/js/specialise.js): the encodings\n" +
+      "// with every level's values as constants, the MLPs with the weights as constants.\n",
   );
+  encoding("encode_field4", "field", [0, 1], true);
+  encoding("encode_proposal4", "prop", [2, 2], false);
   {
     const [off, nin, hidden] = m.proposal;
     parts.push("fn proposal_mlp4() -> vec4<f32> {\n    var r: vec4<f32>;\n", LOOP);
@@ -118,10 +163,10 @@ export function specialisedMlps(m, rest) {
   return parts.join("");
 }
 
-/** `source` (a `render.wgsl`) with its `specialise` region replaced (`specialisedMlps`). */
-export function specialiseWgsl(source, m, rest) {
+/** `source` (a `render.wgsl`) with its `specialise` region replaced (`specialisedRegion`). */
+export function specialiseWgsl(source, gm, rest) {
   const begin = source.indexOf(BEGIN);
   const endAt = begin < 0 ? -1 : source.indexOf(END, begin);
   if (endAt < 0) throw new Error("the shader has no `specialise` region");
-  return source.slice(0, begin) + specialisedMlps(m, rest) + source.slice(endAt + END.length);
+  return source.slice(0, begin) + specialisedRegion(gm, rest) + source.slice(endAt + END.length);
 }

@@ -326,9 +326,14 @@ struct Feat {
 // features 0 and 1 (every preset has 2 per level) are accumulated without the per-feature
 // selects that features 2..7 need.
 fn grid_level(g: Grid, l: u32, p: vec4<f32>, buf: u32) -> Feat {
-    let lv = model.levels[g.loc.y + l];
-    let four = g.shape.x == 4u;
-    let nf = g.shape.y;
+    return grid_level_at(model.levels[g.loc.y + l], g.shape, p, buf);
+}
+
+// `grid_level` of level `lv` of a grid of shape `shape` (`Grid.shape`): the generic encoding
+// reads both from the uniform, the specialised one (`encode_field4`) passes constants.
+fn grid_level_at(lv: Level, shape: vec4<u32>, p: vec4<f32>, buf: u32) -> Feat {
+    let four = shape.x == 4u;
+    let nf = shape.y;
     let dense = lv.info.y == 1u;
     let q = clamp_unit4(p) * lv.scale + 0.5;
     let iv = vec4<u32>(q); // q >= 0.5: truncation is floor
@@ -340,7 +345,7 @@ fn grid_level(g: Grid, l: u32, p: vec4<f32>, buf: u32) -> Feat {
     // A 3D grid: lv.stride.w = 0, and iv.w = 0 (scale.w = 0), so lo.w = 0.
     let lo = select(iv * primes, iv * lv.stride, dense);
     let hi = select((iv + 1u) * primes, lo + lv.stride, dense);
-    let hash_mask = g.shape.w;
+    let hash_mask = shape.w;
     let off = lv.info.x;
     let second = min(1u, nf - 1u); // feature 1, or feature 0 again when nf = 1 (then unused)
     var fa = vec4<f32>(0.0);
@@ -367,23 +372,33 @@ fn grid_level(g: Grid, l: u32, p: vec4<f32>, buf: u32) -> Feat {
     return Feat(fa, fb);
 }
 
+// The blend of encoding `e` at a point of mask value m: `(k3, k4, read3, read4)`, the features
+// being v = k3 f3 + k4 f4 (mst: m, 1 - m; mt: 1, 1 - m; add: 1, 1; 4d: 0, 1; static: 1, 0: the
+// CPU's sums, since 1 x = x and a skipped lookup's features are 0; no branch per blend, since
+// software adapters run every branch), and whether the 3D and 4D lookups are made (1) or
+// skipped (0): the 4D one where the mask leaves (almost) nothing dynamic (Mst/Mt with a mask,
+// `1 - m < cutoff`), and the lookup a blend does not read (static: 4D; 4d: 3D).
+fn blend_of(e: Encoding, m: f32, cutoff: f32) -> vec4<f32> {
+    let blend = e.mode.x;
+    let skip4 = blend == 4u || (cutoff > 0.0 && e.mode.y == 1u && blend <= 1u && (1.0 - m) < cutoff);
+    let skip3 = blend == 3u;
+    let k3 = select(select(1.0, m, blend == 0u), 0.0, blend == 3u);
+    let k4 = select(select(1.0 - m, 1.0, blend >= 2u), 0.0, blend == 4u);
+    return vec4<f32>(k3, k4, select(1.0, 0.0, skip3), select(1.0, 0.0, skip4));
+}
+
 // Masked encoding at point p into hid[0 .. levels * features] (level-major, features within a
 // level), the MLPs' input. `buf3`, `buf4`: the buffers of the 3D and 4D tables (constants at
 // the call sites: field 0 and 1, proposal 2 and 2). Returns the mask value m.
 fn encode(e: Encoding, p: vec4<f32>, cutoff: f32, buf3: u32, buf4: u32) -> f32 {
     let m = mask_at(e, p.xyz);
-    let blend = e.mode.x;
     let use3 = e.h3.loc.z == 1u;
     let use4 = e.h4.loc.z == 1u;
-    // Skip the 4D lookup where the mask leaves (almost) nothing dynamic (Mst/Mt with a mask), and
-    // the lookup a blend does not read (static: 4D; 4d: 3D).
-    let skip4 = blend == 4u || (cutoff > 0.0 && e.mode.y == 1u && blend <= 1u && (1.0 - m) < cutoff);
-    let skip3 = blend == 3u;
-    // The blend as v = k3 f3 + k4 f4 (mst: m, 1 - m; mt: 1, 1 - m; add: 1, 1; 4d: 0, 1;
-    // static: 1, 0): the CPU's sums, since 1 x = x and a skipped lookup's features are 0; no
-    // branch per blend (software adapters run every branch).
-    let k3 = select(select(1.0, m, blend == 0u), 0.0, blend == 3u);
-    let k4 = select(select(1.0 - m, 1.0, blend >= 2u), 0.0, blend == 4u);
+    let b = blend_of(e, m, cutoff);
+    let k3 = b.x;
+    let k4 = b.y;
+    let skip3 = b.z == 0.0;
+    let skip4 = b.w == 0.0;
     var levels = 0u;
     var nf = 1u;
     if use3 {
@@ -976,7 +991,6 @@ fn pass_proposal(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wor
     }
     if i * LANES < n {
         let used = min(n - i * LANES, LANES);
-        let d = model.proposal;
         var es = vec4<u32>(0u);
         for (var k = 0u; k < LANES; k++) {
             var e = i * LANES + min(k, used - 1u);
@@ -984,8 +998,7 @@ fn pass_proposal(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wor
                 e = work_u(pass_u.reg2.z + e);
             }
             es[k] = e;
-            encode(model.prop, proposal_point(e), model.prop.consts.y, 2u, 2u);
-            hid_to_lane(k, d.y);
+            encode_proposal4(proposal_point(e), model.prop.consts.y, k);
         }
         let sum = proposal_mlp4();
         for (var k = 0u; k < used; k++) {
@@ -1119,7 +1132,6 @@ fn pass_density(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
     }
     if i * LANES < n {
         let used = min(n - i * LANES, LANES);
-        let d = model.density;
         var js = vec4<u32>(0u);
         for (var k = 0u; k < LANES; k++) {
             var j = i * LANES + min(k, used - 1u);
@@ -1128,8 +1140,7 @@ fn pass_density(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
             }
             js[k] = j;
             let r = j / s;
-            encode(model.field, main_point(r, j % s, ray_rec(r)), model.field.consts.y, 0u, 1u);
-            hid_to_lane(k, d.y);
+            encode_field4(main_point(r, j % s, ray_rec(r)), model.field.consts.y, k);
         }
         density_mlp4();
         store_density_lanes(js, used);
@@ -1211,8 +1222,7 @@ fn pass_dynamic(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
             let j = work_u(pass_u.reg2.x + i * LANES + min(k, used - 1u));
             js[k] = j;
             let at = pass_u.reg1.w + 4u * j;
-            encode(model.field, vec4<f32>(work[at], work[at + 1u], work[at + 2u], field_time()), 0.0, 0u, 1u);
-            hid_to_lane(k, model.density.y);
+            encode_field4(vec4<f32>(work[at], work[at + 1u], work[at + 2u], field_time()), 0.0, k);
         }
         density_mlp4();
         store_density_lanes(js, used);
@@ -1386,6 +1396,20 @@ fn color_mlp4() -> array<vec4<f32>, 3> {
     out4_to_hid4(hidden);
     dense_lanes(off, hidden, 3u, false);
     return array<vec4<f32>, 3>(sigmoid4(out4[0]), sigmoid4(out4[1]), sigmoid4(out4[2]));
+}
+
+// The field's encoding of point p into lane k of hid4 (`hid4[i][k]`, i < levels * features), as
+// `encode`; returns the mask value.
+fn encode_field4(p: vec4<f32>, cutoff: f32, k: u32) -> f32 {
+    let m = encode(model.field, p, cutoff, 0u, 1u);
+    hid_to_lane(k, model.density.y);
+    return m;
+}
+
+// The proposal field's encoding of point p into lane k of hid4, as `encode`.
+fn encode_proposal4(p: vec4<f32>, cutoff: f32, k: u32) {
+    encode(model.prop, p, cutoff, 2u, 2u);
+    hid_to_lane(k, model.proposal.y);
 }
 
 // The proposal density MLP of the LANES samples whose encodings are in hid4: the log density

@@ -7,7 +7,7 @@
 import { readFileSync } from "node:fs";
 import { Decoder, prefixLength } from "../js/format.js";
 import { gpuModel } from "../js/renderer.js";
-import { specialisedMlps } from "../js/specialise.js";
+import { specialisedRegion } from "../js/specialise.js";
 
 const [file] = process.argv.slice(2);
 if (!file) {
@@ -17,9 +17,9 @@ if (!file) {
 const bytes = new Uint8Array(readFileSync(file));
 const dec = new Decoder(bytes.subarray(0, prefixLength(bytes.subarray(0, 32))));
 dec.sections.forEach((s, i) => dec.decodeSection(i, bytes.subarray(s.offset, s.offset + s.length)));
-const { split, mlps } = gpuModel(dec.metadata.model, dec.layout);
+const gm = gpuModel(dec.metadata.model, dec.layout);
 try {
-  process.stdout.write(specialisedMlps(mlps, dec.paramsForTime(0).subarray(split.rest[0])));
+  process.stdout.write(specialisedRegion(gm, dec.paramsForTime(0).subarray(gm.split.rest[0])));
 } catch (e) {
   process.stdout.write(`error: ${e.message}\n`);
 }

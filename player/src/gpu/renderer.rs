@@ -41,14 +41,15 @@ pub enum GpuKernels {
     PerRay,
 }
 
-/// How the per-sample passes run the model's MLPs.
+/// How the per-sample passes evaluate the model's fields (encodings and MLPs).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum GpuMlps {
-    /// Compiled for the model, its weights as constants (`msth_gpu::specialise`), when its
-    /// first parameters are uploaded; the generic passes where its MLPs are too large.
+    /// Compiled for the model, its level values and MLP weights as constants
+    /// (`msth_gpu::specialise`), when its first parameters are uploaded; the generic passes
+    /// where its MLPs are too large.
     #[default]
     Specialised,
-    /// The generic passes: weights read from the parameter buffer (for comparisons).
+    /// The generic passes: level values and weights read from buffers (for comparisons).
     Generic,
 }
 
@@ -66,11 +67,11 @@ pub enum MlpStatus {
 impl std::fmt::Display for MlpStatus {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
-            MlpStatus::Generic => write!(f, "generic MLPs"),
+            MlpStatus::Generic => write!(f, "generic kernels"),
             MlpStatus::Specialised(s) => {
-                write!(f, "MLPs compiled for this model ({s:.2} s)")
+                write!(f, "kernels compiled for this model ({s:.2} s)")
             }
-            MlpStatus::Refused(e) => write!(f, "generic MLPs ({e})"),
+            MlpStatus::Refused(e) => write!(f, "generic kernels ({e})"),
         }
     }
 }
@@ -191,7 +192,7 @@ impl GpuRenderer {
         }
     }
 
-    /// Whether the frames use MLPs compiled for the model, and how long that took.
+    /// Whether the frames use kernels compiled for the model, and how long that took.
     pub fn mlp_status(&self) -> &MlpStatus {
         &self.mlp_status
     }
