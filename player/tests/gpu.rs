@@ -617,9 +617,9 @@ fn gpu_sample_reuse_matches_cpu_sample_reuse() {
     assert!(f > 0.0 && f < 1.0, "dynamic fraction {f}");
 }
 
-/// A `balanced`-preset model (which the per-ray kernel cannot render on lavapipe): full and
-/// incremental GPU frames against the CPU renderer's.
-fn balanced_preset_frames_match_the_cpu_full_and_incremental() {
+/// A `balanced`-preset model with random tables (the MLPs as initialised) whose mask is dynamic
+/// around the centre.
+fn balanced_model(seed: u64) -> (ModelConfig, Vec<f32>) {
     let cfg = ModelConfig::preset(
         Preset::Balanced,
         SceneBounds::dnerf_default(),
@@ -627,8 +627,15 @@ fn balanced_preset_frames_match_the_cpu_full_and_incremental() {
         30,
     );
     let layout = ModelLayout::new(&cfg);
-    let mut params = random_params(&layout, 3);
+    let mut params = random_params(&layout, seed);
     centre_dynamic(&cfg, &mut params);
+    (cfg, params)
+}
+
+/// A `balanced`-preset model (which the per-ray kernel cannot render on lavapipe): full and
+/// incremental GPU frames against the CPU renderer's.
+fn balanced_preset_frames_match_the_cpu_full_and_incremental() {
+    let (cfg, params) = balanced_model(3);
     let cam = test_camera(32, 24);
     for reuse in [Reuse::Rays, Reuse::Samples] {
         let settings = RenderSettings {
@@ -693,16 +700,8 @@ fn balanced_preset_frames_match_the_cpu_full_and_incremental() {
 /// specialiser's limits keeps the generic passes and says why; new MLP weights are compiled
 /// anew, not rendered with the old.
 fn specialised_and_generic_kernels_render_the_same_frames() {
-    let cfg = ModelConfig::preset(
-        Preset::Balanced,
-        SceneBounds::dnerf_default(),
-        Background::Color { rgb: [1.0; 3] },
-        30,
-    );
+    let (cfg, params) = balanced_model(5);
     let layout = ModelLayout::new(&cfg);
-    let mut params = random_params(&layout, 5);
-    centre_dynamic(&cfg, &mut params);
-    // Random MLP weights of the initialiser's scale, so that every output depends on them.
     let cam = test_camera(32, 24);
     let settings = RenderSettings {
         probes: 0,
