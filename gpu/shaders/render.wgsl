@@ -1313,22 +1313,23 @@ fn pass_color(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
 
 // ---- MLPs of LANES samples at once -------------------------------------------------------------
 
-// Samples per invocation of `pass_proposal`, `pass_density` and `pass_color`.
+// Samples per invocation of `pass_proposal`, `pass_density`, `pass_dynamic` and `pass_color`.
 const LANES: u32 = 4u;
 // Activations, component k for sample k: the MLPs' input in `hid4`, the density MLP's output in
 // `out4` (the generic MLPs below also keep their hidden layers there).
 var<private> hid4: array<vec4<f32>, MAX_HIDDEN>; // also the colour input: 16 + MAX_GEO < MAX_HIDDEN
 var<private> out4: array<vec4<f32>, MAX_HIDDEN>;
 
-// The three MLPs of the passes, `proposal_mlp4`, `density_mlp4` and `color_mlp4`, lie between the
-// two `specialise` lines. These generic versions read the weights from `rest`; a host may replace
-// the region by versions generated for one model, with its weights as constants and the
-// activations in named values (msth-gpu `specialise.rs`, the page's `specialise.js`), which
-// software adapters run without a gather per read.
 fn sigmoid4(x: vec4<f32>) -> vec4<f32> {
     return vec4<f32>(sigmoid(x.x), sigmoid(x.y), sigmoid(x.z), sigmoid(x.w));
 }
 
+// The passes' encodings (`encode_field4`, `encode_proposal4`) and MLPs (`proposal_mlp4`,
+// `density_mlp4`, `color_mlp4`) lie between the two `specialise` lines. These generic versions
+// read the level values from the uniform and the weights from `rest`; hosts replace the region
+// by versions generated for one model, with those values as constants and the activations in
+// named values (msth-gpu `specialise.rs`, the page's `specialise.js`), which software adapters
+// run without a gather per read.
 // ---- specialise: begin
 
 // out4[0..nout] = hid4[0..nin] W per sample (W [nin, nout] row-major at `off` in `rest`), ReLU
