@@ -626,8 +626,8 @@ impl GpuScene {
     /// Compiles the passes that evaluate fields (`pass_proposal`, `pass_density`, `pass_color`,
     /// and `pass_dynamic` of the sample cache) with this scene's level values and MLP weights as
     /// constants ([`crate::specialise`]), which the frames then use. `Ok(Err(why))`: the model
-    /// is not specialised (MLPs too large, or a weight is not finite) and the generic passes
-    /// stay; `Ok(Ok(seconds))`: the time it took to create them (a driver may compile later, at
+    /// is not specialised (MLPs too large, a weight not finite, or the device refused the
+    /// shader) and the generic passes stay; `Ok(Ok(seconds))`: the time it took to create them (a driver may compile later, at
     /// the first dispatch: lavapipe does). New MLP weights ([`GpuScene::update`]) drop them again.
     pub fn specialise(
         &mut self,
@@ -658,7 +658,15 @@ impl GpuScene {
                 })
         });
         if let Some(e) = pollster::block_on(scope.pop()) {
-            return Err(GpuError::Shader(e.to_string()));
+            // The generic kernels still work: say why they stay, as for a model too large.
+            let first = e.to_string();
+            let first = first
+                .lines()
+                .find(|l| l.contains("error"))
+                .unwrap_or(&first);
+            return Ok(Err(crate::specialise::SpecialiseError::Compile(
+                first.trim().to_string(),
+            )));
         }
         ctx.check_state()?;
         self.mlps = Some(mlps);

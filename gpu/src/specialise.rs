@@ -63,6 +63,10 @@ pub enum SpecialiseError {
     NotFinite,
     #[error("the parameter buffer's `rest` holds {have} values; the MLPs need {need}")]
     Short { have: usize, need: usize },
+    /// The device refused the specialised shader (a bug, or a shader source whose other
+    /// functions differ from what the generator writes for): the generic kernels stay.
+    #[error("compiling them for the model failed: {0}")]
+    Compile(String),
 }
 
 /// The weights the three MLPs of `model` hold.

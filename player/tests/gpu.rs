@@ -697,8 +697,8 @@ fn balanced_preset_frames_match_the_cpu_full_and_incremental() {
 /// The passes compiled for the model (`msth_gpu::specialise`: encodings and MLPs, the default)
 /// and the generic ones render the same frames as the CPU, full and incremental (the sample
 /// cache's dynamic samples go through them too), for every blend; a model outside the
-/// specialiser's limits keeps the generic passes and says why; new MLP weights are compiled
-/// anew, not rendered with the old.
+/// specialiser's limits, or a shader the device refuses, keeps the generic passes and says why;
+/// new MLP weights are compiled anew, not rendered with the old.
 fn specialised_and_generic_kernels_render_the_same_frames() {
     let (cfg, params) = balanced_model(5);
     let layout = ModelLayout::new(&cfg);
@@ -812,6 +812,30 @@ fn specialised_and_generic_kernels_render_the_same_frames() {
     assert_eq!(
         status,
         "generic kernels (an MLP layer has 128 inputs; at most 64 are specialised)"
+    );
+    assert!(psnr(&a, &b) >= 40.0);
+
+    // A device that refuses the specialised shader (here: a source whose generic kernels call a
+    // renamed `blend_of`, which the generated encodings still call): the generic kernels render,
+    // and the status says why.
+    let mut c = config(BlendMode::Mst);
+    small(&mut c);
+    let layout = ModelLayout::new(&c);
+    let params = random_params(&layout, 10);
+    let source = msth_player::gpu::RENDER_WGSL.replace("blend_of", "blend_of_generic");
+    let ctx = GpuContext::open_with_source(AdapterPolicy::any(), &source).unwrap();
+    let mut gpu = GpuRenderer::new(ctx, &c, full).unwrap();
+    let b = gpu.render(&cam, 0.5, &params).unwrap();
+    let a = Renderer::new(&c, full).render(&cam, 0.5, &params);
+    let status = gpu.mlp_status().to_string();
+    println!(
+        "a refused shader: {status}; {:.1} dB against the CPU",
+        psnr(&a, &b)
+    );
+    assert!(
+        status.starts_with("generic kernels (compiling them for the model failed: ")
+            && status.contains("blend_of"),
+        "{status}"
     );
     assert!(psnr(&a, &b) >= 40.0);
 }

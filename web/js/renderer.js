@@ -314,12 +314,6 @@ export class Renderer {
         mlpNote = `generic kernels (${e.message})`;
       }
     }
-    device.pushErrorScope("validation");
-    const module = device.createShaderModule({ code, label: "render.wgsl" });
-    const info = await module.getCompilationInfo();
-    const errors = info.messages.filter((m) => m.type === "error");
-    if (errors.length) throw new Error(`render.wgsl: ${errors.map((m) => `${m.lineNum}:${m.linePos} ${m.message}`).join("; ")}`);
-    marks.module = performance.now();
     // One explicit layout for every entry point (web/shaders/README.md, "Bindings").
     const C = GPUShaderStage.COMPUTE;
     const kinds = ["uniform", "uniform", "read-only-storage", "read-only-storage", "read-only-storage", "read-only-storage", "storage", "storage", "storage", "uniform", "read-only-storage"];
@@ -328,13 +322,40 @@ export class Renderer {
       entries: kinds.map((type, binding) => ({ binding, visibility: C, buffer: { type } })),
     });
     const pl = device.createPipelineLayout({ bindGroupLayouts: [bindLayout] });
-    const make = (entryPoint) => device.createComputePipelineAsync({ layout: pl, compute: { module, entryPoint } });
-    const pipelines = {};
     const names = perRay ? ["render"] : PASS_ENTRIES;
-    const made = await Promise.all(names.map(make));
-    names.forEach((n, i) => (pipelines[n] = made[i]));
-    const err = await device.popErrorScope();
-    if (err) throw new Error(`render.wgsl: ${err.message}`);
+    // The module and every pipeline of `code`, or an Error saying what the device refused.
+    const build = async (code) => {
+      device.pushErrorScope("validation");
+      let failure = null;
+      const pipelines = {};
+      try {
+        const module = device.createShaderModule({ code, label: "render.wgsl" });
+        const info = await module.getCompilationInfo();
+        const errors = info.messages.filter((m) => m.type === "error");
+        if (errors.length) {
+          failure = errors.map((m) => `${m.lineNum}:${m.linePos} ${m.message}`).join("; ");
+        } else {
+          marks.module = performance.now();
+          const made = await Promise.all(names.map((entryPoint) => device.createComputePipelineAsync({ layout: pl, compute: { module, entryPoint } })));
+          names.forEach((n, i) => (pipelines[n] = made[i]));
+        }
+      } catch (e) {
+        failure = e.message;
+      }
+      const err = await device.popErrorScope();
+      failure ??= err && err.message;
+      if (failure) throw new Error(`render.wgsl: ${failure}`);
+      return pipelines;
+    };
+    let pipelines;
+    try {
+      pipelines = await build(code);
+    } catch (e) {
+      // Kernels compiled for the model that the device refuses: the generic ones, and why.
+      if (code === this.source || this.lost) throw e;
+      mlpNote = `generic kernels (compiling them for the model failed: ${e.message})`;
+      pipelines = await build(this.source);
+    }
     marks.pipelines = performance.now();
     const scene = new GpuScene(this, canvas, { layout: bindLayout, pipelines, perRay }, uniform, split, cfg);
     /** How the passes run the MLPs (compiled for the model, or generic and why). */

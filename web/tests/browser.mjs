@@ -356,6 +356,26 @@ async function main() {
         note2 === "kernels compiled for this model" && /generic kernels/.test(generic.note) && generic.info.includes(generic.note) && pG >= 50 && pGn >= PSNR_MIN,
         `"${note2}" against "${generic.note}" (?mlp=generic): PSNR ${pG.toFixed(2)} dB between them (>= 50), generic ${pGn.toFixed(2)} dB against msth play`,
       );
+
+      // ---- a device that refuses the kernels compiled for the model: the page falls back to the
+      // generic ones and says why (served here: a render.wgsl whose generic kernels call a renamed
+      // `blend_of`, which the compiled encodings still call)
+      await page.route("**/shaders/render.wgsl", async (route) => {
+        const resp = await route.fetch();
+        await route.fulfill({ response: resp, body: (await resp.text()).replaceAll("blend_of", "blend_of_generic") });
+      });
+      await page.goto(`${a.base}/?model=${encodeURIComponent(a.model2)}&view=${a.view}&t=0&size=${a.size}&play=0&samples=full`);
+      await waitFirstFrame(page);
+      await settled(page);
+      const refused = await page.evaluate(() => window.msth.mlpNote);
+      const pxR = await pixels(page);
+      const pR = pxR.length === 4 * n ? psnr(pxR, px2, n) : 0;
+      await page.unroute("**/shaders/render.wgsl");
+      check(
+        "kernels the device refuses fall back to the generic ones",
+        refused.startsWith("generic kernels (compiling them for the model failed: ") && refused.includes("blend_of") && pR >= 50,
+        `"${refused.slice(0, 160)}"; PSNR ${pR.toFixed(2)} dB against the compiled kernels' frame (>= 50)`,
+      );
     }
 
     // ---- for the record: frames per second at the bench size, and the README screenshot
