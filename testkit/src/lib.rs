@@ -1,5 +1,5 @@
 //! The test harness of the test binaries whose tests need something from outside the process: a
-//! GPU adapter, Chromium and the web player's npm packages, `ffmpeg`, `colmap`, `curl`, a font,
+//! GPU adapter, Chromium and the web player's npm packages, `node`, `ffmpeg`, `colmap`, `curl`, a font,
 //! the shared datasets in `../shared/data`. When such a need is missing, the tests that have it
 //! are reported by cargo as **ignored, with the reason** on their result line, and counted in the
 //! binary's `test result: N passed; M failed; K ignored` line (which `.ci/run` and
@@ -20,8 +20,8 @@
 //! # Making a skip a failure
 //!
 //! `MSTH_REQUIRE_<KIND>=1` (the kind upper-cased: `MSTH_REQUIRE_GPU`, `MSTH_REQUIRE_BROWSER`,
-//! `MSTH_REQUIRE_FFMPEG`, `MSTH_REQUIRE_COLMAP`, `MSTH_REQUIRE_CURL`, `MSTH_REQUIRE_FONT`,
-//! `MSTH_REQUIRE_DATA`) turns a missing need of that kind into a failure, and
+//! `MSTH_REQUIRE_NODE`, `MSTH_REQUIRE_FFMPEG`, `MSTH_REQUIRE_COLMAP`, `MSTH_REQUIRE_CURL`,
+//! `MSTH_REQUIRE_FONT`, `MSTH_REQUIRE_DATA`) turns a missing need of that kind into a failure, and
 //! `MSTH_REQUIRE_ALL=1` does it for every kind (except those set to `0`). `tools/test.sh` (and
 //! so CI) sets `MSTH_REQUIRE_ALL=1` after installing everything.
 //!
