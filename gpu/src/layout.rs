@@ -111,6 +111,9 @@ pub struct ParamSplit {
     pub tab4: Range<usize>,
     /// Everything after the field's hash tables.
     pub rest: Range<usize>,
+    /// The proposal, density and colour MLPs' weights, relative to `rest`'s start (msth-core's
+    /// layout; what `crate::specialise` writes into a shader).
+    pub mlps: [Range<usize>; 3],
 }
 
 /// The uniforms and buffer split of one model, or why the kernels cannot render it.
@@ -290,6 +293,12 @@ impl GpuModel {
             tab3,
             tab4,
             rest: rest_start..layout.params.total,
+            mlps: [
+                &layout.proposal.field.density.1,
+                &layout.field.density.1,
+                &layout.field.color.1,
+            ]
+            .map(|r| r.start - rest_start..r.end - rest_start),
         })
     }
 

@@ -703,7 +703,7 @@ impl GpuScene {
         // New MLP weights (a model's are the same at every time; this is another model's
         // buffer): the specialised pipelines no longer apply.
         let rest0 = self.gpu_model.split.rest.start;
-        for r in crate::specialise::mlp_ranges(&self.gpu_model) {
+        for r in self.gpu_model.split.mlps.clone() {
             let r = rest0 + r.start..rest0 + r.end;
             if params.get(r.clone()) != self.uploaded.get(r) {
                 self.mlps = None;

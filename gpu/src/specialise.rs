@@ -71,25 +71,7 @@ pub enum SpecialiseError {
 
 /// The weights the three MLPs of `model` hold.
 pub fn mlp_weights(model: &GpuModel) -> usize {
-    mlp_ranges(model).iter().map(|r| r.len()).sum()
-}
-
-/// Where the three MLPs' weights lie in `rest` (proposal, density, colour).
-pub fn mlp_ranges(model: &GpuModel) -> [std::ops::Range<usize>; 3] {
-    let m = &model.model;
-    let c = m.color;
-    let at = |off: u32, n: u32| off as usize..off as usize + n as usize;
-    [
-        at(m.proposal[0], m.proposal[1] * m.proposal[2] + m.proposal[2]),
-        at(
-            m.density[0],
-            m.density[1] * m.density[2] + m.density[2] * m.density[3],
-        ),
-        at(
-            c[0],
-            (16 + c[3]) * c[1] + c[2].saturating_sub(1) * c[1] * c[1] + c[1] * 3,
-        ),
-    ]
+    model.split.mlps.iter().map(|r| r.len()).sum()
 }
 
 /// `source` (a `render.wgsl`) with its `specialise` region replaced by [`specialised_region`]:
@@ -136,11 +118,7 @@ pub fn specialised_region(model: &GpuModel, rest: &[f32]) -> Result<String, Spec
     if widest > MAX_SPECIALISED_INPUTS {
         return Err(SpecialiseError::TooWide(widest));
     }
-    let need = mlp_ranges(model)
-        .into_iter()
-        .map(|r| r.end)
-        .max()
-        .unwrap_or(0);
+    let need = model.split.mlps.iter().map(|r| r.end).max().unwrap_or(0);
     if rest.len() < need {
         return Err(SpecialiseError::Short {
             have: rest.len(),
@@ -157,8 +135,8 @@ pub fn specialised_region(model: &GpuModel, rest: &[f32]) -> Result<String, Spec
         "// Generated for one model (msth-gpu specialise.rs, web/js/specialise.js): the encodings\n\
          // with every level's values as constants, the MLPs with the weights as constants.\n",
     );
-    w.encoding("encode_field4", &m.field, m, [0, 1], true);
-    w.encoding("encode_proposal4", &m.prop, m, [2, 2], false);
+    w.encoding("encode_field4", ("field", &m.field), m, [0, 1], true);
+    w.encoding("encode_proposal4", ("prop", &m.prop), m, [2, 2], false);
     // Proposal: in -> hidden (ReLU) -> 1.
     let (off, nin, hidden) = (
         m.proposal[0] as usize,
@@ -253,22 +231,18 @@ struct Writer<'a> {
 impl Writer<'_> {
     /// An encoding function (`encode_field4`, `encode_proposal4`): `encode` with every level's
     /// uniform values written as constants, the level loop unrolled, the features stored straight
-    /// into lane `k` of `hid4`. `buffers`: the tables' binding numbers, as at `encode`'s call
-    /// sites; `returns`: whether it returns the mask value.
+    /// into lane `k` of `hid4`. `(uniform, e)`: the encoding's member of `Model` and its value;
+    /// `buffers`: the tables' binding numbers, as at `encode`'s call sites; `returns`: whether
+    /// it returns the mask value.
     fn encoding(
         &mut self,
         name: &str,
-        e: &crate::layout::EncodingU,
+        (uniform, e): (&str, &crate::layout::EncodingU),
         m: &crate::layout::ModelU,
         buffers: [u32; 2],
         returns: bool,
     ) {
         let o = &mut self.out;
-        let uniform = if name == "encode_field4" {
-            "field"
-        } else {
-            "prop"
-        };
         o.push_str(&format!(
             "fn {name}(p: vec4<f32>, cutoff: f32, k: u32){} {{\n",
             if returns { " -> f32" } else { "" }

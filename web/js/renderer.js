@@ -199,11 +199,13 @@ export function gpuModel(cfg, layout) {
   const rel = (r) => r.start - rest0;
   const d = layout.field.density;
   const p = layout.proposal.density;
-  // The MLPs' rows of the uniform (`specialise.js` reads them, and the uniform's levels).
+  // The MLPs' rows of the uniform and their weights' ranges relative to `rest` (`specialise.js`
+  // reads them, and the uniform's levels).
   const mlps = {
     proposal: [rel(p), p.dims[0], p.dims[1]],
     density: [rel(d), d.dims[0], d.dims[1], d.dims[2]],
     color: [rel(layout.field.color), cfg.field.color_hidden, cfg.field.color_layers, cfg.field.geo_features],
+    ranges: [p, d, layout.field.color].map((r) => [r.start - rest0, r.end - rest0]),
   };
   u.set(mlps.density, DENSITY);
   u.set(mlps.color, COLOR);

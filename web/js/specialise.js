@@ -20,29 +20,12 @@ export const END = "// ---- specialise: end\n";
 // The limits (generated from specialise.rs): at most MAX_SPECIALISED_WEIGHTS weights are written
 // into a shader, and no layer may have more than MAX_SPECIALISED_INPUTS inputs.
 
-/**
- * Where the three MLPs' weights lie in `rest` (offsets relative to it): `[start, end]` of the
- * proposal, density and colour MLPs. `m` holds the `Model` uniform's rows: `proposal` (offset,
- * inputs, hidden), `density` (offset, inputs, hidden, outputs), `color` (offset, hidden, layers,
- * geo features).
- */
-export function mlpRanges(m) {
-  const [po, pi, ph] = m.proposal;
-  const [dof, di, dh, dout] = m.density;
-  const [co, ch, cl, geo] = m.color;
-  return [
-    [po, po + pi * ph + ph],
-    [dof, dof + di * dh + dh * dout],
-    [co, co + (16 + geo) * ch + Math.max(cl - 1, 0) * ch * ch + ch * 3],
-  ];
-}
-
-/** The weights of the three MLPs. */
-export const mlpWeights = (m) => mlpRanges(m).reduce((n, [a, b]) => n + b - a, 0);
+/** The weights of the three MLPs (`m`: renderer.js `gpuModel`'s `mlps`). */
+export const mlpWeights = (m) => m.ranges.reduce((n, [a, b]) => n + b - a, 0);
 
 /**
  * The replacement of the `specialise` region for model `gm` (renderer.js `gpuModel`'s `mlps`,
- * as `mlpRanges` reads them, and `uniform`, the `Model` uniform) whose `rest` values (a
+ * the MLPs' uniform rows and weight ranges, and `uniform`, the `Model` uniform) whose `rest` values (a
  * Float32Array: the parameter buffer from the end of the field's tables) are given: the two
  * encodings with their levels unrolled, then the three MLPs, each a loop over the invocation's
  * LANES samples, one sample's MLP per trip in scalars. Throws an Error saying why a model is not
@@ -56,7 +39,7 @@ export function specialisedRegion(gm, rest) {
   }
   const widest = Math.max(m.proposal[1], m.proposal[2], m.density[1], m.density[2], 16 + m.color[3], m.color[1]);
   if (widest > MAX_SPECIALISED_INPUTS) throw new Error(`an MLP layer has ${widest} inputs; at most ${MAX_SPECIALISED_INPUTS} are specialised`);
-  const need = Math.max(...mlpRanges(m).map(([, b]) => b));
+  const need = Math.max(...m.ranges.map(([, b]) => b));
   if (rest.length < need) throw new Error(`the parameter buffer's \`rest\` holds ${rest.length} values; the MLPs need ${need}`);
   const bits = new Uint32Array(rest.buffer, rest.byteOffset, rest.length);
   const parts = [];

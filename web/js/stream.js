@@ -165,33 +165,26 @@ export class ModelStream {
   /** Resolves when the parameters for time `t` can be assembled (and moves the playhead). */
   waitFor(t) {
     this.seek(t);
-    return new Promise((resolve, reject) => {
-      const check = () => {
-        if (this.error) {
-          off();
-          reject(this.error);
-        } else if (this.decoder.readyFor(t)) {
-          off();
-          resolve();
-        }
-      };
-      const off = this.onChange(check);
-      check();
-    });
+    return this.#until(() => this.decoder.readyFor(t));
   }
 
   /**
    * Resolves when every section of `kind` (format.js `KIND`) is decoded: the MLP section, for
-   * compiling the MLPs with the model's weights (renderer.js `create`), comes in the first
+   * compiling the kernels with the model's weights (renderer.js `create`), comes in the first
    * request after the prefix.
    */
   waitForKind(kind) {
+    return this.#until(() => this.decoder.sections.every((s, i) => s.kind !== kind || this.decoder.decoded[i]));
+  }
+
+  /** Resolves when `done()` holds, checked at every change; rejects on the stream's error. */
+  #until(done) {
     return new Promise((resolve, reject) => {
       const check = () => {
         if (this.error) {
           off();
           reject(this.error);
-        } else if (this.decoder.sections.every((s, i) => s.kind !== kind || this.decoder.decoded[i])) {
+        } else if (done()) {
           off();
           resolve();
         }
