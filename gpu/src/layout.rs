@@ -103,12 +103,20 @@ impl ViewU {
 }
 
 /// Where the three storage buffers come from in the flat parameter buffer.
+///
+/// The kernels read hash tables in pairs of values (`array<vec2<f32>>`, which software adapters
+/// load in one go), so both fields' tables go to the `tab3` and `tab4` buffers: the field's
+/// table first, the proposal field's after it from an even index ([`ParamSplit::tables`]).
 #[derive(Clone, Debug, PartialEq)]
 pub struct ParamSplit {
-    /// `field.h3` (empty: the kernels get a 4-byte placeholder).
+    /// `field.h3` (empty: the kernels get a placeholder pair).
     pub tab3: Range<usize>,
     /// `field.h4` (empty likewise).
     pub tab4: Range<usize>,
+    /// `proposal.h3`, which also lies in `rest` (empty without one).
+    pub prop3: Range<usize>,
+    /// `proposal.h4` (likewise).
+    pub prop4: Range<usize>,
     /// Everything after the field's hash tables.
     pub rest: Range<usize>,
     /// The proposal, density and colour MLPs' weights, relative to `rest`'s start (msth-core's
@@ -197,14 +205,15 @@ impl GpuModel {
         let field = encoding_u(
             &layout.field.encoding,
             &split,
-            [0, 1],
+            [0, 0],
             &mut levels,
             &mut next_slot,
         )?;
+        let [[_, (_, p3, _)], [_, (_, p4, _)]] = split.tables();
         let prop = encoding_u(
             &layout.proposal.field.encoding,
             &split,
-            [2, 2],
+            [p3, p4],
             &mut levels,
             &mut next_slot,
         )?;
@@ -276,6 +285,8 @@ impl GpuModel {
             g.as_ref().map(|(_, r)| r.clone()).unwrap_or(0..0)
         };
         let (tab3, tab4) = (range(&enc.h3), range(&enc.h4));
+        let penc = &layout.proposal.field.encoding;
+        let (prop3, prop4) = (range(&penc.h3), range(&penc.h4));
         let rest_start = tab3.end.max(tab4.end);
         // The field's tables come first in the flat buffer (docs/format.md §7); everything the
         // kernels read from `rest` must lie after them.
@@ -292,6 +303,8 @@ impl GpuModel {
         Ok(ParamSplit {
             tab3,
             tab4,
+            prop3,
+            prop4,
             rest: rest_start..layout.params.total,
             mlps: [
                 &layout.proposal.field.density.1,
@@ -303,11 +316,16 @@ impl GpuModel {
     }
 
     /// Byte sizes of the three parameter buffers (`tab3`, `tab4`, `rest`), placeholders included.
+    /// The tables are read in pairs (`array<vec2<f32>>`): whole pairs, at least one.
     pub fn buffer_sizes(&self) -> [(&'static str, u64); 3] {
         let bytes = |r: &Range<usize>| (r.len().max(1) * 4) as u64;
+        let [t3, t4] = self.split.tables().map(|parts| {
+            let values = parts.iter().map(|(_, at, r)| at + r.len()).max();
+            (values.unwrap_or(0).div_ceil(2).max(1) * 8) as u64
+        });
         [
-            ("field.h3 table (tab3)", bytes(&self.split.tab3)),
-            ("field.h4 table (tab4)", bytes(&self.split.tab4)),
+            ("3D hash tables (tab3)", t3),
+            ("4D hash tables (tab4)", t4),
             (
                 "decoders, mask and proposal field (rest)",
                 bytes(&self.split.rest),
@@ -316,21 +334,42 @@ impl GpuModel {
     }
 }
 
+impl ParamSplit {
+    /// What the `tab3` and `tab4` buffers hold: `(what, value index in the buffer, params
+    /// range)` for the field's table (at 0) and the proposal field's (right after it, from an
+    /// even index, so that every row of an even number of features is a whole pair; msth-core's
+    /// tables already have an even length, their rows being rounded up to 8).
+    pub fn tables(&self) -> [[(&'static str, usize, Range<usize>); 2]; 2] {
+        let after = |r: &Range<usize>| r.len().next_multiple_of(2);
+        [
+            [
+                ("field.h3", 0, self.tab3.clone()),
+                ("proposal.h3", after(&self.tab3), self.prop3.clone()),
+            ],
+            [
+                ("field.h4", 0, self.tab4.clone()),
+                ("proposal.h4", after(&self.tab4), self.prop4.clone()),
+            ],
+        ]
+    }
+}
+
+/// The uniform of one encoding; `bases`: where its 3D and 4D tables start in the `tab3` and
+/// `tab4` buffers (value indices).
 fn encoding_u(
     e: &EncodingLayout,
     split: &ParamSplit,
-    buffers: [u32; 2],
+    bases: [usize; 2],
     levels: &mut [LevelU; LEVEL_SLOTS],
     next_slot: &mut usize,
 ) -> Result<EncodingU, GpuLayoutError> {
     let rest0 = split.rest.start;
     let mut grid =
         |g: &Option<(GridLayout, Range<usize>)>, buffer: u32| -> Result<GridU, GpuLayoutError> {
-            let Some((gl, r)) = g else {
+            let Some((gl, _)) = g else {
                 return Ok(GridU::default());
             };
-            // Field tables start their own buffers; proposal tables live in `rest`.
-            let base = if buffer == 2 { r.start - rest0 } else { 0 };
+            let base = bases[buffer as usize];
             let first = *next_slot;
             if first + gl.levels.len() > LEVEL_SLOTS {
                 return Err(GpuLayoutError::TooManyLevels);
@@ -358,8 +397,8 @@ fn encoding_u(
                 loc: [buffer, first as u32, 1, 0],
             })
         };
-    let h3 = grid(&e.h3, buffers[0])?;
-    let h4 = grid(&e.h4, buffers[1])?;
+    let h3 = grid(&e.h3, 0)?;
+    let h4 = grid(&e.h4, 1)?;
     if let (Some((a, _)), Some((b, _))) = (&e.h3, &e.h4) {
         if a.levels.len() != b.levels.len() || a.features != b.features {
             return Err(GpuLayoutError::GridMismatch);
@@ -503,6 +542,46 @@ mod tests {
             );
             let n = loop_iterations_per_invocation(&cfg);
             assert!(n < LAVAPIPE_LOOP_ITERATIONS / 4, "{p:?}: {n}");
+        }
+    }
+
+    #[test]
+    fn both_fields_tables_share_the_pair_buffers() {
+        use msth_core::config::Preset;
+        for features in [1, 2, 4] {
+            let mut cfg = ModelConfig::preset(
+                Preset::Fast,
+                SceneBounds::dnerf_default(),
+                Background::Color { rgb: [1.0; 3] },
+                10,
+            );
+            for enc in [&mut cfg.field.encoding, &mut cfg.proposal.encoding] {
+                // Dense coarse levels, hashed fine ones.
+                enc.resize(3, 10, 64.0, 4);
+                enc.grid3.features_per_level = features;
+                enc.grid4.features_per_level = features;
+            }
+            let gm = GpuModel::new(&cfg).unwrap();
+            let layout = ModelLayout::new(&cfg);
+            let s = &gm.split;
+            let [[(_, f3, t3), (_, p3, r3)], [(_, f4, t4), (_, p4, r4)]] = s.tables();
+            assert_eq!((f3, f4), (0, 0));
+            assert_eq!((t3.clone(), t4.clone()), (s.tab3.clone(), s.tab4.clone()));
+            let pe = &layout.proposal.field.encoding;
+            assert_eq!(Some(&r3), pe.h3.as_ref().map(|(_, r)| r));
+            assert_eq!(Some(&r4), pe.h4.as_ref().map(|(_, r)| r));
+            // The proposal's tables start at the next even index after the field's.
+            assert_eq!(p3, t3.len() + t3.len() % 2);
+            assert_eq!(p4, t4.len() + t4.len() % 2);
+            // Its levels' offsets point there; the buffers hold both in whole pairs.
+            let prop = gm.model.prop;
+            let first3 = gm.model.levels[prop.h3.loc[1] as usize].info[0] as usize;
+            let first4 = gm.model.levels[prop.h4.loc[1] as usize].info[0] as usize;
+            assert_eq!((first3, first4), (p3, p4));
+            assert_eq!((prop.h3.loc[0], prop.h4.loc[0]), (0, 1));
+            let [(_, b3), (_, b4), _] = gm.buffer_sizes();
+            assert_eq!(b3, (4 * (p3 + r3.len())).next_multiple_of(8) as u64);
+            assert_eq!(b4, (4 * (p4 + r4.len())).next_multiple_of(8) as u64);
         }
     }
 

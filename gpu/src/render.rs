@@ -17,7 +17,7 @@ use std::sync::{Arc, Mutex};
 
 use wgpu::util::DeviceExt;
 
-use crate::layout::{self, GpuModel, ViewU};
+use crate::layout::{self, GpuModel, ParamSplit, ViewU};
 
 /// The kernels' source, shared with the browser player.
 pub const RENDER_WGSL: &str = include_str!("../shaders/render.wgsl");
@@ -385,6 +385,31 @@ impl GpuContext {
             }))
     }
 
+    /// A read-only storage buffer of `bytes` bytes (a multiple of 4, at least `data.len()`),
+    /// `data` at its start and zeros after.
+    pub fn storage_buffer_sized(
+        &self,
+        what: &str,
+        bytes: u64,
+        data: &[u8],
+    ) -> Result<wgpu::Buffer, GpuError> {
+        self.check_storage(what, bytes)?;
+        if bytes < data.len() as u64 || !bytes.is_multiple_of(4) {
+            return Err(GpuError::Backend(format!(
+                "{what}: a buffer of {bytes} bytes cannot hold {} bytes",
+                data.len()
+            )));
+        }
+        let buf = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(what),
+            size: bytes,
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        self.write(&buf, data);
+        Ok(buf)
+    }
+
     /// An output buffer of `n` `vec4<f32>`.
     pub fn output_buffer(&self, what: &str, n: usize) -> Result<wgpu::Buffer, GpuError> {
         let bytes = (n.max(1) * 16) as u64;
@@ -541,6 +566,19 @@ pub fn check_occupancy(r: u32, words: &[u32]) -> Result<(), GpuError> {
     Ok(())
 }
 
+/// Writes both fields' hash tables from `params` into the `tab3` and `tab4` buffers
+/// ([`crate::layout::ParamSplit::tables`]).
+fn write_tables(ctx: &GpuContext, split: &ParamSplit, bufs: [&wgpu::Buffer; 2], params: &[f32]) {
+    for (buf, parts) in bufs.into_iter().zip(split.tables()) {
+        for (_, at, r) in parts {
+            if !r.is_empty() {
+                let data = bytemuck::cast_slice(&params[r]);
+                ctx.queue.write_buffer(buf, 4 * at as u64, data);
+            }
+        }
+    }
+}
+
 /// One model on the device: its `Model` uniform, the three parameter buffers and the file's
 /// occupancy grid.
 pub struct GpuScene {
@@ -573,9 +611,10 @@ impl GpuScene {
         }
         let bytes =
             |r: &std::ops::Range<usize>| bytemuck::cast_slice::<f32, u8>(&params[r.clone()]);
-        let [n3, n4, nr] = gpu_model.buffer_sizes().map(|(n, _)| n);
-        let tab3 = ctx.storage_buffer(n3, bytes(&split.tab3), false)?;
-        let tab4 = ctx.storage_buffer(n4, bytes(&split.tab4), false)?;
+        let [(n3, s3), (n4, s4), (nr, _)] = gpu_model.buffer_sizes();
+        let tab3 = ctx.storage_buffer_sized(n3, s3, &[])?;
+        let tab4 = ctx.storage_buffer_sized(n4, s4, &[])?;
+        write_tables(ctx, &split, [&tab3, &tab4], params);
         let rest = ctx.storage_buffer(nr, bytes(&split.rest), false)?;
         let model = ctx
             .device
@@ -710,13 +749,11 @@ impl GpuScene {
             }
         }
         let split = &self.gpu_model.split;
-        for (buf, r) in [
-            (&self.tab3, &split.tab3),
-            (&self.tab4, &split.tab4),
-            (&self.rest, &split.rest),
-        ] {
-            ctx.write(buf, bytemuck::cast_slice(&params[r.clone()]));
-        }
+        write_tables(ctx, split, [&self.tab3, &self.tab4], params);
+        ctx.write(
+            &self.rest,
+            bytemuck::cast_slice(&params[split.rest.clone()]),
+        );
         self.uploaded.copy_from_slice(params);
         Ok(true)
     }

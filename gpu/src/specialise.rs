@@ -1,7 +1,8 @@
 //! Kernels specialised to one model (issue #17): the region of `render.wgsl` between its two
 //! `specialise` lines, which holds the per-sample passes' encodings (`encode_field4`,
-//! `encode_proposal4`) and MLPs (`proposal_mlp4`, `density_mlp4`, `color_mlp4`), rewritten with
-//! the model's level values and MLP weights as constants.
+//! `encode_proposal4`), MLPs (`proposal_mlp4`, `density_mlp4`, `color_mlp4`) and geometry-feature
+//! transfers (`geo_to_work`, `geo_from_work`), rewritten with the model's level values, MLP
+//! weights and feature count as constants.
 //!
 //! # Why
 //! The generic versions read each level's scale, strides and offset from the `Model` uniform at
@@ -17,6 +18,10 @@
 //!   named scalars, weights as literals: no loads but the inputs. (A first version kept the
 //!   four samples together in `vec4`s, as the generic MLPs do to share each weight read: four
 //!   times the code, which crashed Chromium's GPU process compiling the colour MLP.)
+//! - **geometry features** (`geo_to_work`, `geo_from_work`, between the density and colour
+//!   passes): one statement per feature. The generic loop over the uniform's count indexes
+//!   `hid4` and `out4` at run time, and lavapipe then keeps those arrays in memory for every
+//!   access of the pass: with the loops unrolled, the colour pass took half the time.
 //!
 //! The values are the generic kernels' (the frames on lavapipe are bit-identical): each MLP
 //! output is summed over its inputs in order, as on the CPU.
@@ -95,8 +100,9 @@ pub fn specialise_wgsl(
     Ok(out)
 }
 
-/// The region's replacement: the `specialise` lines around the five generated functions (the
-/// two encodings, then the three MLPs; see the module's documentation).
+/// The region's replacement: the `specialise` lines around the seven generated functions (the
+/// two encodings, the three MLPs, then the two geometry-feature transfers; see the module's
+/// documentation).
 pub fn specialised_region(model: &GpuModel, rest: &[f32]) -> Result<String, SpecialiseError> {
     let total = mlp_weights(model);
     if total > MAX_SPECIALISED_WEIGHTS {
@@ -136,7 +142,7 @@ pub fn specialised_region(model: &GpuModel, rest: &[f32]) -> Result<String, Spec
          // with every level's values as constants, the MLPs with the weights as constants.\n",
     );
     w.encoding("encode_field4", ("field", &m.field), m, [0, 1], true);
-    w.encoding("encode_proposal4", ("prop", &m.prop), m, [2, 2], false);
+    w.encoding("encode_proposal4", ("prop", &m.prop), m, [0, 1], false);
     // Proposal: in -> hidden (ReLU) -> 1.
     let (off, nin, hidden) = (
         m.proposal[0] as usize,
@@ -203,7 +209,8 @@ pub fn specialised_region(model: &GpuModel, rest: &[f32]) -> Result<String, Spec
     w.out.push_str(
         "        r[0][k] = sigmoid(c0);\n        r[1][k] = sigmoid(c1);\n        r[2][k] = sigmoid(c2);\n",
     );
-    w.out.push_str("    }\n    return r;\n}\n");
+    w.out.push_str("    }\n    return r;\n}\n\n");
+    w.geo_transfers(c[3] as usize);
     w.out.push_str(END);
     if !w.finite {
         return Err(SpecialiseError::NotFinite);
@@ -232,7 +239,7 @@ impl Writer<'_> {
     /// An encoding function (`encode_field4`, `encode_proposal4`): `encode` with every level's
     /// uniform values written as constants, the level loop unrolled, the features stored straight
     /// into lane `k` of `hid4`. `(uniform, e)`: the encoding's member of `Model` and its value;
-    /// `buffers`: the tables' binding numbers, as at `encode`'s call sites; `returns`: whether
+    /// `buffers`: the 3D and 4D tables' buffers (0 `tab3`, 1 `tab4`); `returns`: whether
     /// it returns the mask value.
     fn encoding(
         &mut self,
@@ -296,6 +303,31 @@ impl Writer<'_> {
         } else {
             "}\n\n"
         });
+    }
+
+    /// `geo_to_work` and `geo_from_work` for `geo` geometry features: one statement per feature
+    /// (the generic ones loop over a count from the uniform).
+    fn geo_transfers(&mut self, geo: usize) {
+        let o = &mut self.out;
+        let at = format!("    let at = pass_u.reg1.x + j * {geo}u;\n");
+        let plus = |q: usize| {
+            if q == 0 {
+                String::new()
+            } else {
+                format!(" + {q}u")
+            }
+        };
+        o.push_str("fn geo_to_work(j: u32, k: u32) {\n");
+        o.push_str(&at);
+        for q in 0..geo {
+            o.push_str(&format!("    work[at{}] = out4[{}][k];\n", plus(q), 1 + q));
+        }
+        o.push_str("}\n\nfn geo_from_work(j: u32, k: u32) {\n");
+        o.push_str(&at);
+        for q in 0..geo {
+            o.push_str(&format!("    hid4[{}][k] = work[at{}];\n", 16 + q, plus(q)));
+        }
+        o.push_str("}\n");
     }
 
     /// `let x0 = hid4[0][k];` ... one line.

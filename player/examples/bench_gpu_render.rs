@@ -12,12 +12,15 @@
 //! `MSTH_BENCH_SKIP_PER_RAY=1` skips the old kernel, which takes minutes on software adapters
 //! for large frames; `MSTH_BENCH_OLD_WGSL=FILE` compiles the old kernel from another version of
 //! `render.wgsl`, e.g. `git show a04e488:gpu/shaders/render.wgsl`, the kernels before the
-//! per-sample passes were optimised, and `MSTH_BENCH_OLD_KERNELS=passes` times that file's
+//! per-sample passes were optimised (a file from before session 47 reads the proposal field's
+//! tables from `rest`, where the uniform no longer points: run it with a binary of its time,
+//! e.g. one built from 67e1290), and `MSTH_BENCH_OLD_KERNELS=passes` times that file's
 //! per-sample passes instead of its per-ray kernel, `MSTH_BENCH_OLD_KERNELS=generic` the generic
 //! passes (level values and weights read from buffers) against the passes compiled for the model
 //! (`msth_gpu::specialise`; lavapipe compiles at the first dispatch, so the first new frame
 //! includes compiling them); `MSTH_BENCH_SKIP_INCREMENTAL=1` stops after the full
-//! frames). A file's occupancy grid is used by every renderer (CPU and GPU, as `msth play`
+//! frames; `MSTH_BENCH_REPEAT=N` times N more frames of the new kernels, each after one of the old
+//! ones, and reports the fastest of each). A file's occupancy grid is used by every renderer (CPU and GPU, as `msth play`
 //! does; `MSTH_BENCH_NO_SKIP=1` turns it off), and the CPU frame without it is the quality
 //! reference printed beside. Timings include the read-back of the frame; "cpu" is this process's CPU time over
 //! the same span (all threads: lavapipe's included), which a busy machine inflates less than
@@ -156,6 +159,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     };
     println!("adapter: {}", ctx.adapter_name());
     let mut old_s = None;
+    let mut old_r = None;
     if std::env::var("MSTH_BENCH_SKIP_PER_RAY").as_deref() != Ok("1") {
         let (kernels, what) = match std::env::var("MSTH_BENCH_OLD_KERNELS").as_deref() {
             Ok("passes") => (GpuKernels::PerSample, "per-sample passes"),
@@ -177,6 +181,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     f.psnr_displayed(&reference)
                 );
                 old_s = Some((secs, cpu));
+                old_r = Some(old);
             }
             Err(e) => println!("gpu {what} (old): refused: {e}"),
         }
@@ -189,9 +194,54 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let (t, c) = (Instant::now(), cpu_seconds());
     let f = new.render(&cam, 0.0, &params0)?;
     let (first_s, first_cpu) = (t.elapsed().as_secs_f64(), cpu_seconds() - c);
-    let (t, c) = (Instant::now(), cpu_seconds());
-    new.render(&cam, 0.0, &params0)?;
-    let (new_s, new_cpu) = (t.elapsed().as_secs_f64(), cpu_seconds() - c);
+    // Then `MSTH_BENCH_REPEAT` frames (default 1), each after one of the old kernels when there
+    // are old kernels and more than one frame (old and new alternate, so that a host whose speed
+    // drifts slows both alike); the fastest of each is reported, since a busy host only ever
+    // slows a frame down.
+    let repeat: usize = std::env::var("MSTH_BENCH_REPEAT")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(1)
+        .max(1);
+    let timed = |r: &mut GpuRenderer| -> Result<(f64, f64), Box<dyn std::error::Error>> {
+        let (t, c) = (Instant::now(), cpu_seconds());
+        r.render(&cam, 0.0, &params0)?;
+        Ok((t.elapsed().as_secs_f64(), cpu_seconds() - c))
+    };
+    let (mut new_s, mut new_cpu) = (f64::INFINITY, 0.0);
+    let (mut all, mut all_old) = (Vec::new(), Vec::new());
+    for _ in 0..repeat {
+        if let (Some(old), true) = (old_r.as_mut(), repeat > 1) {
+            let (s, cpu) = timed(old)?;
+            all_old.push(s);
+            if old_s.is_none_or(|(o, _)| s < o) {
+                old_s = Some((s, cpu));
+            }
+        }
+        let (s, cpu) = timed(&mut new)?;
+        all.push(s);
+        if s < new_s {
+            (new_s, new_cpu) = (s, cpu);
+        }
+    }
+    let spread = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        format!(
+            "fastest {:.3} s, median {:.3} s, slowest {:.3} s",
+            v[0],
+            v[v.len() / 2],
+            v[v.len() - 1]
+        )
+    };
+    if repeat > 1 {
+        println!("{repeat} more frames, new: {}", spread(&mut all));
+        if !all_old.is_empty() {
+            println!(
+                "{repeat} more frames, old (alternating with new): {}",
+                spread(&mut all_old)
+            );
+        }
+    }
     println!(
         "gpu full frame, per-sample passes (new): {first_s:8.3} s first (cpu {first_cpu:.1} s), {new_s:.3} s next (cpu {new_cpu:.1} s)  {:.1} dB vs cpu; {}",
         f.psnr_displayed(&reference),

@@ -174,6 +174,7 @@ fn eval_points_matches_the_cpu_reference_for_every_blend() {
 /// number of features per level against the CPU reference.
 fn eval_points_match_the_cpu_reference_for_every_feature_count() {
     let ctx = context();
+    // One feature: the tables read value by value; more: in pairs.
     for features in [1, 4, 8] {
         let mut cfg = config(BlendMode::Mst);
         for enc in [&mut cfg.field.encoding, &mut cfg.proposal.encoding] {

@@ -3,8 +3,9 @@
 // page by `msth serve`). This module is
 // the browser's host side of its bindings, a port of `gpu/src/layout.rs` as documented in
 // `shaders/README.md`: the `Model` uniform (6496 bytes), the `View` uniform (112 bytes), the
-// split of the flat parameter buffer into `tab3` (field.h3), `tab4` (field.h4) and `rest`
-// (everything after them), and the 2D dispatch of 64-wide workgroups.
+// split of the flat parameter buffer into `tab3` (field.h3, then proposal.h3), `tab4` (field.h4,
+// then proposal.h4) and `rest` (everything after the field's tables), and the 2D dispatch of
+// 64-wide workgroups.
 //
 // Frames are rendered through the per-sample passes (`pass_*` entry points; the host side of
 // `gpu/src/passes.rs`, documented in `shaders/README.md`): per batch of pixels, ray setup,
@@ -169,7 +170,18 @@ export function gpuModel(cfg, layout) {
   const tab3 = fe.h3 ? [fe.h3.start, fe.h3.end] : [0, 0];
   const tab4 = fe.h4 ? [fe.h4.start, fe.h4.end] : [0, 0];
   const rest0 = Math.max(tab3[1], tab4[1]);
-  const split = { tab3, tab4, rest: [rest0, layout.total] };
+  const pe = layout.proposal.encoding;
+  const prop3 = pe.h3 ? [pe.h3.start, pe.h3.end] : [0, 0];
+  const prop4 = pe.h4 ? [pe.h4.start, pe.h4.end] : [0, 0];
+  // What the tab3 and tab4 buffers hold (layout.rs `ParamSplit::tables`): [value index in the
+  // buffer, params range] for the field's table (at 0) and the proposal field's (after it, from
+  // an even index: the kernels read the tables in pairs).
+  const after = (r) => 2 * Math.ceil((r[1] - r[0]) / 2);
+  const tables = [
+    [[0, tab3], [after(tab3), prop3]],
+    [[0, tab4], [after(tab4), prop4]],
+  ];
+  const split = { tab3, tab4, prop3, prop4, tables, rest: [rest0, layout.total] };
   for (const s of [fe.mask, layout.field.density, layout.field.color, layout.proposal.density, layout.proposal.encoding.h3, layout.proposal.encoding.h4, layout.proposal.encoding.mask]) {
     if (s && s.start < rest0) throw new Error("a parameter lies before the field's hash tables; the GPU renderer cannot split this layout");
   }
@@ -212,9 +224,8 @@ export function gpuModel(cfg, layout) {
   u.set([...mlps.proposal, 0], PROPOSAL);
 
   let nextSlot = 0;
-  const grid = (g, buffer, at) => {
+  const grid = (g, buffer, base, at) => {
     if (!g) return; // zeros: not present
-    const base = buffer === 2 ? g.start - rest0 : 0;
     const first = nextSlot;
     if (first + g.levels.length > LEVEL_SLOTS) throw new Error("too many grid levels for the GPU renderer");
     g.levels.forEach((lv, k) => {
@@ -227,16 +238,17 @@ export function gpuModel(cfg, layout) {
     u.set([g.dims, g.features, g.levels.length, g.tableSize - 1], at + GR.shape);
     u.set([buffer, first, 1, 0], at + GR.loc);
   };
-  const encoding = (e, buffers, at) => {
-    grid(e.h3, buffers[0], at + EN.h3);
-    grid(e.h4, buffers[1], at + EN.h4);
+  // `bases`: where the encoding's 3D and 4D tables start in the tab3 and tab4 buffers.
+  const encoding = (e, bases, at) => {
+    grid(e.h3, 0, bases[0], at + EN.h3);
+    grid(e.h4, 1, bases[1], at + EN.h4);
     u.set(e.mask ? [BLEND[e.blend], 1, e.mask.res, e.mask.start - rest0] : [BLEND[e.blend], 0, 0, 0], at + EN.mode);
     u.set([e.outDim, 0, 0, 0], at + EN.dims);
     const noMask = e.blend === "static" ? 1 : e.blend === "four_d" ? 0 : 0.5;
     f.set([noMask, RENDER_STATIC_CUTOFF, 0, 0], at + EN.consts);
   };
-  encoding(fe, [0, 1], FIELD);
-  encoding(layout.proposal.encoding, [2, 2], PROP);
+  encoding(fe, [0, 0], FIELD);
+  encoding(pe, [tables[0][1][0], tables[1][1][0]], PROP);
   return { uniform: buf, split, mlps };
 }
 
@@ -386,8 +398,10 @@ class GpuScene {
     };
     const len = (r) => r[1] - r[0];
     const S = GPUBufferUsage.STORAGE | GPUBufferUsage.COPY_DST;
-    this.tab3 = buffer(4 * len(split.tab3), S, "field.h3 table (tab3)");
-    this.tab4 = buffer(4 * len(split.tab4), S, "field.h4 table (tab4)");
+    // Both fields' tables, read in pairs (`vec2<f32>`): whole pairs, at least one.
+    const pairs = (parts) => 8 * Math.max(1, Math.ceil(Math.max(...parts.map(([at, r]) => at + len(r))) / 2));
+    this.tab3 = buffer(pairs(split.tables[0]), S, "3D hash tables (tab3)");
+    this.tab4 = buffer(pairs(split.tables[1]), S, "4D hash tables (tab4)");
     this.rest = buffer(4 * len(split.rest), S, "decoders, mask and proposal field (rest)");
     this.model = device.createBuffer({ size: modelUniform.byteLength, usage: GPUBufferUsage.UNIFORM | GPUBufferUsage.COPY_DST, label: "Model" });
     device.queue.writeBuffer(this.model, 0, modelUniform);
@@ -523,12 +537,12 @@ class GpuScene {
   /** Uploads the flat parameter buffer (a Float32Array of `param_count` values). */
   setParams(params) {
     const q = this.device.queue;
-    const put = (buf, [a, b]) => {
-      if (b > a) q.writeBuffer(buf, 0, params.buffer, params.byteOffset + 4 * a, 4 * (b - a));
+    const put = (buf, at, [a, b]) => {
+      if (b > a) q.writeBuffer(buf, 4 * at, params.buffer, params.byteOffset + 4 * a, 4 * (b - a));
     };
-    put(this.tab3, this.split.tab3);
-    put(this.tab4, this.split.tab4);
-    put(this.rest, this.split.rest);
+    for (const [at, r] of this.split.tables[0]) put(this.tab3, at, r);
+    for (const [at, r] of this.split.tables[1]) put(this.tab4, at, r);
+    put(this.rest, 0, this.split.rest);
   }
 
   /**

@@ -1,8 +1,8 @@
 // Kernels specialised to one model: the region of `render.wgsl` between its two `specialise`
-// lines (the passes' encodings `encode_field4`, `encode_proposal4` and MLPs `proposal_mlp4`,
-// `density_mlp4`, `color_mlp4`) rewritten with the model's level values and MLP weights as
-// constants, so that SwiftShader runs them without a per-lane gather for each level row, weight
-// and activation read.
+// lines (the passes' encodings `encode_field4`, `encode_proposal4`, MLPs `proposal_mlp4`,
+// `density_mlp4`, `color_mlp4` and geometry-feature transfers `geo_to_work`, `geo_from_work`)
+// rewritten with the model's level values, MLP weights and feature count as constants, so that
+// SwiftShader runs them without a per-lane gather for each level row, weight and activation read.
 //
 // The twin of msth-gpu's `gpu/src/specialise.rs`, which documents why: this file must write the
 // same text byte for byte, and `tests/tests/web_specialise.rs` runs `web/tests/specialise.mjs`
@@ -28,8 +28,8 @@ export const mlpWeights = (m) => m.ranges.reduce((n, [a, b]) => n + b - a, 0);
  * the MLPs' uniform rows and weight ranges, and `uniform`, the `Model` uniform) whose `rest` values (a
  * Float32Array: the parameter buffer from the end of the field's tables) are given: the two
  * encodings with their levels unrolled, then the three MLPs, each a loop over the invocation's
- * LANES samples, one sample's MLP per trip in scalars. Throws an Error saying why a model is not
- * specialised.
+ * LANES samples, one sample's MLP per trip in scalars, then the two geometry-feature transfers.
+ * Throws an Error saying why a model is not specialised.
  */
 export function specialisedRegion(gm, rest) {
   const m = gm.mlps;
@@ -109,7 +109,7 @@ export function specialisedRegion(gm, rest) {
       "// with every level's values as constants, the MLPs with the weights as constants.\n",
   );
   encoding("encode_field4", "field", [0, 1], true);
-  encoding("encode_proposal4", "prop", [2, 2], false);
+  encoding("encode_proposal4", "prop", [0, 1], false);
   {
     const [off, nin, hidden] = m.proposal;
     parts.push("fn proposal_mlp4() -> vec4<f32> {\n    var r: vec4<f32>;\n", LOOP);
@@ -139,7 +139,18 @@ export function specialisedRegion(gm, rest) {
     }
     layer(`a${layers - 1}_`, "c", off, hidden, 3, false);
     parts.push("        r[0][k] = sigmoid(c0);\n        r[1][k] = sigmoid(c1);\n        r[2][k] = sigmoid(c2);\n");
-    parts.push("    }\n    return r;\n}\n");
+    parts.push("    }\n    return r;\n}\n\n");
+  }
+  {
+    // The geometry-feature transfers, one statement per feature (specialise.rs `geo_transfers`).
+    const geo = m.color[3];
+    const at = `    let at = pass_u.reg1.x + j * ${geo}u;\n`;
+    const plus = (q) => (q === 0 ? "" : ` + ${q}u`);
+    parts.push("fn geo_to_work(j: u32, k: u32) {\n", at);
+    for (let q = 0; q < geo; q++) parts.push(`    work[at${plus(q)}] = out4[${1 + q}][k];\n`);
+    parts.push("}\n\nfn geo_from_work(j: u32, k: u32) {\n", at);
+    for (let q = 0; q < geo; q++) parts.push(`    hid4[${16 + q}][k] = work[at${plus(q)}];\n`);
+    parts.push("}\n");
   }
   parts.push(END);
   if (!finite) throw new Error("an MLP weight is not finite");

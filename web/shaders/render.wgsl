@@ -37,7 +37,7 @@ struct Level {
 struct Grid {
     // x: dims (3 or 4), y: features per level, z: levels, w: hash mask (table size - 1).
     shape: vec4<u32>,
-    // x: buffer (0 = tab3, 1 = tab4, 2 = rest), y: index of level 0 in Model.levels,
+    // x: buffer (0 = tab3, 1 = tab4), y: index of level 0 in Model.levels,
     // z: 1 = present, w: unused.
     loc: vec4<u32>,
 }
@@ -91,11 +91,14 @@ struct View {
 
 @group(0) @binding(0) var<uniform> model: Model;
 @group(0) @binding(1) var<uniform> view: View;
-// Field 3D hash table (params range `field.h3`).
-@group(0) @binding(2) var<storage, read> tab3: array<f32>;
-// Field 4D hash table (params range `field.h4`).
-@group(0) @binding(3) var<storage, read> tab4: array<f32>;
-// Everything after the field tables: mask, decoders, proposal field.
+// The 3D hash tables: params range `field.h3`, then `proposal.h3` from an even index (msth-gpu
+// layout.rs, `ParamSplit::tables`); read two values at a time where a grid's rows hold an even
+// number of features (`table2`). The buffer holds whole pairs.
+@group(0) @binding(2) var<storage, read> tab3: array<vec2<f32>>;
+// The 4D hash tables (`field.h4`, then `proposal.h4`), likewise.
+@group(0) @binding(3) var<storage, read> tab4: array<vec2<f32>>;
+// Everything after the field's tables: mask, decoders, the proposal field (its tables unread
+// here).
 @group(0) @binding(4) var<storage, read> rest: array<f32>;
 // Pixel list (render) or packed points (eval_points).
 @group(0) @binding(5) var<storage, read> list: array<u32>;
@@ -160,14 +163,27 @@ fn sanitize(w: f32) -> f32 {
     return select(0.0, w, w > 0.0 && w <= 3.40282346e38);
 }
 
+// Value i of the hash tables of buffer `buf` (0 tab3, 1 tab4).
 fn table(buf: u32, i: u32) -> f32 {
     var v: f32;
     if buf == 0u {
-        v = tab3[i];
-    } else if buf == 1u {
-        v = tab4[i];
+        v = tab3[i >> 1u][i & 1u];
     } else {
-        v = rest[i];
+        v = tab4[i >> 1u][i & 1u];
+    }
+    return v;
+}
+
+// Values i and i + 1 (i even) of the hash tables of buffer `buf`: one `vec2` load. Mesa's
+// lavapipe (22.x) turns each storage load at a per-invocation index into a loop over the SIMD
+// lanes, one loop per load however many components it reads, so reading a row's two features
+// together nearly halves the encodings' cost there.
+fn table2(buf: u32, i: u32) -> vec2<f32> {
+    var v: vec2<f32>;
+    if buf == 0u {
+        v = tab3[i >> 1u];
+    } else {
+        v = tab4[i >> 1u];
     }
     return v;
 }
@@ -315,7 +331,7 @@ struct Feat {
 }
 
 // Features of level l of grid g at point p (dims 3 or 4): multilinear interpolation of the 2^D
-// corners, dense or hashed indexing; the table is in buffer `buf` (0 tab3, 1 tab4, 2 rest),
+// corners, dense or hashed indexing; the table is in buffer `buf` (0 tab3, 1 tab4),
 // a constant at every call site so that the compiler can drop `table`'s branches. Per-axis
 // values in vectors and features in two vec4 (no indexed private arrays).
 //
@@ -359,8 +375,16 @@ fn grid_level_at(lv: Level, shape: vec4<u32>, p: vec4<f32>, buf: u32) -> Feat {
         let cv = select(lo, hi, u);
         let row = select((cv.x ^ cv.y ^ cv.z ^ cv.w) & hash_mask, cv.x + cv.y + cv.z + cv.w, dense);
         let base = off + row * nf;
-        fa.x += w * table(buf, base);
-        fa.y += w * table(buf, base + second);
+        // An even number of features per row: every row starts at an even index (levels too:
+        // their sizes are rows x nf), so features 0 and 1 are one pair.
+        if (nf & 1u) == 0u {
+            let t = table2(buf, base);
+            fa.x += w * t.x;
+            fa.y += w * t.y;
+        } else {
+            fa.x += w * table(buf, base);
+            fa.y += w * table(buf, base + second);
+        }
         // Features 2.. (no trips at 1 or 2 features per level).
         for (var f = 2u; f < nf; f++) {
             let t = w * table(buf, base + f);
@@ -388,9 +412,9 @@ fn blend_of(e: Encoding, m: f32, cutoff: f32) -> vec4<f32> {
 }
 
 // Masked encoding at point p into hid[0 .. levels * features] (level-major, features within a
-// level), the MLPs' input. `buf3`, `buf4`: the buffers of the 3D and 4D tables (constants at
-// the call sites: field 0 and 1, proposal 2 and 2). Returns the mask value m.
-fn encode(e: Encoding, p: vec4<f32>, cutoff: f32, buf3: u32, buf4: u32) -> f32 {
+// level), the MLPs' input: the 3D tables in `tab3`, the 4D ones in `tab4` (both fields'). Returns
+// the mask value m.
+fn encode(e: Encoding, p: vec4<f32>, cutoff: f32) -> f32 {
     let m = mask_at(e, p.xyz);
     let use3 = e.h3.loc.z == 1u;
     let use4 = e.h4.loc.z == 1u;
@@ -414,10 +438,10 @@ fn encode(e: Encoding, p: vec4<f32>, cutoff: f32, buf3: u32, buf4: u32) -> f32 {
         var f3 = zero;
         var f4 = zero;
         if use3 && !skip3 {
-            f3 = grid_level(e.h3, l, p, buf3);
+            f3 = grid_level(e.h3, l, p, 0u);
         }
         if use4 && !skip4 {
-            f4 = grid_level(e.h4, l, p, buf4);
+            f4 = grid_level(e.h4, l, p, 1u);
         }
         let va = k3 * f3.a + k4 * f4.a;
         let at = l * nf;
@@ -503,7 +527,7 @@ fn proposal_sigma(p: vec4<f32>, cutoff: f32) -> f32 {
     let d = model.proposal;
     let off = d.x;
     let hidden = d.z;
-    encode(model.prop, p, cutoff, 2u, 2u);
+    encode(model.prop, p, cutoff);
     dense_layer(off, d.y, hidden, true);
     let w2 = off + d.y * hidden;
     var s = 0.0;
@@ -519,7 +543,7 @@ fn field_density(p: vec4<f32>, cutoff: f32, m: ptr<function, f32>) -> f32 {
     let off = d.x;
     let hidden = d.z;
     let nout = d.w;
-    *m = encode(model.field, p, cutoff, 0u, 1u);
+    *m = encode(model.field, p, cutoff);
     dense_layer(off, d.y, hidden, true);
     hid2_to_hid(hidden);
     let w2 = off + d.y * hidden;
@@ -1100,13 +1124,10 @@ fn pass_resample(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wor
 // The density and geometry features of the LANES samples `js` (the first `used` of them) from
 // `density_mlp4`'s output.
 fn store_density_lanes(js: vec4<u32>, used: u32) {
-    let geo = model.color.w;
     for (var k = 0u; k < used; k++) {
         let j = js[k];
         work[pass_u.reg0.w + 4u * j + 3u] = trunc_exp(out4[0][k]);
-        for (var q = 0u; q < geo; q++) {
-            work[pass_u.reg1.x + j * geo + q] = out4[1u + q][k];
-        }
+        geo_to_work(j, k);
     }
 }
 
@@ -1272,7 +1293,6 @@ fn pass_color(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
     let i = invocation(gid, groups);
     let n = atomicLoad(&ctrl[1]);
     if i * LANES < n {
-        let geo = model.color.w;
         let used = min(n - i * LANES, LANES);
         var js = vec4<u32>(0u);
         for (var k = 0u; k < LANES; k++) {
@@ -1297,9 +1317,7 @@ fn pass_color(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
             hid4[13][k] = sh[13];
             hid4[14][k] = sh[14];
             hid4[15][k] = sh[15];
-            for (var q = 0u; q < geo; q++) {
-                hid4[16u + q][k] = work[pass_u.reg1.x + j * geo + q];
-            }
+            geo_from_work(j, k);
         }
         let c = color_mlp4();
         for (var k = 0u; k < used; k++) {
@@ -1324,12 +1342,15 @@ fn sigmoid4(x: vec4<f32>) -> vec4<f32> {
     return vec4<f32>(sigmoid(x.x), sigmoid(x.y), sigmoid(x.z), sigmoid(x.w));
 }
 
-// The passes' encodings (`encode_field4`, `encode_proposal4`) and MLPs (`proposal_mlp4`,
-// `density_mlp4`, `color_mlp4`) lie between the two `specialise` lines. These generic versions
-// read the level values from the uniform and the weights from `rest`; hosts replace the region
-// by versions generated for one model, with those values as constants and the activations in
-// named values (msth-gpu `specialise.rs`, the page's `specialise.js`), which software adapters
-// run without a gather per read.
+// The passes' encodings (`encode_field4`, `encode_proposal4`), MLPs (`proposal_mlp4`,
+// `density_mlp4`, `color_mlp4`) and geometry-feature transfers (`geo_to_work`, `geo_from_work`)
+// lie between the two `specialise` lines. These generic versions read the level values from the
+// uniform and the weights from `rest`, and loop over the geometry features; hosts replace the
+// region by versions generated for one model, with those values as constants, the activations in
+// named values and the transfers unrolled (msth-gpu `specialise.rs`, the page's
+// `specialise.js`), which software adapters run without a gather per read. (A loop over a count
+// read from the uniform indexes `hid4` and `out4` at run time, which makes Mesa's lavapipe keep
+// those arrays in memory in every pass that does so, for every access.)
 // ---- specialise: begin
 
 // out4[0..nout] = hid4[0..nin] W per sample (W [nin, nout] row-major at `off` in `rest`), ReLU
@@ -1402,14 +1423,14 @@ fn color_mlp4() -> array<vec4<f32>, 3> {
 // The field's encoding of point p into lane k of hid4 (`hid4[i][k]`, i < levels * features), as
 // `encode`; returns the mask value.
 fn encode_field4(p: vec4<f32>, cutoff: f32, k: u32) -> f32 {
-    let m = encode(model.field, p, cutoff, 0u, 1u);
+    let m = encode(model.field, p, cutoff);
     hid_to_lane(k, model.density.y);
     return m;
 }
 
 // The proposal field's encoding of point p into lane k of hid4, as `encode`.
 fn encode_proposal4(p: vec4<f32>, cutoff: f32, k: u32) {
-    encode(model.prop, p, cutoff, 2u, 2u);
+    encode(model.prop, p, cutoff);
     hid_to_lane(k, model.proposal.y);
 }
 
@@ -1433,6 +1454,23 @@ fn density_mlp4() {
     dense_lanes(d.x, d.y, d.z, true);
     out4_to_hid4(d.z);
     dense_lanes(d.x + d.y * d.z, d.z, d.w, false);
+}
+
+// Sample j's geometry features, out4[1 ..= geo] component k, into the work buffer.
+fn geo_to_work(j: u32, k: u32) {
+    let geo = model.color.w;
+    for (var q = 0u; q < geo; q++) {
+        work[pass_u.reg1.x + j * geo + q] = out4[1u + q][k];
+    }
+}
+
+// Sample j's geometry features from the work buffer into the colour MLP's inputs,
+// hid4[16 ..] component k.
+fn geo_from_work(j: u32, k: u32) {
+    let geo = model.color.w;
+    for (var q = 0u; q < geo; q++) {
+        hid4[16u + q][k] = work[pass_u.reg1.x + j * geo + q];
+    }
 }
 // ---- specialise: end
 
