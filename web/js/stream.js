@@ -2,11 +2,13 @@
 // (player/src/stream.rs): the first 32 bytes, the prefix (header, metadata, index), the sections
 // every frame needs (MLP, proposal, static, shared) in one request when they are contiguous, then
 // the chunk under the playhead, then the others in playback order from there, wrapping around.
+// One difference: the MLP section, when it comes first, is a request of its own, so that the
+// page compiles its kernels for the model (specialise.js) while the larger sections stream.
 // Every response is checked (status 206, Content-Range equal to what was asked, exact length,
 // If-Range with the first response's validator so a file replaced mid-stream is detected).
 // Sections are decoded as they arrive; `ranges` tells the loading bar what has streamed.
 
-import { Decoder, FIXED_HEADER, FormatError, prefixLength } from "./format.js";
+import { Decoder, FIXED_HEADER, FormatError, KIND, prefixLength } from "./format.js";
 
 /** Largest gap between two sections fetched in one request (as stream.rs). */
 const MAX_GAP = 4096;
@@ -221,7 +223,10 @@ export class ModelStream {
         const end = secs[i].offset + secs[i].length;
         contiguous = secs[i + 1].offset >= end && secs[i + 1].offset - end <= MAX_GAP;
       }
-      return contiguous ? [first, last + 1] : [first, first + 1];
+      // The MLP section alone first: the kernels are compiled from it (renderer.js `create`
+      // waits for it) while the other sections stream.
+      if (secs[first].kind === KIND.mlp || !contiguous) return [first, first + 1];
+      return [first, last + 1];
     }
     const chunks = secs.length - nStatic;
     if (chunks === 0) return null;

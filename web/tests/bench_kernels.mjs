@@ -13,6 +13,8 @@
 //     [--first-only 1]   (stop at the first picture, however small; no full-size frame)
 //     [--query K=V&...]   (more URL parameters for the page, e.g. an experiment's switch)
 //     [--playback N]   (then N time steps of the still camera, timed: incremental playback)
+//     [--throttle-kbps N]   (the page's network limited to N kbit/s down, 20 ms latency:
+//                            Chromium's network emulation; the milestones show what waits)
 //
 // On SwiftShader (a fallback adapter) the page starts at `fast` samples per ray: `--query
 // samples=full` times the model's own counts. The line printed names the samples used.
@@ -42,6 +44,12 @@ async function firstFrame(kernel) {
   const ctx = await chromium.launchPersistentContext(dir, { executablePath: a.chromium || process.env.MSTH_CHROMIUM || "/usr/bin/chromium", headless: true, args: FLAGS });
   try {
     const page = await ctx.newPage();
+    if (a["throttle-kbps"]) {
+      const cdp = await ctx.newCDPSession(page);
+      const bytesPerS = (1000 * Number(a["throttle-kbps"])) / 8;
+      await cdp.send("Network.enable");
+      await cdp.send("Network.emulateNetworkConditions", { offline: false, latency: 20, downloadThroughput: bytesPerS, uploadThroughput: bytesPerS });
+    }
     const logs = [];
     page.on("console", (m) => logs.push(m.text()));
     const q = (kernel === "ray" ? "&kernel=ray" : "") + (a.profile === "1" ? "&profile=1" : "") + (a.query ? `&${a.query}` : "");
