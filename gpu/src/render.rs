@@ -385,29 +385,16 @@ impl GpuContext {
             }))
     }
 
-    /// A read-only storage buffer of `bytes` bytes (a multiple of 4, at least `data.len()`),
-    /// `data` at its start and zeros after.
-    pub fn storage_buffer_sized(
-        &self,
-        what: &str,
-        bytes: u64,
-        data: &[u8],
-    ) -> Result<wgpu::Buffer, GpuError> {
+    /// A zeroed read-only storage buffer of `bytes` bytes, filled later with `GpuContext::write`
+    /// or the queue.
+    pub fn storage_buffer_sized(&self, what: &str, bytes: u64) -> Result<wgpu::Buffer, GpuError> {
         self.check_storage(what, bytes)?;
-        if bytes < data.len() as u64 || !bytes.is_multiple_of(4) {
-            return Err(GpuError::Backend(format!(
-                "{what}: a buffer of {bytes} bytes cannot hold {} bytes",
-                data.len()
-            )));
-        }
-        let buf = self.device.create_buffer(&wgpu::BufferDescriptor {
+        Ok(self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some(what),
             size: bytes,
             usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
-        });
-        self.write(&buf, data);
-        Ok(buf)
+        }))
     }
 
     /// An output buffer of `n` `vec4<f32>`.
@@ -612,8 +599,8 @@ impl GpuScene {
         let bytes =
             |r: &std::ops::Range<usize>| bytemuck::cast_slice::<f32, u8>(&params[r.clone()]);
         let [(n3, s3), (n4, s4), (nr, _)] = gpu_model.buffer_sizes();
-        let tab3 = ctx.storage_buffer_sized(n3, s3, &[])?;
-        let tab4 = ctx.storage_buffer_sized(n4, s4, &[])?;
+        let tab3 = ctx.storage_buffer_sized(n3, s3)?;
+        let tab4 = ctx.storage_buffer_sized(n4, s4)?;
         write_tables(ctx, &split, [&tab3, &tab4], params);
         let rest = ctx.storage_buffer(nr, bytes(&split.rest), false)?;
         let model = ctx

@@ -894,6 +894,12 @@ fn main_interval(r: u32, k: u32, near: f32, far: f32) -> vec2<f32> {
 }
 
 // Workgroups (x, y, 1) for `n` invocations, written at `at` in `work` (bound to `args`).
+// The list entry of lane k of invocation i, `used` of whose LANES lanes hold entries: lanes past
+// the list's end repeat its last entry (and store nothing).
+fn lane_entry(i: u32, k: u32, used: u32) -> u32 {
+    return i * LANES + min(k, used - 1u);
+}
+
 fn write_groups(at: u32, n: u32) {
     let groups = (n + WORKGROUP - 1u) / WORKGROUP;
     let x = min(groups, MAX_GROUPS);
@@ -1017,7 +1023,7 @@ fn pass_proposal(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wor
         let used = min(n - i * LANES, LANES);
         var es = vec4<u32>(0u);
         for (var k = 0u; k < LANES; k++) {
-            var e = i * LANES + min(k, used - 1u);
+            var e = lane_entry(i, k, used);
             if live {
                 e = work_u(pass_u.reg2.z + e);
             }
@@ -1155,7 +1161,7 @@ fn pass_density(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
         let used = min(n - i * LANES, LANES);
         var js = vec4<u32>(0u);
         for (var k = 0u; k < LANES; k++) {
-            var j = i * LANES + min(k, used - 1u);
+            var j = lane_entry(i, k, used);
             if live {
                 j = work_u(pass_u.reg2.w + j);
             }
@@ -1240,7 +1246,7 @@ fn pass_dynamic(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
         let used = min(n - i * LANES, LANES);
         var js = vec4<u32>(0u);
         for (var k = 0u; k < LANES; k++) {
-            let j = work_u(pass_u.reg2.x + i * LANES + min(k, used - 1u));
+            let j = work_u(pass_u.reg2.x + lane_entry(i, k, used));
             js[k] = j;
             let at = pass_u.reg1.w + 4u * j;
             encode_field4(vec4<f32>(work[at], work[at + 1u], work[at + 2u], field_time()), 0.0, k);
@@ -1296,8 +1302,7 @@ fn pass_color(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
         let used = min(n - i * LANES, LANES);
         var js = vec4<u32>(0u);
         for (var k = 0u; k < LANES; k++) {
-            // Lanes past the list's end repeat its last sample and store nothing.
-            let j = work_u(pass_u.reg1.y + i * LANES + min(k, used - 1u));
+            let j = work_u(pass_u.reg1.y + lane_entry(i, k, used));
             js[k] = j;
             let rec = ray_rec(j / samples_per_ray());
             sh4(normalize(pixel_ray_dir(ray_pixel(rec))));
