@@ -411,10 +411,17 @@ fn blend_of(e: Encoding, m: f32, cutoff: f32) -> vec4<f32> {
     return vec4<f32>(k3, k4, select(1.0, 0.0, skip3), select(1.0, 0.0, skip4));
 }
 
+// Whether encoding e, at its own cutoff (`consts.y`, what the passes' encodings are given),
+// makes the 4D lookup at unit-cube point x.
+fn reads4(e: Encoding, x: vec3<f32>) -> bool {
+    return blend_of(e, mask_at(e, x), e.consts.y).w != 0.0;
+}
+
 // Masked encoding at point p into hid[0 .. levels * features] (level-major, features within a
 // level), the MLPs' input: the 3D tables in `tab3`, the 4D ones in `tab4` (both fields'). Returns
-// the mask value m.
-fn encode(e: Encoding, p: vec4<f32>, cutoff: f32) -> f32 {
+// the mask value m. `with4` false (a constant at the call site): no 4D lookup is compiled in,
+// for points whose blend skips it (`reads4` false); the result is the same for those.
+fn encode(e: Encoding, p: vec4<f32>, cutoff: f32, with4: bool) -> f32 {
     let m = mask_at(e, p.xyz);
     let use3 = e.h3.loc.z == 1u;
     let use4 = e.h4.loc.z == 1u;
@@ -440,7 +447,7 @@ fn encode(e: Encoding, p: vec4<f32>, cutoff: f32) -> f32 {
         if use3 && !skip3 {
             f3 = grid_level(e.h3, l, p, 0u);
         }
-        if use4 && !skip4 {
+        if with4 && use4 && !skip4 {
             f4 = grid_level(e.h4, l, p, 1u);
         }
         let va = k3 * f3.a + k4 * f4.a;
@@ -527,7 +534,7 @@ fn proposal_sigma(p: vec4<f32>, cutoff: f32) -> f32 {
     let d = model.proposal;
     let off = d.x;
     let hidden = d.z;
-    encode(model.prop, p, cutoff);
+    encode(model.prop, p, cutoff, true);
     dense_layer(off, d.y, hidden, true);
     let w2 = off + d.y * hidden;
     var s = 0.0;
@@ -543,7 +550,7 @@ fn field_density(p: vec4<f32>, cutoff: f32, m: ptr<function, f32>) -> f32 {
     let off = d.x;
     let hidden = d.z;
     let nout = d.w;
-    *m = encode(model.field, p, cutoff);
+    *m = encode(model.field, p, cutoff, true);
     dense_layer(off, d.y, hidden, true);
     hid2_to_hid(hidden);
     let w2 = off + d.y * hidden;
@@ -792,6 +799,12 @@ fn eval_points(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
 //                   loops over the ray's histogram, no field evaluation);
 //   pass_density    one per (ray, main sample): encoding, mask blend, density MLP; sigma and the
 //                   geometry features;
+//
+// With the file's occupancy grid, `pass_live_proposal` and `pass_live_samples` first list the
+// samples in occupied cells, split by the mask: those it leaves a 4D lookup go to
+// `pass_proposal` and `pass_density`, those whose 4D lookup it skips to `pass_proposal3` and
+// `pass_density3`, compiled without the 4D lookup (a static sample then costs its 3D lookup,
+// wherever it falls among its neighbours);
 //   pass_visible    one per ray: which samples light still reaches: those get a colour and are
 //                   appended to the colour list (`ctrl[1]`);
 //   pass_args       again (the colour list's size);
@@ -816,14 +829,17 @@ struct Pass {
     // x: first entry of this batch in the pixel order, y: pixels in the batch, z: flags
     // (bit 0: pixel list[first + i], else pixel first + i; bit 1: output to frame[first + i],
     // else frame[pixel]; bit 2: cache (only samples flagged dynamic get colours); bit 3:
-    // resample from the `wmax` histogram), w: samples per ray S.
+    // resample from the `wmax` histogram; bit 4: the live lists put the samples whose mask
+    // skips the 4D lookup apart, for `pass_proposal3` and `pass_density3`, else every live
+    // sample goes to `pass_proposal` and `pass_density`), w: samples per ray S.
     tile: vec4<u32>,
     // Word offsets: x rays, y hist, z edges, w samp.
     reg0: vec4<u32>,
     // Word offsets: x geo, y clist, z wmax, w pts.
     reg1: vec4<u32>,
     // x: dlist, y: occupancy resolution R (0: no grid, every sample is evaluated), z: the live
-    // proposal samples' list, w: the live main samples' list (word offsets; with a grid).
+    // proposal samples' list, w: the live main samples' list (word offsets; with a grid; each
+    // list holds the samples with a 4D lookup from its front, the others from its back).
     reg2: vec4<u32>,
     // x: static cutoff of `pass_build`, y: 1 = first time of `pass_wmax`, zw: 0.
     misc: vec4<f32>,
@@ -842,6 +858,7 @@ const FLAG_P_LIST: u32 = 1u;
 const FLAG_P_COMPACT: u32 = 2u;
 const FLAG_P_CACHE: u32 = 4u;
 const FLAG_P_WMAX: u32 = 8u;
+const FLAG_P_SPLIT: u32 = 16u;
 // Largest workgroup count per dimension the indirect dispatches use (WebGPU's default limit).
 const MAX_GROUPS: u32 = 65535u;
 
@@ -941,9 +958,11 @@ fn pass_setup(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
 
 // Indirect dispatch sizes, 3 words each: [0] proposal samples / LANES, [3] rays,
 // [6] main samples / LANES, [9] colour list / LANES, [12] dynamic samples / LANES, [15] rays x proposal
-// samples, [18] rays x S. With an occupancy grid (`Pass.reg2.y` != 0) [0] and [6] count the
-// live lists `pass_live_proposal` and `pass_live_samples` built (`ctrl[3]`, `ctrl[4]`), else
-// every (ray, sample) pair.
+// samples, [18] rays x S, [21] 3D-only proposal samples / LANES, [24] 3D-only main samples /
+// LANES. With an occupancy grid (`Pass.reg2.y` != 0) [0] and [6] count the live samples with a
+// 4D lookup, [21] and [24] those without, as `pass_live_proposal` and `pass_live_samples`
+// listed them (`ctrl[3]`, `ctrl[4]`, `ctrl[5]`, `ctrl[6]`); without a grid [0] and [6] count
+// every (ray, sample) pair, and [21] and [24] nothing.
 @compute @workgroup_size(1)
 fn pass_args() {
     let n = atomicLoad(&ctrl[0]);
@@ -951,15 +970,21 @@ fn pass_args() {
     var ns = n * samples_per_ray();
     write_groups(15u, np);
     write_groups(18u, ns);
+    var np3 = 0u;
+    var ns3 = 0u;
     if pass_u.reg2.y != 0u {
         np = atomicLoad(&ctrl[3]);
         ns = atomicLoad(&ctrl[4]);
+        np3 = atomicLoad(&ctrl[5]);
+        ns3 = atomicLoad(&ctrl[6]);
     }
     write_groups(0u, (np + LANES - 1u) / LANES);
     write_groups(3u, n);
     write_groups(6u, (ns + LANES - 1u) / LANES);
     write_groups(9u, (atomicLoad(&ctrl[1]) + LANES - 1u) / LANES);
     write_groups(12u, (atomicLoad(&ctrl[2]) + LANES - 1u) / LANES);
+    write_groups(21u, (np3 + LANES - 1u) / LANES);
+    write_groups(24u, (ns3 + LANES - 1u) / LANES);
 }
 
 // Proposal sample e (ray-major over the batch's rays): its unit-cube point at the frame's time.
@@ -973,34 +998,65 @@ fn proposal_point(e: u32) -> vec4<f32> {
     return sample_point(view.c2w[3].xyz, dir, t0, t1, field_time());
 }
 
+// Whether the live lists put the samples without a 4D lookup apart (`FLAG_P_SPLIT`; a host sets
+// it once it has the passes that evaluate them).
+fn split_lists() -> bool {
+    return (pass_u.tile.z & FLAG_P_SPLIT) != 0u;
+}
+
+// Appends entry `x` to the live list at word `region` of `total` entries: from the front when
+// the sample makes the 4D lookup (`with4`, counted in `ctrl[c4]`), from the back when its mask
+// skips it (`ctrl[c4 + 2]`). Both fit, since every entry goes to one end or none.
+fn live_append(region: u32, total: u32, x: u32, with4: bool, c4: u32) {
+    if with4 {
+        let slot = atomicAdd(&ctrl[c4], 1u);
+        work[region + slot] = bitcast<f32>(x);
+    } else {
+        let slot = atomicAdd(&ctrl[c4 + 2u], 1u);
+        work[region + total - 1u - slot] = bitcast<f32>(x);
+    }
+}
+
+// Entry `x` of the live list at `region` of `total` entries: of its front (samples with a 4D
+// lookup) when `with4`, else of its back (`live_append`).
+fn live_entry(region: u32, total: u32, x: u32, with4: bool) -> u32 {
+    return work_u(select(region + total - 1u - x, region + x, with4));
+}
+
 // With an occupancy grid, per (ray, proposal sample): a sample in an occupied cell is appended
-// to the live list (`Pass.reg2.z`, counted in `ctrl[3]`) that `pass_proposal` evaluates; the
-// others get density 0 here. So the proposal pass costs what the occupied space costs, however
-// the empty samples fall among neighbouring invocations.
+// to the live list (`Pass.reg2.z`) that `pass_proposal` (samples whose mask leaves them a 4D
+// lookup, `ctrl[3]`) and `pass_proposal3` (the others, `ctrl[5]`) evaluate; the others get
+// density 0 here. So the proposal passes cost what the occupied space costs, however the empty
+// samples fall among neighbouring invocations, and the 4D lookups cost what the dynamic space
+// costs: an invocation's lanes run both sides of a branch on software adapters (and diverge on
+// hardware) when any of them takes it, however few.
 @compute @workgroup_size(64)
 fn pass_live_proposal(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let e = invocation(gid, groups);
-    if e < ray_count() * model.sampler.x {
-        if occupied(proposal_point(e).xyz) {
-            let slot = atomicAdd(&ctrl[3], 1u);
-            work[pass_u.reg2.z + slot] = bitcast<f32>(e);
+    let total = ray_count() * model.sampler.x;
+    if e < total {
+        let p = proposal_point(e).xyz;
+        if occupied(p) {
+            live_append(pass_u.reg2.z, total, e, !split_lists() || reads4(model.prop, p), 3u);
         } else {
             work[pass_u.reg0.y + e] = 0.0;
         }
     }
 }
 
-// With an occupancy grid, per (ray, main sample): the live list of `pass_density`
-// (`Pass.reg2.w`, `ctrl[4]`); a sample in an empty cell gets density 0 here.
+// With an occupancy grid, per (ray, main sample): the live list of `pass_density` and
+// `pass_density3` (`Pass.reg2.w`, `ctrl[4]` and `ctrl[6]`), as `pass_live_proposal`'s; a
+// sample in an empty cell gets density 0 here.
 @compute @workgroup_size(64)
 fn pass_live_samples(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let j = invocation(gid, groups);
     let s = samples_per_ray();
-    if j < ray_count() * s {
+    let total = ray_count() * s;
+    if j < total {
         let r = j / s;
-        if occupied(main_point(r, j % s, ray_rec(r)).xyz) {
-            let slot = atomicAdd(&ctrl[4], 1u);
-            work[pass_u.reg2.w + slot] = bitcast<f32>(j);
+        let p = main_point(r, j % s, ray_rec(r)).xyz;
+        if occupied(p) {
+            live_append(pass_u.reg2.w, total, j, !split_lists() || reads4(model.field, p), 4u);
         } else {
             work[pass_u.reg0.w + 4u * j + 3u] = 0.0;
         }
@@ -1008,16 +1064,29 @@ fn pass_live_samples(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num
 }
 
 // Per invocation: the proposal field's density at LANES (ray, proposal sample) pairs, entries
-// LANES i .. LANES i + LANES - 1 of the batch's pairs (ray-major), or of the live list when the
-// pass has an occupancy grid (`pass_live_proposal` gave the others density 0); encodings one by
-// one, the MLP for the LANES samples together (`dense_lanes`).
+// LANES i .. LANES i + LANES - 1 of the batch's pairs (ray-major), or of the live list's
+// samples with a 4D lookup when the pass has an occupancy grid (`pass_live_proposal` gave the
+// empty ones density 0); encodings one by one, the MLP for the LANES samples together
+// (`dense_lanes`).
 @compute @workgroup_size(64)
 fn pass_proposal(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let i = invocation(gid, groups);
+    proposal_lanes(invocation(gid, groups), true);
+}
+
+// `pass_proposal` over the live list's samples whose mask skips the 4D lookup, with no 4D
+// lookup compiled in (dispatched only with an occupancy grid and `FLAG_P_SPLIT`).
+@compute @workgroup_size(64)
+fn pass_proposal3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    proposal_lanes(invocation(gid, groups), false);
+}
+
+// Invocation i of `pass_proposal` (`with4`, a constant) or `pass_proposal3`.
+fn proposal_lanes(i: u32, with4: bool) {
     let live = pass_u.reg2.y != 0u;
-    var n = ray_count() * model.sampler.x;
+    let total = ray_count() * model.sampler.x;
+    var n = total;
     if live {
-        n = atomicLoad(&ctrl[3]);
+        n = atomicLoad(&ctrl[select(5u, 3u, with4)]);
     }
     if i * LANES < n {
         let used = min(n - i * LANES, LANES);
@@ -1025,10 +1094,10 @@ fn pass_proposal(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wor
         for (var k = 0u; k < LANES; k++) {
             var e = lane_entry(i, k, used);
             if live {
-                e = work_u(pass_u.reg2.z + e);
+                e = live_entry(pass_u.reg2.z, total, e, with4);
             }
             es[k] = e;
-            encode_proposal4(proposal_point(e), model.prop.consts.y, k);
+            encode_proposal4(proposal_point(e), model.prop.consts.y, k, with4);
         }
         let sum = proposal_mlp4();
         for (var k = 0u; k < used; k++) {
@@ -1145,17 +1214,29 @@ fn main_point(r: u32, k: u32, rec: vec4<f32>) -> vec4<f32> {
 }
 
 // Per invocation: the main field's density and geometry features at LANES (ray, sample) pairs,
-// entries LANES i .. of the batch's samples (ray-major), or of the live list when the pass has
-// an occupancy grid (`pass_live_samples` gave the others density 0); encodings one by one, the
-// density MLP for the LANES samples together.
+// entries LANES i .. of the batch's samples (ray-major), or of the live list's samples with a
+// 4D lookup when the pass has an occupancy grid (`pass_live_samples` gave the empty ones
+// density 0); encodings one by one, the density MLP for the LANES samples together.
 @compute @workgroup_size(64)
 fn pass_density(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let i = invocation(gid, groups);
+    density_lanes(invocation(gid, groups), true);
+}
+
+// `pass_density` over the live list's samples whose mask skips the 4D lookup, with no 4D
+// lookup compiled in (dispatched only with an occupancy grid and `FLAG_P_SPLIT`).
+@compute @workgroup_size(64)
+fn pass_density3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    density_lanes(invocation(gid, groups), false);
+}
+
+// Invocation i of `pass_density` (`with4`, a constant) or `pass_density3`.
+fn density_lanes(i: u32, with4: bool) {
     let s = samples_per_ray();
     let live = pass_u.reg2.y != 0u;
-    var n = ray_count() * s;
+    let total = ray_count() * s;
+    var n = total;
     if live {
-        n = atomicLoad(&ctrl[4]);
+        n = atomicLoad(&ctrl[select(6u, 4u, with4)]);
     }
     if i * LANES < n {
         let used = min(n - i * LANES, LANES);
@@ -1163,11 +1244,11 @@ fn pass_density(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
         for (var k = 0u; k < LANES; k++) {
             var j = lane_entry(i, k, used);
             if live {
-                j = work_u(pass_u.reg2.w + j);
+                j = live_entry(pass_u.reg2.w, total, j, with4);
             }
             js[k] = j;
             let r = j / s;
-            encode_field4(main_point(r, j % s, ray_rec(r)), model.field.consts.y, k);
+            encode_field4(main_point(r, j % s, ray_rec(r)), model.field.consts.y, k, with4);
         }
         density_mlp4();
         store_density_lanes(js, used);
@@ -1249,7 +1330,7 @@ fn pass_dynamic(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
             let j = work_u(pass_u.reg2.x + lane_entry(i, k, used));
             js[k] = j;
             let at = pass_u.reg1.w + 4u * j;
-            encode_field4(vec4<f32>(work[at], work[at + 1u], work[at + 2u], field_time()), 0.0, k);
+            encode_field4(vec4<f32>(work[at], work[at + 1u], work[at + 2u], field_time()), 0.0, k, true);
         }
         density_mlp4();
         store_density_lanes(js, used);
@@ -1426,16 +1507,16 @@ fn color_mlp4() -> array<vec4<f32>, 3> {
 }
 
 // The field's encoding of point p into lane k of hid4 (`hid4[i][k]`, i < levels * features), as
-// `encode`; returns the mask value.
-fn encode_field4(p: vec4<f32>, cutoff: f32, k: u32) -> f32 {
-    let m = encode(model.field, p, cutoff);
+// `encode` (`with4` a constant at the call site); returns the mask value.
+fn encode_field4(p: vec4<f32>, cutoff: f32, k: u32, with4: bool) -> f32 {
+    let m = encode(model.field, p, cutoff, with4);
     hid_to_lane(k, model.density.y);
     return m;
 }
 
 // The proposal field's encoding of point p into lane k of hid4, as `encode`.
-fn encode_proposal4(p: vec4<f32>, cutoff: f32, k: u32) {
-    encode(model.prop, p, cutoff);
+fn encode_proposal4(p: vec4<f32>, cutoff: f32, k: u32, with4: bool) {
+    encode(model.prop, p, cutoff, with4);
     hid_to_lane(k, model.proposal.y);
 }
 

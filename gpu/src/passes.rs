@@ -38,6 +38,9 @@ const P_COMPACT: u32 = FLAG_COMPACT;
 pub const PASS_FLAG_CACHE: u32 = 4;
 /// `Pass.tile.z` bit: `pass_resample` reads the `wmax` histogram.
 pub const PASS_FLAG_WMAX: u32 = 8;
+/// `Pass.tile.z` bit: the live lists put the samples whose mask skips the 4D lookup apart, for
+/// `pass_proposal3` and `pass_density3` (set when those are dispatched).
+pub const PASS_FLAG_SPLIT: u32 = 16;
 const P_CACHE: u32 = PASS_FLAG_CACHE;
 const P_WMAX: u32 = PASS_FLAG_WMAX;
 
@@ -45,9 +48,11 @@ const P_WMAX: u32 = PASS_FLAG_WMAX;
 pub const FRAME_WORK_BYTES: u64 = 128 << 20;
 
 /// Byte offsets of the indirect dispatch sizes `pass_args` writes (3 u32 each): the proposal
-/// samples / LANES (every pair, or the live list with an occupancy grid), rays, the main
-/// samples / LANES (likewise), the colour list / LANES, the dynamic samples / LANES, and every (ray, proposal
-/// sample) and (ray, main sample) pair, one per invocation (`pass_live_*`).
+/// samples / LANES (every pair, or with an occupancy grid the live samples with a 4D lookup),
+/// rays, the main samples / LANES (likewise), the colour list / LANES, the dynamic samples /
+/// LANES, every (ray, proposal sample) and (ray, main sample) pair, one per invocation
+/// (`pass_live_*`), and the live proposal and main samples whose mask skips the 4D lookup /
+/// LANES (`pass_proposal3`, `pass_density3`; none without a grid).
 pub const ARGS_PROPOSAL: u64 = 0;
 pub const ARGS_RAYS: u64 = 12;
 pub const ARGS_SAMPLES: u64 = 24;
@@ -55,8 +60,12 @@ pub const ARGS_COLOR: u64 = 36;
 pub const ARGS_DYNAMIC: u64 = 48;
 pub const ARGS_PROPOSAL_PAIRS: u64 = 60;
 pub const ARGS_SAMPLE_PAIRS: u64 = 72;
+pub const ARGS_PROPOSAL3: u64 = 84;
+pub const ARGS_SAMPLES3: u64 = 96;
 /// Bytes of the indirect sizes buffer (and of the counters, `ctrl`).
-pub const ARGS_BYTES: u64 = 96;
+pub const ARGS_BYTES: u64 = 112;
+// `pass_args` writes nine sizes of 3 words, the last at ARGS_SAMPLES3.
+const _: () = assert!(ARGS_PROPOSAL3 + 12 <= ARGS_SAMPLES3 && ARGS_SAMPLES3 + 12 <= ARGS_BYTES);
 
 /// The `Pass` uniform (80 bytes; `render.wgsl`).
 #[repr(C)]
@@ -145,6 +154,7 @@ pub(crate) struct Pipelines {
     composite: wgpu::ComputePipeline,
     /// `pass_live_proposal` and `pass_live_samples`; `None` for a shader without them.
     live: Option<LivePipelines>,
+    static3: Option<Static3>,
 }
 
 pub(crate) struct LivePipelines {
@@ -160,11 +170,29 @@ pub(crate) struct MlpPipelines {
     density: wgpu::ComputePipeline,
     color: wgpu::ComputePipeline,
     dynamic: wgpu::ComputePipeline,
+    /// `pass_proposal3` and `pass_density3`; `None` for a shader without them.
+    static3: Option<Static3>,
+}
+
+/// The field passes over the live samples whose mask skips the 4D lookup.
+pub(crate) struct Static3 {
+    proposal: wgpu::ComputePipeline,
+    density: wgpu::ComputePipeline,
+}
+
+impl Static3 {
+    fn new(wgsl: &str, pipeline: &impl Fn(&str) -> wgpu::ComputePipeline) -> Option<Self> {
+        wgsl.contains("fn pass_density3(").then(|| Static3 {
+            proposal: pipeline("pass_proposal3"),
+            density: pipeline("pass_density3"),
+        })
+    }
 }
 
 impl MlpPipelines {
-    pub(crate) fn new(pipeline: impl Fn(&str) -> wgpu::ComputePipeline) -> Self {
+    pub(crate) fn new(wgsl: &str, pipeline: impl Fn(&str) -> wgpu::ComputePipeline) -> Self {
         MlpPipelines {
+            static3: Static3::new(wgsl, &pipeline),
             proposal: pipeline("pass_proposal"),
             density: pipeline("pass_density"),
             color: pipeline("pass_color"),
@@ -173,21 +201,33 @@ impl MlpPipelines {
     }
 }
 
+/// A scene's field passes: specialised or generic.
+struct FieldPasses<'a> {
+    proposal: &'a wgpu::ComputePipeline,
+    density: &'a wgpu::ComputePipeline,
+    color: &'a wgpu::ComputePipeline,
+    dynamic: &'a wgpu::ComputePipeline,
+    static3: Option<&'a Static3>,
+}
+
 impl Pipelines {
-    /// `(proposal, density, colour, dynamic)`: `scene`'s specialised pipelines, or the
-    /// generic ones.
-    fn mlps<'a>(
-        &'a self,
-        scene: &'a GpuScene,
-    ) -> (
-        &'a wgpu::ComputePipeline,
-        &'a wgpu::ComputePipeline,
-        &'a wgpu::ComputePipeline,
-        &'a wgpu::ComputePipeline,
-    ) {
+    /// `scene`'s specialised pipelines, or the generic ones.
+    fn mlps<'a>(&'a self, scene: &'a GpuScene) -> FieldPasses<'a> {
         match &scene.mlps {
-            Some(m) => (&m.proposal, &m.density, &m.color, &m.dynamic),
-            None => (&self.proposal, &self.density, &self.color, &self.dynamic),
+            Some(m) => FieldPasses {
+                proposal: &m.proposal,
+                density: &m.density,
+                color: &m.color,
+                dynamic: &m.dynamic,
+                static3: m.static3.as_ref(),
+            },
+            None => FieldPasses {
+                proposal: &self.proposal,
+                density: &self.density,
+                color: &self.color,
+                dynamic: &self.dynamic,
+                static3: self.static3.as_ref(),
+            },
         }
     }
 }
@@ -203,6 +243,7 @@ impl Pipelines {
             });
         Pipelines {
             live,
+            static3: Static3::new(wgsl, &pipeline),
             setup: pipeline("pass_setup"),
             args: pipeline("pass_args"),
             proposal: pipeline("pass_proposal"),
@@ -266,6 +307,36 @@ impl FrameScratch {
     pub fn capacity(&self) -> u32 {
         self.capacity
     }
+
+    /// What the lists of the last batch rendered with this scratch held (reads the counters
+    /// back: a wait for the device).
+    pub fn last_counts(&self, ctx: &GpuContext) -> Result<PassCounts, GpuError> {
+        let c = ctx.read_u32(&self.ctrl, 7)?;
+        Ok(PassCounts {
+            rays: c[0],
+            colour: c[1],
+            proposal4: c[3],
+            samples4: c[4],
+            proposal3: c[5],
+            samples3: c[6],
+        })
+    }
+}
+
+/// The sizes of a batch's lists (the `ctrl` counters of `render.wgsl`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct PassCounts {
+    /// Rays that hit the scene.
+    pub rays: u32,
+    /// Samples that got a colour.
+    pub colour: u32,
+    /// With an occupancy grid: live proposal samples whose mask leaves them a 4D lookup
+    /// (`pass_proposal`), and those whose 4D lookup it skips (`pass_proposal3`); 0 without.
+    pub proposal4: u32,
+    pub proposal3: u32,
+    /// The same for the main samples (`pass_density`, `pass_density3`).
+    pub samples4: u32,
+    pub samples3: u32,
 }
 
 /// Which pixels a call renders.
@@ -468,7 +539,7 @@ impl GpuContext {
         );
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
         let p = &self.passes;
-        let (proposal, density, color, _) = p.mlps(scene);
+        let fields = p.mlps(scene);
         // MSTH_GPU_PASS_PROFILE=1: every dispatch its own submission, timed, and the counters
         // (rays, colour list, live samples) summed over the batches (stderr).
         let profile = std::env::var("MSTH_GPU_PASS_PROFILE").as_deref() == Ok("1");
@@ -479,32 +550,45 @@ impl GpuContext {
             Some(l) if scene.occupancy_resolution != 0 => Some(l),
             _ => None,
         };
+        // Live samples whose mask skips the 4D lookup go to passes compiled without it.
+        let static3 = live.and(fields.static3);
         let mut steps: Vec<(&str, &wgpu::ComputePipeline, Option<u64>)> =
             vec![("setup", &p.setup, None), ("args", &p.args, None)];
         if let Some(l) = live {
             steps.push(("live proposal", &l.proposal, Some(ARGS_PROPOSAL_PAIRS)));
             steps.push(("args", &p.args, None));
         }
-        steps.push(("proposal", proposal, Some(ARGS_PROPOSAL)));
+        steps.push(("proposal", fields.proposal, Some(ARGS_PROPOSAL)));
+        if let Some(s) = static3 {
+            steps.push(("proposal 3D", &s.proposal, Some(ARGS_PROPOSAL3)));
+        }
         steps.push(("resample", &p.resample, Some(ARGS_RAYS)));
         if let Some(l) = live {
             steps.push(("live samples", &l.samples, Some(ARGS_SAMPLE_PAIRS)));
             steps.push(("args", &p.args, None));
         }
+        steps.push(("density", fields.density, Some(ARGS_SAMPLES)));
+        if let Some(s) = static3 {
+            steps.push(("density 3D", &s.density, Some(ARGS_SAMPLES3)));
+        }
         steps.extend([
-            ("density", density, Some(ARGS_SAMPLES)),
             ("visible", &p.visible, Some(ARGS_RAYS)),
             ("args", &p.args, None),
-            ("color", color, Some(ARGS_COLOR)),
+            ("color", fields.color, Some(ARGS_COLOR)),
             ("composite", &p.composite, Some(ARGS_RAYS)),
         ]);
         let mut spent = vec![0f64; steps.len()];
-        let mut counted = [0u64; 5];
+        let mut counted = [0u64; 6];
         let mut first = 0u32;
         while first < n {
             let count = scratch.capacity.min(n - first);
             let mut pass = scratch.base;
-            pass.tile = [first, count, flags, scratch.samples];
+            let split = if static3.is_some() {
+                PASS_FLAG_SPLIT
+            } else {
+                0
+            };
+            pass.tile = [first, count, flags | split, scratch.samples];
             // The grid's resolution also for a shader without the listing passes: its
             // `pass_density` skips empty cells by itself.
             pass.reg2[1] = scene.occupancy_resolution;
@@ -543,7 +627,16 @@ impl GpuContext {
                 k = k_end;
             }
             if profile {
-                for (sum, c) in counted.iter_mut().zip(self.read_u32(&scratch.ctrl, 5)?) {
+                let c = scratch.last_counts(self)?;
+                let now = [
+                    c.rays,
+                    c.colour,
+                    c.proposal4,
+                    c.samples4,
+                    c.proposal3,
+                    c.samples3,
+                ];
+                for (sum, c) in counted.iter_mut().zip(now) {
                     *sum += u64::from(c);
                 }
             }
@@ -556,9 +649,13 @@ impl GpuContext {
                 .map(|((name, _, _), s)| format!("{name} {s:.3} s"))
                 .collect();
             eprintln!("per-sample passes ({n} pixels): {}", line.join(", "));
-            let [rays, colour, _, live_proposal, live_samples] = counted;
+            let [rays, colour, proposal4, samples4, proposal3, samples3] = counted;
             let lists = if live.is_some() {
-                format!(", live proposal samples {live_proposal}, live main samples {live_samples}")
+                format!(
+                    ", live proposal samples {} ({proposal3} without a 4D lookup), live main samples {} ({samples3} without)",
+                    proposal4 + proposal3,
+                    samples4 + samples3
+                )
             } else {
                 String::new()
             };
@@ -647,7 +744,7 @@ impl GpuContext {
                     cp.dispatch_workgroups(gx, gy, 1);
                     sizes(&mut cp);
                 }
-                ind(&mut cp, p.mlps(scene).0, ARGS_PROPOSAL);
+                ind(&mut cp, p.mlps(scene).proposal, ARGS_PROPOSAL);
                 ind(&mut cp, &p.wmax, ARGS_RAYS);
             }
             self.queue.submit([enc.finish()]);
@@ -728,10 +825,10 @@ impl GpuContext {
                 cp.dispatch_workgroups_indirect(&cache.args, at);
             };
             sizes(&mut cp);
-            ind(&mut cp, p.mlps(scene).3, ARGS_DYNAMIC);
+            ind(&mut cp, p.mlps(scene).dynamic, ARGS_DYNAMIC);
             ind(&mut cp, &p.visible, ARGS_RAYS);
             sizes(&mut cp);
-            ind(&mut cp, p.mlps(scene).2, ARGS_COLOR);
+            ind(&mut cp, p.mlps(scene).color, ARGS_COLOR);
             ind(&mut cp, &p.composite, ARGS_RAYS);
         }
         self.queue.submit([enc.finish()]);
@@ -747,5 +844,42 @@ impl GpuContext {
         let words = n.div_ceil(4);
         let v = self.read_vec4(buf, words)?;
         Ok(v.iter().flatten().map(|f| f.to_bits()).take(n).collect())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::layout::{MAX_GEO, MAX_HIDDEN, MAX_SAMPLES, WORKGROUP};
+
+    /// The value of `const NAME: u32 = Nu;` in `render.wgsl`.
+    fn wgsl_u32(name: &str) -> u64 {
+        let needle = format!("const {name}: u32 = ");
+        let line = crate::render::RENDER_WGSL
+            .lines()
+            .find_map(|l| l.strip_prefix(needle.as_str()))
+            .unwrap_or_else(|| panic!("render.wgsl declares no `{needle}`"));
+        let value = line.split_once("u;").map(|(v, _)| v).unwrap_or(line);
+        value
+            .parse()
+            .unwrap_or_else(|e| panic!("{name}: {value:?}: {e}"))
+    }
+
+    /// The shader's copies of the host's constants (the `Pass` flags, the limits) agree.
+    #[test]
+    fn shader_constants_match_the_host() {
+        for (name, host) in [
+            ("FLAG_P_LIST", P_LIST as u64),
+            ("FLAG_P_COMPACT", P_COMPACT as u64),
+            ("FLAG_P_CACHE", PASS_FLAG_CACHE as u64),
+            ("FLAG_P_WMAX", PASS_FLAG_WMAX as u64),
+            ("FLAG_P_SPLIT", PASS_FLAG_SPLIT as u64),
+            ("MAX_SAMPLES", MAX_SAMPLES as u64),
+            ("MAX_HIDDEN", MAX_HIDDEN as u64),
+            ("MAX_GEO", MAX_GEO as u64),
+            ("WORKGROUP", WORKGROUP as u64),
+        ] {
+            assert_eq!(wgsl_u32(name), host, "{name}");
+        }
     }
 }

@@ -670,9 +670,9 @@ impl GpuScene {
             .device
             .create_shader_module(wgpu::ShaderModuleDescriptor {
                 label: Some("render.wgsl, specialised to the model"),
-                source: wgpu::ShaderSource::Wgsl(source.into()),
+                source: wgpu::ShaderSource::Wgsl(source.as_str().into()),
             });
-        let mlps = crate::passes::MlpPipelines::new(|entry| {
+        let mlps = crate::passes::MlpPipelines::new(&source, |entry| {
             ctx.device
                 .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                     label: Some(entry),

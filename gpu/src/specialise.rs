@@ -238,7 +238,8 @@ struct Writer<'a> {
 impl Writer<'_> {
     /// An encoding function (`encode_field4`, `encode_proposal4`): `encode` with every level's
     /// uniform values written as constants, the level loop unrolled, the features stored straight
-    /// into lane `k` of `hid4`. `(uniform, e)`: the encoding's member of `Model` and its value;
+    /// into lane `k` of `hid4`, the 4D lookups behind the caller's constant `with4` (false in
+    /// `pass_proposal3` and `pass_density3`). `(uniform, e)`: the encoding's member of `Model` and its value;
     /// `buffers`: the 3D and 4D tables' buffers (0 `tab3`, 1 `tab4`); `returns`: whether
     /// it returns the mask value.
     fn encoding(
@@ -251,7 +252,7 @@ impl Writer<'_> {
     ) {
         let o = &mut self.out;
         o.push_str(&format!(
-            "fn {name}(p: vec4<f32>, cutoff: f32, k: u32){} {{\n",
+            "fn {name}(p: vec4<f32>, cutoff: f32, k: u32, with4: bool){} {{\n",
             if returns { " -> f32" } else { "" }
         ));
         o.push_str(&format!(
@@ -262,7 +263,7 @@ impl Writer<'_> {
         );
         let grids = [
             (&e.h3, "f3", "b.z", buffers[0]),
-            (&e.h4, "f4", "b.w", buffers[1]),
+            (&e.h4, "f4", "with4 && b.w", buffers[1]),
         ];
         let shape = if e.h3.loc[2] == 1 {
             e.h3.shape

@@ -458,12 +458,32 @@ fn gpu_frames_with_an_occupancy_grid_match_the_cpu_renderer() {
         assert_eq!(b.stats.full, i == 0);
         let d = max_diff(&a, &b);
         assert!(d < 2e-3, "frame {i}: max difference {d}");
+        if i == 0 {
+            // The full frame (one batch) split the live samples by the mask: the static ones
+            // went to the passes without a 4D lookup, the centre's to those with one.
+            let c = gpu.last_pass_counts().unwrap().unwrap();
+            eprintln!("occupancy grid, frame 0: {c:?}");
+            assert!(c.samples3 > 0 && c.samples4 > 0, "{c:?}");
+            assert!(c.proposal3 + c.proposal4 > 0, "{c:?}");
+        }
     }
     // The grid matters: without it the frame differs.
     let full = RenderSettings {
         incremental: false,
         ..settings
     };
+    // The generic passes split the samples alike.
+    let mut cpu_full = Renderer::new(&cfg, full);
+    cpu_full.set_occupancy(Some(grid.clone()));
+    let mut generic = GpuRenderer::new(context(), &cfg, full).unwrap();
+    generic.set_mlps(GpuMlps::Generic);
+    generic.set_occupancy(Some(grid.clone())).unwrap();
+    let a = cpu_full.render(&cam, 0.4, &params);
+    let b = generic.render(&cam, 0.4, &params).unwrap();
+    let d = max_diff(&a, &b);
+    assert!(d < 2e-3, "generic passes: max difference {d}");
+    let c = generic.last_pass_counts().unwrap().unwrap();
+    assert!(c.samples3 > 0 && c.samples4 > 0, "generic passes: {c:?}");
     let mut plain = Renderer::new(&cfg, full);
     let mut skipping = GpuRenderer::new(context(), &cfg, full).unwrap();
     skipping.set_occupancy(Some(grid)).unwrap();

@@ -382,7 +382,7 @@ fn generate() -> String {
     );
     let _ = writeln!(
         w,
-        "export const PASS_ARGS = {{ proposal: {}, rays: {}, samples: {}, color: {}, dynamic: {}, proposalPairs: {}, samplePairs: {}, bytes: {} }};",
+        "export const PASS_ARGS = {{ proposal: {}, rays: {}, samples: {}, color: {}, dynamic: {}, proposalPairs: {}, samplePairs: {}, proposal3: {}, samples3: {}, bytes: {} }};",
         passes::ARGS_PROPOSAL,
         passes::ARGS_RAYS,
         passes::ARGS_SAMPLES,
@@ -390,6 +390,8 @@ fn generate() -> String {
         passes::ARGS_DYNAMIC,
         passes::ARGS_PROPOSAL_PAIRS,
         passes::ARGS_SAMPLE_PAIRS,
+        passes::ARGS_PROPOSAL3,
+        passes::ARGS_SAMPLES3,
         passes::ARGS_BYTES
     );
     let pass_offsets = [
@@ -407,11 +409,12 @@ fn generate() -> String {
     let _ = writeln!(w, "export const PASS_OFFSETS = {};", object(&pass_offsets));
     let _ = writeln!(
         w,
-        "/** `Pass.tile.z` bits. */\nexport const PASS_FLAGS = {{ list: {}, compact: {}, cache: {}, wmax: {} }};",
+        "/** `Pass.tile.z` bits. */\nexport const PASS_FLAGS = {{ list: {}, compact: {}, cache: {}, wmax: {}, split: {} }};",
         msth_gpu::FLAG_LIST,
         msth_gpu::FLAG_COMPACT,
         passes::PASS_FLAG_CACHE,
-        passes::PASS_FLAG_WMAX
+        passes::PASS_FLAG_WMAX,
+        passes::PASS_FLAG_SPLIT
     );
     o
 }

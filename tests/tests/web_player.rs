@@ -21,10 +21,12 @@ use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use msth_core::config::Preset;
+use msth_core::field::ModelLayout;
 use msth_player::path::Rig;
 use msth_server::{BackgroundServer, ServerConfig};
 use msth_testkit::{Need, Tests};
 use msth_tests::{export_cmd, fixture_run, msth, read_json, tiny_scene};
+use msth_trainer::checkpoint::Checkpoint;
 use msth_trainer::train::{train, TrainSettings};
 
 fn main() -> std::process::ExitCode {
@@ -152,6 +154,24 @@ fn web_player_streams_renders_and_matches_native() {
     ) = (8, 256, 2, 0);
     let train_balanced = dir.path().join("train_balanced");
     train(&data, sb, &train_balanced, None, &mut |_| true).unwrap();
+    // Half the scene static (mask logit 9: `1 - m` below the renderers' static cutoff) in both
+    // fields, so that the page's live lists hold samples with and without a 4D lookup, for
+    // `pass_proposal3` and `pass_density3`.
+    let ckpt_path = train_balanced.join("model.ckpt");
+    let mut ckpt = Checkpoint::load(&ckpt_path).unwrap();
+    let layout = ModelLayout::new(&ckpt.header.model);
+    for mask in [
+        &layout.field.encoding.mask,
+        &layout.proposal.field.encoding.mask,
+    ] {
+        let (grid, range) = mask.clone().expect("the balanced preset has masks");
+        for (k, v) in ckpt.params[range].iter_mut().enumerate() {
+            if k % grid.res < grid.res / 2 {
+                *v = 9.0;
+            }
+        }
+    }
+    ckpt.save(&ckpt_path).unwrap();
     let balanced = served.join("balanced.msth");
     export_cmd(
         &train_balanced.join("model.ckpt"),

@@ -67,6 +67,9 @@ const hooks = {
   firstFrameSize: null,
   /** Frames rendered so far. */
   frames: 0,
+  /** Whether the last frame's live lists put the samples whose mask skips the 4D lookup apart,
+   * for `pass_proposal3` and `pass_density3` (false until those are compiled; `?split=wait`). */
+  lastSplit3: false,
   error: null,
   state: null,
   /** Milestones in ms since navigation start: adapter, prefix, pipeline, params, firstFrame. */
@@ -489,6 +492,7 @@ async function main() {
   /** The bookkeeping after any finished frame: hooks, first-frame marks, the FPS window. */
   function finishFrame(full, scale, w, h, t0, t1) {
     hooks.lastScale = scale;
+    hooks.lastSplit3 = hooks.renderer?.lastSplit3 ?? false;
     hooks.lastSize = [w, h];
     hooks.frames++;
     hooks.lastFrameMs = t1 - t0;

@@ -66,24 +66,29 @@ export function interlacedOrder(w, h) {
 }
 
 const PASS_ENTRIES = [
-  "pass_setup", "pass_args", "pass_live_proposal", "pass_proposal", "pass_resample", "pass_live_samples", "pass_density",
-  "pass_visible", "pass_color", "pass_composite",
+  "pass_setup", "pass_args", "pass_live_proposal", "pass_proposal", "pass_proposal3", "pass_resample", "pass_live_samples",
+  "pass_density", "pass_density3", "pass_visible", "pass_color", "pass_composite",
 ];
 /**
  * The dispatches of one batch, in order: entry point, and the offset of its indirect size
  * (`null`: direct). With an occupancy grid (`live`, as passes.rs `render_passes`) the proposal
- * and density passes run over the samples `pass_live_proposal` and `pass_live_samples` list.
+ * and density passes run over the samples `pass_live_proposal` and `pass_live_samples` list:
+ * `pass_proposal` and `pass_density` over those the mask leaves a 4D lookup, `pass_proposal3`
+ * and `pass_density3` (compiled without it) over the others.
  */
 function passSteps(live) {
   const listed = (entry, pairs) => (live ? [[entry, pairs], ["pass_args", null]] : []);
+  const only3 = (entry, at) => (live ? [[entry, at]] : []);
   return [
     ["pass_setup", null],
     ["pass_args", null],
     ...listed("pass_live_proposal", ARGS.proposalPairs),
     ["pass_proposal", ARGS.proposal],
+    ...only3("pass_proposal3", ARGS.proposal3),
     ["pass_resample", ARGS.rays],
     ...listed("pass_live_samples", ARGS.samplePairs),
     ["pass_density", ARGS.samples],
+    ...only3("pass_density3", ARGS.samples3),
     ["pass_visible", ARGS.rays],
     ["pass_args", null],
     ["pass_color", ARGS.color],
@@ -92,6 +97,11 @@ function passSteps(live) {
 }
 const PASS_STEPS = passSteps(false);
 const PASS_STEPS_LIVE = passSteps(true);
+/** The passes over the samples whose mask skips the 4D lookup: compiled after the others (the
+ * first frames run without them), dispatched once ready, with `PASS_FLAGS.split`. */
+const PASS_ENTRIES_3D = ["pass_proposal3", "pass_density3"];
+const PASS_STEPS_SPLIT = PASS_STEPS_LIVE;
+const PASS_STEPS_UNSPLIT = PASS_STEPS_LIVE.filter(([name]) => !PASS_ENTRIES_3D.includes(name));
 
 /**
  * Word offsets of the `work` regions for `rays` rays of `samples` samples (passes.rs `regions`,
@@ -336,7 +346,8 @@ export class Renderer {
       entries: kinds.map((type, binding) => ({ binding, visibility: C, buffer: { type } })),
     });
     const pl = device.createPipelineLayout({ bindGroupLayouts: [bindLayout] });
-    const names = perRay ? ["render"] : PASS_ENTRIES;
+    const names = perRay ? ["render"] : PASS_ENTRIES.filter((n) => !PASS_ENTRIES_3D.includes(n));
+    const later = perRay ? [] : PASS_ENTRIES_3D;
     // The module and every pipeline of `code`, or an Error saying what the device refused.
     const build = async (code) => {
       device.pushErrorScope("validation");
@@ -350,8 +361,14 @@ export class Renderer {
           failure = errors.map((m) => `${m.lineNum}:${m.linePos} ${m.message}`).join("; ");
         } else {
           marks.module = performance.now();
-          const made = await Promise.all(names.map((entryPoint) => device.createComputePipelineAsync({ layout: pl, compute: { module, entryPoint } })));
+          const make = (entryPoint) => device.createComputePipelineAsync({ layout: pl, compute: { module, entryPoint } });
+          const made = await Promise.all(names.map(make));
           names.forEach((n, i) => (pipelines[n] = made[i]));
+          // Compiled while the first frames render; a refusal only leaves them out.
+          pipelines.later = Promise.all(later.map(make)).then(
+            (m) => Object.fromEntries(later.map((n, i) => [n, m[i]])),
+            () => null,
+          );
         }
       } catch (e) {
         failure = e.message;
@@ -372,6 +389,15 @@ export class Renderer {
     }
     marks.pipelines = performance.now();
     const scene = new GpuScene(this, canvas, { layout: bindLayout, pipelines, perRay }, uniform, split, cfg);
+    // `?split=wait`: the first frame waits for them (tests, benchmarks).
+    const ready = pipelines.later.then((more) => {
+      if (more && later.length) {
+        Object.assign(pipelines, more);
+        scene.split3 = true;
+        marks.passes3 = performance.now();
+      }
+    });
+    if (query.get("split") === "wait") await ready;
     /** How the passes run the MLPs (compiled for the model, or generic and why). */
     scene.mlpNote = mlpNote;
     return scene;
@@ -388,6 +414,11 @@ class GpuScene {
     /** `"passes"` (per-sample passes) or `"ray"` (one invocation per ray). */
     this.kernel = kernels.perRay ? "ray" : "passes";
     this.split = split;
+    /** Whether `pass_proposal3` and `pass_density3` are compiled (the live lists then put the
+     * samples without a 4D lookup apart for them). */
+    this.split3 = false;
+    /** Whether the last batch rendered used them. */
+    this.lastSplit3 = false;
     this.np = cfg.sampler.num_proposal_samples;
     this.samples = cfg.sampler.num_samples;
     this.geo = cfg.field.geo_features;
@@ -409,7 +440,7 @@ class GpuScene {
     this.size = device.createBuffer({ size: 16, usage: GPUBufferUsage.UNIFORM | GPUBufferUsage.COPY_DST, label: "display size" });
     this.pass = device.createBuffer({ size: PASS_BYTES, usage: GPUBufferUsage.UNIFORM | GPUBufferUsage.COPY_DST, label: "Pass" });
     const small = (usage, label) => device.createBuffer({ size: ARGS.bytes, usage, label });
-    this.ctrl = small(GPUBufferUsage.STORAGE | GPUBufferUsage.COPY_DST, "pass counters");
+    this.ctrl = small(GPUBufferUsage.STORAGE | GPUBufferUsage.COPY_DST | GPUBufferUsage.COPY_SRC, "pass counters");
     this.args = small(GPUBufferUsage.STORAGE | GPUBufferUsage.INDIRECT, "pass dispatch sizes");
     this.noWork = small(GPUBufferUsage.STORAGE, "no work");
     this.noCtrl = small(GPUBufferUsage.STORAGE, "no counters");
@@ -445,6 +476,10 @@ class GpuScene {
     this.profile = typeof location !== "undefined" && new URLSearchParams(location.search).get("profile") === "1";
     /** With `?profile=1`: milliseconds spent per entry point, summed over frames. */
     this.passMs = {};
+    /** With `?profile=1`: the sizes of the passes' lists, summed over batches (passes.rs
+     * `PassCounts`): rays, colour, and the live proposal and main samples with (`proposal4`,
+     * `samples4`) and without (`proposal3`, `samples3`) a 4D lookup. */
+    this.passCounts = {};
     /** Rays rendered so far, all frames together. */
     this.rays = 0;
   }
@@ -626,7 +661,11 @@ class GpuScene {
       if (!groups) throw new Error(`${count} rays exceed this GPU's dispatch limits`);
       const pass = new Uint32Array(PASS_BYTES / 4);
       // Rays render the pixels order[start ..] (the pixel list), each into frame[pixel].
-      pass.set([start, count, PASS_FLAGS.list, this.samples], PASS_OFFSETS.tile / 4);
+      // With the grid and the 3D passes compiled, the live lists put the samples without a 4D
+      // lookup apart for them.
+      const split = this.split3 && this.occupancyResolution !== 0;
+      this.lastSplit3 = split;
+      pass.set([start, count, PASS_FLAGS.list | (split ? PASS_FLAGS.split : 0), this.samples], PASS_OFFSETS.tile / 4);
       // reg0, reg1: rays, hist, edges, samp, geo, clist (no cache regions); reg2: the occupancy
       // resolution and the live lists.
       pass.set(this.regions, PASS_OFFSETS.reg0 / 4);
@@ -638,7 +677,7 @@ class GpuScene {
       enc.clearBuffer(this.ctrl);
       const t0 = performance.now();
       // `?profile=1`: every dispatch its own submission, timed into `passMs` (ms per entry point).
-      const steps = this.occupancyResolution ? PASS_STEPS_LIVE : PASS_STEPS;
+      const steps = this.occupancyResolution ? (split ? PASS_STEPS_SPLIT : PASS_STEPS_UNSPLIT) : PASS_STEPS;
       for (let k = 0; k < steps.length; ) {
         const end = this.profile ? k + 1 : steps.length;
         const cp = enc.beginComputePass();
@@ -661,6 +700,7 @@ class GpuScene {
         }
         k = end;
       }
+      if (this.profile) await this.#countLists();
       const err = await device.popErrorScope();
       if (err) throw new Error(`render: ${err.message}`);
       const batch = { done: device.queue.onSubmittedWorkDone(), t0, count };
@@ -672,6 +712,21 @@ class GpuScene {
     }
     if (queued) await finish(queued);
     return start >= end;
+  }
+
+  /** Adds the last batch's list sizes (the counters) to `passCounts` (`?profile=1`). */
+  async #countLists() {
+    const device = this.device;
+    const bytes = 28;
+    const read = device.createBuffer({ size: bytes, usage: GPUBufferUsage.MAP_READ | GPUBufferUsage.COPY_DST, label: "counters read back" });
+    const enc = device.createCommandEncoder();
+    enc.copyBufferToBuffer(this.ctrl, 0, read, 0, bytes);
+    device.queue.submit([enc.finish()]);
+    await read.mapAsync(GPUMapMode.READ);
+    const c = new Uint32Array(read.getMappedRange().slice(0));
+    read.destroy();
+    const now = { rays: c[0], colour: c[1], proposal4: c[3], samples4: c[4], proposal3: c[5], samples3: c[6] };
+    for (const [k, v] of Object.entries(now)) this.passCounts[k] = (this.passCounts[k] || 0) + v;
   }
 
   /** Sizes the next batches to about TILE_MS of GPU work, from `count` rays that took `ms`

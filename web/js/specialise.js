@@ -79,14 +79,14 @@ export function specialisedRegion(gm, rest) {
     const grid = (g) => ({ shape: row(base + ENCODING_OFFSETS[g] + GRID_OFFSETS.shape), loc: row(base + ENCODING_OFFSETS[g] + GRID_OFFSETS.loc) });
     const h3 = grid("h3");
     const h4 = grid("h4");
-    parts.push(`fn ${name}(p: vec4<f32>, cutoff: f32, k: u32)${returns ? " -> f32" : ""} {\n`);
+    parts.push(`fn ${name}(p: vec4<f32>, cutoff: f32, k: u32, with4: bool)${returns ? " -> f32" : ""} {\n`);
     parts.push(`    let e = model.${which};\n    let m = mask_at(e, p.xyz);\n    let b = blend_of(e, m, cutoff);\n`);
     parts.push("    let z = Feat(vec4<f32>(0.0), vec4<f32>(0.0));\n    var f3 = z;\n    var f4 = z;\n");
     const shape = h3.loc[2] === 1 ? h3.shape : h4.shape;
     const [nf, levels] = [shape[1], shape[2]];
     for (let l = 0; l < levels; l++) {
       parts.push(`    // level ${l}\n`);
-      for (const [g, f, on, buf] of [[h3, "f3", "b.z", buffers[0]], [h4, "f4", "b.w", buffers[1]]]) {
+      for (const [g, f, on, buf] of [[h3, "f3", "b.z", buffers[0]], [h4, "f4", "with4 && b.w", buffers[1]]]) {
         if (g.loc[2] !== 1) continue;
         const lv = MODEL_OFFSETS.levels + LEVEL_BYTES * (g.loc[1] + l);
         parts.push(

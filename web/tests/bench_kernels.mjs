@@ -63,7 +63,7 @@ async function firstFrame(kernel) {
         if (!m) return null;
         const ttff = only || m.firstFullFrameMs === undefined ? m.firstFrameMs : m.firstFullFrameMs;
         if (ttff === null && !m.error && !m.noWebGpu) return null;
-        return { ttff, firstPicture: m.firstFrameMs, firstSize: m.firstFrameSize, pipeline: m.timings && m.timings.pipeline, timings: m.timings, passMs: m.renderer && m.renderer.passMs, error: m.error, kernel: m.renderer && m.renderer.kernel, samples: m.samples, samplesSpec: m.samplesSpec };
+        return { ttff, firstPicture: m.firstFrameMs, firstSize: m.firstFrameSize, pipeline: m.timings && m.timings.pipeline, timings: m.timings, passMs: m.renderer && m.renderer.passMs, passCounts: m.renderer && m.renderer.passCounts, error: m.error, kernel: m.renderer && m.renderer.kernel, samples: m.samples, samplesSpec: m.samplesSpec };
       },
       firstOnly,
       { timeout, polling: 250 },
@@ -116,6 +116,7 @@ for (const k of kernels) {
     console.log(`  playback (--playback ${r.playback.ms.length}): first time step ${(first / 1000).toFixed(2)} s, then ${(mean / 1000).toFixed(3)} s per frame on average (${rest.map((v) => (v / 1000).toFixed(3)).join(", ")} s); rays per frame ${r.playback.rays.join(", ")}${c ? `; static cache: ${c.dynamic} of ${c.pixels} pixels dynamic, built in ${(c.ms / 1000).toFixed(2)} s` : "; no static cache"}`);
   }
   if (r.passMs && Object.keys(r.passMs).length) console.log(`  per pass (--profile 1): ${Object.entries(r.passMs).map(([n, v]) => `${n} ${(v / 1000).toFixed(2)} s`).join(", ")}`);
+  if (r.passCounts && Object.keys(r.passCounts).length) console.log(`  lists (--profile 1, every frame): ${Object.entries(r.passCounts).map(([n, v]) => `${n} ${v}`).join(", ")}`);
 }
 // (With --first-only the frames may be of different sizes: no comparison.)
 if (out.passes && out.ray && a["first-only"] !== "1") {

@@ -308,7 +308,7 @@ async function main() {
       await waitFirstFrame(page);
       await settled(page);
       const nat2 = await decodePng(page, a.native2);
-      const full2 = await page.evaluate(() => ({ ms: window.msth.firstFullFrameMs, size: window.msth.lastSize }));
+      const full2 = await page.evaluate(() => ({ ms: window.msth.firstFullFrameMs, size: window.msth.lastSize, split3: window.msth.lastSplit3 }));
       const px2 = await pixels(page);
       const p2 = px2.length === 4 * n && nat2.w === w && nat2.h === h ? psnr(px2, nat2.px, n) : 0;
       // Not a blank frame: the share of pixels more than 8/255 from the corner pixel's colour.
@@ -355,6 +355,22 @@ async function main() {
         "the kernels compiled for the model render what the generic kernels do",
         note2 === "kernels compiled for this model" && /generic kernels/.test(generic.note) && generic.info.includes(generic.note) && pG >= 50 && pGn >= PSNR_MIN,
         `"${note2}" against "${generic.note}" (?mlp=generic): PSNR ${pG.toFixed(2)} dB between them (>= 50), generic ${pGn.toFixed(2)} dB against msth play`,
+      );
+
+      // ---- the passes without the 4D lookup (compiled after the others; `?split=wait` makes the
+      // first frame wait for them) render what the first frame without them did
+      await page.goto(`${a.base}/?model=${encodeURIComponent(a.model2)}&view=${a.view}&t=0&size=${a.size}&play=0&samples=full&split=wait&profile=1`);
+      await waitFirstFrame(page);
+      await settled(page);
+      const split3 = await page.evaluate(() => ({ used: window.msth.lastSplit3, ready: window.msth.timings.passes3, counts: window.msth.renderer.passCounts }));
+      const lists = split3.counts ?? {};
+      const pxS = await pixels(page);
+      const pS = pxS.length === 4 * n ? psnr(pxS, px2, n) : 0;
+      results.figures.psnr_model2_split_vs_first = Math.min(pS, 99);
+      check(
+        "the passes without a 4D lookup render what the others do",
+        split3.used === true && pS >= 50 && lists.samples3 > 0 && lists.samples4 > 0 && lists.proposal3 > 0 && lists.proposal4 > 0,
+        `?split=wait: the frame used them (${split3.used}, compiled ${split3.ready?.toFixed(0)} ms after navigation); live main samples ${lists.samples3} without and ${lists.samples4} with a 4D lookup, proposal samples ${lists.proposal3} and ${lists.proposal4} (every frame of the page; each > 0); PSNR ${pS.toFixed(2)} dB against the page's first frame of ${a.model2}, which used them: ${full2.split3} (>= 50)`,
       );
 
       // ---- a device that refuses the kernels compiled for the model: the page falls back to the

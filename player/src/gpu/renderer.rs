@@ -249,6 +249,13 @@ impl GpuRenderer {
             .map(|s| s.dynamic_samples())
     }
 
+    /// The list sizes of the last batch of per-sample passes that rendered pixels through the
+    /// frame scratch (a full frame, or an incremental one without the sample cache; reads them
+    /// back from the device); `None` with the per-ray kernel or before the first frame.
+    pub fn last_pass_counts(&self) -> Option<Result<msth_gpu::PassCounts, GpuError>> {
+        self.scratch.as_ref().map(|(s, _)| s.last_counts(&self.ctx))
+    }
+
     fn upload(&mut self, params: &[f32]) -> Result<(), GpuError> {
         match &mut self.scene {
             Some(s) => {

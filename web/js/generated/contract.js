@@ -81,9 +81,9 @@ export const GRID_OFFSETS = { shape: 0, loc: 16 };
 /** Scratch memory one batch of rays may take. */
 export const FRAME_WORK_BYTES = 134217728;
 /** Byte offsets of the indirect dispatch sizes `pass_args` writes, and the buffer's size. */
-export const PASS_ARGS = { proposal: 0, rays: 12, samples: 24, color: 36, dynamic: 48, proposalPairs: 60, samplePairs: 72, bytes: 96 };
+export const PASS_ARGS = { proposal: 0, rays: 12, samples: 24, color: 36, dynamic: 48, proposalPairs: 60, samplePairs: 72, proposal3: 84, samples3: 96, bytes: 112 };
 /** The `Pass` uniform: its size and field byte offsets. */
 export const PASS_BYTES = 80;
 export const PASS_OFFSETS = { tile: 0, reg0: 16, reg1: 32, reg2: 48, misc: 64 };
 /** `Pass.tile.z` bits. */
-export const PASS_FLAGS = { list: 1, compact: 2, cache: 4, wmax: 8 };
+export const PASS_FLAGS = { list: 1, compact: 2, cache: 4, wmax: 8, split: 16 };
