@@ -503,6 +503,8 @@ async function main() {
       hooks.timings.firstFrame = t1;
       hooks.firstFrameSize = [w, h];
       console.log(`first frame (${w}x${h}) after ${t1.toFixed(0)} ms`);
+      // The passes compiled later (renderer.js `compileLater`): after the first picture.
+      hooks.renderer?.compileLater?.();
     }
     if (hooks.firstFullFrameMs === null && scale === 1) {
       hooks.firstFullFrameMs = t1;

@@ -364,11 +364,12 @@ export class Renderer {
           const make = (entryPoint) => device.createComputePipelineAsync({ layout: pl, compute: { module, entryPoint } });
           const made = await Promise.all(names.map(make));
           names.forEach((n, i) => (pipelines[n] = made[i]));
-          // Compiled while the first frames render; a refusal only leaves them out.
-          pipelines.later = Promise.all(later.map(make)).then(
-            (m) => Object.fromEntries(later.map((n, i) => [n, m[i]])),
-            () => null,
-          );
+          // Compiled once asked (after the first picture); a refusal only leaves them out.
+          pipelines.later = () =>
+            Promise.all(later.map(make)).then(
+              (m) => Object.fromEntries(later.map((n, i) => [n, m[i]])),
+              () => null,
+            );
         }
       } catch (e) {
         failure = e.message;
@@ -389,15 +390,19 @@ export class Renderer {
     }
     marks.pipelines = performance.now();
     const scene = new GpuScene(this, canvas, { layout: bindLayout, pipelines, perRay }, uniform, split, cfg);
+    let ready = null;
+    /** Compiles `pass_proposal3` and `pass_density3` (once; the page asks after its first
+     * picture, so that the compile does not delay it) and uses them from the next batch on. */
+    scene.compileLater = () =>
+      (ready ??= pipelines.later().then((more) => {
+        if (more && later.length) {
+          Object.assign(pipelines, more);
+          scene.split3 = true;
+          marks.passes3 = performance.now();
+        }
+      }));
     // `?split=wait`: the first frame waits for them (tests, benchmarks).
-    const ready = pipelines.later.then((more) => {
-      if (more && later.length) {
-        Object.assign(pipelines, more);
-        scene.split3 = true;
-        marks.passes3 = performance.now();
-      }
-    });
-    if (query.get("split") === "wait") await ready;
+    if (query.get("split") === "wait") await scene.compileLater();
     /** How the passes run the MLPs (compiled for the model, or generic and why). */
     scene.mlpNote = mlpNote;
     return scene;

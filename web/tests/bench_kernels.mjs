@@ -13,6 +13,8 @@
 //     [--first-only 1]   (stop at the first picture, however small; no full-size frame)
 //     [--query K=V&...]   (more URL parameters for the page, e.g. an experiment's switch)
 //     [--playback N]   (then N time steps of the still camera, timed: incremental playback)
+//     [--frames N]   (then N more full-size frames of the same view, back to back, timed: the
+//                     steady state, once the page's later passes are compiled)
 //     [--throttle-kbps N]   (the page's network limited to N kbit/s down, 20 ms latency:
 //                            Chromium's network emulation; the milestones show what waits)
 //
@@ -92,7 +94,14 @@ async function firstFrame(kernel) {
         playback.cache = f.cache;
       }
     }
-    return { ...r, px: Array.from(px), playback };
+    // --frames N: N full frames back to back (`hooks.benchmark`), after the passes the page
+    // compiles later (`pass_proposal3`, `pass_density3`) are ready where it has them.
+    let frames = null;
+    if (Number(a.frames || 0) > 0) {
+      await page.waitForFunction(() => window.msth.renderer?.split3 !== false, null, { timeout, polling: 100 });
+      frames = await page.evaluate((n) => window.msth.benchmark(n), Number(a.frames));
+    }
+    return { ...r, px: Array.from(px), playback, frames };
   } finally {
     await ctx.close();
     rmSync(dir, { recursive: true, force: true });
@@ -115,6 +124,7 @@ for (const k of kernels) {
     const c = r.playback.cache;
     console.log(`  playback (--playback ${r.playback.ms.length}): first time step ${(first / 1000).toFixed(2)} s, then ${(mean / 1000).toFixed(3)} s per frame on average (${rest.map((v) => (v / 1000).toFixed(3)).join(", ")} s); rays per frame ${r.playback.rays.join(", ")}${c ? `; static cache: ${c.dynamic} of ${c.pixels} pixels dynamic, built in ${(c.ms / 1000).toFixed(2)} s` : "; no static cache"}`);
   }
+  if (r.frames) console.log(`  --frames ${r.frames.frames}: ${((1000 * r.frames.seconds) / r.frames.frames).toFixed(0)} ms per full frame (${r.frames.width}x${r.frames.height}, back to back)`);
   if (r.passMs && Object.keys(r.passMs).length) console.log(`  per pass (--profile 1): ${Object.entries(r.passMs).map(([n, v]) => `${n} ${(v / 1000).toFixed(2)} s`).join(", ")}`);
   if (r.passCounts && Object.keys(r.passCounts).length) console.log(`  lists (--profile 1, every frame): ${Object.entries(r.passCounts).map(([n, v]) => `${n} ${v}`).join(", ")}`);
 }
