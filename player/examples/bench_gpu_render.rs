@@ -14,7 +14,9 @@
 //! `render.wgsl`, e.g. `git show a04e488:gpu/shaders/render.wgsl`, the kernels before the
 //! per-sample passes were optimised (a file from before session 47 reads the proposal field's
 //! tables from `rest`, where the uniform no longer points: run it with a binary of its time,
-//! e.g. one built from 67e1290), and `MSTH_BENCH_OLD_KERNELS=passes` times that file's
+//! e.g. one built from 67e1290; the passes of a file from before session 48 call the compiled
+//! encodings without their `with4` argument, so this binary compiles them generic: give those
+//! call sites `, true` to time them compiled), and `MSTH_BENCH_OLD_KERNELS=passes` times that file's
 //! per-sample passes instead of its per-ray kernel, `MSTH_BENCH_OLD_KERNELS=generic` the generic
 //! passes (level values and weights read from buffers) against the passes compiled for the model
 //! (`msth_gpu::specialise`; lavapipe compiles at the first dispatch, so the first new frame
