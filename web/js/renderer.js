@@ -100,7 +100,6 @@ const PASS_STEPS_LIVE = passSteps(true);
 /** The passes over the samples whose mask skips the 4D lookup: compiled after the others (the
  * first frames run without them), dispatched once ready, with `PASS_FLAGS.split`. */
 const PASS_ENTRIES_3D = ["pass_proposal3", "pass_density3"];
-const PASS_STEPS_SPLIT = PASS_STEPS_LIVE;
 const PASS_STEPS_UNSPLIT = PASS_STEPS_LIVE.filter(([name]) => !PASS_ENTRIES_3D.includes(name));
 
 /**
@@ -682,7 +681,7 @@ class GpuScene {
       enc.clearBuffer(this.ctrl);
       const t0 = performance.now();
       // `?profile=1`: every dispatch its own submission, timed into `passMs` (ms per entry point).
-      const steps = this.occupancyResolution ? (split ? PASS_STEPS_SPLIT : PASS_STEPS_UNSPLIT) : PASS_STEPS;
+      const steps = this.occupancyResolution ? (split ? PASS_STEPS_LIVE : PASS_STEPS_UNSPLIT) : PASS_STEPS;
       for (let k = 0; k < steps.length; ) {
         const end = this.profile ? k + 1 : steps.length;
         const cp = enc.beginComputePass();

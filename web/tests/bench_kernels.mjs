@@ -94,12 +94,15 @@ async function firstFrame(kernel) {
         playback.cache = f.cache;
       }
     }
-    // --frames N: N full frames back to back (`hooks.benchmark`), after the passes the page
-    // compiles later (`pass_proposal3`, `pass_density3`) are ready where it has them.
+    // --frames N: N full frames back to back (`hooks.benchmark`), once the passes the page
+    // compiles later (`pass_proposal3`, `pass_density3`; `compileLater`, where the page has it)
+    // are compiled or refused.
     let frames = null;
     if (Number(a.frames || 0) > 0) {
-      await page.waitForFunction(() => window.msth.renderer?.split3 !== false, null, { timeout, polling: 100 });
-      frames = await page.evaluate((n) => window.msth.benchmark(n), Number(a.frames));
+      frames = await page.evaluate(async (n) => {
+        await window.msth.renderer.compileLater?.();
+        return window.msth.benchmark(n);
+      }, Number(a.frames));
     }
     return { ...r, px: Array.from(px), playback, frames };
   } finally {
