@@ -410,17 +410,34 @@ impl GpuContext {
     /// Scratch for batches of at most `pixels` rays of `model` (fewer when a batch would take
     /// more than [`FRAME_WORK_BYTES`] or the adapter's binding limit).
     pub fn frame_scratch(&self, model: &GpuModel, pixels: u32) -> Result<FrameScratch, GpuError> {
+        self.frame_scratch_within(model, pixels, FRAME_WORK_BYTES)
+    }
+
+    /// [`GpuContext::frame_scratch`] with batches of at most `budget` bytes of scratch instead
+    /// of [`FRAME_WORK_BYTES`] (still within the adapter's binding limit): fewer, larger batches
+    /// per frame, or more, smaller ones. Frames are the same whatever the batches.
+    pub fn frame_scratch_within(
+        &self,
+        model: &GpuModel,
+        pixels: u32,
+        budget: u64,
+    ) -> Result<FrameScratch, GpuError> {
         let samples = model.model.sampler[1];
         let per_ray = 4 * words_per_ray(model, samples as u64, false);
-        let budget = FRAME_WORK_BYTES.min(self.limits.max_storage_buffer_binding_size);
-        let fit = (budget / per_ray).min(u32::MAX as u64) as u32;
+        let binding = self.limits.max_storage_buffer_binding_size;
+        let fit = (budget.min(binding) / per_ray).min(u32::MAX as u64) as u32;
+        if fit == 0 && budget < binding {
+            return Err(GpuError::Model(format!(
+                "the per-sample scratch of one ray needs {per_ray} bytes, more than the scratch budget of a batch ({budget} bytes)"
+            )));
+        }
         if fit == 0 {
             return Err(GpuError::Limit {
                 what: "the per-sample scratch of one ray".into(),
                 amount: per_ray,
                 unit: "bytes",
                 limit: "max_storage_buffer_binding_size",
-                max: self.limits.max_storage_buffer_binding_size,
+                max: binding,
             });
         }
         let capacity = pixels.max(1).min(fit);

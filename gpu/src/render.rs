@@ -553,6 +553,12 @@ pub fn check_occupancy(r: u32, words: &[u32]) -> Result<(), GpuError> {
     Ok(())
 }
 
+/// Whether two runs of values hold the same bits (a memory comparison; unlike `==` on floats, a
+/// NaN equals itself and -0 differs from 0, as for an upload).
+fn same_bits(a: &[f32], b: &[f32]) -> bool {
+    bytemuck::cast_slice::<f32, u32>(a) == bytemuck::cast_slice::<f32, u32>(b)
+}
+
 /// Writes both fields' hash tables from `params` into the `tab3` and `tab4` buffers
 /// ([`crate::layout::ParamSplit::tables`]).
 fn write_tables(ctx: &GpuContext, split: &ParamSplit, bufs: [&wgpu::Buffer; 2], params: &[f32]) {
@@ -714,11 +720,11 @@ impl GpuScene {
         self.occupancy_resolution
     }
 
-    /// Uploads `params` when they differ from the last upload; `true` when they did.
+    /// Uploads the parts of `params` that differ from the last upload, bit for bit: the field's
+    /// 3D table, its 4D table and the rest (proposal tables, mask, MLPs) apart, so that a new
+    /// time chunk, which changes the 4D table alone, sends that table and not the whole buffer.
+    /// `true` when anything changed.
     pub fn update(&mut self, ctx: &GpuContext, params: &[f32]) -> Result<bool, GpuError> {
-        if params == self.uploaded.as_slice() {
-            return Ok(false);
-        }
         if params.len() != self.uploaded.len() {
             return Err(GpuError::Model(format!(
                 "the parameter buffer changed size from {} to {} values",
@@ -726,22 +732,39 @@ impl GpuScene {
                 params.len()
             )));
         }
-        // New MLP weights (a model's are the same at every time; this is another model's
-        // buffer): the specialised pipelines no longer apply.
-        let rest0 = self.gpu_model.split.rest.start;
-        for r in self.gpu_model.split.mlps.clone() {
-            let r = rest0 + r.start..rest0 + r.end;
-            if params.get(r.clone()) != self.uploaded.get(r) {
-                self.mlps = None;
+        let split = self.gpu_model.split.clone();
+        let mut changed = false;
+        let [field3, field4] = split.tables().map(|parts| parts[0].2.clone());
+        for (buf, r) in [(&self.tab3, field3), (&self.tab4, field4)] {
+            if !same_bits(&params[r.clone()], &self.uploaded[r.clone()]) {
+                ctx.queue
+                    .write_buffer(buf, 0, bytemuck::cast_slice(&params[r.clone()]));
+                self.uploaded[r.clone()].copy_from_slice(&params[r]);
+                changed = true;
             }
         }
-        let split = &self.gpu_model.split;
-        write_tables(ctx, split, [&self.tab3, &self.tab4], params);
-        ctx.write(
-            &self.rest,
-            bytemuck::cast_slice(&params[split.rest.clone()]),
-        );
-        self.uploaded.copy_from_slice(params);
-        Ok(true)
+        let rest = split.rest.clone();
+        if !same_bits(&params[rest.clone()], &self.uploaded[rest.clone()]) {
+            // New MLP weights (a model's are the same at every time; this is another model's
+            // buffer): the specialised pipelines no longer apply.
+            for r in &split.mlps {
+                let r = rest.start + r.start..rest.start + r.end;
+                if !same_bits(&params[r.clone()], &self.uploaded[r]) {
+                    self.mlps = None;
+                }
+            }
+            // The proposal field's tables, which the kernels read from the table buffers.
+            for (buf, parts) in [&self.tab3, &self.tab4].into_iter().zip(split.tables()) {
+                let (_, at, r) = parts[1].clone();
+                if !r.is_empty() && !same_bits(&params[r.clone()], &self.uploaded[r.clone()]) {
+                    ctx.queue
+                        .write_buffer(buf, 4 * at as u64, bytemuck::cast_slice(&params[r]));
+                }
+            }
+            ctx.write(&self.rest, bytemuck::cast_slice(&params[rest.clone()]));
+            self.uploaded[rest.clone()].copy_from_slice(&params[rest]);
+            changed = true;
+        }
+        Ok(changed)
     }
 }

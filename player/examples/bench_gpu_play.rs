@@ -16,7 +16,11 @@
 //! decoded before the timed loop, as the player's streaming thread does ahead of playback.
 //! The file's occupancy grid is used (`MSTH_BENCH_NO_SKIP=1` turns it off);
 //! `MSTH_BENCH_SAMPLES=fast|faster|P,M` renders with fewer samples per ray than the model's;
-//! `MSTH_BENCH_PROFILE=1` ends with one full frame whose passes are timed one by one.
+//! `MSTH_BENCH_PROFILE=1` ends with one full frame whose passes are timed one by one;
+//! `MSTH_BENCH_COMPARE_PARAMS=1` compares each frame's parameters with the device's copy
+//! instead of passing the player's version of them (`GpuRenderer::set_params_version`);
+//! `MSTH_BENCH_SCRATCH_MIB=N` lets a batch of rays take N MiB of scratch instead of 128 (fewer,
+//! larger batches per frame; `GpuRenderer::set_scratch_budget`).
 //!
 //! `cargo run --release -p msth-player --example bench_gpu_play -- FILE.msth [WxH] [FRAMES]`
 //! (default 1352x1014, 24 frames per measurement). Any adapter is used (lavapipe included: use
@@ -111,6 +115,20 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .collect();
     let t = Instant::now();
     let params: Vec<Vec<f32>> = times.iter().map(|&t| decoded.params_for_time(t)).collect();
+    // One version per time chunk, as the player gives the renderer (its buffer changes with the
+    // chunk); `MSTH_BENCH_COMPARE_PARAMS=1`: none, every frame compares the parameters instead.
+    let versions: Option<Vec<u64>> =
+        (std::env::var("MSTH_BENCH_COMPARE_PARAMS").as_deref() != Ok("1")).then(|| {
+            times
+                .iter()
+                .map(|&t| decoded.chunk_for_time(t).map_or(0, |c| c as u64 + 1))
+                .collect()
+        });
+    let version = |r: &mut GpuRenderer, i: usize| {
+        if let Some(v) = &versions {
+            r.set_params_version(v[i]);
+        }
+    };
     println!(
         "parameters for {frames} times decoded ahead: {:.2} ms each (host)",
         1000.0 * t.elapsed().as_secs_f64() / frames.max(1) as f64
@@ -123,6 +141,16 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let ctx = GpuContext::open(AdapterPolicy::any())?;
     println!("adapter: {}", ctx.adapter_name());
 
+    let scratch_mib: Option<u64> = match std::env::var("MSTH_BENCH_SCRATCH_MIB") {
+        Ok(v) => Some(
+            v.parse()
+                .ok()
+                .filter(|&m| (1..=1 << 20).contains(&m))
+                .ok_or("MSTH_BENCH_SCRATCH_MIB: a whole number of MiB, 1 to 1048576")?,
+        ),
+        Err(_) => None,
+    };
+
     // Correctness on this adapter: GPU against CPU at a quarter of the size.
     let small = cam0.resized((w / 4).max(1), (h / 4).max(1));
     let mut cpu = Renderer::new(&cfg, full);
@@ -132,6 +160,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let cpu_s = t.elapsed().as_secs_f64();
     let mut gpu = GpuRenderer::new(ctx, &cfg, full)?;
     gpu.set_occupancy(grid.clone())?;
+    if let Some(mib) = scratch_mib {
+        gpu.set_scratch_budget(mib << 20);
+    }
     gpu.render(&small, 0.0, &params[0])?;
     let t = Instant::now();
     let f = gpu.render(&small, 0.0, &params[0])?;
@@ -148,16 +179,21 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     );
 
     // 1. Full frames, fixed camera.
+    version(&mut gpu, 0);
     let t = Instant::now();
     let first = gpu.render(&cam, times[0], &params[0])?;
+    let batch = gpu.batch_rays().unwrap_or(0).max(1) as usize;
     println!(
-        "first full frame {w}x{h}: {:.1} ms (scratch allocation included); {} rays rendered, {} empty",
+        "first full frame {w}x{h}: {:.1} ms (scratch allocation included); {} rays rendered, {} empty; {} batches of up to {batch} rays ({} MiB of scratch per batch at most)",
         1000.0 * t.elapsed().as_secs_f64(),
         first.stats.rays_rendered,
-        first.stats.rays_empty
+        first.stats.rays_empty,
+        (w as usize * h as usize).div_ceil(batch),
+        scratch_mib.unwrap_or(msth_gpu::FRAME_WORK_BYTES >> 20),
     );
     let mut ms = Vec::new();
     for (i, &tm) in times.iter().enumerate() {
+        version(&mut gpu, i);
         let t = Instant::now();
         gpu.render(&cam, tm, &params[i])?;
         ms.push(1000.0 * t.elapsed().as_secs_f64());
@@ -169,6 +205,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     for (i, &tm) in times.iter().enumerate() {
         let phase = i as f32 / frames.max(1) as f32 * std::f32::consts::TAU;
         let c = orbited(&cam, pivot, 10.0 * phase.sin());
+        version(&mut gpu, i);
         let t = Instant::now();
         gpu.render(&c, tm, &params[i])?;
         ms.push(1000.0 * t.elapsed().as_secs_f64());
@@ -179,9 +216,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let ctx = GpuContext::open(AdapterPolicy::any())?;
     let mut inc = GpuRenderer::new(ctx, &cfg, RenderSettings::default())?;
     inc.set_occupancy(grid.clone())?;
+    if let Some(mib) = scratch_mib {
+        inc.set_scratch_budget(mib << 20);
+    }
     let mut ms = Vec::new();
     let (mut build_ms, mut rendered, mut samples) = (0.0, 0, 0);
     for (i, &tm) in times.iter().enumerate() {
+        version(&mut inc, i);
         let t = Instant::now();
         let f = inc.render(&cam, tm, &params[i])?;
         let e = 1000.0 * t.elapsed().as_secs_f64();
@@ -203,6 +244,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     // MSTH_BENCH_PROFILE=1: one more full frame with every pass timed on its own (stderr).
     if std::env::var("MSTH_BENCH_PROFILE").as_deref() == Ok("1") {
         std::env::set_var("MSTH_GPU_PASS_PROFILE", "1");
+        version(&mut gpu, 0);
         gpu.render(&cam, times[0], &params[0])?;
     }
     Ok(())

@@ -116,6 +116,15 @@ impl FrameRenderer {
         }
     }
 
+    /// Promises that the parameters passed from now on hold the same values while `version`
+    /// stays the same ([`GpuRenderer::set_params_version`]; the CPU renderer reads them anew
+    /// each frame and needs no promise).
+    pub fn set_params_version(&mut self, version: u64) {
+        if let FrameRenderer::Gpu(r) = self {
+            r.set_params_version(version);
+        }
+    }
+
     /// GPU: how the passes run the MLPs ([`GpuRenderer::mlp_status`]); `None` on the CPU.
     pub fn mlp_note(&self) -> Option<String> {
         match self {

@@ -247,6 +247,7 @@ pub fn play(
     );
     let (mut renderer, backend) = FrameRenderer::new(&model, render_settings, opts.backend)?;
     let mut params = Vec::new();
+    let mut params_version = 0u64;
     let mut loaded: Option<Option<usize>> = None;
     let mut records = Vec::with_capacity(n);
     let mut first_frame = None;
@@ -258,6 +259,10 @@ pub fn play(
         let chunk = stream.index().chunk_for_time(time);
         if loaded != Some(chunk) {
             stream.params_for_time(time, &mut params, opts.section_timeout)?;
+            // `params` holds the same values until the next chunk: the GPU renderer need not
+            // compare them with its copy each frame.
+            params_version += 1;
+            renderer.set_params_version(params_version);
             if loaded.is_none() && opts.skip_empty {
                 // The occupancy section is one of the static sections, decoded by now.
                 renderer.set_occupancy(stream.occupancy())?;

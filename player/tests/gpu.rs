@@ -87,6 +87,11 @@ fn main() -> std::process::ExitCode {
             "probes_render_with_the_parameters_of_their_time_on_the_gpu",
             probes_render_with_the_parameters_of_their_time_on_the_gpu,
         )
+        .needs(
+            &[&gpu],
+            "new_parameters_upload_what_changed_and_versions_skip_the_comparison",
+            new_parameters_upload_what_changed_and_versions_skip_the_comparison,
+        )
         .run()
 }
 
@@ -484,6 +489,29 @@ fn gpu_frames_with_an_occupancy_grid_match_the_cpu_renderer() {
     assert!(d < 2e-3, "generic passes: max difference {d}");
     let c = generic.last_pass_counts().unwrap().unwrap();
     assert!(c.samples3 > 0 && c.samples4 > 0, "generic passes: {c:?}");
+    // Batches: the frame in one batch (the default scratch) and in batches of a few dozen rays,
+    // the last one short, are the same to the bit.
+    let mut one = GpuRenderer::new(context(), &cfg, full).unwrap();
+    one.set_occupancy(Some(grid.clone())).unwrap();
+    let whole = one.render(&cam, 0.4, &params).unwrap();
+    assert_eq!(one.batch_rays(), Some(cam.width * cam.height));
+    for kib in [24u64, 56] {
+        one.set_scratch_budget(kib << 10);
+        let f = one.render(&cam, 0.4, &params).unwrap();
+        let batch = one.batch_rays().unwrap();
+        eprintln!("{kib} KiB of scratch: batches of {batch} rays");
+        assert!(batch > 0 && batch * 3 < cam.width * cam.height, "{batch}");
+        assert_eq!(
+            max_diff(&whole, &f),
+            0.0,
+            "{kib} KiB batches ({batch} rays)"
+        );
+    }
+    // A budget below one ray's scratch is a clear error.
+    one.set_scratch_budget(16);
+    let e = one.render(&cam, 0.4, &params).err().unwrap();
+    assert!(e.to_string().contains("scratch budget"), "{e}");
+    eprintln!("{e}");
     let mut plain = Renderer::new(&cfg, full);
     let mut skipping = GpuRenderer::new(context(), &cfg, full).unwrap();
     skipping.set_occupancy(Some(grid)).unwrap();
@@ -898,4 +926,81 @@ fn probes_render_with_the_parameters_of_their_time_on_the_gpu() {
     assert_eq!(second(&mut |_| None).rays_rendered, 0);
     let chunked = second(&mut |t| (t > 0.0).then(|| other.clone()));
     assert!(chunked.rays_rendered > 0, "probes ignored the other chunk");
+}
+
+/// A renderer that gets one parameter buffer after another renders each as a fresh renderer
+/// does, whichever part changed (the 4D table of a new time chunk, the 3D table, an MLP weight:
+/// `GpuScene::update` uploads the parts that differ); with versions
+/// (`GpuRenderer::set_params_version`) a new version uploads, and the same version trusts the
+/// device's copy without comparing.
+fn new_parameters_upload_what_changed_and_versions_skip_the_comparison() {
+    let mut cfg = config(BlendMode::Mt);
+    small(&mut cfg);
+    let layout = ModelLayout::new(&cfg);
+    let a = random_params(&layout, 11);
+    let (_, h4) = layout.field.encoding.h4.clone().unwrap();
+    let (_, h3) = layout.field.encoding.h3.clone().unwrap();
+    let mut rng = Rng::new(12);
+    let mut b = a.clone(); // a new chunk: the field's 4D table alone
+    for v in &mut b[h4] {
+        *v = rng.range_f32(-1.0, 1.0);
+    }
+    let mut c = b.clone(); // the 3D table
+    for v in &mut c[h3] {
+        *v = rng.range_f32(-1.0, 1.0);
+    }
+    let mut d = c.clone(); // a colour MLP weight: the specialised kernels are compiled again
+    let colour = layout.params.get("field.color_mlp").unwrap().range();
+    d[colour.start] += 0.5;
+    let mut e = d.clone(); // the proposal field's 4D table (read from the table buffers)
+    let p4 = layout.params.get("proposal.h4").unwrap().range();
+    for v in &mut e[p4] {
+        *v = rng.range_f32(-1.0, 1.0);
+    }
+    let full = RenderSettings {
+        incremental: false,
+        ..Default::default()
+    };
+    let cam = test_camera(24, 16);
+    let fresh = |p: &[f32]| {
+        GpuRenderer::new(context(), &cfg, full)
+            .unwrap()
+            .render(&cam, 0.3, p)
+            .unwrap()
+    };
+    let expected: Vec<Frame> = [&a, &b, &c, &d, &e].map(|p| fresh(p)).into();
+    for w in expected.windows(2) {
+        assert!(
+            max_diff(&w[0], &w[1]) > 0.0,
+            "a change rendered nothing new"
+        );
+    }
+    let mut r = GpuRenderer::new(context(), &cfg, full).unwrap();
+    for (i, p) in [&a, &b, &c, &d, &e, &a].into_iter().enumerate() {
+        let f = r.render(&cam, 0.3, p).unwrap();
+        assert_eq!(max_diff(&f, &expected[i % 5]), 0.0, "buffer {i}");
+    }
+    // Versions: a new one uploads; the same one renders the device's copy, whatever is passed.
+    let mut r = GpuRenderer::new(context(), &cfg, full).unwrap();
+    r.set_params_version(1);
+    assert_eq!(
+        max_diff(&r.render(&cam, 0.3, &a).unwrap(), &expected[0]),
+        0.0
+    );
+    r.set_params_version(2);
+    assert_eq!(
+        max_diff(&r.render(&cam, 0.3, &b).unwrap(), &expected[1]),
+        0.0
+    );
+    let trusted = r.render(&cam, 0.3, &e).unwrap();
+    assert_eq!(
+        max_diff(&trusted, &expected[1]),
+        0.0,
+        "the same version compared anyway"
+    );
+    r.set_params_version(3);
+    assert_eq!(
+        max_diff(&r.render(&cam, 0.3, &e).unwrap(), &expected[4]),
+        0.0
+    );
 }

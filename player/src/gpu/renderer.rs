@@ -109,6 +109,12 @@ pub struct GpuRenderer {
     frame: Option<(wgpu::Buffer, usize)>,
     /// The passes' scratch, and the pixel count it was made for.
     scratch: Option<(FrameScratch, usize)>,
+    /// Bytes of scratch one batch of rays may take ([`msth_gpu::FRAME_WORK_BYTES`] unless set).
+    scratch_budget: u64,
+    /// The caller's version of the parameters it passes ([`GpuRenderer::set_params_version`]),
+    /// and the version the device holds (`None`: compare the values).
+    params_version: Option<u64>,
+    uploaded_version: Option<u64>,
     /// Bound as `list` when a dispatch reads none.
     no_list: wgpu::Buffer,
     cache: Option<Cache>,
@@ -172,12 +178,42 @@ impl GpuRenderer {
             scene: None,
             frame: None,
             scratch: None,
+            scratch_budget: msth_gpu::FRAME_WORK_BYTES,
+            params_version: None,
+            uploaded_version: None,
             no_list,
             cache: None,
             occupancy: None,
             mlps: GpuMlps::default(),
             mlp_status: MlpStatus::Generic,
         })
+    }
+
+    /// Lets one batch of rays of the per-sample passes take up to `bytes` of scratch memory
+    /// (default [`msth_gpu::FRAME_WORK_BYTES`], 128 MiB; the adapter's binding limit still
+    /// applies): a frame of more rays than a batch holds renders in several batches, each a
+    /// round of every pass. Larger batches mean fewer, fuller dispatches; the frame is the same.
+    pub fn set_scratch_budget(&mut self, bytes: u64) {
+        if bytes != self.scratch_budget {
+            self.scratch_budget = bytes;
+            self.scratch = None;
+        }
+    }
+
+    /// Promises that the parameters passed with the frames from now on hold the same values for
+    /// as long as `version` stays the same (a player sets a new version each time it writes a
+    /// new time chunk's parameters into its buffer). Frames then skip comparing the parameters
+    /// with the device's copy, a pass over the whole buffer (tens of MB for a large model) per
+    /// frame; a new version compares them and uploads what changed. Without a version (the
+    /// default) every frame compares.
+    pub fn set_params_version(&mut self, version: u64) {
+        self.params_version = Some(version);
+    }
+
+    /// Rays per batch of the per-sample passes at the last frame's size (None before the
+    /// first frame, and with the per-ray kernel).
+    pub fn batch_rays(&self) -> Option<u32> {
+        self.scratch.as_ref().map(|(s, _)| s.capacity())
     }
 
     /// How the passes run the MLPs from the next parameter upload on (the default:
@@ -257,16 +293,23 @@ impl GpuRenderer {
     }
 
     fn upload(&mut self, params: &[f32]) -> Result<(), GpuError> {
+        let promised =
+            self.params_version.is_some() && self.params_version == self.uploaded_version;
         match &mut self.scene {
+            Some(_) if promised => {}
             Some(s) => {
+                // A failed upload leaves the device's copy unknown: no version until it succeeds.
+                self.uploaded_version = None;
                 s.update(&self.ctx, params)?;
             }
             None => {
+                self.uploaded_version = None;
                 let mut scene = GpuScene::new(&self.ctx, self.gpu_model.clone(), params)?;
                 apply_occupancy(&self.ctx, &mut scene, self.occupancy.as_deref())?;
                 self.scene = Some(scene);
             }
         }
+        self.uploaded_version = self.params_version;
         let want = self.mlps == GpuMlps::Specialised && self.kernels == GpuKernels::PerSample;
         if let Some(scene) = &mut self.scene {
             if want && !scene.is_specialised() && !matches!(self.mlp_status, MlpStatus::Refused(_))
@@ -315,7 +358,9 @@ impl GpuRenderer {
             && self.scratch.as_ref().is_none_or(|(_, n)| *n != total)
         {
             self.scratch = None;
-            let s = self.ctx.frame_scratch(&self.gpu_model, pixels32)?;
+            let s =
+                self.ctx
+                    .frame_scratch_within(&self.gpu_model, pixels32, self.scratch_budget)?;
             self.scratch = Some((s, total));
         }
         let reuse = self.settings.incremental
@@ -413,6 +458,9 @@ impl GpuRenderer {
         let ctx = &self.ctx;
         let scene = self.scene.as_mut().expect("uploaded before");
         let scratch = self.scratch.as_ref().map(|(s, _)| s);
+        // The probes upload other times' parameters and then the frame's again; should one
+        // fail, the device's copy is unknown.
+        let version = self.uploaded_version.take();
         let (flags, counts) = classify_static_with_stats(
             &self.cfg,
             &self.layout,
@@ -434,6 +482,7 @@ impl GpuRenderer {
                 out
             },
         )?;
+        self.uploaded_version = version;
         cache.dynamic = p
             .pixels
             .iter()

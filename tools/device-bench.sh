@@ -1,0 +1,166 @@
+#!/usr/bin/env bash
+# GPU figures in one prepared call of the `device` tool (a lent NVIDIA H100/H200; see
+# docs/playback.md, "Measuring on a lent GPU"). The device machine has no Rust toolchain and no
+# network, and a session has 15 minutes of device time, starts included: everything is built
+# and packed here, and one command there runs every measurement.
+#
+#   tools/device-bench.sh pack [DEMO.msth STAGE.msth]   # here: build, strip, pack into .device/
+#   tools/device-bench.sh run                           # there (or here, on lavapipe, as a check)
+#
+# `pack` builds the release binaries that measure (`bench_gpu_play`, `msth`), strips them, copies
+# the two models (a fast-preset model of the built-in scene and a balanced-preset stage model;
+# without arguments it makes them: `msth demo` and `msth train ... --preset balanced`, about 10
+# minutes on 2 cores) and downloads the Vulkan loader packages into .gl/. Both folders are kept
+# out of git through .git/info/exclude. Then, from the session:
+#
+#   run(command="bash tools/device-bench.sh run", carry=[".device", ".gl"], timeout_s=540)
+#
+# `run` writes report.txt under $OUT (or .device/out when $OUT is unset): the adapter, then per
+# model and per samples-per-ray setting `bench_gpu_play` at 1352x1014 (full frames of a fixed
+# and a moving camera, incremental frames, the GPU frame against the CPU renderer's), one
+# pass-by-pass profile, and the training step on the GPU against the CPU (`msth bench step
+# --device gpu`). Every command has its own time limit, so a slow one cannot eat the rest.
+# DEVICE_BENCH_SIZE (default 1352x1014), DEVICE_BENCH_FRAMES (24), DEVICE_BENCH_SAMPLES
+# ("model fast faster"), DEVICE_BENCH_SCRATCH_MIB (1024: the batch scratch of the extra stage run),
+# DEVICE_BENCH_STEP (1: the step benchmark) and DEVICE_BENCH_BUDGET (480: seconds after which
+# no command starts) change what runs; on lavapipe use e.g. DEVICE_BENCH_SIZE=128x96
+# DEVICE_BENCH_FRAMES=2 DEVICE_BENCH_STEP=0.
+set -euo pipefail
+
+root=$(cd "$(dirname "$0")/.." && pwd)
+pack_dir="$root/.device"
+# Models made by `pack` (training folders with checkpoints: they do not travel).
+work_dir="$root/target/device-work"
+
+die() {
+    echo "device-bench: $*" >&2
+    exit 1
+}
+
+exclude() {
+    local f="$root/.git/info/exclude"
+    mkdir -p "$(dirname "$f")"
+    touch "$f"
+    grep -qxF "$1" "$f" || echo "$1" >>"$f"
+}
+
+pack() {
+    [ -d "$root/.git" ] || die "pack runs in the repository's checkout"
+    exclude "/.device/"
+    exclude "/.gl/"
+    mkdir -p "$pack_dir/bin" "$pack_dir/models"
+    echo "== building (release)"
+    (cd "$root" && cargo build --release -p msth-cli --bin msth &&
+        cargo build --release -p msth-player --example bench_gpu_play)
+    for b in msth examples/bench_gpu_play; do
+        cp "$root/target/release/$b" "$pack_dir/bin/"
+        strip "$pack_dir/bin/$(basename "$b")"
+    done
+    local demo="${1:-}" stage="${2:-}"
+    local msth="$root/target/release/msth"
+    if [ -z "$demo" ]; then
+        demo="$work_dir/demo/scene.msth"
+        if [ ! -f "$demo" ]; then
+            echo "== making the demo model (msth demo, about 2.5 minutes)"
+            "$msth" demo --out "$work_dir/demo"
+        fi
+    fi
+    if [ -z "$stage" ]; then
+        stage="$work_dir/stage/stage.msth"
+        if [ ! -f "$stage" ]; then
+            local data="$root/../shared/data/box_animated_stage"
+            [ -d "$data" ] || die "no stage model given and no $data to train one from"
+            echo "== training a balanced stage model (7 minutes)"
+            "$msth" train "$data" --out "$work_dir/stage" --preset balanced --time-limit 420
+            "$msth" export "$work_dir/stage/model.ckpt" -o "$stage"
+        fi
+    fi
+    [ -f "$demo" ] || die "no file $demo"
+    [ -f "$stage" ] || die "no file $stage"
+    cp "$demo" "$pack_dir/models/demo.msth"
+    cp "$stage" "$pack_dir/models/stage.msth"
+    echo "== Vulkan loader packages into .gl/"
+    mkdir -p "$root/.gl" /tmp/amd64/partial
+    local o=(-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp/amd64)
+    apt-get "${o[@]}" update >/dev/null
+    (cd "$root/.gl" && apt-get "${o[@]}" download libvulkan1 >/dev/null)
+    local size
+    size=$(du -sm "$pack_dir" "$root/.gl" | awk '{s += $1} END {print s}')
+    echo "packed: $(ls "$pack_dir/bin" "$pack_dir/models" | tr '\n' ' ')(${size} MiB with .gl; the limit is 64 MiB with the tracked tree)"
+    echo 'now: run(command="bash tools/device-bench.sh run", carry=[".device", ".gl"], timeout_s=540)'
+}
+
+run() {
+    local out="${OUT:-$pack_dir/out}"
+    mkdir -p "$out"
+    local report="$out/report.txt"
+    local bin="$pack_dir/bin" models="$pack_dir/models"
+    [ -x "$bin/bench_gpu_play" ] && [ -x "$bin/msth" ] || die "no packed binaries in $bin: run '$0 pack' first"
+    # The loader, where the machine has none (a bare device machine).
+    if ! ldconfig -p 2>/dev/null | grep -q libvulkan.so.1 && compgen -G "$root/.gl/*.deb" >/dev/null; then
+        for f in "$root"/.gl/*.deb; do dpkg -x "$f" /; done
+        ldconfig
+    fi
+    if [ -f /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json ] && [ -z "${VK_DRIVER_FILES:-}" ]; then
+        export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
+    fi
+    local size="${DEVICE_BENCH_SIZE:-1352x1014}" frames="${DEVICE_BENCH_FRAMES:-24}"
+    local samples="${DEVICE_BENCH_SAMPLES:-model fast faster}"
+    {
+        echo "# device-bench $(date -u +%FT%TZ) on $(hostname)"
+        echo "commit: $(git -C "$root" rev-parse --short HEAD 2>/dev/null || echo unknown)"
+        nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader 2>/dev/null || echo "nvidia-smi: none"
+        echo "cpus: $(nproc)"
+    } | tee "$report"
+    local budget="${DEVICE_BENCH_BUDGET:-480}"
+    step() {
+        local limit=$1
+        shift
+        echo | tee -a "$report"
+        echo "\$ $*" | tee -a "$report"
+        # Within the call's time: a command that would start too late is skipped, said so.
+        if [ $((SECONDS + 30)) -gt "$budget" ]; then
+            echo "(skipped: ${SECONDS} s of the ${budget} s budget spent)" | tee -a "$report"
+            return 0
+        fi
+        # The last lines say why a command failed; the run goes on with the next one.
+        timeout "$limit" "$@" 2>&1 | tee -a "$report" || echo "(exit $?)" | tee -a "$report"
+    }
+    play() {
+        # play MODEL SAMPLES [VAR=VALUE...]: bench_gpu_play with those variables set
+        local m="$models/$1.msth" s=$2
+        shift 2
+        [ -f "$m" ] || return 0
+        local env_args=(env -u MSTH_BENCH_SAMPLES -u MSTH_BENCH_SCRATCH_MIB -u MSTH_BENCH_COMPARE_PARAMS)
+        [ "$s" = model ] || env_args+=(MSTH_BENCH_SAMPLES="$s")
+        step 120 "${env_args[@]}" "$@" "$bin/bench_gpu_play" "$m" "$size" "$frames"
+    }
+    # Most wanted first (#17: a balanced stage model at 1352x1014), in case time runs out.
+    for s in $samples; do play stage "$s"; done
+    # Fewer, larger batches: 1 GiB of scratch per batch instead of 128 MiB.
+    play stage model MSTH_BENCH_SCRATCH_MIB="${DEVICE_BENCH_SCRATCH_MIB:-1024}"
+    # Every frame comparing its parameters with the device's copy (what the player did before
+    # it passed versions): the incremental frames' difference is that comparison.
+    play stage model MSTH_BENCH_COMPARE_PARAMS=1
+    for s in $samples; do play demo "$s"; done
+    # One full frame pass by pass, at the model's own samples.
+    [ -f "$models/stage.msth" ] &&
+        step 120 env MSTH_BENCH_PROFILE=1 "$bin/bench_gpu_play" "$models/stage.msth" "$size" 2
+    if [ "${DEVICE_BENCH_STEP:-1}" = 1 ]; then
+        step 150 "$bin/msth" bench step --device gpu --reps 5
+    fi
+    echo | tee -a "$report"
+    echo "report: $report" | tee -a "$report"
+}
+
+case "${1:-}" in
+pack)
+    shift
+    pack "$@"
+    ;;
+run) run ;;
+*)
+    echo "usage: $0 pack [DEMO.msth STAGE.msth] | run" >&2
+    exit 2
+    ;;
+esac
