@@ -1003,4 +1003,32 @@ fn new_parameters_upload_what_changed_and_versions_skip_the_comparison() {
         max_diff(&r.render(&cam, 0.3, &e).unwrap(), &expected[4]),
         0.0
     );
+    // Incremental playback across a chunk change, its probes uploading another time's
+    // parameters and then the frame's again: with versions as without.
+    let settings = RenderSettings {
+        reuse: Reuse::Rays,
+        trust_threshold: 2.0,
+        ..Default::default()
+    };
+    let mut plain = GpuRenderer::new(context(), &cfg, settings).unwrap();
+    let mut versioned = GpuRenderer::new(context(), &cfg, settings).unwrap();
+    let frames = [
+        (0.0f32, &a, 1u64),
+        (0.2, &a, 1),
+        (0.5, &b, 2),
+        (0.7, &b, 2),
+        (0.9, &a, 3),
+    ];
+    let mut rendered = 0;
+    for (i, &(t, p, v)) in frames.iter().enumerate() {
+        let mut probe = |pt: f32| (pt > 0.45).then(|| b.clone());
+        let x = plain.render_probing(&cam, t, p, &mut probe).unwrap();
+        versioned.set_params_version(v);
+        let y = versioned.render_probing(&cam, t, p, &mut probe).unwrap();
+        assert_eq!(x.stats.full, y.stats.full, "frame {i}");
+        assert_eq!(x.stats.rays_rendered, y.stats.rays_rendered, "frame {i}");
+        assert_eq!(max_diff(&x, &y), 0.0, "incremental frame {i}");
+        rendered += usize::from(!x.stats.full);
+    }
+    assert!(rendered > 0, "no incremental frame");
 }
