@@ -560,11 +560,18 @@ fn same_bits(a: &[f32], b: &[f32]) -> bool {
 }
 
 /// Writes both fields' hash tables from `params` into the `tab3` and `tab4` buffers
-/// ([`crate::layout::ParamSplit::tables`]).
-fn write_tables(ctx: &GpuContext, split: &ParamSplit, bufs: [&wgpu::Buffer; 2], params: &[f32]) {
-    for (buf, parts) in bufs.into_iter().zip(split.tables()) {
-        for (_, at, r) in parts {
-            if !r.is_empty() {
+/// ([`crate::layout::ParamSplit::tables`]), those for which `which(buffer, part)` holds (buffer
+/// 0 `tab3`, 1 `tab4`; part 0 the field's table, 1 the proposal field's).
+fn write_tables(
+    ctx: &GpuContext,
+    split: &ParamSplit,
+    bufs: [&wgpu::Buffer; 2],
+    params: &[f32],
+    which: impl Fn(usize, usize) -> bool,
+) {
+    for (b, (buf, parts)) in bufs.into_iter().zip(split.tables()).enumerate() {
+        for (p, (_, at, r)) in parts.into_iter().enumerate() {
+            if !r.is_empty() && which(b, p) {
                 let data = bytemuck::cast_slice(&params[r]);
                 ctx.queue.write_buffer(buf, 4 * at as u64, data);
             }
@@ -607,7 +614,7 @@ impl GpuScene {
         let [(n3, s3), (n4, s4), (nr, _)] = gpu_model.buffer_sizes();
         let tab3 = ctx.storage_buffer_sized(n3, s3)?;
         let tab4 = ctx.storage_buffer_sized(n4, s4)?;
-        write_tables(ctx, &split, [&tab3, &tab4], params);
+        write_tables(ctx, &split, [&tab3, &tab4], params, |_, _| true);
         let rest = ctx.storage_buffer(nr, bytes(&split.rest), false)?;
         let model = ctx
             .device
@@ -733,38 +740,44 @@ impl GpuScene {
             )));
         }
         let split = self.gpu_model.split.clone();
-        let mut changed = false;
         let [field3, field4] = split.tables().map(|parts| parts[0].2.clone());
-        for (buf, r) in [(&self.tab3, field3), (&self.tab4, field4)] {
-            if !same_bits(&params[r.clone()], &self.uploaded[r.clone()]) {
-                ctx.queue
-                    .write_buffer(buf, 0, bytemuck::cast_slice(&params[r.clone()]));
-                self.uploaded[r.clone()].copy_from_slice(&params[r]);
-                changed = true;
-            }
+        let differs =
+            |r: &std::ops::Range<usize>| !same_bits(&params[r.clone()], &self.uploaded[r.clone()]);
+        let (d3, d4, drest) = (differs(&field3), differs(&field4), differs(&split.rest));
+        if !(d3 || d4 || drest) {
+            return Ok(false);
         }
-        let rest = split.rest.clone();
-        if !same_bits(&params[rest.clone()], &self.uploaded[rest.clone()]) {
+        if drest {
             // New MLP weights (a model's are the same at every time; this is another model's
             // buffer): the specialised pipelines no longer apply.
-            for r in &split.mlps {
-                let r = rest.start + r.start..rest.start + r.end;
-                if !same_bits(&params[r.clone()], &self.uploaded[r]) {
-                    self.mlps = None;
-                }
+            let at = split.rest.start;
+            if split
+                .mlps
+                .iter()
+                .any(|r| differs(&(at + r.start..at + r.end)))
+            {
+                self.mlps = None;
             }
-            // The proposal field's tables, which the kernels read from the table buffers.
-            for (buf, parts) in [&self.tab3, &self.tab4].into_iter().zip(split.tables()) {
-                let (_, at, r) = parts[1].clone();
-                if !r.is_empty() && !same_bits(&params[r.clone()], &self.uploaded[r.clone()]) {
-                    ctx.queue
-                        .write_buffer(buf, 4 * at as u64, bytemuck::cast_slice(&params[r]));
-                }
-            }
-            ctx.write(&self.rest, bytemuck::cast_slice(&params[rest.clone()]));
-            self.uploaded[rest.clone()].copy_from_slice(&params[rest]);
-            changed = true;
+            ctx.write(
+                &self.rest,
+                bytemuck::cast_slice(&params[split.rest.clone()]),
+            );
         }
-        Ok(changed)
+        // The field's tables where they changed; the proposal field's (which lie in the rest
+        // and are read from the table buffers) with the rest.
+        let field = [d3, d4];
+        write_tables(ctx, &split, [&self.tab3, &self.tab4], params, |b, p| {
+            if p == 0 {
+                field[b]
+            } else {
+                drest
+            }
+        });
+        for (r, d) in [(field3, d3), (field4, d4), (split.rest, drest)] {
+            if d {
+                self.uploaded[r.clone()].copy_from_slice(&params[r]);
+            }
+        }
+        Ok(true)
     }
 }
