@@ -17,7 +17,8 @@
 #
 # `run` writes report.txt under $OUT (or .device/out when $OUT is unset): the adapter, then per
 # model and per samples-per-ray setting `bench_gpu_play` at 1352x1014 (full frames of a fixed
-# and a moving camera, incremental frames, the GPU frame against the CPU renderer's), one
+# and a moving camera, incremental frames, the GPU frame against the CPU renderer's; the stage
+# model also with 1 GiB batches, comparing parameters, and f32 hash tables), one
 # pass-by-pass profile, and the training step on the GPU against the CPU (`msth bench step
 # --device gpu`). Every command has its own time limit, so a slow one cannot eat the rest.
 # DEVICE_BENCH_SIZE (default 1352x1014), DEVICE_BENCH_FRAMES (24), DEVICE_BENCH_SAMPLES
@@ -131,7 +132,7 @@ run() {
         local m="$models/$1.msth" s=$2
         shift 2
         [ -f "$m" ] || return 0
-        local env_args=(env -u MSTH_BENCH_SAMPLES -u MSTH_BENCH_SCRATCH_MIB -u MSTH_BENCH_COMPARE_PARAMS)
+        local env_args=(env -u MSTH_BENCH_SAMPLES -u MSTH_BENCH_SCRATCH_MIB -u MSTH_BENCH_COMPARE_PARAMS -u MSTH_BENCH_TABLES)
         [ "$s" = model ] || env_args+=(MSTH_BENCH_SAMPLES="$s")
         step 120 "${env_args[@]}" "$@" "$bin/bench_gpu_play" "$m" "$size" "$frames"
     }
@@ -142,6 +143,8 @@ run() {
     # Every frame comparing its parameters with the device's copy (what the player did before
     # it passed versions): the incremental frames' difference is that comparison.
     play stage model MSTH_BENCH_COMPARE_PARAMS=1
+    # f32 hash tables (the default for a quantised file is binary16): what half the bytes buy.
+    play stage model MSTH_BENCH_TABLES=f32
     for s in $samples; do play demo "$s"; done
     # One full frame pass by pass, at the model's own samples.
     [ -f "$models/stage.msth" ] &&

@@ -91,12 +91,30 @@ struct View {
 
 @group(0) @binding(0) var<uniform> model: Model;
 @group(0) @binding(1) var<uniform> view: View;
+// ---- Hash tables: begin (msth-gpu `TableFormat`: for binary16 tables the host puts
+// `tables_f16.wgsl` in the place of this region) ----
 // The 3D hash tables: params range `field.h3`, then `proposal.h3` from an even index (msth-gpu
 // layout.rs, `ParamSplit::tables`); read two values at a time where a grid's rows hold an even
 // number of features (`table2`). The buffer holds whole pairs.
 @group(0) @binding(2) var<storage, read> tab3: array<vec2<f32>>;
 // The 4D hash tables (`field.h4`, then `proposal.h4`), likewise.
 @group(0) @binding(3) var<storage, read> tab4: array<vec2<f32>>;
+
+// Values i and i + 1 (i even) of the hash tables of buffer `buf` (0 tab3, 1 tab4): one `vec2`
+// load. Mesa's lavapipe (22.x) turns each storage load at a per-invocation index into a loop
+// over the SIMD lanes, with one step per component read, so reading a row's two features
+// together nearly halves the encodings' cost there.
+fn table2(buf: u32, i: u32) -> vec2<f32> {
+    var v: vec2<f32>;
+    if buf == 0u {
+        v = tab3[i >> 1u];
+    } else {
+        v = tab4[i >> 1u];
+    }
+    return v;
+}
+// ---- Hash tables: end ----
+
 // Everything after the field's tables: mask, decoders, the proposal field (its tables unread
 // here).
 @group(0) @binding(4) var<storage, read> rest: array<f32>;
@@ -165,27 +183,7 @@ fn sanitize(w: f32) -> f32 {
 
 // Value i of the hash tables of buffer `buf` (0 tab3, 1 tab4).
 fn table(buf: u32, i: u32) -> f32 {
-    var v: f32;
-    if buf == 0u {
-        v = tab3[i >> 1u][i & 1u];
-    } else {
-        v = tab4[i >> 1u][i & 1u];
-    }
-    return v;
-}
-
-// Values i and i + 1 (i even) of the hash tables of buffer `buf`: one `vec2` load. Mesa's
-// lavapipe (22.x) turns each storage load at a per-invocation index into a loop over the SIMD
-// lanes, one loop per load however many components it reads, so reading a row's two features
-// together nearly halves the encodings' cost there.
-fn table2(buf: u32, i: u32) -> vec2<f32> {
-    var v: vec2<f32>;
-    if buf == 0u {
-        v = tab3[i >> 1u];
-    } else {
-        v = tab4[i >> 1u];
-    }
-    return v;
+    return table2(buf, i & ~1u)[i & 1u];
 }
 
 // Spacing: normalised s in [0, 1] to distance.

@@ -315,13 +315,13 @@ impl GpuModel {
         })
     }
 
-    /// Byte sizes of the three parameter buffers (`tab3`, `tab4`, `rest`), placeholders included.
-    /// The tables are read in pairs (`array<vec2<f32>>`): whole pairs, at least one.
-    pub fn buffer_sizes(&self) -> [(&'static str, u64); 3] {
+    /// Byte sizes of the three parameter buffers (`tab3`, `tab4`, `rest`), placeholders included,
+    /// the tables held in `tables`' format: whole `vec2<u32>` elements, at least one.
+    pub fn buffer_sizes(&self, tables: TableFormat) -> [(&'static str, u64); 3] {
         let bytes = |r: &Range<usize>| (r.len().max(1) * 4) as u64;
         let [t3, t4] = self.split.tables().map(|parts| {
             let values = parts.iter().map(|(_, at, r)| at + r.len()).max();
-            (values.unwrap_or(0).div_ceil(2).max(1) * 8) as u64
+            tables.buffer_bytes(values.unwrap_or(0))
         });
         [
             ("3D hash tables (tab3)", t3),
@@ -331,6 +331,122 @@ impl GpuModel {
                 bytes(&self.split.rest),
             ),
         ]
+    }
+}
+
+/// The `render.wgsl` region that holds the hash tables as binary16 ([`TableFormat::F16`]).
+pub const TABLES_F16_WGSL: &str = include_str!("../shaders/tables_f16.wgsl");
+
+/// How the render kernels' hash-table buffers (`tab3`, `tab4`) hold the tables' values
+/// ([`TableFormat::source`]). The rest of the parameters (mask, MLPs) stay f32.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum TableFormat {
+    /// The values as they are: frames as close to the CPU renderer's as the kernels get.
+    #[default]
+    F32,
+    /// IEEE binary16, rounded to nearest (ties to even) after clamping to ±65504 (the largest
+    /// finite binary16, as the codec's `f16` mode does), magnitudes that round below 2^-14 to
+    /// zero (no subnormals): half the memory and uploads, and one
+    /// 4-byte read per row's two features. A relative error of at most 2^-11 per value, below
+    /// the step of every quantised `.msth` mode's tables (`docs/format.md` §5.3).
+    F16,
+}
+
+impl TableFormat {
+    /// `"f32"` or `"f16"`.
+    pub fn name(self) -> &'static str {
+        match self {
+            TableFormat::F32 => "f32",
+            TableFormat::F16 => "f16",
+        }
+    }
+
+    /// Bytes a table buffer of `values` values takes: f32 in whole pairs (`vec2<f32>`),
+    /// binary16 in whole words (`u32`), at least one.
+    pub fn buffer_bytes(self, values: usize) -> u64 {
+        let b = match self {
+            TableFormat::F32 => values.div_ceil(2).max(1) * 8,
+            TableFormat::F16 => values.div_ceil(2).max(1) * 4,
+        };
+        b as u64
+    }
+
+    /// `render.wgsl` (or a source of its bindings) with its hash tables held in this format:
+    /// for f16 the region between the "Hash tables: begin" and "end" lines is replaced by
+    /// `shaders/tables_f16.wgsl`; `None` when the source has no such region.
+    pub fn source(self, wgsl: &str) -> Option<String> {
+        match self {
+            TableFormat::F32 => Some(wgsl.to_string()),
+            TableFormat::F16 => {
+                let begin = wgsl.find("// ---- Hash tables: begin")?;
+                let end_mark = "// ---- Hash tables: end ----\n";
+                let end = wgsl[begin..].find(end_mark)? + begin + end_mark.len();
+                Some(format!(
+                    "{}{}{}",
+                    &wgsl[..begin],
+                    TABLES_F16_WGSL,
+                    &wgsl[end..]
+                ))
+            }
+        }
+    }
+
+    /// Byte offset of value `at` (even) in a table buffer.
+    pub fn byte_offset(self, at: usize) -> u64 {
+        match self {
+            TableFormat::F32 => 4 * at as u64,
+            TableFormat::F16 => 2 * at as u64,
+        }
+    }
+
+    /// `values` as a table buffer holds them, padded to whole 4-byte words (a trailing 0 for an
+    /// odd count of binary16 values).
+    pub fn encode(self, values: &[f32]) -> Vec<u8> {
+        match self {
+            TableFormat::F32 => bytemuck::cast_slice(values).to_vec(),
+            TableFormat::F16 => {
+                let mut out = Vec::with_capacity(2 * values.len().next_multiple_of(2));
+                for &v in values {
+                    out.extend_from_slice(&f16_bits(v).to_le_bytes());
+                }
+                if values.len() % 2 == 1 {
+                    out.extend_from_slice(&[0, 0]);
+                }
+                out
+            }
+        }
+    }
+
+    /// The value the kernels read for a table value `v`.
+    pub fn round(self, v: f32) -> f32 {
+        match self {
+            TableFormat::F32 => v,
+            TableFormat::F16 => half::f16::from_bits(f16_bits(v)).to_f32(),
+        }
+    }
+}
+
+impl std::str::FromStr for TableFormat {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "f32" => Ok(TableFormat::F32),
+            "f16" => Ok(TableFormat::F16),
+            _ => Err(format!("unknown table format {s:?}: f32 or f16")),
+        }
+    }
+}
+
+/// `v` as binary16 bits: clamped to ±65504, rounded to nearest, ties to even, a subnormal
+/// result (below 2^-14 in magnitude) flushed to zero of the same sign, since WGSL lets
+/// `unpack2x16float` flush those (a NaN stays NaN).
+fn f16_bits(v: f32) -> u16 {
+    let h = half::f16::from_f32(v.clamp(-65504.0, 65504.0)).to_bits();
+    if h & 0x7c00 == 0 {
+        h & 0x8000
+    } else {
+        h
     }
 }
 
@@ -579,10 +695,71 @@ mod tests {
             let first4 = gm.model.levels[prop.h4.loc[1] as usize].info[0] as usize;
             assert_eq!((first3, first4), (p3, p4));
             assert_eq!((prop.h3.loc[0], prop.h4.loc[0]), (0, 1));
-            let [(_, b3), (_, b4), _] = gm.buffer_sizes();
+            let [(_, b3), (_, b4), _] = gm.buffer_sizes(TableFormat::F32);
             assert_eq!(b3, (4 * (p3 + r3.len())).next_multiple_of(8) as u64);
             assert_eq!(b4, (4 * (p4 + r4.len())).next_multiple_of(8) as u64);
+            let [(_, h3), (_, h4), _] = gm.buffer_sizes(TableFormat::F16);
+            assert_eq!(h3, (2 * (p3 + r3.len())).next_multiple_of(4) as u64);
+            assert_eq!(h4, (2 * (p4 + r4.len())).next_multiple_of(4) as u64);
         }
+    }
+
+    #[test]
+    fn binary16_tables_round_clamp_flush_and_pad() {
+        let f = TableFormat::F16;
+        // Exact values stay; ties go to the even neighbour; the range clamps; no subnormals.
+        assert_eq!(f.round(1.5), 1.5);
+        assert_eq!(f.round(-0.25), -0.25);
+        assert_eq!(f.round(1.0 + 2f32.powi(-11)), 1.0);
+        assert_eq!(f.round(1.0 + 3.0 * 2f32.powi(-11)), 1.0 + 2f32.powi(-9));
+        assert_eq!(f.round(1e6), 65504.0);
+        assert_eq!(f.round(f32::MIN), -65504.0);
+        assert_eq!(f.round(2f32.powi(-14)), 2f32.powi(-14));
+        assert_eq!(f.round(1e-6).to_bits(), 0);
+        assert_eq!(f.round(-1e-6).to_bits(), (-0f32).to_bits());
+        assert!(f.round(f32::NAN).is_nan());
+        for v in [0.1f32, -3.7, 1234.5, 7e-3] {
+            let r = f.round(v);
+            assert!((r - v).abs() <= v.abs() * 2f32.powi(-11), "{v} -> {r}");
+            assert_eq!(TableFormat::F32.round(v), v);
+        }
+        // Two values per little-endian word, the lower half first; an odd count padded.
+        assert_eq!(
+            f.encode(&[1.0, -2.0, 0.5]),
+            [0x00, 0x3c, 0x00, 0xc0, 0x00, 0x38, 0, 0]
+        );
+        assert_eq!(TableFormat::F32.encode(&[1.0]), 1f32.to_le_bytes());
+        assert_eq!(
+            (f.buffer_bytes(0), f.buffer_bytes(3), f.buffer_bytes(4)),
+            (4, 8, 8)
+        );
+        assert_eq!(TableFormat::F32.buffer_bytes(3), 16);
+        assert_eq!(
+            (f.byte_offset(6), TableFormat::F32.byte_offset(6)),
+            (12, 24)
+        );
+        assert_eq!("f16".parse(), Ok(f));
+        assert!("f8"
+            .parse::<TableFormat>()
+            .unwrap_err()
+            .contains("f32 or f16"));
+    }
+
+    #[test]
+    fn binary16_source_replaces_the_table_region_only() {
+        let src = crate::render::RENDER_WGSL;
+        assert_eq!(TableFormat::F32.source(src).as_deref(), Some(src));
+        let half = TableFormat::F16.source(src).unwrap();
+        assert!(half.contains("var<storage, read> tab3: array<u32>;"));
+        assert!(half.contains("unpack2x16float"));
+        assert!(!half.contains("array<vec2<f32>>;"));
+        assert!(!half.contains("Hash tables: begin"));
+        // Everything outside the region is kept.
+        let (a, b) = src.split_once("// ---- Hash tables: begin").unwrap();
+        assert!(half.starts_with(a));
+        let after = b.split_once("// ---- Hash tables: end ----\n").unwrap().1;
+        assert!(half.ends_with(after));
+        assert_eq!(TableFormat::F16.source("fn main() {}"), None);
     }
 
     #[test]

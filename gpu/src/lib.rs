@@ -216,7 +216,7 @@ pub mod sh;
 pub mod specialise;
 pub mod step;
 
-pub use layout::{GpuLayoutError, GpuModel, ViewU, FLAG_COMPACT, FLAG_LIST};
+pub use layout::{GpuLayoutError, GpuModel, TableFormat, ViewU, FLAG_COMPACT, FLAG_LIST};
 pub use passes::{FrameScratch, GpuSampleCache, PassCounts, Pixels, FRAME_WORK_BYTES};
 pub use render::{
     AdapterPolicy, GpuContext, GpuError, GpuScene, Kernel, ALLOW_SOFTWARE_ENV, RENDER_WGSL,

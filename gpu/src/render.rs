@@ -17,7 +17,7 @@ use std::sync::{Arc, Mutex};
 
 use wgpu::util::DeviceExt;
 
-use crate::layout::{self, GpuModel, ParamSplit, ViewU};
+use crate::layout::{self, GpuModel, ParamSplit, TableFormat, ViewU};
 
 /// The kernels' source, shared with the browser player.
 pub const RENDER_WGSL: &str = include_str!("../shaders/render.wgsl");
@@ -181,6 +181,8 @@ pub struct GpuContext {
     /// pipelines of the kernels specialised to a model, [`GpuScene::specialise`]).
     pipeline_layout: wgpu::PipelineLayout,
     source: String,
+    /// How the scenes' hash tables are held ([`TableFormat`]); the pipelines are compiled for it.
+    tables: TableFormat,
     /// Bound at bindings 7-10 by the per-ray kernels, which use none of them.
     pub(crate) placeholders: crate::passes::Placeholders,
     pub(crate) state: Arc<Mutex<DeviceState>>,
@@ -205,16 +207,33 @@ impl GpuContext {
     /// Opens the best adapter `policy` allows (discrete, integrated, virtual, other, then
     /// software), or says why none can be used.
     pub fn open(policy: AdapterPolicy) -> Result<Self, GpuError> {
-        Self::with_adapter(pick_adapter(policy)?, RENDER_WGSL)
+        Self::open_with_tables(policy, TableFormat::F32)
+    }
+
+    /// [`GpuContext::open`] with the hash tables of its scenes held in `tables`' format.
+    pub fn open_with_tables(policy: AdapterPolicy, tables: TableFormat) -> Result<Self, GpuError> {
+        Self::with_adapter(pick_adapter(policy)?, RENDER_WGSL, tables)
     }
 
     /// [`GpuContext::open`] with another WGSL source of the same entry points and bindings (a
-    /// benchmark's older version of `render.wgsl`, to time old kernels against new ones).
+    /// benchmark's older version of `render.wgsl`, to time old kernels against new ones), its
+    /// tables f32 (an older source has no `TABLES_F16`).
     pub fn open_with_source(policy: AdapterPolicy, wgsl: &str) -> Result<Self, GpuError> {
-        Self::with_adapter(pick_adapter(policy)?, wgsl)
+        Self::with_adapter(pick_adapter(policy)?, wgsl, TableFormat::F32)
     }
 
-    fn with_adapter(adapter: wgpu::Adapter, wgsl: &str) -> Result<Self, GpuError> {
+    fn with_adapter(
+        adapter: wgpu::Adapter,
+        wgsl: &str,
+        tables: TableFormat,
+    ) -> Result<Self, GpuError> {
+        let source = tables.source(wgsl).ok_or_else(|| {
+            GpuError::Shader(format!(
+                "the shader has no \"Hash tables\" region to hold {} tables",
+                tables.name()
+            ))
+        })?;
+        let wgsl = source.as_str();
         let info = adapter.get_info();
         let name = format!("{} ({:?})", info.name, info.backend);
         // Ask for the adapter's own buffer limits (models and frames can be large), WebGPU
@@ -309,9 +328,15 @@ impl GpuContext {
             passes,
             pipeline_layout: pl,
             source: wgsl.to_string(),
+            tables,
             placeholders,
             state,
         })
+    }
+
+    /// How this context's scenes hold their hash tables.
+    pub fn tables(&self) -> TableFormat {
+        self.tables
     }
 
     /// `name (backend, device type)` of the adapter in use.
@@ -569,11 +594,18 @@ fn write_tables(
     params: &[f32],
     which: impl Fn(usize, usize) -> bool,
 ) {
+    let format = ctx.tables;
     for (b, (buf, parts)) in bufs.into_iter().zip(split.tables()).enumerate() {
         for (p, (_, at, r)) in parts.into_iter().enumerate() {
             if !r.is_empty() && which(b, p) {
-                let data = bytemuck::cast_slice(&params[r]);
-                ctx.queue.write_buffer(buf, 4 * at as u64, data);
+                let at = format.byte_offset(at);
+                match format {
+                    TableFormat::F32 => {
+                        ctx.queue
+                            .write_buffer(buf, at, bytemuck::cast_slice(&params[r]))
+                    }
+                    TableFormat::F16 => ctx.queue.write_buffer(buf, at, &format.encode(&params[r])),
+                }
             }
         }
     }
@@ -611,7 +643,7 @@ impl GpuScene {
         }
         let bytes =
             |r: &std::ops::Range<usize>| bytemuck::cast_slice::<f32, u8>(&params[r.clone()]);
-        let [(n3, s3), (n4, s4), (nr, _)] = gpu_model.buffer_sizes();
+        let [(n3, s3), (n4, s4), (nr, _)] = gpu_model.buffer_sizes(ctx.tables);
         let tab3 = ctx.storage_buffer_sized(n3, s3)?;
         let tab4 = ctx.storage_buffer_sized(n4, s4)?;
         write_tables(ctx, &split, [&tab3, &tab4], params, |_, _| true);

@@ -20,7 +20,9 @@
 //! `MSTH_BENCH_COMPARE_PARAMS=1` compares each frame's parameters with the device's copy
 //! instead of passing the player's version of them (`GpuRenderer::set_params_version`);
 //! `MSTH_BENCH_SCRATCH_MIB=N` lets a batch of rays take N MiB of scratch instead of 128 (fewer,
-//! larger batches per frame; `GpuRenderer::set_scratch_budget`).
+//! larger batches per frame; `GpuRenderer::set_scratch_budget`); `MSTH_BENCH_TABLES=f32|f16`
+//! holds the hash tables in that format (default: `msth play`'s choice, f32 for a lossless file,
+//! else f16).
 //!
 //! `cargo run --release -p msth-player --example bench_gpu_play -- FILE.msth [WxH] [FRAMES]`
 //! (default 1352x1014, 24 frames per measurement). Any adapter is used (lavapipe included: use
@@ -32,7 +34,7 @@ use std::time::Instant;
 use glam::{Mat4, Vec3};
 use msth_core::{Camera, SceneBounds};
 use msth_player::gpu::{AdapterPolicy, GpuContext, GpuRenderer};
-use msth_player::{RenderSettings, Renderer};
+use msth_player::{RenderSettings, Renderer, TableFormat};
 
 /// `cam` orbited by `degrees` about its own up axis through `pivot`.
 fn orbited(cam: &Camera, pivot: Vec3, degrees: f32) -> Camera {
@@ -138,8 +140,26 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         incremental: false,
         ..Default::default()
     };
-    let ctx = GpuContext::open(AdapterPolicy::any())?;
-    println!("adapter: {}", ctx.adapter_name());
+    let tables = match std::env::var("MSTH_BENCH_TABLES") {
+        Ok(v) => v.parse()?,
+        Err(_) if decoded.metadata.quant == msth_codec::QuantMode::F32 => TableFormat::F32,
+        Err(_) => TableFormat::F16,
+    };
+    let ctx = GpuContext::open_with_tables(AdapterPolicy::any(), tables)?;
+    let mib = |t| {
+        let [(_, a), (_, b), _] = msth_player::gpu::GpuModel::new(&cfg)
+            .map(|m| m.buffer_sizes(t))
+            .unwrap_or_default();
+        (a + b) as f64 / (1 << 20) as f64
+    };
+    println!(
+        "adapter: {}; hash tables {} ({:.1} MiB on the device; f32 {:.1}, f16 {:.1})",
+        ctx.adapter_name(),
+        tables.name(),
+        mib(tables),
+        mib(TableFormat::F32),
+        mib(TableFormat::F16)
+    );
 
     let scratch_mib: Option<u64> = match std::env::var("MSTH_BENCH_SCRATCH_MIB") {
         Ok(v) => Some(
@@ -213,7 +233,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     println!("full frames, moving camera:  {}", stats(&ms));
 
     // 3. Incremental frames, fixed camera.
-    let ctx = GpuContext::open(AdapterPolicy::any())?;
+    let ctx = GpuContext::open_with_tables(AdapterPolicy::any(), tables)?;
     let mut inc = GpuRenderer::new(ctx, &cfg, RenderSettings::default())?;
     inc.set_occupancy(grid.clone())?;
     if let Some(mib) = scratch_mib {

@@ -26,7 +26,8 @@
 //! does; `MSTH_BENCH_NO_SKIP=1` turns it off), and the CPU frame without it is the quality
 //! reference printed beside. Timings include the read-back of the frame; "cpu" is this process's CPU time over
 //! the same span (all threads: lavapipe's included), which a busy machine inflates less than
-//! the wall time.
+//! the wall time. The new kernels hold the hash tables as binary16, as `msth play` does for
+//! quantised files (`MSTH_BENCH_TABLES=f32` for f32; the old kernels always read f32).
 
 use std::time::Instant;
 
@@ -151,6 +152,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         None => println!("cpu full frame:                 {cpu_s:8.3} s (no occupancy grid)"),
     }
 
+    let tables: msth_gpu::TableFormat = std::env::var("MSTH_BENCH_TABLES")
+        .as_deref()
+        .unwrap_or("f16")
+        .parse()?;
     let old_source = match std::env::var_os("MSTH_BENCH_OLD_WGSL") {
         Some(p) => Some(std::fs::read_to_string(&p)?),
         None => None,
@@ -188,7 +193,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             Err(e) => println!("gpu {what} (old): refused: {e}"),
         }
     }
-    let ctx = GpuContext::open(AdapterPolicy::any())?;
+    let ctx = GpuContext::open_with_tables(AdapterPolicy::any(), tables)?;
+    println!("new kernels: hash tables {}", tables.name());
     let mut new = GpuRenderer::new(ctx, &cfg, full)?;
     new.set_occupancy(grid.clone())?;
     // The first frame compiles nothing more (pipelines are made with the context), but pays
@@ -270,7 +276,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .collect();
     let mut cpu = Renderer::new(&cfg, inc);
     cpu.set_occupancy(grid.clone());
-    let mut gpu = GpuRenderer::new(GpuContext::open(AdapterPolicy::any())?, &cfg, inc)?;
+    let ctx = GpuContext::open_with_tables(AdapterPolicy::any(), tables)?;
+    let mut gpu = GpuRenderer::new(ctx, &cfg, inc)?;
     gpu.set_occupancy(grid.clone())?;
     let mut full_r = Renderer::new(&cfg, full);
     full_r.set_occupancy(grid.clone());

@@ -44,6 +44,8 @@ pub struct BackendInfo {
     /// GPU: whether the passes' MLPs were compiled for the model (and in how long) or stayed
     /// generic, and why (`GpuRenderer::mlp_status`, after the first frame).
     pub mlps: Option<String>,
+    /// GPU: how the device holds the hash tables (`"f32"` or `"f16"`).
+    pub tables: Option<&'static str>,
 }
 
 impl FrameRenderer {
@@ -61,11 +63,12 @@ impl FrameRenderer {
                     device: format!("{} threads", rayon::current_num_threads()),
                     note,
                     mlps: None,
+                    tables: None,
                 },
             )
         };
         let gpu = |policy| -> Result<(Self, BackendInfo), GpuError> {
-            let ctx = GpuContext::open(policy)?;
+            let ctx = GpuContext::open_with_tables(policy, settings.gpu_tables)?;
             let device = ctx.adapter_name();
             let r = GpuRenderer::new(ctx, cfg, settings)?;
             // The GPU renderer has the CPU renderer's caches (sample-level reuse included).
@@ -77,6 +80,7 @@ impl FrameRenderer {
                     device,
                     note,
                     mlps: None,
+                    tables: Some(settings.gpu_tables.name()),
                 },
             ))
         };

@@ -27,6 +27,7 @@ pub mod stream;
 
 pub use backend::{BackendChoice, BackendInfo, FrameRenderer};
 pub use gpu::{GpuError, GpuRenderer};
+pub use msth_gpu::TableFormat;
 pub use path::CameraPath;
 pub use play::{play, FrameRecord, PlayError, PlayOptions, PlayReport};
 pub use render::{Frame, FrameStats, RenderSettings, Renderer, Reuse};

@@ -47,6 +47,10 @@ pub struct PlayOptions {
     pub skip_empty: bool,
     /// Samples per ray: the model's own (the default) or fewer, for speed.
     pub samples: PlaySamples,
+    /// GPU renderer: how the device holds the hash tables. `None`: f32 for a lossless file
+    /// (quantisation `f32`), else binary16, whose rounding lies below every quantised mode's
+    /// step ([`msth_gpu::TableFormat::F16`]).
+    pub gpu_tables: Option<msth_gpu::TableFormat>,
 }
 
 impl PlayOptions {
@@ -67,6 +71,7 @@ impl PlayOptions {
             section_timeout: Duration::from_secs(120),
             skip_empty: true,
             samples: PlaySamples::default(),
+            gpu_tables: None,
         }
     }
 }
@@ -225,6 +230,10 @@ pub fn play(
         })
     };
     let mut render_settings = opts.render;
+    render_settings.gpu_tables = opts.gpu_tables.unwrap_or(match meta.quant {
+        msth_codec::QuantMode::F32 => msth_gpu::TableFormat::F32,
+        _ => msth_gpu::TableFormat::F16,
+    });
     render_settings.time_range = (0..n).map(frame_time).fold((1f32, 0f32), |(lo, hi), t| {
         let t = t.clamp(0.0, 1.0);
         (lo.min(t), hi.max(t))

@@ -68,6 +68,10 @@ pub struct RenderSettings {
     /// The times the playback will show (`[a, b]`, normalised): probes and the fixed samples
     /// cover this range.
     pub time_range: (f32, f32),
+    /// GPU renderer: how the device holds the hash tables (binary16 halves their memory and
+    /// reads, at a relative error of 2^-11 per value). The CPU renderer reads the parameters as
+    /// given.
+    pub gpu_tables: msth_gpu::TableFormat,
 }
 
 impl RenderSettings {
@@ -147,6 +151,7 @@ impl Default for RenderSettings {
             sample_cutoff: DEFAULT_SAMPLE_CUTOFF,
             max_sample_cache_bytes: 2 << 30,
             time_range: (0.0, 1.0),
+            gpu_tables: msth_gpu::TableFormat::F32,
         }
     }
 }

@@ -17,6 +17,7 @@ use msth_player::gpu::{
     AdapterPolicy, GpuContext, GpuError, GpuKernels, GpuMlps, GpuModel, GpuRenderer, GpuScene,
     Kernel, MlpStatus, ViewU, FLAG_COMPACT,
 };
+use msth_player::TableFormat;
 use msth_player::{Frame, RenderSettings, Renderer, Reuse};
 use msth_testkit::{Need, Skip, Tests};
 
@@ -91,6 +92,11 @@ fn main() -> std::process::ExitCode {
             &[&gpu],
             "new_parameters_upload_what_changed_and_versions_skip_the_comparison",
             new_parameters_upload_what_changed_and_versions_skip_the_comparison,
+        )
+        .needs(
+            &[&gpu],
+            "binary16_tables_render_the_frames_of_rounded_tables",
+            binary16_tables_render_the_frames_of_rounded_tables,
         )
         .run()
 }
@@ -1031,4 +1037,101 @@ fn new_parameters_upload_what_changed_and_versions_skip_the_comparison() {
         rendered += usize::from(!x.stats.full);
     }
     assert!(rendered > 0, "no incremental frame");
+}
+
+/// `params` with every hash-table value the kernels read (both fields' 3D and 4D tables) as
+/// `format` holds it.
+fn tables_rounded(cfg: &ModelConfig, params: &[f32], format: TableFormat) -> Vec<f32> {
+    let split = GpuModel::new(cfg).unwrap().split;
+    let mut p = params.to_vec();
+    for (_, _, r) in split.tables().into_iter().flatten() {
+        for v in &mut p[r] {
+            *v = format.round(*v);
+        }
+    }
+    p
+}
+
+/// Hash tables held as binary16 (`TableFormat::F16`, what `msth play` uses for quantised files)
+/// render exactly the frames the f32 kernels render from tables rounded to binary16 on the host:
+/// the packing (pairs in one word, one-feature rows half a word, the proposal
+/// field's tables after the field's, values beyond binary16's range clamped) and the kernels'
+/// unpacking agree, full and incremental, specialised and generic. Against the CPU renderer
+/// with the unrounded tables they stay within 40 dB, for the `balanced` preset too.
+fn binary16_tables_render_the_frames_of_rounded_tables() {
+    let half = || GpuContext::open_with_tables(AdapterPolicy::any(), TableFormat::F16).unwrap();
+    assert_eq!(half().tables(), TableFormat::F16);
+    assert_eq!(context().tables(), TableFormat::F32);
+    let cam = test_camera(33, 21);
+    for features in [2, 1, 4] {
+        let mut cfg = config(BlendMode::Mst);
+        small(&mut cfg);
+        for enc in [&mut cfg.field.encoding, &mut cfg.proposal.encoding] {
+            enc.grid3.features_per_level = features;
+            enc.grid4.features_per_level = features;
+        }
+        let layout = ModelLayout::new(&cfg);
+        let mut params = random_params(&layout, 21);
+        centre_dynamic(&cfg, &mut params);
+        // Values beyond binary16's range (largest finite 65504) and below its normal range.
+        let split = GpuModel::new(&cfg).unwrap().split;
+        for (i, v) in [(3, 1e6), (8, -3e38), (13, 1e-6), (20, -7e-8)] {
+            params[split.tab3.start + i] = v;
+            params[split.tab4.start + i] = v;
+        }
+        let rounded = tables_rounded(&cfg, &params, TableFormat::F16);
+        assert_eq!(rounded[split.tab3.start + 3], 65504.0);
+        assert_eq!(rounded[split.tab4.start + 8], -65504.0);
+        for (incremental, mlps) in [
+            (false, GpuMlps::Specialised),
+            (false, GpuMlps::Generic),
+            (true, GpuMlps::Specialised),
+        ] {
+            let settings = RenderSettings {
+                incremental,
+                probes: 0,
+                ..Default::default()
+            };
+            let mut a = GpuRenderer::new(half(), &cfg, settings).unwrap();
+            let mut b = GpuRenderer::new(context(), &cfg, settings).unwrap();
+            a.set_mlps(mlps);
+            b.set_mlps(mlps);
+            for t in [0.0, 0.4, 0.9] {
+                let fa = a.render(&cam, t, &params).unwrap();
+                let fb = b.render(&cam, t, &rounded).unwrap();
+                let what =
+                    format!("{features} features, incremental {incremental}, {mlps:?}, t = {t}");
+                assert_eq!(fa.stats.rays_rendered, fb.stats.rays_rendered, "{what}");
+                assert_eq!(max_diff(&fa, &fb), 0.0, "{what}");
+                // And the rounding shows: the f32 kernels with the unrounded tables differ.
+                if t == 0.0 && !incremental {
+                    let mut c = GpuRenderer::new(context(), &cfg, settings).unwrap();
+                    c.set_mlps(mlps);
+                    let fc = c.render(&cam, t, &params).unwrap();
+                    assert!(max_diff(&fa, &fc) > 0.0, "{what}");
+                }
+            }
+        }
+    }
+    let (cfg, params) = balanced_model(5);
+    let cam = test_camera(32, 24);
+    for incremental in [false, true] {
+        let settings = RenderSettings {
+            incremental,
+            probes: 0,
+            ..Default::default()
+        };
+        let mut cpu = Renderer::new(&cfg, settings);
+        let mut gpu = GpuRenderer::new(half(), &cfg, settings).unwrap();
+        for t in [0.0f32, 0.5, 1.0] {
+            let a = cpu.render(&cam, t, &params);
+            let b = gpu.render(&cam, t, &params).unwrap();
+            let p = psnr(&a, &b);
+            println!(
+                "balanced, binary16 tables, incremental {incremental}, t = {t}: {p:.1} dB against the CPU (max {:.2e})",
+                max_diff(&a, &b)
+            );
+            assert!(p >= 40.0, "incremental {incremental}, t = {t}: {p:.1} dB");
+        }
+    }
 }

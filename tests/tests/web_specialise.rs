@@ -7,6 +7,10 @@
 //! additive blends, and two that are not specialised (a 128-wide colour layer; more weights than
 //! the cap).
 //!
+//! The page's binary16 hash tables (`toBinary16` and `tablesSource` of `web/js/renderer.js`, run
+//! by `web/tests/binary16.mjs`) are msth-gpu's `TableFormat::F16` bit for bit: the packed words
+//! of values at every rounding boundary, and the kernels' source.
+//!
 //! Needs `node`; without it the test is reported as ignored with the reason, unless
 //! `MSTH_REQUIRE_NODE=1` (CI sets `MSTH_REQUIRE_ALL=1`).
 
@@ -18,7 +22,7 @@ use msth_core::field::ModelLayout;
 use msth_core::rng::Rng;
 use msth_core::SceneBounds;
 use msth_gpu::specialise::{specialised_region, MAX_SPECIALISED_WEIGHTS};
-use msth_gpu::GpuModel;
+use msth_gpu::{GpuModel, TableFormat};
 use msth_testkit::{Need, Tests};
 
 fn main() -> std::process::ExitCode {
@@ -28,6 +32,11 @@ fn main() -> std::process::ExitCode {
             &[&node],
             "javascript_and_rust_specialise_the_same_text",
             javascript_and_rust_specialise_the_same_text,
+        )
+        .needs(
+            &[&node],
+            "javascript_and_rust_hold_binary16_tables_alike",
+            javascript_and_rust_hold_binary16_tables_alike,
         )
         .run()
 }
@@ -168,4 +177,77 @@ fn javascript_and_rust_specialise_the_same_text() {
         }
     }
     assert_eq!(specialised, 7);
+}
+
+fn javascript_and_rust_hold_binary16_tables_alike() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let dir = tempfile::tempdir().unwrap();
+    // Every rounding case: exact values, ties either way, the ends of the normal range (the
+    // least normal, just below it, the flush to zero), the clamp at 65504, signed zeros; then
+    // random values over many magnitudes. An odd count (the last word padded).
+    let mut values = vec![
+        0.0,
+        -0.0,
+        1.0,
+        -2.5,
+        1.0 + 2f32.powi(-11),
+        1.0 + 3.0 * 2f32.powi(-11),
+        -(1.0 + 2f32.powi(-11) + 2f32.powi(-20)),
+        2f32.powi(-14),
+        2f32.powi(-14) - 2f32.powi(-25),
+        2f32.powi(-14) - 2f32.powi(-24),
+        -(2f32.powi(-14) - 2f32.powi(-26)),
+        1e-6,
+        -1e-30,
+        1e-41,
+        65504.0,
+        65519.0,
+        65520.0,
+        1e6,
+        -3e38,
+        f32::MAX,
+        2047.5,
+        2048.5,
+    ];
+    let mut rng = Rng::new(9);
+    for _ in 0..20_001 {
+        let mag = 2f32.powf(rng.range_f32(-30.0, 20.0));
+        values.push(if rng.range_f32(0.0, 1.0) < 0.5 {
+            -mag
+        } else {
+            mag
+        });
+    }
+    let input = dir.path().join("values.f32");
+    let (bin, wgsl) = (dir.path().join("out.bin"), dir.path().join("out.wgsl"));
+    let bytes: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
+    std::fs::write(&input, bytes).unwrap();
+    let out = Command::new("node")
+        .current_dir(&root)
+        .arg("web/tests/binary16.mjs")
+        .args([&input, &bin, &wgsl])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "node failed:\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let js = std::fs::read(&bin).unwrap();
+    let rust = TableFormat::F16.encode(&values);
+    assert_eq!(js.len(), rust.len());
+    if let Some(i) = (0..js.len() / 2).find(|&i| js[2 * i..2 * i + 2] != rust[2 * i..2 * i + 2]) {
+        panic!(
+            "value {i} ({:e}): js {:02x?}, rust {:02x?}",
+            values.get(i).copied().unwrap_or(0.0),
+            &js[2 * i..2 * i + 2],
+            &rust[2 * i..2 * i + 2]
+        );
+    }
+    let source = std::fs::read_to_string(&wgsl).unwrap();
+    assert!(
+        Some(source) == TableFormat::F16.source(msth_gpu::RENDER_WGSL),
+        "the page's binary16 kernels differ from TableFormat::F16.source"
+    );
+    println!("{} values packed alike in both languages", values.len());
 }

@@ -70,6 +70,8 @@ const hooks = {
   /** Whether the last frame's live lists put the samples whose mask skips the 4D lookup apart,
    * for `pass_proposal3` and `pass_density3` (false until those are compiled; `?split=wait`). */
   lastSplit3: false,
+  /** How the GPU holds the hash tables, `"f32"` or `"f16"` (`?tables=`), once the kernels exist. */
+  tables: null,
   error: null,
   state: null,
   /** Milestones in ms since navigation start: adapter, prefix, pipeline, params, firstFrame. */
@@ -294,9 +296,12 @@ async function main() {
   // request after the prefix).
   await stream.waitForKind(KIND.mlp);
   hooks.timings.mlp = performance.now();
-  const gpu = await renderer.create(canvas, withSamples(meta.model, samples), stream.decoder.layout, hooks.timings, stream.decoder.base);
+  // Hash tables as binary16 unless the file is lossless (as `msth play`); `?tables=f32|f16`.
+  const tables = params.get("tables") ?? (meta.quant === "f32" ? "f32" : "f16");
+  const gpu = await renderer.create(canvas, withSamples(meta.model, samples), stream.decoder.layout, hooks.timings, stream.decoder.base, tables);
   hooks.mlpNote = gpu.mlpNote;
-  $("info").textContent += `; ${gpu.mlpNote}`;
+  hooks.tables = gpu.tables;
+  $("info").textContent += `; ${gpu.mlpNote}; hash tables ${gpu.tables}`;
   hooks.renderer = gpu;
   hooks.timings.pipeline = performance.now();
   const paramBuf = new Float32Array(stream.decoder.layout.total);
@@ -432,7 +437,8 @@ async function main() {
     const chunk = stream.decoder.chunkForTime(state.t);
     if (chunk !== state.loadedChunk) {
       stream.decoder.paramsForTime(state.t, paramBuf);
-      gpu.setParams(paramBuf);
+      // After the first upload a new chunk changes the field's 4D table alone.
+      gpu.setParams(paramBuf, state.loadedChunk !== undefined);
       // The occupancy section is one of the sections every frame needs: decoded by now.
       if (state.loadedChunk === undefined && params.get("skip") !== "0") gpu.setOccupancy(stream.decoder.occupancy);
       state.loadedChunk = chunk;
@@ -557,7 +563,7 @@ async function main() {
         t,
         params: stream.decoder.chunkForTime(t) === state.loadedChunk ? null : () => (stream.decoder.paramsForTime(t, scratch), scratch),
       }));
-      const built = await gpu.buildStaticCache(full, probes, PROBES.tolerance, abort, () => gpu.setParams(paramBuf));
+      const built = await gpu.buildStaticCache(full, probes, PROBES.tolerance, abort, () => gpu.setParams(paramBuf, true));
       if (!built) return;
       state.cache = { camKey, ...built };
       hooks.cache = { ...built, ms: performance.now() - t0 };

@@ -282,6 +282,62 @@ export function dispatchSize(count, maxPerDim) {
 }
 
 /** A WebGPU device and the compiled kernels; `create` binds them to a canvas and a model. */
+/**
+ * `source` (a `render.wgsl`) with its "Hash tables" region replaced by `region`
+ * (`shaders/tables_f16.wgsl`): the kernels then read binary16 tables (msth-gpu
+ * `TableFormat::source`).
+ */
+export function tablesSource(source, region) {
+  const begin = source.indexOf("// ---- Hash tables: begin");
+  const endMark = "// ---- Hash tables: end ----\n";
+  const end = begin < 0 ? -1 : source.indexOf(endMark, begin);
+  if (end < 0) throw new Error("render.wgsl has no \"Hash tables\" region");
+  return source.slice(0, begin) + region + source.slice(end + endMark.length);
+}
+
+/**
+ * `values` (a Float32Array) as the binary16 table words the kernels read (msth-gpu
+ * `TableFormat::F16`): clamped to ±65504, rounded to nearest (ties to even), results below
+ * 2^-14 in magnitude flushed to a zero of the same sign, an odd count padded with one 0.
+ * Returns the Uint16Array of the bits (by hand rather than `Float16Array`, which older
+ * browsers and node 20 lack; `tests/tests/web_tables.rs` checks it against the Rust encoder).
+ */
+export function toBinary16(values) {
+  const n = values.length;
+  const out = new Uint16Array(n + (n & 1));
+  const f = new Float32Array(1);
+  const u = new Uint32Array(f.buffer);
+  const smallest = 2 ** -14 - 2 ** -25; // at or above: rounds to 2^-14, the least normal
+  for (let i = 0; i < n; i++) {
+    const v = values[i];
+    f[0] = v > 65504 ? 65504 : v < -65504 ? -65504 : v;
+    const x = u[0];
+    const sign = (x >>> 16) & 0x8000;
+    const exp = (x >>> 23) & 0xff;
+    const mant = x & 0x7fffff;
+    let h;
+    if (exp === 0xff) {
+      h = sign | 0x7e00; // NaN (no infinity after the clamp)
+    } else if (exp <= 112) {
+      h = Math.abs(f[0]) >= smallest ? sign | 0x0400 : sign;
+    } else {
+      let e = exp - 112;
+      let m = mant >>> 13;
+      const rest = mant & 0x1fff;
+      if (rest > 0x1000 || (rest === 0x1000 && (m & 1) === 1)) {
+        m += 1;
+        if (m === 0x400) {
+          m = 0;
+          e += 1;
+        }
+      }
+      h = sign | (e << 10) | m;
+    }
+    out[i] = h;
+  }
+  return out;
+}
+
 export class Renderer {
   /** Requests an adapter and device and fetches the WGSL; throws `NoWebGpu` without WebGPU. */
   static async adapter() {
@@ -297,15 +353,21 @@ export class Renderer {
     const device = await adapter.requestDevice({
       requiredLimits: { maxStorageBufferBindingSize: al.maxStorageBufferBindingSize, maxBufferSize: al.maxBufferSize },
     });
-    const resp = await fetch("shaders/render.wgsl", { cache: "no-store" });
-    if (!resp.ok) throw new Error(`shaders/render.wgsl: HTTP ${resp.status}`);
-    return new Renderer(adapter, device, await resp.text());
+    const text = async (name) => {
+      const resp = await fetch(`shaders/${name}`, { cache: "no-store" });
+      if (!resp.ok) throw new Error(`shaders/${name}: HTTP ${resp.status}`);
+      return resp.text();
+    };
+    const [source, tablesF16] = await Promise.all([text("render.wgsl"), text("tables_f16.wgsl")]);
+    return new Renderer(adapter, device, source, tablesF16);
   }
 
-  constructor(adapter, device, source) {
+  constructor(adapter, device, source, tablesF16) {
     this.adapter = adapter;
     this.device = device;
     this.source = source;
+    /** The region of `render.wgsl` that holds the hash tables as binary16 (`tablesSource`). */
+    this.tablesF16 = tablesF16;
     this.lost = null;
     device.lost.then((info) => {
       this.lost = `the GPU device was lost: ${info.message || info.reason}`;
@@ -318,20 +380,25 @@ export class Renderer {
    * `pipelines` (every pipeline created). `params`, when given, is the parameter buffer with at
    * least the MLP section decoded: the passes' encodings and MLPs are then compiled with the
    * model's level values and weights as constants (`specialise.js`), unless `?mlp=generic` or
-   * the model's MLPs are too large; `mlpNote` on the scene says which.
+   * the model's MLPs are too large; `mlpNote` on the scene says which. `tables`: `"f32"` or
+   * `"f16"`, how the device holds the hash tables (msth-gpu `TableFormat`); `tables` on the
+   * scene says what it got (f32 where the browser has no `Float16Array`, or for `?kernel=ray`).
    */
-  async create(canvas, cfg, layout, marks = {}, params = null) {
+  async create(canvas, cfg, layout, marks = {}, params = null, tables = "f32") {
     const device = this.device;
     const { uniform, split, mlps } = gpuModel(cfg, layout);
     const query = typeof location !== "undefined" ? new URLSearchParams(location.search) : new URLSearchParams();
     const perRay = query.get("kernel") === "ray";
-    let code = this.source;
+    if (tables !== "f32" && tables !== "f16") throw new Error(`hash tables ${tables}: f32 or f16`);
+    if (perRay || typeof Float16Array === "undefined") tables = "f32";
+    const source = tables === "f16" ? tablesSource(this.source, this.tablesF16) : this.source;
+    let code = source;
     let mlpNote = "generic kernels";
     if (perRay) mlpNote = "per-ray kernel";
     else if (query.get("mlp") === "generic") mlpNote = "generic kernels (?mlp=generic)";
     else if (params) {
       try {
-        code = specialiseWgsl(this.source, { mlps, uniform }, params.subarray(split.rest[0]));
+        code = specialiseWgsl(source, { mlps, uniform }, params.subarray(split.rest[0]));
         mlpNote = "kernels compiled for this model";
       } catch (e) {
         mlpNote = `generic kernels (${e.message})`;
@@ -383,12 +450,12 @@ export class Renderer {
       pipelines = await build(code);
     } catch (e) {
       // Kernels compiled for the model that the device refuses: the generic ones, and why.
-      if (code === this.source || this.lost) throw e;
+      if (code === source || this.lost) throw e;
       mlpNote = `generic kernels (compiling them for the model failed: ${e.message})`;
-      pipelines = await build(this.source);
+      pipelines = await build(source);
     }
     marks.pipelines = performance.now();
-    const scene = new GpuScene(this, canvas, { layout: bindLayout, pipelines, perRay }, uniform, split, cfg);
+    const scene = new GpuScene(this, canvas, { layout: bindLayout, pipelines, perRay }, uniform, { ...split, f16: tables === "f16" }, cfg);
     let ready = null;
     /** Compiles `pass_proposal3` and `pass_density3` (once; the page asks after its first
      * picture, so that the compile does not delay it) and uses them from the next batch on. */
@@ -404,6 +471,8 @@ export class Renderer {
     if (query.get("split") === "wait") await scene.compileLater();
     /** How the passes run the MLPs (compiled for the model, or generic and why). */
     scene.mlpNote = mlpNote;
+    /** How the device holds the hash tables: `"f32"` or `"f16"`. */
+    scene.tables = tables;
     return scene;
   }
 }
@@ -433,8 +502,9 @@ class GpuScene {
     };
     const len = (r) => r[1] - r[0];
     const S = GPUBufferUsage.STORAGE | GPUBufferUsage.COPY_DST;
-    // Both fields' tables, read in pairs (`vec2<f32>`): whole pairs, at least one.
-    const pairs = (parts) => 8 * Math.max(1, Math.ceil(Math.max(...parts.map(([at, r]) => at + len(r))) / 2));
+    // Both fields' tables, read in pairs: f32 in whole `vec2<f32>` pairs, binary16 in whole
+    // words (two values each); at least one (layout.rs `TableFormat::buffer_bytes`).
+    const pairs = (parts) => (split.f16 ? 4 : 8) * Math.max(1, Math.ceil(Math.max(...parts.map(([at, r]) => at + len(r))) / 2));
     this.tab3 = buffer(pairs(split.tables[0]), S, "3D hash tables (tab3)");
     this.tab4 = buffer(pairs(split.tables[1]), S, "4D hash tables (tab4)");
     this.rest = buffer(4 * len(split.rest), S, "decoders, mask and proposal field (rest)");
@@ -573,14 +643,30 @@ class GpuScene {
     this.groups = null;
   }
 
-  /** Uploads the flat parameter buffer (a Float32Array of `param_count` values). */
-  setParams(params) {
+  /**
+   * Uploads the flat parameter buffer (a Float32Array of `param_count` values). `only4d`: the
+   * caller promises that only the field's 4D table differs from the last upload (another time
+   * chunk of the same file: `format.js` `applyChunk` writes nothing else), so only that table is
+   * converted and sent, as the native renderer does (`GpuScene::update`).
+   */
+  setParams(params, only4d = false) {
     const q = this.device.queue;
     const put = (buf, at, [a, b]) => {
       if (b > a) q.writeBuffer(buf, 4 * at, params.buffer, params.byteOffset + 4 * a, 4 * (b - a));
     };
-    for (const [at, r] of this.split.tables[0]) put(this.tab3, at, r);
-    for (const [at, r] of this.split.tables[1]) put(this.tab4, at, r);
+    const putTable = (buf, at, [a, b]) => {
+      if (b <= a) return;
+      if (!this.split.f16) return put(buf, at, [a, b]);
+      const h = toBinary16(params.subarray(a, b));
+      q.writeBuffer(buf, 2 * at, h.buffer, 0, h.byteLength);
+    };
+    if (only4d) {
+      const [at, r] = this.split.tables[1][0];
+      putTable(this.tab4, at, r);
+      return;
+    }
+    for (const [at, r] of this.split.tables[0]) putTable(this.tab3, at, r);
+    for (const [at, r] of this.split.tables[1]) putTable(this.tab4, at, r);
     put(this.rest, 0, this.split.rest);
   }
 
@@ -810,7 +896,7 @@ class GpuScene {
     try {
       for (const probe of probes) {
         const params = probe.params ? probe.params() : null;
-        if (params) this.setParams(params);
+        if (params) this.setParams(params, true);
         else if (foreign) restore();
         foreign = Boolean(params);
         const target = base ? "probe" : "frame";

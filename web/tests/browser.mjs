@@ -343,6 +343,7 @@ async function main() {
       // ---- the kernels compiled for the model (specialise.js: encodings and MLPs) render what the
       // generic ones do
       const note2 = await page.evaluate(() => window.msth.mlpNote);
+      const tables2 = await page.evaluate(() => window.msth.tables);
       await page.goto(`${a.base}/?model=${encodeURIComponent(a.model2)}&view=${a.view}&t=0&size=${a.size}&play=0&samples=full&mlp=generic`);
       await waitFirstFrame(page);
       await settled(page);
@@ -355,6 +356,22 @@ async function main() {
         "the kernels compiled for the model render what the generic kernels do",
         note2 === "kernels compiled for this model" && /generic kernels/.test(generic.note) && generic.info.includes(generic.note) && pG >= 50 && pGn >= PSNR_MIN,
         `"${note2}" against "${generic.note}" (?mlp=generic): PSNR ${pG.toFixed(2)} dB between them (>= 50), generic ${pGn.toFixed(2)} dB against msth play`,
+      );
+
+      // ---- hash tables as binary16 (the default for a quantised file, as `msth play`) against f32
+      // (`?tables=f32`): the same picture up to binary16's rounding, both near the native one
+      await page.goto(`${a.base}/?model=${encodeURIComponent(a.model2)}&view=${a.view}&t=0&size=${a.size}&play=0&samples=full&tables=f32`);
+      await waitFirstFrame(page);
+      await settled(page);
+      const f32 = await page.evaluate(() => ({ tables: window.msth.tables, info: document.getElementById("info").textContent }));
+      const pxT = await pixels(page);
+      const pT = pxT.length === 4 * n ? psnr(pxT, px2, n) : 0;
+      const pTn = pxT.length === 4 * n && nat2.w === w && nat2.h === h ? psnr(pxT, nat2.px, n) : 0;
+      results.figures.psnr_model2_f32_tables_vs_f16 = Math.min(pT, 99);
+      check(
+        "binary16 hash tables render what f32 tables do",
+        tables2 === "f16" && f32.tables === "f32" && f32.info.includes("hash tables f32") && pT >= 50 && pTn >= PSNR_MIN,
+        `the quantised file's page held them as ${tables2}, ?tables=f32 as ${f32.tables}: PSNR ${pT.toFixed(2)} dB between them (>= 50), f32 ${pTn.toFixed(2)} dB against msth play`,
       );
 
       // ---- the passes without the 4D lookup (compiled after the others; `?split=wait` makes the

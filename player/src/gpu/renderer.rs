@@ -164,7 +164,7 @@ impl GpuRenderer {
                 });
             }
         }
-        for (what, bytes) in gpu_model.buffer_sizes() {
+        for (what, bytes) in gpu_model.buffer_sizes(ctx.tables()) {
             ctx.check_storage(what, bytes)?;
         }
         let no_list = ctx.storage_buffer("empty list", &[], false)?;
