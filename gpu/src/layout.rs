@@ -400,10 +400,10 @@ impl TableFormat {
     }
 
     /// `values` as a table buffer holds them, padded to whole 4-byte words (a trailing 0 for an
-    /// odd count of binary16 values).
-    pub fn encode(self, values: &[f32]) -> Vec<u8> {
+    /// odd count of binary16 values); f32 values are borrowed as they are.
+    pub fn encode(self, values: &[f32]) -> std::borrow::Cow<'_, [u8]> {
         match self {
-            TableFormat::F32 => bytemuck::cast_slice(values).to_vec(),
+            TableFormat::F32 => std::borrow::Cow::Borrowed(bytemuck::cast_slice(values)),
             TableFormat::F16 => {
                 let mut out = Vec::with_capacity(2 * values.len().next_multiple_of(2));
                 for &v in values {
@@ -412,7 +412,7 @@ impl TableFormat {
                 if values.len() % 2 == 1 {
                     out.extend_from_slice(&[0, 0]);
                 }
-                out
+                std::borrow::Cow::Owned(out)
             }
         }
     }
@@ -725,10 +725,10 @@ mod tests {
         }
         // Two values per little-endian word, the lower half first; an odd count padded.
         assert_eq!(
-            f.encode(&[1.0, -2.0, 0.5]),
+            *f.encode(&[1.0, -2.0, 0.5]),
             [0x00, 0x3c, 0x00, 0xc0, 0x00, 0x38, 0, 0]
         );
-        assert_eq!(TableFormat::F32.encode(&[1.0]), 1f32.to_le_bytes());
+        assert_eq!(*TableFormat::F32.encode(&[1.0]), 1f32.to_le_bytes());
         assert_eq!(
             (f.buffer_bytes(0), f.buffer_bytes(3), f.buffer_bytes(4)),
             (4, 8, 8)

@@ -217,7 +217,7 @@ impl GpuContext {
 
     /// [`GpuContext::open`] with another WGSL source of the same entry points and bindings (a
     /// benchmark's older version of `render.wgsl`, to time old kernels against new ones), its
-    /// tables f32 (an older source has no `TABLES_F16`).
+    /// tables f32 (an older source has no "Hash tables" region to replace).
     pub fn open_with_source(policy: AdapterPolicy, wgsl: &str) -> Result<Self, GpuError> {
         Self::with_adapter(pick_adapter(policy)?, wgsl, TableFormat::F32)
     }
@@ -598,14 +598,8 @@ fn write_tables(
     for (b, (buf, parts)) in bufs.into_iter().zip(split.tables()).enumerate() {
         for (p, (_, at, r)) in parts.into_iter().enumerate() {
             if !r.is_empty() && which(b, p) {
-                let at = format.byte_offset(at);
-                match format {
-                    TableFormat::F32 => {
-                        ctx.queue
-                            .write_buffer(buf, at, bytemuck::cast_slice(&params[r]))
-                    }
-                    TableFormat::F16 => ctx.queue.write_buffer(buf, at, &format.encode(&params[r])),
-                }
+                let data = format.encode(&params[r]);
+                ctx.queue.write_buffer(buf, format.byte_offset(at), &data);
             }
         }
     }
