@@ -62,8 +62,8 @@ pub struct PlayArgs {
     #[arg(long, default_value = "full", value_parser = parse_samples)]
     pub samples: PlaySamples,
     /// GPU renderer: f16 or f32 hash tables on the device. Default: f32 for a lossless file
-    /// (`--quant f32`), else f16: half the memory, one read per row of two features, a rounding below
-    /// the file's quantisation step (docs/playback.md)
+    /// (`--quant f32`), else f16: half the memory, one read per row of two features, a rounding
+    /// below the file's quantisation step (docs/playback.md)
     #[arg(long)]
     pub gpu_tables: Option<msth_player::TableFormat>,
     /// A ray is static when the mask is at least this along its visible part.

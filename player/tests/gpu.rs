@@ -1053,7 +1053,8 @@ fn tables_rounded(cfg: &ModelConfig, params: &[f32], format: TableFormat) -> Vec
 }
 
 /// Hash tables held as binary16 (`TableFormat::F16`, what `msth play` uses for quantised files)
-/// render exactly the frames the f32 kernels render from tables rounded to binary16 on the host:
+/// render the frames the f32 kernels render from tables rounded to binary16 on the host (bit for
+/// bit on lavapipe):
 /// the packing (pairs in one word, one-feature rows half a word, the proposal
 /// field's tables after the field's, values beyond binary16's range clamped) and the kernels'
 /// unpacking agree, full and incremental, specialised and generic. Against the CPU renderer
@@ -1062,6 +1063,7 @@ fn binary16_tables_render_the_frames_of_rounded_tables() {
     let half = || GpuContext::open_with_tables(AdapterPolicy::any(), TableFormat::F16).unwrap();
     assert_eq!(half().tables(), TableFormat::F16);
     assert_eq!(context().tables(), TableFormat::F32);
+    let exact = context().is_lavapipe();
     let cam = test_camera(33, 21);
     for features in [2, 1, 4] {
         let mut cfg = config(BlendMode::Mst);
@@ -1102,7 +1104,10 @@ fn binary16_tables_render_the_frames_of_rounded_tables() {
                 let what =
                     format!("{features} features, incremental {incremental}, {mlps:?}, t = {t}");
                 assert_eq!(fa.stats.rays_rendered, fb.stats.rays_rendered, "{what}");
-                assert_eq!(max_diff(&fa, &fb), 0.0, "{what}");
+                // Bit for bit where the two kernel texts compile alike (lavapipe: no fused
+                // multiply-adds); another driver may schedule the two texts' arithmetic apart.
+                let d = max_diff(&fa, &fb);
+                assert!(if exact { d == 0.0 } else { d < 1e-4 }, "{what}: {d}");
                 // And the rounding shows: the f32 kernels with the unrounded tables differ.
                 if t == 0.0 && !incremental {
                     let mut c = GpuRenderer::new(context(), &cfg, settings).unwrap();
