@@ -316,7 +316,7 @@ impl GpuModel {
     }
 
     /// Byte sizes of the three parameter buffers (`tab3`, `tab4`, `rest`), placeholders included,
-    /// the tables held in `tables`' format: whole `vec2<u32>` elements, at least one.
+    /// the tables held in `tables`' format ([`TableFormat::buffer_bytes`]).
     pub fn buffer_sizes(&self, tables: TableFormat) -> [(&'static str, u64); 3] {
         let bytes = |r: &Range<usize>| (r.len().max(1) * 4) as u64;
         let [t3, t4] = self.split.tables().map(|parts| {

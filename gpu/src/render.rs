@@ -327,7 +327,7 @@ impl GpuContext {
             eval,
             passes,
             pipeline_layout: pl,
-            source: wgsl.to_string(),
+            source,
             tables,
             placeholders,
             state,

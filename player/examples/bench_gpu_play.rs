@@ -142,8 +142,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     };
     let tables = match std::env::var("MSTH_BENCH_TABLES") {
         Ok(v) => v.parse()?,
-        Err(_) if decoded.metadata.quant == msth_codec::QuantMode::F32 => TableFormat::F32,
-        Err(_) => TableFormat::F16,
+        Err(_) => msth_player::play::gpu_tables_for(decoded.metadata.quant),
     };
     let ctx = GpuContext::open_with_tables(AdapterPolicy::any(), tables)?;
     let mib = |t| {

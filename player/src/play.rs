@@ -94,6 +94,16 @@ pub enum PlayError {
     Path(#[from] PathError),
 }
 
+/// How the GPU renderer holds the hash tables of a file quantised with `quant` unless told
+/// otherwise: f32 for a lossless file, else binary16, whose rounding lies below every quantised
+/// mode's step ([`msth_gpu::TableFormat::F16`]; the page's `main.js` chooses alike).
+pub fn gpu_tables_for(quant: msth_codec::QuantMode) -> msth_gpu::TableFormat {
+    match quant {
+        msth_codec::QuantMode::F32 => msth_gpu::TableFormat::F32,
+        _ => msth_gpu::TableFormat::F16,
+    }
+}
+
 /// One rendered frame's record.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
 pub struct FrameRecord {
@@ -230,10 +240,7 @@ pub fn play(
         })
     };
     let mut render_settings = opts.render;
-    render_settings.gpu_tables = opts.gpu_tables.unwrap_or(match meta.quant {
-        msth_codec::QuantMode::F32 => msth_gpu::TableFormat::F32,
-        _ => msth_gpu::TableFormat::F16,
-    });
+    render_settings.gpu_tables = opts.gpu_tables.unwrap_or(gpu_tables_for(meta.quant));
     render_settings.time_range = (0..n).map(frame_time).fold((1f32, 0f32), |(lo, hi), t| {
         let t = t.clamp(0.0, 1.0);
         (lo.min(t), hi.max(t))

@@ -281,7 +281,6 @@ export function dispatchSize(count, maxPerDim) {
   return y <= maxPerDim ? [x, y] : null;
 }
 
-/** A WebGPU device and the compiled kernels; `create` binds them to a canvas and a model. */
 /**
  * `source` (a `render.wgsl`) with its "Hash tables" region replaced by `region`
  * (`shaders/tables_f16.wgsl`): the kernels then read binary16 tables (msth-gpu
@@ -300,7 +299,8 @@ export function tablesSource(source, region) {
  * `TableFormat::F16`): clamped to ±65504, rounded to nearest (ties to even), results below
  * 2^-14 in magnitude flushed to a zero of the same sign, an odd count padded with one 0.
  * Returns the Uint16Array of the bits (by hand rather than `Float16Array`, which older
- * browsers and node 20 lack; `tests/tests/web_tables.rs` checks it against the Rust encoder).
+ * browsers and node 20 lack; `tests/tests/web_specialise.rs` checks it against the Rust
+ * encoder).
  */
 export function toBinary16(values) {
   const n = values.length;
@@ -338,6 +338,7 @@ export function toBinary16(values) {
   return out;
 }
 
+/** A WebGPU device and the compiled kernels; `create` binds them to a canvas and a model. */
 export class Renderer {
   /** Requests an adapter and device and fetches the WGSL; throws `NoWebGpu` without WebGPU. */
   static async adapter() {
@@ -382,7 +383,8 @@ export class Renderer {
    * model's level values and weights as constants (`specialise.js`), unless `?mlp=generic` or
    * the model's MLPs are too large; `mlpNote` on the scene says which. `tables`: `"f32"` or
    * `"f16"`, how the device holds the hash tables (msth-gpu `TableFormat`); `tables` on the
-   * scene says what it got (f32 where the browser has no `Float16Array`, or for `?kernel=ray`).
+   * scene says what it got (f32 for `?kernel=ray`, the old kernel, timed with f32 tables as
+   * natively).
    */
   async create(canvas, cfg, layout, marks = {}, params = null, tables = "f32") {
     const device = this.device;
@@ -390,7 +392,7 @@ export class Renderer {
     const query = typeof location !== "undefined" ? new URLSearchParams(location.search) : new URLSearchParams();
     const perRay = query.get("kernel") === "ray";
     if (tables !== "f32" && tables !== "f16") throw new Error(`hash tables ${tables}: f32 or f16`);
-    if (perRay || typeof Float16Array === "undefined") tables = "f32";
+    if (perRay) tables = "f32";
     const source = tables === "f16" ? tablesSource(this.source, this.tablesF16) : this.source;
     let code = source;
     let mlpNote = "generic kernels";
