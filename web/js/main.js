@@ -213,7 +213,7 @@ async function main() {
   $("info").textContent = `${name}: ${meta.model.num_frames} frames, ${meta.param_count.toLocaleString()} parameters, ${meta.quant}, ${meta.chunks.length} chunks`;
   const modelFps = meta.frame_rate || 24;
   $("policy").textContent =
-    `Resolution: while you move the camera, frames are drawn at 1/2 to 1/8 of ${template.width}x${template.height} per side, ` +
+    `Resolution: while you move the camera, frames are drawn at 1/2 to 1/8 of ${template.width}x${template.height} per side (interpolated in between), ` +
     `adapted so that a frame takes at most ${MOVING_BUDGET_MS.toFixed(0)} ms; while the video plays, at full size when a frame fits one model frame ` +
     `(${(1000 / modelFps).toFixed(0)} ms at ${modelFps} fps), else reduced the same way; ` +
     `${STILL_MS} ms after the camera stops, paused, the view is refined one step per frame (1/8, 1/4, 1/2, full) up to full resolution; ` +
@@ -640,6 +640,22 @@ async function main() {
     const s = (performance.now() - t0) / 1000;
     state.rendering = false;
     return { frames: n, seconds: s, fps: n / s, width: canvas.width, height: canvas.height };
+  };
+  /**
+   * Pauses, draws the current view reduced to 1/`stride` per side (its lattice alone, as while
+   * the camera moves) and keeps it on the canvas, drawing nothing else, until `release()`.
+   */
+  hooks.holdReduced = async (stride) => {
+    setPlaying(false);
+    while (state.rendering) await new Promise((r) => setTimeout(r, 5));
+    state.rendering = true;
+    state.drawnKey = null;
+    await gpu.render(orbit.camera(), state.t, () => false, stride, 0);
+  };
+  /** Ends `holdReduced`: the view is drawn again. */
+  hooks.release = () => {
+    state.rendering = false;
+    state.dirty = true;
   };
   /** The last rendered frame's RGBA8 pixels (the renderer's own output, not a screenshot). */
   hooks.readPixels = async () => Array.from(await gpu.readPixels());

@@ -19,7 +19,8 @@
 //
 // Reduced frames are interlaced: a frame at 1/s of the size per side renders the pixels of the
 // full-size camera whose coordinates are multiples of s (one ray per s x s block, through the
-// block's first pixel), and the display pass fills each block from its nearest rendered pixel.
+// block's first pixel), and the display pass fills the pixels between them by bilinear
+// interpolation.
 // The pixels are ordered coarsest lattice first (`interlacedOrder`), so refining a still view
 // from 1/8 to 1/4, 1/2 and full size renders only the pixels the coarser frames did not: the
 // full-size frame costs one frame's work in all, not 1/64 + 1/16 + 1/4 + 1.
@@ -145,8 +146,10 @@ export function playSamples(spec, sampler) {
 export class NoWebGpu extends Error {}
 
 const DISPLAY_WGSL = `
-// s: the lattice spacing of the frame (1: every pixel rendered); each pixel shows the nearest
-// rendered one.
+// s: the lattice spacing of the frame (1: every pixel rendered). Each pixel shows the bilinear
+// interpolation of the four rendered pixels around it (the lattice points at multiples of s;
+// past the last one in a row or column, that one's value), so a reduced frame looks smooth
+// rather than blocky; at s = 1 a pixel shows its own value.
 struct Size { w: u32, h: u32, s: u32, pad: u32 }
 @group(0) @binding(0) var<storage, read> frame: array<vec4<f32>>;
 @group(0) @binding(1) var<uniform> size: Size;
@@ -154,11 +157,22 @@ struct Size { w: u32, h: u32, s: u32, pad: u32 }
   let p = vec2<f32>(f32((i << 1u) & 2u), f32(i & 2u));
   return vec4<f32>(p * 2.0 - 1.0, 0.0, 1.0);
 }
+fn rgb(x: u32, y: u32) -> vec3<f32> {
+  return frame[y * size.w + x].rgb;
+}
 @fragment fn fs(@builtin(position) pos: vec4<f32>) -> @location(0) vec4<f32> {
   let s = max(size.s, 1u);
-  let x = min((min(u32(pos.x), size.w - 1u) + s / 2u) / s * s, (size.w - 1u) / s * s);
-  let y = min((min(u32(pos.y), size.h - 1u) + s / 2u) / s * s, (size.h - 1u) / s * s);
-  return vec4<f32>(clamp(frame[y * size.w + x].rgb, vec3<f32>(0.0), vec3<f32>(1.0)), 1.0);
+  let p = min(vec2<u32>(pos.xy), vec2<u32>(size.w, size.h) - 1u);
+  if s == 1u {
+    return vec4<f32>(clamp(rgb(p.x, p.y), vec3<f32>(0.0), vec3<f32>(1.0)), 1.0);
+  }
+  let last = (vec2<u32>(size.w, size.h) - 1u) / s * s;
+  let p0 = min(p / s * s, last);
+  let p1 = min(p0 + s, last);
+  let f = select(vec2<f32>(p - p0) / f32(s), vec2<f32>(0.0), p1 == p0);
+  let top = mix(rgb(p0.x, p0.y), rgb(p1.x, p0.y), f.x);
+  let bottom = mix(rgb(p0.x, p1.y), rgb(p1.x, p1.y), f.x);
+  return vec4<f32>(clamp(mix(top, bottom, f.y), vec3<f32>(0.0), vec3<f32>(1.0)), 1.0);
 }`;
 
 /**
@@ -677,7 +691,7 @@ class GpuScene {
    * to `false` when `abort()` (checked between tiles) asked to stop early.
    *
    * `stride` (one of STRIDES): render the lattice of that spacing (a frame reduced to 1/stride
-   * per side), shown block by block. `done` (a coarser stride, or 0): the frame buffer already
+   * per side), shown interpolated between its pixels. `done` (a coarser stride, or 0): the frame buffer already
    * holds that lattice of this very camera, time and parameters (the previous frame, not
    * aborted), so only the pixels it lacks are rendered (the per-ray kernel renders the whole
    * lattice again).

@@ -17,6 +17,9 @@
 //                     steady state, once the page's later passes are compiled)
 //     [--throttle-kbps N]   (the page's network limited to N kbit/s down, 20 ms latency:
 //                            Chromium's network emulation; the milestones show what waits)
+//     [--reduced 1]   (how far the frames drawn at 1/2, 1/4 and 1/8 per side, as the display
+//                      pass fills them in, are from the full-size frame: PSNR, bilinear fill
+//                      and the nearest-pixel fill of earlier pages; from the page's own frame)
 //
 // On SwiftShader (a fallback adapter) the page starts at `fast` samples per ray: `--query
 // samples=full` times the model's own counts. The line printed names the samples used.
@@ -27,6 +30,7 @@ import { mkdtempSync, rmSync } from "node:fs";
 import { tmpdir } from "node:os";
 import { join } from "node:path";
 import { chromium } from "playwright-core";
+import { fillLattice } from "./lattice.mjs";
 
 const FLAGS = [...(process.env.MSTH_CHROMIUM_EXTRA ? process.env.MSTH_CHROMIUM_EXTRA.split(" ") : []), "--no-sandbox", "--disable-background-networking", "--disable-component-update", "--disable-sync", "--no-first-run", "--disable-gpu-sandbox", "--enable-unsafe-webgpu", "--enable-features=Vulkan", "--use-vulkan=swiftshader", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--use-webgpu-adapter=swiftshader"];
 
@@ -126,6 +130,18 @@ for (const k of kernels) {
     const mean = rest.length ? rest.reduce((x, y) => x + y, 0) / rest.length : NaN;
     const c = r.playback.cache;
     console.log(`  playback (--playback ${r.playback.ms.length}): first time step ${(first / 1000).toFixed(2)} s, then ${(mean / 1000).toFixed(3)} s per frame on average (${rest.map((v) => (v / 1000).toFixed(3)).join(", ")} s); rays per frame ${r.playback.rays.join(", ")}${c ? `; static cache: ${c.dynamic} of ${c.pixels} pixels dynamic, built in ${(c.ms / 1000).toFixed(2)} s` : "; no static cache"}`);
+  }
+  if (a.reduced === "1") {
+    // The full-size frame against its own lattices filled in: what a reduced frame of this view
+    // shows (each lattice pixel is the full frame's pixel there).
+    const [w, h] = size.split("x").map(Number);
+    const psnr = (x, y) => {
+      let se = 0;
+      for (let i = 0; i < w * h; i++) for (let c = 0; c < 3; c++) se += ((x[4 * i + c] - y[4 * i + c]) / 255) ** 2;
+      return se === 0 ? Infinity : -10 * Math.log10(se / (3 * w * h));
+    };
+    const rows = [2, 4, 8].map((st) => `1/${st}: ${psnr(fillLattice(r.px, w, h, st), r.px).toFixed(2)} dB (nearest pixel ${psnr(fillLattice(r.px, w, h, st, true), r.px).toFixed(2)} dB)`);
+    console.log(`  reduced frames against the full-size frame (--reduced 1): ${rows.join(", ")}`);
   }
   if (r.frames) console.log(`  --frames ${r.frames.frames}: ${((1000 * r.frames.seconds) / r.frames.frames).toFixed(0)} ms per full frame (${r.frames.width}x${r.frames.height}, back to back)`);
   if (r.passMs && Object.keys(r.passMs).length) console.log(`  per pass (--profile 1): ${Object.entries(r.passMs).map(([n, v]) => `${n} ${(v / 1000).toFixed(2)} s`).join(", ")}`);

@@ -14,6 +14,7 @@
 //  1. the page loads the model from the server and the first frame appears (in the renderer's
 //     output and on the canvas);
 //  2. the first frame matches the native render of the same camera and time (PSNR >= 35 dB);
+//     frames reduced to 1/2 and 1/4 per side are shown interpolated between their pixels;
 //  3. dragging on the canvas orbits the camera (the pixels change); touch orbits (one finger),
 //     pinches and pans (two); the wheel zooms and right-drag pans; back at the URL's view the
 //     first frame comes back;
@@ -31,6 +32,7 @@ import { mkdtempSync, readFileSync, writeFileSync, rmSync } from "node:fs";
 import { tmpdir } from "node:os";
 import { join } from "node:path";
 import { chromium } from "playwright-core";
+import { fillLattice } from "./lattice.mjs";
 
 const BASE_FLAGS = ["--no-sandbox", "--disable-background-networking", "--disable-component-update", "--disable-sync", "--no-first-run", "--disable-gpu-sandbox"];
 const WEBGPU_FLAGS = ["--enable-unsafe-webgpu", "--enable-features=Vulkan", "--use-vulkan=swiftshader", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--use-webgpu-adapter=swiftshader"];
@@ -115,6 +117,27 @@ async function settled(page) {
 
 const pixels = (page) => page.evaluate(() => window.msth.readPixels());
 
+/** The canvas as shown on screen: the element's screenshot, sampled at the canvas's pixel
+ * centres, as RGBA8 (the HUD and the loading bar, which overlap it, hidden meanwhile). */
+async function shownPixels(page) {
+  await page.evaluate(() => ["hud", "loading"].forEach((id) => (document.getElementById(id).style.visibility = "hidden")));
+  const shot = await page.locator("#view").screenshot();
+  await page.evaluate(() => ["hud", "loading"].forEach((id) => (document.getElementById(id).style.visibility = "")));
+  return page.evaluate(async (b64) => {
+    const img = new Image();
+    img.src = `data:image/png;base64,${b64}`;
+    await img.decode();
+    const c = document.createElement("canvas");
+    const cv = document.getElementById("view");
+    c.width = cv.width;
+    c.height = cv.height;
+    const g = c.getContext("2d");
+    g.imageSmoothingEnabled = false;
+    g.drawImage(img, 0, 0, c.width, c.height);
+    return Array.from(g.getImageData(0, 0, c.width, c.height).data);
+  }, shot.toString("base64"));
+}
+
 async function main() {
   const a = parseArgs(process.argv.slice(2));
   const [w, h] = a.size.split("x").map(Number);
@@ -157,24 +180,8 @@ async function main() {
     if (nat0.w !== w || nat0.h !== h || nat1.w !== w || nat1.h !== h) throw new Error(`native frames are ${nat0.w}x${nat0.h}, expected ${a.size}`);
     const px0 = await pixels(page);
     const nonBackground = px0.length === 4 * n;
-    // The canvas shows the frame: the element's screenshot, sampled at pixel centres.
-    // (The HUD and the loading bar overlap the canvas: hide them for this one screenshot.)
-    await page.evaluate(() => ["hud", "loading"].forEach((id) => (document.getElementById(id).style.visibility = "hidden")));
-    const shot = await page.locator("#view").screenshot();
-    await page.evaluate(() => ["hud", "loading"].forEach((id) => (document.getElementById(id).style.visibility = "")));
-    const shown = await page.evaluate(async (b64) => {
-      const img = new Image();
-      img.src = `data:image/png;base64,${b64}`;
-      await img.decode();
-      const c = document.createElement("canvas");
-      const cv = document.getElementById("view");
-      c.width = cv.width;
-      c.height = cv.height;
-      const g = c.getContext("2d");
-      g.imageSmoothingEnabled = false;
-      g.drawImage(img, 0, 0, c.width, c.height);
-      return Array.from(g.getImageData(0, 0, c.width, c.height).data);
-    }, shot.toString("base64"));
+    // The canvas shows the frame.
+    const shown = await shownPixels(page);
     const pShown = psnr(shown, px0, n);
     check("first frame appears", nonBackground && pShown >= 30, `after ${ttff.toFixed(0)} ms (navigation to frame; full size after ${full.ms.toFixed(0)} ms), ${net.requests} Range requests, ${net.bytesReceived} bytes; the canvas on screen matches the renderer's output at ${pShown.toFixed(1)} dB`);
     // The samples per ray the page starts at: `fast` on a software adapter (SwiftShader here;
@@ -189,6 +196,24 @@ async function main() {
     const p0 = psnr(px0, nat0.px, n);
     results.figures.psnr_vs_native_t0 = Math.min(p0, 99);
     check("first frame matches the native render", p0 >= PSNR_MIN, `PSNR ${p0.toFixed(2)} dB against msth play at view:${a.view} t=0 (>= ${PSNR_MIN})`);
+
+    // ---- a reduced frame (what the page draws while the camera moves) on screen: interpolated
+    // between its rendered pixels, not blocks of the nearest one.
+    for (const s of [2, 4]) {
+      await page.evaluate((s) => window.msth.holdReduced(s), s);
+      const onScreen = await shownPixels(page);
+      const lattice = await pixels(page);
+      await page.evaluate(() => window.msth.release());
+      const bilinear = fillLattice(lattice, w, h, s);
+      const nearest = fillLattice(lattice, w, h, s, true);
+      const [pb, pn, apart] = [psnr(onScreen, bilinear, n), psnr(onScreen, nearest, n), psnr(bilinear, nearest, n)];
+      check(
+        `a frame at 1/${s} is shown interpolated between its pixels`,
+        pb >= 30 && pb >= apart + 6,
+        `the canvas against the bilinear fill of the ${Math.ceil(w / s)}x${Math.ceil(h / s)} rendered pixels ${pb.toFixed(1)} dB, against the nearest-pixel fill ${pn.toFixed(1)} dB (the two fills ${apart.toFixed(1)} dB apart)`,
+      );
+    }
+    await settled(page);
 
     // ---- drag to orbit
     const box = await page.locator("#view").boundingBox();
