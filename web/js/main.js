@@ -642,17 +642,24 @@ async function main() {
     return { frames: n, seconds: s, fps: n / s, width: canvas.width, height: canvas.height };
   };
   /**
-   * Pauses, draws the current view reduced to 1/`stride` per side (its lattice alone, as while
-   * the camera moves) and keeps it on the canvas, drawing nothing else, until `release()`.
+   * Test hooks. `hold()` pauses and stops the page drawing (after the frame in progress).
+   * `drawHeld(stride, done, rays)` then draws the current view reduced to 1/`stride` per side
+   * and keeps it on the canvas: `done`, the coarser lattice of this very view the frame buffer
+   * already holds (as a refinement step); `rays` > 0, only the first batch, of that many rays
+   * (a frame in progress on a slow GPU). Resolves to the display's uniform (`displayUniform`).
+   * `release()` lets the page draw again.
    */
-  hooks.holdReduced = async (stride) => {
+  hooks.hold = async () => {
     setPlaying(false);
     while (state.rendering) await new Promise((r) => setTimeout(r, 5));
     state.rendering = true;
     state.drawnKey = null;
-    await gpu.render(orbit.camera(), state.t, () => false, stride, 0);
   };
-  /** Ends `holdReduced`: the view is drawn again. */
+  hooks.drawHeld = async (stride, done = 0, rays = 0) => {
+    if (rays > 0) gpu.tile = rays;
+    await gpu.render(orbit.camera(), state.t, () => rays > 0, stride, done);
+    return Array.from(gpu.shownSize);
+  };
   hooks.release = () => {
     state.rendering = false;
     state.dirty = true;

@@ -149,8 +149,11 @@ const DISPLAY_WGSL = `
 // s: the lattice spacing of the frame (1: every pixel rendered). Each pixel shows the bilinear
 // interpolation of the four rendered pixels around it (the lattice points at multiples of s;
 // past the last one in a row or column, that one's value), so a reduced frame looks smooth
-// rather than blocky; at s = 1 a pixel shows its own value.
-struct Size { w: u32, h: u32, s: u32, pad: u32 }
+// rather than blocky; at s = 1 a pixel shows its own value. While a frame is still being
+// rendered (batch by batch on a slow GPU), the lattice of spacing s is rendered in the rows
+// above size.rows only: below, the pixels show the complete lattice of spacing size.coarse (when
+// there is one) instead of what an older frame left in the buffer (displayUniform).
+struct Size { w: u32, h: u32, s: u32, coarse: u32, rows: u32, pad0: u32, pad1: u32, pad2: u32 }
 @group(0) @binding(0) var<storage, read> frame: array<vec4<f32>>;
 @group(0) @binding(1) var<uniform> size: Size;
 @vertex fn vs(@builtin(vertex_index) i: u32) -> @builtin(position) vec4<f32> {
@@ -160,11 +163,10 @@ struct Size { w: u32, h: u32, s: u32, pad: u32 }
 fn rgb(x: u32, y: u32) -> vec3<f32> {
   return frame[y * size.w + x].rgb;
 }
-@fragment fn fs(@builtin(position) pos: vec4<f32>) -> @location(0) vec4<f32> {
-  let s = max(size.s, 1u);
-  let p = min(vec2<u32>(pos.xy), vec2<u32>(size.w, size.h) - 1u);
+// Pixel p of the lattice of spacing s filled in.
+fn fill(p: vec2<u32>, s: u32) -> vec3<f32> {
   if s == 1u {
-    return vec4<f32>(clamp(rgb(p.x, p.y), vec3<f32>(0.0), vec3<f32>(1.0)), 1.0);
+    return rgb(p.x, p.y);
   }
   let last = (vec2<u32>(size.w, size.h) - 1u) / s * s;
   let p0 = min(p / s * s, last);
@@ -172,8 +174,30 @@ fn rgb(x: u32, y: u32) -> vec3<f32> {
   let f = select(vec2<f32>(p - p0) / f32(s), vec2<f32>(0.0), p1 == p0);
   let top = mix(rgb(p0.x, p0.y), rgb(p1.x, p0.y), f.x);
   let bottom = mix(rgb(p0.x, p1.y), rgb(p1.x, p1.y), f.x);
-  return vec4<f32>(clamp(mix(top, bottom, f.y), vec3<f32>(0.0), vec3<f32>(1.0)), 1.0);
+  return mix(top, bottom, f.y);
+}
+@fragment fn fs(@builtin(position) pos: vec4<f32>) -> @location(0) vec4<f32> {
+  let s = max(size.s, 1u);
+  let p = min(vec2<u32>(pos.xy), vec2<u32>(size.w, size.h) - 1u);
+  // The lower of the two lattice rows this pixel reads.
+  let below = min(min(p.y / s * s, (size.h - 1u) / s * s) + s, (size.h - 1u) / s * s);
+  let st = select(s, size.coarse, size.coarse != 0u && below >= size.rows);
+  return vec4<f32>(clamp(fill(p, st), vec3<f32>(0.0), vec3<f32>(1.0)), 1.0);
 }`;
+
+/**
+ * The display pass's uniform (`Size` in DISPLAY_WGSL) for a w x h frame of lattice spacing
+ * `stride` of which the first `k` entries of the pixel order (`interlacedOrder`'s `ids` and
+ * `ends`) are rendered: the lattice rendered so far in the rows above `rows` and the finest
+ * complete coarser one (`coarse`, 0 when none is) below them. The order lists a lattice's
+ * pixels row by row, so the rows above the first pixel not yet rendered are complete.
+ */
+export function displayUniform(w, h, ids, ends, stride, k) {
+  if (k >= ends[stride]) return new Uint32Array([w, h, stride, 0, h, 0, 0, 0]);
+  const coarse = STRIDES.find((t) => t > stride && ends[t] <= k) ?? 0;
+  const fine = coarse ? coarse / 2 : STRIDES[STRIDES.length - 1];
+  return new Uint32Array([w, h, fine, coarse, Math.floor(ids[k] / w), 0, 0, 0]);
+}
 
 /**
  * The `Model` uniform and the parameter split of a model (layout.rs `GpuModel::new`). `layout`
@@ -527,7 +551,7 @@ class GpuScene {
     this.model = device.createBuffer({ size: modelUniform.byteLength, usage: GPUBufferUsage.UNIFORM | GPUBufferUsage.COPY_DST, label: "Model" });
     device.queue.writeBuffer(this.model, 0, modelUniform);
     this.view = device.createBuffer({ size: VIEW_BYTES, usage: GPUBufferUsage.UNIFORM | GPUBufferUsage.COPY_DST, label: "View" });
-    this.size = device.createBuffer({ size: 16, usage: GPUBufferUsage.UNIFORM | GPUBufferUsage.COPY_DST, label: "display size" });
+    this.size = device.createBuffer({ size: 32, usage: GPUBufferUsage.UNIFORM | GPUBufferUsage.COPY_DST, label: "display size" });
     this.pass = device.createBuffer({ size: PASS_BYTES, usage: GPUBufferUsage.UNIFORM | GPUBufferUsage.COPY_DST, label: "Pass" });
     const small = (usage, label) => device.createBuffer({ size: ARGS.bytes, usage, label });
     this.ctrl = small(GPUBufferUsage.STORAGE | GPUBufferUsage.COPY_DST | GPUBufferUsage.COPY_SRC, "pass counters");
@@ -613,6 +637,7 @@ class GpuScene {
     this.order = device.createBuffer({ size: 4 * w * h, usage: GPUBufferUsage.STORAGE | GPUBufferUsage.COPY_DST, label: "pixel order" });
     device.queue.writeBuffer(this.order, 0, ids);
     this.orderEnds = ends;
+    this.orderIds = ids;
     if (!this.kernels.perRay) {
       // Scratch of one batch: as many rays as fit FRAME_WORK_BYTES and the binding limit.
       const perRay = 4 * wordsPerRay(this.np, this.geo, this.samples);
@@ -710,7 +735,8 @@ class GpuScene {
     const fresh = this.#ensureFrame(w, h);
     // A full or refining frame overwrites what the static cache's pixels hold.
     this.dynamicCount = -1;
-    this.device.queue.writeBuffer(this.size, 0, new Uint32Array([w, h, stride, 0]));
+    // The display uniform follows each batch (`displayUniform`).
+    this.displayStride = stride;
     const end = this.orderEnds[stride];
     const keep = !fresh && done > stride && this.orderEnds[done] !== undefined && !this.kernels.perRay;
     const begin = keep ? this.orderEnds[done] : 0;
@@ -778,6 +804,10 @@ class GpuScene {
       pass[PASS_OFFSETS.reg2 / 4 + 1] = this.occupancyResolution;
       pass.set(this.lists, PASS_OFFSETS.reg2 / 4 + 2);
       device.queue.writeBuffer(this.pass, 0, pass);
+      if (target === "frame") {
+        this.shownSize = displayUniform(w, h, this.orderIds, this.orderEnds, this.displayStride, start + count);
+        device.queue.writeBuffer(this.size, 0, this.shownSize);
+      }
       device.pushErrorScope("validation");
       let enc = device.createCommandEncoder();
       enc.clearBuffer(this.ctrl);
@@ -850,6 +880,9 @@ class GpuScene {
       const groups = dispatchSize(count, maxDim);
       if (!groups) throw new Error(`${count} rays exceed this GPU's dispatch limits`);
       device.queue.writeBuffer(this.view, 0, viewUniform(cam, t, count, FLAG_LIST));
+      const [w, h] = this.frameSize;
+      this.shownSize = displayUniform(w, h, this.orderIds, this.orderEnds, this.displayStride, start + count);
+      device.queue.writeBuffer(this.size, 0, this.shownSize);
       device.pushErrorScope("validation");
       const bind = device.createBindGroup({
         layout: this.kernels.layout,
@@ -895,7 +928,7 @@ class GpuScene {
     if (this.r.lost) throw new Error(this.r.lost);
     const { width: w, height: h } = cam;
     this.#ensureFrame(w, h);
-    this.device.queue.writeBuffer(this.size, 0, new Uint32Array([w, h, 1, 0]));
+    this.device.queue.writeBuffer(this.size, 0, (this.shownSize = new Uint32Array([w, h, 1, 0, h, 0, 0, 0])));
     const n = w * h;
     this.dynamicCount = -1;
     if (!this.probeFrame) {
@@ -956,7 +989,7 @@ class GpuScene {
     if (this.r.lost) throw new Error(this.r.lost);
     if (!this.hasStaticCache) throw new Error("renderDynamic: no static cache");
     const [w, h] = this.frameSize;
-    this.device.queue.writeBuffer(this.size, 0, new Uint32Array([w, h, 1, 0]));
+    this.device.queue.writeBuffer(this.size, 0, (this.shownSize = new Uint32Array([w, h, 1, 0, h, 0, 0, 0])));
     if (this.dynamicCount === 0) {
       const enc = this.device.createCommandEncoder();
       this.#present(enc);

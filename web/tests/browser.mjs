@@ -14,7 +14,8 @@
 //  1. the page loads the model from the server and the first frame appears (in the renderer's
 //     output and on the canvas);
 //  2. the first frame matches the native render of the same camera and time (PSNR >= 35 dB);
-//     frames reduced to 1/2 and 1/4 per side are shown interpolated between their pixels;
+//     frames reduced to 1/2 and 1/4 per side are shown interpolated between their pixels, and a
+//     frame in progress shows no pixel of the view before it;
 //  3. dragging on the canvas orbits the camera (the pixels change); touch orbits (one finger),
 //     pinches and pans (two); the wheel zooms and right-drag pans; back at the URL's view the
 //     first frame comes back;
@@ -32,7 +33,7 @@ import { mkdtempSync, readFileSync, writeFileSync, rmSync } from "node:fs";
 import { tmpdir } from "node:os";
 import { join } from "node:path";
 import { chromium } from "playwright-core";
-import { fillLattice } from "./lattice.mjs";
+import { fillLattice, fillShown } from "./lattice.mjs";
 
 const BASE_FLAGS = ["--no-sandbox", "--disable-background-networking", "--disable-component-update", "--disable-sync", "--no-first-run", "--disable-gpu-sandbox"];
 const WEBGPU_FLAGS = ["--enable-unsafe-webgpu", "--enable-features=Vulkan", "--use-vulkan=swiftshader", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--use-webgpu-adapter=swiftshader"];
@@ -199,11 +200,11 @@ async function main() {
 
     // ---- a reduced frame (what the page draws while the camera moves) on screen: interpolated
     // between its rendered pixels, not blocks of the nearest one.
+    await page.evaluate(() => window.msth.hold());
     for (const s of [2, 4]) {
-      await page.evaluate((s) => window.msth.holdReduced(s), s);
+      await page.evaluate((s) => window.msth.drawHeld(s), s);
       const onScreen = await shownPixels(page);
       const lattice = await pixels(page);
-      await page.evaluate(() => window.msth.release());
       const bilinear = fillLattice(lattice, w, h, s);
       const nearest = fillLattice(lattice, w, h, s, true);
       const [pb, pn, apart] = [psnr(onScreen, bilinear, n), psnr(onScreen, nearest, n), psnr(bilinear, nearest, n)];
@@ -211,6 +212,30 @@ async function main() {
         `a frame at 1/${s} is shown interpolated between its pixels`,
         pb >= 30 && pb >= apart + 6,
         `the canvas against the bilinear fill of the ${Math.ceil(w / s)}x${Math.ceil(h / s)} rendered pixels ${pb.toFixed(1)} dB, against the nearest-pixel fill ${pn.toFixed(1)} dB (the two fills ${apart.toFixed(1)} dB apart)`,
+      );
+    }
+    // ---- a frame in progress (a slow GPU draws a frame batch by batch): a new view, its 1/4
+    // lattice drawn, then the first batch of its 1/2 lattice. The frame buffer's other 1/2
+    // lattice pixels still hold the previous view; the canvas must show none of them.
+    {
+      const [az, el, dist] = a.view.split(",").map(Number);
+      await page.evaluate(([az, el, dist]) => window.msth.setView(az, el, dist), [az + 25, el, dist]);
+      await page.evaluate(() => window.msth.drawHeld(4));
+      const u = await page.evaluate(() => window.msth.drawHeld(2, 4, 64));
+      const onScreen = await shownPixels(page);
+      const buffer = await pixels(page);
+      await page.evaluate(() => window.msth.drawHeld(1));
+      const fresh = await pixels(page);
+      await page.evaluate(([az, el, dist]) => window.msth.setView(az, el, dist), [az, el, dist]);
+      await page.evaluate(() => window.msth.release());
+      // What the canvas must show, from the new view's pixels alone; and what filling the whole
+      // 1/2 lattice would show (the previous view's pixels where the batch did not reach).
+      const want = fillShown(fresh, u);
+      const [pb, stale] = [psnr(onScreen, want, n), psnr(fillLattice(buffer, w, h, 2), want, n)];
+      check(
+        "a frame in progress shows the new view only",
+        u[2] === 2 && u[3] === 4 && u[4] > 0 && u[4] < h && pb >= 30 && pb >= stale + 6,
+        `1/2 lattice drawn above row ${u[4]} of ${h}, the 1/4 lattice below (display uniform s ${u[2]}, coarse ${u[3]}): the canvas ${pb.toFixed(1)} dB from that fill of the new view's pixels; filling the whole 1/2 lattice from the frame buffer would be ${stale.toFixed(1)} dB from it`,
       );
     }
     await settled(page);
