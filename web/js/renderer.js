@@ -716,10 +716,10 @@ class GpuScene {
    * to `false` when `abort()` (checked between tiles) asked to stop early.
    *
    * `stride` (one of STRIDES): render the lattice of that spacing (a frame reduced to 1/stride
-   * per side), shown interpolated between its pixels. `done` (a coarser stride, or 0): the frame buffer already
-   * holds that lattice of this very camera, time and parameters (the previous frame, not
-   * aborted), so only the pixels it lacks are rendered (the per-ray kernel renders the whole
-   * lattice again).
+   * per side), shown interpolated between its pixels. `done` (a coarser stride, or 0): the frame
+   * buffer already holds that lattice of this very camera, time and parameters (the previous
+   * frame, not aborted), so only the pixels it lacks are rendered (the per-ray kernel renders
+   * the whole lattice again).
    *
    * A frame is rendered in tiles, each a run of consecutive entries of the interlaced pixel
    * order (the kernels' pixel-list mode) and its own submission, and the canvas is
