@@ -928,7 +928,9 @@ class GpuScene {
     if (this.r.lost) throw new Error(this.r.lost);
     const { width: w, height: h } = cam;
     this.#ensureFrame(w, h);
-    this.device.queue.writeBuffer(this.size, 0, (this.shownSize = new Uint32Array([w, h, 1, 0, h, 0, 0, 0])));
+    // The first probe renders the full frame in the pixel order, shown as it progresses (the
+    // finest lattice complete so far, `displayUniform`); the others render off screen.
+    this.displayStride = 1;
     const n = w * h;
     this.dynamicCount = -1;
     if (!this.probeFrame) {
