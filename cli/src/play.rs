@@ -310,7 +310,13 @@ fn summary(r: &PlayReport, threshold: f32) {
             .map_or(String::new(), |n| format!("; {n}")),
         r.backend
             .tables
-            .map_or(String::new(), |t| format!("; hash tables {t}"))
+            .map_or(String::new(), |t| match r.backend.tables_clamped {
+                0 => format!("; hash tables {t}"),
+                n => format!(
+                    "; hash tables {t} ({n} values beyond binary16's ±65504 held clamped: \
+                 --gpu-tables f32 renders them as they are)"
+                ),
+            })
     );
     if let Some(note) = samples_note(r.samples, r.model_samples) {
         println!("{note}");

@@ -417,6 +417,15 @@ impl TableFormat {
         }
     }
 
+    /// How many of `values` [`TableFormat::encode`] clamps: magnitudes beyond binary16's
+    /// largest finite value, 65504, for f16 (the kernels read ±65504 there); none for f32.
+    pub fn clamped(self, values: &[f32]) -> usize {
+        match self {
+            TableFormat::F32 => 0,
+            TableFormat::F16 => values.iter().filter(|v| v.abs() > F16_MAX).count(),
+        }
+    }
+
     /// The value the kernels read for a table value `v`.
     pub fn round(self, v: f32) -> f32 {
         match self {
@@ -438,11 +447,14 @@ impl std::str::FromStr for TableFormat {
     }
 }
 
+/// The largest finite binary16 value.
+const F16_MAX: f32 = 65504.0;
+
 /// `v` as binary16 bits: clamped to ±65504, rounded to nearest, ties to even, a subnormal
 /// result (below 2^-14 in magnitude) flushed to zero of the same sign, since WGSL lets
 /// `unpack2x16float` flush those (a NaN stays NaN).
 fn f16_bits(v: f32) -> u16 {
-    let h = half::f16::from_f32(v.clamp(-65504.0, 65504.0)).to_bits();
+    let h = half::f16::from_f32(v.clamp(-F16_MAX, F16_MAX)).to_bits();
     if h & 0x7c00 == 0 {
         h & 0x8000
     } else {
@@ -718,6 +730,18 @@ mod tests {
         assert_eq!(f.round(1e-6).to_bits(), 0);
         assert_eq!(f.round(-1e-6).to_bits(), (-0f32).to_bits());
         assert!(f.round(f32::NAN).is_nan());
+        // What the clamp changes is counted: beyond ±65504 (infinities included), not at it.
+        let wide = [
+            65504.0,
+            -65504.0,
+            65504.5,
+            -1e6,
+            f32::INFINITY,
+            f32::NAN,
+            3.0,
+        ];
+        assert_eq!(f.clamped(&wide), 3);
+        assert_eq!(TableFormat::F32.clamped(&wide), 0);
         for v in [0.1f32, -3.7, 1234.5, 7e-3] {
             let r = f.round(v);
             assert!((r - v).abs() <= v.abs() * 2f32.powi(-11), "{v} -> {r}");

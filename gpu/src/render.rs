@@ -593,12 +593,15 @@ fn write_tables(
     bufs: [&wgpu::Buffer; 2],
     params: &[f32],
     which: impl Fn(usize, usize) -> bool,
+    clamped: &mut [[usize; 2]; 2],
 ) {
     let format = ctx.tables;
     for (b, (buf, parts)) in bufs.into_iter().zip(split.tables()).enumerate() {
         for (p, (_, at, r)) in parts.into_iter().enumerate() {
             if !r.is_empty() && which(b, p) {
-                let data = format.encode(&params[r]);
+                let values = &params[r];
+                clamped[b][p] = format.clamped(values);
+                let data = format.encode(values);
                 ctx.queue.write_buffer(buf, format.byte_offset(at), &data);
             }
         }
@@ -622,6 +625,11 @@ pub struct GpuScene {
     /// The passes that evaluate fields, specialised to this scene ([`GpuScene::specialise`]);
     /// `None`: the context's generic ones.
     pub(crate) mlps: Option<crate::passes::MlpPipelines>,
+    /// Per table buffer and part ([`ParamSplit::tables`]): the values of the last upload that
+    /// the table format clamped ([`TableFormat::clamped`]).
+    clamped: [[usize; 2]; 2],
+    /// The most values clamped at once since the scene was created.
+    most_clamped: usize,
 }
 
 impl GpuScene {
@@ -640,7 +648,15 @@ impl GpuScene {
         let [(n3, s3), (n4, s4), (nr, _)] = gpu_model.buffer_sizes(ctx.tables);
         let tab3 = ctx.storage_buffer_sized(n3, s3)?;
         let tab4 = ctx.storage_buffer_sized(n4, s4)?;
-        write_tables(ctx, &split, [&tab3, &tab4], params, |_, _| true);
+        let mut clamped = [[0; 2]; 2];
+        write_tables(
+            ctx,
+            &split,
+            [&tab3, &tab4],
+            params,
+            |_, _| true,
+            &mut clamped,
+        );
         let rest = ctx.storage_buffer(nr, bytes(&split.rest), false)?;
         let model = ctx
             .device
@@ -661,7 +677,16 @@ impl GpuScene {
             occupancy_resolution: 0,
             uploaded: params.to_vec(),
             mlps: None,
+            clamped,
+            most_clamped: clamped.iter().flatten().sum(),
         })
+    }
+
+    /// The most hash-table values the device held clamped at once since the scene was created:
+    /// with [`TableFormat::F16`], values beyond ±65504, which the kernels read as ±65504 (the
+    /// frames then differ from the CPU renderer's; f32 tables hold them as they are).
+    pub fn clamped_table_values(&self) -> usize {
+        self.most_clamped
     }
 
     /// Uses the file's occupancy grid (docs/format.md §6.5: `resolution` cells per axis, the bit
@@ -792,13 +817,15 @@ impl GpuScene {
         // The field's tables where they changed; the proposal field's (which lie in the rest
         // and are read from the table buffers) with the rest.
         let field = [d3, d4];
-        write_tables(ctx, &split, [&self.tab3, &self.tab4], params, |b, p| {
-            if p == 0 {
-                field[b]
-            } else {
-                drest
-            }
-        });
+        write_tables(
+            ctx,
+            &split,
+            [&self.tab3, &self.tab4],
+            params,
+            |b, p| if p == 0 { field[b] } else { drest },
+            &mut self.clamped,
+        );
+        self.most_clamped = self.most_clamped.max(self.clamped.iter().flatten().sum());
         for (r, d) in [(field3, d3), (field4, d4), (split.rest, drest)] {
             if d {
                 self.uploaded[r.clone()].copy_from_slice(&params[r]);

@@ -46,6 +46,9 @@ pub struct BackendInfo {
     pub mlps: Option<String>,
     /// GPU: how the device holds the hash tables (`"f32"` or `"f16"`).
     pub tables: Option<&'static str>,
+    /// GPU: the most table values held clamped at once during the playback (binary16 tables
+    /// hold at most ±65504: `--gpu-tables f32` renders larger ones as they are).
+    pub tables_clamped: usize,
 }
 
 impl FrameRenderer {
@@ -64,6 +67,7 @@ impl FrameRenderer {
                     note,
                     mlps: None,
                     tables: None,
+                    tables_clamped: 0,
                 },
             )
         };
@@ -81,6 +85,7 @@ impl FrameRenderer {
                     note,
                     mlps: None,
                     tables: Some(settings.gpu_tables.name()),
+                    tables_clamped: 0,
                 },
             ))
         };
@@ -126,6 +131,15 @@ impl FrameRenderer {
     pub fn set_params_version(&mut self, version: u64) {
         if let FrameRenderer::Gpu(r) = self {
             r.set_params_version(version);
+        }
+    }
+
+    /// GPU: the most hash-table values held clamped at once
+    /// ([`GpuRenderer::clamped_table_values`]); 0 on the CPU.
+    pub fn clamped_table_values(&self) -> usize {
+        match self {
+            FrameRenderer::Cpu(_) => 0,
+            FrameRenderer::Gpu(r) => r.clamped_table_values(),
         }
     }
 

@@ -333,6 +333,7 @@ pub fn play(
     let progress = stream.progress();
     let mut backend = backend;
     backend.mlps = renderer.mlp_note();
+    backend.tables_clamped = renderer.clamped_table_values();
     Ok(PlayReport {
         frames: records,
         time_to_first_frame: first_frame.unwrap_or(0.0),

@@ -98,6 +98,11 @@ fn main() -> std::process::ExitCode {
             "binary16_tables_render_the_frames_of_rounded_tables",
             binary16_tables_render_the_frames_of_rounded_tables,
         )
+        .needs(
+            &[&gpu],
+            "playback_reports_table_values_binary16_clamps",
+            playback_reports_table_values_binary16_clamps,
+        )
         .run()
 }
 
@@ -1116,6 +1121,10 @@ fn binary16_tables_render_the_frames_of_rounded_tables() {
                     assert!(max_diff(&fa, &fc) > 0.0, "{what}");
                 }
             }
+            // The device holds 1e6 and -3e38 clamped in each field table, and says so; the f32
+            // renderer (given the rounded tables) holds nothing clamped.
+            assert_eq!(a.clamped_table_values(), 4, "{features} features");
+            assert_eq!(b.clamped_table_values(), 0, "{features} features");
         }
     }
     let (cfg, params) = balanced_model(5);
@@ -1138,5 +1147,51 @@ fn binary16_tables_render_the_frames_of_rounded_tables() {
             );
             assert!(p >= 40.0, "incremental {incremental}, t = {t}: {p:.1} dB");
         }
+        assert_eq!(gpu.clamped_table_values(), 0);
+    }
+}
+
+/// `play` of a quantised file whose field tables hold values beyond binary16's range: the GPU
+/// renderer holds the tables as f16 by default and reports how many values it clamped; with
+/// `gpu_tables` f32 it clamps none.
+fn playback_reports_table_values_binary16_clamps() {
+    let mut cfg = config(BlendMode::Mst);
+    small(&mut cfg);
+    let layout = ModelLayout::new(&cfg);
+    let mut params = random_params(&layout, 4);
+    let split = GpuModel::new(&cfg).unwrap().split;
+    // Beyond ±65504 in the 3D table and in the 4D table.
+    for (at, v) in [
+        (split.tab3.start + 5, 2e5),
+        (split.tab3.start + 40, -1e6),
+        (split.tab4.start + 9, 3e5),
+    ] {
+        params[at] = v;
+    }
+    let cam = test_camera(12, 8);
+    let opts = msth_codec::EncodeOptions {
+        quant: msth_codec::QuantMode::Q8,
+        ..Default::default()
+    };
+    let (bytes, _) = msth_codec::encode(&cfg, &params, &[cam], &opts).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("wide.msth");
+    std::fs::write(&file, &bytes).unwrap();
+    // What the decoded file holds beyond the range (q8 keeps each block's extremes).
+    let decoded = msth_codec::decode_all(&bytes).unwrap().params_for_time(0.0);
+    let wide = TableFormat::F16.clamped(&decoded[split.tab3.clone()])
+        + TableFormat::F16.clamped(&decoded[split.tab4.clone()]);
+    assert!(wide >= 3, "{wide}");
+    for (tables, want) in [(None, wide), (Some(TableFormat::F32), 0)] {
+        let mut o = msth_player::PlayOptions::new(file.to_str().unwrap());
+        o.backend = msth_player::BackendChoice::Gpu;
+        o.frames = Some(2);
+        o.size = Some((12, 8));
+        o.video = false;
+        o.gpu_tables = tables;
+        let report = msth_player::play(&o, &mut |_, _| {}).unwrap();
+        let expected = if tables.is_none() { "f16" } else { "f32" };
+        assert_eq!(report.backend.tables, Some(expected));
+        assert_eq!(report.backend.tables_clamped, want, "{tables:?}");
     }
 }

@@ -180,6 +180,41 @@ fn web_player_streams_renders_and_matches_native() {
     )
     .unwrap();
 
+    // The tiny model with three hash-table values beyond binary16's range (±65504), quantised:
+    // the page holds its tables as binary16 and must say how many values it clamped, as `msth
+    // play` does (counted here as msth-gpu counts them, over the four tables the buffers hold).
+    let mut wide_ckpt = Checkpoint::load(&train_dir.join("model.ckpt")).unwrap();
+    let wide_layout = ModelLayout::new(&wide_ckpt.header.model);
+    let h3 = wide_layout.field.encoding.h3.clone().unwrap().1;
+    let h4 = wide_layout.field.encoding.h4.clone().unwrap().1;
+    for (at, v) in [
+        (h3.start + 5, 2e5),
+        (h3.start + 40, -1e6),
+        (h4.start + 9, 3e5),
+    ] {
+        wide_ckpt.params[at] = v;
+    }
+    let wide_dir = dir.path().join("train_wide");
+    std::fs::create_dir_all(&wide_dir).unwrap();
+    wide_ckpt.save(&wide_dir.join("model.ckpt")).unwrap();
+    let wide = served.join("wide.msth");
+    export_cmd(&wide_dir.join("model.ckpt"), &wide, &["--quant", "q8"]).unwrap();
+    let wide_params = msth_codec::decode_all(&std::fs::read(&wide).unwrap())
+        .unwrap()
+        .params_for_time(0.0);
+    let split = msth_gpu::GpuModel::new(&wide_ckpt.header.model)
+        .unwrap()
+        .split;
+    let wide_clamped: usize = split
+        .tables()
+        .iter()
+        .flatten()
+        .map(|(_, _, r)| msth_gpu::TableFormat::F16.clamped(&wide_params[r.clone()]))
+        .sum();
+    // The two 3D values at least (the file keeps only the 4D rows the mask calls dynamic).
+    assert!(wide_clamped >= 2, "{wide_clamped}");
+    let wide_clamped = wide_clamped.to_string();
+
     // The JavaScript decoder reproduces msth-codec's flat parameter buffers bit for bit.
     let bytes = std::fs::read(&file).unwrap();
     let decoded = msth_codec::decode_all(&bytes).unwrap();
@@ -294,6 +329,10 @@ fn web_player_streams_renders_and_matches_native() {
             natives[2].to_str().unwrap(),
             "--native2-faster",
             natives[3].to_str().unwrap(),
+            "--model-wide",
+            "wide.msth",
+            "--wide-clamped",
+            &wide_clamped,
             "--chromium",
             chromium.to_str().unwrap(),
             "--out",

@@ -244,10 +244,25 @@ fn javascript_and_rust_hold_binary16_tables_alike() {
             &rust[2 * i..2 * i + 2]
         );
     }
+    // Both count the values the clamp changes alike.
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let clamped = TableFormat::F16.clamped(&values);
+    assert!(
+        clamped >= 5,
+        "the values above hold 5 beyond ±65504: {clamped}"
+    );
+    assert_eq!(
+        stdout.trim(),
+        format!("{{\"clamped\":{clamped}}}"),
+        "the page's count of clamped values"
+    );
     let source = std::fs::read_to_string(&wgsl).unwrap();
     assert!(
         Some(source) == TableFormat::F16.source(msth_gpu::RENDER_WGSL),
         "the page's binary16 kernels differ from TableFormat::F16.source"
     );
-    println!("{} values packed alike in both languages", values.len());
+    println!(
+        "{} values packed alike in both languages, {clamped} of them clamped",
+        values.len()
+    );
 }

@@ -72,6 +72,8 @@ const hooks = {
   lastSplit3: false,
   /** How the GPU holds the hash tables, `"f32"` or `"f16"` (`?tables=`), once the kernels exist. */
   tables: null,
+  /** The most hash-table values held clamped at once (binary16 tables: beyond ±65504). */
+  clampedTables: 0,
   error: null,
   state: null,
   /** Milestones in ms since navigation start: adapter, prefix, pipeline, params, firstFrame. */
@@ -302,6 +304,15 @@ async function main() {
   hooks.mlpNote = gpu.mlpNote;
   hooks.tables = gpu.tables;
   $("info").textContent += `; ${gpu.mlpNote}; hash tables ${gpu.tables}`;
+  const infoText = $("info").textContent;
+  /** Says on the info line when binary16 tables hold values clamped (beyond ±65504), as `msth
+   * play`'s summary does. */
+  const noteClamped = () => {
+    const n = gpu.clampedTables ?? 0;
+    if (n === hooks.clampedTables) return;
+    hooks.clampedTables = n;
+    $("info").textContent = n ? `${infoText} (${n} values beyond binary16's ±65504 held clamped: ?tables=f32 renders them as they are)` : infoText;
+  };
   hooks.renderer = gpu;
   hooks.timings.pipeline = performance.now();
   const paramBuf = new Float32Array(stream.decoder.layout.total);
@@ -497,6 +508,7 @@ async function main() {
 
   /** The bookkeeping after any finished frame: hooks, first-frame marks, the FPS window. */
   function finishFrame(full, scale, w, h, t0, t1) {
+    noteClamped();
     hooks.lastScale = scale;
     hooks.lastSplit3 = hooks.renderer?.lastSplit3 ?? false;
     hooks.lastSize = [w, h];

@@ -338,7 +338,8 @@ export function tablesSource(source, region) {
  * 2^-14 in magnitude flushed to a zero of the same sign, an odd count padded with one 0.
  * Returns the Uint16Array of the bits (by hand rather than `Float16Array`, which older
  * browsers and node 20 lack; `tests/tests/web_specialise.rs` checks it against the Rust
- * encoder).
+ * encoder), with the count of values the clamp changed as its `clamped` property
+ * (`TableFormat::clamped`).
  */
 export function toBinary16(values) {
   const n = values.length;
@@ -346,8 +347,10 @@ export function toBinary16(values) {
   const f = new Float32Array(1);
   const u = new Uint32Array(f.buffer);
   const smallest = 2 ** -14 - 2 ** -25; // at or above: rounds to 2^-14, the least normal
+  let clamped = 0;
   for (let i = 0; i < n; i++) {
     const v = values[i];
+    if (v > 65504 || v < -65504) clamped++;
     f[0] = v > 65504 ? 65504 : v < -65504 ? -65504 : v;
     const x = u[0];
     const sign = (x >>> 16) & 0x8000;
@@ -373,6 +376,7 @@ export function toBinary16(values) {
     }
     out[i] = h;
   }
+  out.clamped = clamped;
   return out;
 }
 
@@ -695,20 +699,26 @@ class GpuScene {
     const put = (buf, at, [a, b]) => {
       if (b > a) q.writeBuffer(buf, 4 * at, params.buffer, params.byteOffset + 4 * a, 4 * (b - a));
     };
-    const putTable = (buf, at, [a, b]) => {
-      if (b <= a) return;
-      if (!this.split.f16) return put(buf, at, [a, b]);
-      const h = toBinary16(params.subarray(a, b));
+    // Per table buffer and part, the values the binary16 clamp changed in the last upload.
+    this.clampedParts ??= [[0, 0], [0, 0]];
+    const putTable = (buf, b, p) => {
+      const [at, [lo, hi]] = this.split.tables[b][p];
+      if (hi <= lo) return;
+      if (!this.split.f16) return put(buf, at, [lo, hi]);
+      const h = toBinary16(params.subarray(lo, hi));
+      this.clampedParts[b][p] = h.clamped;
       q.writeBuffer(buf, 2 * at, h.buffer, 0, h.byteLength);
     };
     if (only4d) {
-      const [at, r] = this.split.tables[1][0];
-      putTable(this.tab4, at, r);
-      return;
+      putTable(this.tab4, 1, 0);
+    } else {
+      for (const p of [0, 1]) putTable(this.tab3, 0, p);
+      for (const p of [0, 1]) putTable(this.tab4, 1, p);
+      put(this.rest, 0, this.split.rest);
     }
-    for (const [at, r] of this.split.tables[0]) putTable(this.tab3, at, r);
-    for (const [at, r] of this.split.tables[1]) putTable(this.tab4, at, r);
-    put(this.rest, 0, this.split.rest);
+    /** The most hash-table values held clamped at once (binary16: beyond ±65504, read as
+     * ±65504; msth-gpu `GpuScene::clamped_table_values`). */
+    this.clampedTables = Math.max(this.clampedTables ?? 0, this.clampedParts.flat().reduce((x, y) => x + y, 0));
   }
 
   /**

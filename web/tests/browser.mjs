@@ -5,7 +5,8 @@
 //   node web/tests/browser.mjs --base http://127.0.0.1:8080 --model demo.msth \
 //     --view 30,25,4 --size 64x48 --native0 t0.png --native1 t1.png [--screenshot page.png] \
 //     [--screenshot-model NAME] [--screenshot-camera K] \
-//     [--model2 NAME --native2 t0.png] [--bench-size 256x256] [--out results.json] \
+//     [--model2 NAME --native2 t0.png] [--model-wide NAME --wide-clamped N] \
+//     [--bench-size 256x256] [--out results.json] \
 //     [--chromium /usr/bin/chromium]
 //
 // `--native0` / `--native1` are `msth play FILE --path view:VIEW --size SIZE --frames 1
@@ -25,7 +26,10 @@
 //  5. with `--model2`: a second model (the Rust test's balanced-preset file) matches its native
 //     render (`--native2`, same view, t = 0; PSNR >= 35 dB); with `--native2-faster` (the same
 //     render with `msth play --samples faster`), the samples menu's `faster` matches it;
-//  6. without WebGPU the page says so.
+//  6. with `--model-wide NAME --wide-clamped N`: a quantised file whose hash tables hold N
+//     values beyond binary16's ±65504: the page holds them clamped and says so (N, as msth-gpu
+//     counts), and with `?tables=f32` holds none clamped;
+//  7. without WebGPU the page says so.
 // Also reports time to first frame and frames per second at `--bench-size` (for the record:
 // timing decides nothing). Exit status 1 when a check fails, 2 on a usage or setup error.
 
@@ -458,6 +462,23 @@ async function main() {
         "kernels the device refuses fall back to the generic ones",
         refused.startsWith("generic kernels (compiling them for the model failed: ") && refused.includes("blend_of") && pR >= 50,
         `"${refused.slice(0, 160)}"; PSNR ${pR.toFixed(2)} dB against the compiled kernels' frame (>= 50)`,
+      );
+    }
+
+    // ---- a file whose hash tables hold values beyond binary16's range: held clamped, and said
+    if (a["model-wide"]) {
+      const want = Number(a["wide-clamped"]);
+      const held = {};
+      for (const tables of ["f16", "f32"]) {
+        await page.goto(`${a.base}/?model=${encodeURIComponent(a["model-wide"])}&view=${a.view}&t=0&size=${a.size}&play=0&tables=${tables}`);
+        await waitFirstFrame(page);
+        held[tables] = await page.evaluate(() => ({ n: window.msth.clampedTables, tables: window.msth.tables, info: document.getElementById("info").textContent }));
+      }
+      const f16 = held.f16;
+      check(
+        "binary16 tables say how many values they hold clamped",
+        f16.tables === "f16" && f16.n === want && f16.info.includes(`${want} values beyond binary16's ±65504 held clamped`) && held.f32.tables === "f32" && held.f32.n === 0 && !held.f32.info.includes("clamped"),
+        `${a["model-wide"]}: ${f16.n} values clamped (msth-gpu counts ${want}), "${f16.info.split("; ").pop()}"; with ?tables=f32: ${held.f32.n}, "${held.f32.info.split("; ").pop()}"`,
       );
     }
 

@@ -233,6 +233,12 @@ impl GpuRenderer {
         &self.mlp_status
     }
 
+    /// The most hash-table values the device held clamped at once (binary16 tables: values
+    /// beyond ±65504; [`msth_gpu::GpuScene::clamped_table_values`]); 0 before the first frame.
+    pub fn clamped_table_values(&self) -> usize {
+        self.scene.as_ref().map_or(0, |s| s.clamped_table_values())
+    }
+
     /// Uses the file's occupancy grid to skip empty space, as the CPU renderer's
     /// [`crate::render::Renderer::set_occupancy`] (`None`: a version-1 file, or skipping off):
     /// the per-sample passes evaluate the main field only at samples in occupied cells; the
