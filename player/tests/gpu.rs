@@ -386,7 +386,8 @@ fn gpu_frames_match_cpu_frames_full_and_incremental() {
             };
         }
         // The mask alone decides (the random 4D table moves every colour a probe would see).
-        // Whole dynamic rays on the CPU too (the GPU has no sample-level reuse).
+        // Whole dynamic rays on both (sample-level reuse has its own test,
+        // `gpu_sample_reuse_matches_cpu_sample_reuse`).
         let settings = RenderSettings {
             probes: 0,
             reuse: Reuse::Rays,

@@ -104,8 +104,8 @@ impl Fixture {
         // Let the probes decide (the short-trained mask is soft), so that some rays are cached and the
         // incremental frames mix cached and re-rendered pixels.
         opts.render.static_threshold = 0.0;
-        // Whole dynamic rays on both backends (the GPU has no sample-level reuse), so that every
-        // frame can be held to the full render.
+        // Whole dynamic rays on both backends (sample-level reuse places fixed samples, whose
+        // frames differ from full renders), so that every frame can be held to the full render.
         opts.render.reuse = msth_player::Reuse::Rays;
         // Strict probes (five, within 1/255), so that the soft mask leaves rays of both kinds.
         opts.render.probes = 5;
