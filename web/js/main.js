@@ -5,9 +5,10 @@
 // frame rate and the resolution being drawn.
 //
 // Resolution policy (stated on the page): while the camera moves or the timeline plays, frames
-// are drawn at a reduced resolution, 1 (playing only), 1/2, 1/4 or 1/8 of the full size per
-// side, adapted frame by frame so that a frame fits its budget (1/30 s while moving, one model
-// frame while playing);
+// are drawn at a reduced resolution, 1, 1/2, 1/4 or 1/8 of the full size per side, adapted
+// frame by frame so that a frame fits its budget (1/30 s while moving, one model frame while
+// playing); while moving, full size only where the GPU's measured rate draws a full-size frame
+// in half the budget (so that a drag answers at once);
 // when the camera stops (STILL_MS after the last input) and playback is paused, the view is
 // drawn again one step finer per frame (1/8, 1/4, 1/2, full) until it is at full resolution.
 // The page's first frame is drawn at 1/8 and refined the same way, so that a slow GPU shows a
@@ -216,7 +217,7 @@ async function main() {
   const modelFps = meta.frame_rate || 24;
   $("policy").textContent =
     `Resolution: while you move the camera, frames are drawn at 1/2 to 1/8 of ${template.width}x${template.height} per side (interpolated in between), ` +
-    `adapted so that a frame takes at most ${MOVING_BUDGET_MS.toFixed(0)} ms; while the video plays, at full size when a frame fits one model frame ` +
+    `adapted so that a frame takes at most ${MOVING_BUDGET_MS.toFixed(0)} ms, or at full size where the GPU draws one in half that; while the video plays, at full size when a frame fits one model frame ` +
     `(${(1000 / modelFps).toFixed(0)} ms at ${modelFps} fps), else reduced the same way; ` +
     `${STILL_MS} ms after the camera stops, paused, the view is refined one step per frame (1/8, 1/4, 1/2, full) up to full resolution; ` +
     `the first frame starts at 1/8 the same way. ` +
@@ -228,6 +229,8 @@ async function main() {
   const state = {
     t: tParam !== null && Number.isFinite(Number(tParam)) ? Math.min(1, Math.max(0, Number(tParam))) : 0,
     playing: params.get("play") === "1" || (tParam === null && params.get("play") !== "0"),
+    /** A moving frame's budget (ms; `setMovingBudget`). */
+    movingBudget: MOVING_BUDGET_MS,
     dirty: true,
     loadedChunk: undefined,
     rendering: false,
@@ -468,10 +471,12 @@ async function main() {
       await renderIncremental(full, camKey);
       return;
     }
-    // Moving: at most half size per side (a drag should answer at once); playing: full size as
-    // long as a frame fits one model frame; still and paused: one step finer than the last
-    // frame (progressive refinement).
-    const level = moving ? Math.max(state.level, 1) : state.playing ? state.level : state.refineLevel;
+    // Moving: at most half size per side unless the GPU's measured rate draws a full-size frame
+    // in half the moving budget (a drag should answer at once); playing: full size as long as a
+    // frame fits one model frame; still and paused: one step finer than the last frame
+    // (progressive refinement).
+    const fullFits = gpu.raysPerMs > 0 && (full.width * full.height) / gpu.raysPerMs <= 0.5 * state.movingBudget;
+    const level = moving ? Math.max(state.level, fullFits ? 0 : 1) : state.playing ? state.level : state.refineLevel;
     const scale = SCALES[level];
     // Reduced frames render every stride-th pixel per side of the full-size camera (the
     // renderer's interlaced lattice): w x h of them.
@@ -492,7 +497,7 @@ async function main() {
     state.drawnT = state.t;
     state.scale = scale;
     if (moving || state.playing) {
-      const budget = moving ? MOVING_BUDGET_MS : 1000 / modelFps;
+      const budget = moving ? state.movingBudget : 1000 / modelFps;
       const ms = t1 - t0;
       if (ms > budget && state.level < SCALES.length - 1) state.level++;
       else if (ms * 4 < 0.7 * budget && state.level > 0) state.level--;
@@ -675,6 +680,11 @@ async function main() {
   hooks.release = () => {
     state.rendering = false;
     state.dirty = true;
+  };
+  /** Sets a moving frame's budget (ms; the default without an argument), for tests of the
+   * resolution policy that do not depend on the GPU's speed. */
+  hooks.setMovingBudget = (ms = MOVING_BUDGET_MS) => {
+    state.movingBudget = ms;
   };
   /** The last rendered frame's RGBA8 pixels (the renderer's own output, not a screenshot). */
   hooks.readPixels = async () => Array.from(await gpu.readPixels());

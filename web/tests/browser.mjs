@@ -17,7 +17,8 @@
 //  2. the first frame matches the native render of the same camera and time (PSNR >= 35 dB);
 //     frames reduced to 1/2 and 1/4 per side are shown interpolated between their pixels, and a
 //     frame in progress shows no pixel of the view before it;
-//  3. dragging on the canvas orbits the camera (the pixels change); touch orbits (one finger),
+//  3. dragging on the canvas orbits the camera (the pixels change), at full size where a
+//     full-size frame fits half the moving budget and reduced where not; touch orbits (one finger),
 //     pinches and pans (two); the wheel zooms and right-drag pans; back at the URL's view the
 //     first frame comes back;
 //  4. scrubbing the timeline to t = 1 changes the dynamic pixels (those that differ between the
@@ -296,6 +297,33 @@ async function main() {
     await settled(page);
     const o3 = await page.evaluate(() => ({ dist: window.msth.orbit.dist, pan: window.msth.orbit.pan }));
     check("the wheel zooms and right-drag pans", o3.dist > o2.dist && o3.pan.some((v, k) => Math.abs(v - o2.pan[k]) > 1e-6), `distance ${o2.dist.toFixed(3)} -> ${o3.dist.toFixed(3)}, target (${o2.pan.map((v) => v.toFixed(3)).join(", ")}) -> (${o3.pan.map((v) => v.toFixed(3)).join(", ")})`);
+
+    // ---- the resolution while the camera moves: full size where the GPU's measured rate draws
+    // a full-size frame in half the moving budget, else reduced. The budget is set (huge, tiny)
+    // so that what is checked is the rule, not this machine's speed.
+    const dragScales = async (budget) => {
+      await page.evaluate((b) => window.msth.setMovingBudget(b), budget);
+      await settled(page);
+      const scales = [];
+      await page.mouse.move(cx, cy);
+      await page.mouse.down();
+      for (let k = 1; k <= 8; k++) {
+        await page.mouse.move(cx + k * 4, cy);
+        // The next frame starts right after this input: a moving frame.
+        await page.evaluate(() => window.msth.nextFrame());
+        scales.push(await page.evaluate(() => window.msth.lastScale));
+      }
+      await page.mouse.up();
+      return scales;
+    };
+    const roomy = await dragScales(10_000);
+    const tight = await dragScales(0.001);
+    await page.evaluate(() => window.msth.setMovingBudget());
+    check(
+      "moving frames are full size where they fit, reduced where not",
+      roomy[roomy.length - 1] === 1 && tight.every((v) => v < 1),
+      `scales of the frames drawn while dragging: with a 10 s budget ${roomy.join(", ")}; with 0.001 ms ${tight.join(", ")}`,
+    );
 
     // Back to the view: the same frame again.
     const [vaz, vel, vdist] = a.view.split(",").map(Number);
