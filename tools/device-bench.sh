@@ -84,7 +84,10 @@ pack() {
     mkdir -p "$root/.gl" /tmp/amd64/partial
     local o=(-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp/amd64)
     apt-get "${o[@]}" update >/dev/null
-    (cd "$root/.gl" && apt-get "${o[@]}" download libvulkan1 >/dev/null)
+    # The Vulkan loader and the GLVND libraries the NVIDIA driver's ICD (libGLX_nvidia) loads:
+    # with the loader alone the ICD fails ("Could not get 'vkCreateInstance'"), seen on an H200
+    # machine on 2026-11-29.
+    (cd "$root/.gl" && apt-get "${o[@]}" download libvulkan1 libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2 >/dev/null)
     local size
     size=$(du -sm "$pack_dir" "$root/.gl" | awk '{s += $1} END {print s}')
     echo "packed: $(ls "$pack_dir/bin" "$pack_dir/models" | tr '\n' ' ')(${size} MiB with .gl; the limit is 64 MiB with the tracked tree)"
@@ -97,13 +100,17 @@ run() {
     local report="$out/report.txt"
     local bin="$pack_dir/bin" models="$pack_dir/models"
     [ -x "$bin/bench_gpu_play" ] && [ -x "$bin/msth" ] || die "no packed binaries in $bin: run '$0 pack' first"
-    # The loader, where the machine has none (a bare device machine).
-    if ! ldconfig -p 2>/dev/null | grep -q libvulkan.so.1 && compgen -G "$root/.gl/*.deb" >/dev/null; then
+    # The loader and the GLVND libraries (a bare device machine may have the loader and still
+    # lack what the NVIDIA ICD needs), then the NVIDIA driver's manifests.
+    if compgen -G "$root/.gl/*.deb" >/dev/null; then
         for f in "$root"/.gl/*.deb; do dpkg -x "$f" /; done
         ldconfig
     fi
     if [ -f /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json ] && [ -z "${VK_DRIVER_FILES:-}" ]; then
         export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
+    fi
+    if [ -f /usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json ] && [ -z "${__EGL_VENDOR_LIBRARY_FILENAMES:-}" ]; then
+        export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
     fi
     local size="${DEVICE_BENCH_SIZE:-1352x1014}" frames="${DEVICE_BENCH_FRAMES:-24}"
     local samples="${DEVICE_BENCH_SAMPLES:-model fast faster}"
