@@ -529,12 +529,7 @@ impl Renderer {
         let mut empty = 0;
         for y in 0..h {
             for x in 0..w {
-                let r = camera.pixel_ray(x, y);
-                let ray = TimedRay {
-                    origin: r.origin,
-                    dir: r.dir,
-                    time,
-                };
+                let ray = TimedRay::through_pixel(camera, x, y, time);
                 let (near, far) = ray_limits(&self.cfg, &ray);
                 let p = (y * w + x) as usize;
                 match bg {

@@ -38,6 +38,18 @@ pub struct TimedRay {
     pub time: f32,
 }
 
+impl TimedRay {
+    /// The ray through the centre of pixel (`x`, `y`) of `camera`, at `time`.
+    pub fn through_pixel(camera: &crate::Camera, x: u32, y: u32, time: f32) -> Self {
+        let r = camera.pixel_ray(x, y);
+        TimedRay {
+            origin: r.origin,
+            dir: r.dir,
+            time,
+        }
+    }
+}
+
 /// Per-step training settings.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct StepSettings {

@@ -551,12 +551,7 @@ impl GpuRenderer {
                 let mut p = Pending::default();
                 let mut empty = 0;
                 for x in 0..w {
-                    let r = camera.pixel_ray(x, y);
-                    let ray = TimedRay {
-                        origin: r.origin,
-                        dir: r.dir,
-                        time,
-                    };
+                    let ray = TimedRay::through_pixel(camera, x, y, time);
                     let (near, far) = ray_limits(&self.cfg, &ray);
                     if constant_bg && far <= near {
                         empty += 1;
