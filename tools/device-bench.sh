@@ -18,11 +18,13 @@
 # `run` writes report.txt under $OUT (or .device/out when $OUT is unset): the adapter, then per
 # model and per samples-per-ray setting `bench_gpu_play` at 1352x1014 (full frames of a fixed
 # and a moving camera, incremental frames, the GPU frame against the CPU renderer's; the stage
-# model also with 1 GiB batches, comparing parameters, and f32 hash tables), one
-# pass-by-pass profile, and the training step on the GPU against the CPU (`msth bench step
-# --device gpu`). Every command has its own time limit, so a slow one cannot eat the rest.
+# model also with 1 and 2 samples per invocation, 128 MiB batches, comparing parameters, and
+# f32 hash tables), one pass-by-pass profile, and the training step on the GPU against the CPU
+# (`msth bench step --device gpu`). Every command has its own time limit, so a slow one cannot
+# eat the rest.
 # DEVICE_BENCH_SIZE (default 1352x1014), DEVICE_BENCH_FRAMES (24), DEVICE_BENCH_SAMPLES
-# ("model fast faster"), DEVICE_BENCH_SCRATCH_MIB (1024: the batch scratch of the extra stage run),
+# ("model fast faster"), DEVICE_BENCH_LANES ("1 2": the samples per invocation of the extra stage
+# runs), DEVICE_BENCH_SCRATCH_MIB (128: the batch scratch of the extra stage run),
 # DEVICE_BENCH_STEP (1: the step benchmark) and DEVICE_BENCH_BUDGET (480: seconds after which
 # no command starts) change what runs; on lavapipe use e.g. DEVICE_BENCH_SIZE=128x96
 # DEVICE_BENCH_FRAMES=2 DEVICE_BENCH_STEP=0.
@@ -139,23 +141,32 @@ run() {
         local m="$models/$1.msth" s=$2
         shift 2
         [ -f "$m" ] || return 0
-        local env_args=(env -u MSTH_BENCH_SAMPLES -u MSTH_BENCH_SCRATCH_MIB -u MSTH_BENCH_COMPARE_PARAMS -u MSTH_BENCH_TABLES)
+        local env_args=(env -u MSTH_BENCH_SAMPLES -u MSTH_BENCH_SCRATCH_MIB -u MSTH_BENCH_COMPARE_PARAMS -u MSTH_BENCH_TABLES -u MSTH_BENCH_LANES)
         [ "$s" = model ] || env_args+=(MSTH_BENCH_SAMPLES="$s")
         step 120 "${env_args[@]}" "$@" "$bin/bench_gpu_play" "$m" "$size" "$frames"
     }
     # Most wanted first (#17: a balanced stage model at 1352x1014), in case time runs out.
-    for s in $samples; do play stage "$s"; done
-    # Fewer, larger batches: 1 GiB of scratch per batch instead of 128 MiB.
-    play stage model MSTH_BENCH_SCRATCH_MIB="${DEVICE_BENCH_SCRATCH_MIB:-1024}"
+    play stage model
+    # Samples per invocation of the per-sample passes: 4 is what software adapters want; a GPU
+    # may run one or two per invocation faster (more invocations, fewer live registers).
+    for l in ${DEVICE_BENCH_LANES:-1 2}; do play stage model MSTH_BENCH_LANES="$l"; done
+    for s in $samples; do [ "$s" = model ] || play stage "$s"; done
+    # Batch size: 128 MiB of scratch per batch (the default before 2026-11-30, and still on
+    # integrated and software adapters) against the discrete GPU's default of 1 GiB.
+    play stage model MSTH_BENCH_SCRATCH_MIB="${DEVICE_BENCH_SCRATCH_MIB:-128}"
     # Every frame comparing its parameters with the device's copy (what the player did before
     # it passed versions): the incremental frames' difference is that comparison.
     play stage model MSTH_BENCH_COMPARE_PARAMS=1
     # f32 hash tables (the default for a quantised file is binary16): what half the bytes buy.
     play stage model MSTH_BENCH_TABLES=f32
     for s in $samples; do play demo "$s"; done
-    # One full frame pass by pass, at the model's own samples.
-    [ -f "$models/stage.msth" ] &&
-        step 120 env MSTH_BENCH_PROFILE=1 "$bin/bench_gpu_play" "$models/stage.msth" "$size" 2
+    # One full frame pass by pass, at the model's own samples (on the device's clock where it
+    # has timestamp queries), with 4 and with 1 sample per invocation.
+    if [ -f "$models/stage.msth" ]; then
+        for l in 4 1; do
+            step 120 env MSTH_BENCH_PROFILE=1 MSTH_BENCH_LANES=$l "$bin/bench_gpu_play" "$models/stage.msth" "$size" 2
+        done
+    fi
     if [ "${DEVICE_BENCH_STEP:-1}" = 1 ]; then
         step 150 "$bin/msth" bench step --device gpu --reps 5
     fi

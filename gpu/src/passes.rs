@@ -595,6 +595,26 @@ impl GpuContext {
             ("composite", &p.composite, Some(ARGS_RAYS)),
         ]);
         let mut spent = vec![0f64; steps.len()];
+        // With timestamp queries the profile times each pass on the device, the batch still one
+        // submission; without, each pass is its own submission, timed on the host (which adds
+        // a submission's and a wait's cost to every pass).
+        let stamps = if profile && self.timestamps {
+            let count = 2 * steps.len() as u32;
+            let set = self.device.create_query_set(&wgpu::QuerySetDescriptor {
+                label: Some("pass timestamps"),
+                ty: wgpu::QueryType::Timestamp,
+                count,
+            });
+            let resolved = self.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("pass timestamps"),
+                size: 8 * count as u64,
+                usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+                mapped_at_creation: false,
+            });
+            Some((set, resolved))
+        } else {
+            None
+        };
         let mut counted = [0u64; 6];
         let mut first = 0u32;
         while first < n {
@@ -616,32 +636,60 @@ impl GpuContext {
                 .device
                 .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
             enc.clear_buffer(&scratch.ctrl, 0, None);
-            let mut k = 0;
-            while k < steps.len() {
-                let k_end = if profile { k + 1 } else { steps.len() };
-                {
-                    let mut cp = enc.begin_compute_pass(&wgpu::ComputePassDescriptor::default());
-                    for (name, pl, at) in &steps[k..k_end] {
-                        let bg = if *name == "args" { &args } else { &main };
-                        cp.set_bind_group(0, bg, &[]);
-                        cp.set_pipeline(pl);
-                        match (at, *name) {
-                            (Some(at), _) => cp.dispatch_workgroups_indirect(&scratch.args, *at),
-                            (None, "setup") => cp.dispatch_workgroups(gx, gy, 1),
-                            (None, _) => cp.dispatch_workgroups(1, 1, 1),
+            let record =
+                |cp: &mut wgpu::ComputePass,
+                 (name, pl, at): &(&str, &wgpu::ComputePipeline, Option<u64>)| {
+                    let bg = if *name == "args" { &args } else { &main };
+                    cp.set_bind_group(0, bg, &[]);
+                    cp.set_pipeline(pl);
+                    match (at, *name) {
+                        (Some(at), _) => cp.dispatch_workgroups_indirect(&scratch.args, *at),
+                        (None, "setup") => cp.dispatch_workgroups(gx, gy, 1),
+                        (None, _) => cp.dispatch_workgroups(1, 1, 1),
+                    }
+                };
+            if let Some((set, resolved)) = &stamps {
+                for (i, step) in steps.iter().enumerate() {
+                    let mut cp = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                        label: Some(step.0),
+                        timestamp_writes: Some(wgpu::ComputePassTimestampWrites {
+                            query_set: set,
+                            beginning_of_pass_write_index: Some(2 * i as u32),
+                            end_of_pass_write_index: Some(2 * i as u32 + 1),
+                        }),
+                    });
+                    record(&mut cp, step);
+                }
+                enc.resolve_query_set(set, 0..2 * steps.len() as u32, resolved, 0);
+                self.queue.submit([enc.finish()]);
+                let words = self.read_u32(resolved, 4 * steps.len())?;
+                let period = f64::from(self.queue.get_timestamp_period()) * 1e-9;
+                for (i, t) in spent.iter_mut().enumerate() {
+                    let at = |q: usize| u64::from(words[2 * q]) | u64::from(words[2 * q + 1]) << 32;
+                    *t += at(2 * i + 1).saturating_sub(at(2 * i)) as f64 * period;
+                }
+            } else {
+                let mut k = 0;
+                while k < steps.len() {
+                    let k_end = if profile { k + 1 } else { steps.len() };
+                    {
+                        let mut cp =
+                            enc.begin_compute_pass(&wgpu::ComputePassDescriptor::default());
+                        for step in &steps[k..k_end] {
+                            record(&mut cp, step);
                         }
                     }
+                    let t = std::time::Instant::now();
+                    self.queue.submit([enc.finish()]);
+                    if profile {
+                        self.wait()?;
+                        spent[k] += t.elapsed().as_secs_f64();
+                    }
+                    enc = self
+                        .device
+                        .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
+                    k = k_end;
                 }
-                let t = std::time::Instant::now();
-                self.queue.submit([enc.finish()]);
-                if profile {
-                    self.wait()?;
-                    spent[k] += t.elapsed().as_secs_f64();
-                }
-                enc = self
-                    .device
-                    .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
-                k = k_end;
             }
             if profile {
                 let c = scratch.last_counts(self)?;
@@ -663,9 +711,18 @@ impl GpuContext {
             let line: Vec<String> = steps
                 .iter()
                 .zip(&spent)
-                .map(|((name, _, _), s)| format!("{name} {s:.3} s"))
+                .map(|((name, _, _), s)| format!("{name} {s:.4} s"))
                 .collect();
-            eprintln!("per-sample passes ({n} pixels): {}", line.join(", "));
+            let clock = if stamps.is_some() {
+                "device timestamps"
+            } else {
+                "host clock, a submission per pass"
+            };
+            let total: f64 = spent.iter().sum();
+            eprintln!(
+                "per-sample passes ({n} pixels; {clock}; {total:.4} s in all): {}",
+                line.join(", ")
+            );
             let [rays, colour, proposal4, samples4, proposal3, samples3] = counted;
             let lists = if live.is_some() {
                 format!(

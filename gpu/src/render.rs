@@ -166,6 +166,52 @@ pub(crate) fn pick_adapter(policy: AdapterPolicy) -> Result<wgpu::Adapter, GpuEr
     }
 }
 
+/// Scratch per batch of a frame's rays on a discrete GPU (the adapter's binding limit still
+/// applies): fewer, fuller batches. On an NVIDIA H200 a 1352x1014 frame of a balanced stage model
+/// took 5 batches instead of 38, at 9.9 instead of 8.3 FPS (docs/playback.md, "On an NVIDIA
+/// H200 again").
+pub const DISCRETE_FRAME_WORK_BYTES: u64 = 1 << 30;
+
+/// The line of `render.wgsl` that sets how many samples one invocation of the per-sample passes
+/// evaluates.
+const LANES_LINE: &str = "const LANES: u32 = 4u;\n";
+
+/// Samples per invocation of the per-sample passes that [`GpuContext::open_with_kernels`]
+/// compiles for an adapter when not told: 4, the kernels' own. Four samples share each MLP
+/// weight read, which software adapters (lavapipe, SwiftShader) gather lane by lane: on
+/// lavapipe, fewer lanes are slower (docs/playback.md, "Samples per invocation").
+pub fn default_lanes(_info: &wgpu::AdapterInfo) -> u32 {
+    4
+}
+
+/// `wgsl` (a `render.wgsl`) with the per-sample passes evaluating `lanes` samples per
+/// invocation (1, 2 or 4): the source itself for 4.
+pub fn with_lanes(wgsl: &str, lanes: u32) -> Result<String, GpuError> {
+    if !matches!(lanes, 1 | 2 | 4) {
+        return Err(GpuError::Input(format!(
+            "{lanes} samples per invocation: the kernels take 1, 2 or 4"
+        )));
+    }
+    if !wgsl.contains(LANES_LINE) {
+        return Err(GpuError::Shader(
+            "the shader does not set LANES to 4 on a line of its own".into(),
+        ));
+    }
+    Ok(wgsl.replacen(LANES_LINE, &format!("const LANES: u32 = {lanes}u;\n"), 1))
+}
+
+/// The `LANES` a source sets (4 when it sets none: an older `render.wgsl`).
+fn lanes_of(wgsl: &str) -> u32 {
+    wgsl.lines()
+        .find_map(|l| {
+            l.strip_prefix("const LANES: u32 = ")?
+                .strip_suffix("u;")?
+                .parse()
+                .ok()
+        })
+        .unwrap_or(4)
+}
+
 /// An open device with the compiled kernels.
 pub struct GpuContext {
     pub(crate) device: wgpu::Device,
@@ -183,6 +229,10 @@ pub struct GpuContext {
     source: String,
     /// How the scenes' hash tables are held ([`TableFormat`]); the pipelines are compiled for it.
     tables: TableFormat,
+    /// Samples per invocation of the per-sample passes ([`with_lanes`]).
+    lanes: u32,
+    /// Whether the device writes timestamps at pass boundaries (the pass-by-pass profile).
+    pub(crate) timestamps: bool,
     /// Bound at bindings 7-10 by the per-ray kernels, which use none of them.
     pub(crate) placeholders: crate::passes::Placeholders,
     pub(crate) state: Arc<Mutex<DeviceState>>,
@@ -212,7 +262,21 @@ impl GpuContext {
 
     /// [`GpuContext::open`] with the hash tables of its scenes held in `tables`' format.
     pub fn open_with_tables(policy: AdapterPolicy, tables: TableFormat) -> Result<Self, GpuError> {
-        Self::with_adapter(pick_adapter(policy)?, RENDER_WGSL, tables)
+        Self::open_with_kernels(policy, tables, None)
+    }
+
+    /// [`GpuContext::open_with_tables`] with the per-sample passes evaluating `lanes` samples
+    /// per invocation (1, 2 or 4; `None`: [`default_lanes`] for the adapter). The frames are the
+    /// same whatever the lanes; the speed is not (see [`default_lanes`]).
+    pub fn open_with_kernels(
+        policy: AdapterPolicy,
+        tables: TableFormat,
+        lanes: Option<u32>,
+    ) -> Result<Self, GpuError> {
+        let adapter = pick_adapter(policy)?;
+        let lanes = lanes.unwrap_or_else(|| default_lanes(&adapter.get_info()));
+        let source = with_lanes(RENDER_WGSL, lanes)?;
+        Self::with_adapter(adapter, &source, tables)
     }
 
     /// [`GpuContext::open`] with another WGSL source of the same entry points and bindings (a
@@ -244,9 +308,13 @@ impl GpuContext {
             max_buffer_size: al.max_buffer_size,
             ..wgpu::Limits::default()
         };
+        // Timestamp queries where the adapter has them: only the pass-by-pass profile
+        // (`MSTH_GPU_PASS_PROFILE`) writes any.
+        let features = adapter.features() & wgpu::Features::TIMESTAMP_QUERY;
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("msth"),
             required_limits: limits.clone(),
+            required_features: features,
             ..Default::default()
         }))
         .map_err(|e| GpuError::Device {
@@ -327,6 +395,8 @@ impl GpuContext {
             eval,
             passes,
             pipeline_layout: pl,
+            lanes: lanes_of(&source),
+            timestamps: features.contains(wgpu::Features::TIMESTAMP_QUERY),
             source,
             tables,
             placeholders,
@@ -339,12 +409,29 @@ impl GpuContext {
         self.tables
     }
 
+    /// Samples one invocation of the per-sample passes evaluates ([`with_lanes`]).
+    pub fn lanes(&self) -> u32 {
+        self.lanes
+    }
+
     /// `name (backend, device type)` of the adapter in use.
     pub fn adapter_name(&self) -> String {
         format!(
             "{} ({:?}, {:?})",
             self.info.name, self.info.backend, self.info.device_type
         )
+    }
+
+    /// Bytes of scratch a batch of a frame's rays takes by default on this adapter
+    /// ([`GpuContext::frame_scratch_within`]): [`DISCRETE_FRAME_WORK_BYTES`] on a discrete GPU,
+    /// [`crate::FRAME_WORK_BYTES`] elsewhere (integrated GPUs share the host's memory; software
+    /// adapters gain nothing from larger batches).
+    pub fn default_scratch_budget(&self) -> u64 {
+        if self.info.device_type == wgpu::DeviceType::DiscreteGpu {
+            DISCRETE_FRAME_WORK_BYTES
+        } else {
+            crate::FRAME_WORK_BYTES
+        }
     }
 
     /// Whether the adapter is a software rasteriser (lavapipe, WARP).
@@ -832,5 +919,30 @@ impl GpuScene {
             }
         }
         Ok(true)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `with_lanes` rewrites the one `LANES` line of the kernels, and refuses other counts.
+    #[test]
+    fn lanes_rewrite_the_kernels_constant() {
+        assert_eq!(lanes_of(RENDER_WGSL), 4);
+        for lanes in [1u32, 2, 4] {
+            let s = with_lanes(RENDER_WGSL, lanes).unwrap();
+            assert_eq!(lanes_of(&s), lanes);
+            assert_eq!(s.matches("const LANES: u32 = ").count(), 1);
+            assert_eq!(s.len(), RENDER_WGSL.len());
+        }
+        assert_eq!(with_lanes(RENDER_WGSL, 4).unwrap(), RENDER_WGSL);
+        for bad in [0u32, 3, 8] {
+            let e = with_lanes(RENDER_WGSL, bad).unwrap_err();
+            assert!(e.to_string().contains("1, 2 or 4"), "{e}");
+        }
+        // A source that does not set LANES as the kernels do is refused, not compiled as is.
+        let other = RENDER_WGSL.replace(LANES_LINE, "const LANES: u32 = 4u; // four\n");
+        assert!(matches!(with_lanes(&other, 1), Err(GpuError::Shader(_))));
     }
 }

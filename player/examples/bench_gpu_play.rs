@@ -19,10 +19,11 @@
 //! `MSTH_BENCH_PROFILE=1` ends with one full frame whose passes are timed one by one;
 //! `MSTH_BENCH_COMPARE_PARAMS=1` compares each frame's parameters with the device's copy
 //! instead of passing the player's version of them (`GpuRenderer::set_params_version`);
-//! `MSTH_BENCH_SCRATCH_MIB=N` lets a batch of rays take N MiB of scratch instead of 128 (fewer,
-//! larger batches per frame; `GpuRenderer::set_scratch_budget`); `MSTH_BENCH_TABLES=f32|f16`
+//! `MSTH_BENCH_SCRATCH_MIB=N` lets a batch of rays take N MiB of scratch instead of the adapter's
+//! default (1024 on a discrete GPU, else 128: `GpuRenderer::set_scratch_budget`); `MSTH_BENCH_TABLES=f32|f16`
 //! holds the hash tables in that format (default: `msth play`'s choice, f32 for a lossless file,
-//! else f16).
+//! else f16); `MSTH_BENCH_LANES=1|2|4` compiles the per-sample passes for that many samples
+//! per invocation (default: the adapter's, `msth_gpu::default_lanes`).
 //!
 //! `cargo run --release -p msth-player --example bench_gpu_play -- FILE.msth [WxH] [FRAMES]`
 //! (default 1352x1014, 24 frames per measurement). Any adapter is used (lavapipe included: use
@@ -146,7 +147,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         Ok(v) => v.parse()?,
         Err(_) => msth_player::play::gpu_tables_for(decoded.metadata.quant),
     };
-    let ctx = GpuContext::open_with_tables(AdapterPolicy::any(), tables)?;
+    let lanes: Option<u32> = match std::env::var("MSTH_BENCH_LANES") {
+        Ok(v) => Some(v.parse().map_err(|_| "MSTH_BENCH_LANES: 1, 2 or 4")?),
+        Err(_) => None,
+    };
+    let ctx = GpuContext::open_with_kernels(AdapterPolicy::any(), tables, lanes)?;
     let mib = |t| {
         let [(_, a), (_, b), _] = msth_player::gpu::GpuModel::new(&cfg)
             .map(|m| m.buffer_sizes(t))
@@ -154,8 +159,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         (a + b) as f64 / (1 << 20) as f64
     };
     println!(
-        "adapter: {}; hash tables {} ({:.1} MiB on the device; f32 {:.1}, f16 {:.1})",
+        "adapter: {}; {} samples per invocation; hash tables {} ({:.1} MiB on the device; f32 {:.1}, f16 {:.1})",
         ctx.adapter_name(),
+        ctx.lanes(),
         tables.name(),
         mib(tables),
         mib(TableFormat::F32),
@@ -210,7 +216,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         first.stats.rays_rendered,
         first.stats.rays_empty,
         (w as usize * h as usize).div_ceil(batch),
-        scratch_mib.unwrap_or(msth_gpu::FRAME_WORK_BYTES >> 20),
+        gpu.scratch_budget() >> 20,
     );
     let mut ms = Vec::new();
     for (i, &tm) in times.iter().enumerate() {
@@ -234,7 +240,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     println!("full frames, moving camera:  {}", stats(&ms));
 
     // 3. Incremental frames, fixed camera.
-    let ctx = GpuContext::open_with_tables(AdapterPolicy::any(), tables)?;
+    let ctx = GpuContext::open_with_kernels(AdapterPolicy::any(), tables, lanes)?;
     let mut inc = GpuRenderer::new(ctx, &cfg, RenderSettings::default())?;
     inc.set_occupancy(grid.clone())?;
     if let Some(mib) = scratch_mib {

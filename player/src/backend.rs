@@ -72,7 +72,8 @@ impl FrameRenderer {
             )
         };
         let gpu = |policy| -> Result<(Self, BackendInfo), GpuError> {
-            let ctx = GpuContext::open_with_tables(policy, settings.gpu_tables)?;
+            let ctx =
+                GpuContext::open_with_kernels(policy, settings.gpu_tables, settings.gpu_lanes)?;
             let device = ctx.adapter_name();
             let r = GpuRenderer::new(ctx, cfg, settings)?;
             // The GPU renderer has the CPU renderer's caches (sample-level reuse included).

@@ -72,6 +72,9 @@ pub struct RenderSettings {
     /// reads, at a relative error of 2^-11 per value). The CPU renderer reads the parameters as
     /// given.
     pub gpu_tables: msth_gpu::TableFormat,
+    /// GPU renderer: samples per invocation of the per-sample passes (1, 2 or 4; `None`: the
+    /// adapter's default, [`msth_gpu::default_lanes`]). Frames are the same whatever the lanes.
+    pub gpu_lanes: Option<u32>,
 }
 
 impl RenderSettings {
@@ -152,6 +155,7 @@ impl Default for RenderSettings {
             max_sample_cache_bytes: 2 << 30,
             time_range: (0.0, 1.0),
             gpu_tables: msth_gpu::TableFormat::F32,
+            gpu_lanes: None,
         }
     }
 }

@@ -103,6 +103,11 @@ fn main() -> std::process::ExitCode {
             "playback_reports_table_values_binary16_clamps",
             playback_reports_table_values_binary16_clamps,
         )
+        .needs(
+            &[&gpu],
+            "every_lane_count_renders_the_same_frames",
+            every_lane_count_renders_the_same_frames,
+        )
         .run()
 }
 
@@ -1194,5 +1199,77 @@ fn playback_reports_table_values_binary16_clamps() {
         let expected = if tables.is_none() { "f16" } else { "f32" };
         assert_eq!(report.backend.tables, Some(expected));
         assert_eq!(report.backend.tables_clamped, want, "{tables:?}");
+    }
+}
+
+/// The per-sample passes compiled for 1, 2 and 4 samples per invocation render the same frames,
+/// full (the live lists split by the mask, with an occupancy grid) and incremental (the sample
+/// cache's `pass_build` and `pass_dynamic`), specialised and generic; other counts are clear
+/// errors.
+fn every_lane_count_renders_the_same_frames() {
+    let (cfg, params) = balanced_model(5);
+    let r = 16u32;
+    let mut grid = msth_codec::OccupancyGrid::full(r);
+    for i in 0..(r * r * r) as usize {
+        // Clear every cell with x < r / 4.
+        if (i as u32 % r) < r / 4 {
+            grid.words[i / 32] &= !(1u32 << (i % 32));
+        }
+    }
+    let grid = std::sync::Arc::new(grid);
+    // 37 x 23 pixels: lists whose lengths are rarely a multiple of 4.
+    let cam = test_camera(37, 23);
+    let settings = RenderSettings {
+        probes: 0,
+        reuse: Reuse::Samples,
+        ..Default::default()
+    };
+    let mut cpu = Renderer::new(&cfg, settings);
+    cpu.set_occupancy(Some(grid.clone()));
+    let times = [0.0f32, 0.5, 1.0];
+    let cpu_frames: Vec<Frame> = times
+        .iter()
+        .map(|&t| cpu.render(&cam, t, &params))
+        .collect();
+    let render = |lanes: u32, mlps: GpuMlps| -> Vec<Frame> {
+        let ctx =
+            GpuContext::open_with_kernels(AdapterPolicy::any(), TableFormat::F32, Some(lanes))
+                .unwrap();
+        assert_eq!(ctx.lanes(), lanes);
+        let mut gpu = GpuRenderer::new(ctx, &cfg, settings).unwrap();
+        gpu.set_mlps(mlps);
+        gpu.set_occupancy(Some(grid.clone())).unwrap();
+        let frames: Vec<Frame> = times
+            .iter()
+            .map(|&t| gpu.render(&cam, t, &params).unwrap())
+            .collect();
+        assert_eq!(
+            matches!(gpu.mlp_status(), MlpStatus::Specialised(_)),
+            mlps == GpuMlps::Specialised
+        );
+        frames
+    };
+    for mlps in [GpuMlps::Specialised, GpuMlps::Generic] {
+        let four = render(4, mlps);
+        for lanes in [1u32, 2] {
+            let other = render(lanes, mlps);
+            for (i, ((a, b), c)) in four.iter().zip(&other).zip(&cpu_frames).enumerate() {
+                let d = max_diff(a, b);
+                println!(
+                    "{mlps:?}, {lanes} lane(s), frame {i} ({}): max difference {d:.2e} from 4 lanes; {:.1} dB against the CPU",
+                    if b.stats.full { "full" } else { "incremental" },
+                    psnr(c, b)
+                );
+                assert!(d <= 1e-5, "{lanes} lanes, frame {i}: {d}");
+                assert_eq!(a.stats.samples_evaluated, b.stats.samples_evaluated);
+                assert!(psnr(c, b) >= 40.0);
+            }
+        }
+    }
+    for bad in [0u32, 3, 8] {
+        let e = GpuContext::open_with_kernels(AdapterPolicy::any(), TableFormat::F32, Some(bad))
+            .err()
+            .unwrap();
+        assert!(e.to_string().contains("1, 2 or 4"), "{e}");
     }
 }

@@ -110,7 +110,8 @@ pub struct GpuRenderer {
     frame: Option<(wgpu::Buffer, usize)>,
     /// The passes' scratch, and the pixel count it was made for.
     scratch: Option<(FrameScratch, usize)>,
-    /// Bytes of scratch one batch of rays may take ([`msth_gpu::FRAME_WORK_BYTES`] unless set).
+    /// Bytes of scratch one batch of rays may take ([`GpuContext::default_scratch_budget`]
+    /// unless set).
     scratch_budget: u64,
     /// The caller's version of the parameters it passes ([`GpuRenderer::set_params_version`]),
     /// and the version the device holds (`None`: compare the values).
@@ -169,6 +170,7 @@ impl GpuRenderer {
             ctx.check_storage(what, bytes)?;
         }
         let no_list = ctx.storage_buffer("empty list", &[], false)?;
+        let scratch_budget = ctx.default_scratch_budget();
         Ok(GpuRenderer {
             ctx,
             cfg: cfg.clone(),
@@ -179,7 +181,7 @@ impl GpuRenderer {
             scene: None,
             frame: None,
             scratch: None,
-            scratch_budget: msth_gpu::FRAME_WORK_BYTES,
+            scratch_budget,
             params_version: None,
             uploaded_version: None,
             no_list,
@@ -191,14 +193,19 @@ impl GpuRenderer {
     }
 
     /// Lets one batch of rays of the per-sample passes take up to `bytes` of scratch memory
-    /// (default [`msth_gpu::FRAME_WORK_BYTES`], 128 MiB; the adapter's binding limit still
-    /// applies): a frame of more rays than a batch holds renders in several batches, each a
+    /// (default: [`GpuContext::default_scratch_budget`], 1 GiB on a discrete GPU, else
+    /// [`msth_gpu::FRAME_WORK_BYTES`], 128 MiB; the adapter's binding limit still applies): a frame of more rays than a batch holds renders in several batches, each a
     /// round of every pass. Larger batches mean fewer, fuller dispatches; the frame is the same.
     pub fn set_scratch_budget(&mut self, bytes: u64) {
         if bytes != self.scratch_budget {
             self.scratch_budget = bytes;
             self.scratch = None;
         }
+    }
+
+    /// Bytes of scratch one batch of rays may take ([`GpuRenderer::set_scratch_budget`]).
+    pub fn scratch_budget(&self) -> u64 {
+        self.scratch_budget
     }
 
     /// Promises that the parameters passed with the frames from now on hold the same values for
