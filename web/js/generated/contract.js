@@ -46,7 +46,7 @@ export const HASH_PRIMES = [1, 2654435761, 805459861, 3674653429];
 export const PARAM_ALIGN = 16;
 /** Direction encoding size (degree-4 spherical harmonics). */
 export const SH_COEFFS = 16;
-export const RENDER_STATIC_CUTOFF = 0.001;
+export const RENDER_STATIC_CUTOFF = 0.02;
 export const VISIBLE_TRANSMITTANCE = 0.001;
 export const HIDDEN_TRANSMITTANCE = 0.0001;
 /** Samples per ray at play time (msth_core::config::SampleLevel): per level, the [numerator, denominator] of the proposal and of the main samples' fraction, rounded up. */
