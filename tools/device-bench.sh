@@ -5,6 +5,7 @@
 # and packed here, and one command there runs every measurement.
 #
 #   tools/device-bench.sh pack [DEMO.msth STAGE.msth]   # here: build, strip, pack into .device/
+#   DEVICE_BENCH_BASE=COMMIT tools/device-bench.sh pack ...  # also that commit's bench_gpu_play
 #   tools/device-bench.sh run                           # there (or here, on lavapipe, as a check)
 #
 # `pack` builds the release binaries that measure (`bench_gpu_play`, `msth`), strips them, copies
@@ -59,6 +60,24 @@ pack() {
         cp "$root/target/release/$b" "$pack_dir/bin/"
         strip "$pack_dir/bin/$(basename "$b")"
     done
+    # A baseline in the same run: DEVICE_BENCH_BASE=COMMIT builds that commit's bench_gpu_play
+    # (in a temporary worktree, its own target folder) as bench_gpu_play_base.
+    rm -f "$pack_dir/bin/bench_gpu_play_base"
+    if [ -n "${DEVICE_BENCH_BASE:-}" ]; then
+        local base_tree
+        base_tree=$(mktemp -d)
+        echo "== building the baseline: $DEVICE_BENCH_BASE"
+        git -C "$root" worktree add --detach "$base_tree" "$DEVICE_BENCH_BASE" >/dev/null
+        (cd "$base_tree" && CARGO_TARGET_DIR="$root/target/device-base" \
+            cargo build --release -p msth-player --example bench_gpu_play) || {
+            git -C "$root" worktree remove --force "$base_tree"
+            die "the baseline $DEVICE_BENCH_BASE did not build"
+        }
+        git -C "$root" worktree remove --force "$base_tree"
+        cp "$root/target/device-base/release/examples/bench_gpu_play" "$pack_dir/bin/bench_gpu_play_base"
+        strip "$pack_dir/bin/bench_gpu_play_base"
+        git -C "$root" rev-parse --short "$DEVICE_BENCH_BASE" >"$pack_dir/bin/base-commit"
+    fi
     local demo="${1:-}" stage="${2:-}"
     local msth="$root/target/release/msth"
     if [ -z "$demo" ]; then
@@ -138,15 +157,21 @@ run() {
     }
     play() {
         # play MODEL SAMPLES [VAR=VALUE...]: bench_gpu_play with those variables set
+        # (BENCH=bench_gpu_play_base: the baseline's binary)
         local m="$models/$1.msth" s=$2
         shift 2
         [ -f "$m" ] || return 0
         local env_args=(env -u MSTH_BENCH_SAMPLES -u MSTH_BENCH_SCRATCH_MIB -u MSTH_BENCH_COMPARE_PARAMS -u MSTH_BENCH_TABLES -u MSTH_BENCH_LANES)
         [ "$s" = model ] || env_args+=(MSTH_BENCH_SAMPLES="$s")
-        step 120 "${env_args[@]}" "$@" "$bin/bench_gpu_play" "$m" "$size" "$frames"
+        step 120 "${env_args[@]}" "$@" "$bin/${BENCH:-bench_gpu_play}" "$m" "$size" "$frames"
     }
-    # Most wanted first (#17: a balanced stage model at 1352x1014), in case time runs out.
+    # Most wanted first (#17: a balanced stage model at 1352x1014), in case time runs out; then
+    # the baseline's binary on the same model, when `pack` built one.
     play stage model
+    if [ -x "$bin/bench_gpu_play_base" ]; then
+        echo "baseline: $(cat "$bin/base-commit" 2>/dev/null || echo unknown)" | tee -a "$report"
+        BENCH=bench_gpu_play_base play stage model
+    fi
     # Samples per invocation of the per-sample passes: 4 is what software adapters want; a GPU
     # may run one or two per invocation faster (more invocations, fewer live registers).
     for l in ${DEVICE_BENCH_LANES:-1 2}; do play stage model MSTH_BENCH_LANES="$l"; done
@@ -160,6 +185,7 @@ run() {
     # f32 hash tables (the default for a quantised file is binary16): what half the bytes buy.
     play stage model MSTH_BENCH_TABLES=f32
     for s in $samples; do play demo "$s"; done
+    [ -x "$bin/bench_gpu_play_base" ] && BENCH=bench_gpu_play_base play demo model
     # One full frame pass by pass, at the model's own samples (on the device's clock where it
     # has timestamp queries), with 4 and with 1 sample per invocation.
     if [ -f "$models/stage.msth" ]; then
