@@ -751,6 +751,9 @@ impl GpuContext {
     /// Builds the sample cache of the `n` pixels in `list` of `view`'s camera: the proposal
     /// field at each of `times` (per-bin maximum of the weights), `samples` fixed samples per
     /// ray from that histogram, static samples (`1 - m < cutoff`) evaluated once at time 0.
+    /// The cache's frames are compact: `frame` (here, and in [`GpuContext::render_sample_cache`])
+    /// holds entry `i` for the list's pixel `i` (a pixel that misses the scene gets the
+    /// background here, once).
     #[allow(clippy::too_many_arguments)]
     pub fn build_sample_cache(
         &self,
@@ -797,7 +800,7 @@ impl GpuContext {
         };
         for (i, &t) in times.iter().enumerate() {
             let mut pass = base;
-            pass.tile = [0, n, P_LIST, samples];
+            pass.tile = [0, n, P_LIST | P_COMPACT, samples];
             pass.misc[1] = if i == 0 { 1.0 } else { 0.0 };
             v.time = [t, 0.0, 0.0, 0.0];
             self.queue
@@ -853,9 +856,9 @@ impl GpuContext {
         })
     }
 
-    /// Renders the cached rays at `view`'s time into `frame[pixel]`: the dynamic samples'
-    /// density, which samples light reaches, their colours, compositing. `list` must be the
-    /// pixel list the cache was built from.
+    /// Renders the cached rays at `view`'s time into `frame[i]` for the list's pixel `i`
+    /// (compact): the dynamic samples' density, which samples light reaches, their colours,
+    /// compositing. `list` and `frame` must be those the cache was built with.
     pub fn render_sample_cache(
         &self,
         scene: &GpuScene,

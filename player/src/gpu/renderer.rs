@@ -92,9 +92,15 @@ struct Cache {
     /// Pixels re-rendered every frame, on the host and on the device.
     dynamic: Vec<u32>,
     dynamic_buf: Option<wgpu::Buffer>,
+    /// The dynamic pixels' output on the device, compact (entry `i` for `dynamic[i]`): an
+    /// incremental frame reads back only these.
+    dynamic_out: Option<wgpu::Buffer>,
     /// Sample-level reuse of the dynamic pixels ([`Reuse::Samples`]).
     samples: Option<GpuSampleCache>,
     pending: Option<Pending>,
+    /// The last frame's RGB (row-major, every pixel), held on the host from the frame that
+    /// classifies the rays on: an incremental frame writes its dynamic pixels into it.
+    shown: Vec<f32>,
 }
 
 /// Renders frames of one model on the GPU, keeping the static cache between frames.
@@ -390,39 +396,51 @@ impl GpuRenderer {
             let mut cache = self.cache.take().expect("checked above");
             if let Some(p) = cache.pending.take() {
                 let t = Instant::now();
+                // The full frame on the host, from the rays it evaluated and the background.
+                cache.shown = match self.cfg.background {
+                    Background::Color { rgb } => rgb.repeat(total),
+                    Background::LastSample => vec![0.0; 3 * total],
+                };
+                for (&px, c) in p.pixels.iter().zip(&p.rgb) {
+                    let at = 3 * px as usize;
+                    cache.shown[at..at + 3].copy_from_slice(c);
+                }
                 stats.classify = Some(self.classify(camera, params, params_at, p, &mut cache)?);
                 stats.cache_seconds = t.elapsed().as_secs_f64();
             }
             let scene = self.scene.as_ref().expect("uploaded above");
-            let (frame, _) = self.frame.as_ref().expect("a full frame came first");
-            if let Some(list) = &cache.dynamic_buf {
+            if let (Some(list), Some(out)) = (&cache.dynamic_buf, &cache.dynamic_out) {
+                // The dynamic pixels only, into their compact output; read back alone and
+                // written into the host's copy of the frame.
                 let n = cache.dynamic.len() as u32;
-                let view = ViewU::new(camera, time, n, FLAG_LIST);
+                let view = ViewU::new(camera, time, n, FLAG_LIST | FLAG_COMPACT);
                 match (&cache.samples, &self.scratch) {
                     (Some(sc), _) => {
                         stats.samples_evaluated = sc.dynamic_samples() as usize;
-                        self.ctx
-                            .render_sample_cache(scene, &view, sc, list, frame)?;
+                        self.ctx.render_sample_cache(scene, &view, sc, list, out)?;
                     }
                     (None, Some((scratch, _))) => {
                         let px = Pixels::List {
                             list,
                             n,
-                            compact: false,
+                            compact: true,
                         };
-                        self.ctx.render_passes(scene, &view, px, frame, scratch)?;
+                        self.ctx.render_passes(scene, &view, px, out, scratch)?;
                     }
-                    (None, None) => self
-                        .ctx
-                        .dispatch(Kernel::Render, scene, &view, list, frame)?,
+                    (None, None) => self.ctx.dispatch(Kernel::Render, scene, &view, list, out)?,
+                }
+                let v = self.ctx.read_vec4(out, cache.dynamic.len())?;
+                for (&px, c) in cache.dynamic.iter().zip(&v) {
+                    let at = 3 * px as usize;
+                    cache.shown[at..at + 3].copy_from_slice(&c[..3]);
                 }
             }
-            let out = self.ctx.read_vec4(frame, total)?;
             stats.rays_rendered = cache.dynamic.len();
             stats.rays_empty = cache.empty;
             stats.rays_cached = total - cache.dynamic.len() - cache.empty;
+            let rgb = cache.shown.clone();
             self.cache = Some(cache);
-            out.iter().flat_map(|v| [v[0], v[1], v[2]]).collect()
+            rgb
         } else {
             if self.frame.as_ref().is_none_or(|(_, n)| *n < total) {
                 self.frame = None;
@@ -505,6 +523,7 @@ impl GpuRenderer {
             .map(|(&px, _)| px)
             .collect();
         cache.dynamic_buf = None;
+        cache.dynamic_out = None;
         cache.samples = None;
         if cache.dynamic.is_empty() {
             return Ok(counts);
@@ -514,14 +533,14 @@ impl GpuRenderer {
             bytemuck::cast_slice(&cache.dynamic),
             false,
         )?;
+        let out = ctx.output_buffer("dynamic pixels' colours", cache.dynamic.len())?;
         if self.settings.reuse == Reuse::Samples && self.kernels == GpuKernels::PerSample {
             let n = cache.dynamic.len() as u32;
             let samples = partition_samples(&self.cfg, &self.settings) as u32;
             let bytes = GpuContext::sample_cache_bytes(&self.gpu_model, n as u64, samples as u64);
             if bytes <= self.settings.max_sample_cache_bytes {
                 let times = partition_times(&self.cfg, &self.settings);
-                let (frame, _) = self.frame.as_ref().expect("a full frame came first");
-                let view = ViewU::new(camera, 0.0, n, FLAG_LIST);
+                let view = ViewU::new(camera, 0.0, n, FLAG_LIST | FLAG_COMPACT);
                 match ctx.build_sample_cache(
                     scene,
                     &view,
@@ -530,7 +549,7 @@ impl GpuRenderer {
                     &times,
                     samples,
                     self.settings.sample_cutoff,
-                    frame,
+                    &out,
                 ) {
                     Ok(c) => cache.samples = Some(c),
                     // Beyond the adapter's buffer limits: whole rays, as over the budget.
@@ -540,6 +559,7 @@ impl GpuRenderer {
             }
         }
         cache.dynamic_buf = Some(list);
+        cache.dynamic_out = Some(out);
         Ok(counts)
     }
 
@@ -599,8 +619,10 @@ impl GpuRenderer {
             empty,
             dynamic: Vec::new(),
             dynamic_buf: None,
+            dynamic_out: None,
             samples: None,
             pending,
+            shown: Vec::new(),
         }
     }
 }
