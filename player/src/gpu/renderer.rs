@@ -203,8 +203,9 @@ impl GpuRenderer {
 
     /// Lets one batch of rays of the per-sample passes take up to `bytes` of scratch memory
     /// (default: [`GpuContext::default_scratch_budget`], 1 GiB on a discrete GPU, else
-    /// [`msth_gpu::FRAME_WORK_BYTES`], 128 MiB; the adapter's binding limit still applies): a frame of more rays than a batch holds renders in several batches, each a
-    /// round of every pass. Larger batches mean fewer, fuller dispatches; the frame is the same.
+    /// [`msth_gpu::FRAME_WORK_BYTES`], 128 MiB; the adapter's binding limit still applies): a
+    /// frame of more rays than a batch holds renders in several batches, each a round of every
+    /// pass. Larger batches mean fewer, fuller dispatches; the frame is the same.
     pub fn set_scratch_budget(&mut self, bytes: u64) {
         if bytes != self.scratch_budget {
             self.scratch_budget = bytes;
