@@ -19,11 +19,12 @@
 //! `MSTH_BENCH_PROFILE=1` ends with one full frame whose passes are timed one by one;
 //! `MSTH_BENCH_COMPARE_PARAMS=1` compares each frame's parameters with the device's copy
 //! instead of passing the player's version of them (`GpuRenderer::set_params_version`);
-//! `MSTH_BENCH_SCRATCH_MIB=N` lets a batch of rays take N MiB of scratch instead of the adapter's
-//! default (1024 on a discrete GPU, else 128: `GpuRenderer::set_scratch_budget`); `MSTH_BENCH_TABLES=f32|f16`
-//! holds the hash tables in that format (default: `msth play`'s choice, f32 for a lossless file,
-//! else f16); `MSTH_BENCH_LANES=1|2|4` compiles the per-sample passes for that many samples
-//! per invocation (default: the adapter's, `msth_gpu::default_lanes`).
+//! `MSTH_BENCH_SCRATCH_MIB=N` lets a batch of rays take N MiB of scratch instead of the
+//! adapter's default (1024 on a discrete GPU, else 128: `GpuRenderer::set_scratch_budget`);
+//! `MSTH_BENCH_TABLES=f32|f16` holds the hash tables in that format (default: `msth play`'s
+//! choice, f32 for a lossless file, else f16); `MSTH_BENCH_LANES=1|2|4` compiles the
+//! per-sample passes for that many samples per invocation (default: the adapter's,
+//! `msth_gpu::default_lanes`).
 //!
 //! `cargo run --release -p msth-player --example bench_gpu_play -- FILE.msth [WxH] [FRAMES]`
 //! (default 1352x1014, 24 frames per measurement). Any adapter is used (lavapipe included: use
