@@ -177,12 +177,11 @@ pub const DISCRETE_FRAME_WORK_BYTES: u64 = 1 << 30;
 const LANES_LINE: &str = "const LANES: u32 = 4u;\n";
 
 /// Samples per invocation of the per-sample passes that [`GpuContext::open_with_kernels`]
-/// compiles for an adapter when not told: 4, the kernels' own. Four samples share each MLP
-/// weight read, which software adapters (lavapipe, SwiftShader) gather lane by lane: on
-/// lavapipe, fewer lanes are slower (docs/playback.md, "Samples per invocation").
-pub fn default_lanes(_info: &wgpu::AdapterInfo) -> u32 {
-    4
-}
+/// compiles when not told: the kernels' own. Four samples share each MLP weight read, which
+/// software adapters (lavapipe, SwiftShader) gather lane by lane: on lavapipe, fewer lanes are
+/// slower; no hardware GPU has measured the others yet (docs/playback.md, "Batches, lanes and
+/// a profile on the device's clock").
+pub const DEFAULT_LANES: u32 = 4;
 
 /// `wgsl` (a `render.wgsl`) with the per-sample passes evaluating `lanes` samples per
 /// invocation (1, 2 or 4): the source itself for 4.
@@ -266,17 +265,15 @@ impl GpuContext {
     }
 
     /// [`GpuContext::open_with_tables`] with the per-sample passes evaluating `lanes` samples
-    /// per invocation (1, 2 or 4; `None`: [`default_lanes`] for the adapter). The frames are the
-    /// same whatever the lanes; the speed is not (see [`default_lanes`]).
+    /// per invocation (1, 2 or 4; `None`: [`DEFAULT_LANES`]). The frames are the same whatever
+    /// the lanes; the speed is not (see [`DEFAULT_LANES`]).
     pub fn open_with_kernels(
         policy: AdapterPolicy,
         tables: TableFormat,
         lanes: Option<u32>,
     ) -> Result<Self, GpuError> {
-        let adapter = pick_adapter(policy)?;
-        let lanes = lanes.unwrap_or_else(|| default_lanes(&adapter.get_info()));
-        let source = with_lanes(RENDER_WGSL, lanes)?;
-        Self::with_adapter(adapter, &source, tables)
+        let source = with_lanes(RENDER_WGSL, lanes.unwrap_or(DEFAULT_LANES))?;
+        Self::with_adapter(pick_adapter(policy)?, &source, tables)
     }
 
     /// [`GpuContext::open`] with another WGSL source of the same entry points and bindings (a

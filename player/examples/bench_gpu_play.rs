@@ -23,8 +23,8 @@
 //! adapter's default (1024 on a discrete GPU, else 128: `GpuRenderer::set_scratch_budget`);
 //! `MSTH_BENCH_TABLES=f32|f16` holds the hash tables in that format (default: `msth play`'s
 //! choice, f32 for a lossless file, else f16); `MSTH_BENCH_LANES=1|2|4` compiles the
-//! per-sample passes for that many samples per invocation (default: the adapter's,
-//! `msth_gpu::default_lanes`).
+//! per-sample passes for that many samples per invocation (default
+//! `msth_gpu::DEFAULT_LANES`, 4).
 //!
 //! `cargo run --release -p msth-player --example bench_gpu_play -- FILE.msth [WxH] [FRAMES]`
 //! (default 1352x1014, 24 frames per measurement). Any adapter is used (lavapipe included: use

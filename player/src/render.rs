@@ -72,8 +72,8 @@ pub struct RenderSettings {
     /// reads, at a relative error of 2^-11 per value). The CPU renderer reads the parameters as
     /// given.
     pub gpu_tables: msth_gpu::TableFormat,
-    /// GPU renderer: samples per invocation of the per-sample passes (1, 2 or 4; `None`: the
-    /// adapter's default, [`msth_gpu::default_lanes`]). Frames are the same whatever the lanes.
+    /// GPU renderer: samples per invocation of the per-sample passes (1, 2 or 4; `None`:
+    /// [`msth_gpu::DEFAULT_LANES`]). Frames are the same whatever the lanes.
     pub gpu_lanes: Option<u32>,
 }
 

@@ -419,6 +419,9 @@ fn gpu_frames_match_cpu_frames_full_and_incremental() {
             // threshold could flip on rounding; none do here).
             assert_eq!(a.stats.rays_empty, b.stats.rays_empty, "frame {i}");
             assert_eq!(a.stats.rays_rendered, b.stats.rays_rendered, "frame {i}");
+            // Classified from the second frame on, as the CPU renderer.
+            assert_eq!(gpu.dynamic_fraction().is_some(), i > 0, "frame {i}");
+            assert_eq!(cpu.dynamic_fraction().is_some(), i > 0, "frame {i}");
         }
         let (fc, fg) = (
             cpu.dynamic_fraction().unwrap(),

@@ -98,9 +98,8 @@ struct Cache {
     /// Sample-level reuse of the dynamic pixels ([`Reuse::Samples`]).
     samples: Option<GpuSampleCache>,
     /// The full frame's output and time, until the same camera comes again: its rays are then
-    /// listed (`pending`) and classified. A moving camera never pays for that list.
+    /// listed and classified. A moving camera never pays for that list.
     deferred: Option<(Vec<[f32; 4]>, f32)>,
-    pending: Option<Pending>,
     /// The last frame's RGB (row-major, every pixel), held on the host from the full frame's
     /// output on: an incremental frame writes its dynamic pixels into it.
     shown: Vec<f32>,
@@ -297,7 +296,7 @@ impl GpuRenderer {
     pub fn dynamic_fraction(&self) -> Option<f32> {
         self.cache
             .as_ref()
-            .filter(|c| c.pending.is_none())
+            .filter(|c| c.deferred.is_none())
             .map(|c| c.dynamic.len() as f32 / c.total.max(1) as f32)
     }
 
@@ -401,9 +400,7 @@ impl GpuRenderer {
             let t = Instant::now();
             if let Some((out, t0)) = cache.deferred.take() {
                 cache.shown = out.iter().flat_map(|v| [v[0], v[1], v[2]]).collect();
-                cache.pending = self.pending_cache(camera, t0, &out, true).pending;
-            }
-            if let Some(p) = cache.pending.take() {
+                let (_, p) = self.frame_rays(camera, t0, &out, true);
                 stats.classify = Some(self.classify(camera, params, params_at, p, &mut cache)?);
                 stats.cache_seconds = t.elapsed().as_secs_f64();
             }
@@ -459,17 +456,22 @@ impl GpuRenderer {
             }
             let out = self.ctx.read_vec4(frame, total)?;
             // Only the empty rays are counted now; the rays' list waits for the camera to stay.
-            let mut cache = self.pending_cache(camera, time, &out, false);
+            let (empty, _) = self.frame_rays(camera, time, &out, false);
             stats.full = true;
-            stats.rays_rendered = total - cache.empty;
-            stats.rays_empty = cache.empty;
+            stats.rays_rendered = total - empty;
+            stats.rays_empty = empty;
             let rgb = out.iter().flat_map(|v| [v[0], v[1], v[2]]).collect();
-            if self.settings.incremental {
-                cache.deferred = Some((out, time));
-                self.cache = Some(cache);
-            } else {
-                self.cache = None;
-            }
+            self.cache = self.settings.incremental.then(|| Cache {
+                camera: *camera,
+                total,
+                empty,
+                dynamic: Vec::new(),
+                dynamic_buf: None,
+                dynamic_out: None,
+                samples: None,
+                deferred: Some((out, time)),
+                shown: Vec::new(),
+            });
             rgb
         };
         stats.seconds = start.elapsed().as_secs_f64();
@@ -569,9 +571,16 @@ impl GpuRenderer {
         Ok(counts)
     }
 
-    /// The cache of a full frame: which pixels were evaluated (the others miss the scene under a
-    /// constant background, as in the CPU renderer), their rays, colours and visible depths.
-    fn pending_cache(&self, camera: &Camera, time: f32, out: &[[f32; 4]], keep: bool) -> Cache {
+    /// The rays of a full frame (`out`, its output): how many miss the scene under a constant
+    /// background (never evaluated, as in the CPU renderer), and with `keep` the others' pixels,
+    /// rays, colours and visible depths (none without).
+    fn frame_rays(
+        &self,
+        camera: &Camera,
+        time: f32,
+        out: &[[f32; 4]],
+        keep: bool,
+    ) -> (usize, Pending) {
         use rayon::prelude::*;
         let (w, h) = (camera.width, camera.height);
         let constant_bg = matches!(self.cfg.background, Background::Color { .. });
@@ -604,7 +613,7 @@ impl GpuRenderer {
             })
             .collect();
         let empty = rows.iter().map(|(e, _)| e).sum();
-        let pending = keep.then(|| {
+        let pending = {
             let n = rows.iter().map(|(_, p)| p.pixels.len()).sum();
             let mut all = Pending {
                 pixels: Vec::with_capacity(n),
@@ -619,19 +628,8 @@ impl GpuRenderer {
                 all.visible_depth.extend(p.visible_depth);
             }
             all
-        });
-        Cache {
-            camera: *camera,
-            total: w as usize * h as usize,
-            empty,
-            dynamic: Vec::new(),
-            dynamic_buf: None,
-            dynamic_out: None,
-            samples: None,
-            deferred: None,
-            pending,
-            shown: Vec::new(),
-        }
+        };
+        (empty, pending)
     }
 }
 
