@@ -20,6 +20,8 @@ const WORKGROUP: u32 = 64u;
 
 // Rendering constants of msth-core (pipeline.rs).
 const VISIBLE_TRANSMITTANCE: f32 = 1e-3;
+// The visible depth written for a ray that misses the scene under a constant background.
+const MISSED: f32 = -1.0;
 const TAU_HIDDEN: f32 = 9.210340372; // ln(1 / HIDDEN_TRANSMITTANCE), HIDDEN_TRANSMITTANCE = 1e-4
 
 // ---- Uniforms -------------------------------------------------------------------------------
@@ -733,7 +735,9 @@ fn invocation(gid: vec3<u32>, groups: vec3<u32>) -> u32 {
 
 // Renders view.size.z rays: pixel i, or pixel list[i] with flag bit 0. Writes
 // (r, g, b, visible depth) to frame[pixel], or frame[i] with flag bit 1. Rays that miss the scene
-// box under a constant background get the background without evaluation.
+// box under a constant background get the background without evaluation and the visible depth
+// MISSED (negative; a rendered ray's is at least the sampler's near >= 0), so that whoever reads
+// the frame back counts them without recomputing the rays.
 @compute @workgroup_size(64)
 fn render(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let i = invocation(gid, groups);
@@ -748,7 +752,7 @@ fn render(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
         let d = pixel_ray_dir(pixel);
         let lim = ray_limits(o, d);
         if !(lim.y > lim.x) && model.background.w == 1.0 {
-            frame[out] = vec4<f32>(model.background.xyz, lim.y);
+            frame[out] = vec4<f32>(model.background.xyz, MISSED);
         } else {
             let r = render_ray(o, d, view.time.x);
             frame[out] = vec4<f32>(r.rgb, r.visible_depth);
@@ -942,7 +946,7 @@ fn pass_setup(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
         let d = pixel_ray_dir(pixel);
         let lim = ray_limits(o, d);
         if !(lim.y > lim.x) && model.background.w == 1.0 {
-            frame[out] = vec4<f32>(model.background.xyz, lim.y);
+            frame[out] = vec4<f32>(model.background.xyz, MISSED);
         } else {
             let slot = atomicAdd(&ctrl[0], 1u);
             let at = pass_u.reg0.x + 4u * slot;

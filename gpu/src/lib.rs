@@ -219,6 +219,6 @@ pub mod step;
 pub use layout::{GpuLayoutError, GpuModel, TableFormat, ViewU, FLAG_COMPACT, FLAG_LIST};
 pub use passes::{FrameScratch, GpuSampleCache, PassCounts, Pixels, FRAME_WORK_BYTES};
 pub use render::{
-    with_lanes, AdapterPolicy, GpuContext, GpuError, GpuScene, Kernel, ALLOW_SOFTWARE_ENV,
-    DEFAULT_LANES, DISCRETE_FRAME_WORK_BYTES, RENDER_WGSL,
+    with_lanes, AdapterPolicy, GpuContext, GpuError, GpuScene, Kernel, ReadBack,
+    ALLOW_SOFTWARE_ENV, DEFAULT_LANES, DISCRETE_FRAME_WORK_BYTES, RENDER_WGSL,
 };

@@ -69,6 +69,16 @@ fn stats(ms: &[f64]) -> String {
     )
 }
 
+/// The mean host time of the frames (`FrameStats::host_seconds`: reading the output back and
+/// converting it), appended to a timed line.
+fn host(ms: &[f64]) -> String {
+    if ms.is_empty() {
+        return String::new();
+    }
+    let mean = ms.iter().sum::<f64>() / ms.len() as f64;
+    format!("; host {mean:.2} ms of it")
+}
+
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let Some(path) = args.first() else {
@@ -219,26 +229,36 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         (w as usize * h as usize).div_ceil(batch),
         gpu.scratch_budget() >> 20,
     );
-    let mut ms = Vec::new();
+    let (mut ms, mut host_ms) = (Vec::new(), Vec::new());
     for (i, &tm) in times.iter().enumerate() {
         version(&mut gpu, i);
         let t = Instant::now();
-        gpu.render(&cam, tm, &params[i])?;
+        let f = gpu.render(&cam, tm, &params[i])?;
         ms.push(1000.0 * t.elapsed().as_secs_f64());
+        host_ms.push(1000.0 * f.stats.host_seconds);
     }
-    println!("full frames, fixed camera:   {}", stats(&ms));
+    println!(
+        "full frames, fixed camera:   {}{}",
+        stats(&ms),
+        host(&host_ms)
+    );
 
     // 2. Moving camera.
-    let mut ms = Vec::new();
+    let (mut ms, mut host_ms) = (Vec::new(), Vec::new());
     for (i, &tm) in times.iter().enumerate() {
         let phase = i as f32 / frames.max(1) as f32 * std::f32::consts::TAU;
         let c = orbited(&cam, pivot, 10.0 * phase.sin());
         version(&mut gpu, i);
         let t = Instant::now();
-        gpu.render(&c, tm, &params[i])?;
+        let f = gpu.render(&c, tm, &params[i])?;
         ms.push(1000.0 * t.elapsed().as_secs_f64());
+        host_ms.push(1000.0 * f.stats.host_seconds);
     }
-    println!("full frames, moving camera:  {}", stats(&ms));
+    println!(
+        "full frames, moving camera:  {}{}",
+        stats(&ms),
+        host(&host_ms)
+    );
 
     // 3. Incremental frames, fixed camera.
     let ctx = GpuContext::open_with_kernels(AdapterPolicy::any(), tables, lanes)?;
@@ -247,7 +267,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     if let Some(mib) = scratch_mib {
         inc.set_scratch_budget(mib << 20);
     }
-    let mut ms = Vec::new();
+    let (mut ms, mut host_ms) = (Vec::new(), Vec::new());
     let (mut build_ms, mut rendered, mut samples) = (0.0, 0, 0);
     for (i, &tm) in times.iter().enumerate() {
         version(&mut inc, i);
@@ -259,6 +279,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             1 => build_ms = e,
             _ => {
                 ms.push(e);
+                host_ms.push(1000.0 * f.stats.host_seconds);
                 rendered = f.stats.rays_rendered;
                 samples = f.stats.samples_evaluated;
             }
@@ -271,8 +292,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         format!("; {rendered} dynamic rays, {samples} samples per frame")
     };
     println!(
-        "incremental, fixed camera:   {} (cache built in {build_ms:.1} ms{counts})",
-        stats(&ms)
+        "incremental, fixed camera:   {}{} (cache built in {build_ms:.1} ms{counts})",
+        stats(&ms),
+        host(&host_ms)
     );
 
     // MSTH_BENCH_PROFILE=1: one more full frame with every pass timed on its own (stderr).

@@ -181,6 +181,9 @@ pub struct FrameStats {
     pub cache_seconds: f64,
     /// Samples evaluated at this frame on rays with sample-level reuse (0 otherwise).
     pub samples_evaluated: usize,
+    /// GPU frames: host time after the device finished the frame's passes (reading the output
+    /// back, converting it to the frame's colours); 0 on the CPU.
+    pub host_seconds: f64,
     /// How the static cache was sorted, on the frame that sorted it (the second of a camera).
     pub classify: Option<ClassifyStats>,
 }

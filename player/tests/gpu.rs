@@ -400,11 +400,12 @@ fn gpu_frames_match_cpu_frames_full_and_incremental() {
         };
         let mut cpu = Renderer::new(&cfg, settings);
         let mut gpu = GpuRenderer::new(context(), &cfg, settings).unwrap();
+        // Far enough for the box to leave pixels around it.
         let cam = Camera::look_at(
             40,
             30,
             0.9,
-            glam::Vec3::new(0.3, -3.5, 1.2),
+            glam::Vec3::new(0.6, -7.0, 2.4),
             glam::Vec3::ZERO,
             glam::Vec3::Z,
         );
@@ -419,6 +420,11 @@ fn gpu_frames_match_cpu_frames_full_and_incremental() {
             // threshold could flip on rounding; none do here).
             assert_eq!(a.stats.rays_empty, b.stats.rays_empty, "frame {i}");
             assert_eq!(a.stats.rays_rendered, b.stats.rays_rendered, "frame {i}");
+            // The box is seen against its background: the GPU marks the rays that miss it in its
+            // output, and the host counts those marks.
+            if matches!(background, Background::Color { .. }) {
+                assert!(b.stats.rays_empty > 0, "frame {i}: no ray misses the box");
+            }
             // Classified from the second frame on, as the CPU renderer.
             assert_eq!(gpu.dynamic_fraction().is_some(), i > 0, "frame {i}");
             assert_eq!(cpu.dynamic_fraction().is_some(), i > 0, "frame {i}");

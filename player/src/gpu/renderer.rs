@@ -2,7 +2,8 @@
 //! the same sample-level reuse.
 //!
 //! A full frame renders every pixel on the device into a frame buffer that stays there
-//! (`(r, g, b, visible depth)` per pixel), through the per-sample passes of `msth-gpu`
+//! (`(r, g, b, visible depth)` per pixel, a negative depth for a ray that missed the scene),
+//! through the per-sample passes of `msth-gpu`
 //! ([`GpuKernels::PerSample`], the default) or the older one-invocation-per-ray kernel
 //! ([`GpuKernels::PerRay`], kept for comparison: `msth bench play --gpu` and
 //! `gpu/examples/bench_render.rs` time both). The second frame of a fixed camera classifies
@@ -11,18 +12,19 @@
 //! list of dynamic pixels, and, with [`Reuse::Samples`], builds the device's sample cache of
 //! those rays ([`GpuSampleCache`]: fixed samples over the clip, static samples evaluated once).
 //! From then on each frame evaluates only the dynamic samples (or, with [`Reuse::Rays`], the
-//! dynamic pixels' whole rays) into the cached frame buffer, which is read back whole.
+//! dynamic pixels' whole rays) into a compact output of the dynamic pixels, which alone is read
+//! back and written into the host's copy of the frame.
 
 use std::sync::Arc;
 use std::time::Instant;
 
 use msth_codec::OccupancyGrid;
-use msth_core::config::{Background, ModelConfig};
+use msth_core::config::ModelConfig;
 use msth_core::field::ModelLayout;
-use msth_core::pipeline::{ray_limits, TimedRay};
+use msth_core::pipeline::TimedRay;
 use msth_core::Camera;
 use msth_gpu::passes::FrameScratch;
-use msth_gpu::{GpuSampleCache, Pixels};
+use msth_gpu::{GpuSampleCache, Pixels, ReadBack};
 
 use super::{GpuContext, GpuError, GpuModel, GpuScene, Kernel, ViewU, FLAG_COMPACT, FLAG_LIST};
 use crate::render::{
@@ -97,9 +99,10 @@ struct Cache {
     dynamic_out: Option<wgpu::Buffer>,
     /// Sample-level reuse of the dynamic pixels ([`Reuse::Samples`]).
     samples: Option<GpuSampleCache>,
-    /// The full frame's output and time, until the same camera comes again: its rays are then
-    /// listed and classified. A moving camera never pays for that list.
-    deferred: Option<(Vec<[f32; 4]>, f32)>,
+    /// The full frame's time, until the same camera comes again: its output (still in the
+    /// device's frame buffer) is then read back, and its rays listed and classified. A moving
+    /// camera pays for neither.
+    deferred: Option<f32>,
     /// The last frame's RGB (row-major, every pixel), held on the host from the full frame's
     /// output on: an incremental frame writes its dynamic pixels into it.
     shown: Vec<f32>,
@@ -116,6 +119,8 @@ pub struct GpuRenderer {
     scene: Option<GpuScene>,
     /// Per-pixel output, and how many pixels it holds.
     frame: Option<(wgpu::Buffer, usize)>,
+    /// The staging buffer full frames are read back through, kept between frames.
+    readback: ReadBack,
     /// The passes' scratch, and the pixel count it was made for.
     scratch: Option<(FrameScratch, usize)>,
     /// Bytes of scratch one batch of rays may take ([`GpuContext::default_scratch_budget`]
@@ -188,6 +193,7 @@ impl GpuRenderer {
             gpu_model,
             scene: None,
             frame: None,
+            readback: ReadBack::default(),
             scratch: None,
             scratch_budget,
             params_version: None,
@@ -398,12 +404,15 @@ impl GpuRenderer {
         let rgb = if reuse {
             let mut cache = self.cache.take().expect("checked above");
             let t = Instant::now();
-            if let Some((out, t0)) = cache.deferred.take() {
+            if let Some(t0) = cache.deferred.take() {
+                let (frame, _) = self.frame.as_ref().expect("rendered by the full frame");
+                let out = self.ctx.read_vec4(frame, total)?;
                 cache.shown = out.iter().flat_map(|v| [v[0], v[1], v[2]]).collect();
-                let (_, p) = self.frame_rays(camera, t0, &out, true);
+                let p = frame_rays(camera, t0, &out);
                 stats.classify = Some(self.classify(camera, params, params_at, p, &mut cache)?);
                 stats.cache_seconds = t.elapsed().as_secs_f64();
             }
+            let mut host = Instant::now();
             let scene = self.scene.as_ref().expect("uploaded above");
             if let (Some(list), Some(out)) = (&cache.dynamic_buf, &cache.dynamic_out) {
                 // The dynamic pixels only, into their compact output; read back alone and
@@ -425,6 +434,7 @@ impl GpuRenderer {
                     }
                     (None, None) => self.ctx.dispatch(Kernel::Render, scene, &view, list, out)?,
                 }
+                host = Instant::now();
                 let v = self.ctx.read_vec4(out, cache.dynamic.len())?;
                 for (&px, c) in cache.dynamic.iter().zip(&v) {
                     let at = 3 * px as usize;
@@ -435,6 +445,7 @@ impl GpuRenderer {
             stats.rays_empty = cache.empty;
             stats.rays_cached = total - cache.dynamic.len() - cache.empty;
             let rgb = cache.shown.clone();
+            stats.host_seconds = host.elapsed().as_secs_f64();
             self.cache = Some(cache);
             rgb
         } else {
@@ -454,13 +465,16 @@ impl GpuRenderer {
                     .ctx
                     .dispatch(Kernel::Render, scene, &view, &self.no_list, frame)?,
             }
-            let out = self.ctx.read_vec4(frame, total)?;
-            // Only the empty rays are counted now; the rays' list waits for the camera to stay.
-            let (empty, _) = self.frame_rays(camera, time, &out, false);
+            // The colours and the count of rays that missed the scene, straight from the
+            // mapped staging buffer; the rays' list waits for the camera to stay.
+            let host = Instant::now();
+            let (rgb, empty) =
+                self.ctx
+                    .read_vec4_with(frame, total, &mut self.readback, frame_colours)?;
+            stats.host_seconds = host.elapsed().as_secs_f64();
             stats.full = true;
             stats.rays_rendered = total - empty;
             stats.rays_empty = empty;
-            let rgb = out.iter().flat_map(|v| [v[0], v[1], v[2]]).collect();
             self.cache = self.settings.incremental.then(|| Cache {
                 camera: *camera,
                 total,
@@ -469,7 +483,7 @@ impl GpuRenderer {
                 dynamic_buf: None,
                 dynamic_out: None,
                 samples: None,
-                deferred: Some((out, time)),
+                deferred: Some(time),
                 shown: Vec::new(),
             });
             rgb
@@ -570,67 +584,69 @@ impl GpuRenderer {
         cache.dynamic_out = Some(out);
         Ok(counts)
     }
+}
 
-    /// The rays of a full frame (`out`, its output): how many miss the scene under a constant
-    /// background (never evaluated, as in the CPU renderer), and with `keep` the others' pixels,
-    /// rays, colours and visible depths (none without).
-    fn frame_rays(
-        &self,
-        camera: &Camera,
-        time: f32,
-        out: &[[f32; 4]],
-        keep: bool,
-    ) -> (usize, Pending) {
-        use rayon::prelude::*;
-        let (w, h) = (camera.width, camera.height);
-        let constant_bg = matches!(self.cfg.background, Background::Color { .. });
-        // Row by row on every thread, in order: a 1352x1014 frame's rays took 130-270 ms on one
-        // core, more than an H200 takes to render the frame. Without `keep` only the empty rays
-        // are counted (every full frame: 21 ms against 97 ms with the list at 1352x1014 on 2
-        // cores); the list is made once the camera stays.
-        let rows: Vec<(usize, Pending)> = (0..h)
-            .into_par_iter()
-            .map(|y| {
-                let mut p = Pending::default();
-                let mut empty = 0;
-                for x in 0..w {
-                    let ray = TimedRay::through_pixel(camera, x, y, time);
-                    let (near, far) = ray_limits(&self.cfg, &ray);
-                    if constant_bg && far <= near {
-                        empty += 1;
-                        continue;
-                    }
-                    if keep {
-                        let px = y * w + x;
-                        let v = out[px as usize];
-                        p.pixels.push(px);
-                        p.rays.push(ray);
-                        p.rgb.push([v[0], v[1], v[2]]);
-                        p.visible_depth.push(v[3]);
-                    }
+/// The rays of a full frame that the kernels evaluated (`out`, its output; a negative visible
+/// depth marks a ray that missed the scene under a constant background, never evaluated, as in
+/// the CPU renderer): their pixels, rays, colours and visible depths.
+fn frame_rays(camera: &Camera, time: f32, out: &[[f32; 4]]) -> Pending {
+    use rayon::prelude::*;
+    let w = camera.width as usize;
+    // Row by row on every thread, in order: a 1352x1014 frame's rays took 130-270 ms on one
+    // core, more than an H200 takes to render the frame.
+    let rows: Vec<Pending> = out
+        .par_chunks(w.max(1))
+        .enumerate()
+        .map(|(y, row)| {
+            let mut p = Pending::default();
+            for (x, v) in row.iter().enumerate() {
+                if v[3] < 0.0 {
+                    continue;
                 }
-                (empty, p)
-            })
-            .collect();
-        let empty = rows.iter().map(|(e, _)| e).sum();
-        let pending = {
-            let n = rows.iter().map(|(_, p)| p.pixels.len()).sum();
-            let mut all = Pending {
-                pixels: Vec::with_capacity(n),
-                rays: Vec::with_capacity(n),
-                rgb: Vec::with_capacity(n),
-                visible_depth: Vec::with_capacity(n),
-            };
-            for (_, p) in rows {
-                all.pixels.extend(p.pixels);
-                all.rays.extend(p.rays);
-                all.rgb.extend(p.rgb);
-                all.visible_depth.extend(p.visible_depth);
+                p.pixels.push((y * w + x) as u32);
+                p.rays
+                    .push(TimedRay::through_pixel(camera, x as u32, y as u32, time));
+                p.rgb.push([v[0], v[1], v[2]]);
+                p.visible_depth.push(v[3]);
             }
-            all
-        };
-        (empty, pending)
+            p
+        })
+        .collect();
+    let n = rows.iter().map(|p| p.pixels.len()).sum();
+    let mut all = Pending {
+        pixels: Vec::with_capacity(n),
+        rays: Vec::with_capacity(n),
+        rgb: Vec::with_capacity(n),
+        visible_depth: Vec::with_capacity(n),
+    };
+    for p in rows {
+        all.pixels.extend(p.pixels);
+        all.rays.extend(p.rays);
+        all.rgb.extend(p.rgb);
+        all.visible_depth.extend(p.visible_depth);
     }
+    all
+}
+
+/// A full frame's colours (row-major RGB) from its output, and how many of its rays missed the
+/// scene (negative visible depth); on every thread, row blocks in order.
+fn frame_colours(out: &[[f32; 4]]) -> (Vec<f32>, usize) {
+    use rayon::prelude::*;
+    const BLOCK: usize = 16 * 1024;
+    let mut rgb = vec![0f32; 3 * out.len()];
+    let empty = rgb
+        .par_chunks_mut(3 * BLOCK)
+        .zip(out.par_chunks(BLOCK))
+        .map(|(to, from)| {
+            let mut empty = 0;
+            for (c, v) in to.chunks_exact_mut(3).zip(from) {
+                c.copy_from_slice(&v[..3]);
+                empty += usize::from(v[3] < 0.0);
+            }
+            empty
+        })
+        .sum();
+    (rgb, empty)
 }
 
 fn apply_occupancy(
