@@ -25,7 +25,7 @@
 # eat the rest.
 # DEVICE_BENCH_SIZE (default 1352x1014), DEVICE_BENCH_FRAMES (24), DEVICE_BENCH_SAMPLES
 # ("model fast faster"), DEVICE_BENCH_LANES ("1 2": the samples per invocation of the extra stage
-# runs), DEVICE_BENCH_SCRATCH_MIB (128: the batch scratch of the extra stage run),
+# runs), DEVICE_BENCH_SCRATCH_MIB ("128 4000": the batch scratch of the extra stage runs),
 # DEVICE_BENCH_STEP (1: the step benchmark) and DEVICE_BENCH_BUDGET (480: seconds after which
 # no command starts) change what runs; on lavapipe use e.g. DEVICE_BENCH_SIZE=128x96
 # DEVICE_BENCH_FRAMES=2 DEVICE_BENCH_STEP=0.
