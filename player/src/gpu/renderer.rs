@@ -449,6 +449,9 @@ impl GpuRenderer {
             self.cache = Some(cache);
             rgb
         } else {
+            // The frame buffer is about to change: a cache whose full frame waits there
+            // (`Cache::deferred`) goes first, whether or not this frame succeeds.
+            self.cache = None;
             if self.frame.as_ref().is_none_or(|(_, n)| *n < total) {
                 self.frame = None;
                 self.frame = Some((self.ctx.output_buffer("frame", total)?, total));
