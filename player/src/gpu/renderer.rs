@@ -435,11 +435,16 @@ impl GpuRenderer {
                     (None, None) => self.ctx.dispatch(Kernel::Render, scene, &view, list, out)?,
                 }
                 host = Instant::now();
-                let v = self.ctx.read_vec4(out, cache.dynamic.len())?;
-                for (&px, c) in cache.dynamic.iter().zip(&v) {
-                    let at = 3 * px as usize;
-                    cache.shown[at..at + 3].copy_from_slice(&c[..3]);
-                }
+                // Written into the host's frame from the mapped staging buffer, kept between
+                // frames (as the full frame's).
+                let (dynamic, shown) = (&cache.dynamic, &mut cache.shown);
+                self.ctx
+                    .read_vec4_with(out, dynamic.len(), &mut self.readback, |v| {
+                        for (&px, c) in dynamic.iter().zip(v) {
+                            let at = 3 * px as usize;
+                            shown[at..at + 3].copy_from_slice(&c[..3]);
+                        }
+                    })?;
             }
             stats.rays_rendered = cache.dynamic.len();
             stats.rays_empty = cache.empty;
