@@ -119,7 +119,8 @@ pub struct GpuRenderer {
     scene: Option<GpuScene>,
     /// Per-pixel output, and how many pixels it holds.
     frame: Option<(wgpu::Buffer, usize)>,
-    /// The staging buffer full frames are read back through, kept between frames.
+    /// The staging buffer frames are read back through (full frames and the dynamic pixels of
+    /// incremental ones), kept between frames.
     readback: ReadBack,
     /// The passes' scratch, and the pixel count it was made for.
     scratch: Option<(FrameScratch, usize)>,
