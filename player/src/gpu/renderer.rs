@@ -408,7 +408,7 @@ impl GpuRenderer {
             if let Some(t0) = cache.deferred.take() {
                 let (frame, _) = self.frame.as_ref().expect("rendered by the full frame");
                 let out = self.ctx.read_vec4(frame, total)?;
-                cache.shown = out.iter().flat_map(|v| [v[0], v[1], v[2]]).collect();
+                (cache.shown, _) = frame_colours(&out);
                 let p = frame_rays(camera, t0, &out);
                 stats.classify = Some(self.classify(camera, params, params_at, p, &mut cache)?);
                 stats.cache_seconds = t.elapsed().as_secs_f64();
