@@ -4,14 +4,16 @@
 # network, and a session has 15 minutes of device time, starts included: everything is built
 # and packed here, and one command there runs every measurement.
 #
-#   tools/device-bench.sh pack [DEMO.msth STAGE.msth]   # here: build, strip, pack into .device/
+#   tools/device-bench.sh pack [DEMO.msth STAGE.msth [STAGE2.msth]]  # here: build, pack into .device/
 #   DEVICE_BENCH_BASE=COMMIT tools/device-bench.sh pack ...  # also that commit's bench_gpu_play
 #   tools/device-bench.sh run                           # there (or here, on lavapipe, as a check)
 #
 # `pack` builds the release binaries that measure (`bench_gpu_play`, `msth`), strips them, copies
 # the two models (a fast-preset model of the built-in scene and a balanced-preset stage model;
 # without arguments it makes them: `msth demo` and `msth train ... --preset balanced`, about 10
-# minutes on 2 cores) and downloads the Vulkan loader packages into .gl/. Both folders are kept
+# minutes on 2 cores; STAGE2, optional, is the stage model's checkpoint exported again with other
+# export settings, e.g. a newer default, timed right after STAGE) and downloads the Vulkan loader
+# packages into .gl/. Both folders are kept
 # out of git through .git/info/exclude. Then, from the session:
 #
 #   run(command="bash tools/device-bench.sh run", carry=[".device", ".gl"], timeout_s=540)
@@ -78,7 +80,7 @@ pack() {
         strip "$pack_dir/bin/bench_gpu_play_base"
         git -C "$root" rev-parse --short "$DEVICE_BENCH_BASE" >"$pack_dir/bin/base-commit"
     fi
-    local demo="${1:-}" stage="${2:-}"
+    local demo="${1:-}" stage="${2:-}" stage2="${3:-}"
     local msth="$root/target/release/msth"
     if [ -z "$demo" ]; then
         demo="$work_dir/demo/scene.msth"
@@ -101,6 +103,11 @@ pack() {
     [ -f "$stage" ] || die "no file $stage"
     cp "$demo" "$pack_dir/models/demo.msth"
     cp "$stage" "$pack_dir/models/stage.msth"
+    rm -f "$pack_dir/models/stage2.msth"
+    if [ -n "$stage2" ]; then
+        [ -f "$stage2" ] || die "no file $stage2"
+        cp "$stage2" "$pack_dir/models/stage2.msth"
+    fi
     echo "== Vulkan loader packages into .gl/"
     mkdir -p "$root/.gl" /tmp/amd64/partial
     local o=(-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp/amd64)
@@ -172,6 +179,8 @@ run() {
         echo "baseline: $(cat "$bin/base-commit" 2>/dev/null || echo unknown)" | tee -a "$report"
         BENCH=bench_gpu_play_base play stage model
     fi
+    # The same checkpoint exported with other settings, when packed (`pack DEMO STAGE STAGE2`).
+    play stage2 model
     # Samples per invocation of the per-sample passes: 4 is what software adapters want; a GPU
     # may run one or two per invocation faster (more invocations, fewer live registers).
     for l in ${DEVICE_BENCH_LANES:-1 2}; do play stage model MSTH_BENCH_LANES="$l"; done
@@ -210,7 +219,7 @@ pack)
     ;;
 run) run ;;
 *)
-    echo "usage: $0 pack [DEMO.msth STAGE.msth] | run" >&2
+    echo "usage: $0 pack [DEMO.msth STAGE.msth [STAGE2.msth]] | run" >&2
     exit 2
     ;;
 esac

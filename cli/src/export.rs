@@ -181,9 +181,18 @@ pub(crate) fn seen_occupancy(
         min_weight,
     );
     grid.intersect(&seen);
+    let clipped = if r.clipped_footprints > 0 {
+        format!(
+            " ({} samples stood for more than {} cells per side and marked only those around them)",
+            r.clipped_footprints,
+            msth_codec::occupancy::MAX_FOOTPRINT_CELLS
+        )
+    } else {
+        String::new()
+    };
     let line = format!(
         "occupancy grid from what the training cameras see: {} cells lie wholly in their views; {} rays ({} cameras x {} times, \
-         every {} pixel per side) put weight >= {min_weight} in {} cells; with density: {dense} -> {} of {} cells ({:.1}%), in {:.1} s",
+         every {} pixel per side) put weight >= {min_weight} on samples that stand for {} cells{clipped}; with density: {dense} -> {} of {} cells ({:.1}%), in {:.1} s",
         r.covered_cells,
         r.rays,
         r.cameras,

@@ -5,10 +5,11 @@
 //! (sample-level reuse) on the CPU and the GPU.
 //!
 //! `cargo run --release -p msth-player --example bench_gpu_render -- FILE.msth [SIZE] [FRAMES]`
-//! (default 256 pixels square, 4 incremental frames). `FILE` may be `small` instead: a model
+//! (default 256 pixels square, 4 incremental frames; SIZE `WxH` keeps the camera's horizontal
+//! field of view, `N` is N x N with the intrinsics scaled by N over the camera's larger side). `FILE` may be `small` instead: a model
 //! with random parameters small enough for the per-ray kernel on lavapipe (the size of the
 //! end-to-end GPU test's model), for comparing both kernels where lavapipe takes both. The camera is the file's first camera,
-//! its intrinsics scaled to SIZE x SIZE. Any adapter is used (lavapipe included;
+//! sized as SIZE says. Any adapter is used (lavapipe included;
 //! `MSTH_BENCH_SKIP_PER_RAY=1` skips the old kernel, which takes minutes on software adapters
 //! for large frames; `MSTH_BENCH_OLD_WGSL=FILE` compiles the old kernel from another version of
 //! `render.wgsl`, e.g. `git show a04e488:gpu/shaders/render.wgsl`, the kernels before the
@@ -110,22 +111,30 @@ fn load(path: &str) -> Result<Loaded, Box<dyn std::error::Error>> {
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let Some(path) = args.first() else {
-        return Err("usage: bench_gpu_render FILE.msth [SIZE] [FRAMES]".into());
+        return Err("usage: bench_gpu_render FILE.msth [N | WxH] [FRAMES]".into());
     };
-    let size: u32 = args.get(1).map(|s| s.parse()).transpose()?.unwrap_or(256);
+    // SIZE: N (N x N, the camera's intrinsics scaled by N over its larger side) or WxH (the
+    // camera resized, its horizontal field of view kept: `Camera::resized`).
+    let size = args.get(1).map(String::as_str).unwrap_or("256");
     let frames: usize = args.get(2).map(|s| s.parse()).transpose()?.unwrap_or(4);
     let (cfg, mut cam, params_at, grid) = load(path)?;
     let grid = grid.filter(|_| std::env::var("MSTH_BENCH_NO_SKIP").as_deref() != Ok("1"));
-    let s = size as f32 / cam.width.max(cam.height) as f32;
-    cam.fx *= s;
-    cam.fy *= s;
-    cam.width = size;
-    cam.height = size;
-    cam.cx = 0.5 * size as f32;
-    cam.cy = 0.5 * size as f32;
+    if let Some((w, h)) = size.split_once('x') {
+        cam = cam.resized(w.parse()?, h.parse()?);
+    } else {
+        let n: u32 = size.parse()?;
+        let s = n as f32 / cam.width.max(cam.height) as f32;
+        cam.fx *= s;
+        cam.fy *= s;
+        cam.width = n;
+        cam.height = n;
+        cam.cx = 0.5 * n as f32;
+        cam.cy = 0.5 * n as f32;
+    }
+    let size = format!("{}x{}", cam.width, cam.height);
     let params0 = params_at(0.0);
     println!(
-        "model {path}: {} proposal + {} main samples per ray, {} levels; {size}x{size}",
+        "model {path}: {} proposal + {} main samples per ray, {} levels; {size}",
         cfg.sampler.num_proposal_samples, cfg.sampler.num_samples, cfg.field.encoding.grid3.levels
     );
 

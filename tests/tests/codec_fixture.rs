@@ -74,10 +74,8 @@ fn v2_fixture_decodes_with_its_occupancy_grid_and_renders_as_v1() {
         .occupancy
         .as_ref()
         .expect("a version-2 file has an occupancy grid");
-    assert_eq!(
-        g.resolution,
-        msth_codec::occupancy::DEFAULT_OCCUPANCY_RESOLUTION
-    );
+    // Written when the writer's default resolution was 64 (128 since 2026-11-30).
+    assert_eq!(g.resolution, 64);
     // The fixture's model is a short training run whose field is a thin fog over much of the
     // box: most cells stay occupied at the default threshold.
     let share = g.occupied_fraction();
@@ -203,20 +201,27 @@ fn occupancy_skipping_keeps_frames_within_40_db() {
 /// file's cameras see ([`msth_codec::occupancy::seen_cells`]). It is a subset of the density
 /// grid and of the dilated cells that hold the cast rays' weighted samples; every such sample's
 /// cell is kept; and frames of those cameras rendered with it stay within 40 dB of unskipped
-/// ones at several times (the property the export relies on).
+/// ones at several times (the property the export relies on), at 64^3 (the default until
+/// 2026-11-30) and at the default resolution.
 #[test]
 fn the_grid_of_what_the_cameras_see_keeps_their_frames() {
+    for r in [64, msth_codec::occupancy::DEFAULT_OCCUPANCY_RESOLUTION] {
+        seen_grid_keeps_the_frames(r);
+    }
+}
+
+fn seen_grid_keeps_the_frames(r: u32) {
     use msth_codec::occupancy::{compute, seen_cells, DEFAULT_SEEN_WEIGHT};
     use msth_core::pipeline::{weighted_samples, TimedRay, Workspace};
     use msth_player::{RenderSettings, Renderer};
     let d = decode_all(&std::fs::read(fixtures().join("v2.msth")).unwrap()).unwrap();
-    let density = compute(&d.config, &d.layout, &d.params, 64, 1e-2);
+    let density = compute(&d.config, &d.layout, &d.params, r, 1e-2);
     let (seen, report) = seen_cells(
         &d.config,
         &d.layout,
         &d.params,
         &d.cameras,
-        64,
+        r,
         DEFAULT_SEEN_WEIGHT,
     );
     assert!(report.rays > 0 && report.seen_cells > 0, "{report:?}");
@@ -232,7 +237,7 @@ fn the_grid_of_what_the_cameras_see_keeps_their_frames() {
         assert_eq!(g, a & b, "word {k}");
     }
     println!(
-        "{report:?}: density {:.1}% of cells, seen {:.1}%, both {:.1}%",
+        "{r}^3: {report:?}: density {:.1}% of cells, seen {:.1}%, both {:.1}%",
         100.0 * density.occupied_fraction(),
         100.0 * seen.occupied_fraction(),
         100.0 * grid.occupied_fraction()
@@ -259,11 +264,11 @@ fn the_grid_of_what_the_cameras_see_keeps_their_frames() {
         &rays,
         DEFAULT_SEEN_WEIGHT,
         &mut Workspace::default(),
-        |p| {
+        |s| {
             found += 1;
             assert!(
-                seen.occupied_unit(p),
-                "{p:?} carries weight in a cell marked unseen"
+                seen.occupied_unit(s.unit),
+                "{s:?} carries weight in a cell marked unseen"
             );
         },
     );
@@ -292,8 +297,8 @@ fn the_grid_of_what_the_cameras_see_keeps_their_frames() {
             skipping.set_occupancy(Some(grid.clone()));
             let b = skipping.render(camera, t, &params);
             let p = psnr(&a.rgb, &b.rgb);
-            println!("camera {c}, t = {t}: {p:.2} dB against unskipped");
-            assert!(p >= 40.0, "camera {c}, t = {t}: {p:.2} dB");
+            println!("{r}^3, camera {c}, t = {t}: {p:.2} dB against unskipped");
+            assert!(p >= 40.0, "{r}^3, camera {c}, t = {t}: {p:.2} dB");
         }
     }
 }

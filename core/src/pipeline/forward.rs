@@ -107,10 +107,24 @@ fn forward_geometry(
     ws.w_main.resize(n * nf, 0.0);
 }
 
-/// Where a chunk's light comes from: calls `seen` with the grids' coordinates `(x, y, z)` of
-/// every main sample whose rendering weight is at least `min_weight`, sampling as
-/// [`render_chunk`] does (the main field's colour is not evaluated). `msth export` marks the
-/// occupancy grid's cells that its training cameras see this way.
+/// A main sample that [`weighted_samples`] reports.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct WeightedSample {
+    /// The ray's index in the chunk.
+    pub ray: usize,
+    /// The sample's point in the grids' coordinates `(x, y, z)`.
+    pub unit: [f32; 3],
+    /// Its interval along the ray, in world units from the ray's origin (the ray's direction
+    /// is a unit vector): the sample stands for the ray between these two distances.
+    pub t: [f32; 2],
+    /// Its rendering weight (NaN where the density was NaN).
+    pub weight: f32,
+}
+
+/// Where a chunk's light comes from: calls `seen` with every main sample whose rendering weight
+/// is at least `min_weight` (or NaN), sampling as [`render_chunk`] does (the main field's colour
+/// is not evaluated). `msth export` marks the occupancy grid's cells that its training cameras
+/// see this way.
 pub fn weighted_samples(
     cfg: &ModelConfig,
     layout: &ModelLayout,
@@ -118,7 +132,7 @@ pub fn weighted_samples(
     rays: &[TimedRay],
     min_weight: f32,
     ws: &mut Workspace,
-    mut seen: impl FnMut([f32; 3]),
+    mut seen: impl FnMut(WeightedSample),
 ) {
     let nf = cfg.sampler.num_samples;
     ws.prop.enc.static_cutoff = RENDER_STATIC_CUTOFF;
@@ -128,11 +142,17 @@ pub fn weighted_samples(
         let fs = i * nf..(i + 1) * nf;
         let w = &mut ws.w_main[fs.clone()];
         render::weights(&ws.main.sigma[fs.clone()], &ws.delta_main[fs.clone()], w);
+        let edges = &ws.t_main[i * (nf + 1)..(i + 1) * (nf + 1)];
         for (k, &wk) in w.iter().enumerate() {
             // NaN weights count as seen: nothing is skipped on their account.
             if wk >= min_weight || wk.is_nan() {
                 let p = &ws.pts_main[(i * nf + k) * 4..];
-                seen([p[0], p[1], p[2]]);
+                seen(WeightedSample {
+                    ray: i,
+                    unit: [p[0], p[1], p[2]],
+                    t: [edges[k], edges[k + 1]],
+                    weight: wk,
+                });
             }
         }
     }

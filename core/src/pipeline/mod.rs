@@ -207,7 +207,7 @@ mod tests;
 mod train;
 
 use forward::forward_chunk;
-pub use forward::{composite_ray, render_chunk, weighted_samples};
+pub use forward::{composite_ray, render_chunk, weighted_samples, WeightedSample};
 pub use playback::{playback_partition, KeepPoint, Partition};
 pub use sampling::{direction_encodings, ray_limits, sample_time, spacing_unit};
 use sampling::{place_proposal_samples, place_samples};

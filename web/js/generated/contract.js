@@ -38,7 +38,7 @@ export const LIMITS = {
   maxOccupancyResolution: 512,
 };
 /** The occupancy section (format.md §6.5): header bytes before the bit words, the writer's default resolution. */
-export const OCCUPANCY = { headerBytes: 16, defaultResolution: 64 };
+export const OCCUPANCY = { headerBytes: 16, defaultResolution: 128 };
 
 // ---- msth-core: the flat parameter buffer and rendering
 export const HASH_PRIMES = [1, 2654435761, 805459861, 3674653429];
