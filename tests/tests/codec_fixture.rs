@@ -50,6 +50,8 @@ fn regenerate_fixture() {
         chunk_frames: v1.metadata.chunk_frames as usize,
         dynamic_threshold: v1.metadata.dynamic_threshold,
         frame_rate: v1.metadata.frame_rate,
+        // The writer's default when the fixture was made (128 since 2026-11-30).
+        occupancy_resolution: 64,
         ..Default::default()
     };
     let (bytes, report) = encode(&v1.config, &v1.params, &v1.cameras, &opts).unwrap();
@@ -74,7 +76,7 @@ fn v2_fixture_decodes_with_its_occupancy_grid_and_renders_as_v1() {
         .occupancy
         .as_ref()
         .expect("a version-2 file has an occupancy grid");
-    // Written when the writer's default resolution was 64 (128 since 2026-11-30).
+    // Written at 64^3, the writer's default then (`regenerate_fixture` keeps it).
     assert_eq!(g.resolution, 64);
     // The fixture's model is a short training run whose field is a thin fog over much of the
     // box: most cells stay occupied at the default threshold.
