@@ -286,8 +286,8 @@ pub fn evaluation_times(frames: usize) -> Vec<f32> {
 /// resolution is computed first, and only the vertices in its occupied cells are evaluated: the
 /// others count as empty. Its one-cell dilation, two cells of this grid, is the margin for
 /// density between its vertices, as it is for a grid of that resolution on its own. A scene that
-/// leaves most of space empty then costs about what the coarser grid costs (an object scene at
-/// 128^3: 3.4 s against 21.6 s evaluating every vertex on 2 cores).
+/// leaves most of space empty then costs about what the coarser grid costs (an object scene's
+/// export at 128^3 took 4.2-4.6 s, against 21.6 s evaluating every vertex, on 2 cores).
 pub fn compute(
     cfg: &ModelConfig,
     layout: &ModelLayout,
@@ -299,7 +299,6 @@ pub fn compute(
     let threshold = density_threshold(&cfg.bounds, resolution.max(1), alpha);
     let v = r + 1;
     let nv = v * v * v;
-    // Whether a vertex is evaluated at all: those in occupied cells of the coarser grid.
     // Per vertex: EVALUATE until found at or above the threshold (HIT); SKIPPED where the
     // coarser grid leaves it empty. One byte per vertex, written in place batch by batch.
     const EVALUATE: u8 = 0;
@@ -409,11 +408,11 @@ pub struct SeenReport {
 /// the work per sample.
 pub const MAX_FOOTPRINT_CELLS: u32 = 9;
 
-/// Marks the cells of `grid` that the weighted sample `s` of `ray` stands for ([`seen_cells`]): its own cell,
-/// and the cells of an axis-aligned cube around its midpoint whose half side is half the larger
-/// of its interval along the ray and the distance `spread t` to the neighbouring cast rays at
-/// its distance `t` (world units, mapped to the grid's coordinates corner by corner), at most
-/// [`MAX_FOOTPRINT_CELLS`] per side. Returns whether the cube was cut to that.
+/// Marks the cells of `grid` that the weighted sample `s` of `ray` stands for ([`seen_cells`]):
+/// its own cell, and the cells of an axis-aligned cube around its midpoint whose side is the
+/// larger of its interval along the ray and the distance `spread t` to the neighbouring cast
+/// rays at its distance `t` (world units, mapped to the grid's coordinates corner by corner),
+/// at most [`MAX_FOOTPRINT_CELLS`] per side. Returns whether the cube was cut to that.
 fn mark_footprint(
     grid: &mut OccupancyGrid,
     bounds: &SceneBounds,

@@ -5,11 +5,12 @@
 //! (sample-level reuse) on the CPU and the GPU.
 //!
 //! `cargo run --release -p msth-player --example bench_gpu_render -- FILE.msth [SIZE] [FRAMES]`
-//! (default 256 pixels square, 4 incremental frames; SIZE `WxH` keeps the camera's horizontal
-//! field of view, `N` is N x N with the intrinsics scaled by N over the camera's larger side). `FILE` may be `small` instead: a model
+//! (default 256 pixels square, 4 incremental frames). `FILE` may be `small` instead: a model
 //! with random parameters small enough for the per-ray kernel on lavapipe (the size of the
-//! end-to-end GPU test's model), for comparing both kernels where lavapipe takes both. The camera is the file's first camera,
-//! sized as SIZE says. Any adapter is used (lavapipe included;
+//! end-to-end GPU test's model), for comparing both kernels where lavapipe takes both. The
+//! camera is the file's first camera: SIZE `N` makes it N x N, its intrinsics scaled by N over
+//! its larger side; `WxH` resizes it keeping its horizontal field of view (`Camera::resized`;
+//! the training cameras' own aspect shows what they see). Any adapter is used (lavapipe included;
 //! `MSTH_BENCH_SKIP_PER_RAY=1` skips the old kernel, which takes minutes on software adapters
 //! for large frames; `MSTH_BENCH_OLD_WGSL=FILE` compiles the old kernel from another version of
 //! `render.wgsl`, e.g. `git show a04e488:gpu/shaders/render.wgsl`, the kernels before the
