@@ -27,7 +27,7 @@ pub const OCCUPANCY_HEADER: usize = 16;
 /// The largest resolution a decoder accepts by default (512^3 bits = 16 MiB).
 pub const MAX_OCCUPANCY_RESOLUTION: u64 = 512;
 /// The writer's default resolution (cells per axis). 128 since 2026-11-30 (64 before): on a
-/// forward-facing stage the finer grid leaves a fifth fewer live proposal samples in a training
+/// forward-facing stage the finer grid leaves a third fewer live proposal samples in a training
 /// camera's view at the same held-out PSNR (docs/playback.md, "A finer occupancy grid").
 pub const DEFAULT_OCCUPANCY_RESOLUTION: u32 = 128;
 /// The writer's default opacity budget: the density threshold is the one at which a ray crossing
@@ -404,15 +404,21 @@ pub struct SeenReport {
     pub clipped_footprints: u64,
 }
 
-/// The most cells per side a weighted sample's footprint marks ([`seen_cells`]), which bounds
-/// the work per sample.
+/// The most cells per side one cube of a weighted sample's footprint marks ([`seen_cells`]),
+/// which bounds the work per cube.
 pub const MAX_FOOTPRINT_CELLS: u32 = 9;
 
+/// The most cubes a weighted sample's footprint is made of: a longer interval is cut into
+/// this many pieces, each wider than half a cell.
+pub const MAX_FOOTPRINT_PIECES: u32 = 64;
+
 /// Marks the cells of `grid` that the weighted sample `s` of `ray` stands for ([`seen_cells`]):
-/// its own cell, and the cells of an axis-aligned cube around its midpoint whose side is the
-/// larger of its interval along the ray and the distance `spread t` to the neighbouring cast
-/// rays at its distance `t` (world units, mapped to the grid's coordinates corner by corner),
-/// at most [`MAX_FOOTPRINT_CELLS`] per side. Returns whether the cube was cut to that.
+/// its own cell, and its interval along the ray, thickened by the distance `spread t` to the
+/// neighbouring cast rays at distance `t` (world units). The interval is cut into pieces of
+/// about half a cell or less (at most [`MAX_FOOTPRINT_PIECES`]), and each piece marks an
+/// axis-aligned cube around its middle whose side is the larger of its length and `spread t`,
+/// mapped to the grid's coordinates corner by corner and cut to [`MAX_FOOTPRINT_CELLS`] per
+/// side around the cell of its middle. Returns whether a cube was cut.
 fn mark_footprint(
     grid: &mut OccupancyGrid,
     bounds: &SceneBounds,
@@ -423,43 +429,57 @@ fn mark_footprint(
     let own = grid.cell_index_unit(s.unit);
     grid.set(own);
     let [t0, t1] = s.t;
-    let t = 0.5 * (t0 + t1);
-    let half = 0.5 * (t1 - t0).max(spread * t);
-    let centre = ray.origin + ray.dir * t;
-    if !(half.is_finite() && centre.is_finite()) {
+    let at = |t: f32| ray.origin + ray.dir * t;
+    if !(t0.is_finite() && t1.is_finite() && spread.is_finite() && at(t0).is_finite()) {
         return false;
     }
-    let mut lo = glam::Vec3::splat(f32::INFINITY);
-    let mut hi = glam::Vec3::splat(f32::NEG_INFINITY);
+    let r = grid.resolution as f32;
+    let len = (t1 - t0).max(0.0);
+    let (u0, u1) = (bounds.to_unit(at(t0)), bounds.to_unit(at(t1)));
+    let cells_along = (u1 - u0).abs().max_element() * r;
+    let pieces = (2.0 * cells_along)
+        .ceil()
+        .clamp(1.0, MAX_FOOTPRINT_PIECES as f32) as u32;
+    let mut cut = false;
+    for j in 0..pieces {
+        let a = t0 + len * j as f32 / pieces as f32;
+        let b = t0 + len * (j + 1) as f32 / pieces as f32;
+        let t = 0.5 * (a + b);
+        cut |= mark_cube(grid, bounds, at(t), 0.5 * (b - a).max(spread * t));
+    }
+    cut
+}
+
+/// Marks the cells of `grid` that an axis-aligned cube of half side `half` around the world
+/// point `centre` covers, mapped to the grid's coordinates corner by corner and cut to
+/// [`MAX_FOOTPRINT_CELLS`] per side around the cell of `centre`. Returns whether it was cut.
+fn mark_cube(
+    grid: &mut OccupancyGrid,
+    bounds: &SceneBounds,
+    centre: glam::Vec3,
+    half: f32,
+) -> bool {
+    let r = grid.resolution;
+    let cell = |u: f32| ((u * r as f32).floor().max(0.0) as u32).min(r - 1);
+    let mid = bounds.to_unit(centre);
+    let mut lo = mid;
+    let mut hi = mid;
     for k in 0..8 {
         let sign = |bit: usize| if k & bit == 0 { -half } else { half };
         let u = bounds.to_unit(centre + glam::Vec3::new(sign(1), sign(2), sign(4)));
         lo = lo.min(u);
         hi = hi.max(u);
     }
-    let r = grid.resolution;
-    let cell = |u: f32| ((u * r as f32).floor().max(0.0) as u32).min(r - 1);
-    let (x0, y0, z0) = (cell(lo.x), cell(lo.y), cell(lo.z));
-    let (ox, oy, oz) = (
-        own % r as usize,
-        (own / r as usize) % r as usize,
-        own / (r as usize * r as usize),
-    );
-    // The cube, cut to MAX_FOOTPRINT_CELLS per side around the sample's own cell.
     let reach = MAX_FOOTPRINT_CELLS / 2;
-    let span = |a: u32, b: u32, own: usize| {
-        let own = own as u32;
-        let lo = a.max(own.saturating_sub(reach));
-        let hi = b.min(own + reach);
-        (
-            lo.min(own),
-            hi.max(own),
-            a < own.saturating_sub(reach) || b > own + reach,
-        )
+    let mut cut = false;
+    let mut span = |lo: f32, hi: f32, mid: f32| {
+        let (a, b, m) = (cell(lo), cell(hi), cell(mid));
+        cut |= a + reach < m || b > m + reach;
+        (a.max(m.saturating_sub(reach)), b.min(m + reach))
     };
-    let (xa, xb, cx) = span(x0, cell(hi.x), ox);
-    let (ya, yb, cy) = span(y0, cell(hi.y), oy);
-    let (za, zb, cz) = span(z0, cell(hi.z), oz);
+    let (xa, xb) = span(lo.x, hi.x, mid.x);
+    let (ya, yb) = span(lo.y, hi.y, mid.y);
+    let (za, zb) = span(lo.z, hi.z, mid.z);
     let ru = r as usize;
     for z in za..=zb {
         for y in ya..=yb {
@@ -468,7 +488,7 @@ fn mark_footprint(
             }
         }
     }
-    cx || cy || cz
+    cut
 }
 
 /// What the cameras leave worth drawing: the cells of an `R^3` grid over the unit cube that a
@@ -484,7 +504,7 @@ fn mark_footprint(
 /// between its ray and the neighbouring cast rays, `stride` pixels away. On a grid finer than
 /// the cast rays, marking only the cells of the midpoints left holes that a view from elsewhere
 /// saw as missing haze or surface (at 128^3: 29 dB against the unskipped frame on an orbit of
-/// the demo model, against 48 dB with footprints).
+/// the demo model, against 41 dB with footprints; docs/playback.md, "A finer occupancy grid").
 ///
 /// `msth export` keeps the cells of the density grid ([`compute`]) that are also in this grid:
 /// density the training cameras look through or never reach past a surface, such as haze
@@ -732,8 +752,8 @@ mod tests {
             }
             (g.occupied_cells(), box_)
         };
-        // The interval: a cube of side 0.4 around (0.4, 0.53, 0.53), 16 cells per side: cells
-        // 3..=9 along x, 5..=11 across; the sample's own cell is (6, 8, 8).
+        // The interval, x from 0.2 to 0.6 at 16 cells per side: cells 3..=9 along the ray, in
+        // 13 pieces of 0.03 (under half a cell), so only the ray's own row across.
         let mut g = OccupancyGrid::empty(16);
         assert!(!mark_footprint(
             &mut g,
@@ -742,7 +762,7 @@ mod tests {
             sample(1.2, 1.6),
             0.0
         ));
-        assert_eq!(marked(&g), (7 * 7 * 7, [[3, 9], [5, 11], [5, 11]]));
+        assert_eq!(marked(&g), (7, [[3, 9], [8, 8], [8, 8]]));
         // A short interval: its own cell only; with the neighbouring ray 0.1 away at t = 1.4
         // (spread 0.1 / 1.4), 0.05 on either side: cells 5..=7 along x, 7..=9 across.
         let mut g = OccupancyGrid::empty(16);
@@ -751,12 +771,32 @@ mod tests {
         let mut g = OccupancyGrid::empty(16);
         mark_footprint(&mut g, &bounds, &ray, sample(1.39, 1.41), 0.1 / 1.4);
         assert_eq!(marked(&g), (27, [[5, 7], [7, 9], [7, 9]]));
-        // A footprint wider than MAX_FOOTPRINT_CELLS (here the whole grid) is cut around the
-        // sample's own cell and reported.
+        // An interval across the whole grid of 128 cells: at most MAX_FOOTPRINT_PIECES pieces,
+        // two cells long each, and still every cell along the ray (row 67 across).
+        let mut g = OccupancyGrid::empty(128);
+        assert!(!mark_footprint(
+            &mut g,
+            &bounds,
+            &ray,
+            sample(1.0, 2.0),
+            0.0
+        ));
+        assert!((0..128).all(|x| g.cell(x, 67, 67)));
+        assert_eq!(marked(&g), (128 * 3 * 3, [[0, 127], [66, 68], [66, 68]]));
+        // A gap wider than MAX_FOOTPRINT_CELLS (here the whole grid) is cut around each
+        // piece's cell and reported: 9 cells across, about the ray's 2 cells along it.
         let mut g = OccupancyGrid::empty(64);
-        assert!(mark_footprint(&mut g, &bounds, &ray, sample(1.0, 2.0), 0.0));
+        assert!(mark_footprint(
+            &mut g,
+            &bounds,
+            &ray,
+            sample(1.39, 1.41),
+            1.0
+        ));
         let n = MAX_FOOTPRINT_CELLS as u64;
-        assert_eq!(g.occupied_cells(), n * n * n);
+        let (count, box_) = marked(&g);
+        assert!((n * n * n..=3 * n * n * n).contains(&count), "{count}");
+        assert_eq!(box_[1], [33 - 4, 33 + 4]);
         // Not finite: the sample's own cell only, nothing else.
         let mut g = OccupancyGrid::empty(16);
         mark_footprint(&mut g, &bounds, &ray, sample(f32::NAN, 1.4), 0.0);
