@@ -107,10 +107,16 @@ impl OccupancyGrid {
     /// cube; a coordinate of exactly 1 belongs to the last cell).
     #[inline]
     pub fn cell_index_unit(&self, p: [f32; 3]) -> usize {
-        let r = self.resolution;
-        let c = |v: f32| ((v.clamp(0.0, 1.0) * r as f32) as u32).min(r - 1) as usize;
-        let r = r as usize;
+        let c = |v: f32| self.cell_along(v) as usize;
+        let r = self.resolution as usize;
         c(p[0]) + r * (c(p[1]) + r * c(p[2]))
+    }
+
+    /// The cell along one axis that holds unit coordinate `v` (clamped to `[0, 1]`).
+    #[inline]
+    fn cell_along(&self, v: f32) -> u32 {
+        let r = self.resolution;
+        ((v.clamp(0.0, 1.0) * r as f32) as u32).min(r - 1)
     }
 
     /// This grid with every cell next to an occupied one (26 neighbours) occupied too.
@@ -398,9 +404,9 @@ pub struct SeenReport {
     pub seen_cells: u64,
     /// Cells wholly in view of one of the cameras; the others are kept whatever was seen.
     pub covered_cells: u64,
-    /// Weighted samples whose footprint spanned more than [`MAX_FOOTPRINT_CELLS`] cells per
-    /// side and was marked only that far around the sample (0 unless the grid is far finer
-    /// than the cast rays).
+    /// Weighted samples one of whose footprint's cubes spanned more than
+    /// [`MAX_FOOTPRINT_CELLS`] cells per side and was marked only that far around its middle
+    /// (0 unless the grid is far finer than the cast rays).
     pub clipped_footprints: u64,
 }
 
@@ -408,8 +414,8 @@ pub struct SeenReport {
 /// which bounds the work per cube.
 pub const MAX_FOOTPRINT_CELLS: u32 = 9;
 
-/// The most cubes a weighted sample's footprint is made of: a longer interval is cut into
-/// this many pieces, each wider than half a cell.
+/// The most cubes a weighted sample's footprint is made of: an interval longer than this many
+/// half cells is cut into this many pieces, each then longer than half a cell.
 pub const MAX_FOOTPRINT_PIECES: u32 = 64;
 
 /// Marks the cells of `grid` that the weighted sample `s` of `ray` stands for ([`seen_cells`]):
@@ -459,8 +465,6 @@ fn mark_cube(
     centre: glam::Vec3,
     half: f32,
 ) -> bool {
-    let r = grid.resolution;
-    let cell = |u: f32| ((u * r as f32).floor().max(0.0) as u32).min(r - 1);
     let mid = bounds.to_unit(centre);
     let mut lo = mid;
     let mut hi = mid;
@@ -473,14 +477,18 @@ fn mark_cube(
     let reach = MAX_FOOTPRINT_CELLS / 2;
     let mut cut = false;
     let mut span = |lo: f32, hi: f32, mid: f32| {
-        let (a, b, m) = (cell(lo), cell(hi), cell(mid));
+        let (a, b, m) = (
+            grid.cell_along(lo),
+            grid.cell_along(hi),
+            grid.cell_along(mid),
+        );
         cut |= a + reach < m || b > m + reach;
         (a.max(m.saturating_sub(reach)), b.min(m + reach))
     };
     let (xa, xb) = span(lo.x, hi.x, mid.x);
     let (ya, yb) = span(lo.y, hi.y, mid.y);
     let (za, zb) = span(lo.z, hi.z, mid.z);
-    let ru = r as usize;
+    let ru = grid.resolution as usize;
     for z in za..=zb {
         for y in ya..=yb {
             for x in xa..=xb {
@@ -754,53 +762,38 @@ mod tests {
         };
         // The interval, x from 0.2 to 0.6 at 16 cells per side: cells 3..=9 along the ray, in
         // 13 pieces of 0.03 (under half a cell), so only the ray's own row across.
+        let mark = |g: &mut OccupancyGrid, t0, t1, spread| {
+            mark_footprint(g, &bounds, &ray, sample(t0, t1), spread)
+        };
         let mut g = OccupancyGrid::empty(16);
-        assert!(!mark_footprint(
-            &mut g,
-            &bounds,
-            &ray,
-            sample(1.2, 1.6),
-            0.0
-        ));
+        assert!(!mark(&mut g, 1.2, 1.6, 0.0));
         assert_eq!(marked(&g), (7, [[3, 9], [8, 8], [8, 8]]));
         // A short interval: its own cell only; with the neighbouring ray 0.1 away at t = 1.4
         // (spread 0.1 / 1.4), 0.05 on either side: cells 5..=7 along x, 7..=9 across.
         let mut g = OccupancyGrid::empty(16);
-        mark_footprint(&mut g, &bounds, &ray, sample(1.39, 1.41), 0.0);
+        mark(&mut g, 1.39, 1.41, 0.0);
         assert_eq!(marked(&g), (1, [[6, 6], [8, 8], [8, 8]]));
         let mut g = OccupancyGrid::empty(16);
-        mark_footprint(&mut g, &bounds, &ray, sample(1.39, 1.41), 0.1 / 1.4);
+        mark(&mut g, 1.39, 1.41, 0.1 / 1.4);
         assert_eq!(marked(&g), (27, [[5, 7], [7, 9], [7, 9]]));
         // An interval across the whole grid of 128 cells: at most MAX_FOOTPRINT_PIECES pieces,
         // two cells long each, and still every cell along the ray (row 67 across).
         let mut g = OccupancyGrid::empty(128);
-        assert!(!mark_footprint(
-            &mut g,
-            &bounds,
-            &ray,
-            sample(1.0, 2.0),
-            0.0
-        ));
+        assert!(!mark(&mut g, 1.0, 2.0, 0.0));
         assert!((0..128).all(|x| g.cell(x, 67, 67)));
         assert_eq!(marked(&g), (128 * 3 * 3, [[0, 127], [66, 68], [66, 68]]));
         // A gap wider than MAX_FOOTPRINT_CELLS (here the whole grid) is cut around each
         // piece's cell and reported: 9 cells across, about the ray's 2 cells along it.
         let mut g = OccupancyGrid::empty(64);
-        assert!(mark_footprint(
-            &mut g,
-            &bounds,
-            &ray,
-            sample(1.39, 1.41),
-            1.0
-        ));
+        assert!(mark(&mut g, 1.39, 1.41, 1.0));
         let n = MAX_FOOTPRINT_CELLS as u64;
         let (count, box_) = marked(&g);
         assert!((n * n * n..=3 * n * n * n).contains(&count), "{count}");
         assert_eq!(box_[1], [33 - 4, 33 + 4]);
         // Not finite: the sample's own cell only, nothing else.
         let mut g = OccupancyGrid::empty(16);
-        mark_footprint(&mut g, &bounds, &ray, sample(f32::NAN, 1.4), 0.0);
-        mark_footprint(&mut g, &bounds, &ray, sample(1.3, f32::INFINITY), 0.0);
+        mark(&mut g, f32::NAN, 1.4, 0.0);
+        mark(&mut g, 1.3, f32::INFINITY, 0.0);
         assert_eq!(g.occupied_cells(), 2);
     }
 
