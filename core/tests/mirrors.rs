@@ -10,6 +10,7 @@
 //! | `gpu/src/layout.rs`: `consts.x` of the encoding uniform | `BlendMode::no_mask_value` |
 //! | `web/js/renderer.js`: `noMask` | `BlendMode::no_mask_value` |
 //! | `web/js/renderer.js`: `RENDER_STATIC_CUTOFF` | `pipeline::RENDER_STATIC_CUTOFF` |
+//! | `web/js/renderer.js`: the `Model` uniform's padding (`Math.min` with `RENDER_HISTOGRAM_PADDING`) | `pipeline::render_histogram_padding` |
 //!
 //! A copy that calls the Rust item (or a constant generated from it) passes by naming it.
 
@@ -103,4 +104,20 @@ fn no_mask_value_copies_mirror_blend_mode() {
             .unwrap();
         assert_eq!(v, RENDER_STATIC_CUTOFF);
     }
+}
+
+/// The page's `Model` uniform holds the padding rendering resamples with
+/// (`pipeline::render_histogram_padding`: the model's own or `RENDER_HISTOGRAM_PADDING`, the
+/// smaller), as msth-gpu's does (its unit test `the_model_uniform_holds_the_render_histogram_padding`).
+#[test]
+fn the_page_resamples_with_the_render_padding() {
+    let js = read("web/js/renderer.js");
+    assert!(
+        js.contains("const padding = Math.min(s.histogram_padding, RENDER_HISTOGRAM_PADDING);"),
+        "renderer.js: no render padding"
+    );
+    assert!(
+        js.contains("f.set([s.near, s.far, padding, "),
+        "renderer.js: the Model uniform's limits do not hold the render padding"
+    );
 }

@@ -9,7 +9,7 @@ use bytemuck::{Pod, Zeroable};
 use msth_core::config::{Background, BlendMode, ModelConfig};
 use msth_core::field::{EncodingLayout, ModelLayout};
 use msth_core::grid::GridLayout;
-use msth_core::pipeline::{spacing_unit, RENDER_STATIC_CUTOFF};
+use msth_core::pipeline::{render_histogram_padding, spacing_unit, RENDER_STATIC_CUTOFF};
 use msth_core::sampling::Spacing;
 use msth_core::{Camera, SceneBounds};
 
@@ -247,7 +247,7 @@ impl GpuModel {
             limits: [
                 cfg.sampler.near,
                 cfg.sampler.far,
-                cfg.sampler.histogram_padding,
+                render_histogram_padding(&cfg.sampler),
                 spacing_unit(&cfg.bounds),
             ],
             bounds_a,
@@ -713,6 +713,33 @@ mod tests {
             let [(_, h3), (_, h4), _] = gm.buffer_sizes(TableFormat::F16);
             assert_eq!(h3, (2 * (p3 + r3.len())).next_multiple_of(4) as u64);
             assert_eq!(h4, (2 * (p4 + r4.len())).next_multiple_of(4) as u64);
+        }
+    }
+
+    /// The passes resample with the render padding (`msth_core::pipeline::
+    /// render_histogram_padding`), as the CPU renderer does, not the model's training one.
+    #[test]
+    fn the_model_uniform_holds_the_render_histogram_padding() {
+        use msth_core::config::Preset;
+        use msth_core::pipeline::RENDER_HISTOGRAM_PADDING;
+        let mut cfg = ModelConfig::preset(
+            Preset::Fast,
+            SceneBounds::dnerf_default(),
+            Background::Color { rgb: [1.0; 3] },
+            10,
+        );
+        for enc in [&mut cfg.field.encoding, &mut cfg.proposal.encoding] {
+            enc.resize(3, 10, 64.0, 4);
+        }
+        for (trained, rendered) in [
+            (0.01, RENDER_HISTOGRAM_PADDING),
+            (RENDER_HISTOGRAM_PADDING, RENDER_HISTOGRAM_PADDING),
+            (2e-4, 2e-4),
+            (0.0, 0.0),
+        ] {
+            cfg.sampler.histogram_padding = trained;
+            let gm = GpuModel::new(&cfg).unwrap();
+            assert_eq!(gm.model.limits[2], rendered, "trained with {trained}");
         }
     }
 

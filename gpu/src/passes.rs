@@ -927,7 +927,10 @@ impl GpuContext {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::layout::{MAX_GEO, MAX_HIDDEN, MAX_SAMPLES, WORKGROUP};
+    use crate::hashgrid::MAX_FEATURES;
+    use crate::layout::{MAX_GEO, MAX_HIDDEN, MAX_PROPOSAL_SAMPLES, MAX_SAMPLES, WORKGROUP};
+    use msth_core::grid::MAX_LEVELS;
+    use msth_core::pipeline::{HIDDEN_TRANSMITTANCE, VISIBLE_TRANSMITTANCE};
 
     /// The value of `const NAME: u32 = Nu;` in `render.wgsl`.
     fn wgsl_u32(name: &str) -> u64 {
@@ -942,6 +945,19 @@ mod tests {
             .unwrap_or_else(|e| panic!("{name}: {value:?}: {e}"))
     }
 
+    /// The value of `const NAME: f32 = V;` in `render.wgsl`.
+    fn wgsl_f32(name: &str) -> f32 {
+        let needle = format!("const {name}: f32 = ");
+        let line = crate::render::RENDER_WGSL
+            .lines()
+            .find_map(|l| l.strip_prefix(needle.as_str()))
+            .unwrap_or_else(|| panic!("render.wgsl declares no `{needle}`"));
+        let value = line.split_once(';').map(|(v, _)| v).unwrap_or(line);
+        value
+            .parse()
+            .unwrap_or_else(|e| panic!("{name}: {value:?}: {e}"))
+    }
+
     /// The shader's copies of the host's constants (the `Pass` flags, the limits) agree.
     #[test]
     fn shader_constants_match_the_host() {
@@ -951,12 +967,25 @@ mod tests {
             ("FLAG_P_CACHE", PASS_FLAG_CACHE as u64),
             ("FLAG_P_WMAX", PASS_FLAG_WMAX as u64),
             ("FLAG_P_SPLIT", PASS_FLAG_SPLIT as u64),
+            ("MAX_PROPOSAL_SAMPLES", MAX_PROPOSAL_SAMPLES as u64),
             ("MAX_SAMPLES", MAX_SAMPLES as u64),
             ("MAX_HIDDEN", MAX_HIDDEN as u64),
+            ("MAX_LEVELS", MAX_LEVELS as u64),
+            ("MAX_FEATURES", MAX_FEATURES as u64),
             ("MAX_GEO", MAX_GEO as u64),
             ("WORKGROUP", WORKGROUP as u64),
         ] {
             assert_eq!(wgsl_u32(name), host, "{name}");
         }
+        // The rendering thresholds of msth-core (`pipeline`), which the shader writes out:
+        // where a ray's visible depth ends, and the optical depth beyond which no colour is
+        // evaluated (`ln(1 / HIDDEN_TRANSMITTANCE)`, to f32 rounding).
+        assert_eq!(wgsl_f32("VISIBLE_TRANSMITTANCE"), VISIBLE_TRANSMITTANCE);
+        let tau_hidden = (1.0 / HIDDEN_TRANSMITTANCE).ln();
+        let wgsl = wgsl_f32("TAU_HIDDEN");
+        assert!(
+            (wgsl - tau_hidden).abs() <= 4.0 * f32::EPSILON * tau_hidden,
+            "TAU_HIDDEN {wgsl} against ln(1 / {HIDDEN_TRANSMITTANCE}) = {tau_hidden}"
+        );
     }
 }

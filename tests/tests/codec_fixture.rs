@@ -9,7 +9,11 @@
 //! deterministic on one machine, but another CPU or compiler may fuse or reorder float operations
 //! (FMA), which moves a few pixels by one level. Regenerate both (after an intended change only):
 //! `cargo test --release -p msth-tests --test codec_fixture -- --ignored regenerate_fixture`
-//! (rewrites `v2.msth` only: `v1.*` are frozen, the current encoder cannot write version 1).
+//! (rewrites `v2.msth` only: `v1.msth` is frozen, the current encoder cannot write version 1).
+//! The expected render follows the renderer's rules, not the file's: after an intended change of
+//! how rendering samples (2026-12-01: the proposal histogram's padding at render time,
+//! `msth_core::pipeline::render_histogram_padding`), `-- --ignored regenerate_expected_render`
+//! rewrites `v1_render.rgb` and `v1_render.png` from `v1.msth`.
 
 use std::path::{Path, PathBuf};
 
@@ -64,6 +68,17 @@ fn regenerate_fixture() {
         report.chunks.len(),
         report.occupied_cells
     );
+}
+
+/// The expected render of `v1.msth` by the current renderer (after an intended change of the
+/// renderer's rules only: the decoder's test below is then against the new pixels).
+#[test]
+#[ignore = "rewrites tests/fixtures/v1_render.rgb and .png; run only after an intended change of the renderer"]
+fn regenerate_expected_render() {
+    let got = render(&std::fs::read(fixtures().join("v1.msth")).unwrap());
+    msth_trainer::checkpoint::write_atomic(&fixtures().join("v1_render.rgb"), &got.data).unwrap();
+    msth_trainer::imageio::save_png_atomic(&fixtures().join("v1_render.png"), &got).unwrap();
+    println!("{}x{} pixels", got.width, got.height);
 }
 
 #[test]

@@ -236,6 +236,16 @@ fn generate() -> String {
     );
     let _ = writeln!(
         w,
+        "/** Rendering resamples the proposal's weights with at most this padding per bin \
+         (msth_core::pipeline::render_histogram_padding: the model's own where smaller). */"
+    );
+    let _ = writeln!(
+        w,
+        "export const RENDER_HISTOGRAM_PADDING = {};",
+        js_f32(msth_core::pipeline::RENDER_HISTOGRAM_PADDING)
+    );
+    let _ = writeln!(
+        w,
         "/** Samples per ray at play time (msth_core::config::SampleLevel): per level, the \
          [numerator, denominator] of the proposal and of the main samples' fraction, rounded up. */"
     );
@@ -471,6 +481,7 @@ fn hand_written_javascript_keeps_no_copies_of_the_contract() {
         "VIEW_BYTES",
         "WORKGROUP",
         "RENDER_STATIC_CUTOFF",
+        "RENDER_HISTOGRAM_PADDING",
         "SAMPLE_LEVELS",
         "PROBES",
         "MAX_PROPOSAL_SAMPLES",

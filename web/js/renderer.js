@@ -27,7 +27,7 @@
 
 import {
   LEVEL_SLOTS, LEVEL_BYTES, LEVEL_OFFSETS, ENCODING_OFFSETS, GRID_OFFSETS, MODEL_BYTES, MODEL_OFFSETS, VIEW_BYTES, WORKGROUP,
-  FLAG_LIST, MAX_PROPOSAL_SAMPLES, MAX_SAMPLES, MAX_HIDDEN, MAX_GEO, RENDER_STATIC_CUTOFF, BLEND,
+  FLAG_LIST, MAX_PROPOSAL_SAMPLES, MAX_SAMPLES, MAX_HIDDEN, MAX_GEO, RENDER_STATIC_CUTOFF, RENDER_HISTOGRAM_PADDING, BLEND,
   FRAME_WORK_BYTES, PASS_ARGS as ARGS, PASS_BYTES, PASS_OFFSETS, PASS_FLAGS, SAMPLE_LEVELS,
 } from "./generated/contract.js";
 import { specialiseWgsl } from "./specialise.js";
@@ -246,7 +246,9 @@ export function gpuModel(cfg, layout) {
   const s = cfg.sampler;
   const b = cfg.bounds;
   u.set([s.num_proposal_samples, s.num_samples, s.spacing === "lin_disp" ? 1 : 0, b.kind === "contracted" ? 1 : 0], SAMPLER);
-  f.set([s.near, s.far, s.histogram_padding, b.kind === "contracted" ? b.radius : 1], LIMITS);
+  // The padding rendering resamples with (msth_core::pipeline::render_histogram_padding).
+  const padding = Math.min(s.histogram_padding, RENDER_HISTOGRAM_PADDING);
+  f.set([s.near, s.far, padding, b.kind === "contracted" ? b.radius : 1], LIMITS);
   if (b.kind === "box") {
     f.set([...b.min, 0], BOUNDS_A);
     f.set([...b.max, 0], BOUNDS_B);

@@ -3,17 +3,20 @@
 
 use super::*;
 
-/// Forward of proposal and main fields for a chunk; leaves everything in `ws`.
+/// Forward of proposal and main fields for a chunk, the main samples resampled with `padding`
+/// per proposal bin; leaves everything in `ws`.
+#[allow(clippy::too_many_arguments)]
 pub(super) fn forward_chunk(
     cfg: &ModelConfig,
     layout: &ModelLayout,
     params: &[f32],
     rays: &[TimedRay],
     anneal: f32,
+    padding: f32,
     rng: Option<&mut Rng>,
     ws: &mut Workspace,
 ) {
-    forward_geometry(cfg, layout, params, rays, anneal, rng, ws);
+    forward_geometry(cfg, layout, params, rays, anneal, padding, rng, ws);
     let n = rays.len();
     let nf = cfg.sampler.num_samples;
     // Colour only where light can still arrive: a sample behind optical depth
@@ -41,13 +44,16 @@ pub(super) fn forward_chunk(
     );
 }
 
-/// The proposal field, the resampling and the main field's density of a chunk (no colour).
+/// The proposal field, the resampling (with `padding` per proposal bin) and the main field's
+/// density of a chunk (no colour).
+#[allow(clippy::too_many_arguments)]
 fn forward_geometry(
     cfg: &ModelConfig,
     layout: &ModelLayout,
     params: &[f32],
     rays: &[TimedRay],
     anneal: f32,
+    padding: f32,
     mut rng: Option<&mut Rng>,
     ws: &mut Workspace,
 ) {
@@ -87,7 +93,7 @@ fn forward_geometry(
         sample_pdf(
             &ws.s_prop[i * (np + 1)..(i + 1) * (np + 1)],
             &ws.annealed,
-            cfg.sampler.histogram_padding,
+            padding,
             rng.as_deref_mut(),
             &mut ws.s_main[i * (nf + 1)..(i + 1) * (nf + 1)],
         );
@@ -137,7 +143,8 @@ pub fn weighted_samples(
     let nf = cfg.sampler.num_samples;
     ws.prop.enc.static_cutoff = RENDER_STATIC_CUTOFF;
     ws.main.enc.static_cutoff = RENDER_STATIC_CUTOFF;
-    forward_geometry(cfg, layout, params, rays, 1.0, None, ws);
+    let padding = render_histogram_padding(&cfg.sampler);
+    forward_geometry(cfg, layout, params, rays, 1.0, padding, None, ws);
     for i in 0..rays.len() {
         let fs = i * nf..(i + 1) * nf;
         let w = &mut ws.w_main[fs.clone()];
@@ -188,7 +195,8 @@ pub fn render_chunk(
     let nf = cfg.sampler.num_samples;
     ws.prop.enc.static_cutoff = RENDER_STATIC_CUTOFF;
     ws.main.enc.static_cutoff = RENDER_STATIC_CUTOFF;
-    forward_chunk(cfg, layout, params, rays, 1.0, None, ws);
+    let padding = render_histogram_padding(&cfg.sampler);
+    forward_chunk(cfg, layout, params, rays, 1.0, padding, None, ws);
     let enc = &layout.field.encoding;
     for i in 0..n {
         let fs = i * nf..(i + 1) * nf;

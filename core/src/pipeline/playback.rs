@@ -110,7 +110,7 @@ pub fn playback_partition(
         sample_pdf(
             &ws.s_prop[i * (np + 1)..(i + 1) * (np + 1)],
             &ws.annealed[i * np..(i + 1) * np],
-            cfg.sampler.histogram_padding,
+            render_histogram_padding(&cfg.sampler),
             None,
             &mut ws.s_main[..samples + 1],
         );

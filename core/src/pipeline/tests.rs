@@ -685,3 +685,41 @@ fn a_partition_skipping_proposal_samples_moves_the_samples_to_kept_space() {
     );
     assert!(moved.deltas.iter().all(|&d| d.is_finite() && d >= 0.0));
 }
+
+/// Rendering resamples with [`render_histogram_padding`] whatever the model was trained with,
+/// and a training step with the model's own padding: a model with 0.01 renders the samples and
+/// colours of the same model with [`RENDER_HISTOGRAM_PADDING`], while its training step (and a
+/// resampling at 0.01) places them elsewhere.
+#[test]
+fn rendering_resamples_with_the_render_padding_and_training_with_its_own() {
+    let mut cfg = tiny_cfg();
+    cfg.sampler.histogram_padding = 0.01;
+    let mut low = cfg.clone();
+    low.sampler.histogram_padding = RENDER_HISTOGRAM_PADDING;
+    assert_eq!(
+        render_histogram_padding(&cfg.sampler),
+        RENDER_HISTOGRAM_PADDING
+    );
+    let mut none = cfg.clone();
+    none.sampler.histogram_padding = 0.0;
+    assert_eq!(render_histogram_padding(&none.sampler), 0.0);
+    let layout = ModelLayout::new(&cfg);
+    let p = perturbed_params(&layout);
+    let (rays, tg) = rays();
+    let render = |c: &ModelConfig| {
+        let mut ws = Workspace::default();
+        let mut out = RenderOutput::default();
+        render_chunk(c, &layout, &p, &rays, &mut ws, &mut out);
+        (ws.pts_main.clone(), out.rgb)
+    };
+    assert_eq!(render(&cfg), render(&low));
+    // The padding moves the samples of these rays: at the model's own 0.01 they lie elsewhere.
+    let mut ws = Workspace::default();
+    forward_chunk(&cfg, &layout, &p, &rays, 1.0, 0.01, None, &mut ws);
+    assert_ne!(ws.pts_main, render(&cfg).0);
+    // Training keeps the model's own padding.
+    let step = full_step(rays.len(), 0.0);
+    let (_, g_own) = chunk(&cfg, &layout, &p, (&rays, &tg), &step);
+    let (_, g_low) = chunk(&low, &layout, &p, (&rays, &tg), &step);
+    assert_ne!(g_own, g_low);
+}

@@ -117,7 +117,17 @@ pub fn train_chunk_with(
     for f in [&mut ws.main, &mut ws.stat, &mut ws.free] {
         f.enc.active_levels = step.active_levels;
     }
-    forward_chunk(cfg, layout, params, rays, step.anneal, Some(rng), ws);
+    let padding = cfg.sampler.histogram_padding;
+    forward_chunk(
+        cfg,
+        layout,
+        params,
+        rays,
+        step.anneal,
+        padding,
+        Some(rng),
+        ws,
+    );
     let mut out = ChunkLosses {
         rays: n,
         field_samples: n * nf,

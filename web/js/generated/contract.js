@@ -49,6 +49,8 @@ export const SH_COEFFS = 16;
 export const RENDER_STATIC_CUTOFF = 0.02;
 export const VISIBLE_TRANSMITTANCE = 0.001;
 export const HIDDEN_TRANSMITTANCE = 0.0001;
+/** Rendering resamples the proposal's weights with at most this padding per bin (msth_core::pipeline::render_histogram_padding: the model's own where smaller). */
+export const RENDER_HISTOGRAM_PADDING = 0.001;
 /** Samples per ray at play time (msth_core::config::SampleLevel): per level, the [numerator, denominator] of the proposal and of the main samples' fraction, rounded up. */
 export const SAMPLE_LEVELS = { full: [[1, 1], [1, 1]], fast: [[2, 3], [3, 4]], faster: [[1, 2], [1, 2]] };
 /** The static cache's probes (msth-player's `RenderSettings` defaults): renders at `count` times spread over the time range, ends included; a pixel whose colour moves by more than `tolerance` in a channel at any of them is re-rendered every frame. */
