@@ -162,7 +162,8 @@ pub const RENDER_HISTOGRAM_PADDING: f32 = 1e-3;
 
 /// The padding per proposal bin with which rendering resamples (the CPU renderers, the GPU
 /// passes and the page alike): the model's own `histogram_padding`, or
-/// [`RENDER_HISTOGRAM_PADDING`] where that is smaller. Training keeps the model's own.
+/// [`RENDER_HISTOGRAM_PADDING`] where that is smaller. Training keeps the model's own, and so
+/// does the export's [`weighted_samples`] (its doc says why).
 pub fn render_histogram_padding(sampler: &SamplerConfig) -> f32 {
     sampler.histogram_padding.min(RENDER_HISTOGRAM_PADDING)
 }

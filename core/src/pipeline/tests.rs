@@ -723,3 +723,39 @@ fn rendering_resamples_with_the_render_padding_and_training_with_its_own() {
     let (_, g_low) = chunk(&low, &layout, &p, (&rays, &tg), &step);
     assert_ne!(g_own, g_low);
 }
+
+/// The export's pass over what the cameras see ([`weighted_samples`]) samples with the model's
+/// own padding, not the render padding (its doc says why): its intervals are those of a
+/// resampling at the model's 0.01.
+#[test]
+fn weighted_samples_sample_with_the_models_own_padding() {
+    let mut cfg = tiny_cfg();
+    cfg.sampler.histogram_padding = 0.01;
+    let layout = ModelLayout::new(&cfg);
+    let p = perturbed_params(&layout);
+    let (rays, _) = rays();
+    let nf = cfg.sampler.num_samples;
+    let mut got = Vec::new();
+    weighted_samples(
+        &cfg,
+        &layout,
+        &p,
+        &rays,
+        0.0,
+        &mut Workspace::default(),
+        |s| got.push((s.ray, s.t)),
+    );
+    let interval = |padding: f32| {
+        let mut ws = Workspace::default();
+        forward_chunk(&cfg, &layout, &p, &rays, 1.0, padding, None, &mut ws);
+        (0..rays.len())
+            .flat_map(|i| (0..nf).map(move |k| (i, k)))
+            .map(|(i, k)| {
+                let e = &ws.t_main[i * (nf + 1)..(i + 1) * (nf + 1)];
+                (i, [e[k], e[k + 1]])
+            })
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(got, interval(0.01));
+    assert_ne!(got, interval(RENDER_HISTOGRAM_PADDING));
+}
