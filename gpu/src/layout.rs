@@ -673,19 +673,26 @@ mod tests {
         }
     }
 
+    /// The fast preset with small grids: dense coarse levels, hashed fine ones.
+    fn small_fast_config() -> ModelConfig {
+        use msth_core::config::Preset;
+        let mut cfg = ModelConfig::preset(
+            Preset::Fast,
+            SceneBounds::dnerf_default(),
+            Background::Color { rgb: [1.0; 3] },
+            10,
+        );
+        for enc in [&mut cfg.field.encoding, &mut cfg.proposal.encoding] {
+            enc.resize(3, 10, 64.0, 4);
+        }
+        cfg
+    }
+
     #[test]
     fn both_fields_tables_share_the_pair_buffers() {
-        use msth_core::config::Preset;
         for features in [1, 2, 4] {
-            let mut cfg = ModelConfig::preset(
-                Preset::Fast,
-                SceneBounds::dnerf_default(),
-                Background::Color { rgb: [1.0; 3] },
-                10,
-            );
+            let mut cfg = small_fast_config();
             for enc in [&mut cfg.field.encoding, &mut cfg.proposal.encoding] {
-                // Dense coarse levels, hashed fine ones.
-                enc.resize(3, 10, 64.0, 4);
                 enc.grid3.features_per_level = features;
                 enc.grid4.features_per_level = features;
             }
@@ -720,17 +727,8 @@ mod tests {
     /// render_histogram_padding`), as the CPU renderer does, not the model's training one.
     #[test]
     fn the_model_uniform_holds_the_render_histogram_padding() {
-        use msth_core::config::Preset;
         use msth_core::pipeline::RENDER_HISTOGRAM_PADDING;
-        let mut cfg = ModelConfig::preset(
-            Preset::Fast,
-            SceneBounds::dnerf_default(),
-            Background::Color { rgb: [1.0; 3] },
-            10,
-        );
-        for enc in [&mut cfg.field.encoding, &mut cfg.proposal.encoding] {
-            enc.resize(3, 10, 64.0, 4);
-        }
+        let mut cfg = small_fast_config();
         for (trained, rendered) in [
             (0.01, RENDER_HISTOGRAM_PADDING),
             (RENDER_HISTOGRAM_PADDING, RENDER_HISTOGRAM_PADDING),

@@ -932,30 +932,29 @@ mod tests {
     use msth_core::grid::MAX_LEVELS;
     use msth_core::pipeline::{HIDDEN_TRANSMITTANCE, VISIBLE_TRANSMITTANCE};
 
-    /// The value of `const NAME: u32 = Nu;` in `render.wgsl`.
-    fn wgsl_u32(name: &str) -> u64 {
-        let needle = format!("const {name}: u32 = ");
-        let line = crate::render::RENDER_WGSL
-            .lines()
-            .find_map(|l| l.strip_prefix(needle.as_str()))
-            .unwrap_or_else(|| panic!("render.wgsl declares no `{needle}`"));
-        let value = line.split_once("u;").map(|(v, _)| v).unwrap_or(line);
-        value
-            .parse()
-            .unwrap_or_else(|e| panic!("{name}: {value:?}: {e}"))
-    }
-
-    /// The value of `const NAME: f32 = V;` in `render.wgsl`.
-    fn wgsl_f32(name: &str) -> f32 {
-        let needle = format!("const {name}: f32 = ");
+    /// The value of `const NAME: TY = V;` in `render.wgsl`, parsed (a `u` suffix dropped).
+    fn wgsl_const<T: std::str::FromStr>(name: &str, ty: &str) -> T
+    where
+        T::Err: std::fmt::Debug,
+    {
+        let needle = format!("const {name}: {ty} = ");
         let line = crate::render::RENDER_WGSL
             .lines()
             .find_map(|l| l.strip_prefix(needle.as_str()))
             .unwrap_or_else(|| panic!("render.wgsl declares no `{needle}`"));
         let value = line.split_once(';').map(|(v, _)| v).unwrap_or(line);
+        let value = value.strip_suffix('u').unwrap_or(value);
         value
             .parse()
-            .unwrap_or_else(|e| panic!("{name}: {value:?}: {e}"))
+            .unwrap_or_else(|e| panic!("{name}: {value:?}: {e:?}"))
+    }
+
+    fn wgsl_u32(name: &str) -> u64 {
+        wgsl_const(name, "u32")
+    }
+
+    fn wgsl_f32(name: &str) -> f32 {
+        wgsl_const(name, "f32")
     }
 
     /// The shader's copies of the host's constants (the `Pass` flags, the limits) agree.
