@@ -30,6 +30,7 @@ pub mod sh;
 #[cfg(test)]
 mod test_support;
 pub mod uncertainty;
+pub mod volume;
 
 pub use camera::{Camera, Ray};
 pub use scene::SceneBounds;

@@ -167,6 +167,23 @@ impl SceneBounds {
     }
 }
 
+/// World length of one cell of an `resolution` grid in the scene's uncontracted part: the box's
+/// smallest side over `resolution`, or for a contracted scene the inner cube (side `2 radius`,
+/// half of the unit cube) over `resolution / 2`.
+pub fn cell_world_size(bounds: &SceneBounds, resolution: u32) -> f32 {
+    match *bounds {
+        SceneBounds::Box { min, max } => (max - min).min_element() / resolution as f32,
+        SceneBounds::Contracted { radius, .. } => 4.0 * radius / resolution as f32,
+    }
+}
+
+/// The density threshold the export's occupancy grid uses (and the play-time volume, for files without one) for an opacity budget `alpha`: the density at which a
+/// path along the grid's diagonal (`sqrt(3) R` cells) reaches opacity `alpha`.
+pub fn density_threshold(bounds: &SceneBounds, resolution: u32, alpha: f32) -> f32 {
+    let diagonal = 3f32.sqrt() * resolution as f32 * cell_world_size(bounds, resolution);
+    -(1.0 - alpha.clamp(0.0, 0.999_999)).ln() / diagonal
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
