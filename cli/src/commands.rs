@@ -363,7 +363,7 @@ fn print_metrics(m: &Metrics, path: &Path) {
 
 /// `model` rendered with `samples` per ray (`--samples`), within the bounds of a checkpoint's
 /// own sampler, and the counts when they differ from the model's (which it then prints).
-fn with_samples(
+pub(crate) fn with_samples(
     model: &msth_core::config::ModelConfig,
     samples: PlaySamples,
 ) -> Result<(msth_core::config::ModelConfig, Option<(usize, usize)>)> {
@@ -380,6 +380,9 @@ fn with_samples(
 }
 
 pub fn eval(a: EvalArgs) -> Result<()> {
+    if a.checkpoint.extension().is_some_and(|e| e == "msth") {
+        return crate::evaluate::eval_file(&a);
+    }
     let mut ckpt = Checkpoint::load(&a.checkpoint)?;
     let (model, fewer) = with_samples(&ckpt.header.model, a.samples)?;
     ckpt.header.model = model;

@@ -6,6 +6,7 @@ mod bench;
 mod commands;
 pub mod data;
 mod demo;
+mod evaluate;
 mod export;
 mod import;
 mod inspect;
@@ -171,8 +172,48 @@ pub struct EvalArgs {
     /// measures what fewer samples cost on the held-out views.
     #[arg(long, default_value = "full", value_parser = play::parse_samples)]
     pub samples: PlaySamples,
+    /// A `.msth` file: which renderer draws the views (the baked volume, the exact field, or
+    /// both, with the volume's frames compared to the exact ones).
+    #[arg(long, value_enum, default_value_t = EvalRenderer::Volume)]
+    pub renderer: EvalRenderer,
+    #[command(flatten)]
+    pub volume: play::VolumeArgs,
+    /// A `.msth` file: the volume's colour: `baked` for a reference direction (what the players
+    /// draw), the colour MLP `per-sample` at the ray's direction, or `deferred` once per ray.
+    #[arg(long, value_enum, default_value_t = EvalColour::Baked)]
+    pub colour: EvalColour,
+    /// A `.msth` file: the world scale the model was trained at (`train.scene_scale` of its
+    /// checkpoint; 1 unless `msth train` printed another).
+    #[arg(long, default_value_t = 1.0)]
+    pub scene_scale: f32,
     #[command(flatten)]
     pub dataset: data::DataArgs,
+}
+
+/// How `msth eval FILE.msth` colours the volume's rays.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum EvalColour {
+    Baked,
+    PerSample,
+    Deferred,
+}
+
+impl From<EvalColour> for msth_core::volume::ColourMode {
+    fn from(c: EvalColour) -> Self {
+        match c {
+            EvalColour::Baked => msth_core::volume::ColourMode::Baked,
+            EvalColour::Deferred => msth_core::volume::ColourMode::Deferred,
+            EvalColour::PerSample => msth_core::volume::ColourMode::PerSample,
+        }
+    }
+}
+
+/// Which renderer `msth eval FILE.msth` measures.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum EvalRenderer {
+    Volume,
+    Exact,
+    Both,
 }
 
 /// The dataset section of `msth train --help`.

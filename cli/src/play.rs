@@ -93,12 +93,94 @@ pub struct PlayArgs {
     /// set, else the bundled roots.
     #[arg(long, value_name = "FILE.pem")]
     pub ca_cert: Option<PathBuf>,
+    /// Draw frames from a play-time volume baked from the file when the file opens (CPU
+    /// renderer): fewer operations per sample than the exact field (hash grids and MLPs per
+    /// sample, the default and the reference). Its quality depends on the scene: held-out PSNR
+    /// within 0.3 dB of the exact renderer's on the demo model, several dB below it on
+    /// forward-facing stages (docs/playback.md, "The play-time volume"); `msth eval FILE.msth
+    /// --renderer both` measures a file.
+    #[arg(long)]
+    pub volume: bool,
+    #[command(flatten)]
+    pub volume_args: VolumeArgs,
+    /// With --volume: wait for the volume's bake before the first frame (else the first frames come from the
+    /// exact field while it bakes).
+    #[arg(long)]
+    pub bake_first: bool,
     /// Write the playback report (per-frame statistics) as JSON.
     #[arg(long)]
     pub report: Option<PathBuf>,
     /// Print only the summary.
     #[arg(long, short)]
     pub quiet: bool,
+}
+
+/// The play-time volume's size (`msth play`, `msth eval FILE.msth`).
+#[derive(Args, Clone, Debug, Default)]
+pub struct VolumeArgs {
+    /// The most memory the play-time volume may take, in MiB (default 512 on the CPU); a model
+    /// whose volume would not fit gets a coarser one, and a note.
+    #[arg(long, value_name = "MIB")]
+    pub volume_budget: Option<u64>,
+    /// Cells per side of the volume at most (default: the model's finest grid resolution; a
+    /// power of two from 32 to 1024).
+    #[arg(long, value_name = "N")]
+    pub volume_resolution: Option<u32>,
+    /// Cells whose opacity cannot reach this value are left empty, so rays skip them (default
+    /// 0: every cell the file's occupancy grid keeps; 0.01 costs the demo model 1 dB held-out).
+    #[arg(long, value_name = "ALPHA")]
+    pub volume_min_alpha: Option<f32>,
+    /// Cells where the proposal network's density cannot reach this opacity are left empty
+    /// (default 0.003; 0 keeps them): the exact renderer never samples there.
+    #[arg(long, value_name = "ALPHA")]
+    pub volume_min_proposal_alpha: Option<f32>,
+    /// Step of the march through the volume, in cells (default 1): longer steps read fewer
+    /// samples a ray and blur thin surfaces.
+    #[arg(long, value_name = "CELLS")]
+    pub volume_step: Option<f32>,
+}
+
+impl VolumeArgs {
+    /// The march through the volume.
+    pub fn march(&self) -> Result<msth_core::volume::MarchSettings> {
+        let mut m = msth_core::volume::MarchSettings::default();
+        if let Some(s) = self.volume_step {
+            if !(0.05..=4.0).contains(&s) {
+                bail!("--volume-step {s}: cells in 0.05..=4");
+            }
+            m.step = s;
+        }
+        Ok(m)
+    }
+
+    pub fn options(&self) -> Result<msth_player::volume::VolumeOptions> {
+        let mut o = msth_player::volume::VolumeOptions::default();
+        if let Some(m) = self.volume_budget {
+            if !(1..=1 << 20).contains(&m) {
+                bail!("--volume-budget {m}: MiB in 1..=1048576");
+            }
+            o.budget = m << 20;
+        }
+        if let Some(r) = self.volume_resolution {
+            if !(1..=1 << 16).contains(&r) {
+                bail!("--volume-resolution {r}: cells per side, e.g. 256");
+            }
+            o.max_resolution = Some(r);
+        }
+        if let Some(a) = self.volume_min_alpha {
+            if !(0.0..1.0).contains(&a) {
+                bail!("--volume-min-alpha {a}: an opacity in [0, 1)");
+            }
+            o.min_cell_alpha = a;
+        }
+        if let Some(a) = self.volume_min_proposal_alpha {
+            if !(0.0..1.0).contains(&a) {
+                bail!("--volume-min-proposal-alpha {a}: an opacity in [0, 1)");
+            }
+            o.min_proposal_alpha = a;
+        }
+        Ok(o)
+    }
 }
 
 /// How incremental frames reuse work on the rays they re-render (`msth play`, `msth bench play`).
@@ -237,6 +319,10 @@ pub fn options(a: &PlayArgs) -> Result<PlayOptions> {
         );
     }
     o.render.probes = a.probes;
+    o.render.exact = !a.volume;
+    o.volume = a.volume_args.options()?;
+    o.render.march = a.volume_args.march()?;
+    o.bake_first = a.bake_first;
     a.reuse.apply(&mut o.render)?;
     o.render.probe_tolerance = a.probe_tolerance;
     // SSL_CERT_FILE matters (and is checked) only where TLS is spoken.
@@ -281,15 +367,35 @@ pub fn backend_choice(cpu: bool, gpu: bool) -> BackendChoice {
 fn frame_line(r: &FrameRecord, n: usize) -> String {
     let s = &r.stats;
     format!(
-        "frame {:>4}/{n}  t={:.3}  {}  rays {:>7}/{} ({:5.1}%)  {:7.1} ms",
+        "frame {:>4}/{n}  t={:.3}  {} {}  rays {:>7}/{} ({:5.1}%)  {:7.1} ms",
         r.index + 1,
         r.time,
         if s.full { "full" } else { "incr" },
+        if s.volume { "volume" } else { "exact " },
         s.rays_rendered,
         s.rays_total,
         100.0 * s.rays_rendered as f64 / s.rays_total.max(1) as f64,
         1e3 * s.seconds
-    )
+    ) + &volume_detail(s)
+}
+
+/// What a volume frame spent: samples per ray read from the volume, samples evaluated from the
+/// field, and the time slices baked for it.
+fn volume_detail(s: &msth_player::FrameStats) -> String {
+    if !s.volume {
+        return String::new();
+    }
+    let mut out = format!(
+        "  {:.0} samples/ray",
+        s.volume_samples as f64 / s.rays_rendered.max(1) as f64
+    );
+    if s.samples_evaluated > 0 {
+        out += &format!(", {} field samples", s.samples_evaluated);
+    }
+    if s.slice_seconds > 0.0 {
+        out += &format!(", slices baked in {:.0} ms", 1e3 * s.slice_seconds);
+    }
+    out
 }
 
 fn summary(r: &PlayReport, threshold: f32) {
@@ -320,6 +426,24 @@ fn summary(r: &PlayReport, threshold: f32) {
     );
     if let Some(note) = samples_note(r.samples, r.model_samples) {
         println!("{note}");
+    }
+    if let Some(b) = &r.bake {
+        println!(
+            "volume: {}^3 cells, {} bricks ({} dynamic cells), {:.1} MiB, baked in {:.2} s; frames from {}",
+            b.geometry.resolution,
+            b.stats.bricks,
+            b.stats.dynamic_cells,
+            b.bytes as f64 / (1 << 20) as f64,
+            b.stats.seconds,
+            b.first_frame
+                .map_or("none (the bake had not finished)".to_string(), |f| format!("frame {} on", f + 1))
+        );
+        if let Some(n) = &b.note {
+            println!("note: {n}");
+        }
+    }
+    if let Some(n) = &r.volume_note {
+        println!("note: {n}");
     }
     println!(
         "{n} frames in {:.2} s; time to first frame {:.3} s",

@@ -173,6 +173,18 @@ impl FrameRenderer {
         Ok(())
     }
 
+    /// Whether this backend draws frames from a baked volume ([`FrameRenderer::set_volume`]).
+    pub fn draws_volumes(&self) -> bool {
+        matches!(self, FrameRenderer::Cpu(_))
+    }
+
+    /// Draws frames from `volume` from now on (`None`: from the exact field).
+    pub fn set_volume(&mut self, volume: Option<crate::volume::BakedVolume>) {
+        if let FrameRenderer::Cpu(r) = self {
+            r.set_volume(volume);
+        }
+    }
+
     /// Forgets the static cache.
     pub fn invalidate(&mut self) {
         match self {

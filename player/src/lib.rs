@@ -24,6 +24,7 @@ pub mod samples;
 pub mod skip;
 pub mod source;
 pub mod stream;
+pub mod volume;
 
 pub use backend::{BackendChoice, BackendInfo, FrameRenderer};
 pub use gpu::{GpuError, GpuRenderer};

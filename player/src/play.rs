@@ -14,6 +14,7 @@ use crate::path::{CameraPath, PathError};
 use crate::render::{Frame, FrameStats, RenderSettings};
 use crate::source::{self, HttpOptions, TransferStats};
 use crate::stream::{ModelStream, StreamError};
+use crate::volume::{plan_bake, BakeJob, VolumeOptions};
 
 /// Everything `msth play` can be told.
 #[derive(Clone, Debug)]
@@ -51,6 +52,12 @@ pub struct PlayOptions {
     /// (quantisation `f32`), else binary16, whose rounding lies below every quantised mode's
     /// step ([`msth_gpu::TableFormat::F16`]).
     pub gpu_tables: Option<msth_gpu::TableFormat>,
+    /// The play-time volume, baked once the static part has arrived (unless
+    /// [`RenderSettings::exact`]).
+    pub volume: VolumeOptions,
+    /// Wait for the bake before the first frame; otherwise frames are drawn from the exact field
+    /// until the volume is ready.
+    pub bake_first: bool,
 }
 
 impl PlayOptions {
@@ -64,7 +71,11 @@ impl PlayOptions {
             fps: None,
             out: None,
             video: true,
-            render: RenderSettings::default(),
+            // The exact field unless the caller asks for the volume (`exact: false`).
+            render: RenderSettings {
+                exact: true,
+                ..Default::default()
+            },
             backend: BackendChoice::Auto,
             http: HttpOptions::default(),
             limits: Limits::default(),
@@ -72,6 +83,8 @@ impl PlayOptions {
             skip_empty: true,
             samples: PlaySamples::default(),
             gpu_tables: None,
+            volume: VolumeOptions::default(),
+            bake_first: false,
         }
     }
 }
@@ -136,6 +149,27 @@ pub struct PlayReport {
     pub samples: (usize, usize),
     /// The model's own proposal and main samples per ray.
     pub model_samples: (usize, usize),
+    /// The play-time volume, when one was baked.
+    pub bake: Option<BakeReport>,
+    /// Why frames came from the exact field, when the volume was asked for and not used.
+    pub volume_note: Option<String>,
+}
+
+/// What baking the play-time volume cost.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct BakeReport {
+    pub geometry: msth_core::volume::VolumeGeometry,
+    pub stats: msth_core::volume::BakeStats,
+    /// Bytes the volume holds without its time slices.
+    pub bytes: u64,
+    /// Bytes of one time slice of the dynamic bricks.
+    pub slice_bytes: u64,
+    /// Field evaluations one time slice costs.
+    pub slice_evaluations: usize,
+    /// The first frame drawn from it.
+    pub first_frame: Option<usize>,
+    /// Why the volume is coarser than the model asked for, if it is.
+    pub note: Option<String>,
 }
 
 impl PlayReport {
@@ -262,6 +296,9 @@ pub fn play(
         meta.model.sampler.num_samples,
     );
     let (mut renderer, backend) = FrameRenderer::new(&model, render_settings, opts.backend)?;
+    let mut bake_job: Option<BakeJob> = None;
+    let mut bake: Option<BakeReport> = None;
+    let mut volume_note = None;
     let mut params = Vec::new();
     let mut params_version = 0u64;
     let mut loaded: Option<Option<usize>> = None;
@@ -283,6 +320,57 @@ pub fn play(
                 // The occupancy section is one of the static sections, decoded by now.
                 renderer.set_occupancy(stream.occupancy())?;
             }
+            if loaded.is_none() && !render_settings.exact {
+                // The static part is here: bake the volume (it reads nothing else).
+                if !renderer.draws_volumes() {
+                    volume_note = Some(
+                        "the GPU renderer draws from the exact field (the volume is CPU-only in this build)"
+                            .to_string(),
+                    );
+                } else {
+                    let grid = stream.occupancy();
+                    match plan_bake(
+                        &model,
+                        &params,
+                        grid.as_deref(),
+                        &meta.cameras,
+                        &opts.volume,
+                    ) {
+                        Ok(plan) => {
+                            let note = plan.note();
+                            let mut job = BakeJob::start(plan, &model, params.clone());
+                            if opts.bake_first {
+                                if let Some(r) = job.wait() {
+                                    finish_bake(
+                                        r,
+                                        note,
+                                        i,
+                                        &mut renderer,
+                                        &mut bake,
+                                        &mut volume_note,
+                                    );
+                                }
+                            } else {
+                                bake = Some(BakeReport {
+                                    geometry: job.plan.geometry,
+                                    stats: Default::default(),
+                                    bytes: 0,
+                                    slice_bytes: 0,
+                                    slice_evaluations: 0,
+                                    first_frame: None,
+                                    note,
+                                });
+                                bake_job = Some(job);
+                            }
+                        }
+                        Err(e) => {
+                            volume_note = Some(format!(
+                                "no play-time volume ({e}): frames are drawn from the exact field"
+                            ))
+                        }
+                    }
+                }
+            }
             loaded = Some(chunk);
         }
         if i + 1 < n {
@@ -301,6 +389,13 @@ pub fn play(
             let mut v = Vec::new();
             stream.params_at(t, &mut v, timeout).ok().map(|_| v)
         };
+        if let Some(job) = bake_job.as_mut() {
+            if let Some(r) = job.poll() {
+                let note = bake.take().and_then(|b| b.note);
+                finish_bake(r, note, i, &mut renderer, &mut bake, &mut volume_note);
+                bake_job = None;
+            }
+        }
         let frame = renderer.render_probing(&camera, time, &params, &mut params_at)?;
         if first_frame.is_none() {
             first_frame = Some(start.elapsed().as_secs_f64());
@@ -346,7 +441,36 @@ pub fn play(
         backend,
         samples,
         model_samples,
+        bake: bake.filter(|b| b.stats.bricks > 0 || b.first_frame.is_some()),
+        volume_note,
     })
+}
+
+/// Hands a finished bake to the renderer (from frame `frame` on), or notes why there is none.
+fn finish_bake(
+    result: Result<crate::volume::BakedVolume, String>,
+    note: Option<String>,
+    frame: usize,
+    renderer: &mut FrameRenderer,
+    bake: &mut Option<BakeReport>,
+    volume_note: &mut Option<String>,
+) {
+    match result {
+        Ok(baked) => {
+            let vol = &baked.volume;
+            *bake = Some(BakeReport {
+                geometry: vol.geometry,
+                stats: vol.stats,
+                bytes: vol.bytes(),
+                slice_bytes: vol.slice_bytes(),
+                slice_evaluations: baked.plan.slice_evaluations(),
+                first_frame: Some(frame),
+                note,
+            });
+            renderer.set_volume(Some(baked));
+        }
+        Err(e) => *volume_note = Some(format!("no play-time volume: {e}")),
+    }
 }
 
 /// Writes an 8-bit PNG through a temporary file and a rename.

@@ -28,6 +28,10 @@ use msth_core::pipeline::{ray_limits, render_chunk, spacing_unit, RenderOutput, 
 use msth_core::Camera;
 use rayon::prelude::*;
 
+use msth_core::volume::{MarchSettings, Volume};
+
+use crate::volume::BakedVolume;
+
 use crate::samples::{cache_bytes_bound, SampleCache};
 use crate::skip::{render_chunk_skipping, SkipWorkspace};
 
@@ -75,6 +79,11 @@ pub struct RenderSettings {
     /// GPU renderer: samples per invocation of the per-sample passes (1, 2 or 4; `None`:
     /// [`msth_gpu::DEFAULT_LANES`]). Frames are the same whatever the lanes.
     pub gpu_lanes: Option<u32>,
+    /// Render with the exact field per sample even when a baked volume is set
+    /// ([`Renderer::set_volume`]): the reference path (`--exact`).
+    pub exact: bool,
+    /// How rays walk the volume.
+    pub march: MarchSettings,
 }
 
 impl RenderSettings {
@@ -156,6 +165,8 @@ impl Default for RenderSettings {
             time_range: (0.0, 1.0),
             gpu_tables: msth_gpu::TableFormat::F32,
             gpu_lanes: None,
+            exact: false,
+            march: MarchSettings::default(),
         }
     }
 }
@@ -186,6 +197,12 @@ pub struct FrameStats {
     pub host_seconds: f64,
     /// How the static cache was sorted, on the frame that sorted it (the second of a camera).
     pub classify: Option<ClassifyStats>,
+    /// Whether the frame was drawn from the baked volume (else from the exact field).
+    pub volume: bool,
+    /// Volume frames: samples composited (static and dynamic).
+    pub volume_samples: usize,
+    /// Volume frames: time spent baking the dynamic bricks' time slices this frame needed.
+    pub slice_seconds: f64,
 }
 
 /// How one camera's rays were sorted into cached and re-rendered ([`classify_static_with_stats`]).
@@ -277,6 +294,23 @@ pub struct Renderer {
     cache: Option<Cache>,
     /// The file's occupancy grid: samples in empty cells are skipped ([`crate::skip`]).
     occupancy: Option<Arc<OccupancyGrid>>,
+    /// The baked volume frames are drawn from ([`Renderer::set_volume`]).
+    volume: Option<BakedVolume>,
+    /// Why the volume's time slices could not be baked, if they could not (its dynamic bricks
+    /// are then evaluated exactly).
+    slice_error: Option<String>,
+    /// The volume path's cache of one camera.
+    volume_cache: Option<VolumeCache>,
+}
+
+/// The volume path's cache of one camera: the last frame, and the pixels whose rays met a
+/// dynamic sample (re-rendered at every frame; the others do not depend on time).
+struct VolumeCache {
+    camera: Camera,
+    rgb: Vec<f32>,
+    dynamic: Vec<u32>,
+    rays: Vec<TimedRay>,
+    empty: usize,
 }
 
 /// Most rays per work item of the parallel loop.
@@ -409,6 +443,42 @@ impl Renderer {
             settings,
             cache: None,
             occupancy: None,
+            volume: None,
+            slice_error: None,
+            volume_cache: None,
+        }
+    }
+
+    /// Draws frames from `volume` (unless [`RenderSettings::exact`]); `None` returns to the
+    /// exact field. Forgets the caches.
+    pub fn set_volume(&mut self, volume: Option<BakedVolume>) {
+        self.volume = volume;
+        self.slice_error = None;
+        self.cache = None;
+        self.volume_cache = None;
+    }
+
+    /// The volume frames are drawn from, if any.
+    pub fn volume(&self) -> Option<&Volume> {
+        self.volume.as_ref().map(|v| &v.volume)
+    }
+
+    /// Why the volume's time slices could not be baked, if they could not.
+    pub fn slice_error(&self) -> Option<&str> {
+        self.slice_error.as_deref()
+    }
+
+    /// Whether the next frame comes from the volume.
+    pub fn uses_volume(&self) -> bool {
+        self.volume.is_some() && !self.settings.exact
+    }
+
+    /// Switches between the exact field and the volume ([`RenderSettings::exact`]).
+    pub fn set_exact(&mut self, exact: bool) {
+        if self.settings.exact != exact {
+            self.settings.exact = exact;
+            self.cache = None;
+            self.volume_cache = None;
         }
     }
 
@@ -436,11 +506,18 @@ impl Renderer {
     /// Forgets the static cache: the next frame is rendered in full.
     pub fn invalidate(&mut self) {
         self.cache = None;
+        self.volume_cache = None;
     }
 
     /// Fraction of the cached camera's pixels that are re-rendered every frame (`None` before
     /// the first frame).
     pub fn dynamic_fraction(&self) -> Option<f32> {
+        if self.uses_volume() {
+            return self
+                .volume_cache
+                .as_ref()
+                .map(|c| c.dynamic.len() as f32 / (c.rgb.len() / 3).max(1) as f32);
+        }
         self.cache
             .as_ref()
             .filter(|c| c.pending.is_none())
@@ -464,6 +541,9 @@ impl Renderer {
         params: &[f32],
         params_at: &mut dyn FnMut(f32) -> Option<Vec<f32>>,
     ) -> Frame {
+        if self.uses_volume() {
+            return self.render_volume(camera, time, params, params_at);
+        }
         let start = Instant::now();
         let (w, h) = (camera.width, camera.height);
         let total = w as usize * h as usize;
@@ -522,8 +602,130 @@ impl Renderer {
         }
     }
 
-    /// Renders every pixel and builds the static cache.
-    fn render_full(&self, camera: &Camera, time: f32, params: &[f32]) -> (Vec<f32>, Cache) {
+    /// A frame through the volume: every pixel for a new camera, else only the pixels whose rays
+    /// met a dynamic sample (the others do not depend on time, so the frame equals a full one).
+    fn render_volume(
+        &mut self,
+        camera: &Camera,
+        time: f32,
+        params: &[f32],
+        params_at: &mut dyn FnMut(f32) -> Option<Vec<f32>>,
+    ) -> Frame {
+        let start = Instant::now();
+        let slice_seconds = self.bake_slices(time, params, params_at);
+        let vol = &self.volume.as_ref().expect("uses_volume checked it").volume;
+        let (w, h) = (camera.width, camera.height);
+        let total = w as usize * h as usize;
+        let mut stats = FrameStats {
+            rays_total: total,
+            volume: true,
+            slice_seconds,
+            ..Default::default()
+        };
+        let reuse = self.settings.incremental
+            && self
+                .volume_cache
+                .as_ref()
+                .is_some_and(|c| c.camera == *camera && c.rgb.len() == total * 3);
+        let rgb = if reuse {
+            let mut cache = self.volume_cache.take().expect("checked above");
+            for r in &mut cache.rays {
+                r.time = time;
+            }
+            let out = crate::volume::render_rays(
+                vol,
+                &self.cfg,
+                &self.layout,
+                params,
+                &cache.rays,
+                &self.settings.march,
+            );
+            for (&p, c) in cache.dynamic.iter().zip(&out.rgb) {
+                cache.rgb[p as usize * 3..p as usize * 3 + 3].copy_from_slice(c);
+            }
+            stats.rays_rendered = cache.rays.len();
+            stats.rays_empty = cache.empty;
+            stats.rays_cached = total - cache.rays.len() - cache.empty;
+            stats.samples_evaluated = out.dynamic_samples;
+            stats.volume_samples = out.samples;
+            let rgb = cache.rgb.clone();
+            self.volume_cache = Some(cache);
+            rgb
+        } else {
+            let (mut rgb, pixels, rays, empty) = self.pixel_rays(camera, time);
+            let out = crate::volume::render_rays(
+                vol,
+                &self.cfg,
+                &self.layout,
+                params,
+                &rays,
+                &self.settings.march,
+            );
+            let mut dynamic = Vec::new();
+            let mut dyn_rays = Vec::new();
+            for (k, (&p, c)) in pixels.iter().zip(&out.rgb).enumerate() {
+                rgb[p as usize * 3..p as usize * 3 + 3].copy_from_slice(c);
+                if out.dynamic[k] {
+                    dynamic.push(p);
+                    dyn_rays.push(rays[k]);
+                }
+            }
+            stats.full = true;
+            stats.rays_rendered = rays.len();
+            stats.rays_empty = empty;
+            stats.samples_evaluated = out.dynamic_samples;
+            stats.volume_samples = out.samples;
+            self.volume_cache = self.settings.incremental.then(|| VolumeCache {
+                camera: *camera,
+                rgb: rgb.clone(),
+                dynamic,
+                rays: dyn_rays,
+                empty,
+            });
+            rgb
+        };
+        stats.seconds = start.elapsed().as_secs_f64();
+        Frame {
+            width: w,
+            height: h,
+            rgb,
+            stats,
+        }
+    }
+
+    /// Bakes the time slices the volume needs at `time` that it does not hold (each with the
+    /// flat buffer at its own time: `params_at`, else `params`); returns the seconds spent. A
+    /// slice that cannot be baked leaves the dynamic bricks to the exact field.
+    fn bake_slices(
+        &mut self,
+        time: f32,
+        params: &[f32],
+        params_at: &mut dyn FnMut(f32) -> Option<Vec<f32>>,
+    ) -> f64 {
+        let start = Instant::now();
+        let Some(bv) = self.volume.as_mut() else {
+            return 0.0;
+        };
+        if self.slice_error.is_some() {
+            return 0.0;
+        }
+        for k in bv.volume.dynamic.missing_for(time) {
+            let t = bv.plan.slice_times[k];
+            let owned = params_at(t);
+            let p = owned.as_deref().unwrap_or(params);
+            if let Err(e) =
+                crate::volume::bake_slice(&mut bv.volume, &bv.plan, k, &self.cfg, &self.layout, p)
+            {
+                self.slice_error = Some(e.to_string());
+                break;
+            }
+        }
+        start.elapsed().as_secs_f64()
+    }
+
+    /// The frame with the background where rays miss the scene, and the other pixels with their
+    /// rays.
+    fn pixel_rays(&self, camera: &Camera, time: f32) -> (Vec<f32>, Vec<u32>, Vec<TimedRay>, usize) {
         let (w, h) = (camera.width, camera.height);
         let total = w as usize * h as usize;
         let bg = match self.cfg.background {
@@ -552,6 +754,12 @@ impl Renderer {
                 }
             }
         }
+        (rgb, pixels, rays, empty)
+    }
+
+    /// Renders every pixel and builds the static cache.
+    fn render_full(&self, camera: &Camera, time: f32, params: &[f32]) -> (Vec<f32>, Cache) {
+        let (mut rgb, pixels, rays, empty) = self.pixel_rays(camera, time);
         let out = self.render_rays(params, &rays);
         for (&p, c) in pixels.iter().zip(&out.rgb) {
             rgb[p as usize * 3..p as usize * 3 + 3].copy_from_slice(c);

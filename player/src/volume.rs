@@ -1,0 +1,286 @@
+//! The play-time volume on the CPU: baked over the rendering threads with progress, its time
+//! slices baked when frames need them, and rays rendered through it ([`msth_core::volume`] holds
+//! the layout, the bake and the march).
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use msth_codec::OccupancyGrid;
+use msth_core::config::ModelConfig;
+use msth_core::field::ModelLayout;
+use msth_core::pipeline::TimedRay;
+use msth_core::volume::bake::{
+    cell_bits, eval_vertices, fill_borders, plan_with, BrickSet, PlanOptions,
+    DEFAULT_MIN_CELL_ALPHA, DEFAULT_MIN_PROPOSAL_ALPHA,
+};
+use msth_core::volume::{
+    BakeError, BakePlan, BakeProgress, BakeScratch, ColourMode, MarchOutput, MarchSettings,
+    MarchWorkspace, Occupancy, Slice, Volume,
+};
+use msth_core::Camera;
+use rayon::prelude::*;
+
+pub use msth_core::volume::DEFAULT_CPU_BUDGET;
+
+/// How a volume is baked.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct VolumeOptions {
+    /// The most memory the volume may take, bytes.
+    pub budget: u64,
+    /// Cells per side at most (`None`: the model's finest grid resolution).
+    pub max_resolution: Option<u32>,
+    /// A cell that cannot reach this opacity counts as empty.
+    pub min_cell_alpha: f32,
+    /// A cell where the proposal network's density cannot reach this opacity counts as empty.
+    pub min_proposal_alpha: f32,
+    /// What the vertices hold: a colour (the players' mode) or features (measurements).
+    pub colour: ColourMode,
+}
+
+impl Default for VolumeOptions {
+    fn default() -> Self {
+        VolumeOptions {
+            budget: DEFAULT_CPU_BUDGET,
+            max_resolution: None,
+            min_cell_alpha: DEFAULT_MIN_CELL_ALPHA,
+            min_proposal_alpha: DEFAULT_MIN_PROPOSAL_ALPHA,
+            colour: ColourMode::default(),
+        }
+    }
+}
+
+/// The occupancy grid as the bake reads it.
+pub fn occupancy_view(grid: &OccupancyGrid) -> Occupancy<'_> {
+    Occupancy {
+        resolution: grid.resolution,
+        words: &grid.words,
+        density_threshold: grid.density_threshold,
+    }
+}
+
+/// Plans a bake of `cfg` under `options` with the file's occupancy grid and cameras (the baked
+/// colours face them); `params` holds at least the static part (the mask sorts the bricks).
+pub fn plan_bake(
+    cfg: &ModelConfig,
+    params: &[f32],
+    occupancy: Option<&OccupancyGrid>,
+    cameras: &[Camera],
+    options: &VolumeOptions,
+) -> Result<BakePlan, BakeError> {
+    let layout = ModelLayout::new(cfg);
+    plan_with(
+        cfg,
+        &layout,
+        params,
+        occupancy.map(occupancy_view),
+        &PlanOptions {
+            budget: options.budget,
+            max_resolution: options.max_resolution,
+            min_cell_alpha: options.min_cell_alpha,
+            min_proposal_alpha: options.min_proposal_alpha,
+            colour: options.colour,
+            eyes: cameras.iter().map(|c| c.center()).collect(),
+            value_bytes: 4,
+        },
+    )
+}
+
+/// Bricks per work item of the parallel bake (progress moves by this much).
+const BAKE_BATCH: usize = 16;
+
+/// Bakes `set` over the rayon pool: values and cell bits of every brick, and the field
+/// evaluations made.
+fn bake_set(
+    plan: &BakePlan,
+    cfg: &ModelConfig,
+    layout: &ModelLayout,
+    params: &[f32],
+    set: &BrickSet<'_>,
+    progress: &BakeProgress,
+) -> Result<(Vec<f32>, Vec<u32>, usize), BakeError> {
+    let g = plan.geometry;
+    let (fw, sv) = (g.flag_words(), g.vertices_per_brick() * plan.channels);
+    let n = set.bricks.len();
+    let mut values = vec![0f32; n * sv];
+    let mut occupied = vec![0u32; n * fw];
+    let evaluated: Result<Vec<usize>, BakeError> = values
+        .par_chunks_mut(BAKE_BATCH * sv)
+        .enumerate()
+        .map_init(BakeScratch::default, |scratch, (c, chunk)| {
+            eval_vertices(
+                plan,
+                cfg,
+                layout,
+                params,
+                set,
+                c * BAKE_BATCH,
+                chunk,
+                scratch,
+                progress,
+            )
+        })
+        .collect();
+    let evaluated = evaluated?.iter().sum();
+    fill_borders(plan, set, &mut values);
+    occupied
+        .par_chunks_mut(BAKE_BATCH * fw)
+        .zip(values.par_chunks(BAKE_BATCH * sv))
+        .enumerate()
+        .for_each(|(c, (occ, vals))| {
+            cell_bits(plan, layout, params, set, c * BAKE_BATCH, vals, occ)
+        });
+    Ok((values, occupied, evaluated))
+}
+
+/// Bakes `plan`'s static bricks over the rayon pool; `progress` counts bricks and can stop it.
+/// The dynamic bricks' slices are baked when frames need them ([`bake_slice`]).
+pub fn bake(
+    plan: &BakePlan,
+    cfg: &ModelConfig,
+    layout: &ModelLayout,
+    params: &[f32],
+    progress: &BakeProgress,
+) -> Result<Volume, BakeError> {
+    let start = Instant::now();
+    let mut vol = Volume::allocate(plan);
+    let set = BrickSet {
+        bricks: &plan.static_bricks,
+        time: 0.0,
+        dynamic: false,
+    };
+    let (values, occupied, evaluated) = bake_set(plan, cfg, layout, params, &set, progress)?;
+    vol.set_static(plan, values, occupied);
+    vol.stats.vertices_evaluated = evaluated;
+    vol.stats.seconds = start.elapsed().as_secs_f64();
+    Ok(vol)
+}
+
+/// Bakes time slice `k` of `vol` over the rayon pool with `params` (the flat buffer at the
+/// slice's time); returns the field evaluations made.
+pub fn bake_slice(
+    vol: &mut Volume,
+    plan: &BakePlan,
+    k: usize,
+    cfg: &ModelConfig,
+    layout: &ModelLayout,
+    params: &[f32],
+) -> Result<usize, BakeError> {
+    let set = BrickSet {
+        bricks: &plan.dynamic_bricks,
+        time: plan.slice_times[k],
+        dynamic: true,
+    };
+    let (values, occupied, evaluated) =
+        bake_set(plan, cfg, layout, params, &set, &BakeProgress::default())?;
+    vol.set_slice(k, Slice { occupied, values }, plan.resident_slices);
+    Ok(evaluated)
+}
+
+/// Rays per work item of the parallel march.
+const MARCH_CHUNK: usize = 64;
+
+/// Renders `rays` through `vol` in parallel, in order.
+pub fn render_rays(
+    vol: &Volume,
+    cfg: &ModelConfig,
+    layout: &ModelLayout,
+    params: &[f32],
+    rays: &[TimedRay],
+    settings: &MarchSettings,
+) -> MarchOutput {
+    let parts: Vec<MarchOutput> = rays
+        .par_chunks(MARCH_CHUNK)
+        .map_init(MarchWorkspace::default, |ws, chunk| {
+            let mut out = MarchOutput::default();
+            msth_core::volume::march::march_chunk(
+                vol, cfg, layout, params, chunk, settings, ws, &mut out,
+            );
+            out
+        })
+        .collect();
+    let mut out = MarchOutput::default();
+    for p in &parts {
+        out.append(p);
+    }
+    out
+}
+
+/// A baked volume with the plan that made it (its slices are baked from the plan).
+#[derive(Clone, Debug)]
+pub struct BakedVolume {
+    pub volume: Volume,
+    pub plan: Arc<BakePlan>,
+}
+
+/// A bake on its own thread: the renderer draws exact frames until [`BakeJob::poll`] hands over
+/// the volume.
+pub struct BakeJob {
+    pub plan: Arc<BakePlan>,
+    pub progress: Arc<BakeProgress>,
+    handle: Option<std::thread::JoinHandle<Result<Volume, BakeError>>>,
+    spawn_error: Option<String>,
+}
+
+impl BakeJob {
+    /// Starts baking `plan`'s static bricks with a copy of `params`.
+    pub fn start(plan: BakePlan, cfg: &ModelConfig, params: Vec<f32>) -> BakeJob {
+        let plan = Arc::new(plan);
+        let progress = Arc::new(BakeProgress::default());
+        let (p, pr, cfg) = (plan.clone(), progress.clone(), cfg.clone());
+        let spawned = std::thread::Builder::new()
+            .name("msth-bake".into())
+            .spawn(move || {
+                let layout = ModelLayout::new(&cfg);
+                bake(&p, &cfg, &layout, &params, &pr)
+            });
+        let (handle, spawn_error) = match spawned {
+            Ok(h) => (Some(h), None),
+            Err(e) => (None, Some(e.to_string())),
+        };
+        BakeJob {
+            plan,
+            progress,
+            handle,
+            spawn_error,
+        }
+    }
+
+    /// Static bricks baked, as a fraction.
+    pub fn fraction(&self) -> f64 {
+        self.progress.done() as f64 / self.plan.static_bricks.len().max(1) as f64
+    }
+
+    /// The volume once the bake has finished (`None` while it runs).
+    pub fn poll(&mut self) -> Option<Result<BakedVolume, String>> {
+        if self.handle.as_ref().is_some_and(|h| !h.is_finished()) {
+            return None;
+        }
+        self.finish()
+    }
+
+    /// Waits for the bake.
+    pub fn wait(&mut self) -> Option<Result<BakedVolume, String>> {
+        self.finish()
+    }
+
+    fn finish(&mut self) -> Option<Result<BakedVolume, String>> {
+        if let Some(e) = self.spawn_error.take() {
+            return Some(Err(format!("cannot start the bake's thread: {e}")));
+        }
+        let h = self.handle.take()?;
+        Some(match h.join() {
+            Ok(Ok(volume)) => Ok(BakedVolume {
+                volume,
+                plan: self.plan.clone(),
+            }),
+            Ok(Err(e)) => Err(e.to_string()),
+            Err(_) => Err("the bake's thread panicked".to_string()),
+        })
+    }
+}
+
+impl Drop for BakeJob {
+    fn drop(&mut self) {
+        self.progress.cancel();
+    }
+}

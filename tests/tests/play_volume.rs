@@ -1,0 +1,271 @@
+//! The play-time volume (`msth_core::volume`, `msth_player::volume`) against the exact renderer,
+//! on the fixture `tests/fixtures/v2.msth`: frames from file cameras and a free camera at static
+//! and dynamic times, incremental frames against full ones, a budget that only a coarser volume
+//! fits, and files whose bake must end in an error.
+//!
+//! The thresholds are PSNRs of the volume's displayed (8-bit) frames against the exact
+//! renderer's. They sit below what the fixture measures (printed by each test with
+//! `--nocapture`) by a margin for other CPUs' float rounding, and far above what a wrong
+//! volume draws (a shifted lookup, a missing slice or a wrong colour lands below 20 dB).
+
+use std::path::Path;
+use std::sync::Arc;
+
+use glam::Vec3;
+use msth_codec::{decode_all, encode, DecodedModel, EncodeOptions};
+use msth_core::camera::Camera;
+use msth_core::field::ModelLayout;
+use msth_core::volume::{BakeError, BakeProgress};
+use msth_player::volume::{bake, plan_bake, BakedVolume, VolumeOptions};
+use msth_player::{Frame, RenderSettings, Renderer};
+
+/// The fixture with a mask that splits the scene, encoded again as the fixture was: its mask
+/// leaves every vertex to the 4D grid, so here the mask holds the vertices with the highest index
+/// along the grid's first axis dynamic (a quarter of them) and makes the others static, so that
+/// the volume has both parts.
+fn fixture() -> DecodedModel {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/v2.msth");
+    let d = decode_all(&std::fs::read(path).unwrap()).unwrap();
+    let mut params = d.params.clone();
+    let (grid, range) = d
+        .layout
+        .field
+        .encoding
+        .mask
+        .clone()
+        .expect("the fixture has a mask");
+    for (i, m) in params[range].iter_mut().enumerate() {
+        let first_axis = i % grid.res;
+        *m = if 4 * first_axis >= 3 * grid.res {
+            -20.0
+        } else {
+            20.0
+        };
+    }
+    let opts = EncodeOptions {
+        quant: d.metadata.quant,
+        chunk_frames: d.metadata.chunk_frames as usize,
+        dynamic_threshold: d.metadata.dynamic_threshold,
+        frame_rate: d.metadata.frame_rate,
+        occupancy_resolution: d.occupancy.as_ref().map_or(64, |g| g.resolution),
+        ..Default::default()
+    };
+    let (bytes, _) = encode(&d.config, &params, &d.cameras, &opts).unwrap();
+    decode_all(&bytes).unwrap()
+}
+
+fn baked(d: &DecodedModel, options: &VolumeOptions) -> BakedVolume {
+    let plan = plan_bake(
+        &d.config,
+        &d.params,
+        d.occupancy.as_ref(),
+        &d.cameras,
+        options,
+    )
+    .unwrap();
+    let layout = ModelLayout::new(&d.config);
+    let volume = bake(
+        &plan,
+        &d.config,
+        &layout,
+        &d.params,
+        &BakeProgress::default(),
+    )
+    .unwrap();
+    BakedVolume {
+        volume,
+        plan: Arc::new(plan),
+    }
+}
+
+fn renderer(d: &DecodedModel, volume: Option<BakedVolume>, incremental: bool) -> Renderer {
+    let mut r = Renderer::new(
+        &d.config,
+        RenderSettings {
+            incremental,
+            exact: volume.is_none(),
+            ..Default::default()
+        },
+    );
+    r.set_occupancy(d.occupancy.clone().map(Arc::new));
+    r.set_volume(volume);
+    r
+}
+
+fn draw(r: &mut Renderer, d: &DecodedModel, camera: &Camera, time: f32) -> Frame {
+    r.render_probing(camera, time, &d.params_for_time(time), &mut |t| {
+        Some(d.params_for_time(t))
+    })
+}
+
+/// The file's first camera and a free one beside it, looking at the same point.
+fn cameras(d: &DecodedModel) -> Vec<Camera> {
+    let c = d.cameras[0];
+    let forward = -c.world_from_camera.z_axis.truncate();
+    let up = c.world_from_camera.y_axis.truncate();
+    let fov_x = 2.0 * (0.5 * c.width as f32 / c.fx).atan();
+    let target = c.center() + forward * 2.0;
+    let eye = c.center() + Vec3::new(0.3, 0.15, -0.2);
+    let free = Camera::look_at(c.width, c.height, fov_x, eye, target, up);
+    vec![c, free]
+}
+
+#[test]
+fn volume_frames_match_exact_frames() {
+    let d = fixture();
+    let mut exact = renderer(&d, None, false);
+    let mut volume = renderer(&d, Some(baked(&d, &VolumeOptions::default())), false);
+    // The file's camera sees the colours the volume baked for it (37.1-37.8 dB measured); the
+    // free camera looks from about 11 degrees away, where the baked colours miss the field's view
+    // dependence (30.4-30.5 dB).
+    for (camera, least) in cameras(&d).into_iter().zip([35.0, 28.0]) {
+        for time in [0.0, 0.37, 0.7, 1.0] {
+            let e = draw(&mut exact, &d, &camera, time);
+            let v = draw(&mut volume, &d, &camera, time);
+            assert!(!e.stats.volume && v.stats.volume);
+            let p = v.psnr_displayed(&e);
+            println!("t={time}: volume against exact {p:.2} dB");
+            assert!(p >= least, "t={time}: {p:.2} dB against the exact frame");
+        }
+    }
+}
+
+#[test]
+fn incremental_volume_frames_equal_full_frames() {
+    let d = fixture();
+    let vol = baked(&d, &VolumeOptions::default());
+    let mut incremental = renderer(&d, Some(vol.clone()), true);
+    let mut full = renderer(&d, Some(vol), false);
+    let camera = d.cameras[0];
+    let mut partial = 0;
+    for k in 0..8 {
+        let time = k as f32 / 7.0;
+        let a = draw(&mut incremental, &d, &camera, time);
+        let b = draw(&mut full, &d, &camera, time);
+        if !a.stats.full {
+            partial += 1;
+            assert!(a.stats.rays_rendered < a.stats.rays_total);
+        }
+        assert_eq!(a.rgb, b.rgb, "t={time}: incremental frame differs");
+    }
+    assert_eq!(
+        partial, 7,
+        "every frame after the first re-renders only dynamic rays"
+    );
+}
+
+#[test]
+fn a_budget_too_small_for_the_fine_volume_gets_a_coarser_one() {
+    let d = fixture();
+    let fine = plan_bake(
+        &d.config,
+        &d.params,
+        d.occupancy.as_ref(),
+        &d.cameras,
+        &VolumeOptions::default(),
+    )
+    .unwrap();
+    let options = VolumeOptions {
+        budget: fine.bytes_bound / 3,
+        ..Default::default()
+    };
+    let coarse = baked(&d, &options);
+    let (r0, r1) = (fine.geometry.resolution, coarse.plan.geometry.resolution);
+    assert!(r1 < r0, "{r1}^3 under a third of the budget of {r0}^3");
+    assert!(coarse.volume.bytes() <= options.budget);
+    let note = coarse.plan.note().expect("a coarser volume says so");
+    assert!(note.contains("--volume-budget"), "{note}");
+    let mut exact = renderer(&d, None, false);
+    let mut volume = renderer(&d, Some(coarse), false);
+    let camera = d.cameras[0];
+    let p = draw(&mut volume, &d, &camera, 0.7).psnr_displayed(&draw(&mut exact, &d, &camera, 0.7));
+    println!(
+        "{r1}^3 (budget {} KiB): {p:.2} dB against exact",
+        options.budget >> 10
+    );
+    // 34.3 dB measured at 64^3.
+    assert!(p >= 30.0, "{p:.2} dB");
+
+    // Below the coarsest volume: an error naming the budget, never an allocation.
+    let tiny = VolumeOptions {
+        budget: 1024,
+        ..Default::default()
+    };
+    match plan_bake(
+        &d.config,
+        &d.params,
+        d.occupancy.as_ref(),
+        &d.cameras,
+        &tiny,
+    ) {
+        Err(e @ BakeError::OverBudget { .. }) => assert!(e.to_string().contains("--volume-budget")),
+        other => panic!("expected OverBudget, got {other:?}"),
+    }
+}
+
+#[test]
+fn hostile_files_end_the_bake_with_an_error() {
+    // Parameters the decoder cannot bound (its checks are structural): a NaN in the static
+    // network.
+    let mut d = fixture();
+    let layout = ModelLayout::new(&d.config);
+    // (the density network's weights: every sample is NaN).
+    for x in &mut d.params[layout.field.density.1.clone()] {
+        *x = f32::NAN;
+    }
+    let plan = plan_bake(
+        &d.config,
+        &d.params,
+        d.occupancy.as_ref(),
+        &d.cameras,
+        &VolumeOptions::default(),
+    )
+    .unwrap();
+    let r = bake(
+        &plan,
+        &d.config,
+        &layout,
+        &d.params,
+        &BakeProgress::default(),
+    );
+    assert!(matches!(r, Err(BakeError::NotFinite(_))), "{r:?}");
+
+    // A resolution far beyond any budget is planned down to what fits, not allocated.
+    let d = fixture();
+    let huge = VolumeOptions {
+        max_resolution: Some(1 << 16),
+        budget: 8 << 20,
+        ..Default::default()
+    };
+    let plan = plan_bake(
+        &d.config,
+        &d.params,
+        d.occupancy.as_ref(),
+        &d.cameras,
+        &huge,
+    )
+    .unwrap();
+    assert!(plan.bytes_bound <= huge.budget);
+}
+
+/// Cells where the proposal network's density stays low are left empty, more of them the higher
+/// the threshold, and none without it.
+#[test]
+fn the_proposal_threshold_empties_cells() {
+    let d = fixture();
+    let occupied = |a: f32| {
+        baked(
+            &d,
+            &VolumeOptions {
+                min_proposal_alpha: a,
+                ..Default::default()
+            },
+        )
+        .volume
+        .stats
+        .occupied_cells
+    };
+    let (none, some, most) = (occupied(0.0), occupied(0.05), occupied(0.5));
+    println!("occupied cells: {none} without the test, {some} at 0.05, {most} at 0.5");
+    assert!(none > some && some > most, "{none} {some} {most}");
+}
