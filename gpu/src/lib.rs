@@ -213,6 +213,7 @@ pub mod presets;
 pub mod render;
 pub mod sampling;
 pub mod sh;
+pub mod shaders;
 pub mod specialise;
 pub mod step;
 
