@@ -195,7 +195,6 @@ fn table2(buf: u32, i: u32) -> vec2<f32> {
 // camera: a pixel's ray, its interval in the scene (box or contraction), the spacing of
 // samples along it (`t_of_s`), and a sample's point in the grids' unit cube (`to_unit`).
 
-
 // Spacing: normalised s in [0, 1] to distance.
 fn g_fwd(t: f32) -> f32 {
     return select(1.0 - 0.5 / max(t, 1.0), 0.5 * t, t < 1.0);
@@ -326,7 +325,6 @@ fn sh4(d: vec3<f32>) {
 // #module mask
 // mask: the dense mask grid, trilinear and sigmoid: the weight m of the static encoding.
 
-
 // Trilinear read of the dense mask grid (logit), `res^3` values at `off` in `rest`. Per-axis
 // values in vectors, not indexed arrays (software adapters turn those into memory traffic).
 fn mask_logit(off: u32, res: u32, x: vec3<f32>) -> f32 {
@@ -359,7 +357,6 @@ fn mask_at(e: Encoding, x: vec3<f32>) -> f32 {
 // #module hashgrid
 // hashgrid: one level of a multi-resolution hash grid (3D or 4D, dense or hashed) at a point:
 // the interpolated features of its corners.
-
 
 // Value i of the hash tables of buffer `buf` (0 tab3, 1 tab4).
 fn table(buf: u32, i: u32) -> f32 {
@@ -442,7 +439,6 @@ fn grid_level_at(lv: Level, shape: vec4<u32>, p: vec4<f32>, buf: u32) -> Feat {
 // mlp: the generic MLP layers of one sample (weights read from `rest`, activations in the
 // private arrays below), as msth-core's decoders.
 
-
 // MLP activations: the input (an encoding of at most MAX_LEVELS * MAX_FEATURES values) and
 // hidden layers in `hid`, each layer's output in `hid2`.
 var<private> hid: array<f32, 256>;
@@ -521,7 +517,6 @@ fn hid2_to_hid(n: u32) {
 // field's density and geometry features (`field_density`) and its colour from those and the SH
 // of the view direction (`field_color`). One point per call: the per-ray kernels call them per
 // sample, a per-pixel kernel can too.
-
 
 // The blend of encoding `e` at a point of mask value m: `(k3, k4, read3, read4)`, the features
 // being v = k3 f3 + k4 f4 (mst: m, 1 - m; mt: 1, 1 - m; add: 1, 1; 4d: 0, 1; static: 1, 0: the
@@ -671,7 +666,7 @@ fn field_color() -> vec3<f32> {
 // colour decoders, SH direction encoding, volume compositing and background. The per-sample
 // passes (`passes`) render the same frames with bounded work per invocation.
 
-
+// Per-invocation scratch of `render_ray`: the proposal weights and the main samples' edges.
 var<private> w_prop: array<f32, MAX_PROPOSAL_SAMPLES>;
 var<private> s_main: array<f32, 129>; // MAX_SAMPLES + 1
 
@@ -842,7 +837,6 @@ fn eval_points(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
 // passes_lanes: the per-sample passes' MLP activations of LANES samples at once (component k
 // of a `vec4` for sample k), shared by the generic and the specialised MLPs.
 
-
 // Samples per invocation of `pass_proposal`, `pass_density`, `pass_dynamic` and `pass_color`.
 const LANES: u32 = 4u;
 // Activations, component k for sample k: the MLPs' input in `hid4`, the density MLP's output in
@@ -864,7 +858,6 @@ fn hid_to_lane(lane: u32, n: u32) {
 // #module passes_work
 // passes_work: what the per-sample passes share: the `Pass` uniform, the work buffer and its
 // counters (bindings 7-10), and the helpers that read rays, samples and the live lists.
-
 
 // Work buffer regions (offsets in 4-byte words, from `Pass`): rays (4 words per ray: output
 // index, pixel, near, far), hist (proposal sigma, then weights: np per ray), edges (S + 1
@@ -1025,7 +1018,6 @@ fn main_point(r: u32, k: u32, rec: vec4<f32>) -> vec4<f32> {
 // specialise: the per-sample passes' encodings and MLPs, the region that hosts replace for one
 // model.
 
-
 // The passes' encodings (`encode_field4`, `encode_proposal4`), MLPs (`proposal_mlp4`,
 // `density_mlp4`, `color_mlp4`) and geometry-feature transfers (`geo_to_work`, `geo_from_work`)
 // lie between the two `specialise` lines. These generic versions read the level values from the
@@ -1161,7 +1153,6 @@ fn geo_from_work(j: u32, k: u32) {
 // #module passes_rays
 // passes_rays: the passes up to each ray's main samples: ray setup, dispatch sizes, the live
 // lists of an occupancy grid, the proposal field's densities and the resampling.
-
 
 @compute @workgroup_size(64)
 fn pass_setup(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
@@ -1380,7 +1371,6 @@ fn pass_resample(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wor
 // passes_shade: the passes from a ray's main samples to its pixel: density, which samples light
 // reaches, their colours, and compositing.
 
-
 // The density and geometry features of the LANES samples `js` (the first `used` of them) from
 // `density_mlp4`'s output.
 fn store_density_lanes(js: vec4<u32>, used: u32) {
@@ -1557,7 +1547,6 @@ fn pass_composite(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wo
 // passes_cache: the sample cache of incremental playback (msth-player's `samples.rs`): the
 // per-bin maximum of proposal weights over several times, the cache's static samples evaluated
 // once, and its dynamic samples' density per frame.
-
 
 // Per ray (partition): weights of this time's densities, and their per-bin maximum over the
 // times so far in `wmax`.

@@ -12,6 +12,7 @@
 // #import sh
 // #import field
 
+// Per-invocation scratch of `render_ray`: the proposal weights and the main samples' edges.
 var<private> w_prop: array<f32, MAX_PROPOSAL_SAMPLES>;
 var<private> s_main: array<f32, 129>; // MAX_SAMPLES + 1
 

@@ -146,7 +146,8 @@ pub fn order<'m>(
 
 /// The shader text of `roots` and every module they import, directly or not, from `modules`
 /// (name, text): a first line naming the roots, then each module once, in [`order`], as a
-/// `// #module NAME` line and the module's text without its import lines.
+/// `// #module NAME` line and the module's text without its import lines (and without a blank
+/// line that follows them and one before them).
 pub fn compose(modules: &[(&str, &str)], roots: &[&str]) -> Result<String, ComposeError> {
     let names = order(modules, roots)?;
     let mut out = format!(
@@ -161,9 +162,19 @@ pub fn compose(modules: &[(&str, &str)], roots: &[&str]) -> Result<String, Compo
             .unwrap_or_default();
         out.push('\n');
         out.push_str(&format!("{MODULE} {name}\n"));
-        for line in text.lines().filter(|l| !is_import(l)) {
-            out.push_str(line);
-            out.push('\n');
+        // A blank line after import lines is dropped when one was written just before them.
+        let (mut blank, mut dropped) = (false, false);
+        for line in text.lines() {
+            if is_import(line) {
+                dropped = true;
+                continue;
+            }
+            let is_blank = line.trim().is_empty();
+            if !(is_blank && blank && dropped) {
+                out.push_str(line);
+                out.push('\n');
+            }
+            (blank, dropped) = (is_blank, false);
         }
     }
     Ok(out)
@@ -194,6 +205,15 @@ mod tests {
         );
         assert_eq!(text.matches("const A").count(), 1);
         assert!(!text.contains(IMPORT));
+    }
+
+    #[test]
+    fn import_lines_leave_no_double_blank_line() {
+        let m = "// m\n\n// #import a\n// #import b\n\nfn m() {}\n\n\nfn n() {}\n";
+        let modules = [("m", m), ("a", "a\n"), ("b", "b\n")];
+        assert!(compose(&modules, &["m"])
+            .unwrap()
+            .ends_with("// #module m\n// m\n\nfn m() {}\n\n\nfn n() {}\n"));
     }
 
     #[test]
