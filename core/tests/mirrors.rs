@@ -5,8 +5,8 @@
 //!
 //! | copy | mirrors |
 //! |---|---|
-//! | `gpu/shaders/render.wgsl`, `blend_of` (used by `encode` and the specialised encodings): `k3`, `k4` per blend code | `BlendMode::coefficients` |
-//! | `gpu/shaders/render.wgsl`, `blend_of`: `skip4` | `BlendMode::is_dynamic` |
+//! | `gpu/shaders/render/field.wgsl`, `blend_of` (used by `encode` and the specialised encodings): `k3`, `k4` per blend code | `BlendMode::coefficients` |
+//! | `gpu/shaders/render/field.wgsl`, `blend_of`: `skip4` | `BlendMode::is_dynamic` |
 //! | `gpu/src/layout.rs`: `consts.x` of the encoding uniform | `BlendMode::no_mask_value` |
 //! | `web/js/renderer.js`: `noMask` | `BlendMode::no_mask_value` |
 //! | `web/js/renderer.js`: `RENDER_STATIC_CUTOFF` | `pipeline::RENDER_STATIC_CUTOFF` |
@@ -28,14 +28,14 @@ fn read(rel: &str) -> String {
 
 #[test]
 fn wgsl_blend_mirrors_blend_coefficients() {
-    let wgsl = read("gpu/shaders/render.wgsl");
+    let wgsl = read("gpu/shaders/render/field.wgsl");
     // Blend codes 0..4 are Mst, Mt, Add, FourD, Static (gpu/src/layout.rs, blend_code); the
     // shader blends `v = k3 f3 + k4 f4` with the two coefficients chosen per code by these
     // lines, transcribed below (WGSL `select(f, t, c)` is `if c { t } else { f }`).
     let k3 = "let k3 = select(select(1.0, m, blend == 0u), 0.0, blend == 3u);";
     let k4 = "let k4 = select(select(1.0 - m, 1.0, blend >= 2u), 0.0, blend == 4u);";
     for text in [k3, k4] {
-        assert!(wgsl.contains(text), "render.wgsl: no `{text}`");
+        assert!(wgsl.contains(text), "field.wgsl: no `{text}`");
     }
     assert!(wgsl.contains("let va = k3 * f3.a + k4 * f4.a;"));
     let select = |f: f32, t: f32, c: bool| if c { t } else { f };

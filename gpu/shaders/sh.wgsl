@@ -1,7 +1,7 @@
 // The view-direction encoding for training, one invocation per direction: `sh4` of the render
-// kernels (`render.wgsl`, the one WGSL copy of `msth_core::sh::sh4`'s constants: real spherical
-// harmonics, bands 0 to 3, 16 coefficients into the private array `sh`), which the host puts
-// before this file. Directions are 3 floats each (unit length, as the CPU's rays); the 16
+// kernels (their module `render/sh.wgsl`, the one WGSL copy of `msth_core::sh::sh4`'s constants:
+// real spherical harmonics, bands 0 to 3, 16 coefficients into the private array `sh`), which
+// the host composes before this file. Directions are 3 floats each (unit length, as the CPU's rays); the 16
 // values of direction i go to `out[i * stride + column ..]`, so they can land straight in the
 // colour MLP's input rows. No gradient: the direction encoding has no parameters and the
 // directions are fixed (the CPU computes none either).

@@ -1,4 +1,4 @@
-//! The host side of the render kernels' bindings (`shaders/render.wgsl`): the `Model` and
+//! The host side of the render kernels' bindings (`shaders/render/bindings.wgsl`): the `Model` and
 //! `View` uniforms byte for byte, and the split of the flat parameter buffer into the three
 //! storage buffers the kernels read (`tab3`, `tab4`, `rest`). `web/shaders/README.md` documents
 //! the same layout for the browser; keep the two in step.

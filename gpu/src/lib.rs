@@ -1,9 +1,12 @@
 //! `msth-gpu`: every WGSL kernel of msth and its wgpu host code (Vulkan, Metal, DX12 natively;
 //! the browser runs the same render kernels through WebGPU).
 //!
-//! - [`render`]: the renderer's kernels (`shaders/render.wgsl`: the per-sample passes, the older
+//! - [`render`]: the renderer's kernels ([`RENDER_WGSL`]: the per-sample passes, the older
 //!   one-invocation-per-ray `render`, and `eval_points`), the device context that compiles them
 //!   and one model's buffers on the device;
+//! - [`shaders`]: the render kernels' WGSL modules (`shaders/render/`: camera and rays, hash
+//!   grids, mask, MLPs, SH, the per-point field, the per-ray entry points, the passes) and the
+//!   preprocessor that composes them (`// #import NAME` lines);
 //! - [`passes`]: rendering through per-sample passes over compacted work lists (frames, probes,
 //!   and the sample cache of incremental playback);
 //! - [`specialise`]: the passes' encodings and MLPs rewritten for one model, its level values
@@ -25,10 +28,12 @@
 //!   resampling, placement through the spacing and the contraction);
 //! - [`step`]: the whole training step on the device, and Adam.
 //!
-//! # The web page's copy of `render.wgsl`
-//! `shaders/render.wgsl` here is the one source. The browser page fetches
-//! `web/shaders/render.wgsl` over HTTP, so `web/` holds a generated copy, and the test
-//! `tests/web_copy.rs` fails when the two differ (`MSTH_UPDATE_WEB_WGSL=1` rewrites the copy).
+//! # The render shader: modules, and the web page's copy
+//! The modules of `shaders/render/` are the one source. The build composes them into
+//! [`RENDER_WGSL`] ([`shaders`]), which native code compiles. The browser page fetches
+//! `web/shaders/render.wgsl` over HTTP, so `web/` holds a generated copy of that composed text,
+//! and the test `tests/web_copy.rs` fails when the two differ by a byte
+//! (`MSTH_UPDATE_WEB_WGSL=1` rewrites the copy).
 //! A copy rather than the server handing out [`RENDER_WGSL`]: `web/` stays a self-contained
 //! static site (any static file server serves the page the same way as
 //! `msth serve --web web`), and the server need not link the GPU stack nor special-case one URL.
@@ -213,6 +218,7 @@ pub mod presets;
 pub mod render;
 pub mod sampling;
 pub mod sh;
+pub mod shaders;
 pub mod specialise;
 pub mod step;
 

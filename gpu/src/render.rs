@@ -1,4 +1,5 @@
-//! The renderer's kernels (`shaders/render.wgsl`, the same source the browser player runs)
+//! The renderer's kernels ([`RENDER_WGSL`], composed from `shaders/render/`: the same text the
+//! browser player runs)
 //! and their host code: they render exactly what the CPU renderer of `msth-player` renders from
 //! the same parameters, camera and time.
 //!
@@ -19,8 +20,8 @@ use wgpu::util::DeviceExt;
 
 use crate::layout::{self, GpuModel, ParamSplit, TableFormat, ViewU};
 
-/// The kernels' source, shared with the browser player.
-pub const RENDER_WGSL: &str = include_str!("../shaders/render.wgsl");
+/// The kernels' source, shared with the browser player ([`crate::shaders`]).
+pub use crate::shaders::RENDER_WGSL;
 
 /// Environment variable that lets the automatic choice use a software adapter (Mesa lavapipe,
 /// WARP, SwiftShader); `--gpu` always may.

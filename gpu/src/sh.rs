@@ -9,21 +9,15 @@ use msth_core::sh::SH_COEFFS;
 
 use crate::device::ComputeDevice;
 use crate::mlp::need_floats;
-use crate::{GpuError, RENDER_WGSL};
+use crate::GpuError;
 
 /// The kernel `sh_encode` (after [`sh4_wgsl`]).
 pub const SH_WGSL: &str = include_str!("../shaders/sh.wgsl");
 
-/// `fn sh4` of the render kernels ([`RENDER_WGSL`], the one WGSL copy of the SH constants)
-/// with the private array it writes.
+/// The render kernels' `sh` module ([`crate::shaders`], the one WGSL copy of the SH constants):
+/// `fn sh4` and the private array it writes.
 pub fn sh4_wgsl() -> Result<String, GpuError> {
-    let missing = || GpuError::Shader("render.wgsl has no `fn sh4(` ending in `\n}\n`".into());
-    let start = RENDER_WGSL.find("fn sh4(").ok_or_else(missing)?;
-    let len = RENDER_WGSL[start..].find("\n}\n").ok_or_else(missing)? + 3;
-    Ok(format!(
-        "var<private> sh: array<f32, 16>;\n{}",
-        &RENDER_WGSL[start..start + len]
-    ))
+    crate::shaders::compose_render(&["sh"]).map_err(|e| GpuError::Shader(e.to_string()))
 }
 
 /// The kernel's `Sh` uniform: `(directions, row stride, first column, 0)`.

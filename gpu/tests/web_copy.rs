@@ -1,9 +1,10 @@
 //! The browser page's `web/shaders/render.wgsl` and `web/shaders/tables_f16.wgsl` are generated
-//! copies of this crate's `shaders/render.wgsl` ([`msth_gpu::RENDER_WGSL`]) and
-//! `shaders/tables_f16.wgsl` ([`msth_gpu::layout::TABLES_F16_WGSL`], the binary16 tables'
-//! region): this test fails when a copy differs, so the native and the web renderers cannot
-//! drift apart. `MSTH_UPDATE_WEB_WGSL=1` rewrites the copies (each through a temporary file and
-//! a rename) instead of failing.
+//! copies of this crate's render shader as composed from the modules of `shaders/render/`
+//! ([`msth_gpu::RENDER_WGSL`], `msth_gpu::shaders`) and of `shaders/tables_f16.wgsl`
+//! ([`msth_gpu::layout::TABLES_F16_WGSL`], the binary16 tables' region): this test fails when a
+//! copy differs by a byte, so the native and the web renderers cannot drift apart.
+//! `MSTH_UPDATE_WEB_WGSL=1` rewrites the copies (each through a temporary file and a rename)
+//! instead of failing.
 
 use std::path::PathBuf;
 
@@ -15,9 +16,17 @@ fn web_copy(name: &str) -> PathBuf {
 
 #[test]
 fn web_page_wgsl_is_the_crate_wgsl() {
-    for (name, source) in [
-        ("render.wgsl", msth_gpu::RENDER_WGSL),
-        ("tables_f16.wgsl", msth_gpu::layout::TABLES_F16_WGSL),
+    for (name, source, from) in [
+        (
+            "render.wgsl",
+            msth_gpu::RENDER_WGSL,
+            "the composition of gpu/shaders/render/",
+        ),
+        (
+            "tables_f16.wgsl",
+            msth_gpu::layout::TABLES_F16_WGSL,
+            "gpu/shaders/tables_f16.wgsl",
+        ),
     ] {
         let path = web_copy(name);
         if std::env::var("MSTH_UPDATE_WEB_WGSL").is_ok_and(|v| v == "1") {
@@ -35,7 +44,7 @@ fn web_page_wgsl_is_the_crate_wgsl() {
                 .map(|i| i + 1)
                 .unwrap_or_else(|| copy.lines().count().min(source.lines().count()) + 1);
             panic!(
-                "{} differs from gpu/shaders/{name} (first at line {line}); run \
+                "{} differs from {from} (first at line {line}); run \
                  `MSTH_UPDATE_WEB_WGSL=1 cargo test --release -p msth-gpu --test web_copy`",
                 path.display()
             );

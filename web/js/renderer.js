@@ -1,6 +1,6 @@
 // WebGPU rendering with the native renderer's kernels: `shaders/render.wgsl` is a checked copy of
-// `gpu/shaders/render.wgsl`, the file the wgpu player compiles (one source of truth, served to the
-// page by `msth serve`). This module is
+// the shader the wgpu player compiles, composed from the modules of `gpu/shaders/render/` (one
+// source of truth, served to the page by `msth serve`). This module is
 // the browser's host side of its bindings, a port of `gpu/src/layout.rs` as documented in
 // `shaders/README.md`: the `Model` uniform (6496 bytes), the `View` uniform (112 bytes), the
 // split of the flat parameter buffer into `tab3` (field.h3, then proposal.h3), `tab4` (field.h4,

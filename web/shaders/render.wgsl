@@ -1,12 +1,16 @@
-// MSTH renderer kernels: one invocation renders one ray (or evaluates one point), exactly as the
-// CPU renderer does at render time (msth-core `pipeline::render_chunk`): ray limits against the
-// scene box (or contraction), proposal samples, proposal field density, proposal resampling,
-// main samples, masked space-time encoding (3D hash grid, 4D hash grid, dense mask), density and
-// colour decoders, SH direction encoding, volume compositing and background.
+// Composed from WGSL modules by msth-gpu (`shaders::compose`), roots: per_ray, passes.
+
+// #module common
+// common: the constants and small math every render kernel shares (limits, msth-core's
+// rendering thresholds, clamps, activations, optical depth) and the invocation index of a
+// dispatch.
 //
-// Shared by the native player (wgpu, `msth-gpu`: `gpu/`) and the browser (WebGPU, `web/`): WebGPU
-// core only (no push constants, no f64, no optional features, default limits). Bindings, struct
-// layouts and dispatch sizes: `web/shaders/README.md`.
+// The render kernels are WGSL modules composed into one shader text (`msth_gpu::shaders`):
+// each module names the modules it uses on `// #import NAME` lines, and the composer includes
+// every module once, after those it imports. They run on the native player (wgpu, `msth-gpu`:
+// `gpu/`) and in the browser (WebGPU, `web/`): WebGPU core only (no push constants, no f64, no
+// optional features, default limits). Bindings, struct layouts and dispatch sizes:
+// `web/shaders/README.md`.
 
 // ---- Limits (the host rejects models beyond them with a clear error) ----------------------
 
@@ -23,6 +27,64 @@ const VISIBLE_TRANSMITTANCE: f32 = 1e-3;
 // The visible depth written for a ray that misses the scene under a constant background.
 const MISSED: f32 = -1.0;
 const TAU_HIDDEN: f32 = 9.210340372; // ln(1 / HIDDEN_TRANSMITTANCE), HIDDEN_TRANSMITTANCE = 1e-4
+
+// ---- Small functions --------------------------------------------------------------------------
+
+// Loops are kept flat (one loop over (row, column) pairs rather than two nested ones) and
+// functions return once at their end. Mesa's lavapipe ends every loop of an invocation after
+// 65535 loop iterations in total, which a ray of a preset-sized model exceeds; the native host
+// refuses such models there with an error (gpu/src/layout.rs, loop_iterations_per_ray).
+
+fn clamp_unit(x: f32) -> f32 {
+    // NaN maps to 0 (as the CPU's `if x >= 0 { min(x, 1) } else { 0 }`).
+    return select(0.0, min(x, 1.0), x >= 0.0);
+}
+
+fn clamp_unit3(x: vec3<f32>) -> vec3<f32> {
+    return select(vec3<f32>(0.0), min(x, vec3<f32>(1.0)), x >= vec3<f32>(0.0));
+}
+
+fn clamp_unit4(x: vec4<f32>) -> vec4<f32> {
+    return select(vec4<f32>(0.0), min(x, vec4<f32>(1.0)), x >= vec4<f32>(0.0));
+}
+
+fn sigmoid(x: f32) -> f32 {
+    // 1 / (1 + e^-x) for x >= 0, e^x / (1 + e^x) otherwise, as on the CPU.
+    let e = exp(-min(abs(x), 80.0));
+    return select(e / (1.0 + e), 1.0 / (1.0 + e), x >= 0.0);
+}
+
+fn trunc_exp(x: f32) -> f32 {
+    return exp(min(x, 88.0));
+}
+
+// exp(x) - 1 without cancellation for small |x|.
+fn expm1(x: f32) -> f32 {
+    let series = x + x * x * 0.5 + x * x * x * (1.0 / 6.0);
+    return select(exp(x) - 1.0, series, abs(x) < 1e-3);
+}
+
+fn tau_of(sigma: f32, delta: f32) -> f32 {
+    let t = sigma * delta;
+    return select(0.0, min(t, 1e30), t >= 0.0);
+}
+
+// A histogram weight as the CPU's `sanitize`: w when positive and finite, else 0 (NaN fails
+// both comparisons).
+fn sanitize(w: f32) -> f32 {
+    return select(0.0, w, w > 0.0 && w <= 3.40282346e38);
+}
+
+fn invocation(gid: vec3<u32>, groups: vec3<u32>) -> u32 {
+    return gid.x + gid.y * groups.x * WORKGROUP;
+}
+
+// #module bindings
+// bindings: the model and view uniforms and the parameter buffers a field evaluation reads
+// (bindings 0-4 of the render kernels' one bind group): the `Model` uniform (sampler, bounds,
+// MLP shapes, both encodings and their levels), the `View` uniform (camera, frame size, time),
+// the hash tables (`table2`) and `rest` (mask, decoders, proposal field). Host side:
+// `gpu/src/layout.rs`.
 
 // ---- Uniforms -------------------------------------------------------------------------------
 
@@ -120,73 +182,18 @@ fn table2(buf: u32, i: u32) -> vec2<f32> {
 // Everything after the field's tables: mask, decoders, the proposal field (its tables unread
 // here).
 @group(0) @binding(4) var<storage, read> rest: array<f32>;
+
+// #module io
+// io: the pixel list and output buffer of the render entry points (bindings 5 and 6).
+
 // Pixel list (render) or packed points (eval_points).
 @group(0) @binding(5) var<storage, read> list: array<u32>;
 // Output: (r, g, b, visible depth) per pixel (render) or (r, g, b, sigma) per point.
 @group(0) @binding(6) var<storage, read_write> frame: array<vec4<f32>>;
 
-// ---- Per-invocation scratch -------------------------------------------------------------------
-
-var<private> w_prop: array<f32, MAX_PROPOSAL_SAMPLES>;
-var<private> s_main: array<f32, 129>; // MAX_SAMPLES + 1
-// MLP activations: the input (an encoding of at most MAX_LEVELS * MAX_FEATURES values) and
-// hidden layers in `hid`, each layer's output in `hid2`.
-var<private> hid: array<f32, 256>;
-var<private> hid2: array<f32, MAX_HIDDEN>;
-var<private> dout: array<f32, 32>; // 1 + MAX_GEO
-var<private> sh: array<f32, 16>;
-
-// ---- Small functions --------------------------------------------------------------------------
-
-// Loops are kept flat (one loop over (row, column) pairs rather than two nested ones) and
-// functions return once at their end. Mesa's lavapipe ends every loop of an invocation after
-// 65535 loop iterations in total, which a ray of a preset-sized model exceeds; the native host
-// refuses such models there with an error (gpu/src/layout.rs, loop_iterations_per_ray).
-
-fn clamp_unit(x: f32) -> f32 {
-    // NaN maps to 0 (as the CPU's `if x >= 0 { min(x, 1) } else { 0 }`).
-    return select(0.0, min(x, 1.0), x >= 0.0);
-}
-
-fn clamp_unit3(x: vec3<f32>) -> vec3<f32> {
-    return select(vec3<f32>(0.0), min(x, vec3<f32>(1.0)), x >= vec3<f32>(0.0));
-}
-
-fn clamp_unit4(x: vec4<f32>) -> vec4<f32> {
-    return select(vec4<f32>(0.0), min(x, vec4<f32>(1.0)), x >= vec4<f32>(0.0));
-}
-
-fn sigmoid(x: f32) -> f32 {
-    // 1 / (1 + e^-x) for x >= 0, e^x / (1 + e^x) otherwise, as on the CPU.
-    let e = exp(-min(abs(x), 80.0));
-    return select(e / (1.0 + e), 1.0 / (1.0 + e), x >= 0.0);
-}
-
-fn trunc_exp(x: f32) -> f32 {
-    return exp(min(x, 88.0));
-}
-
-// exp(x) - 1 without cancellation for small |x|.
-fn expm1(x: f32) -> f32 {
-    let series = x + x * x * 0.5 + x * x * x * (1.0 / 6.0);
-    return select(exp(x) - 1.0, series, abs(x) < 1e-3);
-}
-
-fn tau_of(sigma: f32, delta: f32) -> f32 {
-    let t = sigma * delta;
-    return select(0.0, min(t, 1e30), t >= 0.0);
-}
-
-// A histogram weight as the CPU's `sanitize`: w when positive and finite, else 0 (NaN fails
-// both comparisons).
-fn sanitize(w: f32) -> f32 {
-    return select(0.0, w, w > 0.0 && w <= 3.40282346e38);
-}
-
-// Value i of the hash tables of buffer `buf` (0 tab3, 1 tab4).
-fn table(buf: u32, i: u32) -> f32 {
-    return table2(buf, i & ~1u)[i & 1u];
-}
+// #module camera
+// camera: a pixel's ray, its interval in the scene (box or contraction), the spacing of
+// samples along it (`t_of_s`), and a sample's point in the grids' unit cube (`to_unit`).
 
 // Spacing: normalised s in [0, 1] to distance.
 fn g_fwd(t: f32) -> f32 {
@@ -265,6 +272,28 @@ fn ray_limits(o: vec3<f32>, d: vec3<f32>) -> vec2<f32> {
     return vec2<f32>(near, far);
 }
 
+// The ray through the centre of pixel `pixel` (row-major).
+fn pixel_ray_dir(pixel: u32) -> vec3<f32> {
+    let w = view.size.x;
+    let px = f32(pixel % w) + 0.5;
+    let py = f32(pixel / w) + 0.5;
+    let d_cam = vec3<f32>((px - view.intr.z) / view.intr.x, -(py - view.intr.w) / view.intr.y, -1.0);
+    let r = mat3x3<f32>(view.c2w[0].xyz, view.c2w[1].xyz, view.c2w[2].xyz);
+    return normalize(r * d_cam);
+}
+
+// The unit-cube point and time of the sample between distances t0 and t1 on ray (o, d).
+fn sample_point(o: vec3<f32>, d: vec3<f32>, t0: f32, t1: f32, time: f32) -> vec4<f32> {
+    let u = to_unit(o + d * (0.5 * (t0 + t1)));
+    return vec4<f32>(u, time);
+}
+
+// #module sh
+// sh: the view-direction encoding, 16 real spherical harmonics of a unit direction into
+// `sh` (msth-core `sh::sh4`); also composed into the training kernels (`gpu/src/sh.rs`).
+
+var<private> sh: array<f32, 16>;
+
 fn sh4(d: vec3<f32>) {
     let x = d.x;
     let y = d.y;
@@ -293,7 +322,8 @@ fn sh4(d: vec3<f32>) {
     sh[15] = 0.5900436 * x * (-xx + 3.0 * yy);
 }
 
-// ---- Encoding ---------------------------------------------------------------------------------
+// #module mask
+// mask: the dense mask grid, trilinear and sigmoid: the weight m of the static encoding.
 
 // Trilinear read of the dense mask grid (logit), `res^3` values at `off` in `rest`. Per-axis
 // values in vectors, not indexed arrays (software adapters turn those into memory traffic).
@@ -322,6 +352,15 @@ fn mask_at(e: Encoding, x: vec3<f32>) -> f32 {
         m = sigmoid(mask_logit(e.mode.w, e.mode.z, x));
     }
     return m;
+}
+
+// #module hashgrid
+// hashgrid: one level of a multi-resolution hash grid (3D or 4D, dense or hashed) at a point:
+// the interpolated features of its corners.
+
+// Value i of the hash tables of buffer `buf` (0 tab3, 1 tab4).
+fn table(buf: u32, i: u32) -> f32 {
+    return table2(buf, i & ~1u)[i & 1u];
 }
 
 // The features of one level (at most MAX_FEATURES: `a` holds features 0..3, `b` 4..7).
@@ -396,72 +435,15 @@ fn grid_level_at(lv: Level, shape: vec4<u32>, p: vec4<f32>, buf: u32) -> Feat {
     return Feat(fa, fb);
 }
 
-// The blend of encoding `e` at a point of mask value m: `(k3, k4, read3, read4)`, the features
-// being v = k3 f3 + k4 f4 (mst: m, 1 - m; mt: 1, 1 - m; add: 1, 1; 4d: 0, 1; static: 1, 0: the
-// CPU's sums, since 1 x = x and a skipped lookup's features are 0; no branch per blend, since
-// software adapters run every branch), and whether the 3D and 4D lookups are made (1) or
-// skipped (0): the 4D one where the mask leaves (almost) nothing dynamic (Mst/Mt with a mask,
-// `1 - m < cutoff`), and the lookup a blend does not read (static: 4D; 4d: 3D).
-fn blend_of(e: Encoding, m: f32, cutoff: f32) -> vec4<f32> {
-    let blend = e.mode.x;
-    let skip4 = blend == 4u || (cutoff > 0.0 && e.mode.y == 1u && blend <= 1u && (1.0 - m) < cutoff);
-    let skip3 = blend == 3u;
-    let k3 = select(select(1.0, m, blend == 0u), 0.0, blend == 3u);
-    let k4 = select(select(1.0 - m, 1.0, blend >= 2u), 0.0, blend == 4u);
-    return vec4<f32>(k3, k4, select(1.0, 0.0, skip3), select(1.0, 0.0, skip4));
-}
+// #module mlp
+// mlp: the generic MLP layers of one sample (weights read from `rest`, activations in the
+// private arrays below), as msth-core's decoders.
 
-// Whether encoding e, at its own cutoff (`consts.y`, what the passes' encodings are given),
-// makes the 4D lookup at unit-cube point x.
-fn reads4(e: Encoding, x: vec3<f32>) -> bool {
-    return blend_of(e, mask_at(e, x), e.consts.y).w != 0.0;
-}
-
-// Masked encoding at point p into hid[0 .. levels * features] (level-major, features within a
-// level), the MLPs' input: the 3D tables in `tab3`, the 4D ones in `tab4` (both fields'). Returns
-// the mask value m. `with4` false (a constant at the call site): no 4D lookup is compiled in,
-// for points whose blend skips it (`reads4` false); the result is the same for those.
-fn encode(e: Encoding, p: vec4<f32>, cutoff: f32, with4: bool) -> f32 {
-    let m = mask_at(e, p.xyz);
-    let use3 = e.h3.loc.z == 1u;
-    let use4 = e.h4.loc.z == 1u;
-    let b = blend_of(e, m, cutoff);
-    let k3 = b.x;
-    let k4 = b.y;
-    let skip3 = b.z == 0.0;
-    let skip4 = b.w == 0.0;
-    var levels = 0u;
-    var nf = 1u;
-    if use3 {
-        levels = e.h3.shape.z;
-        nf = e.h3.shape.y;
-    } else {
-        levels = e.h4.shape.z;
-        nf = e.h4.shape.y;
-    }
-    let second = min(1u, nf - 1u);
-    let zero = Feat(vec4<f32>(0.0), vec4<f32>(0.0));
-    for (var l = 0u; l < levels; l++) {
-        var f3 = zero;
-        var f4 = zero;
-        if use3 && !skip3 {
-            f3 = grid_level(e.h3, l, p, 0u);
-        }
-        if with4 && use4 && !skip4 {
-            f4 = grid_level(e.h4, l, p, 1u);
-        }
-        let va = k3 * f3.a + k4 * f4.a;
-        let at = l * nf;
-        // Features 0 and 1 (with one feature per level, the second write puts feature 0 back).
-        hid[at + second] = va.y;
-        hid[at] = va.x;
-        for (var f = 2u; f < nf; f++) {
-            let vb = k3 * f3.b + k4 * f4.b;
-            hid[at + f] = select(vb[f & 3u], va[f & 3u], f < 4u);
-        }
-    }
-    return m;
-}
+// MLP activations: the input (an encoding of at most MAX_LEVELS * MAX_FEATURES values) and
+// hidden layers in `hid`, each layer's output in `hid2`.
+var<private> hid: array<f32, 256>;
+var<private> hid2: array<f32, MAX_HIDDEN>;
+var<private> dout: array<f32, 32>; // 1 + MAX_GEO
 
 // rest[b .. b + 4], the components at or beyond `left` read as 0.
 fn w4(b: u32, left: u32) -> vec4<f32> {
@@ -527,6 +509,80 @@ fn hid2_to_hid(n: u32) {
     for (var j = 0u; j < n; j++) {
         hid[j] = hid2[j];
     }
+}
+
+// #module field
+// field: the fields at one point: the masked space-time encoding (`encode`: mask, blend, 3D and
+// 4D grids) and the decoders on it: the proposal field's density (`proposal_sigma`), the main
+// field's density and geometry features (`field_density`) and its colour from those and the SH
+// of the view direction (`field_color`). One point per call: the per-ray kernels call them per
+// sample, a per-pixel kernel can too.
+
+// The blend of encoding `e` at a point of mask value m: `(k3, k4, read3, read4)`, the features
+// being v = k3 f3 + k4 f4 (mst: m, 1 - m; mt: 1, 1 - m; add: 1, 1; 4d: 0, 1; static: 1, 0: the
+// CPU's sums, since 1 x = x and a skipped lookup's features are 0; no branch per blend, since
+// software adapters run every branch), and whether the 3D and 4D lookups are made (1) or
+// skipped (0): the 4D one where the mask leaves (almost) nothing dynamic (Mst/Mt with a mask,
+// `1 - m < cutoff`), and the lookup a blend does not read (static: 4D; 4d: 3D).
+fn blend_of(e: Encoding, m: f32, cutoff: f32) -> vec4<f32> {
+    let blend = e.mode.x;
+    let skip4 = blend == 4u || (cutoff > 0.0 && e.mode.y == 1u && blend <= 1u && (1.0 - m) < cutoff);
+    let skip3 = blend == 3u;
+    let k3 = select(select(1.0, m, blend == 0u), 0.0, blend == 3u);
+    let k4 = select(select(1.0 - m, 1.0, blend >= 2u), 0.0, blend == 4u);
+    return vec4<f32>(k3, k4, select(1.0, 0.0, skip3), select(1.0, 0.0, skip4));
+}
+
+// Whether encoding e, at its own cutoff (`consts.y`, what the passes' encodings are given),
+// makes the 4D lookup at unit-cube point x.
+fn reads4(e: Encoding, x: vec3<f32>) -> bool {
+    return blend_of(e, mask_at(e, x), e.consts.y).w != 0.0;
+}
+
+// Masked encoding at point p into hid[0 .. levels * features] (level-major, features within a
+// level), the MLPs' input: the 3D tables in `tab3`, the 4D ones in `tab4` (both fields'). Returns
+// the mask value m. `with4` false (a constant at the call site): no 4D lookup is compiled in,
+// for points whose blend skips it (`reads4` false); the result is the same for those.
+fn encode(e: Encoding, p: vec4<f32>, cutoff: f32, with4: bool) -> f32 {
+    let m = mask_at(e, p.xyz);
+    let use3 = e.h3.loc.z == 1u;
+    let use4 = e.h4.loc.z == 1u;
+    let b = blend_of(e, m, cutoff);
+    let k3 = b.x;
+    let k4 = b.y;
+    let skip3 = b.z == 0.0;
+    let skip4 = b.w == 0.0;
+    var levels = 0u;
+    var nf = 1u;
+    if use3 {
+        levels = e.h3.shape.z;
+        nf = e.h3.shape.y;
+    } else {
+        levels = e.h4.shape.z;
+        nf = e.h4.shape.y;
+    }
+    let second = min(1u, nf - 1u);
+    let zero = Feat(vec4<f32>(0.0), vec4<f32>(0.0));
+    for (var l = 0u; l < levels; l++) {
+        var f3 = zero;
+        var f4 = zero;
+        if use3 && !skip3 {
+            f3 = grid_level(e.h3, l, p, 0u);
+        }
+        if with4 && use4 && !skip4 {
+            f4 = grid_level(e.h4, l, p, 1u);
+        }
+        let va = k3 * f3.a + k4 * f4.a;
+        let at = l * nf;
+        // Features 0 and 1 (with one feature per level, the second write puts feature 0 back).
+        hid[at + second] = va.y;
+        hid[at] = va.x;
+        for (var f = 2u; f < nf; f++) {
+            let vb = k3 * f3.b + k4 * f4.b;
+            hid[at + f] = select(vb[f & 3u], va[f & 3u], f < 4u);
+        }
+    }
+    return m;
 }
 
 // Proposal density at p.
@@ -602,16 +658,21 @@ fn field_color() -> vec3<f32> {
     return rgb;
 }
 
-// ---- One ray ----------------------------------------------------------------------------------
+// #module per_ray
+// per_ray: one invocation per ray (`render`) or per point (`eval_points`), exactly as the CPU
+// renderer at render time (msth-core `pipeline::render_chunk`): ray limits against the scene
+// box (or contraction), proposal samples, proposal field density, proposal resampling, main
+// samples, masked space-time encoding (3D hash grid, 4D hash grid, dense mask), density and
+// colour decoders, SH direction encoding, volume compositing and background. The per-sample
+// passes (`passes`) render the same frames with bounded work per invocation.
+
+// Per-invocation scratch of `render_ray`: the proposal weights and the main samples' edges.
+var<private> w_prop: array<f32, MAX_PROPOSAL_SAMPLES>;
+var<private> s_main: array<f32, 129>; // MAX_SAMPLES + 1
 
 struct RayResult {
     rgb: vec3<f32>,
     visible_depth: f32,
-}
-
-fn sample_point(o: vec3<f32>, d: vec3<f32>, t0: f32, t1: f32, time: f32) -> vec4<f32> {
-    let u = to_unit(o + d * (0.5 * (t0 + t1)));
-    return vec4<f32>(u, time);
 }
 
 fn render_ray(o: vec3<f32>, d: vec3<f32>, time_in: f32) -> RayResult {
@@ -717,20 +778,6 @@ fn render_ray(o: vec3<f32>, d: vec3<f32>, time_in: f32) -> RayResult {
     return RayResult(rgb, visible);
 }
 
-// The ray through the centre of pixel `pixel` (row-major).
-fn pixel_ray_dir(pixel: u32) -> vec3<f32> {
-    let w = view.size.x;
-    let px = f32(pixel % w) + 0.5;
-    let py = f32(pixel / w) + 0.5;
-    let d_cam = vec3<f32>((px - view.intr.z) / view.intr.x, -(py - view.intr.w) / view.intr.y, -1.0);
-    let r = mat3x3<f32>(view.c2w[0].xyz, view.c2w[1].xyz, view.c2w[2].xyz);
-    return normalize(r * d_cam);
-}
-
-fn invocation(gid: vec3<u32>, groups: vec3<u32>) -> u32 {
-    return gid.x + gid.y * groups.x * WORKGROUP;
-}
-
 // ---- Entry points -----------------------------------------------------------------------------
 
 // Renders view.size.z rays: pixel i, or pixel list[i] with flag bit 0. Writes
@@ -786,39 +833,32 @@ fn eval_points(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     }
 }
 
-// =================================================================================================
-// Per-sample passes (issue #17): the same rendering split into dispatches over compacted work
-// lists, so that no invocation loops over a whole ray's field evaluations. One frame (or one
-// batch of rays of it) is, in order:
-//
-//   pass_setup      one per pixel of the batch: ray limits; a ray that misses the scene under a
-//                   constant background writes the background, the others are appended to the
-//                   ray list (`ctrl[0]`);
-//   pass_args       one invocation: indirect dispatch sizes from the counters (bound with the
-//                   `args` buffer in the `work` slot);
-//   pass_proposal   one per (ray, proposal sample): the proposal field's density;
-//   pass_resample   one per ray: proposal weights and the inverse CDF, `S + 1` edges (short
-//                   loops over the ray's histogram, no field evaluation);
-//   pass_density    one per (ray, main sample): encoding, mask blend, density MLP; sigma and the
-//                   geometry features;
-//
-// With the file's occupancy grid, `pass_live_proposal` and `pass_live_samples` first list the
-// samples in occupied cells, split by the mask: those it leaves a 4D lookup go to
-// `pass_proposal` and `pass_density`, those whose 4D lookup it skips to `pass_proposal3` and
-// `pass_density3`, compiled without the 4D lookup (a static sample then costs its 3D lookup,
-// wherever it falls among its neighbours);
-//   pass_visible    one per ray: which samples light still reaches: those get a colour and are
-//                   appended to the colour list (`ctrl[1]`);
-//   pass_args       again (the colour list's size);
-//   pass_color      one per listed sample: SH of the ray direction + colour MLP;
-//   pass_composite  one per ray: volume compositing and the background into `frame`.
-//
-// Incremental playback with sample-level reuse (msth-player's `samples.rs`) runs the same passes
-// on a persistent cache: `pass_wmax` (the per-bin maximum of the proposal weights over several
-// times), `pass_resample` from that histogram, `pass_build` (static samples evaluated once,
-// dynamic ones listed in `ctrl[2]`), then per frame `pass_dynamic` (the dynamic samples' density
-// at the frame's time), `pass_visible`, `pass_color` and `pass_composite`.
-//
+// #module passes_lanes
+// passes_lanes: the per-sample passes' MLP activations of LANES samples at once (component k
+// of a `vec4` for sample k), shared by the generic and the specialised MLPs.
+
+// Samples per invocation of `pass_proposal`, `pass_density`, `pass_dynamic` and `pass_color`.
+const LANES: u32 = 4u;
+// Activations, component k for sample k: the MLPs' input in `hid4`, the density MLP's output in
+// `out4` (the generic MLPs below also keep their hidden layers there).
+var<private> hid4: array<vec4<f32>, MAX_HIDDEN>; // also the colour input: 16 + MAX_GEO < MAX_HIDDEN
+var<private> out4: array<vec4<f32>, MAX_HIDDEN>;
+
+fn sigmoid4(x: vec4<f32>) -> vec4<f32> {
+    return vec4<f32>(sigmoid(x.x), sigmoid(x.y), sigmoid(x.z), sigmoid(x.w));
+}
+
+// hid4[0..n] component `lane` = hid[0..n] (one sample's MLP input into its lane).
+fn hid_to_lane(lane: u32, n: u32) {
+    for (var q = 0u; q < n; q++) {
+        hid4[q][lane] = hid[q];
+    }
+}
+
+// #module passes_work
+// passes_work: what the per-sample passes share: the `Pass` uniform, the work buffer and its
+// counters (bindings 7-10), and the helpers that read rays, samples and the live lists.
+
 // Work buffer regions (offsets in 4-byte words, from `Pass`): rays (4 words per ray: output
 // index, pixel, near, far), hist (proposal sigma, then weights: np per ray), edges (S + 1
 // normalised edges per ray), samp (r, g, b, sigma per sample), geo (geo features per sample),
@@ -912,13 +952,13 @@ fn main_interval(r: u32, k: u32, near: f32, far: f32) -> vec2<f32> {
     return vec2<f32>(t_of_s(work[e], near, far), t_of_s(work[e + 1u], near, far));
 }
 
-// Workgroups (x, y, 1) for `n` invocations, written at `at` in `work` (bound to `args`).
 // The list entry of lane k of invocation i, `used` of whose LANES lanes hold entries: lanes past
 // the list's end repeat its last entry (and store nothing).
 fn lane_entry(i: u32, k: u32, used: u32) -> u32 {
     return i * LANES + min(k, used - 1u);
 }
 
+// Workgroups (x, y, 1) for `n` invocations, written at `at` in `work` (bound to `args`).
 fn write_groups(at: u32, n: u32) {
     let groups = (n + WORKGROUP - 1u) / WORKGROUP;
     let x = min(groups, MAX_GROUPS);
@@ -929,64 +969,6 @@ fn write_groups(at: u32, n: u32) {
     work[at] = bitcast<f32>(x);
     work[at + 1u] = bitcast<f32>(y);
     work[at + 2u] = bitcast<f32>(1u);
-}
-
-@compute @workgroup_size(64)
-fn pass_setup(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let i = invocation(gid, groups);
-    if i < pass_u.tile.y {
-        let g = pass_u.tile.x + i;
-        let flags = pass_u.tile.z;
-        var pixel = g;
-        if (flags & FLAG_P_LIST) != 0u {
-            pixel = list[g];
-        }
-        let out = select(pixel, g, (flags & FLAG_P_COMPACT) != 0u);
-        let o = view.c2w[3].xyz;
-        let d = pixel_ray_dir(pixel);
-        let lim = ray_limits(o, d);
-        if !(lim.y > lim.x) && model.background.w == 1.0 {
-            frame[out] = vec4<f32>(model.background.xyz, MISSED);
-        } else {
-            let slot = atomicAdd(&ctrl[0], 1u);
-            let at = pass_u.reg0.x + 4u * slot;
-            work[at] = bitcast<f32>(out);
-            work[at + 1u] = bitcast<f32>(pixel);
-            work[at + 2u] = lim.x;
-            work[at + 3u] = lim.y;
-        }
-    }
-}
-
-// Indirect dispatch sizes, 3 words each: [0] proposal samples / LANES, [3] rays,
-// [6] main samples / LANES, [9] colour list / LANES, [12] dynamic samples / LANES, [15] rays x proposal
-// samples, [18] rays x S, [21] 3D-only proposal samples / LANES, [24] 3D-only main samples /
-// LANES. With an occupancy grid (`Pass.reg2.y` != 0) [0] and [6] count the live samples with a
-// 4D lookup, [21] and [24] those without, as `pass_live_proposal` and `pass_live_samples`
-// listed them (`ctrl[3]`, `ctrl[4]`, `ctrl[5]`, `ctrl[6]`); without a grid [0] and [6] count
-// every (ray, sample) pair, and [21] and [24] nothing.
-@compute @workgroup_size(1)
-fn pass_args() {
-    let n = atomicLoad(&ctrl[0]);
-    var np = n * model.sampler.x;
-    var ns = n * samples_per_ray();
-    write_groups(15u, np);
-    write_groups(18u, ns);
-    var np3 = 0u;
-    var ns3 = 0u;
-    if pass_u.reg2.y != 0u {
-        np = atomicLoad(&ctrl[3]);
-        ns = atomicLoad(&ctrl[4]);
-        np3 = atomicLoad(&ctrl[5]);
-        ns3 = atomicLoad(&ctrl[6]);
-    }
-    write_groups(0u, (np + LANES - 1u) / LANES);
-    write_groups(3u, n);
-    write_groups(6u, (ns + LANES - 1u) / LANES);
-    write_groups(9u, (atomicLoad(&ctrl[1]) + LANES - 1u) / LANES);
-    write_groups(12u, (atomicLoad(&ctrl[2]) + LANES - 1u) / LANES);
-    write_groups(21u, (np3 + LANES - 1u) / LANES);
-    write_groups(24u, (ns3 + LANES - 1u) / LANES);
 }
 
 // Proposal sample e (ray-major over the batch's rays): its unit-cube point at the frame's time.
@@ -1025,189 +1007,6 @@ fn live_entry(region: u32, total: u32, x: u32, with4: bool) -> u32 {
     return work_u(select(region + total - 1u - x, region + x, with4));
 }
 
-// With an occupancy grid, per (ray, proposal sample): a sample in an occupied cell is appended
-// to the live list (`Pass.reg2.z`) that `pass_proposal` (samples whose mask leaves them a 4D
-// lookup, `ctrl[3]`) and `pass_proposal3` (the others, `ctrl[5]`) evaluate; the others get
-// density 0 here. So the proposal passes cost what the occupied space costs, however the empty
-// samples fall among neighbouring invocations, and the 4D lookups cost what the dynamic space
-// costs: an invocation's lanes run both sides of a branch on software adapters (and diverge on
-// hardware) when any of them takes it, however few.
-@compute @workgroup_size(64)
-fn pass_live_proposal(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let e = invocation(gid, groups);
-    let total = ray_count() * model.sampler.x;
-    if e < total {
-        let p = proposal_point(e).xyz;
-        if occupied(p) {
-            live_append(pass_u.reg2.z, total, e, !split_lists() || reads4(model.prop, p), 3u);
-        } else {
-            work[pass_u.reg0.y + e] = 0.0;
-        }
-    }
-}
-
-// With an occupancy grid, per (ray, main sample): the live list of `pass_density` and
-// `pass_density3` (`Pass.reg2.w`, `ctrl[4]` and `ctrl[6]`), as `pass_live_proposal`'s; a
-// sample in an empty cell gets density 0 here.
-@compute @workgroup_size(64)
-fn pass_live_samples(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let j = invocation(gid, groups);
-    let s = samples_per_ray();
-    let total = ray_count() * s;
-    if j < total {
-        let r = j / s;
-        let p = main_point(r, j % s, ray_rec(r)).xyz;
-        if occupied(p) {
-            live_append(pass_u.reg2.w, total, j, !split_lists() || reads4(model.field, p), 4u);
-        } else {
-            work[pass_u.reg0.w + 4u * j + 3u] = 0.0;
-        }
-    }
-}
-
-// Per invocation: the proposal field's density at LANES (ray, proposal sample) pairs, entries
-// LANES i .. LANES i + LANES - 1 of the batch's pairs (ray-major), or of the live list's
-// samples with a 4D lookup when the pass has an occupancy grid (`pass_live_proposal` gave the
-// empty ones density 0); encodings one by one, the MLP for the LANES samples together
-// (`dense_lanes`).
-@compute @workgroup_size(64)
-fn pass_proposal(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    proposal_lanes(invocation(gid, groups), true);
-}
-
-// `pass_proposal` over the live list's samples whose mask skips the 4D lookup, with no 4D
-// lookup compiled in (dispatched only with an occupancy grid and `FLAG_P_SPLIT`).
-@compute @workgroup_size(64)
-fn pass_proposal3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    proposal_lanes(invocation(gid, groups), false);
-}
-
-// Invocation i of `pass_proposal` (`with4`, a constant) or `pass_proposal3`.
-fn proposal_lanes(i: u32, with4: bool) {
-    let live = pass_u.reg2.y != 0u;
-    let total = ray_count() * model.sampler.x;
-    var n = total;
-    if live {
-        n = atomicLoad(&ctrl[select(5u, 3u, with4)]);
-    }
-    if i * LANES < n {
-        let used = min(n - i * LANES, LANES);
-        var es = vec4<u32>(0u);
-        for (var k = 0u; k < LANES; k++) {
-            var e = lane_entry(i, k, used);
-            if live {
-                e = live_entry(pass_u.reg2.z, total, e, with4);
-            }
-            es[k] = e;
-            encode_proposal4(proposal_point(e), model.prop.consts.y, k, with4);
-        }
-        let sum = proposal_mlp4();
-        for (var k = 0u; k < used; k++) {
-            work[pass_u.reg0.y + es[k]] = trunc_exp(sum[k]);
-        }
-    }
-}
-
-// Proposal weights of ray r from its densities (in place in `hist`), as msth-core's
-// `render::weights`.
-fn proposal_weights(r: u32, near: f32, far: f32) {
-    let np = model.sampler.x;
-    let base = pass_u.reg0.y + r * np;
-    var tau_sum = 0.0;
-    var t_prev = t_of_s(0.0, near, far);
-    for (var k = 0u; k < np; k++) {
-        let t_next = t_of_s(f32(k + 1u) / f32(np), near, far);
-        let tau = tau_of(work[base + k], max(t_next - t_prev, 0.0));
-        work[base + k] = exp(-tau_sum) * -expm1(-tau);
-        tau_sum += tau;
-        t_prev = t_next;
-    }
-}
-
-// Per ray (partition): weights of this time's densities, and their per-bin maximum over the
-// times so far in `wmax`.
-@compute @workgroup_size(64)
-fn pass_wmax(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let r = invocation(gid, groups);
-    if r < ray_count() {
-        let rec = ray_rec(r);
-        proposal_weights(r, rec.z, rec.w);
-        let np = model.sampler.x;
-        let first = pass_u.misc.y == 1.0;
-        for (var k = 0u; k < np; k++) {
-            let w = work[pass_u.reg0.y + r * np + k];
-            let at = pass_u.reg1.z + r * np + k;
-            work[at] = select(max(work[at], w), w, first);
-        }
-    }
-}
-
-// Per ray: the deterministic inverse CDF of the padded histogram (msth-core `sample_pdf`),
-// S + 1 edges in s.
-@compute @workgroup_size(64)
-fn pass_resample(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let r = invocation(gid, groups);
-    if r < ray_count() {
-        let np = model.sampler.x;
-        let m_out = samples_per_ray() + 1u;
-        let rec = ray_rec(r);
-        var hist = pass_u.reg0.y + r * np;
-        if (pass_u.tile.z & FLAG_P_WMAX) != 0u {
-            hist = pass_u.reg1.z + r * np;
-        } else {
-            proposal_weights(r, rec.z, rec.w);
-        }
-        let out = pass_u.reg0.z + r * m_out;
-        let pad = model.limits.z;
-        var total = 0.0;
-        for (var k = 0u; k < np; k++) {
-            total += sanitize(work[hist + k]) + pad;
-        }
-        if !(total > 0.0 && total <= 3.40282346e38) {
-            for (var k = 0u; k < m_out; k++) {
-                work[out + k] = f32(k) / f32(max(m_out - 1u, 1u));
-            }
-        } else {
-            let inv = 1.0 / total;
-            var bin = 0u;
-            var cdf_lo = 0.0;
-            var cdf_hi = (sanitize(work[hist]) + pad) * inv;
-            var prev = 0.0;
-            for (var k = 0u; k < m_out; k++) {
-                let u = f32(k) / f32(max(m_out - 1u, 1u));
-                while u > cdf_hi && bin + 1u < np {
-                    bin += 1u;
-                    cdf_lo = cdf_hi;
-                    cdf_hi += (sanitize(work[hist + bin]) + pad) * inv;
-                }
-                let span = cdf_hi - cdf_lo;
-                var frac = 0.0;
-                if span > 0.0 {
-                    frac = clamp((u - cdf_lo) / span, 0.0, 1.0);
-                }
-                let e0 = f32(bin) / f32(np);
-                let e1 = f32(bin + 1u) / f32(np);
-                var s = e0 + frac * (e1 - e0);
-                if k > 0u && s < prev {
-                    s = prev;
-                }
-                work[out + k] = s;
-                prev = s;
-            }
-        }
-    }
-}
-
-// The density and geometry features of the LANES samples `js` (the first `used` of them) from
-// `density_mlp4`'s output.
-fn store_density_lanes(js: vec4<u32>, used: u32) {
-    for (var k = 0u; k < used; k++) {
-        let j = js[k];
-        work[pass_u.reg0.w + 4u * j + 3u] = trunc_exp(out4[0][k]);
-        geo_to_work(j, k);
-    }
-}
-
 // Main sample k of ray r (record `rec`): the unit-cube point at the frame's time.
 fn main_point(r: u32, k: u32, rec: vec4<f32>) -> vec4<f32> {
     let iv = main_interval(r, k, rec.z, rec.w);
@@ -1215,220 +1014,9 @@ fn main_point(r: u32, k: u32, rec: vec4<f32>) -> vec4<f32> {
     return sample_point(view.c2w[3].xyz, d, iv.x, iv.y, field_time());
 }
 
-// Per invocation: the main field's density and geometry features at LANES (ray, sample) pairs,
-// entries LANES i .. of the batch's samples (ray-major), or of the live list's samples with a
-// 4D lookup when the pass has an occupancy grid (`pass_live_samples` gave the empty ones
-// density 0); encodings one by one, the density MLP for the LANES samples together.
-@compute @workgroup_size(64)
-fn pass_density(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    density_lanes(invocation(gid, groups), true);
-}
-
-// `pass_density` over the live list's samples whose mask skips the 4D lookup, with no 4D
-// lookup compiled in (dispatched only with an occupancy grid and `FLAG_P_SPLIT`).
-@compute @workgroup_size(64)
-fn pass_density3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    density_lanes(invocation(gid, groups), false);
-}
-
-// Invocation i of `pass_density` (`with4`, a constant) or `pass_density3`.
-fn density_lanes(i: u32, with4: bool) {
-    let s = samples_per_ray();
-    let live = pass_u.reg2.y != 0u;
-    let total = ray_count() * s;
-    var n = total;
-    if live {
-        n = atomicLoad(&ctrl[select(6u, 4u, with4)]);
-    }
-    if i * LANES < n {
-        let used = min(n - i * LANES, LANES);
-        var js = vec4<u32>(0u);
-        for (var k = 0u; k < LANES; k++) {
-            var j = lane_entry(i, k, used);
-            if live {
-                j = live_entry(pass_u.reg2.w, total, j, with4);
-            }
-            js[k] = j;
-            let r = j / s;
-            encode_field4(main_point(r, j % s, ray_rec(r)), model.field.consts.y, k, with4);
-        }
-        density_mlp4();
-        store_density_lanes(js, used);
-    }
-}
-
-// hid4[0..n] component `lane` = hid[0..n] (one sample's MLP input into its lane).
-fn hid_to_lane(lane: u32, n: u32) {
-    for (var q = 0u; q < n; q++) {
-        hid4[q][lane] = hid[q];
-    }
-}
-
-// Per (ray, sample) of the cache (time 0, as msth-player's sample cache): a sample whose dynamic
-// weight 1 - m is below the cutoff is static: its density and colour are evaluated once, with
-// the 4D lookup skipped; the others keep their point and are listed for every frame.
-// Dispatched as `pass_density` (LANES samples per invocation), one sample after the other.
-@compute @workgroup_size(64)
-fn pass_build(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let i = invocation(gid, groups);
-    for (var k = 0u; k < LANES; k++) {
-        build_sample(i * LANES + k);
-    }
-}
-
-fn build_sample(j: u32) {
-    let s = samples_per_ray();
-    if j < ray_count() * s {
-        let r = j / s;
-        let rec = ray_rec(r);
-        let iv = main_interval(r, j % s, rec.z, rec.w);
-        let o = view.c2w[3].xyz;
-        let d = pixel_ray_dir(ray_pixel(rec));
-        let p = sample_point(o, d, iv.x, iv.y, 0.0);
-        let cutoff = pass_u.misc.x;
-        let e = model.field;
-        let blend = e.mode.x;
-        var is_dyn = blend == 2u || blend == 3u;
-        if blend <= 1u {
-            is_dyn = e.mode.y == 0u || 1.0 - mask_at(e, p.xyz) >= cutoff;
-        }
-        let at = pass_u.reg1.w + 4u * j;
-        work[at] = p.x;
-        work[at + 1u] = p.y;
-        work[at + 2u] = p.z;
-        work[at + 3u] = select(0.0, 1.0, is_dyn);
-        let sp = pass_u.reg0.w + 4u * j;
-        if is_dyn {
-            let slot = atomicAdd(&ctrl[2], 1u);
-            work[pass_u.reg2.x + slot] = bitcast<f32>(j);
-            work[sp] = 0.0;
-            work[sp + 1u] = 0.0;
-            work[sp + 2u] = 0.0;
-            work[sp + 3u] = 0.0;
-        } else {
-            var m = 1.0;
-            let sigma = field_density(p, cutoff, &m);
-            sh4(normalize(d));
-            let c = field_color();
-            work[sp] = c.x;
-            work[sp + 1u] = c.y;
-            work[sp + 2u] = c.z;
-            work[sp + 3u] = sigma;
-        }
-    }
-}
-
-// Per invocation: LANES listed dynamic samples of the cache (entries LANES i .. of the list):
-// density at the frame's time (the 4D lookup always), the density MLP for the LANES samples
-// together, as `pass_density`.
-@compute @workgroup_size(64)
-fn pass_dynamic(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let i = invocation(gid, groups);
-    let n = atomicLoad(&ctrl[2]);
-    if i * LANES < n {
-        let used = min(n - i * LANES, LANES);
-        var js = vec4<u32>(0u);
-        for (var k = 0u; k < LANES; k++) {
-            let j = work_u(pass_u.reg2.x + lane_entry(i, k, used));
-            js[k] = j;
-            let at = pass_u.reg1.w + 4u * j;
-            encode_field4(vec4<f32>(work[at], work[at + 1u], work[at + 2u], field_time()), 0.0, k, true);
-        }
-        density_mlp4();
-        store_density_lanes(js, used);
-    }
-}
-
-// Per ray: the samples light still reaches (optical depth before them at most ln(1e4)) go to
-// the colour list; the others, and those in empty occupancy cells, get colour 0, as in the CPU
-// renderer. With the cache flag only dynamic samples are considered (static ones keep their
-// colour) and the occupancy grid is not used (as the CPU renderer's sample cache).
-@compute @workgroup_size(64)
-fn pass_visible(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let r = invocation(gid, groups);
-    if r < ray_count() {
-        let s = samples_per_ray();
-        let rec = ray_rec(r);
-        let cache = (pass_u.tile.z & FLAG_P_CACHE) != 0u;
-        var tau = 0.0;
-        var t0 = t_of_s(work[pass_u.reg0.z + r * (s + 1u)], rec.z, rec.w);
-        for (var k = 0u; k < s; k++) {
-            let j = r * s + k;
-            let t1 = t_of_s(work[pass_u.reg0.z + r * (s + 1u) + k + 1u], rec.z, rec.w);
-            let sp = pass_u.reg0.w + 4u * j;
-            let is_dyn = !cache || work[pass_u.reg1.w + 4u * j + 3u] == 1.0;
-            if is_dyn {
-                if tau <= TAU_HIDDEN && (cache || pass_u.reg2.y == 0u || occupied(main_point(r, k, rec).xyz)) {
-                    let slot = atomicAdd(&ctrl[1], 1u);
-                    work[pass_u.reg1.y + slot] = bitcast<f32>(j);
-                } else {
-                    work[sp] = 0.0;
-                    work[sp + 1u] = 0.0;
-                    work[sp + 2u] = 0.0;
-                }
-            }
-            tau += tau_of(work[sp + 3u], max(t1 - t0, 0.0));
-            t0 = t1;
-        }
-    }
-}
-
-// Per invocation: the colours of LANES listed samples (entries LANES i .. LANES i + LANES - 1 of
-// the colour list), their colour MLPs evaluated together: component k of a vec4 is sample k, so
-// that every weight read from `rest` serves LANES samples (weight reads dominate the pass on
-// software adapters, which gather every per-invocation storage read lane by lane).
-@compute @workgroup_size(64)
-fn pass_color(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let i = invocation(gid, groups);
-    let n = atomicLoad(&ctrl[1]);
-    if i * LANES < n {
-        let used = min(n - i * LANES, LANES);
-        var js = vec4<u32>(0u);
-        for (var k = 0u; k < LANES; k++) {
-            let j = work_u(pass_u.reg1.y + lane_entry(i, k, used));
-            js[k] = j;
-            let rec = ray_rec(j / samples_per_ray());
-            sh4(normalize(pixel_ray_dir(ray_pixel(rec))));
-            hid4[0][k] = sh[0];
-            hid4[1][k] = sh[1];
-            hid4[2][k] = sh[2];
-            hid4[3][k] = sh[3];
-            hid4[4][k] = sh[4];
-            hid4[5][k] = sh[5];
-            hid4[6][k] = sh[6];
-            hid4[7][k] = sh[7];
-            hid4[8][k] = sh[8];
-            hid4[9][k] = sh[9];
-            hid4[10][k] = sh[10];
-            hid4[11][k] = sh[11];
-            hid4[12][k] = sh[12];
-            hid4[13][k] = sh[13];
-            hid4[14][k] = sh[14];
-            hid4[15][k] = sh[15];
-            geo_from_work(j, k);
-        }
-        let c = color_mlp4();
-        for (var k = 0u; k < used; k++) {
-            let sp = pass_u.reg0.w + 4u * js[k];
-            work[sp] = c[0][k];
-            work[sp + 1u] = c[1][k];
-            work[sp + 2u] = c[2][k];
-        }
-    }
-}
-
-// ---- MLPs of LANES samples at once -------------------------------------------------------------
-
-// Samples per invocation of `pass_proposal`, `pass_density`, `pass_dynamic` and `pass_color`.
-const LANES: u32 = 4u;
-// Activations, component k for sample k: the MLPs' input in `hid4`, the density MLP's output in
-// `out4` (the generic MLPs below also keep their hidden layers there).
-var<private> hid4: array<vec4<f32>, MAX_HIDDEN>; // also the colour input: 16 + MAX_GEO < MAX_HIDDEN
-var<private> out4: array<vec4<f32>, MAX_HIDDEN>;
-
-fn sigmoid4(x: vec4<f32>) -> vec4<f32> {
-    return vec4<f32>(sigmoid(x.x), sigmoid(x.y), sigmoid(x.z), sigmoid(x.w));
-}
+// #module specialise
+// specialise: the per-sample passes' encodings and MLPs, the region that hosts replace for one
+// model.
 
 // The passes' encodings (`encode_field4`, `encode_proposal4`), MLPs (`proposal_mlp4`,
 // `density_mlp4`, `color_mlp4`) and geometry-feature transfers (`geo_to_work`, `geo_from_work`)
@@ -1562,6 +1150,357 @@ fn geo_from_work(j: u32, k: u32) {
 }
 // ---- specialise: end
 
+// #module passes_rays
+// passes_rays: the passes up to each ray's main samples: ray setup, dispatch sizes, the live
+// lists of an occupancy grid, the proposal field's densities and the resampling.
+
+@compute @workgroup_size(64)
+fn pass_setup(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let i = invocation(gid, groups);
+    if i < pass_u.tile.y {
+        let g = pass_u.tile.x + i;
+        let flags = pass_u.tile.z;
+        var pixel = g;
+        if (flags & FLAG_P_LIST) != 0u {
+            pixel = list[g];
+        }
+        let out = select(pixel, g, (flags & FLAG_P_COMPACT) != 0u);
+        let o = view.c2w[3].xyz;
+        let d = pixel_ray_dir(pixel);
+        let lim = ray_limits(o, d);
+        if !(lim.y > lim.x) && model.background.w == 1.0 {
+            frame[out] = vec4<f32>(model.background.xyz, MISSED);
+        } else {
+            let slot = atomicAdd(&ctrl[0], 1u);
+            let at = pass_u.reg0.x + 4u * slot;
+            work[at] = bitcast<f32>(out);
+            work[at + 1u] = bitcast<f32>(pixel);
+            work[at + 2u] = lim.x;
+            work[at + 3u] = lim.y;
+        }
+    }
+}
+
+// Indirect dispatch sizes, 3 words each: [0] proposal samples / LANES, [3] rays,
+// [6] main samples / LANES, [9] colour list / LANES, [12] dynamic samples / LANES, [15] rays x proposal
+// samples, [18] rays x S, [21] 3D-only proposal samples / LANES, [24] 3D-only main samples /
+// LANES. With an occupancy grid (`Pass.reg2.y` != 0) [0] and [6] count the live samples with a
+// 4D lookup, [21] and [24] those without, as `pass_live_proposal` and `pass_live_samples`
+// listed them (`ctrl[3]`, `ctrl[4]`, `ctrl[5]`, `ctrl[6]`); without a grid [0] and [6] count
+// every (ray, sample) pair, and [21] and [24] nothing.
+@compute @workgroup_size(1)
+fn pass_args() {
+    let n = atomicLoad(&ctrl[0]);
+    var np = n * model.sampler.x;
+    var ns = n * samples_per_ray();
+    write_groups(15u, np);
+    write_groups(18u, ns);
+    var np3 = 0u;
+    var ns3 = 0u;
+    if pass_u.reg2.y != 0u {
+        np = atomicLoad(&ctrl[3]);
+        ns = atomicLoad(&ctrl[4]);
+        np3 = atomicLoad(&ctrl[5]);
+        ns3 = atomicLoad(&ctrl[6]);
+    }
+    write_groups(0u, (np + LANES - 1u) / LANES);
+    write_groups(3u, n);
+    write_groups(6u, (ns + LANES - 1u) / LANES);
+    write_groups(9u, (atomicLoad(&ctrl[1]) + LANES - 1u) / LANES);
+    write_groups(12u, (atomicLoad(&ctrl[2]) + LANES - 1u) / LANES);
+    write_groups(21u, (np3 + LANES - 1u) / LANES);
+    write_groups(24u, (ns3 + LANES - 1u) / LANES);
+}
+
+// With an occupancy grid, per (ray, proposal sample): a sample in an occupied cell is appended
+// to the live list (`Pass.reg2.z`) that `pass_proposal` (samples whose mask leaves them a 4D
+// lookup, `ctrl[3]`) and `pass_proposal3` (the others, `ctrl[5]`) evaluate; the others get
+// density 0 here. So the proposal passes cost what the occupied space costs, however the empty
+// samples fall among neighbouring invocations, and the 4D lookups cost what the dynamic space
+// costs: an invocation's lanes run both sides of a branch on software adapters (and diverge on
+// hardware) when any of them takes it, however few.
+@compute @workgroup_size(64)
+fn pass_live_proposal(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let e = invocation(gid, groups);
+    let total = ray_count() * model.sampler.x;
+    if e < total {
+        let p = proposal_point(e).xyz;
+        if occupied(p) {
+            live_append(pass_u.reg2.z, total, e, !split_lists() || reads4(model.prop, p), 3u);
+        } else {
+            work[pass_u.reg0.y + e] = 0.0;
+        }
+    }
+}
+
+// With an occupancy grid, per (ray, main sample): the live list of `pass_density` and
+// `pass_density3` (`Pass.reg2.w`, `ctrl[4]` and `ctrl[6]`), as `pass_live_proposal`'s; a
+// sample in an empty cell gets density 0 here.
+@compute @workgroup_size(64)
+fn pass_live_samples(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let j = invocation(gid, groups);
+    let s = samples_per_ray();
+    let total = ray_count() * s;
+    if j < total {
+        let r = j / s;
+        let p = main_point(r, j % s, ray_rec(r)).xyz;
+        if occupied(p) {
+            live_append(pass_u.reg2.w, total, j, !split_lists() || reads4(model.field, p), 4u);
+        } else {
+            work[pass_u.reg0.w + 4u * j + 3u] = 0.0;
+        }
+    }
+}
+
+// Per invocation: the proposal field's density at LANES (ray, proposal sample) pairs, entries
+// LANES i .. LANES i + LANES - 1 of the batch's pairs (ray-major), or of the live list's
+// samples with a 4D lookup when the pass has an occupancy grid (`pass_live_proposal` gave the
+// empty ones density 0); encodings one by one, the MLP for the LANES samples together
+// (`dense_lanes`).
+@compute @workgroup_size(64)
+fn pass_proposal(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    proposal_lanes(invocation(gid, groups), true);
+}
+
+// `pass_proposal` over the live list's samples whose mask skips the 4D lookup, with no 4D
+// lookup compiled in (dispatched only with an occupancy grid and `FLAG_P_SPLIT`).
+@compute @workgroup_size(64)
+fn pass_proposal3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    proposal_lanes(invocation(gid, groups), false);
+}
+
+// Invocation i of `pass_proposal` (`with4`, a constant) or `pass_proposal3`.
+fn proposal_lanes(i: u32, with4: bool) {
+    let live = pass_u.reg2.y != 0u;
+    let total = ray_count() * model.sampler.x;
+    var n = total;
+    if live {
+        n = atomicLoad(&ctrl[select(5u, 3u, with4)]);
+    }
+    if i * LANES < n {
+        let used = min(n - i * LANES, LANES);
+        var es = vec4<u32>(0u);
+        for (var k = 0u; k < LANES; k++) {
+            var e = lane_entry(i, k, used);
+            if live {
+                e = live_entry(pass_u.reg2.z, total, e, with4);
+            }
+            es[k] = e;
+            encode_proposal4(proposal_point(e), model.prop.consts.y, k, with4);
+        }
+        let sum = proposal_mlp4();
+        for (var k = 0u; k < used; k++) {
+            work[pass_u.reg0.y + es[k]] = trunc_exp(sum[k]);
+        }
+    }
+}
+
+// Proposal weights of ray r from its densities (in place in `hist`), as msth-core's
+// `render::weights`.
+fn proposal_weights(r: u32, near: f32, far: f32) {
+    let np = model.sampler.x;
+    let base = pass_u.reg0.y + r * np;
+    var tau_sum = 0.0;
+    var t_prev = t_of_s(0.0, near, far);
+    for (var k = 0u; k < np; k++) {
+        let t_next = t_of_s(f32(k + 1u) / f32(np), near, far);
+        let tau = tau_of(work[base + k], max(t_next - t_prev, 0.0));
+        work[base + k] = exp(-tau_sum) * -expm1(-tau);
+        tau_sum += tau;
+        t_prev = t_next;
+    }
+}
+
+// Per ray: the deterministic inverse CDF of the padded histogram (msth-core `sample_pdf`),
+// S + 1 edges in s.
+@compute @workgroup_size(64)
+fn pass_resample(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let r = invocation(gid, groups);
+    if r < ray_count() {
+        let np = model.sampler.x;
+        let m_out = samples_per_ray() + 1u;
+        let rec = ray_rec(r);
+        var hist = pass_u.reg0.y + r * np;
+        if (pass_u.tile.z & FLAG_P_WMAX) != 0u {
+            hist = pass_u.reg1.z + r * np;
+        } else {
+            proposal_weights(r, rec.z, rec.w);
+        }
+        let out = pass_u.reg0.z + r * m_out;
+        let pad = model.limits.z;
+        var total = 0.0;
+        for (var k = 0u; k < np; k++) {
+            total += sanitize(work[hist + k]) + pad;
+        }
+        if !(total > 0.0 && total <= 3.40282346e38) {
+            for (var k = 0u; k < m_out; k++) {
+                work[out + k] = f32(k) / f32(max(m_out - 1u, 1u));
+            }
+        } else {
+            let inv = 1.0 / total;
+            var bin = 0u;
+            var cdf_lo = 0.0;
+            var cdf_hi = (sanitize(work[hist]) + pad) * inv;
+            var prev = 0.0;
+            for (var k = 0u; k < m_out; k++) {
+                let u = f32(k) / f32(max(m_out - 1u, 1u));
+                while u > cdf_hi && bin + 1u < np {
+                    bin += 1u;
+                    cdf_lo = cdf_hi;
+                    cdf_hi += (sanitize(work[hist + bin]) + pad) * inv;
+                }
+                let span = cdf_hi - cdf_lo;
+                var frac = 0.0;
+                if span > 0.0 {
+                    frac = clamp((u - cdf_lo) / span, 0.0, 1.0);
+                }
+                let e0 = f32(bin) / f32(np);
+                let e1 = f32(bin + 1u) / f32(np);
+                var s = e0 + frac * (e1 - e0);
+                if k > 0u && s < prev {
+                    s = prev;
+                }
+                work[out + k] = s;
+                prev = s;
+            }
+        }
+    }
+}
+
+// #module passes_shade
+// passes_shade: the passes from a ray's main samples to its pixel: density, which samples light
+// reaches, their colours, and compositing.
+
+// The density and geometry features of the LANES samples `js` (the first `used` of them) from
+// `density_mlp4`'s output.
+fn store_density_lanes(js: vec4<u32>, used: u32) {
+    for (var k = 0u; k < used; k++) {
+        let j = js[k];
+        work[pass_u.reg0.w + 4u * j + 3u] = trunc_exp(out4[0][k]);
+        geo_to_work(j, k);
+    }
+}
+
+// Per invocation: the main field's density and geometry features at LANES (ray, sample) pairs,
+// entries LANES i .. of the batch's samples (ray-major), or of the live list's samples with a
+// 4D lookup when the pass has an occupancy grid (`pass_live_samples` gave the empty ones
+// density 0); encodings one by one, the density MLP for the LANES samples together.
+@compute @workgroup_size(64)
+fn pass_density(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    density_lanes(invocation(gid, groups), true);
+}
+
+// `pass_density` over the live list's samples whose mask skips the 4D lookup, with no 4D
+// lookup compiled in (dispatched only with an occupancy grid and `FLAG_P_SPLIT`).
+@compute @workgroup_size(64)
+fn pass_density3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    density_lanes(invocation(gid, groups), false);
+}
+
+// Invocation i of `pass_density` (`with4`, a constant) or `pass_density3`.
+fn density_lanes(i: u32, with4: bool) {
+    let s = samples_per_ray();
+    let live = pass_u.reg2.y != 0u;
+    let total = ray_count() * s;
+    var n = total;
+    if live {
+        n = atomicLoad(&ctrl[select(6u, 4u, with4)]);
+    }
+    if i * LANES < n {
+        let used = min(n - i * LANES, LANES);
+        var js = vec4<u32>(0u);
+        for (var k = 0u; k < LANES; k++) {
+            var j = lane_entry(i, k, used);
+            if live {
+                j = live_entry(pass_u.reg2.w, total, j, with4);
+            }
+            js[k] = j;
+            let r = j / s;
+            encode_field4(main_point(r, j % s, ray_rec(r)), model.field.consts.y, k, with4);
+        }
+        density_mlp4();
+        store_density_lanes(js, used);
+    }
+}
+
+// Per ray: the samples light still reaches (optical depth before them at most ln(1e4)) go to
+// the colour list; the others, and those in empty occupancy cells, get colour 0, as in the CPU
+// renderer. With the cache flag only dynamic samples are considered (static ones keep their
+// colour) and the occupancy grid is not used (as the CPU renderer's sample cache).
+@compute @workgroup_size(64)
+fn pass_visible(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let r = invocation(gid, groups);
+    if r < ray_count() {
+        let s = samples_per_ray();
+        let rec = ray_rec(r);
+        let cache = (pass_u.tile.z & FLAG_P_CACHE) != 0u;
+        var tau = 0.0;
+        var t0 = t_of_s(work[pass_u.reg0.z + r * (s + 1u)], rec.z, rec.w);
+        for (var k = 0u; k < s; k++) {
+            let j = r * s + k;
+            let t1 = t_of_s(work[pass_u.reg0.z + r * (s + 1u) + k + 1u], rec.z, rec.w);
+            let sp = pass_u.reg0.w + 4u * j;
+            let is_dyn = !cache || work[pass_u.reg1.w + 4u * j + 3u] == 1.0;
+            if is_dyn {
+                if tau <= TAU_HIDDEN && (cache || pass_u.reg2.y == 0u || occupied(main_point(r, k, rec).xyz)) {
+                    let slot = atomicAdd(&ctrl[1], 1u);
+                    work[pass_u.reg1.y + slot] = bitcast<f32>(j);
+                } else {
+                    work[sp] = 0.0;
+                    work[sp + 1u] = 0.0;
+                    work[sp + 2u] = 0.0;
+                }
+            }
+            tau += tau_of(work[sp + 3u], max(t1 - t0, 0.0));
+            t0 = t1;
+        }
+    }
+}
+
+// Per invocation: the colours of LANES listed samples (entries LANES i .. LANES i + LANES - 1 of
+// the colour list), their colour MLPs evaluated together: component k of a vec4 is sample k, so
+// that every weight read from `rest` serves LANES samples (weight reads dominate the pass on
+// software adapters, which gather every per-invocation storage read lane by lane).
+@compute @workgroup_size(64)
+fn pass_color(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let i = invocation(gid, groups);
+    let n = atomicLoad(&ctrl[1]);
+    if i * LANES < n {
+        let used = min(n - i * LANES, LANES);
+        var js = vec4<u32>(0u);
+        for (var k = 0u; k < LANES; k++) {
+            let j = work_u(pass_u.reg1.y + lane_entry(i, k, used));
+            js[k] = j;
+            let rec = ray_rec(j / samples_per_ray());
+            sh4(normalize(pixel_ray_dir(ray_pixel(rec))));
+            hid4[0][k] = sh[0];
+            hid4[1][k] = sh[1];
+            hid4[2][k] = sh[2];
+            hid4[3][k] = sh[3];
+            hid4[4][k] = sh[4];
+            hid4[5][k] = sh[5];
+            hid4[6][k] = sh[6];
+            hid4[7][k] = sh[7];
+            hid4[8][k] = sh[8];
+            hid4[9][k] = sh[9];
+            hid4[10][k] = sh[10];
+            hid4[11][k] = sh[11];
+            hid4[12][k] = sh[12];
+            hid4[13][k] = sh[13];
+            hid4[14][k] = sh[14];
+            hid4[15][k] = sh[15];
+            geo_from_work(j, k);
+        }
+        let c = color_mlp4();
+        for (var k = 0u; k < used; k++) {
+            let sp = pass_u.reg0.w + 4u * js[k];
+            work[sp] = c[0][k];
+            work[sp + 1u] = c[1][k];
+            work[sp + 2u] = c[2][k];
+        }
+    }
+}
+
 // Per ray: C = sum w_k c_k + T * background, and the visible depth, into frame[output index].
 @compute @workgroup_size(64)
 fn pass_composite(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
@@ -1603,3 +1542,135 @@ fn pass_composite(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wo
         frame[bitcast<u32>(rec.x)] = vec4<f32>(rgb, visible);
     }
 }
+
+// #module passes_cache
+// passes_cache: the sample cache of incremental playback (msth-player's `samples.rs`): the
+// per-bin maximum of proposal weights over several times, the cache's static samples evaluated
+// once, and its dynamic samples' density per frame.
+
+// Per ray (partition): weights of this time's densities, and their per-bin maximum over the
+// times so far in `wmax`.
+@compute @workgroup_size(64)
+fn pass_wmax(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let r = invocation(gid, groups);
+    if r < ray_count() {
+        let rec = ray_rec(r);
+        proposal_weights(r, rec.z, rec.w);
+        let np = model.sampler.x;
+        let first = pass_u.misc.y == 1.0;
+        for (var k = 0u; k < np; k++) {
+            let w = work[pass_u.reg0.y + r * np + k];
+            let at = pass_u.reg1.z + r * np + k;
+            work[at] = select(max(work[at], w), w, first);
+        }
+    }
+}
+
+// Per (ray, sample) of the cache (time 0, as msth-player's sample cache): a sample whose dynamic
+// weight 1 - m is below the cutoff is static: its density and colour are evaluated once, with
+// the 4D lookup skipped; the others keep their point and are listed for every frame.
+// Dispatched as `pass_density` (LANES samples per invocation), one sample after the other.
+@compute @workgroup_size(64)
+fn pass_build(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let i = invocation(gid, groups);
+    for (var k = 0u; k < LANES; k++) {
+        build_sample(i * LANES + k);
+    }
+}
+
+fn build_sample(j: u32) {
+    let s = samples_per_ray();
+    if j < ray_count() * s {
+        let r = j / s;
+        let rec = ray_rec(r);
+        let iv = main_interval(r, j % s, rec.z, rec.w);
+        let o = view.c2w[3].xyz;
+        let d = pixel_ray_dir(ray_pixel(rec));
+        let p = sample_point(o, d, iv.x, iv.y, 0.0);
+        let cutoff = pass_u.misc.x;
+        let e = model.field;
+        let blend = e.mode.x;
+        var is_dyn = blend == 2u || blend == 3u;
+        if blend <= 1u {
+            is_dyn = e.mode.y == 0u || 1.0 - mask_at(e, p.xyz) >= cutoff;
+        }
+        let at = pass_u.reg1.w + 4u * j;
+        work[at] = p.x;
+        work[at + 1u] = p.y;
+        work[at + 2u] = p.z;
+        work[at + 3u] = select(0.0, 1.0, is_dyn);
+        let sp = pass_u.reg0.w + 4u * j;
+        if is_dyn {
+            let slot = atomicAdd(&ctrl[2], 1u);
+            work[pass_u.reg2.x + slot] = bitcast<f32>(j);
+            work[sp] = 0.0;
+            work[sp + 1u] = 0.0;
+            work[sp + 2u] = 0.0;
+            work[sp + 3u] = 0.0;
+        } else {
+            var m = 1.0;
+            let sigma = field_density(p, cutoff, &m);
+            sh4(normalize(d));
+            let c = field_color();
+            work[sp] = c.x;
+            work[sp + 1u] = c.y;
+            work[sp + 2u] = c.z;
+            work[sp + 3u] = sigma;
+        }
+    }
+}
+
+// Per invocation: LANES listed dynamic samples of the cache (entries LANES i .. of the list):
+// density at the frame's time (the 4D lookup always), the density MLP for the LANES samples
+// together, as `pass_density`.
+@compute @workgroup_size(64)
+fn pass_dynamic(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let i = invocation(gid, groups);
+    let n = atomicLoad(&ctrl[2]);
+    if i * LANES < n {
+        let used = min(n - i * LANES, LANES);
+        var js = vec4<u32>(0u);
+        for (var k = 0u; k < LANES; k++) {
+            let j = work_u(pass_u.reg2.x + lane_entry(i, k, used));
+            js[k] = j;
+            let at = pass_u.reg1.w + 4u * j;
+            encode_field4(vec4<f32>(work[at], work[at + 1u], work[at + 2u], field_time()), 0.0, k, true);
+        }
+        density_mlp4();
+        store_density_lanes(js, used);
+    }
+}
+
+// #module passes
+// passes: the per-sample passes' entry points (`pass_*`): the same rendering as `per_ray`, split
+// into dispatches over compacted work lists, so that no invocation loops over a whole ray's
+// field evaluations. One frame (or one batch of rays of it) is, in order:
+//
+//   pass_setup      one per pixel of the batch: ray limits; a ray that misses the scene under a
+//                   constant background writes the background, the others are appended to the
+//                   ray list (`ctrl[0]`);
+//   pass_args       one invocation: indirect dispatch sizes from the counters (bound with the
+//                   `args` buffer in the `work` slot);
+//   pass_proposal   one per (ray, proposal sample): the proposal field's density;
+//   pass_resample   one per ray: proposal weights and the inverse CDF, `S + 1` edges (short
+//                   loops over the ray's histogram, no field evaluation);
+//   pass_density    one per (ray, main sample): encoding, mask blend, density MLP; sigma and the
+//                   geometry features;
+//
+// With the file's occupancy grid, `pass_live_proposal` and `pass_live_samples` first list the
+// samples in occupied cells, split by the mask: those it leaves a 4D lookup go to
+// `pass_proposal` and `pass_density`, those whose 4D lookup it skips to `pass_proposal3` and
+// `pass_density3`, compiled without the 4D lookup (a static sample then costs its 3D lookup,
+// wherever it falls among its neighbours);
+//   pass_visible    one per ray: which samples light still reaches: those get a colour and are
+//                   appended to the colour list (`ctrl[1]`);
+//   pass_args       again (the colour list's size);
+//   pass_color      one per listed sample: SH of the ray direction + colour MLP;
+//   pass_composite  one per ray: volume compositing and the background into `frame`.
+//
+// Incremental playback with sample-level reuse (msth-player's `samples.rs`) runs the same passes
+// on a persistent cache: `pass_wmax` (the per-bin maximum of the proposal weights over several
+// times), `pass_resample` from that histogram, `pass_build` (static samples evaluated once,
+// dynamic ones listed in `ctrl[2]`), then per frame `pass_dynamic` (the dynamic samples' density
+// at the frame's time), `pass_visible`, `pass_color` and `pass_composite`.
+

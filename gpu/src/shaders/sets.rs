@@ -1,0 +1,9 @@
+//! The shader texts the crate's build composes from the WGSL modules of `shaders/render/`: each
+//! a file name in the build's output folder and the root modules it holds (every module they
+//! import comes with them). The build script compiles this file too (`build.rs`).
+
+/// (file name, root modules) of each composed shader text. `render.wgsl` is the renderer's
+/// ([`crate::RENDER_WGSL`]): the per-ray kernels and the per-sample passes. Another set of
+/// entry points (a renderer of its own, say) is another entry here, rooted at its entry module,
+/// and a constant in `shaders.rs` that includes its text.
+pub const SETS: &[(&str, &[&str])] = &[("render.wgsl", &["per_ray", "passes"])];
