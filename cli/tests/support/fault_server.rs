@@ -298,7 +298,7 @@ fn model(
             ],
         )),
         (Fault::EndlessBody, _) => {
-            s.write_all(&head("200 OK", &[octets.clone()]))?;
+            s.write_all(&head("200 OK", std::slice::from_ref(&octets)))?;
             s.write_all(body)?;
             let zeros = vec![0u8; 64 << 10];
             // Until the client goes away (the write then fails).

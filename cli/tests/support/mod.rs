@@ -58,6 +58,8 @@ pub struct Measured {
 /// Runs `cmd` to its end (killing it after `limit`, which then fails the test: a hang), and
 /// measures its peak resident memory through `wait4`.
 #[allow(dead_code)]
+// The child is reaped by `wait4` below (for its rusage), not by `Child::wait`.
+#[allow(clippy::zombie_processes)]
 pub fn run_measured(cmd: &mut Command, limit: std::time::Duration) -> Measured {
     use std::io::Read;
     let start = std::time::Instant::now();
