@@ -16,7 +16,8 @@
 #      instead of being reported as ignored (testkit/src/lib.rs). Without ../shared/data
 #      beside the repository, MSTH_REQUIRE_DATA=0: those tests show as ignored; so do the
 #      SIMD kernel tests on a CPU without AVX2 or AVX-512 (MSTH_REQUIRE_AVX2=0,
-#      MSTH_REQUIRE_AVX512=0).
+#      MSTH_REQUIRE_AVX512=0), and the tmpfs full-disk test where a tmpfs cannot be mounted
+#      (MSTH_REQUIRE_TMPFS=0).
 #
 # Usage: tools/test.sh [--no-install] [--no-lint] [-- ARGS for cargo test]
 #   --no-install   skip steps 1-2 (no root; what is missing then fails the run)
@@ -78,6 +79,10 @@ export MSTH_REQUIRE_ALL=${MSTH_REQUIRE_ALL:-1}
 # as ignored.
 export MSTH_REQUIRE_AVX2=${MSTH_REQUIRE_AVX2:-0}
 export MSTH_REQUIRE_AVX512=${MSTH_REQUIRE_AVX512:-0}
+# Mounting a small tmpfs (the full-disk test of cli/tests/crash_safety.rs) needs root with
+# CAP_SYS_ADMIN, which containers often lack: without it that test shows as ignored (the same
+# test through a file size limit runs everywhere).
+export MSTH_REQUIRE_TMPFS=${MSTH_REQUIRE_TMPFS:-0}
 if [ ! -d ../shared/data ] && [ -z "${MSTH_REQUIRE_DATA:-}" ]; then
   echo "note: no ../shared/data beside the repository: the tests that read it will show as ignored"
   export MSTH_REQUIRE_DATA=0

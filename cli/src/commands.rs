@@ -183,6 +183,12 @@ pub fn train(a: TrainArgs) -> Result<Option<Metrics>> {
     if let Some(v) = a.time_limit {
         sets.push(format!("time_limit_secs={v}"));
     }
+    if let Some(v) = a.checkpoint_every {
+        sets.push(format!("checkpoint_every={v}"));
+    }
+    if let Some(v) = a.checkpoint_secs {
+        sets.push(format!("checkpoint_secs={v}"));
+    }
     let file = a.config.as_deref().map(read_config_file).transpose()?;
     let mut user_keys: Vec<String> = file.as_ref().map(setting_paths).unwrap_or_default();
     user_keys.extend(
@@ -281,10 +287,22 @@ pub fn train(a: TrainArgs) -> Result<Option<Metrics>> {
     );
     let pb = progress_bar(settings.iters);
     let stride = settings.eval_stride;
-    let (trainer, outcome) =
-        run_training(&data, settings, &a.out, resume, &mut |p| report(&pb, p))?;
+    let iters = settings.iters;
+    // Ctrl-C stops after the step in progress, which is then checkpointed.
+    crate::interrupt::arm();
+    let (trainer, outcome) = run_training(&data, settings, &a.out, resume, &mut |p| {
+        report(&pb, p) && !crate::interrupt::pending()
+    })?;
     pb.finish();
     print_outcome(&outcome);
+    if crate::interrupt::pending() && trainer.step < iters {
+        bail!(
+            "interrupted at step {} of {iters}: the checkpoint {} holds it; run the same `msth train` command \
+             with --resume added to go on from there",
+            trainer.step,
+            outcome.checkpoint.display()
+        );
+    }
     if a.no_eval {
         return Ok(None);
     }

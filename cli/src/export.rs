@@ -146,7 +146,14 @@ pub(crate) fn write_msth(
         &opts,
     )
     .with_context(|| format!("encoding {}", ckpt_path.display()))?;
-    write_atomic(out, &bytes).with_context(|| format!("writing {}", out.display()))?;
+    // Atomic: a full disk or a crash leaves the file that was there (if any) as it was.
+    let kept = if out.exists() {
+        "the file there before is unchanged"
+    } else {
+        "nothing was written"
+    };
+    write_atomic(out, &bytes)
+        .with_context(|| format!("writing {} failed ({kept})", out.display()))?;
     Ok((report, lines))
 }
 

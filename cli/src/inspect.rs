@@ -7,7 +7,8 @@
 //!
 //! A local file is always read and validated whole. Over HTTP only the prefix (header, metadata,
 //! index) is fetched, with Range requests through the player's source, unless `--validate` asks
-//! for every section.
+//! for every section; the whole inspection then has a deadline (`--deadline`) and every request a
+//! stall deadline (`--stall-timeout`), and nothing past the length the header declares is read.
 
 use std::path::Path;
 
@@ -29,6 +30,13 @@ pub struct InspectArgs {
     /// Over HTTP, fetch and validate every section too (a local file is always validated whole).
     #[arg(long)]
     pub validate: bool,
+    /// Over HTTP: seconds the whole inspection may take, every request and retry included.
+    #[arg(long, default_value_t = 120.0, value_name = "SECS")]
+    pub deadline: f64,
+    /// Over HTTP: seconds a request may go without receiving anything before it is given up
+    /// (and retried while the deadline leaves time).
+    #[arg(long, default_value_t = 15.0, value_name = "SECS")]
+    pub stall_timeout: f64,
 }
 
 /// Bytes fetched first over HTTP: the prefix of a typical file fits.
@@ -46,7 +54,16 @@ struct Inspection {
 }
 
 pub fn run(args: InspectArgs) -> anyhow::Result<()> {
-    let report = inspect(&args.source, args.validate)?;
+    let start = std::time::Instant::now();
+    let deadline = crate::play::seconds("--deadline", args.deadline)?;
+    let opts = HttpOptions {
+        probe_bytes: PROBE_BYTES,
+        read_timeout: crate::play::seconds("--stall-timeout", args.stall_timeout)?,
+        request_timeout: deadline,
+        deadline: Some(start + deadline),
+        ..HttpOptions::default()
+    };
+    let report = inspect(&args.source, args.validate, &opts)?;
     let text = if args.json {
         serde_json::to_string_pretty(&report.to_json())? + "\n"
     } else {
@@ -57,13 +74,9 @@ pub fn run(args: InspectArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn inspect(location: &str, validate: bool) -> anyhow::Result<Inspection> {
+fn inspect(location: &str, validate: bool, opts: &HttpOptions) -> anyhow::Result<Inspection> {
     let http = location.starts_with("http://") || location.starts_with("https://");
-    let opts = HttpOptions {
-        probe_bytes: PROBE_BYTES,
-        ..HttpOptions::default()
-    };
-    let src = source::open(location, &opts)?;
+    let src = source::open(location, opts)?;
     let limits = Limits::default();
     let len = src.len();
     let violation = |e: msth_codec::DecodeError| anyhow!("{location}: not a valid .msth file: {e}");
@@ -85,6 +98,10 @@ fn inspect(location: &str, validate: bool) -> anyhow::Result<Inspection> {
     let index = FileIndex::parse(&prefix, &limits).map_err(violation)?;
     index.check_writer_rules().map_err(violation)?;
     let file_bytes = index.file_len();
+    // From here on nothing past the header's length is read; a server that declared another
+    // length is refused, naming both.
+    src.limit_to(file_bytes)?;
+    let len = src.len();
     let model = if !http || validate {
         Some(
             read_whole(src.as_ref(), &index, &limits).map_err(|e| match e {

@@ -10,6 +10,7 @@ mod evaluate;
 mod export;
 mod import;
 mod inspect;
+mod interrupt;
 mod play;
 mod scenegen;
 mod serve;
@@ -132,9 +133,18 @@ pub struct TrainArgs {
     /// Override one setting by its dotted path, e.g. `--set model.sampler.num_samples=32`.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub sets: Vec<String>,
-    /// Continue from OUT/model.ckpt.
+    /// Continue from OUT/model.ckpt (give the settings of the interrupted run again: its
+    /// command with --resume added).
     #[arg(long)]
     pub resume: bool,
+    /// Write OUT/model.ckpt every this many steps (default 1000; 0: only at the end). Each write
+    /// is atomic: a crash leaves the previous checkpoint or the new one, never half of one.
+    #[arg(long, value_name = "STEPS")]
+    pub checkpoint_every: Option<usize>,
+    /// Also write it when this many seconds have passed since the last one (default 600; 0: by
+    /// steps only).
+    #[arg(long, value_name = "SECS")]
+    pub checkpoint_secs: Option<f64>,
     /// Where the steps run: `auto` (a hardware GPU when there is one, else the CPU), `cpu`, or
     /// `gpu` (any GPU adapter, software ones included; an error without one). Checkpoints are
     /// the same either way: a run resumes on either device.

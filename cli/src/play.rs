@@ -82,9 +82,19 @@ pub struct PlayArgs {
     pub probe_tolerance: f32,
     #[command(flatten)]
     pub reuse: ReuseArgs,
-    /// Seconds without data before a request is retried.
-    #[arg(long, default_value_t = 15.0)]
-    pub timeout: f64,
+    /// Over HTTP: seconds a request may go without receiving anything before it is given up
+    /// and retried (the stall deadline).
+    #[arg(
+        long,
+        visible_alias = "timeout",
+        default_value_t = 15.0,
+        value_name = "SECS"
+    )]
+    pub stall_timeout: f64,
+    /// Over HTTP: the longest playback waits for data, retries included: for the file's header
+    /// and index, then for each section a frame needs.
+    #[arg(long, default_value_t = 120.0, value_name = "SECS")]
+    pub deadline: f64,
     /// Retries per request.
     #[arg(long, default_value_t = 4)]
     pub retries: u32,
@@ -273,10 +283,17 @@ fn parse_range(s: &str) -> Result<(f32, f32), String> {
     Ok((p(a)?, p(b)?))
 }
 
-pub fn options(a: &PlayArgs) -> Result<PlayOptions> {
-    if !(a.timeout.is_finite() && a.timeout > 0.0 && a.timeout <= 3600.0) {
-        bail!("--timeout {}: seconds in (0, 3600]", a.timeout);
+/// A number of seconds given as `flag`: in (0, 86400].
+pub(crate) fn seconds(flag: &str, v: f64) -> Result<Duration> {
+    if !(v.is_finite() && v > 0.0 && v <= 86_400.0) {
+        bail!("{flag} {v}: seconds in (0, 86400]");
     }
+    Ok(Duration::from_secs_f64(v))
+}
+
+pub fn options(a: &PlayArgs) -> Result<PlayOptions> {
+    let stall = seconds("--stall-timeout", a.stall_timeout)?;
+    let deadline = seconds("--deadline", a.deadline)?;
     if !(a.static_threshold.is_finite() && (0.0..=1.0).contains(&a.static_threshold)) {
         bail!(
             "--static-threshold {}: must lie in [0, 1]",
@@ -331,8 +348,10 @@ pub fn options(a: &PlayArgs) -> Result<PlayOptions> {
     } else {
         None
     };
+    o.section_timeout = deadline;
     o.http = HttpOptions {
-        read_timeout: Duration::from_secs_f64(a.timeout),
+        read_timeout: stall,
+        request_timeout: deadline,
         retries: a.retries,
         ca_cert_file: ca_cert_file(a.ca_cert.clone(), ssl_cert_file)?,
         ..HttpOptions::default()

@@ -29,6 +29,10 @@ pub struct ServeArgs {
     /// the end of the previous response (so also the idle keep-alive timeout).
     #[arg(long, default_value_t = msth_server::Limits::default().header_read_timeout.as_secs_f64())]
     pub header_timeout_secs: f64,
+    /// MiB of served files held in memory (each file up to a quarter of it; larger ones are
+    /// streamed from disk). 0: every response is read from disk.
+    #[arg(long, default_value_t = msth_server::DEFAULT_CACHE_BYTES >> 20, value_name = "MIB")]
+    pub cache_mib: u64,
 }
 
 /// The server `msth serve` starts for `args` (`msth demo` starts the same one in-process).
@@ -38,6 +42,10 @@ pub(crate) fn server_config(args: &ServeArgs) -> anyhow::Result<msth_server::Ser
     config.web_dir = args.web.clone().or_else(default_web_dir);
     config.limits.max_connections = args.max_connections.max(1);
     config.limits.max_connections_per_ip = args.max_connections_per_ip.max(1);
+    config.cache_bytes = args
+        .cache_mib
+        .checked_mul(1 << 20)
+        .context("--cache-mib is too large")?;
     config.limits.header_read_timeout =
         std::time::Duration::try_from_secs_f64(args.header_timeout_secs)
             .ok()

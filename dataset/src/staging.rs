@@ -13,7 +13,10 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> io::Result<()> {
 }
 
 /// Writes what `write` produces to `path` atomically: into a temporary file in the same folder
-/// (`.NAME.tmp-PID-N`, unique per process and call), synced, then renamed over `path`.
+/// (`.NAME.tmp-PID-N`, unique per process and call), synced, then renamed over `path`, and the
+/// folder synced so that the rename itself survives a power cut. A process killed at any moment
+/// leaves either the old file or the new one at `path` (and perhaps the temporary file); a write
+/// that fails (a full disk) removes the temporary file and leaves `path` as it was.
 pub fn write_atomic_with(
     path: &Path,
     write: &mut dyn FnMut(&mut dyn Write) -> io::Result<()>,
@@ -36,7 +39,14 @@ pub fn write_atomic_with(
         write(&mut writer)?;
         let file = writer.into_inner().map_err(|e| e.into_error())?;
         file.sync_all()?;
-        std::fs::rename(&tmp, path)
+        std::fs::rename(&tmp, path)?;
+        // The rename is durable once the folder is (best effort: not every platform opens
+        // folders as files).
+        let dir = path.parent().filter(|p| !p.as_os_str().is_empty());
+        if let Ok(d) = std::fs::File::open(dir.unwrap_or(Path::new("."))) {
+            let _ = d.sync_all();
+        }
+        Ok(())
     })();
     if result.is_err() {
         let _ = std::fs::remove_file(&tmp);

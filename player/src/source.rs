@@ -3,17 +3,29 @@
 //! [`ByteSource`] is the one interface the streaming layer needs: the total length and "give me
 //! bytes `a..b`". [`HttpSource`] implements it with RFC 9110 Range requests over HTTP/1.1, plain
 //! (`http://`) or over TLS (`https://`), with `ureq`, and
-//! - timeouts on connecting and on every read, so a stalled server cannot hang the player;
-//! - retries with exponential back-off for failures that can heal (connection errors, timeouts,
+//! - a stall deadline on every read ([`HttpOptions::read_timeout`]) and a deadline on every read of
+//!   the file, retries included ([`HttpOptions::request_timeout`]), optionally an overall one
+//!   ([`HttpOptions::deadline`]), so a stalled or trickling server cannot hang the player; the
+//!   messages say which bytes were awaited and how many had come;
+//! - retries with exponential back-off for failures that can heal (connection errors, stalls,
 //!   truncated bodies, 5xx, 429), none for those that cannot (4xx, a certificate refused, a
 //!   server that ignores ranges after promising them, a file that changed on the server);
 //! - `If-Range` with the first response's validator on every later request, so a file replaced
 //!   on the server mid-stream is detected (the server answers 200 instead of 206) instead of
 //!   splicing two files;
-//! - every response checked: status, `Content-Range` equal to what was asked, body length exact.
+//! - every response checked: status, `Content-Range` equal to what was asked, body length exact,
+//!   and never more read than was asked for, whatever the server sends.
 //!
-//! A server that does not do ranges at all (200 to the first request) still works: the whole file
-//! is downloaded once (bounded by [`HttpOptions::max_file_bytes`]) and served from memory.
+//! Lengths: before the file's header is read, a response is bounded by the prefix being read
+//! (the first request asks for [`HttpOptions::probe_bytes`]); once the stream has parsed the
+//! header it calls [`ByteSource::limit_to`] with the length the header declares, and from then on
+//! nothing past it is read. A length the server declared (`Content-Range` total, `Content-Length`)
+//! that disagrees with the header is an error naming both numbers.
+//!
+//! A server that does not do ranges at all (200 to the first request) still works: its body is
+//! read as a stream ([`ByteSource::sequential`]), the first bytes kept, the rest handed to the
+//! decoder in file order as it arrives, never buffered whole; a body without `Content-Length`
+//! (even an endless one) is read only up to the length the header declares.
 //!
 //! TLS is rustls with the `ring` crypto provider (it builds with a C compiler alone; aws-lc-rs
 //! would need cmake). Server certificates are checked against a bundled root set, Mozilla's
@@ -30,9 +42,9 @@ use std::fs::File;
 use std::io::{Read, Seek, SeekFrom};
 use std::ops::Range;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex};
-use std::time::Duration;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
 
 /// Everything that can go wrong reading bytes.
 #[derive(Debug, thiserror::Error)]
@@ -55,6 +67,16 @@ pub enum SourceError {
         message: String,
         attempts: u32,
     },
+    /// A read of the file did not complete by its deadline.
+    #[error("{url}: {what}not complete within the {secs:.0} s deadline ({message})")]
+    Deadline {
+        url: String,
+        /// The byte range, as `bytes A-B: ` (empty for the first request).
+        what: String,
+        secs: f64,
+        /// How far it got, or the last attempt's failure.
+        message: String,
+    },
     #[error("{what}: bytes {start}..{end} are outside the file ({len} bytes)")]
     OutOfRange {
         what: String,
@@ -64,9 +86,13 @@ pub enum SourceError {
     },
 }
 
+/// [`ByteSource::len`] of a source whose length nobody has declared yet: a server that answers
+/// 200 without `Content-Length`, before [`ByteSource::limit_to`].
+pub const UNKNOWN_LEN: u64 = u64::MAX;
+
 /// Random-access bytes of one file.
 pub trait ByteSource: Send + Sync {
-    /// Total length in bytes.
+    /// Total length in bytes ([`UNKNOWN_LEN`] while it is not known).
     fn len(&self) -> u64;
     /// Whether the file is empty.
     fn is_empty(&self) -> bool {
@@ -78,6 +104,24 @@ pub trait ByteSource: Send + Sync {
     fn name(&self) -> &str;
     /// Transfer statistics so far.
     fn stats(&self) -> TransferStats;
+    /// The file's header declares `len` bytes: nothing past them is read from now on, and a
+    /// source whose server declared another length fails, naming both. The default accepts it
+    /// (a local file longer than its index is the decoder's business).
+    fn limit_to(&self, len: u64) -> Result<(), SourceError> {
+        let _ = len;
+        Ok(())
+    }
+    /// Whether reads should go forward through the file: a server that ignores Range requests
+    /// streams its body once from the start, and a read behind what has streamed costs a new
+    /// download of everything before it.
+    fn sequential(&self) -> bool {
+        false
+    }
+    /// The request in progress, for messages about a wait that ran out: which bytes, how many
+    /// have come, how long since the last one.
+    fn activity(&self) -> Option<String> {
+        None
+    }
 }
 
 /// Counters of a source (requests include retries).
@@ -101,6 +145,15 @@ impl<T: ByteSource + ?Sized> ByteSource for std::sync::Arc<T> {
     }
     fn stats(&self) -> TransferStats {
         self.as_ref().stats()
+    }
+    fn limit_to(&self, len: u64) -> Result<(), SourceError> {
+        self.as_ref().limit_to(len)
+    }
+    fn sequential(&self) -> bool {
+        self.as_ref().sequential()
+    }
+    fn activity(&self) -> Option<String> {
+        self.as_ref().activity()
     }
 }
 
@@ -196,18 +249,22 @@ impl ByteSource for FileSource {
 pub struct HttpOptions {
     /// Time to establish a connection.
     pub connect_timeout: Duration,
-    /// Longest wait for any single read (headers or body): a stalled server fails after this.
+    /// The stall deadline: the longest wait for any single read (response head or body). A
+    /// request that receives nothing for this long fails, and is retried while its deadline
+    /// leaves time.
     pub read_timeout: Duration,
-    /// Longest time for one whole request, body included (a trickling server fails after this).
+    /// The deadline of one read of the file: a byte range, with every attempt, back-off and body
+    /// included (a trickling server fails after this).
     pub request_timeout: Duration,
+    /// An overall deadline: no read goes on past this moment (`None`: none beyond
+    /// `request_timeout`). `msth inspect --deadline` sets it.
+    pub deadline: Option<Instant>,
     /// Retries after the first attempt, for failures that can heal.
     pub retries: u32,
     /// First back-off; doubled after every retry, at most 16 times this.
     pub backoff: Duration,
     /// Bytes asked for by the first request (the header and index usually fit).
     pub probe_bytes: u64,
-    /// Largest file accepted from a server that ignores ranges (downloaded whole).
-    pub max_file_bytes: u64,
     /// PEM file of the certificates trusted for `https://` instead of the bundled Mozilla roots:
     /// a private CA's certificate, or a self-signed server's own. `None`: the bundled roots.
     pub ca_cert_file: Option<PathBuf>,
@@ -218,11 +275,11 @@ impl Default for HttpOptions {
         HttpOptions {
             connect_timeout: Duration::from_secs(5),
             read_timeout: Duration::from_secs(15),
-            request_timeout: Duration::from_secs(300),
+            request_timeout: Duration::from_secs(120),
+            deadline: None,
             retries: 4,
             backoff: Duration::from_millis(200),
             probe_bytes: 64 << 10,
-            max_file_bytes: 4 << 30,
             ca_cert_file: None,
         }
     }
@@ -285,26 +342,56 @@ fn url_host(url: &str) -> &str {
 /// A `.msth` file behind an `http://` or `https://` URL.
 pub struct HttpSource {
     url: String,
-    /// What [`describe`] needs to explain a TLS failure.
+    /// What [`HttpSource::describe`] needs to explain a TLS failure.
     tls: TlsContext,
     agent: ureq::Agent,
     opts: HttpOptions,
-    len: u64,
+    /// The file's length: what the server declared, [`UNKNOWN_LEN`] while a body of undeclared
+    /// length streams and the header has not been read, the header's after
+    /// [`ByteSource::limit_to`].
+    len: AtomicU64,
+    /// Whether `len` is the header's ([`ByteSource::limit_to`] was called).
+    limited: AtomicBool,
+    /// The length the server declared and how (`Content-Range` total, `Content-Length`, or
+    /// the length of a body that ended within the first request).
+    declared: Option<(u64, String)>,
     /// `If-Range` value: the first response's strong ETag, else its Last-Modified.
     validator: Option<String>,
     /// The first response's bytes (from offset 0), served without another request.
     head: Vec<u8>,
     /// Whether the server answered the first request with 206.
     ranges: bool,
+    /// A server that ignores ranges: its body, streaming from the start of the file.
+    body: Mutex<Option<Streamed>>,
+    /// The read in progress, for messages.
+    activity: Mutex<Option<Activity>>,
     counters: Counters,
+}
+
+/// The body of a 200 response and how many of its bytes have been read.
+struct Streamed {
+    reader: ureq::BodyReader<'static>,
+    pos: u64,
+}
+
+/// The read in progress: bytes `start..end` of the file, `got` of them in so far.
+#[derive(Clone, Copy, Debug)]
+struct Activity {
+    start: u64,
+    end: u64,
+    got: u64,
+    since: Instant,
+    last: Instant,
 }
 
 /// What the first response told.
 struct Probe {
     len: u64,
+    declared: Option<(u64, String)>,
     validator: Option<String>,
     head: Vec<u8>,
     ranges: bool,
+    body: Option<Streamed>,
 }
 
 /// The host and the roots its certificate was checked against, for messages.
@@ -335,26 +422,13 @@ impl Attempt {
     }
 }
 
-fn describe(e: &ureq::Error, tls: &TlsContext) -> Attempt {
-    use ureq::Error as E;
-    match e {
-        E::Timeout(t) => Attempt::transient(format!("timed out ({t})")),
-        E::Io(io) => match io
-            .get_ref()
-            .and_then(|inner| inner.downcast_ref::<rustls::Error>())
-        {
-            // rustls reports handshake failures (a refused certificate) as I/O errors.
-            Some(t) => Attempt::fatal(tls_message(t, tls)),
-            None => Attempt::transient(format!("connection error: {io}")),
-        },
-        E::Rustls(t) => Attempt::fatal(tls_message(t, tls)),
-        E::Tls(m) => Attempt::fatal(format!("TLS with {}: {m}", tls.host)),
-        E::ConnectionFailed => Attempt::transient("connection failed"),
-        E::HostNotFound => Attempt::fatal("host not found"),
-        E::Protocol(p) => Attempt::transient(format!("HTTP protocol error: {p}")),
-        E::BodyExceedsLimit(n) => Attempt::fatal(format!("response body larger than {n} bytes")),
-        E::BadUri(u) => Attempt::fatal(format!("bad URL: {u}")),
-        other => Attempt::fatal(other.to_string()),
+/// Seconds for messages: `15`, `0.5`.
+fn secs(d: Duration) -> String {
+    let s = d.as_secs_f64();
+    if s >= 10.0 || s == s.round() {
+        format!("{s:.0}")
+    } else {
+        format!("{s:.1}")
     }
 }
 
@@ -428,6 +502,13 @@ fn status_attempt(status: u16) -> Attempt {
     }
 }
 
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// The scratch buffer bytes are read through (and skipped with).
+const READ_BYTES: usize = 64 << 10;
+
 impl HttpSource {
     /// Connects, learns the file's length and validator, and keeps the first
     /// [`HttpOptions::probe_bytes`] bytes.
@@ -449,12 +530,12 @@ impl HttpSource {
             // ring, whatever provider another part of the process may have made the default.
             .unversioned_rustls_crypto_provider(Arc::new(rustls::crypto::ring::default_provider()))
             .build();
+        // The deadlines of whole reads are set per request (a streamed body outlives any one).
         let config = ureq::Agent::config_builder()
             .tls_config(tls_config)
             .http_status_as_error(false)
             .timeout_connect(Some(opts.connect_timeout))
             .timeout_per_read(Some(opts.read_timeout))
-            .timeout_per_call(Some(opts.request_timeout))
             .max_redirects(4)
             .user_agent(concat!("msth-player/", env!("CARGO_PKG_VERSION")))
             .build();
@@ -466,35 +547,133 @@ impl HttpSource {
             },
             agent: ureq::Agent::new_with_config(config),
             opts,
-            len: 0,
+            len: AtomicU64::new(UNKNOWN_LEN),
+            limited: AtomicBool::new(false),
+            declared: None,
             validator: None,
             head: Vec::new(),
             ranges: false,
+            body: Mutex::new(None),
+            activity: Mutex::new(None),
             counters: Counters::default(),
         };
         let probe = src.opts.probe_bytes.max(1);
-        let p = src.retry("", || src.first_request(probe))?;
-        src.len = p.len;
+        let deadline = src.read_deadline();
+        let p = src
+            .retry("", deadline, || src.first_request(probe, deadline))
+            .map_err(|e| match e {
+                // Which bytes did not come in time, as for every later read.
+                SourceError::Deadline {
+                    url, secs, message, ..
+                } => SourceError::Deadline {
+                    url,
+                    what: format!("bytes 0-{}: ", probe - 1),
+                    secs,
+                    message,
+                },
+                e => e,
+            })?;
+        *lock(&src.activity) = None;
+        src.len = AtomicU64::new(p.len);
+        src.declared = p.declared;
         src.validator = p.validator;
         src.head = p.head;
         src.ranges = p.ranges;
+        src.body = Mutex::new(p.body);
         Ok(src)
     }
 
-    /// Whether the server honours Range requests (false: the whole file is in memory).
+    /// Whether the server honours Range requests (false: its body streams from the start).
     pub fn supports_ranges(&self) -> bool {
         self.ranges
     }
 
-    /// Runs `f` until it succeeds, fails for good, or has used up the retries; `context`
-    /// prefixes the message (e.g. the byte range).
+    /// When a read starting now must be done: `request_timeout` from now, or the overall
+    /// deadline if that comes first.
+    fn read_deadline(&self) -> Instant {
+        let own = Instant::now() + self.opts.request_timeout;
+        self.opts.deadline.map_or(own, |d| d.min(own))
+    }
+
+    /// A failure of ureq in words, and whether trying again can help.
+    fn describe(&self, e: &ureq::Error) -> Attempt {
+        use ureq::Error as E;
+        let tls = &self.tls;
+        match e {
+            E::Timeout(ureq::Timeout::PerRead) => Attempt::transient(format!(
+                "stalled: nothing received for {} s",
+                secs(self.opts.read_timeout)
+            )),
+            E::Timeout(ureq::Timeout::Connect) => Attempt::transient(format!(
+                "no connection within {} s",
+                secs(self.opts.connect_timeout)
+            )),
+            E::Timeout(ureq::Timeout::Global) => Attempt::transient(self.progress_note()),
+            E::Timeout(t) => Attempt::transient(format!("timed out ({t})")),
+            E::Io(io) => match io
+                .get_ref()
+                .and_then(|inner| inner.downcast_ref::<rustls::Error>())
+            {
+                // rustls reports handshake failures (a refused certificate) as I/O errors.
+                Some(t) => Attempt::fatal(tls_message(t, tls)),
+                None => Attempt::transient(format!("connection error: {io}")),
+            },
+            E::Rustls(t) => Attempt::fatal(tls_message(t, tls)),
+            E::Tls(m) => Attempt::fatal(format!("TLS with {}: {m}", tls.host)),
+            E::ConnectionFailed => Attempt::transient("connection failed"),
+            E::HostNotFound => Attempt::fatal("host not found"),
+            E::Protocol(p) => Attempt::transient(format!("HTTP protocol error: {p}")),
+            E::TooManyRedirects => Attempt::fatal("too many redirects (more than 4)"),
+            E::RedirectFailed => Attempt::fatal("a redirect could not be followed"),
+            E::BadUri(u) => Attempt::fatal(format!("bad URL: {u}")),
+            other => Attempt::fatal(other.to_string()),
+        }
+    }
+
+    /// Time left before `deadline`; an error (retried into [`SourceError::Deadline`]) when none.
+    fn left(&self, deadline: Instant) -> Result<Duration, Attempt> {
+        let left = deadline.saturating_duration_since(Instant::now());
+        if left.is_zero() {
+            return Err(Attempt::transient(self.progress_note()));
+        }
+        Ok(left)
+    }
+
+    /// How far the read in progress got, for a deadline's message.
+    fn progress_note(&self) -> String {
+        match *lock(&self.activity) {
+            Some(a) => format!(
+                "{} of {} bytes received{}",
+                a.got,
+                a.end - a.start,
+                match a.last.elapsed() {
+                    d if d >= Duration::from_secs(1) => format!(", the last {} s ago", secs(d)),
+                    _ => String::new(),
+                }
+            ),
+            None => "no answer yet".into(),
+        }
+    }
+
+    /// Runs `f` until it succeeds, fails for good, has used up the retries, or `deadline` has
+    /// passed; `context` prefixes the message (e.g. the byte range).
     fn retry<T>(
         &self,
         context: &str,
+        deadline: Instant,
         mut f: impl FnMut() -> Result<T, Attempt>,
     ) -> Result<T, SourceError> {
         let mut wait = self.opts.backoff;
         let mut attempts = 0;
+        let total = deadline.saturating_duration_since(Instant::now());
+        let past_deadline = |message: String| SourceError::Deadline {
+            url: self.url.clone(),
+            what: context.to_string(),
+            secs: total.as_secs_f64(),
+            message,
+        };
+        // Why the last attempt that did not run into the deadline failed.
+        let mut earlier: Option<String> = None;
         loop {
             attempts += 1;
             self.counters.requests.fetch_add(1, Ordering::Relaxed);
@@ -502,18 +681,39 @@ impl HttpSource {
                 Ok(v) => return Ok(v),
                 Err(a) => a,
             };
-            let message = format!("{context}{}", a.message);
             if !a.retryable {
                 let url = self.url.clone();
+                let message = format!("{context}{}", a.message);
                 return Err(SourceError::Http { url, message });
+            }
+            let note = self.progress_note();
+            if a.message != note {
+                earlier = Some(a.message.clone());
+            }
+            if Instant::now() >= deadline {
+                let message = match (&earlier, attempts) {
+                    (None, 1) => note,
+                    (None, n) => format!("{n} attempts; {note}"),
+                    (Some(m), 1) => format!("{m}; {note}"),
+                    (Some(m), n) => format!("{n} attempts, {m}; {note}"),
+                };
+                return Err(past_deadline(message));
             }
             if attempts > self.opts.retries {
                 let url = self.url.clone();
+                let message = format!("{context}{}", a.message);
                 return Err(SourceError::GaveUp {
                     url,
                     message,
                     attempts,
                 });
+            }
+            if Instant::now() + wait >= deadline {
+                return Err(past_deadline(format!(
+                    "{}; no time left for attempt {}",
+                    a.message,
+                    attempts + 1
+                )));
             }
             self.counters.retries.fetch_add(1, Ordering::Relaxed);
             std::thread::sleep(wait);
@@ -521,14 +721,8 @@ impl HttpSource {
         }
     }
 
-    fn first_request(&self, probe: u64) -> Result<Probe, Attempt> {
-        let mut resp = self
-            .agent
-            .get(&self.url)
-            .header("Range", format!("bytes=0-{}", probe - 1))
-            .call()
-            .map_err(|e| describe(&e, &self.tls))?;
-        let status = resp.status().as_u16();
+    /// The response's `ETag` if strong, else its `Last-Modified`.
+    fn validator_of(resp: &ureq::http::Response<ureq::Body>) -> Option<String> {
         let header = |name: &str| {
             resp.headers()
                 .get(name)
@@ -536,7 +730,29 @@ impl HttpSource {
                 .map(str::to_string)
         };
         let etag = header("etag").filter(|e| !e.starts_with("W/"));
-        let validator = etag.or_else(|| header("last-modified"));
+        etag.or_else(|| header("last-modified"))
+    }
+
+    fn first_request(&self, probe: u64, deadline: Instant) -> Result<Probe, Attempt> {
+        let left = self.left(deadline)?;
+        self.start_activity(0, probe);
+        let mut resp = self
+            .agent
+            .get(&self.url)
+            .header("Range", format!("bytes=0-{}", probe - 1))
+            .config()
+            .timeout_recv_response(Some(left))
+            .build()
+            .call()
+            .map_err(|e| self.describe(&e))?;
+        let status = resp.status().as_u16();
+        let header = |name: &str| {
+            resp.headers()
+                .get(name)
+                .and_then(|v| v.to_str().ok())
+                .map(str::to_string)
+        };
+        let validator = Self::validator_of(&resp);
         match status {
             206 => {
                 let cr = header("content-range")
@@ -552,48 +768,52 @@ impl HttpSource {
                     )));
                 }
                 let want = b + 1;
-                let head = self.read_body(&mut resp, want)?;
+                self.start_activity(0, want);
+                let mut reader = resp
+                    .body_mut()
+                    .with_config()
+                    .limit(want.saturating_add(1))
+                    .reader();
+                let head = self.read_exact_body(&mut reader, want, deadline)?;
                 Ok(Probe {
                     len: total,
+                    declared: Some((total, format!("Content-Range `{cr}`"))),
                     validator,
                     head,
                     ranges: true,
+                    body: None,
                 })
             }
             200 => {
-                // No range support: take the whole file, bounded.
+                // No range support: the body streams from the start. Keep the first `probe`
+                // bytes, and the rest of the body for the later reads, in file order.
                 let declared = header("content-length").and_then(|v| v.parse::<u64>().ok());
-                if let Some(n) = declared {
-                    if n > self.opts.max_file_bytes {
-                        return Err(Attempt::fatal(format!(
-                            "the server ignores Range requests and the file is {n} bytes, more \
-                             than the {} this player downloads whole",
-                            self.opts.max_file_bytes
-                        )));
-                    }
-                }
-                let body = resp
-                    .body_mut()
-                    .with_config()
-                    .limit(self.opts.max_file_bytes.saturating_add(1))
-                    .read_to_vec()
-                    .map_err(|e| describe(&e, &self.tls))?;
-                if let Some(n) = declared {
-                    if body.len() as u64 != n {
+                let mut reader = resp.into_body().into_reader();
+                let mut head = Vec::new();
+                let ended = self.read_up_to(&mut reader, probe, &mut head, deadline)?;
+                let got = head.len() as u64;
+                if ended {
+                    if let Some(n) = declared.filter(|&n| n != got) {
                         return Err(Attempt::transient(format!(
-                            "body ended after {} of {n} bytes",
-                            body.len()
+                            "body ended after {got} of {n} bytes"
                         )));
                     }
+                    return Ok(Probe {
+                        len: got,
+                        declared: Some((got, "the length of its body".into())),
+                        validator,
+                        head,
+                        ranges: false,
+                        body: None,
+                    });
                 }
-                self.counters
-                    .bytes
-                    .fetch_add(body.len() as u64, Ordering::Relaxed);
                 Ok(Probe {
-                    len: body.len() as u64,
-                    validator: None,
-                    head: body,
+                    len: declared.unwrap_or(UNKNOWN_LEN),
+                    declared: declared.map(|n| (n, "Content-Length".to_string())),
+                    validator,
+                    head,
                     ranges: false,
+                    body: Some(Streamed { reader, pos: got }),
                 })
             }
             416 => Err(Attempt::fatal("the file is empty (HTTP 416)")),
@@ -601,42 +821,98 @@ impl HttpSource {
         }
     }
 
-    fn read_body(
-        &self,
-        resp: &mut ureq::http::Response<ureq::Body>,
-        want: u64,
-    ) -> Result<Vec<u8>, Attempt> {
-        // ureq fails a read once the limit is reached, so allow one byte more than wanted and
-        // check the length here.
-        let body = resp
-            .body_mut()
-            .with_config()
-            .limit(want + 1)
-            .read_to_vec()
-            .map_err(|e| match e {
-                ureq::Error::BodyExceedsLimit(_) => {
-                    Attempt::fatal(format!("body longer than the {want} bytes announced"))
-                }
-                e => describe(&e, &self.tls),
-            })?;
-        self.counters
-            .bytes
-            .fetch_add(body.len() as u64, Ordering::Relaxed);
-        if body.len() as u64 > want {
-            return Err(Attempt::fatal(format!(
-                "body longer than the {want} bytes announced"
-            )));
+    fn start_activity(&self, start: u64, len: u64) {
+        let now = Instant::now();
+        *lock(&self.activity) = Some(Activity {
+            start,
+            end: start + len,
+            got: 0,
+            since: now,
+            last: now,
+        });
+    }
+
+    /// Counts `n` bytes received.
+    fn received(&self, n: usize) {
+        self.counters.bytes.fetch_add(n as u64, Ordering::Relaxed);
+        if let Some(a) = lock(&self.activity).as_mut() {
+            a.got += n as u64;
+            a.last = Instant::now();
         }
-        if (body.len() as u64) < want {
+    }
+
+    /// Reads from `reader` into `out` until `out` has grown by `n` bytes or the body ends (then
+    /// `true`), never more; fails once `deadline` has passed.
+    fn read_up_to(
+        &self,
+        reader: &mut impl Read,
+        n: u64,
+        out: &mut Vec<u8>,
+        deadline: Instant,
+    ) -> Result<bool, Attempt> {
+        let target = out.len() as u64 + n;
+        while (out.len() as u64) < target {
+            self.left(deadline)?;
+            let old = out.len();
+            let want = (target - old as u64).min(READ_BYTES as u64) as usize;
+            out.resize(old + want, 0);
+            match reader.read(&mut out[old..]) {
+                Ok(0) => {
+                    out.truncate(old);
+                    return Ok(true);
+                }
+                Ok(k) => {
+                    out.truncate(old + k);
+                    self.received(k);
+                }
+                Err(e) => {
+                    out.truncate(old);
+                    match e.kind() {
+                        std::io::ErrorKind::Interrupted => continue,
+                        // The server closed the connection before the length it announced.
+                        std::io::ErrorKind::UnexpectedEof => return Ok(true),
+                        _ => return Err(self.describe(&ureq::Error::from(e))),
+                    }
+                }
+            }
+        }
+        Ok(false)
+    }
+
+    /// Exactly `want` bytes of a body that must end there.
+    fn read_exact_body(
+        &self,
+        reader: &mut ureq::BodyReader<'_>,
+        want: u64,
+        deadline: Instant,
+    ) -> Result<Vec<u8>, Attempt> {
+        let longer = || Attempt::fatal(format!("body longer than the {want} bytes announced"));
+        let mut body = Vec::with_capacity(want.min(READ_BYTES as u64 * 16) as usize);
+        if self.read_up_to(reader, want, &mut body, deadline)? {
             return Err(Attempt::transient(format!(
                 "body ended after {} of {want} bytes",
                 body.len()
             )));
         }
-        Ok(body)
+        // The body must end here: one more byte is a wrong answer, and no more is read.
+        let mut extra = [0u8; 1];
+        loop {
+            match reader.read(&mut extra) {
+                Ok(0) => return Ok(body),
+                Ok(_) => return Err(longer()),
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+                Err(e) => match ureq::Error::from(e) {
+                    ureq::Error::BodyExceedsLimit(_) => return Err(longer()),
+                    e => return Err(self.describe(&e)),
+                },
+            }
+        }
     }
 
-    fn range_request(&self, range: &Range<u64>) -> Result<Vec<u8>, Attempt> {
+    fn range_request(&self, range: &Range<u64>, deadline: Instant) -> Result<Vec<u8>, Attempt> {
+        let left = self.left(deadline)?;
+        let want = range.end - range.start;
+        self.start_activity(range.start, want);
         let mut req = self
             .agent
             .get(&self.url)
@@ -644,7 +920,12 @@ impl HttpSource {
         if let Some(v) = &self.validator {
             req = req.header("If-Range", v.as_str());
         }
-        let mut resp = req.call().map_err(|e| describe(&e, &self.tls))?;
+        let mut resp = req
+            .config()
+            .timeout_global(Some(left))
+            .build()
+            .call()
+            .map_err(|e| self.describe(&e))?;
         match resp.status().as_u16() {
             206 => {}
             200 => {
@@ -661,30 +942,143 @@ impl HttpSource {
             .and_then(|v| v.to_str().ok())
             .unwrap_or_default()
             .to_string();
+        let len = self.len();
         match parse_content_range(&cr) {
-            Some((a, b, total))
-                if a == range.start
-                    && b + 1 == range.end
-                    && total.is_none_or(|t| t == self.len) => {}
+            Some((a, b, total)) if a == range.start && b + 1 == range.end => {
+                if let Some(t) = total.filter(|&t| t != len) {
+                    let whose = if self.limited.load(Ordering::Relaxed) {
+                        "its header"
+                    } else {
+                        "the first response"
+                    };
+                    return Err(Attempt::fatal(format!(
+                        "the server says the file is {t} bytes (Content-Range `{cr}`), {whose} \
+                         says {len}"
+                    )));
+                }
+            }
             _ => {
                 return Err(Attempt::fatal(format!(
-                    "asked for bytes {}-{} of {}, got Content-Range `{cr}`",
+                    "asked for bytes {}-{} of {len}, got Content-Range `{cr}`",
                     range.start,
-                    range.end - 1,
-                    self.len
+                    range.end - 1
                 )))
             }
         }
-        self.read_body(&mut resp, range.end - range.start)
+        let mut reader = resp
+            .body_mut()
+            .with_config()
+            .limit(want.saturating_add(1))
+            .reader();
+        self.read_exact_body(&mut reader, want, deadline)
+    }
+
+    /// A new 200 response streaming the file from the start (after a failure, or for a read
+    /// behind what has streamed); it must be the same file.
+    fn restart(&self, deadline: Instant) -> Result<Streamed, Attempt> {
+        let left = self.left(deadline)?;
+        let resp = self
+            .agent
+            .get(&self.url)
+            .config()
+            .timeout_recv_response(Some(left))
+            .build()
+            .call()
+            .map_err(|e| self.describe(&e))?;
+        match resp.status().as_u16() {
+            200 => {}
+            206 => {
+                return Err(Attempt::fatal(
+                    "the server answered 206 to a request without Range after ignoring Range",
+                ))
+            }
+            s => return Err(status_attempt(s)),
+        }
+        let validator = Self::validator_of(&resp);
+        let length = resp
+            .headers()
+            .get("content-length")
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.parse::<u64>().ok());
+        let declared = self
+            .declared
+            .as_ref()
+            .filter(|(_, how)| how == "Content-Length")
+            .map(|(n, _)| *n);
+        if validator != self.validator || length != declared {
+            return Err(Attempt::fatal(
+                "the file changed on the server while it was being streamed (another validator \
+                 or length); start again",
+            ));
+        }
+        Ok(Streamed {
+            reader: resp.into_body().into_reader(),
+            pos: 0,
+        })
+    }
+
+    /// Bytes `range` from the streaming body (and the kept first bytes): skips forward to its
+    /// start, restarting the download when the start has already streamed past.
+    fn stream_read(&self, range: &Range<u64>, deadline: Instant) -> Result<Vec<u8>, Attempt> {
+        let head_len = self.head.len() as u64;
+        let cap = (range.end - range.start).min(READ_BYTES as u64 * 16);
+        let mut out = Vec::with_capacity(cap as usize);
+        let mut at = range.start;
+        if at < head_len {
+            let to = range.end.min(head_len);
+            out.extend_from_slice(&self.head[at as usize..to as usize]);
+            at = to;
+        }
+        if at == range.end {
+            return Ok(out);
+        }
+        self.start_activity(range.start, range.end - range.start);
+        let mut body = lock(&self.body);
+        let result = (|| {
+            if body.as_ref().is_none_or(|s| s.pos > at) {
+                *body = None;
+                *body = Some(self.restart(deadline)?);
+            }
+            let s = body.as_mut().expect("set above");
+            // Skip to `at`, through a small buffer.
+            let mut scratch = Vec::new();
+            while s.pos < at {
+                scratch.clear();
+                let n = (at - s.pos).min(READ_BYTES as u64);
+                let ended = self.read_up_to(&mut s.reader, n, &mut scratch, deadline)?;
+                s.pos += scratch.len() as u64;
+                if ended {
+                    return Err(Attempt::transient(format!(
+                        "the body ended at byte {}, before byte {at}",
+                        s.pos
+                    )));
+                }
+            }
+            let before = out.len();
+            let ended = self.read_up_to(&mut s.reader, range.end - at, &mut out, deadline)?;
+            s.pos += (out.len() - before) as u64;
+            if ended {
+                return Err(Attempt::transient(format!(
+                    "the body ended at byte {}, before byte {}",
+                    s.pos, range.end
+                )));
+            }
+            Ok(())
+        })();
+        if result.is_err() {
+            // A failed read leaves the stream somewhere unknown: the next one starts again.
+            *body = None;
+        }
+        result.map(|()| out)
     }
 }
 
 impl ByteSource for HttpSource {
     fn len(&self) -> u64 {
-        self.len
+        self.len.load(Ordering::Relaxed)
     }
     fn read_range(&self, range: Range<u64>) -> Result<Vec<u8>, SourceError> {
-        check_range(&self.url, &range, self.len)?;
+        check_range(&self.url, &range, self.len())?;
         if range.end <= self.head.len() as u64 {
             return Ok(self.head[range.start as usize..range.end as usize].to_vec());
         }
@@ -692,13 +1086,53 @@ impl ByteSource for HttpSource {
             return Ok(Vec::new());
         }
         let context = format!("bytes {}-{}: ", range.start, range.end - 1);
-        self.retry(&context, || self.range_request(&range))
+        let deadline = self.read_deadline();
+        let result = if self.ranges {
+            self.retry(&context, deadline, || self.range_request(&range, deadline))
+        } else {
+            self.retry(&context, deadline, || self.stream_read(&range, deadline))
+        };
+        *lock(&self.activity) = None;
+        result
     }
     fn name(&self) -> &str {
         &self.url
     }
     fn stats(&self) -> TransferStats {
         self.counters.snapshot()
+    }
+    fn limit_to(&self, len: u64) -> Result<(), SourceError> {
+        if let Some((n, how)) = self.declared.as_ref().filter(|(n, _)| *n != len) {
+            return Err(SourceError::Http {
+                url: self.url.clone(),
+                message: format!(
+                    "the server says the file is {n} bytes ({how}), its header says {len}"
+                ),
+            });
+        }
+        self.len.store(len, Ordering::Relaxed);
+        self.limited.store(true, Ordering::Relaxed);
+        Ok(())
+    }
+    fn sequential(&self) -> bool {
+        !self.ranges
+    }
+    fn activity(&self) -> Option<String> {
+        let a = (*lock(&self.activity))?;
+        let quiet = a.last.elapsed();
+        Some(format!(
+            "the request for bytes {}-{} had received {} of {} bytes in {} s{}",
+            a.start,
+            a.end - 1,
+            a.got,
+            a.end - a.start,
+            secs(a.since.elapsed()),
+            if quiet >= Duration::from_secs(1) {
+                format!(", nothing received for the last {} s", secs(quiet))
+            } else {
+                String::new()
+            }
+        ))
     }
 }
 

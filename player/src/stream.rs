@@ -9,6 +9,12 @@
 //!    [`ModelStream::params_for_time`] moves it), then the following chunks in playback order,
 //!    wrapping around, until the whole file is in.
 //!
+//! A source that must be read forward ([`ByteSource::sequential`]: a server that ignores Range
+//! requests) is read in file order instead, one section at a time, whatever the playhead. Once
+//! the index is parsed, the source is told the length the header declares
+//! ([`ByteSource::limit_to`]), so nothing past it is ever read, and a server that declared another
+//! length fails here.
+//!
 //! Sections are decoded on the fetch thread as they arrive; a fetch or decode error stops the
 //! thread and is returned by every later call, and waiting calls give up after their timeout.
 
@@ -31,11 +37,13 @@ pub enum StreamError {
         name: String,
         error: msth_codec::DecodeError,
     },
-    #[error("{name}: {what} did not arrive within {waited:?}")]
+    #[error("{name}: {what} did not arrive within {:.0} s{}", waited.as_secs_f64(), activity.as_ref().map_or(String::new(), |a| format!(" ({a})")))]
     Timeout {
         name: String,
         what: String,
         waited: Duration,
+        /// The request in progress when the wait ended ([`ByteSource::activity`]).
+        activity: Option<String>,
     },
     /// An earlier failure of the fetch thread, repeated for every later call.
     #[error("{0}")]
@@ -114,6 +122,7 @@ impl ModelStream {
                 have: len,
             }));
         }
+        source.limit_to(index.file_len())?;
         let shared = Arc::new(Shared {
             state: Mutex::new(State {
                 decoder,
@@ -256,6 +265,7 @@ impl ModelStream {
                     name: self.shared.name.clone(),
                     what: what.to_string(),
                     waited: timeout,
+                    activity: self.shared.source.activity(),
                 });
             }
             st = self
@@ -280,7 +290,14 @@ impl Drop for ModelStream {
 const MAX_GAP: u64 = 4096;
 
 /// What the fetch thread reads next: index positions of contiguous sections.
-fn next_request(st: &State, index: &FileIndex) -> Option<Range<usize>> {
+fn next_request(st: &State, index: &FileIndex, sequential: bool) -> Option<Range<usize>> {
+    if sequential {
+        // File order, one section at a time: the stream never goes back.
+        return (0..index.sections.len())
+            .filter(|&i| !st.decoder.is_decoded(i))
+            .min_by_key(|&i| index.sections[i].offset)
+            .map(|i| i..i + 1);
+    }
     let statics = static_sections(index);
     let missing: Vec<usize> = statics
         .clone()
@@ -325,7 +342,7 @@ fn fetch_loop(shared: &Shared) {
             if st.stop {
                 return;
             }
-            match next_request(&st, index) {
+            match next_request(&st, index, shared.source.sequential()) {
                 Some(r) => r,
                 None => return,
             }

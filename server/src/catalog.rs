@@ -97,26 +97,46 @@ impl Catalog {
 
     /// The model served under `name`, if any (see the module header for the rules).
     pub fn lookup(&self, name: &str) -> Option<ModelEntry> {
+        self.lookup_with_meta(name).map(|(e, _)| e)
+    }
+
+    /// [`Catalog::lookup`] and the file's metadata.
+    pub(crate) fn lookup_with_meta(&self, name: &str) -> Option<(ModelEntry, fs::Metadata)> {
         if !is_servable_name(name) {
             return None;
         }
-        let path = match &self.root {
-            Root::File { name: own, path } => (own == name).then(|| path.clone())?,
+        let (path, meta) = match &self.root {
+            Root::File { name: own, path } => {
+                let path = (own == name).then(|| path.clone())?;
+                let meta = fs::metadata(&path).ok()?;
+                (path, meta)
+            }
             Root::Dir(dir) => {
-                let canonical = fs::canonicalize(dir.join(name)).ok()?;
-                if canonical.parent() != Some(dir.as_path()) {
-                    return None;
+                // The folder is canonical and the name one plain component, so a regular file
+                // there is its own canonical path: one `lstat` answers. Only a symlink needs
+                // resolving (every request: its target may change), and must stay inside.
+                let joined = dir.join(name);
+                let own = fs::symlink_metadata(&joined).ok()?;
+                if own.file_type().is_symlink() {
+                    let canonical = fs::canonicalize(&joined).ok()?;
+                    if canonical.parent() != Some(dir.as_path()) {
+                        return None;
+                    }
+                    let meta = fs::metadata(&canonical).ok()?;
+                    (canonical, meta)
+                } else {
+                    (joined, own)
                 }
-                canonical
             }
         };
-        let meta = fs::metadata(&path).ok().filter(fs::Metadata::is_file)?;
-        Some(ModelEntry {
+        let meta = Some(meta).filter(fs::Metadata::is_file)?;
+        let entry = ModelEntry {
             name: name.to_string(),
             path,
             bytes: meta.len(),
             modified: meta.modified().unwrap_or(SystemTime::UNIX_EPOCH),
-        })
+        };
+        Some((entry, meta))
     }
 
     /// The folder or file served, for messages.

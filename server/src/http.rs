@@ -16,6 +16,7 @@ use serde::Serialize;
 use tokio::io::{AsyncReadExt, AsyncSeekExt};
 use tokio_util::io::ReaderStream;
 
+use crate::cache::{read_version, FileCache, FileId};
 use crate::catalog::Catalog;
 use crate::range::{self, Precondition, RangePlan};
 use crate::{web, Limits};
@@ -26,6 +27,7 @@ pub const MSTH_CONTENT_TYPE: &str = "application/octet-stream";
 #[derive(Clone)]
 pub(crate) struct AppState {
     pub catalog: Arc<Catalog>,
+    pub cache: Arc<FileCache>,
     pub web_dir: Option<Arc<std::path::Path>>,
     pub limits: Limits,
 }
@@ -80,17 +82,59 @@ async fn model_file(
     UrlPath(name): UrlPath<String>,
     headers: HeaderMap,
 ) -> Response {
-    let catalog = state.catalog.clone();
-    let Ok(Some(entry)) = tokio::task::spawn_blocking(move || catalog.lookup(&name)).await else {
+    // The lookup is a few metadata calls on a local disk, made here rather than through the
+    // blocking pool: under load the hop cost more than the calls.
+    let Some((entry, meta)) = state.catalog.lookup_with_meta(&name) else {
         return StatusCode::NOT_FOUND.into_response();
     };
-    let Ok(mut file) = tokio::fs::File::open(&entry.path).await else {
-        return StatusCode::NOT_FOUND.into_response();
+    let id = FileId::of(&meta);
+    // A file the cache admits is answered from memory: read once (on the blocking pool), then
+    // sliced for every response while it stays the same on disk.
+    let cached = if state.cache.admits(meta.len()) {
+        match state.cache.get(&entry.path, id) {
+            Some(bytes) => Some(bytes),
+            None => {
+                let path = entry.path.clone();
+                let read = tokio::task::spawn_blocking(move || read_version(&path, id))
+                    .await
+                    .ok()
+                    .flatten();
+                if let Some(bytes) = &read {
+                    state.cache.insert(&entry.path, id, bytes.clone());
+                }
+                read
+            }
+        }
+    } else {
+        None
     };
-    // Validators from the open handle, so they describe the bytes we send.
-    let Ok(meta) = file.metadata().await else {
-        return StatusCode::NOT_FOUND.into_response();
+    let content = match cached {
+        Some(bytes) => Content::Memory(bytes),
+        None => {
+            let Ok(file) = tokio::fs::File::open(&entry.path).await else {
+                return StatusCode::NOT_FOUND.into_response();
+            };
+            // Validators from the open handle, so they describe the bytes we send.
+            let Ok(meta) = file.metadata().await else {
+                return StatusCode::NOT_FOUND.into_response();
+            };
+            return respond(&headers, Content::Disk(file), &meta).await;
+        }
     };
+    respond(&headers, content, &meta).await
+}
+
+/// Where a response's bytes come from.
+enum Content {
+    /// The whole file, from the cache.
+    Memory(Bytes),
+    /// The open file, streamed.
+    Disk(tokio::fs::File),
+}
+
+/// The answer to a GET or HEAD of a file of `meta`'s length and time, with `content`: the
+/// preconditions, then the range.
+async fn respond(headers: &HeaderMap, content: Content, meta: &std::fs::Metadata) -> Response {
     let len = meta.len();
     let modified = meta.modified().unwrap_or(std::time::SystemTime::UNIX_EPOCH);
     let etag = range::etag_for(len, modified);
@@ -101,13 +145,13 @@ async fn model_file(
         (header::ACCEPT_RANGES, "bytes".to_string()),
     ];
 
-    let if_match = list_field(&headers, header::IF_MATCH);
-    let if_none_match = list_field(&headers, header::IF_NONE_MATCH);
+    let if_match = list_field(headers, header::IF_MATCH);
+    let if_none_match = list_field(headers, header::IF_NONE_MATCH);
     let conditions = range::Conditions {
         if_match: if_match.as_deref(),
-        if_unmodified_since: single_field(&headers, header::IF_UNMODIFIED_SINCE),
+        if_unmodified_since: single_field(headers, header::IF_UNMODIFIED_SINCE),
         if_none_match: if_none_match.as_deref(),
-        if_modified_since: single_field(&headers, header::IF_MODIFIED_SINCE),
+        if_modified_since: single_field(headers, header::IF_MODIFIED_SINCE),
     };
     match range::evaluate_preconditions(&conditions, &etag, modified) {
         Precondition::Failed => {
@@ -121,22 +165,25 @@ async fn model_file(
     // an If-Range that cannot be read, leaves the Range ignored.
     let if_range_holds = match headers.get_all(header::IF_RANGE).iter().count() {
         0 => true,
-        _ => single_field(&headers, header::IF_RANGE)
+        _ => single_field(headers, header::IF_RANGE)
             .is_some_and(|v| range::if_range_matches(v, &etag, modified)),
     };
-    let specs = single_field(&headers, header::RANGE)
+    let specs = single_field(headers, header::RANGE)
         .and_then(range::parse_range)
         .filter(|_| if_range_holds);
+    let mut content = content;
     let (status, first, count) = match specs.map(|s| range::plan_ranges(&s, len)) {
         None => (StatusCode::OK, 0, len),
         Some(RangePlan::Single(a, b)) => (StatusCode::PARTIAL_CONTENT, a, b - a + 1),
-        Some(RangePlan::Multi(parts)) => match multipart(file, &parts, len, validators.clone()) {
-            Ok(response) => return response,
-            Err(back) => {
-                file = back;
-                (StatusCode::OK, 0, len)
+        Some(RangePlan::Multi(parts)) => {
+            match multipart(content, &parts, len, validators.clone()) {
+                Ok(response) => return response,
+                Err(back) => {
+                    content = back;
+                    (StatusCode::OK, 0, len)
+                }
             }
-        },
+        }
         Some(RangePlan::Unsatisfiable) => {
             return (
                 StatusCode::RANGE_NOT_SATISFIABLE,
@@ -146,10 +193,29 @@ async fn model_file(
                 .into_response()
         }
     };
-    if first > 0 && file.seek(std::io::SeekFrom::Start(first)).await.is_err() {
-        return StatusCode::INTERNAL_SERVER_ERROR.into_response();
-    }
-    let body = Body::from_stream(ReaderStream::with_capacity(file.take(count), CHUNK_BYTES));
+    let body = match content {
+        // Slices of the cached buffer, written to the socket as they are. In frames of
+        // CHUNK_BYTES, as from disk: hyper asks for the next only once it has written most of
+        // the last, so the body (and the request's in-flight mark, which keeps a connection
+        // whose response is being written from being shed) lives until the end is near.
+        Content::Memory(bytes) => {
+            let part = bytes.slice(first as usize..(first + count) as usize);
+            if part.len() <= CHUNK_BYTES {
+                Body::from(part)
+            } else {
+                let frames = (0..part.len()).step_by(CHUNK_BYTES).map(move |a| {
+                    Ok::<_, std::io::Error>(part.slice(a..(a + CHUNK_BYTES).min(part.len())))
+                });
+                Body::from_stream(futures_util::stream::iter(frames))
+            }
+        }
+        Content::Disk(mut file) => {
+            if first > 0 && file.seek(std::io::SeekFrom::Start(first)).await.is_err() {
+                return StatusCode::INTERNAL_SERVER_ERROR.into_response();
+            }
+            Body::from_stream(ReaderStream::with_capacity(file.take(count), CHUNK_BYTES))
+        }
+    };
     let mut response = (
         status,
         validators,
@@ -169,8 +235,9 @@ async fn model_file(
     response
 }
 
-/// Bytes read from the file per body chunk.
-const CHUNK_BYTES: usize = 64 * 1024;
+/// Bytes read from a file streamed from disk per body chunk (each read is a trip to the
+/// blocking pool).
+const CHUNK_BYTES: usize = 256 * 1024;
 
 /// A list-valued field (`#entity-tag`), its lines joined with `", "` (RFC 9110 §5.3). A line
 /// that is not visible ASCII makes the whole value empty, hence malformed.
@@ -199,11 +266,11 @@ fn single_field(headers: &HeaderMap, name: header::HeaderName) -> Option<&str> {
 /// Gives the file back (`Err`) when that body would be longer than the whole file: the caller
 /// then sends the file with 200 instead, so no `Range` makes a response larger than the file.
 fn multipart(
-    file: tokio::fs::File,
+    content: Content,
     parts: &[(u64, u64)],
     len: u64,
     validators: [(header::HeaderName, String); 3],
-) -> Result<Response, tokio::fs::File> {
+) -> Result<Response, Content> {
     let boundary = boundary();
     let heads: Vec<Bytes> = parts
         .iter()
@@ -220,16 +287,29 @@ fn multipart(
         + parts.iter().map(|(a, b)| b - a + 1).sum::<u64>()
         + tail.len() as u64;
     if total > len {
-        return Err(file);
+        return Err(content);
     }
-    let state = PartsState {
-        file,
-        parts: parts.to_vec(),
-        heads,
-        tail,
-        phase: Phase::Head(0),
+    let body = match content {
+        Content::Memory(bytes) => {
+            let mut chunks: Vec<Result<Bytes, std::io::Error>> = Vec::new();
+            for (head, &(a, b)) in heads.into_iter().zip(parts) {
+                chunks.push(Ok(head));
+                chunks.push(Ok(bytes.slice(a as usize..b as usize + 1)));
+            }
+            chunks.push(Ok(tail));
+            Body::from_stream(futures_util::stream::iter(chunks))
+        }
+        Content::Disk(file) => {
+            let state = PartsState {
+                file,
+                parts: parts.to_vec(),
+                heads,
+                tail,
+                phase: Phase::Head(0),
+            };
+            Body::from_stream(futures_util::stream::unfold(state, next_chunk))
+        }
     };
-    let body = Body::from_stream(futures_util::stream::unfold(state, next_chunk));
     Ok((
         StatusCode::PARTIAL_CONTENT,
         validators,

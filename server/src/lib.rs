@@ -12,10 +12,13 @@
 //! - permissive CORS, request logging with `tracing`, limits ([`Limits`]) against slow or greedy
 //!   clients: a header deadline that is also the keep-alive idle timeout, connection slots, a
 //!   per-address cap, and shedding of idle connections when full ([`listener`]).
+//! - files up to a quarter of [`ServerConfig::cache_bytes`] are answered from memory while they
+//!   stay the same on disk (read once, then sliced for every response), larger ones streamed.
 //!
 //! The main types: [`ServerConfig`] -> [`Server::bind`] -> [`Server::run_until`]; [`serve`] runs
 //! until Ctrl-C; [`BackgroundServer`] runs one on its own thread (tests, the player's tests).
 
+mod cache;
 pub mod catalog;
 mod http;
 pub mod listener;
@@ -95,7 +98,13 @@ pub struct ServerConfig {
     /// The web player's folder, served at `/`; `None`: a placeholder page at `/`.
     pub web_dir: Option<PathBuf>,
     pub limits: Limits,
+    /// Bytes of served files held in memory at most (default 256 MiB; 0: every response read
+    /// from disk). Files larger than a quarter of it are always streamed from disk.
+    pub cache_bytes: u64,
 }
+
+/// The default of [`ServerConfig::cache_bytes`].
+pub const DEFAULT_CACHE_BYTES: u64 = 256 << 20;
 
 /// The default bind address.
 pub const DEFAULT_ADDR: &str = "127.0.0.1:8080";
@@ -108,6 +117,7 @@ impl ServerConfig {
             addr: SocketAddr::from(([127, 0, 0, 1], 8080)),
             web_dir: None,
             limits: Limits::default(),
+            cache_bytes: DEFAULT_CACHE_BYTES,
         }
     }
 }
@@ -144,6 +154,7 @@ impl Server {
         let local_addr = tcp.local_addr().map_err(ServeError::Runtime)?;
         let router = http::router(http::AppState {
             catalog: catalog.clone(),
+            cache: Arc::new(cache::FileCache::new(config.cache_bytes)),
             web_dir,
             limits: config.limits,
         });

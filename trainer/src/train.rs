@@ -54,6 +54,10 @@ pub struct TrainSettings {
     pub anneal_steps: usize,
     /// Checkpoint every this many steps (0: only at the end).
     pub checkpoint_every: usize,
+    /// Also checkpoint when this many seconds have passed since the last checkpoint (0: by steps
+    /// only). Saving does not change the run: a resumed run goes on as an uninterrupted one.
+    #[serde(default)]
+    pub checkpoint_secs: f64,
     /// Evaluate every `eval_stride`-th test view.
     pub eval_stride: usize,
     /// Stop early after this many seconds of training (0: no limit). The learning rate then
@@ -293,6 +297,7 @@ impl TrainSettings {
                 _ => (iters / 4).max(MIN_ANNEAL_STEPS),
             },
             checkpoint_every: 1000,
+            checkpoint_secs: 600.0,
             eval_stride: 1,
             time_limit_secs: 0.0,
             random_background: true,
@@ -448,6 +453,12 @@ impl TrainSettings {
                 "eval_stride must be at least 1".into(),
             ));
         }
+        if !(self.checkpoint_secs.is_finite() && self.checkpoint_secs >= 0.0) {
+            return Err(SettingsError::Invalid(format!(
+                "checkpoint_secs must be finite and >= 0 (got {})",
+                self.checkpoint_secs
+            )));
+        }
         self.mask_learning.validate()?;
         self.sampling.validate()?;
         if self.mask_learning.uncertainty && !self.model.field.encoding.blend.uses_h3() {
@@ -556,6 +567,15 @@ pub enum TrainError {
     Sampling(SamplingError),
     #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
+    /// Writing a checkpoint failed (a full disk, say); the file there before is untouched.
+    /// (The message carries the cause, so it is not also chained as a source.)
+    #[error("writing the checkpoint of step {step} failed: {error}; {kept}")]
+    Save {
+        step: usize,
+        error: CheckpointError,
+        /// What is on disk instead: the previous checkpoint, unchanged, or none.
+        kept: String,
+    },
     #[error("training diverged at step {step}: {what} is not finite; the last good checkpoint is {last_good}")]
     Diverged {
         step: usize,
@@ -1085,27 +1105,45 @@ pub fn train(
     // Mask learning's own state lives next to the checkpoint (never in it: the codec reads the
     // checkpoint's buffer). A resumed run continues it when it belongs to the same step.
     let aux_path = out_dir.join("model.aux");
+    // The state of the checkpoint being written: `model.aux.next` is written before the
+    // checkpoint and renamed onto `model.aux` after it, so one of the two always belongs to the
+    // checkpoint on disk, wherever a crash stops the sequence.
+    let aux_next = out_dir.join("model.aux.next");
+    remove_stale_temporaries(out_dir, &["model.ckpt", "model.aux", "model.aux.next"]);
     if let Some(aux) = trainer.aux.as_mut() {
-        if trainer.step > 0 && aux_path.exists() {
-            let a = AuxCheckpoint::load(&aux_path, aux.params.len())?;
-            if a.step != trainer.step as u64 {
-                return Err(CheckpointError::Format {
-                    path: aux_path,
-                    reason: CheckpointFormatError::StepMismatch {
-                        aux_step: a.step,
-                        step: trainer.step,
-                    },
+        if trainer.step > 0 && (aux_path.exists() || aux_next.exists()) {
+            let mut found = None;
+            for p in [&aux_path, &aux_next].into_iter().filter(|p| p.exists()) {
+                let a = AuxCheckpoint::load(p, aux.params.len())?;
+                if a.step == trainer.step as u64 {
+                    found = Some(Ok(a));
+                    break;
                 }
-                .into());
+                found.get_or_insert(Err((p.clone(), a.step)));
             }
-            aux.params = a.params;
-            aux.adam = a.adam;
+            match found {
+                Some(Ok(a)) => {
+                    aux.params = a.params;
+                    aux.adam = a.adam;
+                }
+                Some(Err((path, aux_step))) => {
+                    return Err(CheckpointError::Format {
+                        path,
+                        reason: CheckpointFormatError::StepMismatch {
+                            aux_step,
+                            step: trainer.step,
+                        },
+                    }
+                    .into())
+                }
+                None => {}
+            }
         }
     }
-    let mut last_good = if ckpt_path.exists() {
-        ckpt_path.display().to_string()
-    } else {
-        "none (no checkpoint was written yet)".into()
+    let mut saved = on_disk(&ckpt_path, trainer.step);
+    let mut last_good = match saved {
+        Some(_) => ckpt_path.display().to_string(),
+        None => "none (no checkpoint was written yet)".into(),
     };
     let iters = trainer.settings.iters;
     let batch = trainer.settings.batch_rays;
@@ -1141,6 +1179,7 @@ pub fn train(
     let use_bg = trainer.settings.random_background && data.train.iter().any(|v| v.alpha.is_some());
     let mut backgrounds = Vec::with_capacity(if use_bg { batch } else { 0 });
     let start = Instant::now();
+    let mut last_save = Instant::now();
     let mut samples = 0usize;
     let mut steps_run = 0usize;
     let mut last_loss = f32::NAN;
@@ -1219,9 +1258,12 @@ pub fn train(
         });
 
         let every = trainer.settings.checkpoint_every;
+        let every_secs = trainer.settings.checkpoint_secs;
         let out_of_time = (time_limit > 0.0 && elapsed >= time_limit) || !keep_going;
         let at_end = trainer.step >= iters || out_of_time;
-        if at_end || (every > 0 && trainer.step % every == 0) {
+        let due = (every > 0 && trainer.step % every == 0)
+            || (every_secs > 0.0 && last_save.elapsed().as_secs_f64() >= every_secs);
+        if at_end || due {
             trainer.sync()?;
             if let Some(i) = trainer.params.iter().position(|v| !v.is_finite()) {
                 let name = trainer
@@ -1237,17 +1279,41 @@ pub fn train(
                     last_good,
                 });
             }
+            let step = trainer.step;
+            let failed = |error: CheckpointError| TrainError::Save {
+                step,
+                error,
+                kept: match &saved {
+                    Some(k) => format!(
+                        "the previous checkpoint {} ({k}) is unchanged",
+                        ckpt_path.display()
+                    ),
+                    None => "no checkpoint was written before".into(),
+                },
+            };
             if let Some(aux) = &trainer.aux {
                 AuxCheckpoint {
-                    step: trainer.step as u64,
+                    step: step as u64,
                     params: aux.params.clone(),
                     adam: aux.adam.clone(),
                 }
-                .save(&aux_path)?;
+                .save(&aux_next)
+                .map_err(failed)?;
             }
             trainer
                 .checkpoint(data, prior_secs + elapsed)
-                .save(&ckpt_path)?;
+                .save(&ckpt_path)
+                .map_err(failed)?;
+            if trainer.aux.is_some() {
+                std::fs::rename(&aux_next, &aux_path)
+                    .map_err(|source| CheckpointError::Io {
+                        path: aux_path.clone(),
+                        source,
+                    })
+                    .map_err(failed)?;
+            }
+            saved = Some(format!("step {step}"));
+            last_save = Instant::now();
             last_good = ckpt_path.display().to_string();
         }
         if out_of_time {
@@ -1265,6 +1331,34 @@ pub fn train(
         last_loss,
     };
     Ok((trainer, outcome))
+}
+
+/// What the checkpoint at `path` holds when a run starts at `step`: that step when resuming,
+/// an earlier run's file, or nothing.
+fn on_disk(path: &Path, step: usize) -> Option<String> {
+    match (step, path.exists()) {
+        (_, false) => None,
+        (0, true) => Some("of an earlier run".into()),
+        (k, true) => Some(format!("step {k}")),
+    }
+}
+
+/// Removes the temporary files a run killed while writing left in `dir` (`.NAME.tmp-PID-N` of
+/// [`crate::checkpoint::write_atomic`], for each of `names`): a checkpoint-sized file each.
+fn remove_stale_temporaries(dir: &Path, names: &[&str]) {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for e in entries.flatten() {
+        let name = e.file_name();
+        let name = name.to_string_lossy();
+        if names
+            .iter()
+            .any(|n| name.starts_with(&format!(".{n}.tmp-")))
+        {
+            let _ = std::fs::remove_file(e.path());
+        }
+    }
 }
 
 #[cfg(test)]

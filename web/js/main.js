@@ -35,11 +35,12 @@
 // paused there), `size=WxH` (render size, as `msth play --size`), `play=0|1`, `skip=0` (evaluate
 // every sample: the file's occupancy grid unused, as `msth play --no-skip-empty`),
 // `samples=full|fast|faster|P,M` (samples per ray, as `msth play --samples`; the samples menu),
-// `incremental=0` (no static cache: every frame re-renders every pixel).
+// `incremental=0` (no static cache: every frame re-renders every pixel), `deadline=S` and
+// `stall=S` (the loader's deadlines in seconds, as `msth play --deadline` and `--stall-timeout`).
 //
 // `window.msth` exposes the player's state to tests and to the console (see `hooks` below).
 
-import { ModelStream } from "./stream.js";
+import { loaderOptions, ModelStream } from "./stream.js";
 import { cameraFromJson, makeRig, Orbit, templateCamera } from "./camera.js";
 import { Renderer, NoWebGpu, playSamples } from "./renderer.js";
 import { KIND, LIMITS, PROBES, SAMPLE_LEVELS } from "./generated/contract.js";
@@ -188,7 +189,7 @@ async function main() {
   };
   const url = `models/${encodeURIComponent(name)}`;
   $("status").textContent = "loading…";
-  const stream = await ModelStream.open(url);
+  const stream = await ModelStream.open(url, loaderOptions(params));
   hooks.timings.prefix = performance.now();
   const meta = stream.metadata;
   const size = parseSize(params.get("size"));

@@ -41,3 +41,79 @@ pub fn serve(src: &Path, extra: &[&str]) -> (KillOnDrop, String) {
         .to_string();
     (server, base)
 }
+
+/// How a child process ended, with its peak memory and run time.
+#[allow(dead_code)] // not every test binary that includes this module measures
+pub struct Measured {
+    /// Exit code (`None`: ended by a signal, `signal` then says which).
+    pub code: Option<i32>,
+    pub signal: Option<i32>,
+    pub stdout: String,
+    pub stderr: String,
+    /// Peak resident memory (`ru_maxrss` from `wait4`), in KiB.
+    pub peak_kib: u64,
+    pub seconds: f64,
+}
+
+/// Runs `cmd` to its end (killing it after `limit`, which then fails the test: a hang), and
+/// measures its peak resident memory through `wait4`.
+#[allow(dead_code)]
+// The child is reaped by `wait4` below (for its rusage), not by `Child::wait`.
+#[allow(clippy::zombie_processes)]
+pub fn run_measured(cmd: &mut Command, limit: std::time::Duration) -> Measured {
+    use std::io::Read;
+    let start = std::time::Instant::now();
+    let mut child = cmd
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("starting the child");
+    let pid = child.id() as libc::pid_t;
+    let (mut out, mut err) = (child.stdout.take().unwrap(), child.stderr.take().unwrap());
+    let out = std::thread::spawn(move || {
+        let mut s = String::new();
+        let _ = out.read_to_string(&mut s);
+        s
+    });
+    let err = std::thread::spawn(move || {
+        let mut s = String::new();
+        let _ = err.read_to_string(&mut s);
+        s
+    });
+    let mut status = 0;
+    // SAFETY: an all-zero rusage is a valid value for wait4 to fill in.
+    let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
+    loop {
+        // SAFETY: `pid` is our child, not yet reaped (std's `Child` is never waited on).
+        let r = unsafe { libc::wait4(pid, &mut status, libc::WNOHANG, &mut usage) };
+        if r == pid {
+            break;
+        }
+        assert!(r == 0, "wait4: {}", std::io::Error::last_os_error());
+        if start.elapsed() > limit {
+            let _ = child.kill();
+            // SAFETY: as above.
+            unsafe { libc::wait4(pid, &mut status, 0, &mut usage) };
+            panic!(
+                "{cmd:?} still ran after {limit:?}: a hang\nstderr: {}",
+                err.join().unwrap_or_default()
+            );
+        }
+        std::thread::sleep(std::time::Duration::from_millis(5));
+    }
+    let seconds = start.elapsed().as_secs_f64();
+    let (code, signal) = if libc::WIFEXITED(status) {
+        (Some(libc::WEXITSTATUS(status)), None)
+    } else {
+        (None, Some(libc::WTERMSIG(status)))
+    };
+    Measured {
+        code,
+        signal,
+        stdout: out.join().unwrap_or_default(),
+        stderr: err.join().unwrap_or_default(),
+        peak_kib: usage.ru_maxrss as u64,
+        seconds,
+    }
+}
