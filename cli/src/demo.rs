@@ -388,7 +388,10 @@ pub fn run(a: DemoArgs) -> Result<()> {
         }
         msth_viewer::run(&opts).context("msth view")?;
     } else {
-        println!("in a window: msth view {} (or msth demo --view)", scene.display());
+        println!(
+            "in a window: msth view {} (or msth demo --view)",
+            scene.display()
+        );
     }
     if a.serve {
         if !web_page {

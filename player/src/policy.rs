@@ -127,7 +127,8 @@ impl ResolutionPolicy {
 
     /// Whether a full-size frame of `pixels` is expected within `seconds` at the measured rate.
     fn fits(&self, pixels: u64, seconds: f64) -> bool {
-        self.rate.is_some_and(|r| r > 0.0 && pixels as f64 / r <= seconds)
+        self.rate
+            .is_some_and(|r| r > 0.0 && pixels as f64 / r <= seconds)
     }
 
     /// Whether the static cache may serve a still camera whose full size has `pixels`, built

@@ -121,7 +121,10 @@ pub const KEYS: &[(&str, &str)] = &[
     ("drag", "orbit (fly mode: look around)"),
     ("right-drag, shift-drag", "pan"),
     ("wheel", "zoom (fly mode: forward and back)"),
-    ("W A S D, Q E", "fly forward, left, back, right, down, up (shift: faster)"),
+    (
+        "W A S D, Q E",
+        "fly forward, left, back, right, down, up (shift: faster)",
+    ),
     ("F", "orbit or fly mode"),
     ("0-9, C", "jump to file camera N, to the next one"),
     ("space", "play or pause"),
@@ -264,7 +267,9 @@ pub fn run(opts: &ViewOptions) -> Result<ViewReport, ViewError> {
     }
     if let Some(t) = opts.time {
         if !(t.is_finite() && (0.0..=1.0).contains(&t)) {
-            return Err(ViewError::Options(format!("--time {t}: must lie in [0, 1]")));
+            return Err(ViewError::Options(format!(
+                "--time {t}: must lie in [0, 1]"
+            )));
         }
     }
     let src = source::open(&opts.source, &opts.http).map_err(StreamError::from)?;
@@ -445,8 +450,12 @@ impl App {
             dithering: false,
             ..egui_wgpu::RendererOptions::default()
         };
-        let mut painter =
-            pollster::block_on(egui_wgpu::winit::Painter::new(ctx.clone(), config, false, options));
+        let mut painter = pollster::block_on(egui_wgpu::winit::Painter::new(
+            ctx.clone(),
+            config,
+            false,
+            options,
+        ));
         pollster::block_on(painter.set_window(egui::ViewportId::ROOT, Some(window.clone())))
             .map_err(|e| ViewError::NoPresenter(e.to_string()))?;
         let rs = painter
@@ -606,9 +615,7 @@ impl App {
             let playing = self.timeline.playing;
             // The static cache serves a still camera whose time moved, once the probe times'
             // chunks are in.
-            let time_moved = self
-                .last_sent
-                .is_some_and(|(c, lt)| c == full && lt != t);
+            let time_moved = self.last_sent.is_some_and(|(c, lt)| c == full && lt != t);
             let probes_ready = (0..self.probes).all(|j| {
                 let pt = worker::base_settings(msth_codec::QuantMode::F32, None, true)
                     .clip_time(j, self.probes);
@@ -683,7 +690,9 @@ impl App {
                 Running::Next => {
                     run.running = match step {
                         script::Step::Wait(s) => Running::Until(now + s),
-                        script::Step::WaitFrames(n) => Running::Frames(self.report.frames.len() + n),
+                        script::Step::WaitFrames(n) => {
+                            Running::Frames(self.report.frames.len() + n)
+                        }
                         script::Step::WaitStill(s) => Running::Still(now + s),
                         script::Step::Key(k) => {
                             let key = Key::from_name(&k).ok_or_else(|| fail(format!("key {k}")))?;
@@ -851,8 +860,7 @@ impl App {
             }
             Some(mut rec) => {
                 // The path ends at the view shown when recording stops.
-                rec.frames
-                    .push((self.view.camera(), Some(self.timeline.t)));
+                rec.frames.push((self.view.camera(), Some(self.timeline.t)));
                 let path = self
                     .opts
                     .out
@@ -1175,10 +1183,10 @@ impl ApplicationHandler<Wake> for App {
         match &event {
             WindowEvent::CloseRequested => event_loop.exit(),
             WindowEvent::Resized(size) => {
-                if let (Some(w), Some(h)) = (NonZeroU32::new(size.width), NonZeroU32::new(size.height))
+                if let (Some(w), Some(h)) =
+                    (NonZeroU32::new(size.width), NonZeroU32::new(size.height))
                 {
-                    gfx.painter
-                        .on_window_resized(egui::ViewportId::ROOT, w, h);
+                    gfx.painter.on_window_resized(egui::ViewportId::ROOT, w, h);
                 }
                 gfx.window.request_redraw();
             }
@@ -1256,8 +1264,10 @@ impl App {
         self.submit(now);
         // Paint.
         let paint_start = Instant::now();
-        let primitives = ctx.tessellate(std::mem::take(&mut output.shapes), output.pixels_per_point);
-        let captures: Vec<egui::ScreenshotCallback> = self.pending_capture.take().into_iter().collect();
+        let primitives =
+            ctx.tessellate(std::mem::take(&mut output.shapes), output.pixels_per_point);
+        let captures: Vec<egui::ScreenshotCallback> =
+            self.pending_capture.take().into_iter().collect();
         let capture = !captures.is_empty();
         gfx.painter.paint_and_update_textures(
             egui::ViewportId::ROOT,
@@ -1433,7 +1443,11 @@ impl App {
 
     fn timeline_bar(&mut self, ui: &mut egui::Ui) {
         ui.horizontal(|ui| {
-            let label = if self.timeline.playing { "pause" } else { "play" };
+            let label = if self.timeline.playing {
+                "pause"
+            } else {
+                "play"
+            };
             let b = ui.button(label);
             if b.clicked() {
                 self.timeline.playing = !self.timeline.playing;
@@ -1564,8 +1578,13 @@ impl App {
         let avail = ui.available_rect_before_wrap();
         let ppp = ui.ctx().pixels_per_point();
         // Whole window pixels per rendered pixel where it fits, else scaled down.
-        let fit = (avail.width() * ppp / t.width as f32).min(avail.height() * ppp / t.height as f32);
-        let zoom = if fit >= 1.0 { fit.floor() } else { fit.max(0.01) };
+        let fit =
+            (avail.width() * ppp / t.width as f32).min(avail.height() * ppp / t.height as f32);
+        let zoom = if fit >= 1.0 {
+            fit.floor()
+        } else {
+            fit.max(0.01)
+        };
         let size = egui::vec2(t.width as f32 * zoom, t.height as f32 * zoom) / ppp;
         let min = (avail.center() - 0.5 * size) * ppp;
         let min = egui::pos2(min.x.round(), min.y.round()) / ppp;
@@ -1585,7 +1604,11 @@ impl App {
             ui.painter().text(
                 rect.center(),
                 egui::Align2::CENTER_CENTER,
-                if self.buffering { "loading…" } else { "starting…" },
+                if self.buffering {
+                    "loading…"
+                } else {
+                    "starting…"
+                },
                 egui::FontId::proportional(18.0),
                 egui::Color32::LIGHT_GRAY,
             );
@@ -1628,10 +1651,7 @@ impl App {
         let fps = self.recent.len();
         let last = self.shown.as_ref();
         lines.push(match last {
-            Some(s) => format!(
-                "{fps} fps · {:.1} ms/frame",
-                1e3 * s.frame.stats.seconds
-            ),
+            Some(s) => format!("{fps} fps · {:.1} ms/frame", 1e3 * s.frame.stats.seconds),
             None => "– fps".into(),
         });
         if let Some(s) = last {
@@ -1668,7 +1688,11 @@ impl App {
             "t = {:.3} · frame {}{}",
             self.timeline.t,
             self.timeline.frame(),
-            if self.buffering { " · buffering…" } else { "" }
+            if self.buffering {
+                " · buffering…"
+            } else {
+                ""
+            }
         ));
         if self.recording.is_some() {
             lines.push("● recording the camera path".into());

@@ -139,7 +139,8 @@ impl ViewCamera {
         match self.mode {
             Mode::Orbit => {
                 let target = self.target();
-                self.dist = (self.dist * factor).clamp(1e-3 * self.rig.radius, 1e3 * self.rig.radius);
+                self.dist =
+                    (self.dist * factor).clamp(1e-3 * self.rig.radius, 1e3 * self.rig.radius);
                 self.eye = target - self.dist * self.forward();
             }
             Mode::Fly => self.fly(Vec3::new(0.0, 0.0, steps * 0.1 * self.rig.radius)),
@@ -163,14 +164,7 @@ impl ViewCamera {
             return c;
         }
         let t = &self.template;
-        let mut cam = Camera::look_at(
-            t.width,
-            t.height,
-            1.0,
-            self.eye,
-            self.target(),
-            self.rig.up,
-        );
+        let mut cam = Camera::look_at(t.width, t.height, 1.0, self.eye, self.target(), self.rig.up);
         cam.fx = t.fx;
         cam.fy = t.fy;
         cam.cx = t.cx;
@@ -198,7 +192,10 @@ mod tests {
                 )
             })
             .collect();
-        (Rig::new(&SceneBounds::dnerf_default(), &cams, cams[0]), cams)
+        (
+            Rig::new(&SceneBounds::dnerf_default(), &cams, cams[0]),
+            cams,
+        )
     }
 
     #[test]

@@ -128,7 +128,9 @@ impl Script {
                     return Err(bad(format!("steps[{i}]: bench needs at least one frame")))
                 }
                 Step::Wait(s) | Step::WaitStill(s) if !(s.is_finite() && *s >= 0.0) => {
-                    return Err(bad(format!("steps[{i}]: seconds must be a finite number >= 0")))
+                    return Err(bad(format!(
+                        "steps[{i}]: seconds must be a finite number >= 0"
+                    )))
                 }
                 _ => {}
             }
@@ -213,10 +215,16 @@ mod tests {
         let rect = egui::Rect::from_min_size(egui::pos2(10.0, 10.0), egui::vec2(100.0, 50.0));
         let frames: Vec<_> = (0..).map_while(|k| drag_events(&d, k, rect)).collect();
         assert_eq!(frames.len(), 4);
-        assert!(matches!(frames[0][1], egui::Event::PointerButton { pressed: true, .. }));
+        assert!(matches!(
+            frames[0][1],
+            egui::Event::PointerButton { pressed: true, .. }
+        ));
         assert!(
             matches!(frames[2][0], egui::Event::PointerMoved(p) if p == egui::pos2(110.0, 35.0))
         );
-        assert!(matches!(frames[3][0], egui::Event::PointerButton { pressed: false, .. }));
+        assert!(matches!(
+            frames[3][0],
+            egui::Event::PointerButton { pressed: false, .. }
+        ));
     }
 }
