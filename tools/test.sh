@@ -5,7 +5,8 @@
 #
 #   1. system packages, with apt-get (as root, or through sudo), only those missing: curl,
 #      chromium, ffmpeg, mesa-vulkan-drivers + libvulkan1 (lavapipe, the GPU tests' Vulkan
-#      driver where no GPU exists), colmap, fonts-dejavu-core (plot text); nodejs and npm only
+#      driver where no GPU exists), colmap, fonts-dejavu-core (plot text), xvfb and the X
+#      libraries winit loads at run time (the window tests of `msth view`); nodejs and npm only
 #      when `node` or `npm` is missing (npm is held back on some Debian releases);
 #   2. the web player's npm packages: `npm ci --prefix web` (when web/node_modules is missing
 #      or older than web/package-lock.json);
@@ -45,7 +46,8 @@ if [ "$install" = 1 ]; then
   sudo=""
   if [ "$(id -u)" != 0 ]; then sudo="sudo"; fi
   missing=()
-  for pkg in curl chromium ffmpeg mesa-vulkan-drivers libvulkan1 colmap fonts-dejavu-core; do
+  for pkg in curl chromium ffmpeg mesa-vulkan-drivers libvulkan1 colmap fonts-dejavu-core \
+    xvfb libxkbcommon-x11-0 libxcursor1 libxi6 libxrandr2 libx11-xcb1; do
     if ! dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed"; then
       missing+=("$pkg")
     fi

@@ -80,6 +80,10 @@ pub struct DemoArgs {
     /// Keep the server running at the end and print the web page's URL (Ctrl-C stops it).
     #[arg(long)]
     pub serve: bool,
+    /// Open the demo's file in a window at the end (`msth view OUT/scene.msth`).
+    #[cfg(feature = "view")]
+    #[arg(long)]
+    pub view: bool,
     /// Address of the demo's server (port 0: any free port).
     #[arg(long, default_value = "127.0.0.1:0")]
     pub addr: SocketAddr,
@@ -374,6 +378,21 @@ pub fn run(a: DemoArgs) -> Result<()> {
     );
     if !Path::new("web/node_modules/fzstd").is_dir() {
         println!("  the page needs its npm packages once: npm ci --prefix web");
+    }
+    #[cfg(feature = "view")]
+    if a.view {
+        println!("in a window: msth view {}", scene.display());
+        let mut opts = msth_viewer::ViewOptions::new(scene.to_string_lossy());
+        opts.out = a.out.clone();
+        if a.cpu {
+            opts.backend = msth_player::BackendChoice::Cpu;
+        }
+        msth_viewer::run(&opts).context("msth view")?;
+    } else {
+        println!(
+            "in a window: msth view {} (or msth demo --view)",
+            scene.display()
+        );
     }
     if a.serve {
         if !web_page {

@@ -14,6 +14,8 @@ mod interrupt;
 mod play;
 mod scenegen;
 mod serve;
+#[cfg(feature = "view")]
+mod view;
 
 /// The benches' public pieces under their historical paths (see [`bench`]).
 #[cfg(feature = "bench")]
@@ -63,6 +65,10 @@ enum Command {
     Serve(serve::ServeArgs),
     /// Play a `.msth` file (URL or local) as free-viewpoint video: PNG frames, MP4, FPS.
     Play(play::PlayArgs),
+    /// A window to fly through a `.msth` file (URL or local) while it plays: orbit and fly
+    /// cameras, the file's cameras, a timeline, screenshots, recorded camera paths.
+    #[cfg(feature = "view")]
+    View(view::ViewArgs),
     /// Describe a `.msth` file (local or URL) and validate it against docs/format.md.
     Inspect(inspect::InspectArgs),
     /// Turn your own videos into a dataset: frames by ffmpeg, camera poses by COLMAP.
@@ -303,6 +309,8 @@ where
         Command::Export(a) => export::export(a),
         Command::Serve(a) => serve::serve(a),
         Command::Play(a) => play::run(a),
+        #[cfg(feature = "view")]
+        Command::View(a) => view::run(a),
         Command::Inspect(a) => inspect::run(a),
         Command::Import(a) => import::run(a),
     }

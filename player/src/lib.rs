@@ -11,6 +11,8 @@
 //! - [`gpu`]: the same on a GPU through wgpu, with the WGSL kernels of `msth-gpu`;
 //! - [`backend`]: the choice between the two (automatic, `--cpu`, `--gpu`);
 //! - [`path`]: camera paths (fixed, orbit, spiral, the file's cameras, JSON);
+//! - [`policy`]: the interactive viewer policy (reduced resolution while moving, refinement when
+//!   still, the timeline at the model's frame rate), shared by the native viewers;
 //! - [`play`]: all of it together, writing PNG frames and an MP4.
 //!
 //! The player links the codec and the field math, never the trainer.
@@ -19,6 +21,7 @@ pub mod backend;
 pub mod gpu;
 pub mod path;
 pub mod play;
+pub mod policy;
 pub mod render;
 pub mod samples;
 pub mod skip;

@@ -374,6 +374,31 @@ impl CameraPath {
     }
 }
 
+/// The JSON of a keyframe path that [`CameraPath::parse`] reads back as the same cameras and
+/// times (`{"frames": [{"transform_matrix", "time", "fl_x", "fl_y", "cx", "cy", "w", "h"}]}`):
+/// what `msth view` records for `msth play --path FILE.json`.
+pub fn keyframes_json(frames: &[(Camera, Option<f32>)]) -> serde_json::Value {
+    let frames: Vec<serde_json::Value> = frames
+        .iter()
+        .map(|(c, t)| {
+            let mut f = serde_json::json!({
+                "transform_matrix": c.world_from_camera.transpose().to_cols_array_2d(),
+                "fl_x": c.fx,
+                "fl_y": c.fy,
+                "cx": c.cx,
+                "cy": c.cy,
+                "w": c.width,
+                "h": c.height,
+            });
+            if let Some(t) = t {
+                f["time"] = serde_json::json!(t);
+            }
+            f
+        })
+        .collect();
+    serde_json::json!({ "frames": frames })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -452,6 +477,11 @@ mod tests {
         let (cam, t) = path.camera(0, 2);
         assert_eq!((cam.width, cam.height, t), (32, 16, Some(0.25)));
         assert_eq!(path.camera(1, 2).0.width, 40);
+        // What keyframes_json writes reads back as the same cameras and times.
+        let frames = vec![(c[1], Some(0.5)), (c[2], None)];
+        std::fs::write(&p, keyframes_json(&frames).to_string()).unwrap();
+        let back = CameraPath::parse(p.to_str().unwrap(), &b, &c, None).unwrap();
+        assert_eq!(back, CameraPath::Keyframes(frames));
         for bad in [
             r#"{"frames":[]}"#,
             r#"{"frames":[{"transform_matrix":[[1,0,0,0]]}]}"#,

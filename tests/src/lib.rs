@@ -124,3 +124,70 @@ pub mod anyhow_like {
     /// The error of a command as its displayed message.
     pub type Result = std::result::Result<(), String>;
 }
+
+/// An X server of our own (`Xvfb`) on a free display number, stopped on drop: what the window
+/// tests (`tests/tests/view_window.rs`) draw on. Its software rendering needs no GPU; the window's
+/// Vulkan driver is Mesa's lavapipe where there is no GPU.
+pub struct Xvfb {
+    child: std::process::Child,
+    /// `:N`, the value of `DISPLAY` for it.
+    pub display: String,
+}
+
+impl Xvfb {
+    /// Starts `Xvfb :N -screen 0 WxHx24` on the first free `N` from 90 and waits (up to 10 s)
+    /// for its socket.
+    pub fn start(width: u32, height: u32) -> Result<Xvfb, String> {
+        for n in 90..130 {
+            let socket = PathBuf::from(format!("/tmp/.X11-unix/X{n}"));
+            let lock = PathBuf::from(format!("/tmp/.X{n}-lock"));
+            if socket.exists() || lock.exists() {
+                continue;
+            }
+            let display = format!(":{n}");
+            let mut child = std::process::Command::new("Xvfb")
+                .args([
+                    display.as_str(),
+                    "-screen",
+                    "0",
+                    &format!("{width}x{height}x24"),
+                    "-nolisten",
+                    "tcp",
+                ])
+                .stdin(std::process::Stdio::null())
+                .stdout(std::process::Stdio::null())
+                .stderr(std::process::Stdio::null())
+                .spawn()
+                .map_err(|e| format!("`Xvfb` cannot run: {e}"))?;
+            let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
+            while std::time::Instant::now() < deadline {
+                if let Ok(Some(status)) = child.try_wait() {
+                    if lock.exists() {
+                        break; // another server took the number meanwhile
+                    }
+                    return Err(format!("Xvfb {display} exited at once ({status})"));
+                }
+                if socket.exists() {
+                    return Ok(Xvfb { child, display });
+                }
+                std::thread::sleep(std::time::Duration::from_millis(50));
+            }
+            let _ = child.kill();
+            let _ = child.wait();
+        }
+        Err("no free X display number in :90..:130, or Xvfb never came up".into())
+    }
+}
+
+impl Drop for Xvfb {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// A display to open windows on: `Xvfb` starts (the `xvfb` package). "Cannot run it" is a missing
+/// need (`MSTH_REQUIRE_DISPLAY=1` makes it a failure).
+pub fn display_need() -> Need {
+    Need::new("display", || Xvfb::start(64, 64).map(|_| ()))
+}
