@@ -267,7 +267,7 @@ impl Timeline {
             return false;
         }
         let next = self.t as f64 + dt * self.speed as f64 / self.duration();
-        self.t = if next < 1.0 && next >= 0.0 {
+        self.t = if (0.0..1.0).contains(&next) {
             next as f32
         } else if self.looping {
             next.rem_euclid(1.0) as f32

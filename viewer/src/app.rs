@@ -490,7 +490,7 @@ impl App {
             backend: self.opts.backend,
             skip_empty: self.opts.skip_empty,
             section_timeout: self.opts.section_timeout,
-            limits: self.opts.limits.clone(),
+            limits: self.opts.limits,
         };
         let (job_tx, job_rx) = mpsc::channel();
         let (reply_tx, reply_rx) = mpsc::channel();
@@ -561,7 +561,7 @@ impl App {
                             b.size = (frame.width, frame.height);
                         }
                     }
-                    self.shown = Some(Shown { job, frame });
+                    self.shown = Some(Shown { job: *job, frame });
                 }
             }
         }

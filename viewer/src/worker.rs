@@ -56,7 +56,7 @@ pub enum Reply {
         samples: (usize, usize),
     },
     Frame {
-        job: Job,
+        job: Box<Job>,
         frame: Frame,
         chunk: Option<usize>,
     },
@@ -197,7 +197,11 @@ fn render_loop(
             .render_probing(&job.camera, job.time, &params, &mut params_at)
             .map_err(|e| format!("rendering failed: {e}"))?;
         frame.stats.seconds = frame.stats.seconds.max(start.elapsed().as_secs_f64());
-        if !say(Reply::Frame { job, frame, chunk }) {
+        if !say(Reply::Frame {
+            job: Box::new(job),
+            frame,
+            chunk,
+        }) {
             return Ok(());
         }
     }
