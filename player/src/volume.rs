@@ -3,19 +3,18 @@
 //! the layout, the bake and the march).
 
 use std::sync::Arc;
-use std::time::Instant;
 
 use msth_codec::OccupancyGrid;
 use msth_core::config::ModelConfig;
 use msth_core::field::ModelLayout;
 use msth_core::pipeline::TimedRay;
 use msth_core::volume::bake::{
-    cell_bits, eval_vertices, fill_borders, plan_with, BrickSet, PlanOptions,
-    DEFAULT_MIN_CELL_ALPHA, DEFAULT_MIN_PROPOSAL_ALPHA,
+    bake_slice_with, bake_with, cell_bits, eval_vertices, fill_borders, plan_with, BrickSet,
+    PlanOptions, DEFAULT_MIN_CELL_ALPHA, DEFAULT_MIN_PROPOSAL_ALPHA,
 };
 use msth_core::volume::{
     BakeError, BakePlan, BakeProgress, BakeScratch, ColourMode, MarchOutput, MarchSettings,
-    MarchWorkspace, Occupancy, Slice, Volume,
+    MarchWorkspace, Occupancy, Volume,
 };
 use msth_core::Camera;
 use rayon::prelude::*;
@@ -141,18 +140,9 @@ pub fn bake(
     params: &[f32],
     progress: &BakeProgress,
 ) -> Result<Volume, BakeError> {
-    let start = Instant::now();
-    let mut vol = Volume::allocate(plan);
-    let set = BrickSet {
-        bricks: &plan.static_bricks,
-        time: 0.0,
-        dynamic: false,
-    };
-    let (values, occupied, evaluated) = bake_set(plan, cfg, layout, params, &set, progress)?;
-    vol.set_static(plan, values, occupied);
-    vol.stats.vertices_evaluated = evaluated;
-    vol.stats.seconds = start.elapsed().as_secs_f64();
-    Ok(vol)
+    bake_with(plan, &mut |set| {
+        bake_set(plan, cfg, layout, params, set, progress)
+    })
 }
 
 /// Bakes time slice `k` of `vol` over the rayon pool with `params` (the flat buffer at the
@@ -165,15 +155,9 @@ pub fn bake_slice(
     layout: &ModelLayout,
     params: &[f32],
 ) -> Result<usize, BakeError> {
-    let set = BrickSet {
-        bricks: &plan.dynamic_bricks,
-        time: plan.slice_times[k],
-        dynamic: true,
-    };
-    let (values, occupied, evaluated) =
-        bake_set(plan, cfg, layout, params, &set, &BakeProgress::default())?;
-    vol.set_slice(k, Slice { occupied, values }, plan.resident_slices);
-    Ok(evaluated)
+    bake_slice_with(vol, plan, k, &mut |set| {
+        bake_set(plan, cfg, layout, params, set, &BakeProgress::default())
+    })
 }
 
 /// Rays per work item of the parallel march.

@@ -296,6 +296,8 @@ pub fn plan_with(
         let index = g.index_len() as u64 * 4;
         // Bound the cheapest outcome first: every candidate a static slot.
         let floor = index + candidates.len() as u64 * slot;
+        // What this resolution needs at the least, for the error below.
+        let mut need = floor;
         if floor <= o.budget {
             let (static_bricks, dynamic_bricks, dynamic_cells) =
                 sort_bricks(&g, layout, params, occupancy.as_ref(), &candidates);
@@ -315,6 +317,7 @@ pub fn plan_with(
                 .saturating_sub(fixed)
                 .checked_div(per_slice)
                 .map_or(slices, |n| n.min(slices as u64) as usize);
+            need = fixed + per_slice * slices.min(2) as u64;
             if fixed <= o.budget && (slices == 0 || resident >= 2) {
                 let cell = cell_world_size(&cfg.bounds, g.resolution);
                 let alpha = o.min_cell_alpha.clamp(0.0, 0.999_999);
@@ -348,7 +351,7 @@ pub fn plan_with(
         if r <= MIN_VOLUME_RESOLUTION {
             return Err(BakeError::OverBudget {
                 resolution: r,
-                need: floor,
+                need,
                 budget: o.budget,
             });
         }
@@ -925,15 +928,14 @@ pub fn bake_set(
     Ok((values, occupied, evaluated))
 }
 
-/// Bakes `plan`'s static bricks on this thread (tests and small models; the player spreads the
-/// phases over threads). The slices are baked when needed ([`bake_slice`]).
-pub fn bake(
-    plan: &BakePlan,
-    cfg: &ModelConfig,
-    layout: &ModelLayout,
-    params: &[f32],
-    progress: &BakeProgress,
-) -> Result<Volume, BakeError> {
+/// What bakes one set of bricks: its values, cell words and field evaluations ([`bake_set`] on
+/// this thread; the player spreads the same phases over threads).
+pub type SetBaker<'a> =
+    dyn FnMut(&BrickSet<'_>) -> Result<(Vec<f32>, Vec<u32>, usize), BakeError> + 'a;
+
+/// Bakes `plan`'s static bricks with `bake_set`; the slices are baked when needed
+/// ([`bake_slice_with`]).
+pub fn bake_with(plan: &BakePlan, bake_set: &mut SetBaker<'_>) -> Result<Volume, BakeError> {
     let start = std::time::Instant::now();
     let mut vol = Volume::allocate(plan);
     let set = BrickSet {
@@ -941,11 +943,42 @@ pub fn bake(
         time: 0.0,
         dynamic: false,
     };
-    let (values, occupied, evaluated) = bake_set(plan, cfg, layout, params, &set, progress)?;
+    let (values, occupied, evaluated) = bake_set(&set)?;
     vol.set_static(plan, values, occupied);
     vol.stats.vertices_evaluated = evaluated;
     vol.stats.seconds = start.elapsed().as_secs_f64();
     Ok(vol)
+}
+
+/// Bakes slice `k` of `vol` with `bake_set` (given the flat buffer at the slice's time); returns
+/// the field evaluations made.
+pub fn bake_slice_with(
+    vol: &mut Volume,
+    plan: &BakePlan,
+    k: usize,
+    bake_set: &mut SetBaker<'_>,
+) -> Result<usize, BakeError> {
+    let set = BrickSet {
+        bricks: &plan.dynamic_bricks,
+        time: plan.slice_times[k],
+        dynamic: true,
+    };
+    let (values, occupied, evaluated) = bake_set(&set)?;
+    vol.set_slice(k, Slice { occupied, values }, plan.resident_slices);
+    Ok(evaluated)
+}
+
+/// Bakes `plan`'s static bricks on this thread (tests and small models).
+pub fn bake(
+    plan: &BakePlan,
+    cfg: &ModelConfig,
+    layout: &ModelLayout,
+    params: &[f32],
+    progress: &BakeProgress,
+) -> Result<Volume, BakeError> {
+    bake_with(plan, &mut |set| {
+        bake_set(plan, cfg, layout, params, set, progress)
+    })
 }
 
 /// Bakes slice `k` of `vol` with `params` (the flat buffer at the slice's time) on this thread.
@@ -957,13 +990,8 @@ pub fn bake_slice(
     layout: &ModelLayout,
     params: &[f32],
 ) -> Result<(), BakeError> {
-    let set = BrickSet {
-        bricks: &plan.dynamic_bricks,
-        time: plan.slice_times[k],
-        dynamic: true,
-    };
-    let (values, occupied, _) =
-        bake_set(plan, cfg, layout, params, &set, &BakeProgress::default())?;
-    vol.set_slice(k, Slice { occupied, values }, plan.resident_slices);
-    Ok(())
+    bake_slice_with(vol, plan, k, &mut |set| {
+        bake_set(plan, cfg, layout, params, set, &BakeProgress::default())
+    })
+    .map(drop)
 }
