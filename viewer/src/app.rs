@@ -638,12 +638,15 @@ impl App {
     }
 
     /// Whether the picture shows the current view at full size, drawn as the controls ask (from
-    /// the volume once it is baked), and nothing is pending.
+    /// the volume: once it is baked), and nothing is pending.
     fn settled(&self, now: f64) -> bool {
         let Some(s) = &self.shown else {
             return false;
         };
-        self.in_flight.is_none()
+        let baking =
+            self.controls.volume && matches!(self.volume, Some(VolumeStatus::Baking { .. }));
+        !baking
+            && self.in_flight.is_none()
             && s.job.full_camera == self.view.camera()
             && s.job.time == self.timeline.t
             && self.drawn_as_asked(s)
