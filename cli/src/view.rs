@@ -9,7 +9,7 @@ use msth_core::config::PlaySamples;
 use msth_player::HttpOptions;
 use msth_viewer::{Script, ViewOptions};
 
-use crate::play::{backend_choice, ca_cert_file, parse_samples, parse_size};
+use crate::play::{backend_choice, ca_cert_file, parse_samples, parse_size, VolumeArgs};
 
 #[derive(Args)]
 pub struct ViewArgs {
@@ -27,6 +27,15 @@ pub struct ViewArgs {
     /// Samples per ray at the start: full, fast, faster or P,M (the samples menu changes them).
     #[arg(long, default_value = "full", value_parser = parse_samples)]
     pub samples: PlaySamples,
+    /// Start with the play-time volume on (CPU renderer; V and the panel's switch turn it off and
+    /// on): it is baked in the background once the file's static part has arrived, frames come
+    /// from the exact field meanwhile. Its quality depends on the scene: held-out PSNR within
+    /// 0.3 dB of the exact renderer's on the demo model, several dB below it on forward-facing
+    /// stages; `msth eval FILE.msth --renderer both` measures a file (docs/viewer.md).
+    #[arg(long)]
+    pub volume: bool,
+    #[command(flatten)]
+    pub volume_args: VolumeArgs,
     /// Render on the CPU even when a GPU adapter exists.
     #[arg(long, conflicts_with = "gpu")]
     pub cpu: bool,
@@ -71,6 +80,9 @@ pub fn options(a: &ViewArgs) -> Result<ViewOptions> {
     o.time = a.time;
     o.size = a.size;
     o.samples = a.samples;
+    o.volume = a.volume;
+    o.volume_options = a.volume_args.options()?;
+    o.march = a.volume_args.march()?;
     o.backend = backend_choice(a.cpu, a.gpu);
     o.gpu_tables = a.gpu_tables;
     o.incremental = !a.no_incremental;
@@ -104,6 +116,19 @@ pub fn run(a: ViewArgs) -> Result<()> {
             report.frames.len(),
             report.seconds
         );
+    }
+    if let Some(v) = &report.volume {
+        println!(
+            "volume: {}^3 cells, {} bricks, {:.1} MiB, baked in {:.2} s; {} frames drawn from it",
+            v.resolution,
+            v.bricks,
+            v.bytes as f64 / (1 << 20) as f64,
+            v.seconds,
+            report.frames.iter().filter(|f| f.volume).count()
+        );
+    }
+    if let Some(e) = &report.volume_error {
+        println!("note: no play-time volume: {e}");
     }
     Ok(())
 }

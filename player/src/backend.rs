@@ -185,6 +185,31 @@ impl FrameRenderer {
         }
     }
 
+    /// Takes the volume frames are drawn from, if any, back from the renderer (it draws from
+    /// the exact field from now on).
+    pub fn take_volume(&mut self) -> Option<crate::volume::BakedVolume> {
+        match self {
+            FrameRenderer::Cpu(r) => r.take_volume(),
+            FrameRenderer::Gpu(_) => None,
+        }
+    }
+
+    /// Switches between the exact field and the volume ([`Renderer::set_exact`]); the GPU
+    /// renderer always draws from the exact field.
+    pub fn set_exact(&mut self, exact: bool) {
+        if let FrameRenderer::Cpu(r) = self {
+            r.set_exact(exact);
+        }
+    }
+
+    /// Whether the next frame comes from a volume ([`Renderer::uses_volume`]).
+    pub fn uses_volume(&self) -> bool {
+        match self {
+            FrameRenderer::Cpu(r) => r.uses_volume(),
+            FrameRenderer::Gpu(_) => false,
+        }
+    }
+
     /// Forgets the static cache.
     pub fn invalidate(&mut self) {
         match self {

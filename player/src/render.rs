@@ -458,6 +458,16 @@ impl Renderer {
         self.volume_cache = None;
     }
 
+    /// Takes the volume back (frames come from the exact field from now on); forgets the
+    /// caches.
+    pub fn take_volume(&mut self) -> Option<BakedVolume> {
+        let v = self.volume.take();
+        if v.is_some() {
+            self.set_volume(None);
+        }
+        v
+    }
+
     /// The volume frames are drawn from, if any.
     pub fn volume(&self) -> Option<&Volume> {
         self.volume.as_ref().map(|v| &v.volume)

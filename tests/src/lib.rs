@@ -191,3 +191,38 @@ impl Drop for Xvfb {
 pub fn display_need() -> Need {
     Need::new("display", || Xvfb::start(64, 64).map(|_| ()))
 }
+
+/// `tests/fixtures/v2.msth` with a mask that splits the scene, encoded again as the fixture was
+/// (the file's bytes): the fixture's mask leaves every vertex to the 4D grid, so here the mask
+/// holds the vertices with the highest index along the grid's first axis dynamic (a quarter of
+/// them) and makes the others static, so that a play-time volume baked from it has both parts.
+pub fn split_mask_fixture() -> Vec<u8> {
+    use msth_codec::{decode_all, encode, EncodeOptions};
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/v2.msth");
+    let d = decode_all(&std::fs::read(path).unwrap()).unwrap();
+    let mut params = d.params.clone();
+    let (grid, range) = d
+        .layout
+        .field
+        .encoding
+        .mask
+        .clone()
+        .expect("the fixture has a mask");
+    for (i, m) in params[range].iter_mut().enumerate() {
+        let first_axis = i % grid.res;
+        *m = if 4 * first_axis >= 3 * grid.res {
+            -20.0
+        } else {
+            20.0
+        };
+    }
+    let opts = EncodeOptions {
+        quant: d.metadata.quant,
+        chunk_frames: d.metadata.chunk_frames as usize,
+        dynamic_threshold: d.metadata.dynamic_threshold,
+        frame_rate: d.metadata.frame_rate,
+        occupancy_resolution: d.occupancy.as_ref().map_or(64, |g| g.resolution),
+        ..Default::default()
+    };
+    encode(&d.config, &params, &d.cameras, &opts).unwrap().0
+}

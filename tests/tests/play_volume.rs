@@ -8,50 +8,19 @@
 //! `--nocapture`) by a margin for other CPUs' float rounding, and far above what a wrong
 //! volume draws (a shifted lookup, a missing slice or a wrong colour lands below 20 dB).
 
-use std::path::Path;
 use std::sync::Arc;
 
 use glam::Vec3;
-use msth_codec::{decode_all, encode, DecodedModel, EncodeOptions};
+use msth_codec::{decode_all, DecodedModel};
 use msth_core::camera::Camera;
 use msth_core::field::ModelLayout;
 use msth_core::volume::{BakeError, BakeProgress};
 use msth_player::volume::{bake, plan_bake, BakedVolume, VolumeOptions};
 use msth_player::{Frame, RenderSettings, Renderer};
 
-/// The fixture with a mask that splits the scene, encoded again as the fixture was: its mask
-/// leaves every vertex to the 4D grid, so here the mask holds the vertices with the highest index
-/// along the grid's first axis dynamic (a quarter of them) and makes the others static, so that
-/// the volume has both parts.
+/// The fixture with a mask that splits the scene ([`msth_tests::split_mask_fixture`]).
 fn fixture() -> DecodedModel {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/v2.msth");
-    let d = decode_all(&std::fs::read(path).unwrap()).unwrap();
-    let mut params = d.params.clone();
-    let (grid, range) = d
-        .layout
-        .field
-        .encoding
-        .mask
-        .clone()
-        .expect("the fixture has a mask");
-    for (i, m) in params[range].iter_mut().enumerate() {
-        let first_axis = i % grid.res;
-        *m = if 4 * first_axis >= 3 * grid.res {
-            -20.0
-        } else {
-            20.0
-        };
-    }
-    let opts = EncodeOptions {
-        quant: d.metadata.quant,
-        chunk_frames: d.metadata.chunk_frames as usize,
-        dynamic_threshold: d.metadata.dynamic_threshold,
-        frame_rate: d.metadata.frame_rate,
-        occupancy_resolution: d.occupancy.as_ref().map_or(64, |g| g.resolution),
-        ..Default::default()
-    };
-    let (bytes, _) = encode(&d.config, &params, &d.cameras, &opts).unwrap();
-    decode_all(&bytes).unwrap()
+    decode_all(&msth_tests::split_mask_fixture()).unwrap()
 }
 
 fn baked(d: &DecodedModel, options: &VolumeOptions) -> BakedVolume {

@@ -11,7 +11,10 @@
 //! 2. records a camera path (the key `R`) over a drag, a wheel step and a pan; `msth play --path`
 //!    of the recorded file must render as many frames as were recorded, its last one the view
 //!    shown when the recording stopped (>= 35 dB against the viewer's picture);
-//! 3. plays for a second (space): the timeline must advance through several times.
+//! 3. plays for a second (space): the timeline must advance through several times;
+//! 4. where the renderer draws volumes (the CPU renderer), turns the play-time volume on (the key
+//!    `V`): once baked, the view is drawn from it, close to the exact picture; `V` again draws the
+//!    exact picture again.
 //!
 //! Without Xvfb or without a wgpu adapter the test is reported as ignored, unless
 //! `MSTH_REQUIRE_DISPLAY=1` / `MSTH_REQUIRE_GPU=1` (or `MSTH_REQUIRE_ALL=1`).
@@ -162,6 +165,12 @@ fn the_window_flies_plays_and_matches_msth_play_and_render() {
         {"key": "Space"},
         {"wait_still": 300},
         shot("played"),
+        {"key": "V"},
+        {"wait_still": 600},
+        shot("volume"),
+        {"key": "V"},
+        {"wait_still": 300},
+        shot("exact"),
         {"quit": true},
     ]});
     let script_path = dir.path().join("script.json");
@@ -184,7 +193,7 @@ fn the_window_flies_plays_and_matches_msth_play_and_render() {
         report.frames.len(),
         report.seconds
     );
-    assert_eq!(report.screenshots.len(), 4, "{:?}", report.screenshots);
+    assert_eq!(report.screenshots.len(), 6, "{:?}", report.screenshots);
 
     // 1. File cameras 0 and 2 at t = 0.5 against msth play and msth render.
     for (i, (name, camera)) in [("camera0", 0usize), ("camera2", 2)].iter().enumerate() {
@@ -292,6 +301,35 @@ fn the_window_flies_plays_and_matches_msth_play_and_render() {
     );
     assert!(distinct.len() >= 3, "{played:?}");
     assert_ne!(report.screenshots[3].time, 0.5, "the timeline moved");
+
+    // 4. The volume switch (the CPU renderer; the GPU renderer has no volume and ignores V).
+    let cpu = report.backend.as_ref().is_some_and(|b| b.kind == "cpu");
+    let shot_frame = |i: usize| read_rgb(report.screenshots[i].frame.as_ref().unwrap());
+    let (w, _, played) = shot_frame(3);
+    let (_, _, volume) = shot_frame(4);
+    let (_, _, exact) = shot_frame(5);
+    if cpu {
+        assert!(report.volume_error.is_none(), "{:?}", report.volume_error);
+        let v = report.volume.as_ref().expect("a volume was baked");
+        let from_volume = report.frames.iter().filter(|f| f.volume).count();
+        let p_volume = psnr8(&volume, &played, w, |_, _| true);
+        let p_exact = psnr8(&exact, &played, w, |_, _| true);
+        println!(
+            "volume: {}^3 cells, {} bricks, baked in {:.2} s; {from_volume} frames drawn from it; against the exact picture {p_volume:.2} dB; V again: {p_exact:.2} dB",
+            v.resolution, v.bricks, v.seconds
+        );
+        assert!(from_volume > 0, "no frame came from the volume");
+        assert!(
+            !report.frames.last().unwrap().volume,
+            "V again: the exact field"
+        );
+        // A wrong volume (a shifted lookup, a missing slice, wrong colours) lands below 20 dB.
+        assert!(p_volume >= 20.0, "volume: {p_volume:.2} dB");
+        assert!(p_exact >= 35.0, "exact again: {p_exact:.2} dB");
+    } else {
+        assert!(report.volume.is_none() && report.frames.iter().all(|f| !f.volume));
+        assert_eq!(exact, played, "V does nothing on the GPU renderer");
+    }
 
     if let Some(to) = std::env::var_os("MSTH_VIEW_SCREENSHOTS") {
         let to = PathBuf::from(to);

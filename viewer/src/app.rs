@@ -26,7 +26,7 @@ use winit::window::{Window, WindowId};
 
 use crate::camera::{Mode, ViewCamera};
 use crate::script::{self, Script};
-use crate::worker::{self, Job, RenderControls, Reply, WorkerSetup};
+use crate::worker::{self, Job, RenderControls, Reply, VolumeInfo, VolumeStatus, WorkerSetup};
 use crate::{ViewError, ViewOptions};
 
 /// One frame shown in the window.
@@ -47,6 +47,8 @@ pub struct FrameLog {
     pub render_seconds: f64,
     /// The file camera shown, if the view is one.
     pub file_camera: Option<usize>,
+    /// Drawn from the play-time volume (else from the exact field).
+    pub volume: bool,
 }
 
 /// A `bench` step's result: the timeline's model frames drawn one after the other.
@@ -97,6 +99,10 @@ pub struct ViewReport {
     /// Camera paths recorded (`msth play --path FILE.json`).
     pub paths: Vec<PathBuf>,
     pub bench: Vec<BenchReport>,
+    /// The play-time volume, when one was baked (the exact / volume switch).
+    pub volume: Option<VolumeInfo>,
+    /// Why the volume switch went back to the exact field, the last time it did.
+    pub volume_error: Option<String>,
     pub seconds: f64,
     pub bytes_fetched: u64,
     pub file_len: u64,
@@ -133,6 +139,7 @@ pub const KEYS: &[(&str, &str)] = &[
     ("L", "loop on or off"),
     ("-, +", "half or twice the speed"),
     ("M", "samples per ray: full, fast, faster"),
+    ("V", "exact field or play-time volume (CPU renderer)"),
     ("P, F12", "screenshot (the picture and the window)"),
     ("R", "record the camera path, again to stop and save it"),
     ("H", "hide or show the controls"),
@@ -215,6 +222,12 @@ struct App {
     timeline: Timeline,
     policy: ResolutionPolicy,
     controls: RenderControls,
+    /// Whether the renderer draws from a volume (the CPU renderer): the switch is shown.
+    volumes: bool,
+    /// Where the play-time volume stands, once the switch has been on.
+    volume: Option<VolumeStatus>,
+    /// Why the switch is not there although `--volume` asked for it.
+    volume_note: Option<String>,
     model_samples: (usize, usize),
     probes: usize,
     proxy: EventLoopProxy<Wake>,
@@ -360,7 +373,11 @@ impl App {
             policy: ResolutionPolicy::new(meta.frame_rate),
             controls: RenderControls {
                 samples: opts.samples,
+                volume: opts.volume,
             },
+            volumes: false,
+            volume: None,
+            volume_note: None,
             model_samples,
             probes: if opts.incremental { base.probes } else { 0 },
             proxy,
@@ -484,13 +501,18 @@ impl App {
 
     fn start_worker(&mut self) -> Result<(), ViewError> {
         let meta = &self.stream.index().metadata;
+        let base = worker::base_settings(meta.quant, self.opts.gpu_tables, self.opts.incremental);
         let setup = WorkerSetup {
             stream: Arc::clone(&self.stream),
-            base: worker::base_settings(meta.quant, self.opts.gpu_tables, self.opts.incremental),
+            base: msth_player::RenderSettings {
+                march: self.opts.march,
+                ..base
+            },
             backend: self.opts.backend,
             skip_empty: self.opts.skip_empty,
             section_timeout: self.opts.section_timeout,
             limits: self.opts.limits,
+            volume: self.opts.volume_options,
         };
         let (job_tx, job_rx) = mpsc::channel();
         let (reply_tx, reply_rx) = mpsc::channel();
@@ -524,9 +546,34 @@ impl App {
         let replies: Vec<Reply> = rx.try_iter().collect();
         for r in replies {
             match r {
-                Reply::Renderer { info, samples } => {
+                Reply::Renderer {
+                    info,
+                    samples,
+                    volumes,
+                } => {
                     self.report.backend = Some(info);
                     self.report.samples = Some(samples);
+                    self.volumes = volumes;
+                    if !volumes && self.controls.volume {
+                        self.controls.volume = false;
+                        self.volume_note = Some(
+                            "the GPU renderer draws from the exact field: the play-time volume \
+                             needs the CPU renderer (--cpu)"
+                                .into(),
+                        );
+                    }
+                }
+                Reply::Volume(status) => {
+                    match &status {
+                        VolumeStatus::Ready(info) => self.report.volume = Some(info.clone()),
+                        VolumeStatus::Failed(e) => {
+                            // Back to the exact field; the switch tries again when turned on.
+                            self.controls.volume = false;
+                            self.report.volume_error = Some(e.clone());
+                        }
+                        VolumeStatus::Baking { .. } => {}
+                    }
+                    self.volume = Some(status);
                 }
                 Reply::Buffering => self.buffering = true,
                 Reply::Failed(e) => return Err(ViewError::Render(e)),
@@ -551,6 +598,7 @@ impl App {
                         rays_total: s.rays_total,
                         render_seconds: s.seconds,
                         file_camera: job.file_camera,
+                        volume: s.volume,
                     });
                     self.recent.push_back(now);
                     if let Some(b) = &mut self.bench {
@@ -571,15 +619,37 @@ impl App {
         Ok(())
     }
 
-    /// Whether the picture shows the current view at full size and nothing is pending.
+    /// Whether frames should come from the volume now: the switch is on and the volume baked.
+    fn volume_frames(&self) -> bool {
+        self.controls.volume && matches!(self.volume, Some(VolumeStatus::Ready(_)))
+    }
+
+    /// Whether `s` was drawn with the current controls (from the volume once it is ready).
+    fn drawn_as_asked(&self, s: &Shown) -> bool {
+        s.job.controls == self.controls && s.frame.stats.volume == self.volume_frames()
+    }
+
+    /// Turns the exact / volume switch on or off.
+    fn set_volume(&mut self, on: bool) {
+        self.controls.volume = on;
+        if on && matches!(self.volume, Some(VolumeStatus::Failed(_))) {
+            self.volume = None;
+        }
+    }
+
+    /// Whether the picture shows the current view at full size, drawn as the controls ask (from
+    /// the volume: once it is baked), and nothing is pending.
     fn settled(&self, now: f64) -> bool {
         let Some(s) = &self.shown else {
             return false;
         };
-        self.in_flight.is_none()
+        let baking =
+            self.controls.volume && matches!(self.volume, Some(VolumeStatus::Baking { .. }));
+        !baking
+            && self.in_flight.is_none()
             && s.job.full_camera == self.view.camera()
             && s.job.time == self.timeline.t
-            && s.job.controls == self.controls
+            && self.drawn_as_asked(s)
             && s.job.step.divisor == 1
             && !self.policy.moving(now)
             && !self.timeline.playing
@@ -629,7 +699,7 @@ impl App {
             let pixels = full.width as u64 * full.height as u64;
             let step = self.policy.next(now, playing, pixels, probes);
             let same = self.shown.as_ref().is_some_and(|s| {
-                s.job.full_camera == full && s.job.time == t && s.job.controls == self.controls
+                s.job.full_camera == full && s.job.time == t && self.drawn_as_asked(s)
             });
             let refine = self.policy.wants_refine(now, playing);
             if same && !refine {
@@ -1401,6 +1471,9 @@ impl App {
                 .map_or(0, |i| (i + 1) % SAMPLE_LEVELS.len());
             self.controls.samples = msth_core::config::PlaySamples::Level(SAMPLE_LEVELS[i]);
         }
+        if pressed(Key::V) && self.volumes {
+            self.set_volume(!self.controls.volume);
+        }
         if pressed(Key::P) || pressed(Key::F12) {
             actions.push(UiAction::Shot);
         }
@@ -1526,6 +1599,33 @@ impl App {
                     ui.selectable_value(&mut self.controls.samples, s, name(s));
                 }
             });
+        if self.volumes {
+            let mut on = self.controls.volume;
+            let b = ui.checkbox(&mut on, "play-time volume (V)").on_hover_text(
+                "Draw from a volume baked from the file (off: the exact field, the \
+                     reference). The bake runs in the background; its quality depends on the \
+                     scene (docs/viewer.md).",
+            );
+            if b.changed() {
+                self.set_volume(on);
+                // Space plays and pauses: a focused checkbox would take it too.
+                b.surrender_focus();
+            }
+            if let Some(line) = self.volume_line() {
+                ui.label(line);
+            }
+            match &self.volume {
+                Some(VolumeStatus::Ready(VolumeInfo { note: Some(n), .. })) => {
+                    ui.label(format!("note: {n}"));
+                }
+                Some(VolumeStatus::Failed(e)) => {
+                    ui.colored_label(ui.visuals().warn_fg_color, format!("no volume: {e}"));
+                }
+                _ => {}
+            }
+        } else if let Some(n) = &self.volume_note {
+            ui.label(n);
+        }
         ui.separator();
         if let Some(b) = &self.report.backend {
             ui.label(format!("renderer: {} ({})", b.kind, b.device));
@@ -1645,6 +1745,35 @@ impl App {
         self.overlay_rect = Some(self.overlay(ui, rect, now));
     }
 
+    /// What the picture is drawn from and where the volume stands, once the switch has been
+    /// used: `exact field · baking the volume 42%`, `volume 128³ (45.2 MB, baked in 3.1 s)`.
+    fn volume_line(&self) -> Option<String> {
+        if !self.volumes || (self.volume.is_none() && !self.controls.volume) {
+            return None;
+        }
+        let from_volume = self.shown.as_ref().is_some_and(|s| s.frame.stats.volume);
+        Some(match (&self.volume, from_volume) {
+            (Some(VolumeStatus::Ready(v)), true) => format!(
+                "volume {}³ ({}, baked in {:.1} s)",
+                v.resolution,
+                bytes(v.bytes),
+                v.seconds
+            ),
+            (Some(VolumeStatus::Baking { fraction }), _) if *fraction >= 1.0 => {
+                "exact field · baking the volume 100%, finishing".into()
+            }
+            (Some(VolumeStatus::Baking { fraction }), _) => format!(
+                "exact field · baking the volume {:.0}%",
+                (100.0 * fraction).floor()
+            ),
+            (Some(VolumeStatus::Ready(_)), false) if self.controls.volume => {
+                "exact field · volume ready".into()
+            }
+            (Some(VolumeStatus::Ready(_)), false) => "exact field (V: the volume)".into(),
+            _ => "exact field".into(),
+        })
+    }
+
     /// Draws the overlay over the picture's top left corner; returns where.
     fn overlay(&self, ui: &egui::Ui, rect: egui::Rect, now: f64) -> egui::Rect {
         let mut lines = Vec::new();
@@ -1684,6 +1813,12 @@ impl App {
                 lines.push(format!("{} + {} samples per ray", s.0, s.1));
             }
         }
+        if let Some(l) = self.volume_line() {
+            lines.push(l);
+        }
+        if let Some(VolumeStatus::Failed(e)) = &self.volume {
+            lines.push(format!("no volume: {e}"));
+        }
         lines.push(format!(
             "t = {:.3} · frame {}{}",
             self.timeline.t,
@@ -1700,9 +1835,9 @@ impl App {
         let _ = now;
         let text = lines.join("\n");
         let font = egui::FontId::monospace(12.0);
-        let galley = ui
-            .painter()
-            .layout_no_wrap(text, font, egui::Color32::WHITE);
+        // Long lines (a bake's error) wrap at the picture's width.
+        let wrap = (rect.width() - 12.0).max(120.0);
+        let galley = ui.painter().layout(text, font, egui::Color32::WHITE, wrap);
         let at = rect.min + egui::vec2(6.0, 6.0);
         let bg = egui::Rect::from_min_size(at, galley.size()).expand(4.0);
         ui.painter()

@@ -5,6 +5,8 @@
 //!   there), on a thread of its own ([`worker`]), uploaded to a texture of the window.
 //! - The viewer policy of the web page, from [`msth_player::policy`]: reduced resolution while
 //!   the camera moves, refinement when it stops, the timeline at the model's frame rate.
+//! - The exact / volume switch where the renderer has a play-time volume (CPU): the volume is
+//!   baked in the background while exact frames go on ([`worker`]).
 //! - Orbit and fly cameras, the file's cameras as viewpoints ([`camera`]).
 //! - Screenshots, camera paths recorded for `msth play --path`, a JSON report, and scripted input
 //!   for tests and demonstrations ([`script`]).
@@ -22,6 +24,8 @@ use std::time::Duration;
 
 use msth_codec::Limits;
 use msth_core::config::PlaySamples;
+use msth_core::volume::MarchSettings;
+use msth_player::volume::VolumeOptions;
 use msth_player::{BackendChoice, HttpOptions, TableFormat};
 
 pub use script::Script;
@@ -35,6 +39,13 @@ pub struct ViewOptions {
     pub size: Option<(u32, u32)>,
     /// Samples per ray at the start (the samples menu changes them).
     pub samples: PlaySamples,
+    /// Start with the exact / volume switch on (CPU renderer): bake the play-time volume once
+    /// the static part has arrived, and draw from it when it is ready.
+    pub volume: bool,
+    /// How the volume is baked (`msth play --volume-budget`, `--volume-resolution`, ...).
+    pub volume_options: VolumeOptions,
+    /// How rays walk the volume (`--volume-step`).
+    pub march: MarchSettings,
     pub backend: BackendChoice,
     /// The file camera shown first.
     pub camera: usize,
@@ -62,6 +73,9 @@ impl ViewOptions {
             source: source.into(),
             size: None,
             samples: PlaySamples::default(),
+            volume: false,
+            volume_options: VolumeOptions::default(),
+            march: MarchSettings::default(),
             backend: BackendChoice::Auto,
             camera: 0,
             time: None,

@@ -1,33 +1,84 @@
 //! The render thread: owns the [`FrameRenderer`] (GPU or CPU) and renders the newest job the
 //! window sends, with the parameters the stream has for the job's time; the window thread stays
 //! free for input and drawing. A job that is overtaken while it waits for its chunk is dropped.
+//!
+//! The CPU renderer can draw from a play-time volume baked from the file
+//! ([`RenderControls::volume`]): the first job that asks for it starts a bake on a thread of its
+//! own ([`BakeJob`]) once the static part has arrived; frames come from the exact field until the
+//! bake is done, and the thread reports its progress ([`VolumeStatus`]) meanwhile. The volume is
+//! kept when the switch goes off, so that it comes back at once.
 
 use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender, TryRecvError};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use msth_core::config::PlaySamples;
+use msth_core::config::{ModelConfig, PlaySamples};
 use msth_core::Camera;
 use msth_player::play::gpu_tables_for;
 use msth_player::policy::Step;
+use msth_player::volume::{plan_bake, BakeJob, BakedVolume, VolumeOptions};
 use msth_player::{BackendChoice, BackendInfo, Frame, FrameRenderer, ModelStream, RenderSettings};
+use serde::Serialize;
 
-/// The render settings the window's controls set. A new value rebuilds the renderer.
+/// The render settings the window's controls set. A new value of a field that
+/// [`RenderControls::rebuilds`] names rebuilds the renderer; the others are switched on the
+/// renderer there is.
 ///
-/// A control bound to another render setting (such as the volume renderer's exact / volume
-/// switch) is one more field here, one line in [`RenderControls::apply`] and one widget in the
-/// panel (`app.rs`, `controls_panel`).
+/// A control bound to another render setting is one more field here, one line in
+/// [`RenderControls::apply`] (and in [`RenderControls::rebuilds`] or the render loop) and one
+/// widget in the panel (`app.rs`, `controls_panel`).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct RenderControls {
     /// Samples per ray (the samples menu).
     pub samples: PlaySamples,
+    /// Draw from the play-time volume (the exact / volume switch; CPU renderer): the first job
+    /// that asks for it starts the bake, and frames come from the exact field until it is done.
+    /// Off: the exact field, the reference.
+    pub volume: bool,
 }
 
 impl RenderControls {
     /// `base` with these controls applied.
     fn apply(&self, base: RenderSettings) -> RenderSettings {
-        base
+        RenderSettings {
+            exact: !self.volume,
+            ..base
+        }
     }
+
+    /// Whether going from `self` to `next` needs a new renderer (the volume switch does not: the
+    /// renderer keeps its volume and switches).
+    fn rebuilds(&self, next: &RenderControls) -> bool {
+        self.samples != next.samples
+    }
+}
+
+/// The play-time volume, once baked.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct VolumeInfo {
+    /// Cells per side.
+    pub resolution: u32,
+    /// Bricks kept, and of those the dynamic ones (baked per time slice as frames need them).
+    pub bricks: usize,
+    pub dynamic_bricks: usize,
+    /// Bytes it holds without its time slices.
+    pub bytes: u64,
+    /// Wall time of the bake.
+    pub seconds: f64,
+    /// Why it is coarser than the model asked for, if it is.
+    pub note: Option<String>,
+}
+
+/// Where the play-time volume stands.
+#[derive(Clone, Debug, PartialEq)]
+pub enum VolumeStatus {
+    /// Baking: the fraction of the static bricks done.
+    Baking { fraction: f64 },
+    /// Baked: frames come from it while [`RenderControls::volume`] is on.
+    Ready(VolumeInfo),
+    /// No volume (the bake failed, or could not be planned): frames come from the exact field.
+    /// A job with the switch off clears it; the next one with the switch on tries again.
+    Failed(String),
 }
 
 /// One frame to draw.
@@ -49,12 +100,17 @@ pub struct Job {
 
 /// What the render thread says.
 pub enum Reply {
-    /// A renderer is ready for these controls: which backend, and the samples per ray (rendered
-    /// and the model's own).
+    /// A renderer is ready for these controls: which backend, the samples per ray (rendered
+    /// and the model's own), and whether it draws from a volume ([`FrameRenderer::draws_volumes`]:
+    /// else the volume switch does nothing).
     Renderer {
         info: BackendInfo,
         samples: (usize, usize),
+        volumes: bool,
     },
+    /// The play-time volume's bake started, moved on (at most once per percent), finished or
+    /// failed.
+    Volume(VolumeStatus),
     Frame {
         job: Box<Job>,
         frame: Frame,
@@ -75,6 +131,96 @@ pub struct WorkerSetup {
     /// Longest wait for a probe time's chunk while the static cache is built.
     pub section_timeout: Duration,
     pub limits: msth_codec::Limits,
+    /// How the play-time volume is baked when [`RenderControls::volume`] asks for it.
+    pub volume: VolumeOptions,
+}
+
+/// How often a running bake is looked at while no job comes.
+const BAKE_POLL: Duration = Duration::from_millis(200);
+
+/// The render thread's play-time volume.
+enum Bake {
+    /// None asked for yet (or the last one failed and the switch went off since).
+    Idle,
+    Running {
+        job: BakeJob,
+        note: Option<String>,
+        /// The last percentage said.
+        said: u32,
+    },
+    /// Baked: the renderer holds it (and hands it on when it is rebuilt).
+    Done,
+    /// Failed: frames come from the exact field until a job with the switch off (a job with it
+    /// on hears why again).
+    Failed(String),
+}
+
+impl Bake {
+    /// Starts baking for `cfg` with `params` (the static part at least).
+    fn start(
+        setup: &WorkerSetup,
+        cfg: &ModelConfig,
+        params: &[f32],
+        say: &dyn Fn(Reply) -> bool,
+    ) -> (Bake, bool) {
+        let meta = &setup.stream.index().metadata;
+        let grid = setup.stream.occupancy();
+        match plan_bake(cfg, params, grid.as_deref(), &meta.cameras, &setup.volume) {
+            Ok(plan) => {
+                let note = plan.note();
+                let job = BakeJob::start(plan, cfg, params.to_vec());
+                let ok = say(Reply::Volume(VolumeStatus::Baking { fraction: 0.0 }));
+                (Bake::Running { job, note, said: 0 }, ok)
+            }
+            Err(e) => {
+                let e = format!("cannot plan the volume: {e}");
+                let ok = say(Reply::Volume(VolumeStatus::Failed(e.clone())));
+                (Bake::Failed(e), ok)
+            }
+        }
+    }
+
+    /// Looks at a running bake: says its progress, hands a finished volume to `renderer`.
+    /// Returns false when the window has gone.
+    fn poll(&mut self, renderer: &mut FrameRenderer, say: &dyn Fn(Reply) -> bool) -> bool {
+        let Bake::Running { job, note, said } = self else {
+            return true;
+        };
+        match job.poll() {
+            None => {
+                let fraction = job.fraction();
+                let pct = (100.0 * fraction).floor() as u32;
+                if pct == *said {
+                    return true;
+                }
+                *said = pct;
+                say(Reply::Volume(VolumeStatus::Baking { fraction }))
+            }
+            Some(Ok(baked)) => {
+                let info = volume_info(&baked, note.take());
+                renderer.set_volume(Some(baked));
+                *self = Bake::Done;
+                say(Reply::Volume(VolumeStatus::Ready(info)))
+            }
+            Some(Err(e)) => {
+                let e = format!("the bake failed: {e}");
+                *self = Bake::Failed(e.clone());
+                say(Reply::Volume(VolumeStatus::Failed(e)))
+            }
+        }
+    }
+}
+
+fn volume_info(baked: &BakedVolume, note: Option<String>) -> VolumeInfo {
+    let v = &baked.volume;
+    VolumeInfo {
+        resolution: v.geometry.resolution,
+        bricks: v.stats.bricks,
+        dynamic_bricks: v.stats.dynamic_bricks,
+        bytes: v.bytes(),
+        seconds: v.stats.seconds,
+        note,
+    }
 }
 
 /// Runs the render loop until the job channel closes; `wake` is called after each reply.
@@ -96,15 +242,27 @@ fn render_loop(
 ) -> Result<(), String> {
     let stream = &setup.stream;
     let meta = stream.index().metadata.clone();
-    let mut renderer: Option<(RenderControls, FrameRenderer)> = None;
+    let mut renderer: Option<(RenderControls, ModelConfig, FrameRenderer)> = None;
+    let mut bake = Bake::Idle;
     let mut params = Vec::new();
     let mut loaded: Option<Option<usize>> = None;
     let mut version = 0u64;
     let mut pending: Option<Job> = None;
     loop {
-        // The newest job: wait for one, then skip those already overtaken.
+        if let Some((_, _, r)) = renderer.as_mut() {
+            if !bake.poll(r, say) {
+                return Ok(());
+            }
+        }
+        // The newest job: wait for one (looking at the bake now and then), then skip those
+        // already overtaken.
         let mut job = match pending.take() {
             Some(j) => j,
+            None if matches!(bake, Bake::Running { .. }) => match jobs.recv_timeout(BAKE_POLL) {
+                Ok(j) => j,
+                Err(RecvTimeoutError::Timeout) => continue,
+                Err(RecvTimeoutError::Disconnected) => return Ok(()),
+            },
             None => match jobs.recv() {
                 Ok(j) => j,
                 Err(_) => return Ok(()),
@@ -117,7 +275,10 @@ fn render_loop(
                 Err(TryRecvError::Disconnected) => return Ok(()),
             }
         }
-        if renderer.as_ref().is_none_or(|(c, _)| *c != job.controls) {
+        if renderer
+            .as_ref()
+            .is_none_or(|(c, _, _)| c.rebuilds(&job.controls))
+        {
             let model = job
                 .controls
                 .samples
@@ -128,19 +289,29 @@ fn render_loop(
                 )
                 .map_err(|e| format!("--{e}"))?;
             let settings = job.controls.apply(setup.base);
-            let (r, info) = FrameRenderer::new(&model, settings, setup.backend)
+            // The volume does not depend on the samples per ray: the new renderer draws from it.
+            let kept = renderer.as_mut().and_then(|(_, _, r)| r.take_volume());
+            let (mut r, info) = FrameRenderer::new(&model, settings, setup.backend)
                 .map_err(|e| format!("cannot start the renderer: {e}"))?;
-            renderer = Some((job.controls, r));
-            loaded = None;
+            let volumes = r.draws_volumes();
+            if kept.is_some() && volumes {
+                r.set_volume(kept);
+            }
             let samples = (
                 model.sampler.num_proposal_samples,
                 model.sampler.num_samples,
             );
-            if !say(Reply::Renderer { info, samples }) {
+            renderer = Some((job.controls, model, r));
+            loaded = None;
+            if !say(Reply::Renderer {
+                info,
+                samples,
+                volumes,
+            }) {
                 return Ok(());
             }
         }
-        let Some((_, r)) = renderer.as_mut() else {
+        let Some((_, cfg, r)) = renderer.as_mut() else {
             continue;
         };
         // The parameters of the job's time: wait for its chunk, giving way to a newer job.
@@ -181,6 +352,24 @@ fn render_loop(
             }
             loaded = Some(chunk);
         }
+        // The volume switch: the static part is here, so a bake can start.
+        if job.controls.volume && r.draws_volumes() {
+            let ok = match &bake {
+                Bake::Idle => {
+                    let (b, ok) = Bake::start(setup, cfg, &params, say);
+                    bake = b;
+                    ok
+                }
+                Bake::Failed(e) => say(Reply::Volume(VolumeStatus::Failed(e.clone()))),
+                Bake::Running { .. } | Bake::Done => true,
+            };
+            if !ok || !bake.poll(r, say) {
+                return Ok(());
+            }
+        } else if matches!(bake, Bake::Failed(_)) {
+            bake = Bake::Idle;
+        }
+        r.set_exact(!job.controls.volume);
         if !job.step.incremental {
             r.invalidate();
         }
