@@ -269,7 +269,7 @@ pub fn eval_file(a: &EvalArgs) -> Result<()> {
         );
     }
     let path = out.join("eval-file.json");
-    std::fs::write(&path, serde_json::to_vec_pretty(&report)?)
+    msth_trainer::checkpoint::write_atomic(&path, &serde_json::to_vec_pretty(&report)?)
         .with_context(|| format!("writing {}", path.display()))?;
     println!("report: {}", path.display());
     Ok(())

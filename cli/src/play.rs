@@ -448,14 +448,13 @@ fn summary(r: &PlayReport, threshold: f32) {
     }
     if let Some(b) = &r.bake {
         println!(
-            "volume: {}^3 cells, {} bricks ({} dynamic cells), {:.1} MiB, baked in {:.2} s; frames from {}",
+            "volume: {}^3 cells, {} bricks ({} dynamic cells), {:.1} MiB, baked in {:.2} s; frames from frame {} on",
             b.geometry.resolution,
             b.stats.bricks,
             b.stats.dynamic_cells,
             b.bytes as f64 / (1 << 20) as f64,
             b.stats.seconds,
-            b.first_frame
-                .map_or("none (the bake had not finished)".to_string(), |f| format!("frame {} on", f + 1))
+            b.first_frame + 1
         );
         if let Some(n) = &b.note {
             println!("note: {n}");

@@ -167,7 +167,7 @@ pub struct BakeReport {
     /// Field evaluations one time slice costs.
     pub slice_evaluations: usize,
     /// The first frame drawn from it.
-    pub first_frame: Option<usize>,
+    pub first_frame: usize,
     /// Why the volume is coarser than the model asked for, if it is.
     pub note: Option<String>,
 }
@@ -296,7 +296,8 @@ pub fn play(
         meta.model.sampler.num_samples,
     );
     let (mut renderer, backend) = FrameRenderer::new(&model, render_settings, opts.backend)?;
-    let mut bake_job: Option<BakeJob> = None;
+    // The bake under way, with the plan's note for its report.
+    let mut bake_job: Option<(BakeJob, Option<String>)> = None;
     let mut bake: Option<BakeReport> = None;
     let mut volume_note = None;
     let mut params = Vec::new();
@@ -351,16 +352,7 @@ pub fn play(
                                     );
                                 }
                             } else {
-                                bake = Some(BakeReport {
-                                    geometry: job.plan.geometry,
-                                    stats: Default::default(),
-                                    bytes: 0,
-                                    slice_bytes: 0,
-                                    slice_evaluations: 0,
-                                    first_frame: None,
-                                    note,
-                                });
-                                bake_job = Some(job);
+                                bake_job = Some((job, note));
                             }
                         }
                         Err(e) => {
@@ -389,10 +381,16 @@ pub fn play(
             let mut v = Vec::new();
             stream.params_at(t, &mut v, timeout).ok().map(|_| v)
         };
-        if let Some(job) = bake_job.as_mut() {
+        if let Some((job, note)) = bake_job.as_mut() {
             if let Some(r) = job.poll() {
-                let note = bake.take().and_then(|b| b.note);
-                finish_bake(r, note, i, &mut renderer, &mut bake, &mut volume_note);
+                finish_bake(
+                    r,
+                    note.take(),
+                    i,
+                    &mut renderer,
+                    &mut bake,
+                    &mut volume_note,
+                );
                 bake_job = None;
             }
         }
@@ -414,6 +412,12 @@ pub fn play(
         }
         on_frame(&record, &frame);
         records.push(record);
+    }
+    if let Some((job, _)) = &bake_job {
+        volume_note = Some(format!(
+            "the volume's bake was {:.0}% done when playback ended: every frame came from the exact field (--bake-first waits for it)",
+            100.0 * job.fraction()
+        ));
     }
     let (video, video_note) = match (&opts.out, opts.video) {
         (Some(dir), true) => {
@@ -441,7 +445,7 @@ pub fn play(
         backend,
         samples,
         model_samples,
-        bake: bake.filter(|b| b.stats.bricks > 0 || b.first_frame.is_some()),
+        bake,
         volume_note,
     })
 }
@@ -464,7 +468,7 @@ fn finish_bake(
                 bytes: vol.bytes(),
                 slice_bytes: vol.slice_bytes(),
                 slice_evaluations: baked.plan.slice_evaluations(),
-                first_frame: Some(frame),
+                first_frame: frame,
                 note,
             });
             renderer.set_volume(Some(baked));

@@ -80,7 +80,7 @@ pub struct RenderSettings {
     /// [`msth_gpu::DEFAULT_LANES`]). Frames are the same whatever the lanes.
     pub gpu_lanes: Option<u32>,
     /// Render with the exact field per sample even when a baked volume is set
-    /// ([`Renderer::set_volume`]): the reference path (`--exact`).
+    /// ([`Renderer::set_volume`]): the reference path (`msth play` without `--volume`).
     pub exact: bool,
     /// How rays walk the volume.
     pub march: MarchSettings,

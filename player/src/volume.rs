@@ -79,7 +79,6 @@ pub fn plan_bake(
             min_proposal_alpha: options.min_proposal_alpha,
             colour: options.colour,
             eyes: cameras.iter().map(|c| c.center()).collect(),
-            value_bytes: 4,
         },
     )
 }

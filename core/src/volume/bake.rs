@@ -135,9 +135,6 @@ pub struct PlanOptions {
     pub colour: ColourMode,
     /// Camera centres the baked colours face (the file's cameras).
     pub eyes: Vec<glam::Vec3>,
-    /// Bytes a stored value takes where the volume is used: 4 on the CPU (f32), 2 on a GPU
-    /// (binary16). The budget counts these.
-    pub value_bytes: usize,
 }
 
 impl Default for PlanOptions {
@@ -149,7 +146,6 @@ impl Default for PlanOptions {
             min_proposal_alpha: DEFAULT_MIN_PROPOSAL_ALPHA,
             colour: ColourMode::default(),
             eyes: Vec::new(),
-            value_bytes: 4,
         }
     }
 }
@@ -166,8 +162,6 @@ pub struct BakePlan {
     pub eyes: Vec<glam::Vec3>,
     pub geo: usize,
     pub channels: usize,
-    /// Bytes of a stored value where the volume is used ([`PlanOptions::value_bytes`]).
-    pub value_bytes: usize,
     /// Static bricks to bake, as index entries `x + I (y + I z)`, ascending.
     pub static_bricks: Vec<u32>,
     /// Dynamic bricks, ascending.
@@ -290,8 +284,7 @@ pub fn plan_with(
     let mut r = requested;
     loop {
         let g = VolumeGeometry::new(r);
-        let value_bytes = o.value_bytes.clamp(1, 4);
-        let slot = g.slot_bytes(channels, value_bytes);
+        let slot = g.slot_bytes(channels);
         let candidates = candidates(&g, occupancy.as_ref());
         let index = g.index_len() as u64 * 4;
         // Bound the cheapest outcome first: every candidate a static slot.
@@ -332,7 +325,6 @@ pub fn plan_with(
                     eyes: o.eyes.clone(),
                     geo,
                     channels,
-                    value_bytes,
                     static_bricks,
                     dynamic_bricks,
                     dynamic_cells,
@@ -665,7 +657,7 @@ pub fn eval_vertices(
             let row = &out[j * out_w..(j + 1) * out_w];
             let dst = &mut slot[v * ch..(v + 1) * ch];
             dst.fill(0.0);
-            dst[0] = finite(row[0]);
+            dst[0] = row[0];
             if plan.colour == ColourMode::Baked {
                 let c = &layout.field.color.0.output(&scratch.colour_acts)[j * 3..j * 3 + 3];
                 for (d, &x) in dst[1..4].iter_mut().zip(c) {
@@ -678,7 +670,7 @@ pub fn eval_vertices(
                 }
             } else {
                 for (d, &x) in dst[1..1 + geo].iter_mut().zip(&row[1..1 + geo]) {
-                    *d = finite(x);
+                    *d = x;
                 }
             }
         }
@@ -803,12 +795,6 @@ pub fn cell_bits(
             }
         }
     }
-}
-
-/// A value that was checked finite, clamped to binary16's range (the GPU holds the values as
-/// binary16: the CPU's then agree with its everywhere but for rounding).
-fn finite(v: f32) -> f32 {
-    v.clamp(-65504.0, 65504.0)
 }
 
 impl Volume {

@@ -1,5 +1,4 @@
-//! Rendering rays through a baked volume on the CPU: the reference that the GPU and the page's
-//! WGSL follow step for step.
+//! Rendering rays through a baked volume on the CPU.
 //!
 //! Each ray walks from its near to its far bound ([`crate::pipeline::ray_limits`]) in steps of
 //! [`MarchSettings::step`] cells of the volume, measured in the unit cube (for a contracted scene
@@ -7,16 +6,18 @@
 //! whose midpoint lies in an empty brick or an empty cell jumps to where the ray leaves it; any
 //! other step is a sample:
 //! - in a static cell, the stored outputs interpolated trilinearly;
-//! - in a dynamic cell, the exact field at the ray's time, evaluated in one batch for a chunk of
-//!   rays after the walk (the walk records the samples from a ray's first dynamic one on, and
-//!   composites them once the batch is back).
+//! - in a dynamic brick, the values of the two time slices around the ray's time, blended (a
+//!   cell the mask leaves static reads one slice, so its samples do not depend on the time);
+//! - in a dynamic brick whose slices are not baked, the exact field at the ray's time, evaluated
+//!   in one batch for a chunk of rays after the walk (the walk records the samples from a ray's
+//!   first such one on, and composites them once the batch is back).
 //!
 //! A ray stops once its transmittance falls below [`MarchSettings::stop_transmittance`]. A static
 //! sample's colour is the baked one ([`ColourMode::Baked`]), a dynamic sample's the colour MLP's
 //! at the ray's direction; they are composited as the exact renderer composites.
 //!
-//! A ray whose walk met no dynamic sample before it stopped has a colour that does not depend on
-//! time ([`MarchOutput::dynamic`]): incremental playback keeps such pixels while the camera holds,
+//! A ray whose walk met no cell the mask leaves dynamic (holding density now or not) before it
+//! stopped has a colour that does not depend on time ([`MarchOutput::dynamic`]): incremental playback keeps such pixels while the camera holds,
 //! and its frames equal full frames exactly.
 
 use glam::Vec3;

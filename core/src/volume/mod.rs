@@ -6,7 +6,7 @@
 //! [`VolumeGeometry::brick`]). A brick that can hold something visible gets a slot in the pool;
 //! the others are empty and a ray skips them whole. A slot holds, at each of its `(B + 1)^3`
 //! vertices (a brick keeps its own border vertices, so a sample never reads a neighbour), as
-//! binary16: the density MLP's pre-activation for the static encoding (`sigma = trunc_exp` of
+//! f32: the density MLP's pre-activation for the static encoding (`sigma = trunc_exp` of
 //! it), then the colour ([`ColourMode::Baked`]: the colour MLP's output for a reference view
 //! direction) or the geometry features the colour MLP reads (the other modes). With them, one
 //! bit per cell says whether the cell can hold density (its 8 corners bound the interpolated
@@ -36,8 +36,8 @@
 //!
 //! # Modules
 //! - [`bake`]: choosing the resolution for a memory budget, the bricks to bake, the bake;
-//! - [`march`]: the CPU reference renderer over a volume (the GPU and the page run the same
-//!   algorithm in WGSL).
+//! - [`march`]: the renderer over a volume (the CPU's; the GPU renderer and the page have no
+//!   volume yet).
 
 use crate::config::ModelConfig;
 use crate::pipeline::RENDER_STATIC_CUTOFF;
@@ -140,10 +140,9 @@ impl VolumeGeometry {
         self.cells_per_brick().div_ceil(32)
     }
 
-    /// Bytes of one slot with `channels` values of `value_bytes` each per vertex (values and
-    /// both bitsets): 4 on the CPU, 2 on a GPU (binary16).
-    pub fn slot_bytes(&self, channels: usize, value_bytes: usize) -> u64 {
-        (self.vertices_per_brick() * channels * value_bytes + self.flag_words() * 8) as u64
+    /// Bytes of one slot with `channels` f32 values per vertex (values and both bitsets).
+    pub fn slot_bytes(&self, channels: usize) -> u64 {
+        (self.vertices_per_brick() * channels * 4 + self.flag_words() * 8) as u64
     }
 }
 
@@ -216,7 +215,7 @@ pub struct Volume {
     /// bit `x + B (y + B z)` can hold density.
     pub occupied: Vec<u32>,
     /// Per static slot, `(B + 1)^3` vertices (vertex `(x, y, z)` at
-    /// `x + (B + 1) (y + (B + 1) z)`), each `channels` binary16 bit patterns: the density
+    /// `x + (B + 1) (y + (B + 1) z)`), each `channels` values: the density
     /// pre-activation, then the colour (red, green, blue in `[0, 1]`) or the geometry features,
     /// then zeros.
     pub values: Vec<f32>,
@@ -327,7 +326,7 @@ impl Volume {
 
     /// Bytes one baked slice takes.
     pub fn slice_bytes(&self) -> u64 {
-        self.dynamic.bricks.len() as u64 * self.geometry.slot_bytes(self.channels, 4)
+        self.dynamic.bricks.len() as u64 * self.geometry.slot_bytes(self.channels)
     }
 
     /// Whether any brick is dynamic (the volume alone then does not describe every time).

@@ -90,8 +90,7 @@ fn options(colour: ColourMode) -> PlanOptions {
     }
 }
 
-/// Each stored vertex is the density MLP's output for the static encoding at that vertex, to
-/// binary16's rounding (features), or its density and the colour MLP's output for the reference
+/// Each stored vertex is the density MLP's output for the static encoding at that vertex (features), or its density and the colour MLP's output for the reference
 /// direction (baked colour); a dynamic brick's slice holds the field at the slice's time.
 #[test]
 fn baked_vertices_hold_the_field() {
@@ -254,8 +253,7 @@ fn the_budget_holds_fewer_slices_before_a_coarser_volume() {
     let (cfg, layout, params) = model(-2.0, 3);
     let all = plan(&cfg, &layout, &params, None, 1 << 40, Some(32)).unwrap();
     assert_eq!(all.resident_slices, cfg.num_frames);
-    let per_slice =
-        all.dynamic_bricks.len() as u64 * all.geometry.slot_bytes(all.channels, all.value_bytes);
+    let per_slice = all.dynamic_bricks.len() as u64 * all.geometry.slot_bytes(all.channels);
     let fixed = all.bytes_bound - cfg.num_frames as u64 * per_slice;
     let three = plan(
         &cfg,
