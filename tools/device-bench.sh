@@ -19,7 +19,9 @@
 #   run(command="bash tools/device-bench.sh run", carry=[".device", ".gl"], timeout_s=540)
 #
 # `run` writes report.txt under $OUT (or .device/out when $OUT is unset): the adapter, then per
-# model and per samples-per-ray setting `bench_gpu_play` at 1352x1014 (full frames of a fixed
+# model a moving camera's playback from the play-time volume against the exact field (`msth play
+# --gpu --volume`, with JSON reports beside report.txt), then per model and per samples-per-ray
+# setting `bench_gpu_play` at 1352x1014 (full frames of a fixed
 # and a moving camera, incremental frames, the GPU frame against the CPU renderer's; the stage
 # model also with 1 and 2 samples per invocation, 128 MiB batches, comparing parameters, and
 # f32 hash tables), one pass-by-pass profile, and the training step on the GPU against the CPU
@@ -172,8 +174,20 @@ run() {
         [ "$s" = model ] || env_args+=(MSTH_BENCH_SAMPLES="$s")
         step 120 "${env_args[@]}" "$@" "$bin/${BENCH:-bench_gpu_play}" "$m" "$size" "$frames"
     }
-    # Most wanted first (#17: a balanced stage model at 1352x1014), in case time runs out; then
-    # the baseline's binary on the same model, when `pack` built one.
+    # Most wanted first, in case time runs out: a moving camera drawn from the play-time volume
+    # (`msth play --gpu --volume`, the bake waited for) against the exact field, orbit frames at
+    # the bench size, per model; the bake's time and the slices' per frame are in the reports.
+    for m in stage demo; do
+        [ -f "$models/$m.msth" ] || continue
+        for mode in volume exact; do
+            local extra=()
+            [ "$mode" = volume ] && extra=(--volume --bake-first)
+            step 150 "$bin/msth" play "$models/$m.msth" --gpu "${extra[@]}" --path orbit \
+                --frames "$frames" --size "$size" --no-video --quiet --report "$out/play-$m-$mode.json"
+        done
+    done
+    # Then the exact renderer's bench (a balanced stage model at 1352x1014) and the baseline's
+    # binary on the same model, when `pack` built one.
     play stage model
     if [ -x "$bin/bench_gpu_play_base" ]; then
         echo "baseline: $(cat "$bin/base-commit" 2>/dev/null || echo unknown)" | tee -a "$report"

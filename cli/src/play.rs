@@ -103,8 +103,8 @@ pub struct PlayArgs {
     /// set, else the bundled roots.
     #[arg(long, value_name = "FILE.pem")]
     pub ca_cert: Option<PathBuf>,
-    /// Draw frames from a play-time volume baked from the file when the file opens (CPU
-    /// renderer): fewer operations per sample than the exact field (hash grids and MLPs per
+    /// Draw frames from a play-time volume baked from the file when the file opens (CPU and GPU
+    /// renderers): fewer operations per sample than the exact field (hash grids and MLPs per
     /// sample, the default and the reference). Its quality depends on the scene: held-out PSNR
     /// within 0.3 dB of the exact renderer's on the demo model, several dB below it on
     /// forward-facing stages (docs/playback.md, "The play-time volume"); `msth eval FILE.msth
@@ -128,8 +128,9 @@ pub struct PlayArgs {
 /// The play-time volume's size (`msth play`, `msth eval FILE.msth`).
 #[derive(Args, Clone, Debug, Default)]
 pub struct VolumeArgs {
-    /// The most memory the play-time volume may take, in MiB (default 512 on the CPU); a model
-    /// whose volume would not fit gets a coarser one, and a note.
+    /// The most memory the play-time volume may take, in MiB (default 512 on the CPU, a quarter
+    /// of the GPU's buffer limit on the GPU); a model whose volume would not fit gets a coarser
+    /// one, and a note.
     #[arg(long, value_name = "MIB")]
     pub volume_budget: Option<u64>,
     /// Cells per side of the volume at most (default: the model's finest grid resolution; a
@@ -169,7 +170,7 @@ impl VolumeArgs {
             if !(1..=1 << 20).contains(&m) {
                 bail!("--volume-budget {m}: MiB in 1..=1048576");
             }
-            o.budget = m << 20;
+            o.budget = Some(m << 20);
         }
         if let Some(r) = self.volume_resolution {
             if !(1..=1 << 16).contains(&r) {
@@ -398,23 +399,30 @@ fn frame_line(r: &FrameRecord, n: usize) -> String {
     ) + &volume_detail(s)
 }
 
-/// What a volume frame spent: samples per ray read from the volume, samples evaluated from the
-/// field, and the time slices baked for it.
+/// What a volume frame spent: samples per ray read from the volume (counted on the CPU),
+/// samples evaluated from the field, and the time slices baked for it.
 fn volume_detail(s: &msth_player::FrameStats) -> String {
     if !s.volume {
         return String::new();
     }
-    let mut out = format!(
-        "  {:.0} samples/ray",
-        s.volume_samples as f64 / s.rays_rendered.max(1) as f64
-    );
+    let mut parts = Vec::new();
+    if s.volume_samples > 0 {
+        parts.push(format!(
+            "{:.0} samples/ray",
+            s.volume_samples as f64 / s.rays_rendered.max(1) as f64
+        ));
+    }
     if s.samples_evaluated > 0 {
-        out += &format!(", {} field samples", s.samples_evaluated);
+        parts.push(format!("{} field samples", s.samples_evaluated));
     }
     if s.slice_seconds > 0.0 {
-        out += &format!(", slices baked in {:.0} ms", 1e3 * s.slice_seconds);
+        parts.push(format!("slices baked in {:.0} ms", 1e3 * s.slice_seconds));
     }
-    out
+    if parts.is_empty() {
+        String::new()
+    } else {
+        format!("  {}", parts.join(", "))
+    }
 }
 
 fn summary(r: &PlayReport, threshold: f32) {

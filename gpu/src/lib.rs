@@ -26,7 +26,9 @@
 //!   and gradients) and the per-sample mask loss;
 //! - [`sampling`]: where a step's samples go (stratified proposal samples, inverse-CDF
 //!   resampling, placement through the spacing and the contraction);
-//! - [`step`]: the whole training step on the device, and Adam.
+//! - [`step`]: the whole training step on the device, and Adam;
+//! - [`volume`]: the play-time volume on the device and the march through it
+//!   ([`VOLUME_WGSL`]).
 //!
 //! # The render shader: modules, and the web page's copy
 //! The modules of `shaders/render/` are the one source. The build composes them into
@@ -221,6 +223,7 @@ pub mod sh;
 pub mod shaders;
 pub mod specialise;
 pub mod step;
+pub mod volume;
 
 pub use layout::{GpuLayoutError, GpuModel, TableFormat, ViewU, FLAG_COMPACT, FLAG_LIST};
 pub use passes::{FrameScratch, GpuSampleCache, PassCounts, Pixels, FRAME_WORK_BYTES};
@@ -228,3 +231,5 @@ pub use render::{
     with_lanes, AdapterPolicy, GpuContext, GpuError, GpuScene, Kernel, ReadBack,
     ALLOW_SOFTWARE_ENV, DEFAULT_LANES, DISCRETE_FRAME_WORK_BYTES, RENDER_WGSL,
 };
+pub use shaders::VOLUME_WGSL;
+pub use volume::{GpuVolume, VolumeKernel};

@@ -432,6 +432,15 @@ impl GpuContext {
         }
     }
 
+    /// The most bytes a play-time volume may take on this device by default: a quarter of the
+    /// smaller of its buffer limits (one buffer and one binding hold the volume's values).
+    pub fn volume_budget(&self) -> u64 {
+        self.limits
+            .max_storage_buffer_binding_size
+            .min(self.limits.max_buffer_size)
+            / 4
+    }
+
     /// Whether the adapter is a software rasteriser (lavapipe, WARP).
     pub fn is_software(&self) -> bool {
         self.info.device_type == wgpu::DeviceType::Cpu

@@ -19,6 +19,7 @@
 //! | `specialise` | the region [`crate::specialise`] rewrites for a model: the passes' encodings and MLPs |
 //! | `passes_rays`, `passes_shade`, `passes_cache` | the `pass_*` entry points (to the main samples; to the pixel; the sample cache) |
 //! | `passes` | the root of the per-sample passes |
+//! | `volume` | `volume_march`: one pixel's ray through the play-time volume (bindings 7-9; root of `volume.wgsl`) |
 //!
 //! A kernel that evaluates the field per point (a per-pixel ray march, say) imports `field` and
 //! `camera` (and `io`, or bindings of its own) and none of the passes; its shader text is
@@ -41,6 +42,10 @@ pub const RENDER_MODULES: &[(&str, &str)] =
 /// first entry of [`SETS`]).
 pub const RENDER_WGSL: &str = include_str!(concat!(env!("OUT_DIR"), "/render.wgsl"));
 
+/// The march through the play-time volume ([`crate::volume`]): root `volume` (the second entry
+/// of [`SETS`]).
+pub const VOLUME_WGSL: &str = include_str!(concat!(env!("OUT_DIR"), "/volume.wgsl"));
+
 /// The shader text of the render modules `roots` and their imports ([`compose`] over
 /// [`RENDER_MODULES`]).
 pub fn compose_render(roots: &[&str]) -> Result<String, ComposeError> {
@@ -57,13 +62,23 @@ mod tests {
     fn build_time_texts_are_the_composition() {
         assert_eq!(SETS[0].0, "render.wgsl");
         assert_eq!(compose_render(SETS[0].1).unwrap(), RENDER_WGSL);
+        assert_eq!(SETS[1].0, "volume.wgsl");
+        assert_eq!(compose_render(SETS[1].1).unwrap(), VOLUME_WGSL);
     }
 
-    /// Every module is reachable from the renderer's roots, composes on its own (its imports are
-    /// complete enough to order it), and the specialise and "Hash tables" markers appear once.
+    /// Every module is reachable from the roots of some set, composes on its own (its imports
+    /// are complete enough to order it), and the specialise and "Hash tables" markers appear
+    /// once in the renderer's text.
     #[test]
     fn render_modules_compose() {
-        let all = order(RENDER_MODULES, SETS[0].1).unwrap();
+        let mut all = Vec::new();
+        for (_, roots) in SETS {
+            for m in order(RENDER_MODULES, roots).unwrap() {
+                if !all.contains(&m) {
+                    all.push(m);
+                }
+            }
+        }
         let mut names: Vec<&str> = RENDER_MODULES.iter().map(|(n, _)| *n).collect();
         let mut reached = all.clone();
         names.sort();
@@ -109,6 +124,7 @@ mod tests {
             let text = tables.source(RENDER_WGSL).unwrap();
             validate(&text).unwrap_or_else(|e| panic!("{} tables: {e}", tables.name()));
         }
+        validate(VOLUME_WGSL).unwrap_or_else(|e| panic!("volume.wgsl: {e}"));
     }
 
     /// What a per-point kernel imports brings no per-sample pass, and the SH module alone is

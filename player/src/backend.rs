@@ -173,15 +173,18 @@ impl FrameRenderer {
         Ok(())
     }
 
-    /// Whether this backend draws frames from a baked volume ([`FrameRenderer::set_volume`]).
-    pub fn draws_volumes(&self) -> bool {
-        matches!(self, FrameRenderer::Cpu(_))
-    }
-
-    /// Draws frames from `volume` from now on (`None`: from the exact field).
-    pub fn set_volume(&mut self, volume: Option<crate::volume::BakedVolume>) {
-        if let FrameRenderer::Cpu(r) = self {
-            r.set_volume(volume);
+    /// Draws frames from `volume` from now on (`None`: from the exact field). The GPU uploads
+    /// it; when it cannot (beyond its limits), frames stay exact and the error says why.
+    pub fn set_volume(
+        &mut self,
+        volume: Option<crate::volume::BakedVolume>,
+    ) -> Result<(), GpuError> {
+        match self {
+            FrameRenderer::Cpu(r) => {
+                r.set_volume(volume);
+                Ok(())
+            }
+            FrameRenderer::Gpu(r) => r.set_volume(volume),
         }
     }
 
@@ -190,15 +193,15 @@ impl FrameRenderer {
     pub fn take_volume(&mut self) -> Option<crate::volume::BakedVolume> {
         match self {
             FrameRenderer::Cpu(r) => r.take_volume(),
-            FrameRenderer::Gpu(_) => None,
+            FrameRenderer::Gpu(r) => r.take_volume(),
         }
     }
 
-    /// Switches between the exact field and the volume ([`Renderer::set_exact`]); the GPU
-    /// renderer always draws from the exact field.
+    /// Switches between the exact field and the volume ([`Renderer::set_exact`]).
     pub fn set_exact(&mut self, exact: bool) {
-        if let FrameRenderer::Cpu(r) = self {
-            r.set_exact(exact);
+        match self {
+            FrameRenderer::Cpu(r) => r.set_exact(exact),
+            FrameRenderer::Gpu(r) => r.set_exact(exact),
         }
     }
 
@@ -206,7 +209,17 @@ impl FrameRenderer {
     pub fn uses_volume(&self) -> bool {
         match self {
             FrameRenderer::Cpu(r) => r.uses_volume(),
-            FrameRenderer::Gpu(_) => false,
+            FrameRenderer::Gpu(r) => r.uses_volume(),
+        }
+    }
+
+    /// The most bytes the play-time volume may take by default on this backend: 512 MiB on the
+    /// CPU ([`crate::volume::DEFAULT_CPU_BUDGET`]), a quarter of the GPU's buffer limit
+    /// ([`GpuRenderer::volume_budget`]).
+    pub fn volume_budget(&self) -> u64 {
+        match self {
+            FrameRenderer::Cpu(_) => crate::volume::DEFAULT_CPU_BUDGET,
+            FrameRenderer::Gpu(r) => r.volume_budget(),
         }
     }
 

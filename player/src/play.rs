@@ -323,20 +323,11 @@ pub fn play(
             }
             if loaded.is_none() && !render_settings.exact {
                 // The static part is here: bake the volume (it reads nothing else).
-                if !renderer.draws_volumes() {
-                    volume_note = Some(
-                        "the GPU renderer draws from the exact field (the volume is CPU-only in this build)"
-                            .to_string(),
-                    );
-                } else {
+                {
                     let grid = stream.occupancy();
-                    match plan_bake(
-                        &model,
-                        &params,
-                        grid.as_deref(),
-                        &meta.cameras,
-                        &opts.volume,
-                    ) {
+                    let mut vopts = opts.volume;
+                    vopts.budget.get_or_insert(renderer.volume_budget());
+                    match plan_bake(&model, &params, grid.as_deref(), &meta.cameras, &vopts) {
                         Ok(plan) => {
                             let note = plan.note();
                             let mut job = BakeJob::start(plan, &model, params.clone());
@@ -471,7 +462,11 @@ fn finish_bake(
                 first_frame: frame,
                 note,
             });
-            renderer.set_volume(Some(baked));
+            if let Err(e) = renderer.set_volume(Some(baked)) {
+                *volume_note = Some(format!(
+                    "the volume does not fit the device ({e}): frames are drawn from the exact field"
+                ));
+            }
         }
         Err(e) => *volume_note = Some(format!("no play-time volume: {e}")),
     }

@@ -17,6 +17,7 @@ use msth_core::volume::{
     MarchWorkspace, Occupancy, Volume,
 };
 use msth_core::Camera;
+use msth_gpu::{GpuContext, GpuScene};
 use rayon::prelude::*;
 
 pub use msth_core::volume::DEFAULT_CPU_BUDGET;
@@ -24,8 +25,9 @@ pub use msth_core::volume::DEFAULT_CPU_BUDGET;
 /// How a volume is baked.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct VolumeOptions {
-    /// The most memory the volume may take, bytes.
-    pub budget: u64,
+    /// The most memory the volume may take, bytes (`None`: the renderer's default,
+    /// [`crate::FrameRenderer::volume_budget`]; [`DEFAULT_CPU_BUDGET`] where no renderer says).
+    pub budget: Option<u64>,
     /// Cells per side at most (`None`: the model's finest grid resolution).
     pub max_resolution: Option<u32>,
     /// A cell that cannot reach this opacity counts as empty.
@@ -39,7 +41,7 @@ pub struct VolumeOptions {
 impl Default for VolumeOptions {
     fn default() -> Self {
         VolumeOptions {
-            budget: DEFAULT_CPU_BUDGET,
+            budget: None,
             max_resolution: None,
             min_cell_alpha: DEFAULT_MIN_CELL_ALPHA,
             min_proposal_alpha: DEFAULT_MIN_PROPOSAL_ALPHA,
@@ -73,7 +75,7 @@ pub fn plan_bake(
         params,
         occupancy.map(occupancy_view),
         &PlanOptions {
-            budget: options.budget,
+            budget: options.budget.unwrap_or(DEFAULT_CPU_BUDGET),
             max_resolution: options.max_resolution,
             min_cell_alpha: options.min_cell_alpha,
             min_proposal_alpha: options.min_proposal_alpha,
@@ -120,6 +122,22 @@ fn bake_set(
         .collect();
     let evaluated = evaluated?.iter().sum();
     fill_borders(plan, set, &mut values);
+    cell_bits_par(plan, layout, params, set, &values, &mut occupied);
+    Ok((values, occupied, evaluated))
+}
+
+/// The cell bits of every brick of `set` from its values, over the rayon pool (phase 3 of the
+/// bake, [`cell_bits`]).
+fn cell_bits_par(
+    plan: &BakePlan,
+    layout: &ModelLayout,
+    params: &[f32],
+    set: &BrickSet<'_>,
+    values: &[f32],
+    occupied: &mut [u32],
+) {
+    let g = plan.geometry;
+    let (fw, sv) = (g.flag_words(), g.vertices_per_brick() * plan.channels);
     occupied
         .par_chunks_mut(BAKE_BATCH * fw)
         .zip(values.par_chunks(BAKE_BATCH * sv))
@@ -127,7 +145,68 @@ fn bake_set(
         .for_each(|(c, (occ, vals))| {
             cell_bits(plan, layout, params, set, c * BAKE_BATCH, vals, occ)
         });
-    Ok((values, occupied, evaluated))
+}
+
+/// [`bake_set`] with the vertices evaluated on the GPU (`scene` holds `params`): every vertex of
+/// every brick (a brick's border vertices are evaluated by each brick that has them, which
+/// costs the device little and spares the border copies), the colours baked for the plan's
+/// reference directions; the cell bits on the host. Baked colours only.
+pub fn bake_set_on_device(
+    ctx: &GpuContext,
+    scene: &GpuScene,
+    plan: &BakePlan,
+    cfg: &ModelConfig,
+    layout: &ModelLayout,
+    params: &[f32],
+    set: &BrickSet<'_>,
+) -> Result<(Vec<f32>, Vec<u32>, usize), BakeError> {
+    if plan.colour != ColourMode::Baked || plan.channels != 4 {
+        return Err(BakeError::Device(
+            "the device bakes colours only (--colour baked)".into(),
+        ));
+    }
+    let g = plan.geometry;
+    let (b, n_side) = (g.brick, g.bricks_per_side());
+    let v1 = b + 1;
+    let nv = g.vertices_per_brick();
+    let res = g.resolution as f32;
+    let time = msth_core::pipeline::sample_time(set.time);
+    let kind = if set.dynamic { 2.0 } else { 3.0 };
+    let mut points = Vec::with_capacity(set.bricks.len() * nv * 8);
+    for &brick in set.bricks {
+        let o = [
+            (brick % n_side) * b,
+            (brick / n_side % n_side) * b,
+            (brick / (n_side * n_side)) * b,
+        ];
+        for z in 0..v1 {
+            for y in 0..v1 {
+                for x in 0..v1 {
+                    let u = glam::Vec3::new(
+                        (o[0] + x) as f32 / res,
+                        (o[1] + y) as f32 / res,
+                        (o[2] + z) as f32 / res,
+                    );
+                    let d =
+                        msth_core::volume::reference_direction(&plan.eyes, cfg.bounds.from_unit(u));
+                    points.extend_from_slice(&[u.x, u.y, u.z, time, d.x, d.y, d.z, kind]);
+                }
+            }
+        }
+    }
+    let out = msth_gpu::volume::eval_points(ctx, scene, &points)
+        .map_err(|e| BakeError::Device(e.to_string()))?;
+    let mut values = vec![0f32; out.len() * 4];
+    for (j, (v, dst)) in out.iter().zip(values.chunks_exact_mut(4)).enumerate() {
+        if v.iter().any(|x| !x.is_finite()) {
+            let p = &points[j * 8..j * 8 + 3];
+            return Err(BakeError::NotFinite([p[0], p[1], p[2]]));
+        }
+        dst.copy_from_slice(&[v[3], v[0], v[1], v[2]]);
+    }
+    let mut occupied = vec![0u32; set.bricks.len() * g.flag_words()];
+    cell_bits_par(plan, layout, params, set, &values, &mut occupied);
+    Ok((values, occupied, out.len()))
 }
 
 /// Bakes `plan`'s static bricks over the rayon pool; `progress` counts bricks and can stop it.

@@ -135,13 +135,13 @@ fn a_budget_too_small_for_the_fine_volume_gets_a_coarser_one() {
     )
     .unwrap();
     let options = VolumeOptions {
-        budget: fine.bytes_bound / 3,
+        budget: Some(fine.bytes_bound / 3),
         ..Default::default()
     };
     let coarse = baked(&d, &options);
     let (r0, r1) = (fine.geometry.resolution, coarse.plan.geometry.resolution);
     assert!(r1 < r0, "{r1}^3 under a third of the budget of {r0}^3");
-    assert!(coarse.volume.bytes() <= options.budget);
+    assert!(coarse.volume.bytes() <= options.budget.unwrap());
     let note = coarse.plan.note().expect("a coarser volume says so");
     assert!(note.contains("--volume-budget"), "{note}");
     let mut exact = renderer(&d, None, false);
@@ -150,14 +150,14 @@ fn a_budget_too_small_for_the_fine_volume_gets_a_coarser_one() {
     let p = draw(&mut volume, &d, &camera, 0.7).psnr_displayed(&draw(&mut exact, &d, &camera, 0.7));
     println!(
         "{r1}^3 (budget {} KiB): {p:.2} dB against exact",
-        options.budget >> 10
+        options.budget.unwrap() >> 10
     );
     // 34.3 dB measured at 64^3.
     assert!(p >= 30.0, "{p:.2} dB");
 
     // Below the coarsest volume: an error naming the budget, never an allocation.
     let tiny = VolumeOptions {
-        budget: 1024,
+        budget: Some(1024),
         ..Default::default()
     };
     match plan_bake(
@@ -203,7 +203,7 @@ fn hostile_files_end_the_bake_with_an_error() {
     let d = fixture();
     let huge = VolumeOptions {
         max_resolution: Some(1 << 16),
-        budget: 8 << 20,
+        budget: Some(8 << 20),
         ..Default::default()
     };
     let plan = plan_bake(
@@ -214,7 +214,7 @@ fn hostile_files_end_the_bake_with_an_error() {
         &huge,
     )
     .unwrap();
-    assert!(plan.bytes_bound <= huge.budget);
+    assert!(plan.bytes_bound <= huge.budget.unwrap());
 }
 
 /// Cells where the proposal network's density stays low are left empty, more of them the higher

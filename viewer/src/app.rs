@@ -139,7 +139,7 @@ pub const KEYS: &[(&str, &str)] = &[
     ("L", "loop on or off"),
     ("-, +", "half or twice the speed"),
     ("M", "samples per ray: full, fast, faster"),
-    ("V", "exact field or play-time volume (CPU renderer)"),
+    ("V", "exact field or play-time volume"),
     ("P, F12", "screenshot (the picture and the window)"),
     ("R", "record the camera path, again to stop and save it"),
     ("H", "hide or show the controls"),
@@ -222,12 +222,10 @@ struct App {
     timeline: Timeline,
     policy: ResolutionPolicy,
     controls: RenderControls,
-    /// Whether the renderer draws from a volume (the CPU renderer): the switch is shown.
+    /// Whether a renderer is ready: the volume switch is shown from then on.
     volumes: bool,
     /// Where the play-time volume stands, once the switch has been on.
     volume: Option<VolumeStatus>,
-    /// Why the switch is not there although `--volume` asked for it.
-    volume_note: Option<String>,
     model_samples: (usize, usize),
     probes: usize,
     proxy: EventLoopProxy<Wake>,
@@ -377,7 +375,6 @@ impl App {
             },
             volumes: false,
             volume: None,
-            volume_note: None,
             model_samples,
             probes: if opts.incremental { base.probes } else { 0 },
             proxy,
@@ -546,22 +543,10 @@ impl App {
         let replies: Vec<Reply> = rx.try_iter().collect();
         for r in replies {
             match r {
-                Reply::Renderer {
-                    info,
-                    samples,
-                    volumes,
-                } => {
+                Reply::Renderer { info, samples } => {
                     self.report.backend = Some(info);
                     self.report.samples = Some(samples);
-                    self.volumes = volumes;
-                    if !volumes && self.controls.volume {
-                        self.controls.volume = false;
-                        self.volume_note = Some(
-                            "the GPU renderer draws from the exact field: the play-time volume \
-                             needs the CPU renderer (--cpu)"
-                                .into(),
-                        );
-                    }
+                    self.volumes = true;
                 }
                 Reply::Volume(status) => {
                     match &status {
@@ -1623,8 +1608,6 @@ impl App {
                 }
                 _ => {}
             }
-        } else if let Some(n) = &self.volume_note {
-            ui.label(n);
         }
         ui.separator();
         if let Some(b) = &self.report.backend {

@@ -39,7 +39,7 @@ pub struct ViewOptions {
     pub size: Option<(u32, u32)>,
     /// Samples per ray at the start (the samples menu changes them).
     pub samples: PlaySamples,
-    /// Start with the exact / volume switch on (CPU renderer): bake the play-time volume once
+    /// Start with the exact / volume switch on: bake the play-time volume once
     /// the static part has arrived, and draw from it when it is ready.
     pub volume: bool,
     /// How the volume is baked (`msth play --volume-budget`, `--volume-resolution`, ...).

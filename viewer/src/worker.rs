@@ -31,7 +31,7 @@ use serde::Serialize;
 pub struct RenderControls {
     /// Samples per ray (the samples menu).
     pub samples: PlaySamples,
-    /// Draw from the play-time volume (the exact / volume switch; CPU renderer): the first job
+    /// Draw from the play-time volume (the exact / volume switch): the first job
     /// that asks for it starts the bake, and frames come from the exact field until it is done.
     /// Off: the exact field, the reference.
     pub volume: bool,
@@ -100,13 +100,11 @@ pub struct Job {
 
 /// What the render thread says.
 pub enum Reply {
-    /// A renderer is ready for these controls: which backend, the samples per ray (rendered
-    /// and the model's own), and whether it draws from a volume ([`FrameRenderer::draws_volumes`]:
-    /// else the volume switch does nothing).
+    /// A renderer is ready for these controls: which backend, and the samples per ray (rendered
+    /// and the model's own).
     Renderer {
         info: BackendInfo,
         samples: (usize, usize),
-        volumes: bool,
     },
     /// The play-time volume's bake started, moved on (at most once per percent), finished or
     /// failed.
@@ -161,11 +159,14 @@ impl Bake {
         setup: &WorkerSetup,
         cfg: &ModelConfig,
         params: &[f32],
+        renderer: &FrameRenderer,
         say: &dyn Fn(Reply) -> bool,
     ) -> (Bake, bool) {
         let meta = &setup.stream.index().metadata;
         let grid = setup.stream.occupancy();
-        match plan_bake(cfg, params, grid.as_deref(), &meta.cameras, &setup.volume) {
+        let mut options = setup.volume;
+        options.budget.get_or_insert(renderer.volume_budget());
+        match plan_bake(cfg, params, grid.as_deref(), &meta.cameras, &options) {
             Ok(plan) => {
                 let note = plan.note();
                 let job = BakeJob::start(plan, cfg, params.to_vec());
@@ -198,7 +199,11 @@ impl Bake {
             }
             Some(Ok(baked)) => {
                 let info = volume_info(&baked, note.take());
-                renderer.set_volume(Some(baked));
+                if let Err(e) = renderer.set_volume(Some(baked)) {
+                    let e = format!("the volume does not fit the device: {e}");
+                    *self = Bake::Failed(e.clone());
+                    return say(Reply::Volume(VolumeStatus::Failed(e)));
+                }
                 *self = Bake::Done;
                 say(Reply::Volume(VolumeStatus::Ready(info)))
             }
@@ -293,9 +298,9 @@ fn render_loop(
             let kept = renderer.as_mut().and_then(|(_, _, r)| r.take_volume());
             let (mut r, info) = FrameRenderer::new(&model, settings, setup.backend)
                 .map_err(|e| format!("cannot start the renderer: {e}"))?;
-            let volumes = r.draws_volumes();
-            if kept.is_some() && volumes {
-                r.set_volume(kept);
+            if kept.is_some() {
+                // A volume that fit the last renderer's device fits this one's (the same).
+                r.set_volume(kept).map_err(|e| e.to_string())?;
             }
             let samples = (
                 model.sampler.num_proposal_samples,
@@ -303,11 +308,7 @@ fn render_loop(
             );
             renderer = Some((job.controls, model, r));
             loaded = None;
-            if !say(Reply::Renderer {
-                info,
-                samples,
-                volumes,
-            }) {
+            if !say(Reply::Renderer { info, samples }) {
                 return Ok(());
             }
         }
@@ -353,10 +354,10 @@ fn render_loop(
             loaded = Some(chunk);
         }
         // The volume switch: the static part is here, so a bake can start.
-        if job.controls.volume && r.draws_volumes() {
+        if job.controls.volume {
             let ok = match &bake {
                 Bake::Idle => {
-                    let (b, ok) = Bake::start(setup, cfg, &params, say);
+                    let (b, ok) = Bake::start(setup, cfg, &params, r, say);
                     bake = b;
                     ok
                 }

@@ -115,6 +115,9 @@ pub enum BakeError {
     BadOccupancy(String),
     #[error("the bake was stopped")]
     Cancelled,
+    /// The device that evaluated the vertices failed.
+    #[error("the device could not bake: {0}")]
+    Device(String),
 }
 
 /// Everything [`plan_with`] can be told.

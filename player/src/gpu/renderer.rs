@@ -24,13 +24,16 @@ use msth_core::field::ModelLayout;
 use msth_core::pipeline::TimedRay;
 use msth_core::Camera;
 use msth_gpu::passes::FrameScratch;
-use msth_gpu::{GpuSampleCache, Pixels, ReadBack};
+use msth_gpu::{GpuSampleCache, GpuVolume, Pixels, ReadBack, VolumeKernel};
 
 use super::{GpuContext, GpuError, GpuModel, GpuScene, Kernel, ViewU, FLAG_COMPACT, FLAG_LIST};
 use crate::render::{
     classify_static_with_stats, partition_samples, partition_times, ClassifyStats, Frame,
     FrameStats, RenderSettings, Reuse,
 };
+use crate::volume::{bake_set_on_device, BakedVolume};
+use msth_core::volume::bake::bake_slice_with;
+use msth_core::volume::BakeError;
 
 /// Which kernels render rays.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -138,6 +141,16 @@ pub struct GpuRenderer {
     occupancy: Option<Arc<OccupancyGrid>>,
     mlps: GpuMlps,
     mlp_status: MlpStatus,
+    /// The baked volume frames are drawn from ([`GpuRenderer::set_volume`]), on the host (its
+    /// slices are baked there) and on the device.
+    volume: Option<(BakedVolume, GpuVolume)>,
+    /// The march kernel, compiled with the first volume.
+    volume_kernel: Option<VolumeKernel>,
+    /// Why the volume's time slices could not be baked, if they could not (frames then come
+    /// from the exact field).
+    slice_error: Option<String>,
+    /// Whether time slices are baked on the device ([`GpuRenderer::set_device_bake`]).
+    device_bake: bool,
 }
 
 impl GpuRenderer {
@@ -184,6 +197,7 @@ impl GpuRenderer {
             ctx.check_storage(what, bytes)?;
         }
         let no_list = ctx.storage_buffer("empty list", &[], false)?;
+        let ctx_software = ctx.is_software();
         let scratch_budget = ctx.default_scratch_budget();
         Ok(GpuRenderer {
             ctx,
@@ -204,7 +218,73 @@ impl GpuRenderer {
             occupancy: None,
             mlps: GpuMlps::default(),
             mlp_status: MlpStatus::Generic,
+            volume: None,
+            volume_kernel: None,
+            slice_error: None,
+            device_bake: !ctx_software,
         })
+    }
+
+    /// Bakes the volume's time slices on the device (`true`; the default on hardware adapters)
+    /// or on the host's threads (the default on software adapters such as lavapipe, where the
+    /// per-point kernel is two orders of magnitude slower than the host's bake). The slices are
+    /// the same to float rounding either way.
+    pub fn set_device_bake(&mut self, on: bool) {
+        self.device_bake = on;
+    }
+
+    /// Draws frames from `volume` (unless [`RenderSettings::exact`]), uploaded to the device
+    /// here; `None` returns to the exact field. Fails, keeping the exact field, for a volume
+    /// beyond the device's limits or without baked colours ([`GpuVolume::new`]).
+    pub fn set_volume(&mut self, volume: Option<BakedVolume>) -> Result<(), GpuError> {
+        self.volume = None;
+        self.slice_error = None;
+        self.cache = None;
+        let Some(v) = volume else {
+            return Ok(());
+        };
+        if self.volume_kernel.is_none() {
+            self.volume_kernel = Some(VolumeKernel::new(&self.ctx)?);
+        }
+        let g = GpuVolume::new(&self.ctx, &v.volume)?;
+        self.volume = Some((v, g));
+        Ok(())
+    }
+
+    /// Takes the volume back (frames come from the exact field from now on).
+    pub fn take_volume(&mut self) -> Option<BakedVolume> {
+        self.cache = None;
+        self.slice_error = None;
+        self.volume.take().map(|(v, _)| v)
+    }
+
+    /// The volume frames are drawn from, if any.
+    pub fn volume(&self) -> Option<&msth_core::volume::Volume> {
+        self.volume.as_ref().map(|(v, _)| &v.volume)
+    }
+
+    /// Why the volume's time slices could not be baked, if they could not.
+    pub fn slice_error(&self) -> Option<&str> {
+        self.slice_error.as_deref()
+    }
+
+    /// Whether the next frame comes from the volume.
+    pub fn uses_volume(&self) -> bool {
+        self.volume.is_some() && !self.settings.exact && self.slice_error.is_none()
+    }
+
+    /// Switches between the exact field and the volume ([`RenderSettings::exact`]).
+    pub fn set_exact(&mut self, exact: bool) {
+        if self.settings.exact != exact {
+            self.settings.exact = exact;
+            self.cache = None;
+        }
+    }
+
+    /// The most bytes a volume may take on this device by default
+    /// ([`GpuContext::volume_budget`]).
+    pub fn volume_budget(&self) -> u64 {
+        self.ctx.volume_budget()
     }
 
     /// Lets one batch of rays of the per-sample passes take up to `bytes` of scratch memory
@@ -340,6 +420,12 @@ impl GpuRenderer {
             }
         }
         self.uploaded_version = self.params_version;
+        Ok(())
+    }
+
+    /// Compiles the passes for the model ([`GpuMlps::Specialised`]) before its first exact frame
+    /// (frames from a volume need none of them).
+    fn specialise(&mut self) -> Result<(), GpuError> {
         let want = self.mlps == GpuMlps::Specialised && self.kernels == GpuKernels::PerSample;
         if let Some(scene) = &mut self.scene {
             if want && !scene.is_specialised() && !matches!(self.mlp_status, MlpStatus::Refused(_))
@@ -380,6 +466,13 @@ impl GpuRenderer {
             .validate()
             .map_err(|e| GpuError::Model(format!("camera: {e}")))?;
         self.upload(params)?;
+        if self.uses_volume() {
+            let slice_seconds = self.bake_slices(time, params, params_at);
+            if self.slice_error.is_none() {
+                return self.render_volume(camera, time, start, slice_seconds);
+            }
+        }
+        self.specialise()?;
         let (w, h) = (camera.width, camera.height);
         let total = w as usize * h as usize;
         let pixels32 = u32::try_from(total)
@@ -498,6 +591,118 @@ impl GpuRenderer {
             rgb
         };
         stats.seconds = start.elapsed().as_secs_f64();
+        Ok(Frame {
+            width: w,
+            height: h,
+            rgb,
+            stats,
+        })
+    }
+
+    /// Bakes the time slices the volume needs at `time` that it does not hold, their vertices
+    /// evaluated on the device ([`crate::volume::bake_set_on_device`]) or on the host
+    /// ([`GpuRenderer::set_device_bake`]), each with the flat buffer
+    /// at its own time (`params_at`, else `params`); returns the seconds spent. A slice that
+    /// cannot be baked sends frames to the exact field ([`GpuRenderer::slice_error`]).
+    fn bake_slices(
+        &mut self,
+        time: f32,
+        params: &[f32],
+        params_at: &mut dyn FnMut(f32) -> Option<Vec<f32>>,
+    ) -> f64 {
+        let start = Instant::now();
+        let (Some((bv, _)), Some(scene)) = (self.volume.as_mut(), self.scene.as_mut()) else {
+            return 0.0;
+        };
+        let (ctx, cfg, layout) = (&self.ctx, &self.cfg, &self.layout);
+        let on_device = self.device_bake;
+        for k in bv.volume.dynamic.missing_for(time) {
+            let t = bv.plan.slice_times[k];
+            let owned = params_at(t);
+            if !on_device {
+                let p = owned.as_deref().unwrap_or(params);
+                if let Err(e) =
+                    crate::volume::bake_slice(&mut bv.volume, &bv.plan, k, cfg, layout, p)
+                {
+                    self.slice_error = Some(e.to_string());
+                    break;
+                }
+                continue;
+            }
+            let result = (|| {
+                if let Some(p) = &owned {
+                    // Another chunk's parameters for this slice; the frame's go back after it.
+                    self.uploaded_version = None;
+                    scene
+                        .update(ctx, p)
+                        .map_err(|e| BakeError::Device(e.to_string()))?;
+                }
+                let p = owned.as_deref().unwrap_or(params);
+                let plan = bv.plan.clone();
+                bake_slice_with(&mut bv.volume, &plan, k, &mut |set| {
+                    bake_set_on_device(ctx, scene, &plan, cfg, layout, p, set)
+                })?;
+                if owned.is_some() {
+                    scene
+                        .update(ctx, params)
+                        .map_err(|e| BakeError::Device(e.to_string()))?;
+                }
+                Ok::<(), BakeError>(())
+            })();
+            if let Err(e) = result {
+                self.slice_error = Some(e.to_string());
+                break;
+            }
+        }
+        start.elapsed().as_secs_f64()
+    }
+
+    /// A frame through the volume on the device: every pixel marched by `volume_march`, read
+    /// back whole (no cache: a frame costs what a moving camera's does).
+    fn render_volume(
+        &mut self,
+        camera: &Camera,
+        time: f32,
+        start: Instant,
+        slice_seconds: f64,
+    ) -> Result<Frame, GpuError> {
+        let (w, h) = (camera.width, camera.height);
+        let total = w as usize * h as usize;
+        let pixels32 = u32::try_from(total)
+            .map_err(|_| GpuError::Model(format!("{w}x{h} pixels exceed 32-bit indices")))?;
+        // The frame buffer is about to change: the exact path's cache goes.
+        self.cache = None;
+        if self.frame.as_ref().is_none_or(|(_, n)| *n < total) {
+            self.frame = None;
+            self.frame = Some((self.ctx.output_buffer("frame", total)?, total));
+        }
+        let (bv, gv) = self.volume.as_mut().expect("uses_volume checked it");
+        let vol = &bv.volume;
+        let slices = vol.slices_for(msth_core::pipeline::sample_time(time));
+        gv.bind_slices(&self.ctx, vol, slices)?;
+        let scene = self.scene.as_ref().expect("uploaded by the caller");
+        let (frame, _) = self.frame.as_ref().expect("made above");
+        let view = ViewU::new(camera, time, pixels32, 0);
+        let kernel = self
+            .volume_kernel
+            .as_ref()
+            .expect("compiled with the volume");
+        gv.render(&self.ctx, kernel, scene, &view, &self.settings.march, frame)?;
+        let host = Instant::now();
+        let (rgb, empty) =
+            self.ctx
+                .read_vec4_with(frame, total, &mut self.readback, frame_colours)?;
+        let stats = FrameStats {
+            rays_total: total,
+            rays_rendered: total - empty,
+            rays_empty: empty,
+            full: true,
+            volume: true,
+            slice_seconds,
+            host_seconds: host.elapsed().as_secs_f64(),
+            seconds: start.elapsed().as_secs_f64(),
+            ..Default::default()
+        };
         Ok(Frame {
             width: w,
             height: h,
