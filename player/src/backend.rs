@@ -188,6 +188,20 @@ impl FrameRenderer {
         }
     }
 
+    /// Bakes `plan` with `params` on the GPU and waits for it, where the GPU bakes
+    /// ([`GpuRenderer::bake_on_device`]); `None` on the CPU and on software adapters (the bake
+    /// thread, [`crate::volume::BakeJob`], bakes there).
+    pub fn bake_on_device(
+        &mut self,
+        plan: std::sync::Arc<msth_core::volume::BakePlan>,
+        params: &[f32],
+    ) -> Option<Result<crate::volume::BakedVolume, msth_core::volume::BakeError>> {
+        match self {
+            FrameRenderer::Cpu(_) => None,
+            FrameRenderer::Gpu(r) => r.bake_on_device(plan, params),
+        }
+    }
+
     /// Takes the volume frames are drawn from, if any, back from the renderer (it draws from
     /// the exact field from now on).
     pub fn take_volume(&mut self) -> Option<crate::volume::BakedVolume> {

@@ -330,20 +330,39 @@ pub fn play(
                     match plan_bake(&model, &params, grid.as_deref(), &meta.cameras, &vopts) {
                         Ok(plan) => {
                             let note = plan.note();
-                            let mut job = BakeJob::start(plan, &model, params.clone());
-                            if opts.bake_first {
-                                if let Some(r) = job.wait() {
-                                    finish_bake(
-                                        r,
-                                        note,
-                                        i,
-                                        &mut renderer,
-                                        &mut bake,
-                                        &mut volume_note,
-                                    );
-                                }
+                            let plan = std::sync::Arc::new(plan);
+                            // Waited for anyway: on a hardware GPU the device bakes.
+                            let on_device = if opts.bake_first {
+                                renderer.bake_on_device(plan.clone(), &params)
                             } else {
-                                bake_job = Some((job, note));
+                                None
+                            };
+                            match on_device {
+                                Some(r) => finish_bake(
+                                    r.map_err(|e| e.to_string()),
+                                    note,
+                                    i,
+                                    &mut renderer,
+                                    &mut bake,
+                                    &mut volume_note,
+                                ),
+                                None => {
+                                    let mut job = BakeJob::start(plan, &model, params.clone());
+                                    if opts.bake_first {
+                                        if let Some(r) = job.wait() {
+                                            finish_bake(
+                                                r,
+                                                note,
+                                                i,
+                                                &mut renderer,
+                                                &mut bake,
+                                                &mut volume_note,
+                                            );
+                                        }
+                                    } else {
+                                        bake_job = Some((job, note));
+                                    }
+                                }
                             }
                         }
                         Err(e) => {

@@ -285,8 +285,8 @@ pub struct BakeJob {
 
 impl BakeJob {
     /// Starts baking `plan`'s static bricks with a copy of `params`.
-    pub fn start(plan: BakePlan, cfg: &ModelConfig, params: Vec<f32>) -> BakeJob {
-        let plan = Arc::new(plan);
+    pub fn start(plan: impl Into<Arc<BakePlan>>, cfg: &ModelConfig, params: Vec<f32>) -> BakeJob {
+        let plan = plan.into();
         let progress = Arc::new(BakeProgress::default());
         let (p, pr, cfg) = (plan.clone(), progress.clone(), cfg.clone());
         let spawned = std::thread::Builder::new()

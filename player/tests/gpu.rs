@@ -1363,28 +1363,6 @@ fn volume_frames_on_the_gpu_match_the_cpu_march() {
         let cam = test_camera(48, 36);
         let vol = baked_volume(&cfg, &params, &cam, msth_core::volume::ColourMode::Baked);
         assert!(vol.volume.has_dynamic(), "{bounds:?}: no dynamic brick");
-        // The device's bake of the static bricks holds the host's values and cell bits.
-        {
-            let ctx = context();
-            let scene = GpuScene::new(&ctx, GpuModel::new(&cfg).unwrap(), &params).unwrap();
-            let plan = &vol.plan;
-            let on_device = msth_core::volume::bake::bake_with(plan, &mut |set| {
-                msth_player::volume::bake_set_on_device(
-                    &ctx, &scene, plan, &cfg, &layout, &params, set,
-                )
-            })
-            .unwrap();
-            let host = &vol.volume;
-            assert_eq!(on_device.index, host.index);
-            assert_eq!(on_device.occupied, host.occupied, "{bounds:?}: cell bits");
-            let d = on_device
-                .values
-                .iter()
-                .zip(&host.values)
-                .map(|(a, b)| (a - b).abs() / b.abs().max(1.0))
-                .fold(0f32, f32::max);
-            assert!(d < 1e-4, "{bounds:?}: baked values differ by {d}");
-        }
         let settings = RenderSettings {
             exact: false,
             incremental: false,
@@ -1393,8 +1371,28 @@ fn volume_frames_on_the_gpu_match_the_cpu_march() {
         let mut cpu = Renderer::new(&cfg, settings);
         cpu.set_volume(Some(vol.clone()));
         let mut gpu = GpuRenderer::new(context(), &cfg, settings).unwrap();
-        // The slices baked on the device, as on a hardware adapter.
+        // Baked on the device, as on a hardware adapter: the static bricks' values and cell
+        // bits are the host's.
         gpu.set_device_bake(true);
+        let on_device = gpu
+            .bake_on_device(vol.plan.clone(), &params)
+            .expect("the device bakes")
+            .unwrap();
+        let host = &vol.volume;
+        assert_eq!(on_device.volume.index, host.index);
+        assert_eq!(
+            on_device.volume.occupied, host.occupied,
+            "{bounds:?}: cell bits"
+        );
+        let d = on_device
+            .volume
+            .values
+            .iter()
+            .zip(&host.values)
+            .map(|(a, b)| (a - b).abs() / b.abs().max(1.0))
+            .fold(0f32, f32::max);
+        assert!(d < 1e-4, "{bounds:?}: baked values differ by {d}");
+        // The host's static bake from here on; the slices baked on the device.
         gpu.set_volume(Some(vol)).unwrap();
         assert!(gpu.uses_volume());
         let other = Camera::look_at(

@@ -36,8 +36,8 @@
 //!
 //! # Modules
 //! - [`bake`]: choosing the resolution for a memory budget, the bricks to bake, the bake;
-//! - [`march`]: the renderer over a volume (the CPU's; the GPU renderer and the page have no
-//!   volume yet).
+//! - [`march`]: the renderer over a volume on the CPU; msth-gpu's `volume.wgsl` is the same
+//!   march on the GPU (the native player's; the web page has no volume yet).
 
 use crate::config::ModelConfig;
 use crate::pipeline::RENDER_STATIC_CUTOFF;

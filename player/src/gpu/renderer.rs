@@ -251,6 +251,28 @@ impl GpuRenderer {
         Ok(())
     }
 
+    /// Bakes `plan`'s static bricks with `params` on the device, waiting for it, when the
+    /// device bakes ([`GpuRenderer::set_device_bake`]); `None` when the host should (a software
+    /// adapter: the players' bake thread, [`crate::volume::BakeJob`]).
+    pub fn bake_on_device(
+        &mut self,
+        plan: std::sync::Arc<msth_core::volume::BakePlan>,
+        params: &[f32],
+    ) -> Option<Result<BakedVolume, BakeError>> {
+        if !self.device_bake {
+            return None;
+        }
+        if let Err(e) = self.upload(params) {
+            return Some(Err(BakeError::Device(e.to_string())));
+        }
+        let scene = self.scene.as_ref().expect("uploaded above");
+        let (ctx, cfg, layout) = (&self.ctx, &self.cfg, &self.layout);
+        let volume = msth_core::volume::bake::bake_with(&plan, &mut |set| {
+            bake_set_on_device(ctx, scene, &plan, cfg, layout, params, set)
+        });
+        Some(volume.map(|volume| BakedVolume { volume, plan }))
+    }
+
     /// Takes the volume back (frames come from the exact field from now on).
     pub fn take_volume(&mut self) -> Option<BakedVolume> {
         self.cache = None;
