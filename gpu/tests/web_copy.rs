@@ -1,6 +1,7 @@
-//! The browser page's `web/shaders/render.wgsl` and `web/shaders/tables_f16.wgsl` are generated
-//! copies of this crate's render shader as composed from the modules of `shaders/render/`
-//! ([`msth_gpu::RENDER_WGSL`], `msth_gpu::shaders`) and of `shaders/tables_f16.wgsl`
+//! The browser page's `web/shaders/render.wgsl`, `web/shaders/volume.wgsl` and
+//! `web/shaders/tables_f16.wgsl` are generated copies of this crate's render shader and volume
+//! march as composed from the modules of `shaders/render/` ([`msth_gpu::RENDER_WGSL`],
+//! [`msth_gpu::VOLUME_WGSL`], `msth_gpu::shaders`) and of `shaders/tables_f16.wgsl`
 //! ([`msth_gpu::layout::TABLES_F16_WGSL`], the binary16 tables' region): this test fails when a
 //! copy differs by a byte, so the native and the web renderers cannot drift apart.
 //! `MSTH_UPDATE_WEB_WGSL=1` rewrites the copies (each through a temporary file and a rename)
@@ -21,6 +22,11 @@ fn web_page_wgsl_is_the_crate_wgsl() {
             "render.wgsl",
             msth_gpu::RENDER_WGSL,
             "the composition of gpu/shaders/render/",
+        ),
+        (
+            "volume.wgsl",
+            msth_gpu::VOLUME_WGSL,
+            "the composition of gpu/shaders/render/ from `volume`",
         ),
         (
             "tables_f16.wgsl",
