@@ -266,6 +266,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
             .header_read_timeout
             .as_secs_f64(),
         cache_mib: msth_server::DEFAULT_CACHE_BYTES >> 20,
+        rate_limit: None,
     })?;
     let web_page = config.web_dir.is_some();
     let server =

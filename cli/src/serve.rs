@@ -33,6 +33,11 @@ pub struct ServeArgs {
     /// streamed from disk). 0: every response is read from disk.
     #[arg(long, default_value_t = msth_server::DEFAULT_CACHE_BYTES >> 20, value_name = "MIB")]
     pub cache_mib: u64,
+    /// Pace every response to RATE bytes/s (units k, M, G of bytes or kbit, mbit, gbit: `10mbit`),
+    /// optionally changing over the server's lifetime: `50mbit,3mbit@5,50mbit@10` (seconds since
+    /// start). A slow or changing link on loopback, to test players with.
+    #[arg(long, value_name = "RATE[,RATE@SECONDS...]")]
+    pub rate_limit: Option<String>,
 }
 
 /// The server `msth serve` starts for `args` (`msth demo` starts the same one in-process).
@@ -42,6 +47,12 @@ pub(crate) fn server_config(args: &ServeArgs) -> anyhow::Result<msth_server::Ser
     config.web_dir = args.web.clone().or_else(default_web_dir);
     config.limits.max_connections = args.max_connections.max(1);
     config.limits.max_connections_per_ip = args.max_connections_per_ip.max(1);
+    config.rate_limit = args
+        .rate_limit
+        .as_deref()
+        .map(msth_server::throttle::RateSchedule::parse)
+        .transpose()
+        .map_err(|e| anyhow::anyhow!("--rate-limit {e}"))?;
     config.cache_bytes = args
         .cache_mib
         .checked_mul(1 << 20)

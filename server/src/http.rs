@@ -30,6 +30,8 @@ pub(crate) struct AppState {
     pub cache: Arc<FileCache>,
     pub web_dir: Option<Arc<std::path::Path>>,
     pub limits: Limits,
+    /// `--rate-limit`: the schedule and when the server started.
+    pub rate_limit: Option<(Arc<crate::throttle::RateSchedule>, Instant)>,
 }
 
 pub(crate) fn router(state: AppState) -> Router {
@@ -453,6 +455,9 @@ async fn guard_cors_log(State(state): State<AppState>, request: Request, next: N
     } else {
         next.run(request).await
     };
+    if let Some((schedule, start)) = &state.rate_limit {
+        response = response.map(|b| crate::throttle::throttle(b, schedule.clone(), *start));
+    }
     let h = response.headers_mut();
     h.insert(
         header::ACCESS_CONTROL_ALLOW_ORIGIN,

@@ -23,6 +23,7 @@ pub mod catalog;
 mod http;
 pub mod listener;
 pub mod range;
+pub mod throttle;
 mod web;
 
 use std::future::Future;
@@ -101,6 +102,9 @@ pub struct ServerConfig {
     /// Bytes of served files held in memory at most (default 256 MiB; 0: every response read
     /// from disk). Files larger than a quarter of it are always streamed from disk.
     pub cache_bytes: u64,
+    /// Every response body paced to this rate (bytes/s, over the server's lifetime): a slow or
+    /// changing link on loopback, for testing players ([`throttle`]). `None`: no limit.
+    pub rate_limit: Option<throttle::RateSchedule>,
 }
 
 /// The default of [`ServerConfig::cache_bytes`].
@@ -118,6 +122,7 @@ impl ServerConfig {
             web_dir: None,
             limits: Limits::default(),
             cache_bytes: DEFAULT_CACHE_BYTES,
+            rate_limit: None,
         }
     }
 }
@@ -157,6 +162,10 @@ impl Server {
             cache: Arc::new(cache::FileCache::new(config.cache_bytes)),
             web_dir,
             limits: config.limits,
+            rate_limit: config
+                .rate_limit
+                .clone()
+                .map(|s| (Arc::new(s), std::time::Instant::now())),
         });
         Ok(Self {
             tcp,
