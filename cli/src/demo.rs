@@ -56,7 +56,7 @@ pub const DEMO_LEARNING_RATE: f32 = 2e-2;
 /// The demo's schedule: the fast preset's model, trained in smaller batches at twice the
 /// learning rate, up to the preset's number of rays (4 x 1400 steps of 512). In a fixed time
 /// this reaches a better model, most of all on a slow host, so the demo's quality follows the
-/// machine less (docs/tuning.md, "The demo on a slower host").
+/// machine less (docs/tuning.md, "The demo's schedule").
 pub fn demo_schedule(settings: &mut TrainSettings) {
     let rays = settings.iters * settings.batch_rays;
     settings.batch_rays = DEMO_BATCH_RAYS;
