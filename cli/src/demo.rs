@@ -28,13 +28,13 @@ use serde::Serialize;
 use msth_codec::{EncodeOptions, QuantMode};
 use msth_core::config::Preset;
 use msth_core::Camera;
+use msth_dataset::imageio::save_png_atomic;
+use msth_dataset::Image8;
 use msth_player::path::Rig;
 use msth_player::play::make_video;
 use msth_player::{play, BackendChoice, Frame, PlayOptions, PlayReport};
 use msth_server::BackgroundServer;
 use msth_trainer::checkpoint::{write_atomic, Checkpoint};
-use msth_trainer::dataset::Image8;
-use msth_trainer::imageio::save_png_atomic;
 use msth_trainer::synth::{generate, SynthConfig};
 use msth_trainer::train::{train as run_training, TrainSettings};
 

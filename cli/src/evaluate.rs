@@ -10,10 +10,10 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 
 use msth_codec::decode::decode_all;
+use msth_dataset::imageio::{panel, save_png_atomic};
+use msth_dataset::Image8;
 use msth_player::render::{Frame, RenderSettings, Renderer};
 use msth_player::volume::{bake, plan_bake};
-use msth_trainer::dataset::Image8;
-use msth_trainer::imageio::{panel, save_png_atomic};
 use msth_trainer::metrics::{psnr, ssim};
 
 use crate::{commands, data, EvalArgs, EvalRenderer};

@@ -29,11 +29,11 @@ use crate::adam::{Adam, AdamConfig, ScaledSlice};
 use crate::checkpoint::{
     AuxCheckpoint, Checkpoint, CheckpointError, CheckpointFormatError, CheckpointHeader,
 };
-use crate::dataset::Dataset;
 use crate::device::{self, DeviceError, GpuTraining, TrainDevice};
 use crate::ray_sampling::{
     InvalidSamplingConfig, PixelMotion, RaySampler, SamplingConfig, SamplingError, SamplingMode,
 };
+use msth_dataset::Dataset;
 
 /// Every knob of a training run. Presets fill it; a config file and `--set key=value` override
 /// any field (see [`TrainSettings::apply_overrides`]).
