@@ -38,10 +38,10 @@ use msth_trainer::checkpoint::{write_atomic, Checkpoint};
 use msth_trainer::synth::{generate, SynthConfig};
 use msth_trainer::train::{train as run_training, TrainSettings};
 
-use crate::commands::{eval_trained, progress_bar, report};
 use crate::export::{mb, write_msth};
 use crate::play::parse_size;
 use crate::serve::{server_config, ServeArgs};
+use crate::training::{eval_trained, progress_bar, report};
 
 /// Training-time budget of `msth demo` in seconds: with the other stages (about 25 s on 2 cores)
 /// the whole demo ends within about 3.5 minutes.

@@ -368,7 +368,7 @@ fn run_one(
     }
     let every = (s.iters / 10).max(1);
     let (trainer, outcome) = train(data, s, dir, resume, &mut |p| {
-        crate::commands::print_notes(pb, p);
+        crate::training::print_notes(pb, p);
         pb.set_position(base + p.step as u64);
         if p.step.is_multiple_of(10) {
             pb.set_message(format!("{name}: loss {:.5}", p.loss));

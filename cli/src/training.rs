@@ -1,4 +1,5 @@
-//! The subcommands that train, evaluate and render.
+//! The subcommands around a training run: `msth synth` (a dataset), `msth train`, `msth eval`
+//! and `msth render` (a checkpoint's held-out views and frames).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
