@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # GPU figures in one prepared call of the `device` tool (a lent NVIDIA H100/H200; see
-# docs/playback.md, "Measuring on a lent GPU"). The device machine has no Rust toolchain and no
-# network, and a session has 15 minutes of device time, starts included: everything is built
-# and packed here, and one command there runs every measurement.
+# docs/performance.md, "Playback benchmarks, and a run for a lent GPU"). The device machine has
+# no Rust toolchain and no network, and is lent for minutes of device time, starts included:
+# everything is built and packed here, and one command there runs every measurement.
 #
 #   tools/device-bench.sh pack [DEMO.msth STAGE.msth [STAGE2.msth]]  # here: build, pack into .device/
 #   DEVICE_BENCH_BASE=COMMIT tools/device-bench.sh pack ...  # also that commit's bench_gpu_play
@@ -14,9 +14,10 @@
 # minutes on 2 cores; STAGE2, optional, is the stage model's checkpoint exported again with other
 # export settings, e.g. a newer default, timed right after STAGE) and downloads the Vulkan loader
 # packages into .gl/. Both folders are kept
-# out of git through .git/info/exclude. Then, from the session:
+# out of git through .git/info/exclude. Then, on the GPU machine, with .device/ and .gl/ carried
+# over:
 #
-#   run(command="bash tools/device-bench.sh run", carry=[".device", ".gl"], timeout_s=540)
+#   bash tools/device-bench.sh run
 #
 # `run` writes report.txt under $OUT (or .device/out when $OUT is unset): the adapter, then per
 # model a moving camera's playback from the play-time volume against the exact field (`msth play

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The occupancy grid written by `msth export` against the density-only grid, on one checkpoint
-# (docs/playback.md, "Carving to what the training cameras see"): exports both, renders a
+# (docs/playback.md, "The occupancy grid"): exports both, renders a
 # held-out camera at every frame with each (full frames on the CPU), and prints the held-out
 # PSNR of both against the dataset's frames, the worst frame of one against the other, and
 # the CPU full-frame rate of both at that camera (two rounds, alternated).

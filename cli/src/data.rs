@@ -7,9 +7,9 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 
-use msth_trainer::dataset::cache::FrameStorage;
-use msth_trainer::dataset::dynerf::{FrameSource, Normalization};
-use msth_trainer::dataset::{self, detect, Dataset, Format, LoadOptions};
+use msth_dataset::cache::FrameStorage;
+use msth_dataset::dynerf::{FrameSource, Normalization};
+use msth_dataset::{detect, Dataset, Format, LoadOptions};
 use msth_trainer::synth::{generate, SynthConfig};
 
 /// Frames larger than this (in bytes, all views) go to a frame cache on disk by default.
@@ -59,7 +59,7 @@ impl DataArgs {
 
 /// A progress bar (a line every 5% when stderr is not a terminal) for decoding frames into
 /// memory or into a frame cache; it appears on the first frame.
-fn decode_progress() -> Arc<msth_trainer::dataset::cache::ProgressFn> {
+fn decode_progress() -> Arc<msth_dataset::cache::ProgressFn> {
     let bar: Mutex<Option<ProgressBar>> = Mutex::new(None);
     Arc::new(move |done, total| {
         let Ok(mut guard) = bar.lock() else { return };
@@ -140,5 +140,6 @@ pub fn load(arg: &str, args: &DataArgs, out: &Path) -> Result<Dataset> {
         progress: Some(decode_progress()),
         ..Default::default()
     };
-    dataset::load(dir, &opts).with_context(|| format!("loading dataset {arg} ({format:?} layout)"))
+    msth_dataset::load(dir, &opts)
+        .with_context(|| format!("loading dataset {arg} ({format:?} layout)"))
 }

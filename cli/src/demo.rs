@@ -28,20 +28,20 @@ use serde::Serialize;
 use msth_codec::{EncodeOptions, QuantMode};
 use msth_core::config::Preset;
 use msth_core::Camera;
+use msth_dataset::imageio::save_png_atomic;
+use msth_dataset::Image8;
 use msth_player::path::Rig;
 use msth_player::play::make_video;
 use msth_player::{play, BackendChoice, Frame, PlayOptions, PlayReport};
 use msth_server::BackgroundServer;
 use msth_trainer::checkpoint::{write_atomic, Checkpoint};
-use msth_trainer::dataset::Image8;
-use msth_trainer::imageio::save_png_atomic;
 use msth_trainer::synth::{generate, SynthConfig};
 use msth_trainer::train::{train as run_training, TrainSettings};
 
-use crate::commands::{eval_trained, progress_bar, report};
 use crate::export::{mb, write_msth};
 use crate::play::parse_size;
 use crate::serve::{server_config, ServeArgs};
+use crate::training::{eval_trained, progress_bar, report};
 
 /// Training-time budget of `msth demo` in seconds: with the other stages (about 25 s on 2 cores)
 /// the whole demo ends within about 3.5 minutes.
@@ -56,7 +56,7 @@ pub const DEMO_LEARNING_RATE: f32 = 2e-2;
 /// The demo's schedule: the fast preset's model, trained in smaller batches at twice the
 /// learning rate, up to the preset's number of rays (4 x 1400 steps of 512). In a fixed time
 /// this reaches a better model, most of all on a slow host, so the demo's quality follows the
-/// machine less (docs/tuning.md, "The demo on a slower host").
+/// machine less (docs/tuning.md, "The demo's schedule").
 pub fn demo_schedule(settings: &mut TrainSettings) {
     let rays = settings.iters * settings.batch_rays;
     settings.batch_rays = DEMO_BATCH_RAYS;

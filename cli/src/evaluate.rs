@@ -10,13 +10,13 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 
 use msth_codec::decode::decode_all;
+use msth_dataset::imageio::{panel, save_png_atomic};
+use msth_dataset::Image8;
 use msth_player::render::{Frame, RenderSettings, Renderer};
 use msth_player::volume::{bake, plan_bake};
-use msth_trainer::dataset::Image8;
-use msth_trainer::imageio::{panel, save_png_atomic};
 use msth_trainer::metrics::{psnr, ssim};
 
-use crate::{commands, data, EvalArgs, EvalRenderer};
+use crate::{data, training, EvalArgs, EvalRenderer};
 
 #[derive(Serialize)]
 struct FrameScore {
@@ -55,7 +55,7 @@ pub fn eval_file(a: &EvalArgs) -> Result<()> {
         .with_context(|| format!("reading {}", a.checkpoint.display()))?;
     let model =
         decode_all(&bytes).with_context(|| format!("decoding {}", a.checkpoint.display()))?;
-    let (cfg, fewer) = commands::with_samples(&model.config, a.samples)?;
+    let (cfg, fewer) = training::with_samples(&model.config, a.samples)?;
     let out = a.out.clone().unwrap_or_else(|| {
         let stem = a
             .checkpoint

@@ -14,8 +14,8 @@ use std::path::Path;
 
 use anyhow::anyhow;
 use clap::Args;
+use msth_codec::dynamic_rows::dynamic_region;
 use msth_codec::format::FixedHeader;
-use msth_codec::select::dynamic_region;
 use msth_codec::{decode_all_with_limits, DecodedModel, FileIndex, Limits};
 use msth_player::source::{self, ByteSource, HttpOptions};
 use serde_json::{json, Value};

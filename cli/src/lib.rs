@@ -3,7 +3,6 @@
 
 #[cfg(feature = "bench")]
 mod bench;
-mod commands;
 pub mod data;
 mod demo;
 mod evaluate;
@@ -14,6 +13,7 @@ mod interrupt;
 mod play;
 mod scenegen;
 mod serve;
+mod training;
 #[cfg(feature = "view")]
 mod view;
 
@@ -300,10 +300,10 @@ where
     }
     match cli.command {
         Command::Demo(a) => demo::run(a),
-        Command::Synth(a) => commands::synth(a),
-        Command::Train(a) => commands::train(a).map(|_| ()),
-        Command::Eval(a) => commands::eval(a),
-        Command::Render(a) => commands::render(a),
+        Command::Synth(a) => training::synth(a),
+        Command::Train(a) => training::train(a).map(|_| ()),
+        Command::Eval(a) => training::eval(a),
+        Command::Render(a) => training::render(a),
         #[cfg(feature = "bench")]
         Command::Bench(a) => bench::run(a),
         Command::Export(a) => export::export(a),

@@ -7,6 +7,7 @@ use msth_core::config::ModelConfig;
 use msth_core::field::ModelLayout;
 use msth_core::Camera;
 
+use crate::dynamic_rows::{dynamic_region, reached_rows};
 use crate::error::EncodeError;
 use crate::format::{
     index_offset, prefix_size, write_entry, ChunkSpan, FixedHeader, Metadata, QuantMode,
@@ -16,7 +17,6 @@ use crate::occupancy::{
     OccupancyGrid, DEFAULT_OCCUPANCY_ALPHA, DEFAULT_OCCUPANCY_RESOLUTION, MAX_OCCUPANCY_RESOLUTION,
 };
 use crate::sections::{write_chunk, write_static, Encodings, StaticPart, SHARED_TAG};
-use crate::select::{dynamic_region, reached_rows};
 
 /// What the encoder is asked to do.
 #[derive(Clone, Debug, PartialEq)]

@@ -12,17 +12,17 @@
 //!   renders directly, and [`DecodedModel::params_for_time`] for a player's per-chunk buffer.
 //!
 //! Modules: [`format`] (header, metadata, index, limits), [`quant`] (value blocks and
-//! quantisation), [`sections`] (section payloads), [`select`] (which 4D rows a chunk keeps),
+//! quantisation), [`sections`] (section payloads), [`dynamic_rows`] (which 4D rows a chunk keeps),
 //! [`occupancy`] (the occupancy grid and how export computes it), [`error`]. This crate knows the model's layout, not how it was trained.
 
 pub mod decode;
+pub mod dynamic_rows;
 pub mod encode;
 pub mod error;
 pub mod format;
 pub mod occupancy;
 pub mod quant;
 pub mod sections;
-pub mod select;
 
 pub use decode::{decode_all, decode_all_with_limits, DecodedModel, Decoder};
 pub use encode::{encode, ChunkReport, EncodeOptions, EncodeReport, SectionReport};

@@ -28,7 +28,7 @@ pub const OCCUPANCY_HEADER: usize = 16;
 pub const MAX_OCCUPANCY_RESOLUTION: u64 = 512;
 /// The writer's default resolution (cells per axis). 128 since 2026-11-30 (64 before): on a
 /// forward-facing stage the finer grid leaves a third fewer live proposal samples in a training
-/// camera's view at the same held-out PSNR (docs/playback.md, "A finer occupancy grid").
+/// camera's view at the same held-out PSNR (docs/playback.md, "The occupancy grid").
 pub const DEFAULT_OCCUPANCY_RESOLUTION: u32 = 128;
 /// The writer's default opacity budget: the density threshold is the one at which a ray crossing
 /// the whole grid along its diagonal (world units of the scene's uncontracted part) would reach
@@ -497,7 +497,7 @@ fn mark_cube(
 /// between its ray and the neighbouring cast rays, `stride` pixels away. On a grid finer than
 /// the cast rays, marking only the cells of the midpoints left holes that a view from elsewhere
 /// saw as missing haze or surface (at 128^3: 29 dB against the unskipped frame on an orbit of
-/// the demo model, against 41 dB with footprints; docs/playback.md, "A finer occupancy grid").
+/// the demo model, against 41 dB with footprints; docs/playback.md, "The occupancy grid").
 ///
 /// `msth export` keeps the cells of the density grid ([`compute`]) that are also in this grid:
 /// density the training cameras look through or never reach past a surface, such as haze

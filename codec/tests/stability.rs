@@ -311,7 +311,7 @@ mod files {
 }
 
 mod selection {
-    use msth_codec::select::{reached_rows, DynamicRegion};
+    use msth_codec::dynamic_rows::{reached_rows, DynamicRegion};
     use msth_core::grid::{GridConfig, GridLayout};
     use msth_core::rng::Rng;
 

@@ -14,7 +14,7 @@ use msth_core::field::FieldLayout;
 use msth_core::sh::SH_COEFFS;
 
 use crate::device::ComputeDevice;
-use crate::glue::{Blend, Columns, GlueKernels};
+use crate::elementwise::{Blend, Columns, ElementwiseKernels};
 use crate::hashgrid::{AtomicMode, GpuGrid, HashGridKernels};
 use crate::mask::{GpuMask, MaskKernels};
 use crate::mlp::{GpuMlp, MlpKernels, OutputActivation};
@@ -26,7 +26,7 @@ pub struct FieldKernels {
     pub grid: HashGridKernels,
     pub mask: MaskKernels,
     pub mlp: MlpKernels,
-    pub glue: GlueKernels,
+    pub elementwise: ElementwiseKernels,
     pub sh: ShKernel,
 }
 
@@ -36,7 +36,7 @@ impl FieldKernels {
             grid: HashGridKernels::new(dev, mode)?,
             mask: MaskKernels::new(dev, mode)?,
             mlp: MlpKernels::new(dev, mode)?,
-            glue: GlueKernels::new(dev)?,
+            elementwise: ElementwiseKernels::new(dev)?,
             sh: ShKernel::new(dev)?,
         })
     }
@@ -218,7 +218,8 @@ impl GpuField {
         k.grid.forward(dev, &self.grid3, params, points, n, &b.h3)?;
         k.grid.forward(dev, &self.grid4, params, points, n, &b.h4)?;
         k.mask.forward(dev, &self.mask, params, points, n, &b.m)?;
-        k.glue.blend_forward(dev, &self.blend(b, n), &b.enc)?;
+        k.elementwise
+            .blend_forward(dev, &self.blend(b, n), &b.enc)?;
         k.mlp.forward(
             dev,
             &self.density,
@@ -233,7 +234,7 @@ impl GpuField {
         };
         k.sh.encode(dev, dirs, n, &b.colour_in, cw, 0)?;
         let at = |stride, first| Columns { stride, first };
-        k.glue.copy_columns(
+        k.elementwise.copy_columns(
             dev,
             n,
             geo,
@@ -287,11 +288,18 @@ impl GpuField {
                 Some((SH_COEFFS, &b.d_geo)),
             )?;
         }
-        k.glue
+        k.elementwise
             .copy_columns(dev, n, 1, d_sigma, at(1, 0), &b.d_density, at(dw, 0))?;
         if geo > 0 {
-            k.glue
-                .copy_columns(dev, n, geo, &b.d_geo, at(geo, 0), &b.d_density, at(dw, 1))?;
+            k.elementwise.copy_columns(
+                dev,
+                n,
+                geo,
+                &b.d_geo,
+                at(geo, 0),
+                &b.d_density,
+                at(dw, 1),
+            )?;
         }
         k.mlp.backward(
             dev,
@@ -304,7 +312,7 @@ impl GpuField {
             grad,
             Some((0, &b.d_enc)),
         )?;
-        k.glue.blend_backward(
+        k.elementwise.blend_backward(
             dev,
             &self.blend(b, n),
             &b.d_enc,

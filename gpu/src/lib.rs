@@ -21,7 +21,7 @@
 //! - [`sh`]: the view-direction encoding (spherical harmonics, forward);
 //! - [`adam`]: Adam over the flat parameter buffer (the trainer's update, mask loss fused);
 //! - [`composite`]: volume rendering of ray batches, forward and backward (scans per ray);
-//! - [`glue`]: the encoding blend and column copies that chain a field's kernels;
+//! - [`elementwise`]: the encoding blend and column copies that chain a field's kernels;
 //! - [`losses`]: per-ray losses (colour MSE and its dC; distortion and interlevel losses, values
 //!   and gradients) and the per-sample mask loss;
 //! - [`sampling`]: where a step's samples go (stratified proposal samples, inverse-CDF
@@ -208,8 +208,8 @@
 pub mod adam;
 pub mod composite;
 pub mod device;
+pub mod elementwise;
 pub mod field;
-pub mod glue;
 pub mod hashgrid;
 pub mod layout;
 pub mod losses;

@@ -17,7 +17,7 @@
 //! bindings plus `work` (one read-write f32 buffer holding every intermediate array at word
 //! offsets given in the `Pass` uniform), `ctrl` (the atomic counters), the `Pass` uniform and
 //! the file's occupancy grid (`pass_density` and `pass_visible` skip samples in its empty
-//! cells, as msth-player's `skip.rs`). One buffer for the intermediates rather than one binding
+//! cells, as msth-player's `empty_space.rs`). One buffer for the intermediates rather than one binding
 //! each keeps every pass within WebGPU's default of 8 storage buffers per stage (8 used) and
 //! lets one bind group serve all
 //! nine dispatches. Per sample the passes keep `(r, g, b, sigma)` and the geometry features,

@@ -169,8 +169,8 @@ pub(crate) fn pick_adapter(policy: AdapterPolicy) -> Result<wgpu::Adapter, GpuEr
 
 /// Scratch per batch of a frame's rays on a discrete GPU (the adapter's binding limit still
 /// applies): fewer, fuller batches. On an NVIDIA H200 a 1352x1014 frame of a balanced stage model
-/// took 5 batches instead of 38, at 9.9 instead of 8.3 FPS (docs/playback.md, "On an NVIDIA
-/// H200 again").
+/// took 5 batches instead of 38, at 9.9 instead of 8.3 FPS (docs/playback.md, "Measured on an
+/// NVIDIA H200").
 pub const DISCRETE_FRAME_WORK_BYTES: u64 = 1 << 30;
 
 /// The line of `render.wgsl` that sets how many samples one invocation of the per-sample passes
@@ -180,8 +180,8 @@ const LANES_LINE: &str = "const LANES: u32 = 4u;\n";
 /// Samples per invocation of the per-sample passes that [`GpuContext::open_with_kernels`]
 /// compiles when not told: the kernels' own. Four samples share each MLP weight read, which
 /// software adapters (lavapipe, SwiftShader) gather lane by lane: on lavapipe, fewer lanes are
-/// slower; no hardware GPU has measured the others yet (docs/playback.md, "Batches, lanes and
-/// a profile on the device's clock").
+/// slower; no hardware GPU has measured the others yet (docs/playback.md, "Batches and
+/// lanes").
 pub const DEFAULT_LANES: u32 = 4;
 
 /// `wgsl` (a `render.wgsl`) with the per-sample passes evaluating `lanes` samples per

@@ -37,8 +37,8 @@ use msth_core::pipeline::{
 use crate::adam::{AdamHyper, AdamKernel, GpuAdam, MaskSlice};
 use crate::composite::{CompositeBuffers, CompositeKernels, CompositeMode, GpuRays};
 use crate::device::ComputeDevice;
+use crate::elementwise::Columns;
 use crate::field::{FieldBuffers, FieldKernels, GpuField};
-use crate::glue::Columns;
 use crate::hashgrid::AtomicMode;
 use crate::losses::{
     ColorLossKernel, DistortionKernel, FreeSpaceKernel, InterlevelKernel, LevelSamples,
@@ -430,7 +430,7 @@ impl GpuStep {
             n_p,
             &self.prop_bufs,
         )?;
-        k.field.glue.copy_columns(
+        k.field.elementwise.copy_columns(
             dev,
             n_p,
             1,
@@ -479,7 +479,7 @@ impl GpuStep {
             &self.main_bufs,
         )?;
         let dw = self.main.layout().density.0.output_dim();
-        k.field.glue.copy_columns(
+        k.field.elementwise.copy_columns(
             dev,
             n_m,
             1,
@@ -573,9 +573,9 @@ impl GpuStep {
             Some(&self.d_w_main),
             &lm.d_sample,
         )?;
-        let glue = &k.field.glue;
-        glue.copy_columns(dev, n_m, 1, &lm.d_sample, at(4, 0), &lm.d_sigma, at(1, 0))?;
-        glue.copy_columns(dev, n_m, 3, &lm.d_sample, at(4, 1), &self.d_rgb, at(3, 0))?;
+        let elementwise = &k.field.elementwise;
+        elementwise.copy_columns(dev, n_m, 1, &lm.d_sample, at(4, 0), &lm.d_sigma, at(1, 0))?;
+        elementwise.copy_columns(dev, n_m, 3, &lm.d_sample, at(4, 1), &self.d_rgb, at(3, 0))?;
         k.composite.backward_with(
             dev,
             &ranges.prop,
@@ -585,7 +585,7 @@ impl GpuStep {
             Some(&self.d_w_prop),
             &lp.d_sample,
         )?;
-        glue.copy_columns(dev, n_p, 1, &lp.d_sample, at(4, 0), &lp.d_sigma, at(1, 0))?;
+        elementwise.copy_columns(dev, n_p, 1, &lp.d_sample, at(4, 0), &lp.d_sigma, at(1, 0))?;
         self.main.backward(
             dev,
             &k.field,

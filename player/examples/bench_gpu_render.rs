@@ -14,9 +14,9 @@
 //! `MSTH_BENCH_SKIP_PER_RAY=1` skips the old kernel, which takes minutes on software adapters
 //! for large frames; `MSTH_BENCH_OLD_WGSL=FILE` compiles the old kernel from another version of
 //! `render.wgsl`, e.g. `git show a04e488:gpu/shaders/render.wgsl`, the kernels before the
-//! per-sample passes were optimised (a file from before session 47 reads the proposal field's
+//! per-sample passes were optimised (a file from 67e1290 or before reads the proposal field's
 //! tables from `rest`, where the uniform no longer points: run it with a binary of its time,
-//! e.g. one built from 67e1290; the passes of a file from before session 48 call the compiled
+//! e.g. one built from 67e1290; the passes of a file from 83ea3f1 or before call the compiled
 //! encodings without their `with4` argument, so this binary compiles them generic: give those
 //! call sites `, true` to time them compiled), and `MSTH_BENCH_OLD_KERNELS=passes` times that file's
 //! per-sample passes instead of its per-ray kernel, `MSTH_BENCH_OLD_KERNELS=generic` the generic

@@ -7,7 +7,7 @@
 //!   cached, dynamic rays re-rendered);
 //! - [`samples`]: sample-level reuse on the dynamic rays (fixed samples, only dynamic ones
 //!   evaluated per frame);
-//! - [`skip`]: empty-space skipping with the file's occupancy grid;
+//! - [`empty_space`]: empty-space skipping with the file's occupancy grid;
 //! - [`gpu`]: the same on a GPU through wgpu, with the WGSL kernels of `msth-gpu`;
 //! - [`backend`]: the choice between the two (automatic, `--cpu`, `--gpu`);
 //! - [`path`]: camera paths (fixed, orbit, spiral, the file's cameras, JSON);
@@ -18,13 +18,13 @@
 //! The player links the codec and the field math, never the trainer.
 
 pub mod backend;
+pub mod empty_space;
 pub mod gpu;
 pub mod path;
 pub mod play;
 pub mod policy;
 pub mod render;
 pub mod samples;
-pub mod skip;
 pub mod source;
 pub mod stream;
 pub mod volume;

@@ -11,7 +11,7 @@
 //!
 //! Empty space is skipped: rays that miss the scene box are never evaluated (they show the
 //! background), the proposal field concentrates the samples of the others on surfaces, samples
-//! in cells the file's occupancy grid marks empty skip the main field ([`crate::skip`],
+//! in cells the file's occupancy grid marks empty skip the main field ([`crate::empty_space`],
 //! [`Renderer::set_occupancy`]), and samples hidden behind surfaces skip the colour decoder
 //! ([`msth_core::pipeline`]).
 //!
@@ -32,8 +32,8 @@ use msth_core::volume::{MarchSettings, Volume};
 
 use crate::volume::BakedVolume;
 
+use crate::empty_space::{render_chunk_skipping, SkipWorkspace};
 use crate::samples::{cache_bytes_bound, SampleCache};
-use crate::skip::{render_chunk_skipping, SkipWorkspace};
 
 /// How frames are rendered.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -292,7 +292,7 @@ pub struct Renderer {
     layout: ModelLayout,
     settings: RenderSettings,
     cache: Option<Cache>,
-    /// The file's occupancy grid: samples in empty cells are skipped ([`crate::skip`]).
+    /// The file's occupancy grid: samples in empty cells are skipped ([`crate::empty_space`]).
     occupancy: Option<Arc<OccupancyGrid>>,
     /// The baked volume frames are drawn from ([`Renderer::set_volume`]).
     volume: Option<BakedVolume>,
@@ -364,7 +364,7 @@ pub fn render_rays(
 }
 
 /// [`render_rays`], skipping the main field's samples in the cells `occupancy` marks empty
-/// ([`crate::skip`]; `None` evaluates every sample).
+/// ([`crate::empty_space`]; `None` evaluates every sample).
 pub fn render_rays_skipping(
     cfg: &ModelConfig,
     layout: &ModelLayout,

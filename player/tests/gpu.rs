@@ -463,7 +463,7 @@ fn gpu_frames_match_cpu_frames_full_and_incremental() {
 }
 
 /// With the file's occupancy grid (here: every cell with `x < R / 2` empty) the GPU renderer
-/// skips what the CPU renderer skips (`skip.rs`): full and incremental frames (whole dynamic
+/// skips what the CPU renderer skips (`empty_space.rs`): full and incremental frames (whole dynamic
 /// rays) equal the CPU renderer's with the same grid, the grid changes the frame, and without a
 /// grid (a version-1 file) frames are the unskipped ones again.
 fn gpu_frames_with_an_occupancy_grid_match_the_cpu_renderer() {

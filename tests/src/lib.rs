@@ -5,8 +5,8 @@
 use std::path::{Path, PathBuf};
 
 use msth_core::config::Preset;
+use msth_dataset::Dataset;
 use msth_testkit::Need;
-use msth_trainer::dataset::Dataset;
 use msth_trainer::synth::{generate, SynthConfig};
 use msth_trainer::train::TrainSettings;
 

@@ -101,8 +101,8 @@ fn images_of_mixed_sizes() {
     let json = d.join("transforms_train.json");
     let img = training_image(&d, 1);
     // A valid PNG of another size.
-    let small = msth_trainer::dataset::Image8::new(8, 8);
-    msth_trainer::imageio::save_png_atomic(&img, &small).unwrap();
+    let small = msth_dataset::Image8::new(8, 8);
+    msth_dataset::imageio::save_png_atomic(&img, &small).unwrap();
     // Without explicit w/h in the JSON the size mismatch is caught between images.
     edit_json(&json, |v| {
         for k in ["w", "h"] {

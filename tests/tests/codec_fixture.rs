@@ -19,7 +19,7 @@ use std::path::{Path, PathBuf};
 
 use msth_codec::{decode_all, encode, EncodeOptions, QuantMode};
 use msth_core::field::ModelLayout;
-use msth_trainer::dataset::Image8;
+use msth_dataset::Image8;
 use msth_trainer::eval::render_image;
 
 const TIME: f32 = 0.7;
@@ -77,7 +77,7 @@ fn regenerate_fixture() {
 fn regenerate_expected_render() {
     let got = render(&std::fs::read(fixtures().join("v1.msth")).unwrap());
     msth_trainer::checkpoint::write_atomic(&fixtures().join("v1_render.rgb"), &got.data).unwrap();
-    msth_trainer::imageio::save_png_atomic(&fixtures().join("v1_render.png"), &got).unwrap();
+    msth_dataset::imageio::save_png_atomic(&fixtures().join("v1_render.png"), &got).unwrap();
     println!("{}x{} pixels", got.width, got.height);
 }
 

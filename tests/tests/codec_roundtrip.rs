@@ -4,9 +4,9 @@
 
 use msth_codec::{decode_all, encode, EncodeOptions, QuantMode};
 use msth_core::field::ModelLayout;
+use msth_dataset::Dataset;
 use msth_tests::{export_cmd, short_run, tiny_scene};
 use msth_trainer::checkpoint::Checkpoint;
-use msth_trainer::dataset::Dataset;
 use msth_trainer::eval::render_image;
 use msth_trainer::metrics::psnr;
 use msth_trainer::train::train;

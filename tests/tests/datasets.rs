@@ -11,10 +11,10 @@ use std::path::Path;
 use glam::Vec3;
 use msth_core::config::Preset;
 use msth_core::{Camera, SceneBounds};
+use msth_dataset::dynerf::{self, DynerfOptions, FrameSource, Normalization};
+use msth_dataset::{dnerf, Dataset, View};
 use msth_testkit::{Need, Tests};
 use msth_tests::{msth, shared_dataset};
-use msth_trainer::dataset::dynerf::{self, DynerfOptions, FrameSource, Normalization};
-use msth_trainer::dataset::{dnerf, Dataset, View};
 use msth_trainer::train::TrainSettings;
 
 fn main() -> std::process::ExitCode {
@@ -365,7 +365,7 @@ fn layout_detection_and_dataset_options() {
 /// `cargo test --release -p msth-tests --test datasets -- --ignored`.
 fn sampler_speed_memory_vs_cache() {
     use msth_core::rng::Rng;
-    use msth_trainer::dataset::cache::FrameStorage;
+    use msth_dataset::cache::FrameStorage;
     use msth_trainer::ray_sampling::sample_uniform;
     let dir = stage();
     let cache = tempfile::tempdir().unwrap();

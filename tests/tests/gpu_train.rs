@@ -13,10 +13,10 @@
 
 use std::path::Path;
 
+use msth_dataset::Dataset;
 use msth_testkit::Tests;
 use msth_tests::{gpu_need, short_run, tiny_scene};
 use msth_trainer::checkpoint::Checkpoint;
-use msth_trainer::dataset::Dataset;
 use msth_trainer::device::TrainDevice;
 use msth_trainer::train::{train, LossTerms, TrainSettings};
 

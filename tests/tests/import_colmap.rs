@@ -17,10 +17,10 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use glam::{DMat3, DMat4, DVec3};
+use msth_dataset::video::{self, Tools};
+use msth_dataset::{colmap, npy};
 use msth_testkit::{Need, Tests};
 use msth_tests::{msth, shared_dataset};
-use msth_trainer::dataset::video::{self, Tools};
-use msth_trainer::dataset::{colmap, npy};
 use msth_trainer::import::{average_pose, fit_similarity, rotation_angle_deg};
 use serde_json::Value;
 
@@ -304,7 +304,7 @@ fn stage_imports_as_a_rig_and_as_a_moving_camera() {
     println!("rig: true up is {tilt:.2} deg from the imported +Z");
     assert!(tilt < 15.0, "up is {tilt} deg off");
     // The dataset loads for training: cam00 held out, all time steps.
-    let d = msth_trainer::dataset::load(&out, &Default::default()).unwrap();
+    let d = msth_dataset::load(&out, &Default::default()).unwrap();
     assert_eq!(
         (d.train.len(), d.test.len(), d.num_frames),
         (12 * STEPS, STEPS, STEPS)
@@ -371,7 +371,7 @@ fn moving_camera(st: &Path, tmp: &Path, steps: usize) {
     println!("moving camera: mapper runs {}", report["colmap_runs"]);
     assert_eq!(report["cameras_registered"], 13);
     check(&e, &MOVING);
-    let d = msth_trainer::dataset::load(&out, &Default::default()).unwrap();
+    let d = msth_dataset::load(&out, &Default::default()).unwrap();
     assert_eq!(d.train.len() + d.test.len(), 13);
 }
 

@@ -10,10 +10,10 @@ use glam::Vec3;
 use msth_core::pipeline::{train_chunk, StepSettings, Workspace};
 use msth_core::rng::Rng;
 use msth_core::{Camera, SceneBounds};
-use msth_trainer::dataset::dnerf::{load, LoadOptions};
-use msth_trainer::dataset::{Dataset, Image8};
+use msth_dataset::dnerf::{load, LoadOptions};
+use msth_dataset::imageio::encode_png;
+use msth_dataset::{Dataset, Image8};
 use msth_trainer::eval::{evaluate, render_image};
-use msth_trainer::imageio::encode_png;
 use msth_trainer::ray_sampling::sample_uniform;
 use msth_trainer::train::{train, TrainSettings};
 

@@ -7,9 +7,9 @@
 
 use std::path::Path;
 
+use msth_dataset::dnerf::{load, LoadOptions};
 use msth_testkit::{Need, Tests};
 use msth_tests::{msth, read_json, shared_dataset, synth_cmd, train_cmd};
-use msth_trainer::dataset::dnerf::{load, LoadOptions};
 
 fn main() -> std::process::ExitCode {
     let gltf = Need::shared_data("gltf/BoxAnimated/BoxAnimated.gltf");

@@ -48,7 +48,7 @@ fn main() -> std::process::ExitCode {
         .run()
 }
 
-fn quick_settings(data: &msth_trainer::dataset::Dataset, iters: usize) -> TrainSettings {
+fn quick_settings(data: &msth_dataset::Dataset, iters: usize) -> TrainSettings {
     let mut s = TrainSettings::for_preset(Preset::Fast, data);
     s.iters = iters;
     s.batch_rays = 1024;

@@ -35,8 +35,8 @@ use serde::{Deserialize, Serialize};
 use msth_core::config::{BlendMode, EncodingConfig, ModelConfig};
 use msth_core::SceneBounds;
 
-use crate::dataset::{Dataset, View};
 use crate::train::TrainSettings;
+use msth_dataset::{Dataset, View};
 
 /// A pixel is dynamic when the standard deviation of its colour over time (the largest over the
 /// three channels, values in `[0, 1]`) exceeds this: about 5/255, above video noise, far below
@@ -673,10 +673,10 @@ pub fn autosize_with(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::dataset::Image8;
     use glam::Vec3;
     use msth_core::config::{Background, Preset};
     use msth_core::Camera;
+    use msth_dataset::Image8;
     use std::path::PathBuf;
 
     /// Three fixed cameras filming `frames` frames of 64x48; the pixels with `x < dynamic_cols`

@@ -12,9 +12,9 @@ use msth_core::pipeline::{render_chunk, RenderOutput, TimedRay, Workspace};
 use msth_core::Camera;
 
 use crate::checkpoint::write_atomic;
-use crate::dataset::{Dataset, Image8};
-use crate::imageio::{error_map, panel, save_png_atomic};
 use crate::metrics::{dssim, psnr, ssim};
+use msth_dataset::imageio::{error_map, panel, save_png_atomic};
+use msth_dataset::{Dataset, Image8};
 
 /// Everything a full-image render produces, row-major.
 #[derive(Clone, Debug, Default)]

@@ -1,5 +1,5 @@
 //! `msth import`: from videos to a dataset `msth train` reads, with camera poses and intrinsics
-//! estimated by COLMAP ([`crate::dataset::colmap`]).
+//! estimated by COLMAP ([`msth_dataset::colmap`]).
 //!
 //! Two capture layouts:
 //! - **rig**: several fixed cameras filming together (one video per camera, assumed to start
@@ -32,12 +32,12 @@ use glam::{DMat3, DMat4, DQuat, DVec3, Mat4};
 use msth_core::Camera;
 use serde_json::{json, Value};
 
-use crate::dataset::colmap::{
+use msth_dataset::colmap::{
     mean_rotation, CameraModel, Colmap, ColmapError, Intrinsics, Matching, Model, RunOptions,
     Sharing, TrialSummary,
 };
-use crate::dataset::video::{self, Tools};
-use crate::dataset::{dnerf, dynerf, DatasetError};
+use msth_dataset::video::{self, Tools};
+use msth_dataset::{dnerf, dynerf, DatasetError};
 
 /// Median camera distance to the scene centre after normalisation (world units).
 pub const CAMERA_DISTANCE: f64 = 4.0;

@@ -1,8 +1,7 @@
 //! `msth-trainer`: everything that turns a dataset into a trained MSTH model.
 //!
-//! - [`dataset`]: re-export of `msth-dataset` (types, one module per format read and written);
 //! - [`synth`]: the built-in procedural dynamic scene with analytic ground truth;
-//! - [`metrics`]: PSNR / SSIM / D-SSIM ([`imageio`], from `msth-dataset`: PNG output and pictures);
+//! - [`metrics`]: PSNR / SSIM / D-SSIM (PNG output and pictures: `msth_dataset::imageio`);
 //! - [`autosize`]: sizing the model from the data (scene, frame count, motion);
 //! - [`ray_sampling`]: uniform, dynamics-aware (paper §3.4) and static/dynamic batch samplers;
 //! - [`adam`], [`train`], [`checkpoint`], [`eval`]: the optimiser, the loop, the checkpoint file
@@ -10,11 +9,6 @@
 //! - [`device`]: where the steps run (`--device auto|cpu|gpu`; the GPU step is `msth-gpu`'s);
 //! - [`import`]: `msth import`, videos to a dataset with COLMAP's camera poses;
 //! - [`unreached`]: hash-table values no training ray reached (dropped on export).
-
-/// The dataset crate under its historical path (`msth_trainer::dataset::...`).
-pub use msth_dataset as dataset;
-/// PNG output and comparison pictures, from the dataset crate.
-pub use msth_dataset::imageio;
 
 pub mod adam;
 pub mod autosize;

@@ -35,7 +35,7 @@ use serde::{Deserialize, Serialize};
 use msth_core::pipeline::TimedRay;
 use msth_core::rng::Rng;
 
-use crate::dataset::{Dataset, View};
+use msth_dataset::{Dataset, View};
 
 /// The samplers of a training batch.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -855,9 +855,9 @@ pub fn push_ray(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::dataset::Image8;
     use glam::Vec3;
     use msth_core::{Camera, SceneBounds};
+    use msth_dataset::Image8;
     use std::path::PathBuf;
 
     /// Pearson's chi-square of `counts` against `probs` (bins with expected count < 5 merged

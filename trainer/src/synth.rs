@@ -28,7 +28,7 @@ use glam::Vec3;
 use msth_core::{Camera, Ray, SceneBounds};
 use rayon::prelude::*;
 
-use crate::dataset::{Dataset, Image8, View};
+use msth_dataset::{Dataset, Image8, View};
 
 /// Scene box corners (also `Dataset::bounds`).
 pub const SCENE_MIN: Vec3 = Vec3::new(-1.5, -1.5, -1.0);
@@ -882,9 +882,9 @@ mod tests {
             }
             let mut frames = frames;
             frames.push(&mask);
-            let p = crate::imageio::panel(&frames);
+            let p = msth_dataset::imageio::panel(&frames);
             let path = format!("/tmp/msth_builtin_cam{cam:02}.png");
-            crate::imageio::save_png_atomic(std::path::Path::new(&path), &p).unwrap();
+            msth_dataset::imageio::save_png_atomic(std::path::Path::new(&path), &p).unwrap();
             println!("wrote {path}");
         }
         let big = SynthConfig {
@@ -893,7 +893,7 @@ mod tests {
             ..cfg.clone()
         };
         let img = render_gt(&big, &test_camera(&big), 0.4);
-        crate::imageio::save_png_atomic(
+        msth_dataset::imageio::save_png_atomic(
             std::path::Path::new("/tmp/msth_builtin_test_big.png"),
             &img,
         )

@@ -29,11 +29,11 @@ use crate::adam::{Adam, AdamConfig, ScaledSlice};
 use crate::checkpoint::{
     AuxCheckpoint, Checkpoint, CheckpointError, CheckpointFormatError, CheckpointHeader,
 };
-use crate::dataset::Dataset;
 use crate::device::{self, DeviceError, GpuTraining, TrainDevice};
 use crate::ray_sampling::{
     InvalidSamplingConfig, PixelMotion, RaySampler, SamplingConfig, SamplingError, SamplingMode,
 };
+use msth_dataset::Dataset;
 
 /// Every knob of a training run. Presets fill it; a config file and `--set key=value` override
 /// any field (see [`TrainSettings::apply_overrides`]).
@@ -91,8 +91,8 @@ pub struct TrainSettings {
     /// Rays through a pixel whose colour's temporal standard deviation (over its camera's
     /// frames, colour units in `[0, 1]`, as the dynamics-aware sampler measures it) exceeds this
     /// get no per-sample mask loss: the loss pulls toward static only what the data shows still,
-    /// so a moving object seen by few rays is not pulled static (docs/mask-learning.md, "Sparing
-    /// the moving pixels"). 0: every ray gets the loss (settings written before it existed).
+    /// so a moving object seen by few rays is not pulled static (docs/mask-learning.md, "The
+    /// mask decides"). 0: every ray gets the loss (settings written before it existed).
     #[serde(default)]
     pub sample_mask_moving_std: f32,
     /// Multiplies the learning rate of the proposal network (its grids and MLP; its mask, if
@@ -107,7 +107,8 @@ pub struct TrainSettings {
     /// Coarse-to-fine over the main field's hash-grid levels (`StepSettings::active_levels`):
     /// the run starts with `level_ramp_start` of the levels on and turns the finer ones on
     /// linearly over these many steps, so coarse levels settle the geometry before fine ones can
-    /// fit per-view detail into it (docs/convergence.md, 2026-11-27, late). 0: off.
+    /// fit per-view detail into it (docs/convergence.md, "Coarse-to-fine and the free-space loss").
+    /// 0: off.
     #[serde(default)]
     pub level_ramp_steps: usize,
     /// Share of the main field's levels on at step 0 of the ramp, in `(0, 1]`.
@@ -148,7 +149,8 @@ pub const MIN_ANNEAL_STEPS: usize = 2000;
 ///   and the stages): uniform. There the dynamics-aware sampler fits the 4D part hardest where
 ///   a shallow arc of cameras constrains depth least: on `box_animated_stage` one seed in three
 ///   drew the moving box as ghosts only a new view sees (26.45 dB), while the uniform sampler
-///   converged on all three (30.40, 31.50, 31.53 dB; docs/convergence.md, 2026-11-27).
+///   converged on all three (30.40, 31.50, 31.53 dB; docs/convergence.md, "The uniform sampler
+///   on stages").
 pub fn default_sampling_mode(bounds: &SceneBounds) -> SamplingMode {
     match bounds {
         SceneBounds::Box { .. } => SamplingMode::Dynamics,
@@ -173,18 +175,18 @@ pub struct ScenePriors {
 /// after 300 steps, with the free-space loss at 1e-3; off on object-centred scenes (not measured
 /// there). Together they lifted a generated stage with finely textured walls from 19.06 to
 /// 22.60 dB held-out (mean of 3 seeds, each better) and cost `box_animated_stage` 0.97 dB
-/// (docs/convergence.md, 2026-11-27, late); the ramp alone kept the walls' structure but left a
-/// haze of floaters, the free-space loss alone did not help.
+/// (docs/convergence.md, "Coarse-to-fine and the free-space loss"); the ramp alone kept the
+/// walls' structure but left a haze of floaters, the free-space loss alone did not help.
 ///
 /// Once every level is on, the distortion loss rises from 2e-3 to 0.05 (steps 300-600), so a
 /// ray's weight gathers at one surface instead of thin dark texture being learned as holes to a
 /// far background: +0.49 dB held-out on the generated stage over 3 seeds, each better
-/// (docs/convergence.md, 2026-11-28, later). At 0.02 from the first step it collapsed the
-/// geometry before it formed.
+/// (docs/convergence.md, "The distortion loss ramped in after coarse-to-fine"). At 0.02 from
+/// the first step it collapsed the geometry before it formed.
 ///
 /// The main field's hash tables decay toward zero (`grid_decay` 0.3, Zip-NeRF's weight decay on
 /// its grids): rows that few training rays reach no longer keep what one view fitted
-/// (docs/convergence.md, 2026-11-28, evening).
+/// (docs/convergence.md, "Weight decay on the hash tables").
 pub fn default_priors(bounds: &SceneBounds) -> ScenePriors {
     match bounds {
         SceneBounds::Box { .. } => ScenePriors {
@@ -211,8 +213,8 @@ pub fn default_priors(bounds: &SceneBounds) -> ScenePriors {
 /// Where rays start on a forward-facing capture that states its near bound ([`Dataset::near`]):
 /// there rather than at the preset's 5% of the contraction radius, which on a stage lies far in
 /// front of anything the cameras see and leaves the field free to put floaters there
-/// (docs/convergence.md, 2026-11-28). `None` on object-centred scenes (rays are clipped to the
-/// box) and where the data has no near bound.
+/// (docs/convergence.md, "Rays from the capture's near bound"). `None` on object-centred
+/// scenes (rays are clipped to the box) and where the data has no near bound.
 pub fn capture_near(data: &Dataset, model: &ModelConfig) -> Option<f32> {
     match model.bounds {
         SceneBounds::Contracted { .. } => data
@@ -226,8 +228,8 @@ pub fn capture_near(data: &Dataset, model: &ModelConfig) -> Option<f32> {
 pub const DEFAULT_MASK_LR_SCALE: f32 = 10.0;
 /// Default of [`TrainSettings::sample_mask_weight`] (issue #16's measurements).
 pub const DEFAULT_SAMPLE_MASK_WEIGHT: f32 = 5e-3;
-/// Default of [`TrainSettings::sample_mask_moving_std`] (docs/mask-learning.md, "Sparing the
-/// moving pixels"): half the temporal std above which `msth bench ablation` counts a held-out
+/// Default of [`TrainSettings::sample_mask_moving_std`] (docs/mask-learning.md, "The mask
+/// decides"): half the temporal std above which `msth bench ablation` counts a held-out
 /// pixel as dynamic, so faint moving shadows are spared too (0.02 left a third of
 /// `box_animated_stage`'s dynamic held-out pixels cached as static, 0.01 a quarter).
 pub const DEFAULT_SAMPLE_MASK_MOVING_STD: f32 = 0.01;
@@ -289,9 +291,9 @@ impl TrainSettings {
             mask_loss_weight: 1e-2,
             // A quarter of the preset's run, as the MSTH release (5000 of 20,000 steps), but at
             // least MIN_ANNEAL_STEPS, except for the fast preset on an object-centred scene (the
-            // demo's; docs/convergence.md, 2026-11-27: on a stage, annealing over 1000 steps let
-            // the proposal lose its race with the field in one seed of three, over 2000 three of
-            // three converged; the fast preset there went from 16.60 to 23.06 dB).
+            // demo's; docs/convergence.md, "Proposal annealing": on a stage, annealing over 1000
+            // steps let the proposal lose its race with the field in one seed of three, over 2000
+            // three of three converged; the fast preset there went from 16.60 to 23.06 dB).
             anneal_steps: match (preset, model.bounds) {
                 (Preset::Fast, SceneBounds::Box { .. }) => (iters / 4).max(1),
                 _ => (iters / 4).max(MIN_ANNEAL_STEPS),
@@ -620,7 +622,7 @@ fn decayed_grids(layout: &ModelLayout) -> impl Iterator<Item = (Range<usize>, us
 /// the main field's 3D and 4D tables, each level's mean taken over a full table's rows (a dense
 /// coarse level's unused rows count as zeros). It pulls toward zero the rows that few training
 /// rays reach, where the field would otherwise keep what it fitted to one view
-/// (docs/convergence.md, 2026-11-28, evening).
+/// (docs/convergence.md, "Weight decay on the hash tables").
 pub fn grid_decay_loss(settings: &TrainSettings, layout: &ModelLayout, params: &[f32]) -> f64 {
     decayed_grids(layout)
         .map(|(range, slots)| {

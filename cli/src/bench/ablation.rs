@@ -31,10 +31,10 @@ use serde::{Deserialize, Serialize};
 
 use msth_core::config::{BlendMode, ModelConfig, Preset};
 use msth_core::field::ModelLayout;
+use msth_dataset::imageio::{colormap, panel, save_png_atomic};
+use msth_dataset::{Dataset, Image8};
 use msth_trainer::checkpoint::{write_atomic, Checkpoint};
-use msth_trainer::dataset::{Dataset, Image8};
 use msth_trainer::eval::render_image;
-use msth_trainer::imageio::{colormap, panel, save_png_atomic};
 use msth_trainer::metrics::{dssim, psnr, psnr_from_mse, ssim};
 use msth_trainer::ray_sampling::{tempered_weight, PixelStats, SamplingMode};
 use msth_trainer::train::{train, TrainSettings};
@@ -368,7 +368,7 @@ fn run_one(
     }
     let every = (s.iters / 10).max(1);
     let (trainer, outcome) = train(data, s, dir, resume, &mut |p| {
-        crate::commands::print_notes(pb, p);
+        crate::training::print_notes(pb, p);
         pb.set_position(base + p.step as u64);
         if p.step.is_multiple_of(10) {
             pb.set_message(format!("{name}: loss {:.5}", p.loss));

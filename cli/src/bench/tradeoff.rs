@@ -23,8 +23,8 @@ use serde_json::{json, Value};
 
 use msth_codec::{decode_all, encode, EncodeOptions, QuantMode};
 use msth_core::config::Preset;
+use msth_dataset::Dataset;
 use msth_trainer::checkpoint::write_atomic;
-use msth_trainer::dataset::Dataset;
 use msth_trainer::eval::evaluate;
 use msth_trainer::train::{playback_cameras, train as run_training, TrainSettings};
 

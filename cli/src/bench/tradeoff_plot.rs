@@ -9,7 +9,7 @@ use anyhow::{anyhow, Result};
 use plotters::prelude::*;
 use plotters::style::FontStyle;
 
-use msth_trainer::dataset::Image8;
+use msth_dataset::Image8;
 
 /// One point of a plot.
 #[derive(Clone, Debug)]

@@ -7,8 +7,8 @@ use anyhow::{Context, Result};
 use serde::{Deserialize, Serialize};
 use serde_json::json;
 
+use msth_dataset::imageio::save_png_atomic;
 use msth_trainer::checkpoint::write_atomic;
-use msth_trainer::imageio::save_png_atomic;
 
 use super::tradeoff::Row;
 use super::tradeoff_plot::{self, PlotPoint};

@@ -138,7 +138,7 @@ pub struct WeightedSample {
 /// padding those stretches become a few long intervals, each heavy enough to count as seen. On
 /// the balanced stage model that doubled the cells seen (54,593 to 116,552). The grid grew from
 /// 82.3% to 85.7% of its cells, and a frame had 39% more live proposal samples, with no frame
-/// kept better (docs/playback.md, session 55). The render samples lie where the weight is, so
+/// kept better (docs/tradeoff.md, "Histogram padding at play time"). The render samples lie where the weight is, so
 /// they fall in the cells this finer sampling marks.
 pub fn weighted_samples(
     cfg: &ModelConfig,

@@ -141,8 +141,8 @@ pub struct RenderOutput {
 ///
 /// 0.02 since 2026-11-30 (1e-3 before): on the held-out views of the balanced stage model and
 /// of `msth demo`'s model (`msth eval`) it moves PSNR by -0.0007 and +0.003 dB and skips 80% and
-/// 21% of the main field's 4D lookups and 48% of the proposal field's (docs/playback.md, "A
-/// static cutoff of 0.02"). The GPU passes evaluate a sample with a 4D lookup at several times
+/// 21% of the main field's 4D lookups and 48% of the proposal field's (docs/playback.md, "The
+/// static cutoff"). The GPU passes evaluate a sample with a 4D lookup at several times
 /// the cost of one without.
 pub const RENDER_STATIC_CUTOFF: f32 = 0.02;
 

@@ -5,8 +5,8 @@
 //! (`(r, g, b, visible depth)` per pixel, a negative depth for a ray that missed the scene),
 //! through the per-sample passes of `msth-gpu`
 //! ([`GpuKernels::PerSample`], the default) or the older one-invocation-per-ray kernel
-//! ([`GpuKernels::PerRay`], kept for comparison: `msth bench play --gpu` and
-//! `gpu/examples/bench_render.rs` time both). The second frame of a fixed camera classifies
+//! ([`GpuKernels::PerRay`], kept for comparison: `player/examples/bench_gpu_render.rs` times
+//! both). The second frame of a fixed camera classifies
 //! the first frame's rays with [`classify_static_with_stats`] (the CPU renderer's mask test, then probes
 //! rendered on the device, each with the parameters of its own time), uploads the compacted
 //! list of dynamic pixels, and, with [`Reuse::Samples`], builds the device's sample cache of

@@ -69,8 +69,8 @@ pub struct Blend<'a> {
     pub m: &'a wgpu::Buffer,
 }
 
-/// The compiled glue kernels of one device.
-pub struct GlueKernels {
+/// The compiled elementwise kernels of one device.
+pub struct ElementwiseKernels {
     blend_fwd_layout: wgpu::BindGroupLayout,
     blend_bwd_layout: wgpu::BindGroupLayout,
     columns_layout: wgpu::BindGroupLayout,
@@ -80,7 +80,7 @@ pub struct GlueKernels {
     unused: wgpu::Buffer,
 }
 
-impl GlueKernels {
+impl ElementwiseKernels {
     pub fn new(dev: &ComputeDevice) -> Result<Self, GpuError> {
         // Blend forward: 1 h3, 2 h4, 3 m, 4 enc; backward: 4 d_enc, 5 extra d m, 6 d h3,
         // 7 d h4, 8 (m, d m).
@@ -90,7 +90,7 @@ impl GlueKernels {
             &[true, true, true, true, true, false, false, false],
         );
         let columns_layout = dev.bind_layout("columns", &[true, false]);
-        Ok(GlueKernels {
+        Ok(ElementwiseKernels {
             blend_fwd: dev.pipeline(
                 "blend forward",
                 &format!("{BLEND_WGSL}\n{BLEND_FORWARD_WGSL}"),
@@ -162,7 +162,7 @@ impl GlueKernels {
         )
     }
 
-    /// Backward of [`GlueKernels::blend_forward`]: `d_h3`, `d_h4` (`[n, features]`, written
+    /// Backward of [`ElementwiseKernels::blend_forward`]: `d_h3`, `d_h4` (`[n, features]`, written
     /// where the mode uses the grid) and `(m, d m)` pairs (`[n, 2]`; `d_m_extra`, e.g. the
     /// per-sample mask loss's gradient, added).
     pub fn blend_backward(

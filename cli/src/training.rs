@@ -1,4 +1,5 @@
-//! The subcommands that train, evaluate and render.
+//! The subcommands around a training run: `msth synth` (a dataset), `msth train`, `msth eval`
+//! and `msth render` (a checkpoint's held-out views and frames).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -10,12 +11,12 @@ use indicatif::{ProgressBar, ProgressStyle};
 use msth_core::config::{PlaySamples, Preset};
 use msth_core::field::ModelLayout;
 use msth_core::{Camera, SceneBounds};
+use msth_dataset::imageio::{colormap, save_png_atomic};
+use msth_dataset::{dnerf, scale_camera, Dataset, Image8};
 use msth_trainer::autosize::{autosize, setting_paths};
 use msth_trainer::checkpoint::{write_atomic, Checkpoint};
-use msth_trainer::dataset::{dnerf, scale_camera, Dataset, Image8};
 use msth_trainer::device::TrainDevice;
 use msth_trainer::eval::{evaluate, render_image, Metrics};
-use msth_trainer::imageio::{colormap, save_png_atomic};
 use msth_trainer::synth::{generate, SynthConfig};
 use msth_trainer::train::{train as run_training, Progress, TrainOutcome, TrainSettings, Trainer};
 
