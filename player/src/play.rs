@@ -283,6 +283,8 @@ pub fn play(
         .samples
         .apply(
             &meta.model,
+            meta.play_samples
+                .map(|s| (s.proposal as usize, s.main as usize)),
             opts.limits.max_proposal_samples as usize,
             opts.limits.max_samples as usize,
         )
