@@ -186,9 +186,8 @@ fn reference_psnr(given: Option<f64>, ckpt_path: &Path) -> Result<(f64, String)>
         Some(p) => (p, format!("the held-out PSNR in {}", path.display())),
         None => (
             msth_codec::auto::DEFAULT_REFERENCE_PSNR,
-            format!(
-                "assumed: no metrics.json with a PSNR beside the checkpoint (--reference-psnr sets it)"
-            ),
+            "assumed: no metrics.json with a PSNR beside the checkpoint (--reference-psnr sets it)"
+                .into(),
         ),
     })
 }

@@ -257,6 +257,13 @@ impl SectionQuant {
             .map(|p| self.get(p))
             .fold(QuantMode::K3, QuantMode::finer)
     }
+    /// The finest mode of the hash-table parts (proposal, static, dynamic): what decides how
+    /// precisely a GPU renderer needs to hold the tables.
+    pub fn finest_table(&self) -> QuantMode {
+        [self.proposal, self.static_table, self.dynamic]
+            .into_iter()
+            .fold(QuantMode::K3, QuantMode::finer)
+    }
     /// `mode` when every part uses it.
     pub fn single(&self) -> Option<QuantMode> {
         let m = self.mlp;

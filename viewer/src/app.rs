@@ -372,7 +372,11 @@ impl App {
             meta.model.sampler.num_proposal_samples,
             meta.model.sampler.num_samples,
         );
-        let base = worker::base_settings(meta.quant, opts.gpu_tables, opts.incremental);
+        let base = worker::base_settings(
+            meta.parts_quant().finest_table(),
+            opts.gpu_tables,
+            opts.incremental,
+        );
         App {
             opts: opts.clone(),
             name,
@@ -510,7 +514,11 @@ impl App {
 
     fn start_worker(&mut self) -> Result<(), ViewError> {
         let meta = &self.stream.index().metadata;
-        let base = worker::base_settings(meta.quant, self.opts.gpu_tables, self.opts.incremental);
+        let base = worker::base_settings(
+            meta.parts_quant().finest_table(),
+            self.opts.gpu_tables,
+            self.opts.incremental,
+        );
         let setup = WorkerSetup {
             stream: Arc::clone(&self.stream),
             base: msth_player::RenderSettings {
