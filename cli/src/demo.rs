@@ -257,10 +257,9 @@ pub fn run(a: DemoArgs) -> Result<()> {
             enc.chunks.len()
         ),
     );
-    for line in lines
-        .iter()
-        .filter(|l| l.starts_with("quant auto") || l.starts_with("play-time"))
-    {
+    for line in lines.iter().filter(|l| {
+        l.starts_with("quant auto") || l.starts_with("play-time") || l.starts_with("  measured")
+    }) {
         println!("         {line}");
     }
 

@@ -9,6 +9,7 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 
+use msth_codec::auto::AutoOptions;
 use msth_codec::{decode_all, encode, EncodeOptions, EncodeReport, QuantMode, QuantPart};
 use msth_core::config::{ModelConfig, PlaySamples};
 use msth_core::field::ModelLayout;
@@ -43,6 +44,12 @@ pub struct ExportArgs {
     /// stores none (players use the model's own); `P,M` stores these.
     #[arg(long, default_value = "auto", value_parser = parse_play_samples)]
     pub play_samples: PlaySamplesArg,
+    /// Cameras the searches of `auto` render (spread over the checkpoint's cameras).
+    #[arg(long, value_name = "N", default_value_t = msth_codec::auto::AutoOptions::default().views)]
+    pub auto_views: usize,
+    /// Longest side (pixels) of the searches' renders.
+    #[arg(long, value_name = "PX", default_value_t = msth_codec::auto::AutoOptions::default().side)]
+    pub auto_side: u32,
     /// Frames per dynamic time chunk.
     #[arg(long, default_value_t = 10)]
     pub chunk_frames: usize,
@@ -150,6 +157,9 @@ pub(crate) struct Choices {
     /// [`msth_codec::auto::DEFAULT_REFERENCE_PSNR`]).
     pub max_loss: f64,
     pub reference_psnr: Option<f64>,
+    /// Views and their longest side (pixels) of the searches' renders.
+    pub views: usize,
+    pub side: u32,
 }
 
 impl Choices {
@@ -160,6 +170,8 @@ impl Choices {
             samples: PlaySamplesArg::Auto,
             max_loss: msth_codec::auto::DEFAULT_MAX_LOSS_DB,
             reference_psnr: None,
+            views: AutoOptions::default().views,
+            side: AutoOptions::default().side,
         }
     }
 }
@@ -220,6 +232,8 @@ pub fn export(a: ExportArgs) -> Result<()> {
         samples: a.play_samples,
         max_loss: a.max_loss,
         reference_psnr: a.reference_psnr,
+        views: a.auto_views,
+        side: a.auto_side,
     };
     let opts = EncodeOptions {
         quant: a.quant.mode().unwrap_or(QuantMode::Q5),
@@ -316,7 +330,7 @@ pub(crate) fn choose(
     opts: &mut EncodeOptions,
     choices: &Choices,
 ) -> Result<Vec<String>> {
-    use msth_codec::auto::{choose_quant, choose_samples, AutoOptions, Probe};
+    use msth_codec::auto::{choose_quant, choose_samples, Probe};
     let mut lines = Vec::new();
     if let PlaySamplesArg::Counts(p, m) = choices.samples {
         opts.play_samples = Some(msth_codec::PlaySampleCounts {
@@ -340,7 +354,8 @@ pub(crate) fn choose(
     let auto = AutoOptions {
         max_loss_db: choices.max_loss,
         reference_psnr: psnr,
-        ..AutoOptions::default()
+        views: choices.views,
+        side: choices.side,
     };
     let model = &ckpt.header.model;
     let cameras = &ckpt.header.cameras;
@@ -370,6 +385,15 @@ pub(crate) fn choose(
             auto.max_loss_db,
             c.seconds
         ));
+        let steps: Vec<String> = c
+            .steps
+            .iter()
+            .map(|s| match s.part {
+                Some(p) => format!("{} {} {:.3}", p.name(), s.modes.get(p), s.loss_db),
+                None => format!("whole file {:.3}", s.loss_db),
+            })
+            .collect();
+        lines.push(format!("  measured (dB): {}", steps.join(", ")));
     }
     if choices.samples == PlaySamplesArg::Auto {
         let (bytes, _) = encode(
@@ -396,6 +420,12 @@ pub(crate) fn choose(
             c.steps.len() + 1,
             c.seconds
         ));
+        let steps: Vec<String> = c
+            .steps
+            .iter()
+            .map(|s| format!("{} + {} {:.3}", s.samples.0, s.samples.1, s.loss_db))
+            .collect();
+        lines.push(format!("  measured (dB): {}", steps.join(", ")));
     }
     Ok(lines)
 }

@@ -12,16 +12,17 @@
 //! **The quantisation search** ([`choose_quant`]). Each part of [`SectionQuant`] has a ladder of
 //! modes from the coarsest to `f32` (the modes that store that part differently). Every part
 //! starts at its coarsest mode, its loss measured with every other part lossless; while the sum
-//! of the parts' squared errors is over the budget, the part whose next finer mode removes the
-//! most squared error per estimated byte added moves up one step (one render each). The whole
+//! of the parts' squared errors is over the budget, the part whose next finer mode with less
+//! error removes the most squared error per estimated byte added moves up to that mode (one
+//! render per mode measured). The whole
 //! file is then encoded and measured; while that measurement is over the budget (the parts'
 //! errors need not add up exactly), the part with the largest error moves up one step. `f32`
 //! everywhere is lossless, so the search ends within the budget.
 //!
 //! **The samples search** ([`choose_samples`]). With the chosen file, the reference is its render
-//! at the model's own samples per ray; main samples are lowered first (to the fewest, among
-//! fractions of the model's count, whose loss is within half the budget), then proposal samples
-//! (the fewest whose loss with both lowered is within the budget).
+//! at the model's own samples per ray; main samples are lowered first, through 3/4, 2/3, 1/2, 1/3
+//! and 1/4 of the model's count while the loss stays within half the budget, then proposal
+//! samples through the same fractions while the loss with both lowered stays within the budget.
 
 use std::time::Instant;
 
@@ -63,7 +64,7 @@ impl Default for AutoOptions {
             max_loss_db: DEFAULT_MAX_LOSS_DB,
             reference_psnr: DEFAULT_REFERENCE_PSNR,
             views: 6,
-            side: 64,
+            side: 48,
         }
     }
 }
@@ -265,7 +266,7 @@ fn part_values(layout: &ModelLayout, part: QuantPart) -> u64 {
     }
 }
 
-/// Encodes with `modes` (zstd level 1: only the values matter here) and decodes.
+/// Encodes with `modes` (zstd's fastest level: only the values matter here) and decodes.
 fn round_trip(
     model: &ModelConfig,
     params: &[f32],
@@ -275,7 +276,7 @@ fn round_trip(
 ) -> Result<DecodedModel, EncodeError> {
     let opts = EncodeOptions {
         sections: Some(modes),
-        zstd_level: 1,
+        zstd_level: -7,
         ..base.clone()
     };
     let (bytes, _) = encode(model, params, cameras, &opts)?;
@@ -364,25 +365,34 @@ pub fn choose_quant(
         current.push(measure(&mut err, i, 0, &mut steps)?);
     }
     while current.iter().sum::<f64>() > budget {
-        let mut best: Option<(usize, f64)> = None;
+        // Per part, its next finer mode with less error (a coarser mode can beat a finer one:
+        // 3-bit codebooks often beat 4-bit affine codes), and the error it removes per byte.
+        let mut best: Option<(usize, usize, f64)> = None;
         for i in 0..parts.len() {
             let l = ladder(parts[i]);
-            if pos[i] + 1 >= l.len() {
+            if current[i] <= 0.0 {
                 continue;
             }
-            let next = measure(&mut err, i, pos[i] + 1, &mut steps)?;
+            let mut to = None;
+            for j in pos[i] + 1..l.len() {
+                if measure(&mut err, i, j, &mut steps)? < current[i] {
+                    to = Some(j);
+                    break;
+                }
+            }
+            let Some(j) = to else { continue };
+            let next = err[i][j].unwrap_or(0.0);
             let values = part_values(&layout, parts[i]) as f64;
-            let added = values
-                * (part_bits(parts[i], l[pos[i] + 1]) - part_bits(parts[i], l[pos[i]]))
-                / 8.0;
+            let added =
+                values * (part_bits(parts[i], l[j]) - part_bits(parts[i], l[pos[i]])) / 8.0;
             let gain = (current[i] - next) / added.max(1.0);
-            if best.is_none_or(|(_, g)| gain > g) {
-                best = Some((i, gain));
+            if best.is_none_or(|(_, _, g)| gain > g) {
+                best = Some((i, j, gain));
             }
         }
-        let Some((i, _)) = best else { break };
-        pos[i] += 1;
-        current[i] = err[i][pos[i]].unwrap_or(0.0);
+        let Some((i, j, _)) = best else { break };
+        pos[i] = j;
+        current[i] = err[i][j].unwrap_or(0.0);
     }
     // The whole file, measured; finer while over the budget.
     loop {
@@ -452,6 +462,22 @@ pub fn sample_candidates(n: usize) -> Vec<usize> {
     v
 }
 
+/// The fewest of [`sample_candidates`] of `own`, from the most down while `ok` (fewer samples
+/// lose more): `own` when the first fails.
+fn fewest(own: usize, mut ok: impl FnMut(usize) -> bool) -> usize {
+    let mut best = own;
+    for n in sample_candidates(own).into_iter().rev() {
+        if n == own {
+            continue;
+        }
+        if !ok(n) {
+            break;
+        }
+        best = n;
+    }
+    best
+}
+
 /// The fewest samples per ray (module docs) whose renders of `decoded` stay within
 /// `auto.max_loss_db` of its renders at the model's own counts.
 pub fn choose_samples(
@@ -488,14 +514,10 @@ pub fn choose_samples(
         });
         loss_db <= budget_db
     };
-    let main = sample_candidates(own.1)
-        .into_iter()
-        .find(|&m| test((own.0, m), auto.max_loss_db / 2.0, &mut steps))
-        .unwrap_or(own.1);
-    let proposal = sample_candidates(own.0)
-        .into_iter()
-        .find(|&p| test((p, main), auto.max_loss_db, &mut steps))
-        .unwrap_or(own.0);
+    let main = fewest(own.1, |m| {
+        test((own.0, m), auto.max_loss_db / 2.0, &mut steps)
+    });
+    let proposal = fewest(own.0, |p| test((p, main), auto.max_loss_db, &mut steps));
     let loss_db = steps
         .iter()
         .find(|s| s.samples == (proposal, main))
