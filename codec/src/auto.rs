@@ -383,8 +383,7 @@ pub fn choose_quant(
             let Some(j) = to else { continue };
             let next = err[i][j].unwrap_or(0.0);
             let values = part_values(&layout, parts[i]) as f64;
-            let added =
-                values * (part_bits(parts[i], l[j]) - part_bits(parts[i], l[pos[i]])) / 8.0;
+            let added = values * (part_bits(parts[i], l[j]) - part_bits(parts[i], l[pos[i]])) / 8.0;
             let gain = (current[i] - next) / added.max(1.0);
             if best.is_none_or(|(_, _, g)| gain > g) {
                 best = Some((i, j, gain));
