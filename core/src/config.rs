@@ -197,20 +197,15 @@ impl SampleLevel {
 /// Samples per ray at play time (`msth play --samples`, `msth eval --samples`, the page's
 /// samples menu); by default the counts the file stores (`msth export` chooses them). Fewer samples than the model was trained with trade accuracy for speed; the
 /// trade is measured in docs/tradeoff.md ("Samples per ray at play time").
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum PlaySamples {
     /// The counts the file stores for playback (`.msth` version 3, `play_samples`), or the
     /// model's own when it stores none: what players use unless told otherwise.
+    #[default]
     File,
     Level(SampleLevel),
     /// Exact counts: proposal samples, main samples.
     Counts(usize, usize),
-}
-
-impl Default for PlaySamples {
-    fn default() -> Self {
-        PlaySamples::File
-    }
 }
 
 impl std::str::FromStr for PlaySamples {
