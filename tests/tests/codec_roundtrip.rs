@@ -183,7 +183,7 @@ fn export_command_chooses_sections_and_samples_by_default() {
     for (bad, names) in [
         (&["--max-loss", "0"][..], "--max-loss"),
         (&["--max-loss", "NaN"][..], "--max-loss"),
-        (&["--reference-psnr", "-3"][..], "--reference-psnr"),
+        (&["--reference-psnr=-3"][..], "--reference-psnr"),
         (&["--play-samples", "0,4"][..], "auto, model or P,M"),
         (&["--quant", "q7"][..], "q7"),
     ] {
