@@ -38,7 +38,7 @@ use msth_trainer::checkpoint::{write_atomic, Checkpoint};
 use msth_trainer::synth::{generate, SynthConfig};
 use msth_trainer::train::{train as run_training, TrainSettings};
 
-use crate::export::{mb, write_msth};
+use crate::export::{mb, write_msth, Choices, QuantArg};
 use crate::play::parse_size;
 use crate::serve::{server_config, ServeArgs};
 use crate::training::{eval_trained, progress_bar, report};
@@ -115,8 +115,8 @@ pub struct DemoArgs {
     #[arg(long, hide = true)]
     pub cameras: Option<usize>,
     /// Quantisation of the exported file (`msth export --quant`).
-    #[arg(long, hide = true, default_value = "q5")]
-    pub quant: String,
+    #[arg(long, hide = true, value_enum, default_value_t = QuantArg::Auto)]
+    pub quant: QuantArg,
 }
 
 /// Prints one stage's line: its name, wall time since `since`, and what it left.
@@ -125,7 +125,6 @@ fn stage(name: &str, since: Instant, msg: impl Display) {
 }
 
 pub fn run(a: DemoArgs) -> Result<()> {
-    let quant: QuantMode = a.quant.parse().map_err(anyhow::Error::msg)?;
     if !(a.time_limit.is_finite() && a.time_limit > 0.0) {
         bail!(
             "--time-limit {}: a positive number of seconds",
@@ -228,16 +227,21 @@ pub fn run(a: DemoArgs) -> Result<()> {
     let mut ckpt = Checkpoint::load(&ckpt_path)?;
     let scene = a.out.join(SCENE_FILE);
     let opts = EncodeOptions {
-        quant,
+        quant: a.quant.mode().unwrap_or(QuantMode::Q5),
         ..EncodeOptions::default()
     };
-    let (enc, _) = write_msth(
+    let choices = Choices {
+        quant: a.quant == QuantArg::Auto,
+        ..Choices::auto()
+    };
+    let (enc, lines) = write_msth(
         &mut ckpt,
         &ckpt_path,
         &scene,
         &opts,
         false,
         Some(msth_codec::occupancy::DEFAULT_SEEN_WEIGHT),
+        &choices,
     )?;
     stage(
         "export",
@@ -249,10 +253,15 @@ pub fn run(a: DemoArgs) -> Result<()> {
             enc.file_bytes,
             enc.ratio(),
             mb(enc.raw_param_bytes),
-            enc.quant,
+            enc.section_quant,
             enc.chunks.len()
         ),
     );
+    for line in lines.iter().filter(|l| {
+        l.starts_with("quant auto") || l.starts_with("play-time") || l.starts_with("  measured")
+    }) {
+        println!("         {line}");
+    }
 
     // Serve, as `msth serve OUT/scene.msth --addr 127.0.0.1:0`.
     let t = Instant::now();

@@ -55,7 +55,14 @@ pub fn eval_file(a: &EvalArgs) -> Result<()> {
         .with_context(|| format!("reading {}", a.checkpoint.display()))?;
     let model =
         decode_all(&bytes).with_context(|| format!("decoding {}", a.checkpoint.display()))?;
-    let (cfg, fewer) = training::with_samples(&model.config, a.samples)?;
+    let (cfg, fewer) = training::with_samples(
+        &model.config,
+        model
+            .metadata
+            .play_samples
+            .map(|s| (s.proposal as usize, s.main as usize)),
+        a.samples,
+    )?;
     let out = a.out.clone().unwrap_or_else(|| {
         let stem = a
             .checkpoint

@@ -9,8 +9,9 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 
-use msth_codec::{decode_all, encode, EncodeOptions, EncodeReport, QuantMode};
-use msth_core::config::ModelConfig;
+use msth_codec::auto::AutoOptions;
+use msth_codec::{decode_all, encode, EncodeOptions, EncodeReport, QuantMode, QuantPart};
+use msth_core::config::{ModelConfig, PlaySamples};
 use msth_core::field::ModelLayout;
 use msth_dataset::Dataset;
 use msth_trainer::checkpoint::{write_atomic, Checkpoint};
@@ -26,9 +27,29 @@ pub struct ExportArgs {
     /// Output file (required unless `--measure`).
     #[arg(short = 'o', long)]
     pub output: Option<PathBuf>,
-    /// f32 (lossless) | f16 | q8 | q6 | q5 | q4 | k4 | k3
-    #[arg(long, default_value = "q5")]
-    pub quant: String,
+    /// How the parameters are quantised: `auto` picks each section's mode, the smallest file
+    /// whose loss against the lossless file stays within --max-loss on renders of the file's own
+    /// cameras; a mode (f32 lossless, f16, q8, q6, q5, q4, k4, k3) is used for every section.
+    #[arg(long, value_enum, default_value_t = QuantArg::Auto)]
+    pub quant: QuantArg,
+    /// The loss budget (dB of PSNR) of `--quant auto` and of `--play-samples auto`, each.
+    #[arg(long, value_name = "DB", default_value_t = msth_codec::auto::DEFAULT_MAX_LOSS_DB)]
+    pub max_loss: f64,
+    /// The model's held-out PSNR (dB), which turns the renders' squared error into a loss
+    /// (default: `psnr` of the metrics.json beside the checkpoint, else 35).
+    #[arg(long, value_name = "DB")]
+    pub reference_psnr: Option<f64>,
+    /// The samples per ray players use by default: `auto` stores the fewest proposal and main
+    /// samples whose loss against the model's own counts stays within --max-loss; `model`
+    /// stores none (players use the model's own); `P,M` stores these.
+    #[arg(long, default_value = "auto", value_parser = parse_play_samples)]
+    pub play_samples: PlaySamplesArg,
+    /// Cameras the searches of `auto` render (spread over the checkpoint's cameras).
+    #[arg(long, value_name = "N", default_value_t = msth_codec::auto::AutoOptions::default().views)]
+    pub auto_views: usize,
+    /// Longest side (pixels) of the searches' renders.
+    #[arg(long, value_name = "PX", default_value_t = msth_codec::auto::AutoOptions::default().side)]
+    pub auto_side: u32,
     /// Frames per dynamic time chunk.
     #[arg(long, default_value_t = 10)]
     pub chunk_frames: usize,
@@ -71,6 +92,118 @@ pub struct ExportArgs {
     pub seen_weight: f32,
 }
 
+/// `msth export --quant` (and `msth demo --quant`): `auto` or one mode for every section.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum QuantArg {
+    Auto,
+    F32,
+    F16,
+    Q8,
+    Q6,
+    Q5,
+    Q4,
+    K4,
+    K3,
+}
+
+impl QuantArg {
+    /// The mode, `None` for `auto`.
+    pub fn mode(self) -> Option<QuantMode> {
+        Some(match self {
+            QuantArg::Auto => return None,
+            QuantArg::F32 => QuantMode::F32,
+            QuantArg::F16 => QuantMode::F16,
+            QuantArg::Q8 => QuantMode::Q8,
+            QuantArg::Q6 => QuantMode::Q6,
+            QuantArg::Q5 => QuantMode::Q5,
+            QuantArg::Q4 => QuantMode::Q4,
+            QuantArg::K4 => QuantMode::K4,
+            QuantArg::K3 => QuantMode::K3,
+        })
+    }
+}
+
+/// `msth export --play-samples`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PlaySamplesArg {
+    Auto,
+    Model,
+    Counts(u32, u32),
+}
+
+fn parse_play_samples(s: &str) -> Result<PlaySamplesArg, String> {
+    match s {
+        "auto" => Ok(PlaySamplesArg::Auto),
+        "model" => Ok(PlaySamplesArg::Model),
+        _ => match s.parse::<PlaySamples>() {
+            Ok(PlaySamples::Counts(p, m)) => Ok(PlaySamplesArg::Counts(
+                u32::try_from(p).map_err(|e| e.to_string())?,
+                u32::try_from(m).map_err(|e| e.to_string())?,
+            )),
+            _ => Err(format!(
+                "{s:?}: auto, model or P,M (proposal and main samples per ray, each at least 1)"
+            )),
+        },
+    }
+}
+
+/// What `msth export` chooses from renders (`--quant auto`, `--play-samples`).
+#[derive(Clone, Debug)]
+pub(crate) struct Choices {
+    /// Search the sections' modes (`--quant auto`).
+    pub quant: bool,
+    pub samples: PlaySamplesArg,
+    /// The budget and reference PSNR (`None`: from metrics.json beside the checkpoint, else
+    /// [`msth_codec::auto::DEFAULT_REFERENCE_PSNR`]).
+    pub max_loss: f64,
+    pub reference_psnr: Option<f64>,
+    /// Views and their longest side (pixels) of the searches' renders.
+    pub views: usize,
+    pub side: u32,
+}
+
+impl Choices {
+    /// What `msth export` does by default: both searches, 0.1 dB each.
+    pub fn auto() -> Self {
+        Choices {
+            quant: true,
+            samples: PlaySamplesArg::Auto,
+            max_loss: msth_codec::auto::DEFAULT_MAX_LOSS_DB,
+            reference_psnr: None,
+            views: AutoOptions::default().views,
+            side: AutoOptions::default().side,
+        }
+    }
+}
+
+/// The held-out PSNR the searches assume, and where it came from: `given`, else `psnr` of the
+/// metrics.json beside the checkpoint, else the default.
+fn reference_psnr(given: Option<f64>, ckpt_path: &Path) -> Result<(f64, String)> {
+    if let Some(p) = given {
+        if !(p.is_finite() && p > 0.0) {
+            bail!("--reference-psnr {p}: a positive number of dB");
+        }
+        return Ok((p, "--reference-psnr".into()));
+    }
+    let path = ckpt_path
+        .parent()
+        .unwrap_or(Path::new("."))
+        .join("metrics.json");
+    let found = std::fs::read(&path)
+        .ok()
+        .and_then(|b| serde_json::from_slice::<serde_json::Value>(&b).ok())
+        .and_then(|v| v.get("psnr").and_then(|p| p.as_f64()))
+        .filter(|p| p.is_finite() && *p > 0.0);
+    Ok(match found {
+        Some(p) => (p, format!("the held-out PSNR in {}", path.display())),
+        None => (
+            msth_codec::auto::DEFAULT_REFERENCE_PSNR,
+            "assumed: no metrics.json with a PSNR beside the checkpoint (--reference-psnr sets it)"
+                .into(),
+        ),
+    })
+}
+
 /// Where `msth export`'s occupancy grid comes from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum OccupancyFrom {
@@ -90,10 +223,22 @@ impl ExportArgs {
 
 pub fn export(a: ExportArgs) -> Result<()> {
     let mut ckpt = Checkpoint::load(&a.checkpoint)?;
-    let quant: QuantMode = a.quant.parse().map_err(anyhow::Error::msg)?;
     let seen = a.carving_weight()?;
+    if !(a.max_loss.is_finite() && a.max_loss > 0.0) {
+        bail!("--max-loss {}: a positive number of dB", a.max_loss);
+    }
+    let choices = Choices {
+        quant: a.quant == QuantArg::Auto,
+        samples: a.play_samples,
+        max_loss: a.max_loss,
+        reference_psnr: a.reference_psnr,
+        views: a.auto_views,
+        side: a.auto_side,
+    };
     let opts = EncodeOptions {
-        quant,
+        quant: a.quant.mode().unwrap_or(QuantMode::Q5),
+        sections: None,
+        play_samples: None,
         chunk_frames: a.chunk_frames,
         dynamic_threshold: a.dynamic_threshold,
         frame_rate: a.fps,
@@ -104,12 +249,29 @@ pub fn export(a: ExportArgs) -> Result<()> {
     };
     if let Some(d) = &a.measure {
         let dir = a.checkpoint.parent().unwrap_or(std::path::Path::new("."));
-        return measure(&ckpt, d, dir, a.stride, &opts, seen);
+        return measure(
+            &ckpt,
+            &a.checkpoint,
+            d,
+            dir,
+            a.stride,
+            &opts,
+            seen,
+            &choices,
+        );
     }
     let Some(out) = &a.output else {
         bail!("-o OUTPUT is required (or --measure DATA)");
     };
-    let (report, lines) = write_msth(&mut ckpt, &a.checkpoint, out, &opts, a.keep_unreached, seen)?;
+    let (report, lines) = write_msth(
+        &mut ckpt,
+        &a.checkpoint,
+        out,
+        &opts,
+        a.keep_unreached,
+        seen,
+        &choices,
+    )?;
     for line in lines {
         println!("{line}");
     }
@@ -119,9 +281,10 @@ pub fn export(a: ExportArgs) -> Result<()> {
 
 /// What `msth export CKPT -o OUT` does, without printing: zeroes the table values no training ray
 /// reached (unless `keep_unreached`), restricts the occupancy grid to what the training cameras
-/// see (with `seen_weight`, unless `opts` brings a grid), encodes `ckpt` (read from `ckpt_path`)
-/// with `opts` and writes `out` atomically. Returns the encoder's report and lines saying what
-/// was zeroed and how the grid was made.
+/// see (with `seen_weight`, unless `opts` brings a grid), makes the `choices` (each section's
+/// mode, the play-time samples), encodes `ckpt` (read from `ckpt_path`) with `opts` and writes
+/// `out` atomically. Returns the encoder's report and lines saying what was zeroed, how the grid
+/// was made and what was chosen.
 pub(crate) fn write_msth(
     ckpt: &mut Checkpoint,
     ckpt_path: &Path,
@@ -129,6 +292,7 @@ pub(crate) fn write_msth(
     opts: &EncodeOptions,
     keep_unreached: bool,
     seen_weight: Option<f32>,
+    choices: &Choices,
 ) -> Result<(EncodeReport, Vec<String>)> {
     let mut lines: Vec<String> = drop_unreached(ckpt, keep_unreached, ckpt_path)?
         .into_iter()
@@ -139,6 +303,7 @@ pub(crate) fn write_msth(
         opts.occupancy = Some(std::sync::Arc::new(grid));
         lines.push(line);
     }
+    lines.extend(choose(ckpt, ckpt_path, &mut opts, choices)?);
     let (bytes, report) = encode(
         &ckpt.header.model,
         &ckpt.params,
@@ -155,6 +320,114 @@ pub(crate) fn write_msth(
     write_atomic(out, &bytes)
         .with_context(|| format!("writing {} failed ({kept})", out.display()))?;
     Ok((report, lines))
+}
+
+/// Makes `choices` into `opts` (`sections`, `play_samples`); the lines saying what was chosen
+/// and measured.
+pub(crate) fn choose(
+    ckpt: &Checkpoint,
+    ckpt_path: &Path,
+    opts: &mut EncodeOptions,
+    choices: &Choices,
+) -> Result<Vec<String>> {
+    use msth_codec::auto::{choose_quant, choose_samples, Probe};
+    let mut lines = Vec::new();
+    if let PlaySamplesArg::Counts(p, m) = choices.samples {
+        opts.play_samples = Some(msth_codec::PlaySampleCounts {
+            proposal: p,
+            main: m,
+        });
+    }
+    if !choices.quant && choices.samples != PlaySamplesArg::Auto {
+        return Ok(lines);
+    }
+    if opts.occupancy.is_none() {
+        let layout = ModelLayout::new(&ckpt.header.model);
+        opts.occupancy = Some(std::sync::Arc::new(msth_codec::encode::occupancy_grid(
+            &ckpt.header.model,
+            &layout,
+            &ckpt.params,
+            opts,
+        )));
+    }
+    let (psnr, source) = reference_psnr(choices.reference_psnr, ckpt_path)?;
+    let auto = AutoOptions {
+        max_loss_db: choices.max_loss,
+        reference_psnr: psnr,
+        views: choices.views,
+        side: choices.side,
+    };
+    let model = &ckpt.header.model;
+    let cameras = &ckpt.header.cameras;
+    let probe = Probe::new(model, cameras, &auto);
+    if probe.views.is_empty() {
+        bail!("the checkpoint lists no cameras to measure --quant auto and --play-samples auto on: give --quant MODE and --play-samples model or P,M");
+    }
+    let what = format!(
+        "{} views of at most {} px at {} frames, against a held-out PSNR of {psnr:.2} dB ({source})",
+        probe.views.len(),
+        auto.side,
+        probe.views.len().min(model.num_frames),
+    );
+    if choices.quant {
+        let c = choose_quant(model, &ckpt.params, cameras, opts, &probe, &auto)
+            .with_context(|| format!("choosing the quantisation of {}", ckpt_path.display()))?;
+        opts.sections = Some(c.modes);
+        let renders = c.steps.len() + 1;
+        lines.push(format!(
+            "quant auto: {}: loss {:.3} dB against the lossless file (budget {} dB; {renders} renders of {what}, {:.1} s)",
+            QuantPart::ALL
+                .into_iter()
+                .map(|p| format!("{} {}", p.name(), c.modes.get(p)))
+                .collect::<Vec<_>>()
+                .join(", "),
+            c.loss_db,
+            auto.max_loss_db,
+            c.seconds
+        ));
+        let steps: Vec<String> = c
+            .steps
+            .iter()
+            .map(|s| match s.part {
+                Some(p) => format!("{} {} {:.3}", p.name(), s.modes.get(p), s.loss_db),
+                None => format!("whole file {:.3}", s.loss_db),
+            })
+            .collect();
+        lines.push(format!("  measured (dB): {}", steps.join(", ")));
+    }
+    if choices.samples == PlaySamplesArg::Auto {
+        let (bytes, _) = encode(
+            model,
+            &ckpt.params,
+            cameras,
+            &EncodeOptions {
+                zstd_level: 1,
+                ..opts.clone()
+            },
+        )?;
+        let decoded = decode_all(&bytes)?;
+        let c = choose_samples(&decoded, &probe, &auto)?;
+        opts.play_samples = Some(c.samples);
+        let s = &model.sampler;
+        lines.push(format!(
+            "play-time samples per ray: {} proposal + {} main (the model's: {} + {}): loss {:.3} dB against the model's own counts (budget {} dB; {} renders, {:.1} s)",
+            c.samples.proposal,
+            c.samples.main,
+            s.num_proposal_samples,
+            s.num_samples,
+            c.loss_db,
+            auto.max_loss_db,
+            c.steps.len() + 1,
+            c.seconds
+        ));
+        let steps: Vec<String> = c
+            .steps
+            .iter()
+            .map(|s| format!("{} + {} {:.3}", s.samples.0, s.samples.1, s.loss_db))
+            .collect();
+        lines.push(format!("  measured (dB): {}", steps.join(", ")));
+    }
+    Ok(lines)
 }
 
 /// The occupancy grid of `opts` (the density grid) restricted to the cells the checkpoint's
@@ -276,7 +549,7 @@ fn print_summary(r: &EncodeReport, out: &std::path::Path) {
         r.ratio(),
         mb(r.raw_param_bytes),
         mb(r.bytes_per_frame() as u64),
-        r.quant,
+        r.section_quant,
         r.encode_seconds
     );
     println!(
@@ -361,11 +634,13 @@ pub(crate) fn held_out_psnr(
 
 fn measure(
     ckpt: &Checkpoint,
+    ckpt_path: &Path,
     data_arg: &str,
     ckpt_dir: &std::path::Path,
     stride: usize,
     base: &EncodeOptions,
     seen_weight: Option<f32>,
+    choices: &Choices,
 ) -> Result<()> {
     let mut data = data::load(data_arg, &data::DataArgs::with_downscale(1), ckpt_dir)?;
     data.rescale(ckpt.header.scene_scale());
@@ -416,6 +691,45 @@ fn measure(
             reference - p,
             raw as f64 / 1e6 / report.encode_seconds,
             raw as f64 / 1e6 / decode_s
+        );
+    }
+    // `--quant auto` (with the budget and reference of the command line) and the play-time
+    // samples it would store.
+    let mut opts = base.clone();
+    let lines = choose(ckpt, ckpt_path, &mut opts, choices)?;
+    let (bytes, report) = encode(model, &ckpt.params, &ckpt.header.cameras, &opts)?;
+    let decoded = decode_all(&bytes)?;
+    let p = held_out_psnr(&data, model, &layout, stride, &|t| {
+        decoded.params_for_time(t)
+    });
+    println!(
+        "| auto ({}) | {} | {} | {} | {:.1}x | {:.3} | | |",
+        report.section_quant,
+        mb(report.file_bytes),
+        mb(report.bytes_per_frame() as u64),
+        mb(report.dynamic_bytes_per_frame() as u64),
+        report.ratio(),
+        reference - p,
+    );
+    println!();
+    for line in &lines {
+        println!("{line}");
+    }
+    if let Some(s) = decoded.metadata.play_samples {
+        let mut fewer = model.clone();
+        fewer
+            .sampler
+            .set_samples(s.proposal as usize, s.main as usize);
+        let q = held_out_psnr(&data, &fewer, &layout, stride, &|t| {
+            decoded.params_for_time(t)
+        });
+        println!(
+            "held-out PSNR of the auto file at its play-time samples ({} + {}): {q:.3} dB, {:.3} dB below its {p:.3} dB at the model's own ({} + {})",
+            s.proposal,
+            s.main,
+            p - q,
+            model.sampler.num_proposal_samples,
+            model.sampler.num_samples
         );
     }
     println!("\nSparse dynamic section ({} chunk frames), f32 (lossless) so only the dropped 4D rows count:\n", base.chunk_frames);

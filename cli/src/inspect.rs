@@ -348,6 +348,31 @@ impl Inspection {
             meta.dynamic_threshold,
             meta.chunk_frames
         );
+        let parts = meta.parts_quant();
+        let _ = writeln!(
+            o,
+            "quant       {}{}",
+            msth_codec::QuantPart::ALL
+                .into_iter()
+                .map(|p| format!("{} {}", p.name(), parts.get(p)))
+                .collect::<Vec<_>>()
+                .join(", "),
+            if meta.section_quant.is_none() {
+                " (version 1 and 2 files: one mode throughout)"
+            } else {
+                ""
+            }
+        );
+        let (p, m) = meta.default_samples();
+        let _ = writeln!(
+            o,
+            "samples     players use {p} proposal + {m} main samples per ray by default ({})",
+            if meta.play_samples.is_some() {
+                "stored in the file; the model's own are its sampler's"
+            } else {
+                "the model's own: the file stores no play-time counts"
+            }
+        );
         let _ = writeln!(
             o,
             "sections    #  kind       offset      stored        raw   ratio  crc32"

@@ -184,9 +184,10 @@ pub struct EvalArgs {
     /// Evaluate every N-th test view.
     #[arg(long, default_value_t = 1)]
     pub stride: usize,
-    /// Samples per ray: full (the model's own), fast, faster or P,M, as `msth play --samples`:
+    /// Samples per ray: file (a `.msth` file's play-time counts, the model's own without them or
+    /// for a checkpoint), full (the model's own), fast, faster or P,M, as `msth play --samples`:
     /// measures what fewer samples cost on the held-out views.
-    #[arg(long, default_value = "full", value_parser = play::parse_samples)]
+    #[arg(long, default_value = "file", value_parser = play::parse_samples)]
     pub samples: PlaySamples,
     /// A `.msth` file: which renderer draws the views (the baked volume, the exact field, or
     /// both, with the volume's frames compared to the exact ones).
@@ -270,8 +271,9 @@ pub struct RenderArgs {
     /// Also write the depth and the mask (1 = static) as pictures next to the output.
     #[arg(long)]
     pub extras: bool,
-    /// Samples per ray: full (the model's own), fast, faster or P,M, as `msth play --samples`.
-    #[arg(long, default_value = "full", value_parser = play::parse_samples)]
+    /// Samples per ray: file (a `.msth` file's play-time counts, the model's own without them or
+    /// for a checkpoint), full (the model's own), fast, faster or P,M, as `msth play --samples`.
+    #[arg(long, default_value = "file", value_parser = play::parse_samples)]
     pub samples: PlaySamples,
     #[arg(long)]
     pub list_cameras: bool,

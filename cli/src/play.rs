@@ -56,10 +56,12 @@ pub struct PlayArgs {
     /// Evaluate every sample, also in the cells the file's occupancy grid marks empty.
     #[arg(long)]
     pub no_skip_empty: bool,
-    /// Samples per ray: full (the model's own), fast (2/3 of the proposal and 3/4 of the main
-    /// samples), faster (half of each) or P,M. Fewer samples render faster and less accurately
-    /// (docs/tradeoff.md); `msth eval --samples` measures the loss on held-out views
-    #[arg(long, default_value = "full", value_parser = parse_samples)]
+    /// Samples per ray: file (the counts the file stores for playback, which `msth export`
+    /// chooses; the model's own when it stores none), full (the model's own), fast (2/3 of the
+    /// proposal and 3/4 of the main samples), faster (half of each) or P,M. Fewer samples render
+    /// faster and less accurately (docs/tradeoff.md); `msth eval --samples` measures the loss on
+    /// held-out views
+    #[arg(long, default_value = "file", value_parser = parse_samples)]
     pub samples: PlaySamples,
     /// GPU renderer: f16 or f32 hash tables on the device. Default: f32 for a lossless file
     /// (`--quant f32`), else f16: half the memory, one read per row of two features, a rounding

@@ -380,15 +380,16 @@ fn print_metrics(m: &Metrics, path: &Path) {
     }
 }
 
-/// `model` rendered with `samples` per ray (`--samples`), within the bounds of a checkpoint's
-/// own sampler, and the counts when they differ from the model's (which it then prints).
+/// `model` rendered with `samples` per ray (`--samples`; `stored`: the counts a `.msth` file
+/// stores for playback), within the bounds of a checkpoint's own sampler, and the counts when they differ from the model's (which it then prints).
 pub(crate) fn with_samples(
     model: &msth_core::config::ModelConfig,
+    stored: Option<(usize, usize)>,
     samples: PlaySamples,
 ) -> Result<(msth_core::config::ModelConfig, Option<(usize, usize)>)> {
     let max = msth_core::config::MAX_SAMPLES_PER_RAY;
     let m = samples
-        .apply(model, max, max)
+        .apply(model, stored, max, max)
         .map_err(|e| anyhow::anyhow!("--{e}"))?;
     let counts = |s: &msth_core::config::SamplerConfig| (s.num_proposal_samples, s.num_samples);
     let fewer = crate::play::samples_note(counts(&m.sampler), counts(&model.sampler)).map(|note| {
@@ -403,7 +404,7 @@ pub fn eval(a: EvalArgs) -> Result<()> {
         return crate::evaluate::eval_file(&a);
     }
     let mut ckpt = Checkpoint::load(&a.checkpoint)?;
-    let (model, fewer) = with_samples(&ckpt.header.model, a.samples)?;
+    let (model, fewer) = with_samples(&ckpt.header.model, None, a.samples)?;
     ckpt.header.model = model;
     let out = a.out.clone().unwrap_or_else(|| {
         let dir = a
@@ -558,7 +559,7 @@ pub fn render(a: RenderArgs) -> Result<()> {
         }
         cam = cam.resized(w, h);
     }
-    let (model, _) = with_samples(&ckpt.header.model, a.samples)?;
+    let (model, _) = with_samples(&ckpt.header.model, None, a.samples)?;
     let layout = ModelLayout::new(&model);
     let t = Instant::now();
     let r = render_image(&model, &layout, &ckpt.params, &cam, a.time);

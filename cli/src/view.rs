@@ -24,8 +24,9 @@ pub struct ViewArgs {
     /// Full render size WxH (default: the cameras' own).
     #[arg(long, value_parser = parse_size)]
     pub size: Option<(u32, u32)>,
-    /// Samples per ray at the start: full, fast, faster or P,M (the samples menu changes them).
-    #[arg(long, default_value = "full", value_parser = parse_samples)]
+    /// Samples per ray at the start: file (the file's play-time counts, the model's own when it
+    /// stores none), full, fast, faster or P,M (the samples menu changes them).
+    #[arg(long, default_value = "file", value_parser = parse_samples)]
     pub samples: PlaySamples,
     /// Start with the play-time volume on (CPU renderer; V and the panel's switch turn it off and
     /// on): it is baked in the background once the file's static part has arrived, frames come

@@ -154,7 +154,25 @@ fn shortened_demo_serves_plays_and_matches_msth_render() {
         assert!(f.is_file(), "{} missing", f.display());
     }
     let decoded = msth_codec::decode_all(&std::fs::read(&scene).unwrap()).unwrap();
-    assert_eq!(decoded.metadata.quant, msth_codec::QuantMode::Q5);
+    // Exported as `msth export` does by default: each part's mode chosen (`--quant auto`) and
+    // play-time samples stored, no more than the model's own; the demo prints both.
+    let parts = decoded
+        .metadata
+        .section_quant
+        .expect("a version-3 file lists each part's mode");
+    assert_eq!(decoded.metadata.quant, parts.finest());
+    let s = decoded
+        .metadata
+        .play_samples
+        .expect("the export stores play-time samples");
+    let own = &decoded.config.sampler;
+    assert!(
+        s.proposal as usize <= own.num_proposal_samples && s.main as usize <= own.num_samples,
+        "{s:?}"
+    );
+    for word in ["quant auto:", "play-time samples per ray:"] {
+        assert!(lines.iter().any(|l| l.contains(word)), "no `{word}` line");
+    }
     let tour: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("orbit.json")).unwrap()).unwrap();
     let tour = tour["frames"].as_array().unwrap().clone();

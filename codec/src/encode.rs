@@ -10,8 +10,8 @@ use msth_core::Camera;
 use crate::dynamic_rows::{dynamic_region, reached_rows};
 use crate::error::EncodeError;
 use crate::format::{
-    index_offset, prefix_size, write_entry, ChunkSpan, FixedHeader, Metadata, QuantMode,
-    SectionEntry, SectionKind, ALIGN, FIXED_HEADER, VERSION,
+    index_offset, prefix_size, write_entry, ChunkSpan, FixedHeader, Metadata, PlaySampleCounts,
+    QuantMode, SectionEntry, SectionKind, SectionQuant, ALIGN, FIXED_HEADER, VERSION,
 };
 use crate::occupancy::{
     OccupancyGrid, DEFAULT_OCCUPANCY_ALPHA, DEFAULT_OCCUPANCY_RESOLUTION, MAX_OCCUPANCY_RESOLUTION,
@@ -21,7 +21,13 @@ use crate::sections::{write_chunk, write_static, Encodings, StaticPart, SHARED_T
 /// What the encoder is asked to do.
 #[derive(Clone, Debug, PartialEq)]
 pub struct EncodeOptions {
+    /// The mode of every part, unless `sections` says otherwise.
     pub quant: QuantMode,
+    /// Each part's mode (metadata `section_quant`); `None`: every part in `quant`.
+    pub sections: Option<SectionQuant>,
+    /// The samples per ray (proposal, main) players use by default (metadata `play_samples`);
+    /// `None`: the model's own.
+    pub play_samples: Option<PlaySampleCounts>,
     /// Frames per dynamic chunk.
     pub chunk_frames: usize,
     /// A mask vertex is dynamic when `1 - sigmoid(logit) >= dynamic_threshold`.
@@ -45,6 +51,8 @@ impl Default for EncodeOptions {
     fn default() -> Self {
         EncodeOptions {
             quant: QuantMode::Q5,
+            sections: None,
+            play_samples: None,
             chunk_frames: 10,
             dynamic_threshold: 0.3,
             frame_rate: None,
@@ -82,7 +90,10 @@ pub struct ChunkReport {
 /// What went where.
 #[derive(Clone, Debug, PartialEq)]
 pub struct EncodeReport {
+    /// The finest mode of any part (the metadata's `quant`).
     pub quant: QuantMode,
+    /// Each part's mode.
+    pub section_quant: SectionQuant,
     pub file_bytes: u64,
     /// Header, metadata and index.
     pub prefix_bytes: u64,
@@ -249,14 +260,40 @@ pub fn encode(
             opts.occupancy_alpha
         )));
     }
-    let enc = Encodings::for_mode(opts.quant);
+    if let Some(s) = opts.play_samples {
+        let limits = crate::Limits::default();
+        if !(1..=limits.max_proposal_samples).contains(&(s.proposal as u64))
+            || !(1..=limits.max_samples).contains(&(s.main as u64))
+        {
+            return Err(EncodeError::InvalidOption(format!(
+                "play_samples {},{}: proposal samples must lie in 1..={} and main samples in 1..={}",
+                s.proposal, s.main, limits.max_proposal_samples, limits.max_samples
+            )));
+        }
+    }
+    let parts = opts
+        .sections
+        .unwrap_or_else(|| SectionQuant::uniform(opts.quant));
+    let static_enc = Encodings {
+        mask: Encodings::for_mode(parts.mask).mask,
+        ..Encodings::for_mode(parts.static_table)
+    };
+    let dyn_enc = Encodings::for_mode(parts.dynamic);
 
     let mut payloads: Vec<(SectionKind, u32, Vec<u8>)> = Vec::new();
     let mut sections = Vec::new();
-    for (kind, part) in [
-        (SectionKind::Mlp, StaticPart::Mlp),
-        (SectionKind::Proposal, StaticPart::Proposal),
-        (SectionKind::Static, StaticPart::Static),
+    for (kind, part, enc) in [
+        (
+            SectionKind::Mlp,
+            StaticPart::Mlp,
+            Encodings::for_mode(parts.mlp),
+        ),
+        (
+            SectionKind::Proposal,
+            StaticPart::Proposal,
+            Encodings::for_mode(parts.proposal),
+        ),
+        (SectionKind::Static, StaticPart::Static, static_enc),
     ] {
         let (raw, values) = write_static(&layout, params, part, enc);
         sections.push(SectionReport {
@@ -338,7 +375,7 @@ pub fn encode(
                 .collect();
             let shared_values: u64 =
                 shared.iter().map(|r| r.len() as u64).sum::<u64>() * g.features as u64;
-            let raw = write_chunk(&layout, params, SHARED_TAG, &shared, enc);
+            let raw = write_chunk(&layout, params, SHARED_TAG, &shared, dyn_enc);
             sections.push(SectionReport {
                 name: SectionKind::Shared.name().into(),
                 stored_bytes: 0,
@@ -349,7 +386,7 @@ pub fn encode(
             for (c, (span, own)) in spans.iter().zip(own_rows).enumerate() {
                 let reached = reached_per_chunk[c];
                 let kept: u64 = own.iter().map(|r| r.len() as u64).sum();
-                let raw = write_chunk(&layout, params, c as u32, &own, enc);
+                let raw = write_chunk(&layout, params, c as u32, &own, dyn_enc);
                 chunks.push(ChunkReport {
                     span: span.clone(),
                     stored_bytes: 0,
@@ -373,7 +410,9 @@ pub fn encode(
         frame_rate: opts.frame_rate,
         time_range: [0.0, 1.0],
         cameras: cameras.to_vec(),
-        quant: opts.quant,
+        quant: parts.finest(),
+        section_quant: Some(parts),
+        play_samples: opts.play_samples,
         dynamic_threshold: opts.dynamic_threshold,
         chunk_frames: opts.chunk_frames as u32,
         chunks: spans,
@@ -437,7 +476,8 @@ pub fn encode(
         c.stored_bytes = e.length;
     }
     let report = EncodeReport {
-        quant: opts.quant,
+        quant: parts.finest(),
+        section_quant: parts,
         file_bytes: out.len() as u64,
         prefix_bytes: header_size,
         raw_param_bytes: 4 * layout.params.total as u64,

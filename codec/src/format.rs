@@ -12,8 +12,8 @@ use crate::error::DecodeError;
 
 /// `b"MSTH"`.
 pub const MAGIC: [u8; 4] = *b"MSTH";
-/// The format version this crate writes.
-pub const VERSION: u16 = 2;
+/// The format version this crate writes (3: the metadata's `section_quant` and `play_samples`).
+pub const VERSION: u16 = 3;
 /// The oldest version this crate reads (version 1: no occupancy section).
 pub const MIN_VERSION: u16 = 1;
 /// Bytes of the fixed header.
@@ -161,6 +161,145 @@ impl QuantMode {
     }
 }
 
+impl QuantMode {
+    /// The finer (less lossy) of two modes: the earlier in [`QuantMode::ALL`].
+    pub fn finer(self, other: QuantMode) -> QuantMode {
+        let rank = |m: QuantMode| QuantMode::ALL.iter().position(|&x| x == m).unwrap_or(0);
+        if rank(other) < rank(self) {
+            other
+        } else {
+            self
+        }
+    }
+}
+
+/// How each part of a file is quantised (the metadata's `section_quant`, version 3): each field
+/// is the mode whose block encodings (format.md §5.3) that part uses.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SectionQuant {
+    /// The MLP section (modes `q8` to `k3` all store the MLPs as f16).
+    pub mlp: QuantMode,
+    /// The proposal section: the proposal field's tables and mask.
+    pub proposal: QuantMode,
+    /// The static section's 3D table levels.
+    #[serde(rename = "static")]
+    pub static_table: QuantMode,
+    /// The static section's mask grid (the mode's mask column of §5.3).
+    pub mask: QuantMode,
+    /// The field's 4D rows in the shared section and the chunks.
+    pub dynamic: QuantMode,
+}
+
+/// One part of [`SectionQuant`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum QuantPart {
+    Mlp,
+    Proposal,
+    StaticTable,
+    Mask,
+    Dynamic,
+}
+
+impl QuantPart {
+    pub const ALL: [QuantPart; 5] = [
+        QuantPart::Mlp,
+        QuantPart::Proposal,
+        QuantPart::StaticTable,
+        QuantPart::Mask,
+        QuantPart::Dynamic,
+    ];
+    /// The part's key in the metadata's `section_quant`.
+    pub fn name(self) -> &'static str {
+        match self {
+            QuantPart::Mlp => "mlp",
+            QuantPart::Proposal => "proposal",
+            QuantPart::StaticTable => "static",
+            QuantPart::Mask => "mask",
+            QuantPart::Dynamic => "dynamic",
+        }
+    }
+}
+
+impl SectionQuant {
+    /// Every part in `mode`: what a file of one mode stores.
+    pub fn uniform(mode: QuantMode) -> Self {
+        SectionQuant {
+            mlp: mode,
+            proposal: mode,
+            static_table: mode,
+            mask: mode,
+            dynamic: mode,
+        }
+    }
+    pub fn get(&self, part: QuantPart) -> QuantMode {
+        match part {
+            QuantPart::Mlp => self.mlp,
+            QuantPart::Proposal => self.proposal,
+            QuantPart::StaticTable => self.static_table,
+            QuantPart::Mask => self.mask,
+            QuantPart::Dynamic => self.dynamic,
+        }
+    }
+    pub fn set(&mut self, part: QuantPart, mode: QuantMode) {
+        match part {
+            QuantPart::Mlp => self.mlp = mode,
+            QuantPart::Proposal => self.proposal = mode,
+            QuantPart::StaticTable => self.static_table = mode,
+            QuantPart::Mask => self.mask = mode,
+            QuantPart::Dynamic => self.dynamic = mode,
+        }
+    }
+    /// The finest mode of any part (the metadata's `quant` of a version-3 file).
+    pub fn finest(&self) -> QuantMode {
+        QuantPart::ALL
+            .into_iter()
+            .map(|p| self.get(p))
+            .fold(QuantMode::K3, QuantMode::finer)
+    }
+    /// The finest mode of the hash-table parts (proposal, static, dynamic): what decides how
+    /// precisely a GPU renderer needs to hold the tables.
+    pub fn finest_table(&self) -> QuantMode {
+        [self.proposal, self.static_table, self.dynamic]
+            .into_iter()
+            .fold(QuantMode::K3, QuantMode::finer)
+    }
+    /// `mode` when every part uses it.
+    pub fn single(&self) -> Option<QuantMode> {
+        let m = self.mlp;
+        QuantPart::ALL
+            .into_iter()
+            .all(|p| self.get(p) == m)
+            .then_some(m)
+    }
+}
+
+impl std::fmt::Display for SectionQuant {
+    /// `mlp f16, proposal q8, static q6, mask q5, dynamic q5`, or the mode alone when every part
+    /// uses it.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        if let Some(m) = self.single() {
+            return write!(f, "{m}");
+        }
+        let parts: Vec<String> = QuantPart::ALL
+            .into_iter()
+            .map(|p| format!("{} {}", p.name(), self.get(p)))
+            .collect();
+        f.write_str(&parts.join(", "))
+    }
+}
+
+/// The samples per ray a file asks players to use by default (the metadata's `play_samples`,
+/// version 3).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PlaySampleCounts {
+    /// Proposal samples per ray.
+    pub proposal: u32,
+    /// Main samples per ray.
+    pub main: u32,
+}
+
 impl std::str::FromStr for QuantMode {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, String> {
@@ -208,7 +347,16 @@ pub struct Metadata {
     pub time_range: [f32; 2],
     /// Suggested playback cameras.
     pub cameras: Vec<Camera>,
+    /// The quantisation mode (version 3: the finest mode of any part, `section_quant` has each).
     pub quant: QuantMode,
+    /// Each part's mode (version 3; absent in versions 1 and 2, whose files use `quant`
+    /// throughout).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub section_quant: Option<SectionQuant>,
+    /// The samples per ray players use unless told otherwise (version 3; absent: the model's
+    /// own, `model.sampler`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub play_samples: Option<PlaySampleCounts>,
     /// A mask vertex is dynamic when `1 - sigmoid(logit) >= dynamic_threshold`.
     pub dynamic_threshold: f32,
     /// Frames per dynamic chunk.
@@ -217,6 +365,24 @@ pub struct Metadata {
     pub chunks: Vec<ChunkSpan>,
     /// Free-form producer string.
     pub encoder: String,
+}
+
+impl Metadata {
+    /// How each part is quantised: `section_quant`, or `quant` throughout (versions 1 and 2).
+    pub fn parts_quant(&self) -> SectionQuant {
+        self.section_quant
+            .unwrap_or_else(|| SectionQuant::uniform(self.quant))
+    }
+    /// The samples per ray players use by default: `play_samples`, or the model's own.
+    pub fn default_samples(&self) -> (usize, usize) {
+        match self.play_samples {
+            Some(s) => (s.proposal as usize, s.main as usize),
+            None => (
+                self.model.sampler.num_proposal_samples,
+                self.model.sampler.num_samples,
+            ),
+        }
+    }
 }
 
 /// Sizes the decoder accepts; everything is checked before anything is allocated. Besides the
@@ -525,7 +691,7 @@ impl FileIndex {
         }
         let metadata: Metadata = serde_json::from_slice(meta_bytes)
             .map_err(|e| DecodeError::malformed("metadata JSON", e.to_string()))?;
-        let layout = check_metadata(&metadata, limits)?;
+        let layout = check_metadata(&metadata, header.version, limits)?;
         let mut sections = Vec::with_capacity(header.section_count as usize);
         for i in 0..header.section_count as usize {
             let o = io + i * INDEX_ENTRY;
@@ -611,11 +777,56 @@ impl FileIndex {
     }
 }
 
-fn check_metadata(m: &Metadata, limits: &Limits) -> Result<ModelLayout, DecodeError> {
+fn check_metadata(m: &Metadata, version: u16, limits: &Limits) -> Result<ModelLayout, DecodeError> {
     m.model
         .validate()
         .map_err(|e| DecodeError::Model(e.to_string()))?;
     limits.check_model(&m.model)?;
+    if version < 3 {
+        for (key, present) in [
+            ("section_quant", m.section_quant.is_some()),
+            ("play_samples", m.play_samples.is_some()),
+        ] {
+            if present {
+                return Err(DecodeError::malformed(
+                    "metadata",
+                    format!("unknown key `{key}` (version {version}; it exists from version 3)"),
+                ));
+            }
+        }
+    }
+    if let Some(q) = m.section_quant {
+        if q.finest() != m.quant {
+            return Err(DecodeError::malformed(
+                "metadata",
+                format!(
+                    "quant is {} but the finest mode in section_quant is {}",
+                    m.quant,
+                    q.finest()
+                ),
+            ));
+        }
+    }
+    if let Some(s) = m.play_samples {
+        for (what, v, limit) in [
+            (
+                "play_samples.proposal",
+                s.proposal as u64,
+                limits.max_proposal_samples,
+            ),
+            ("play_samples.main", s.main as u64, limits.max_samples),
+        ] {
+            if v == 0 {
+                return Err(DecodeError::malformed(
+                    "metadata",
+                    format!("{what} is 0: at least 1 sample per ray"),
+                ));
+            }
+            if v > limit {
+                return Err(DecodeError::limit(what, v, limit));
+            }
+        }
+    }
     // Bound the layout's size before building it: the parameter count of every grid is at most
     // levels * table rows * features, and ModelLayout::new allocates nothing per row.
     let layout = ModelLayout::new(&m.model);

@@ -15,6 +15,7 @@
 //! quantisation), [`sections`] (section payloads), [`dynamic_rows`] (which 4D rows a chunk keeps),
 //! [`occupancy`] (the occupancy grid and how export computes it), [`error`]. This crate knows the model's layout, not how it was trained.
 
+pub mod auto;
 pub mod decode;
 pub mod dynamic_rows;
 pub mod encode;
@@ -27,7 +28,10 @@ pub mod sections;
 pub use decode::{decode_all, decode_all_with_limits, DecodedModel, Decoder};
 pub use encode::{encode, ChunkReport, EncodeOptions, EncodeReport, SectionReport};
 pub use error::{DecodeError, EncodeError};
-pub use format::{FileIndex, Limits, Metadata, QuantMode, SectionEntry, SectionKind};
+pub use format::{
+    FileIndex, Limits, Metadata, PlaySampleCounts, QuantMode, QuantPart, SectionEntry, SectionKind,
+    SectionQuant,
+};
 pub use occupancy::OccupancyGrid;
 
 #[cfg(test)]

@@ -195,26 +195,27 @@ impl SampleLevel {
 }
 
 /// Samples per ray at play time (`msth play --samples`, `msth eval --samples`, the page's
-/// samples menu). Fewer samples than the model was trained with trade accuracy for speed; the
+/// samples menu); by default the counts the file stores (`msth export` chooses them). Fewer samples than the model was trained with trade accuracy for speed; the
 /// trade is measured in docs/tradeoff.md ("Samples per ray at play time").
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum PlaySamples {
+    /// The counts the file stores for playback (`.msth` version 3, `play_samples`), or the
+    /// model's own when it stores none: what players use unless told otherwise.
+    #[default]
+    File,
     Level(SampleLevel),
     /// Exact counts: proposal samples, main samples.
     Counts(usize, usize),
 }
 
-impl Default for PlaySamples {
-    fn default() -> Self {
-        PlaySamples::Level(SampleLevel::Full)
-    }
-}
-
 impl std::str::FromStr for PlaySamples {
     type Err = String;
 
-    /// `full`, `fast`, `faster` or `P,M` (proposal and main samples per ray).
+    /// `file`, `full`, `fast`, `faster` or `P,M` (proposal and main samples per ray).
     fn from_str(s: &str) -> Result<Self, String> {
+        if s == "file" {
+            return Ok(PlaySamples::File);
+        }
         if let Some(l) = SampleLevel::ALL.into_iter().find(|l| l.name() == s) {
             return Ok(PlaySamples::Level(l));
         }
@@ -224,17 +225,19 @@ impl std::str::FromStr for PlaySamples {
         match parsed {
             Some((p, m)) if p >= 1 && m >= 1 => Ok(PlaySamples::Counts(p, m)),
             _ => Err(format!(
-                "samples {s:?}: full, fast, faster or P,M (proposal and main samples per ray, each at least 1)"
+                "samples {s:?}: file, full, fast, faster or P,M (proposal and main samples per ray, each at least 1)"
             )),
         }
     }
 }
 
 impl PlaySamples {
-    /// The proposal and main samples per ray for a model whose sampler is `model`: a level's
-    /// fraction of each count, rounded up (at least 1), or the exact counts.
-    pub fn counts(self, model: &SamplerConfig) -> (usize, usize) {
+    /// The proposal and main samples per ray for a model whose sampler is `model` in a file
+    /// that stores `stored` for playback: a level's fraction of each of the model's counts,
+    /// rounded up (at least 1), the exact counts, or `stored` (the model's own when `None`).
+    pub fn counts(self, model: &SamplerConfig, stored: Option<(usize, usize)>) -> (usize, usize) {
         match self {
+            PlaySamples::File => stored.unwrap_or((model.num_proposal_samples, model.num_samples)),
             PlaySamples::Counts(p, m) => (p, m),
             PlaySamples::Level(l) => {
                 let [(pn, pd), (mn, md)] = l.fractions();
@@ -252,10 +255,11 @@ impl PlaySamples {
     pub fn apply(
         self,
         model: &ModelConfig,
+        stored: Option<(usize, usize)>,
         max_proposal: usize,
         max_main: usize,
     ) -> Result<ModelConfig, String> {
-        let (p, m) = self.counts(&model.sampler);
+        let (p, m) = self.counts(&model.sampler, stored);
         if !(1..=max_proposal).contains(&p) || !(1..=max_main).contains(&m) {
             return Err(format!(
                 "samples {p},{m}: proposal samples must lie in 1..={max_proposal} and main samples in 1..={max_main}"
@@ -549,7 +553,7 @@ mod tests {
         let balanced =
             ModelConfig::preset(Preset::Balanced, SceneBounds::dnerf_default(), white, 7);
         let counts =
-            |s: &str, c: &ModelConfig| s.parse::<PlaySamples>().unwrap().counts(&c.sampler);
+            |s: &str, c: &ModelConfig| s.parse::<PlaySamples>().unwrap().counts(&c.sampler, None);
         assert_eq!(counts("full", &fast), (48, 24));
         assert_eq!(counts("fast", &fast), (32, 18));
         assert_eq!(counts("faster", &fast), (24, 12));
@@ -564,9 +568,22 @@ mod tests {
         assert_eq!(counts("fast", &tiny), (4, 3));
         for bad in ["", "half", "0,4", "4,0", "4", "4,x", "-1,2", "4,4,4"] {
             let e = bad.parse::<PlaySamples>().unwrap_err();
-            assert!(e.contains("full, fast, faster or P,M"), "{bad}: {e}");
+            assert!(e.contains("file, full, fast, faster or P,M"), "{bad}: {e}");
         }
-        let m = PlaySamples::Counts(64, 8).apply(&fast, 1024, 512).unwrap();
+        // `file`: the file's stored counts, the model's own without them.
+        assert_eq!(counts("file", &fast), (48, 24));
+        assert_eq!(
+            PlaySamples::File.counts(&fast.sampler, Some((20, 9))),
+            (20, 9)
+        );
+        assert_eq!(
+            PlaySamples::Level(SampleLevel::Full).counts(&fast.sampler, Some((20, 9))),
+            (48, 24)
+        );
+        assert_eq!(PlaySamples::default(), PlaySamples::File);
+        let m = PlaySamples::Counts(64, 8)
+            .apply(&fast, None, 1024, 512)
+            .unwrap();
         assert_eq!(
             (m.sampler.num_proposal_samples, m.sampler.num_samples),
             (64, 8)
@@ -576,10 +593,12 @@ mod tests {
         back.sampler.set_samples(48, 24);
         assert_eq!(back, fast);
         let e = PlaySamples::Counts(2000, 8)
-            .apply(&fast, 1024, 512)
+            .apply(&fast, None, 1024, 512)
             .unwrap_err();
         assert!(e.contains("1..=1024"), "{e}");
-        assert!(PlaySamples::Counts(8, 513).apply(&fast, 1024, 512).is_err());
+        assert!(PlaySamples::Counts(8, 513)
+            .apply(&fast, None, 1024, 512)
+            .is_err());
     }
 
     #[test]

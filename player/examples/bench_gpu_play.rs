@@ -99,7 +99,15 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let samples: msth_core::config::PlaySamples = std::env::var("MSTH_BENCH_SAMPLES")
         .unwrap_or_else(|_| "full".into())
         .parse()?;
-    let cfg = samples.apply(&decoded.metadata.model, 1024, 512)?;
+    let cfg = samples.apply(
+        &decoded.metadata.model,
+        decoded
+            .metadata
+            .play_samples
+            .map(|s| (s.proposal as usize, s.main as usize)),
+        1024,
+        512,
+    )?;
     let cam0 = *decoded
         .metadata
         .cameras

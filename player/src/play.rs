@@ -46,11 +46,12 @@ pub struct PlayOptions {
     /// GPU renderer's per-sample passes; files of format version 1 have no grid and skip
     /// nothing).
     pub skip_empty: bool,
-    /// Samples per ray: the model's own (the default) or fewer, for speed.
+    /// Samples per ray: the file's play-time counts (the default; the model's own when it
+    /// stores none), the model's own, or fewer, for speed.
     pub samples: PlaySamples,
-    /// GPU renderer: how the device holds the hash tables. `None`: f32 for a lossless file
-    /// (quantisation `f32`), else binary16, whose rounding lies below every quantised mode's
-    /// step ([`msth_gpu::TableFormat::F16`]).
+    /// GPU renderer: how the device holds the hash tables. `None`: f32 when a hash-table part of
+    /// the file is lossless (mode `f32`), else binary16, whose rounding lies below every
+    /// quantised mode's step ([`msth_gpu::TableFormat::F16`]).
     pub gpu_tables: Option<msth_gpu::TableFormat>,
     /// The play-time volume, baked once the static part has arrived (unless
     /// [`RenderSettings::exact`]).
@@ -107,8 +108,9 @@ pub enum PlayError {
     Path(#[from] PathError),
 }
 
-/// How the GPU renderer holds the hash tables of a file quantised with `quant` unless told
-/// otherwise: f32 for a lossless file, else binary16, whose rounding lies below every quantised
+/// How the GPU renderer holds the hash tables of a file whose finest hash-table part is quantised
+/// with `quant` (`SectionQuant::finest_table`) unless told otherwise: f32 when it is lossless,
+/// else binary16, whose rounding lies below every quantised
 /// mode's step ([`msth_gpu::TableFormat::F16`]; the page's `main.js` chooses alike).
 pub fn gpu_tables_for(quant: msth_codec::QuantMode) -> msth_gpu::TableFormat {
     match quant {
@@ -274,7 +276,9 @@ pub fn play(
         })
     };
     let mut render_settings = opts.render;
-    render_settings.gpu_tables = opts.gpu_tables.unwrap_or(gpu_tables_for(meta.quant));
+    render_settings.gpu_tables = opts
+        .gpu_tables
+        .unwrap_or(gpu_tables_for(meta.parts_quant().finest_table()));
     render_settings.time_range = (0..n).map(frame_time).fold((1f32, 0f32), |(lo, hi), t| {
         let t = t.clamp(0.0, 1.0);
         (lo.min(t), hi.max(t))
@@ -283,6 +287,8 @@ pub fn play(
         .samples
         .apply(
             &meta.model,
+            meta.play_samples
+                .map(|s| (s.proposal as usize, s.main as usize)),
             opts.limits.max_proposal_samples as usize,
             opts.limits.max_samples as usize,
         )

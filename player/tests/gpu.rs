@@ -761,7 +761,7 @@ fn balanced_preset_frames_match_the_cpu_full_and_incremental() {
         // The extreme: one sample of each (no NaN, the same frame on both).
         (PlaySamples::Counts(1, 1), (1, 1)),
     ] {
-        let fewer = samples.apply(&cfg, 1024, 512).unwrap();
+        let fewer = samples.apply(&cfg, None, 1024, 512).unwrap();
         let s = &fewer.sampler;
         assert_eq!((s.num_proposal_samples, s.num_samples), counts);
         let a = Renderer::new(&fewer, settings).render(&cam, 0.5, &params);

@@ -180,7 +180,7 @@ impl File {
     }
 }
 
-/// Index positions, in a version-2 file, of the occupancy and the shared section.
+/// Index positions, in a version-2 or version-3 file, of the occupancy and the shared section.
 const OCCUPANCY: usize = 3;
 const SHARED: usize = 4;
 
@@ -685,8 +685,12 @@ fn corpus() -> Vec<(&'static str, Vec<u8>)> {
     b.set_u64(e + 24, 1 << 30);
     b.fix_prefix();
     add("occupancy_raw_length_beyond_limit", b.bytes);
-    // A version-2 file is read with version 1's section order and the other way round.
+    // A version-2 file is read with version 1's section order and the other way round. (The
+    // base file is version 3: without its `section_quant` it is a version-2 file.)
     let mut b = f();
+    b.edit_metadata(|m| {
+        m.as_object_mut().unwrap().remove("section_quant");
+    });
     b.bytes[4] = 1;
     b.fix_prefix();
     add("v2_file_marked_v1", b.bytes);
@@ -697,6 +701,28 @@ fn corpus() -> Vec<(&'static str, Vec<u8>)> {
     b.bytes[4] = 2;
     b.fix_prefix();
     add("v1_file_marked_v2", b.bytes);
+    // Version 3's metadata keys (format.md §3.4, §5.4).
+    let mut b = f();
+    b.bytes[4] = 2;
+    b.fix_prefix();
+    add("v3_key_in_v2_file", b.bytes);
+    let mut b = f();
+    b.edit_metadata(|m| m["play_samples"] = serde_json::json!({"proposal": 0, "main": 4}));
+    add("play_samples_zero", b.bytes);
+    let mut b = f();
+    b.edit_metadata(|m| m["play_samples"] = serde_json::json!({"proposal": 4, "main": 513}));
+    add("play_samples_over_limit", b.bytes);
+    let mut b = f();
+    b.edit_metadata(|m| {
+        m["play_samples"] = serde_json::json!({"proposal": 4, "main": 4, "extra": 1})
+    });
+    add("play_samples_unknown_key", b.bytes);
+    let mut b = f();
+    b.edit_metadata(|m| m["quant"] = serde_json::json!("q5"));
+    add("quant_disagrees_with_section_quant", b.bytes);
+    let mut b = f();
+    b.edit_metadata(|m| m["section_quant"]["mask"] = serde_json::json!("q7"));
+    add("section_quant_unknown_mode", b.bytes);
     out
 }
 
@@ -824,6 +850,21 @@ fn each_fault_names_its_violation() {
         ),
         ("v2_file_marked_v1", &["index", "7 sections, expected 6"]),
         ("v1_file_marked_v2", &["index"]),
+        (
+            "v3_key_in_v2_file",
+            &["section_quant", "version 2", "version 3"],
+        ),
+        ("play_samples_zero", &["play_samples.proposal is 0"]),
+        (
+            "play_samples_over_limit",
+            &["play_samples.main", "513", "512"],
+        ),
+        ("play_samples_unknown_key", &["metadata JSON", "extra"]),
+        (
+            "quant_disagrees_with_section_quant",
+            &["quant is q5", "finest mode in section_quant is q8"],
+        ),
+        ("section_quant_unknown_mode", &["metadata JSON", "q7"]),
     ];
     let corpus = corpus();
     for (name, needles) in expect {

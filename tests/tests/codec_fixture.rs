@@ -1,6 +1,8 @@
 //! The version-1 fixture `tests/fixtures/v1.msth` (written by msth-codec 0.1.0 before the
 //! occupancy grid, format version 1) still decodes and renders the same pixels, and the
-//! version-2 fixture `v2.msth` (the same model written by the current encoder) renders them too.
+//! version-2 fixture `v2.msth` (the same model written by the encoder of format version 2) and the
+//! version-3 fixture `v3.msth` (written by the current encoder, with per-part modes and
+//! play-time samples) render them too.
 //! Any format change must keep both loading or bump the version with a migration
 //! (docs/format.md).
 //!
@@ -9,7 +11,8 @@
 //! deterministic on one machine, but another CPU or compiler may fuse or reorder float operations
 //! (FMA), which moves a few pixels by one level. Regenerate both (after an intended change only):
 //! `cargo test --release -p msth-tests --test codec_fixture -- --ignored regenerate_fixture`
-//! (rewrites `v2.msth` only: `v1.msth` is frozen, the current encoder cannot write version 1).
+//! (rewrites `v3.msth` only: `v1.msth` and `v2.msth` are frozen, the current encoder cannot write
+//! versions 1 and 2).
 //! The expected render follows the renderer's rules, not the file's: after an intended change of
 //! how rendering samples (2026-12-01: the proposal histogram's padding at render time,
 //! `msth_core::pipeline::render_histogram_padding`), `-- --ignored regenerate_expected_render`
@@ -17,12 +20,26 @@
 
 use std::path::{Path, PathBuf};
 
-use msth_codec::{decode_all, encode, EncodeOptions, QuantMode};
+use msth_codec::{decode_all, encode, EncodeOptions, PlaySampleCounts, QuantMode, SectionQuant};
 use msth_core::field::ModelLayout;
 use msth_dataset::Image8;
 use msth_trainer::eval::render_image;
 
 const TIME: f32 = 0.7;
+
+/// The parts' modes of `v3.msth`.
+const V3_SECTIONS: SectionQuant = SectionQuant {
+    mlp: QuantMode::F32,
+    proposal: QuantMode::Q8,
+    static_table: QuantMode::Q8,
+    mask: QuantMode::Q8,
+    dynamic: QuantMode::Q8,
+};
+/// The play-time samples of `v3.msth`.
+const V3_PLAY_SAMPLES: PlaySampleCounts = PlaySampleCounts {
+    proposal: 20,
+    main: 10,
+};
 
 fn fixtures() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures")
@@ -42,15 +59,19 @@ fn render(bytes: &[u8]) -> Image8 {
     Image8::from_f32(r.width, r.height, &r.rgb)
 }
 
-/// The version-2 fixture is the version-1 fixture's decoded model encoded again by the current
-/// encoder with the same options (8-bit values quantised again to 8 bits move by at most one
-/// code): it needs no training run, and it adds what version 2 adds, the occupancy grid.
+/// The version-3 fixture is the version-1 fixture's decoded model encoded again by the current
+/// encoder (8-bit values quantised again to 8 bits move by at most one code; the MLPs, f16 in
+/// the version-1 file, stored as f32): it needs no training run, and it adds what version 3
+/// adds, each part's mode (`section_quant`) and the play-time samples. (`v2.msth` was written
+/// the same way by the version-2 encoder, with `quant: q8` throughout.)
 #[test]
-#[ignore = "rewrites tests/fixtures/v2.msth; run only after an intended change"]
+#[ignore = "rewrites tests/fixtures/v3.msth; run only after an intended change"]
 fn regenerate_fixture() {
     let v1 = decode_all(&std::fs::read(fixtures().join("v1.msth")).unwrap()).unwrap();
     let opts = EncodeOptions {
         quant: QuantMode::Q8,
+        sections: Some(V3_SECTIONS),
+        play_samples: Some(V3_PLAY_SAMPLES),
         chunk_frames: v1.metadata.chunk_frames as usize,
         dynamic_threshold: v1.metadata.dynamic_threshold,
         frame_rate: v1.metadata.frame_rate,
@@ -61,7 +82,7 @@ fn regenerate_fixture() {
     let (bytes, report) = encode(&v1.config, &v1.params, &v1.cameras, &opts).unwrap();
     assert!(!report.chunks.is_empty());
     assert!(bytes.len() < 200_000, "fixture is {} bytes", bytes.len());
-    msth_trainer::checkpoint::write_atomic(&fixtures().join("v2.msth"), &bytes).unwrap();
+    msth_trainer::checkpoint::write_atomic(&fixtures().join("v3.msth"), &bytes).unwrap();
     println!(
         "{} bytes, {} chunks, occupancy {:?}",
         bytes.len(),
@@ -110,6 +131,42 @@ fn v2_fixture_decodes_with_its_occupancy_grid_and_renders_as_v1() {
         .max()
         .unwrap_or(0);
     assert!(max <= 3, "v2 render differs from v1's by {max} levels");
+}
+
+#[test]
+fn v3_fixture_decodes_with_its_section_modes_and_play_samples_and_renders_as_v1() {
+    let bytes = std::fs::read(fixtures().join("v3.msth")).unwrap();
+    assert_eq!(u16::from_le_bytes([bytes[4], bytes[5]]), 3);
+    let d = decode_all(&bytes).unwrap();
+    assert_eq!(d.metadata.section_quant, Some(V3_SECTIONS));
+    assert_eq!(d.metadata.quant, QuantMode::F32);
+    assert_eq!(d.metadata.play_samples, Some(V3_PLAY_SAMPLES));
+    assert_eq!(d.metadata.default_samples(), (20, 10));
+    // The old files have neither: one mode throughout, the model's own samples.
+    for old in ["v1.msth", "v2.msth"] {
+        let o = decode_all(&std::fs::read(fixtures().join(old)).unwrap()).unwrap();
+        assert_eq!(o.metadata.section_quant, None);
+        assert_eq!(o.metadata.play_samples, None);
+        assert_eq!(
+            o.metadata.parts_quant(),
+            SectionQuant::uniform(QuantMode::Q8)
+        );
+        let s = &o.config.sampler;
+        assert_eq!(
+            o.metadata.default_samples(),
+            (s.num_proposal_samples, s.num_samples)
+        );
+    }
+    let expected = std::fs::read(fixtures().join("v1_render.rgb")).unwrap();
+    let got = render(&bytes);
+    let max = got
+        .data
+        .iter()
+        .zip(&expected)
+        .map(|(a, b)| a.abs_diff(*b))
+        .max()
+        .unwrap_or(0);
+    assert!(max <= 3, "v3 render differs from v1's by {max} levels");
 }
 
 #[test]

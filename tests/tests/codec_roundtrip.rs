@@ -147,6 +147,51 @@ fn export_command_writes_a_decodable_file() {
     assert!(export_cmd(&ckpt, &out, &["--quant", "q9"]).is_err());
 }
 
+/// `msth export` chooses each part's mode and the play-time samples by default (`--quant auto`,
+/// `--play-samples auto`), within the budget it prints; `--quant MODE`, `--play-samples model`
+/// and `P,M` set them; bad values are errors.
+#[test]
+fn export_command_chooses_sections_and_samples_by_default() {
+    let (dir, ckpt, _) = trained();
+    let path = dir.path().join("model.ckpt");
+    let out = dir.path().join("auto.msth");
+    export_cmd(&path, &out, &["--reference-psnr", "25"]).unwrap();
+    let m = decode_all(&std::fs::read(&out).unwrap()).unwrap().metadata;
+    let parts = m.section_quant.expect("each part's mode");
+    assert_eq!(m.quant, parts.finest());
+    let s = m.play_samples.expect("play-time samples");
+    let own = &ckpt.header.model.sampler;
+    assert!(s.proposal as usize <= own.num_proposal_samples);
+    assert!(s.main as usize <= own.num_samples);
+    export_cmd(&path, &out, &["--quant", "q5", "--play-samples", "7,5"]).unwrap();
+    let m = decode_all(&std::fs::read(&out).unwrap()).unwrap().metadata;
+    assert_eq!(
+        m.section_quant,
+        Some(msth_codec::SectionQuant::uniform(QuantMode::Q5))
+    );
+    assert_eq!(
+        m.play_samples,
+        Some(msth_codec::PlaySampleCounts {
+            proposal: 7,
+            main: 5
+        })
+    );
+    export_cmd(&path, &out, &["--quant", "f32", "--play-samples", "model"]).unwrap();
+    let m = decode_all(&std::fs::read(&out).unwrap()).unwrap().metadata;
+    assert_eq!(m.quant, QuantMode::F32);
+    assert_eq!(m.play_samples, None);
+    for (bad, names) in [
+        (&["--max-loss", "0"][..], "--max-loss"),
+        (&["--max-loss", "NaN"][..], "--max-loss"),
+        (&["--reference-psnr=-3"][..], "--reference-psnr"),
+        (&["--play-samples", "0,4"][..], "auto, model or P,M"),
+        (&["--quant", "q7"][..], "q7"),
+    ] {
+        let e = export_cmd(&path, &dir.path().join("bad.msth"), bad).unwrap_err();
+        assert!(e.to_string().contains(names), "{bad:?}: {e}");
+    }
+}
+
 /// The checkpoint says which of its cameras trained, and `msth export` keeps only the occupancy
 /// cells those cameras see by default: a subset of what `--occupancy-from density` keeps.
 #[test]

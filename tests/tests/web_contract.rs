@@ -158,6 +158,8 @@ fn generate() -> String {
         time_range: [0.0, 1.0],
         cameras: Vec::new(),
         quant: QuantMode::F32,
+        section_quant: None,
+        play_samples: None,
         dynamic_threshold: 0.0,
         chunk_frames: 1,
         chunks: Vec::new(),
@@ -170,11 +172,44 @@ fn generate() -> String {
         .keys()
         .map(|k| k.as_str())
         .collect();
+    let _ = writeln!(w, "/** The metadata's required top-level keys. */");
     let _ = writeln!(
         w,
-        "/** The metadata's top-level keys (every one required). */"
+        "export const METADATA_KEYS = {};",
+        js_str_list(keys.clone())
     );
-    let _ = writeln!(w, "export const METADATA_KEYS = {};", js_str_list(keys));
+    // The keys a file may leave out (version 3): those a metadata with every option set adds.
+    let full = msth_codec::Metadata {
+        section_quant: Some(msth_codec::SectionQuant::uniform(QuantMode::F32)),
+        play_samples: Some(msth_codec::PlaySampleCounts {
+            proposal: 1,
+            main: 1,
+        }),
+        ..meta.clone()
+    };
+    let full = serde_json::to_value(&full).unwrap();
+    let optional: Vec<&str> = full
+        .as_object()
+        .unwrap()
+        .keys()
+        .map(|k| k.as_str())
+        .filter(|k| !keys.contains(k))
+        .collect();
+    let _ = writeln!(
+        w,
+        "/** The metadata's optional top-level keys (version 3 on; none in versions 1 and 2). */"
+    );
+    let _ = writeln!(
+        w,
+        "export const METADATA_OPTIONAL_KEYS = {};",
+        js_str_list(optional)
+    );
+    let _ = writeln!(w, "/** The keys of the metadata's `section_quant`. */");
+    let _ = writeln!(
+        w,
+        "export const QUANT_PARTS = {};",
+        js_str_list(msth_codec::QuantPart::ALL.iter().map(|p| p.name()))
+    );
     let l = Limits::default();
     let _ = writeln!(w, "/** msth-codec's default `Limits` (format.md §8). */");
     let _ = writeln!(

@@ -138,7 +138,7 @@ pub const KEYS: &[(&str, &str)] = &[
     ("home", "to the start"),
     ("L", "loop on or off"),
     ("-, +", "half or twice the speed"),
-    ("M", "samples per ray: full, fast, faster"),
+    ("M", "samples per ray: file, full, fast, faster"),
     ("V", "exact field or play-time volume"),
     ("P, F12", "screenshot (the picture and the window)"),
     ("R", "record the camera path, again to stop and save it"),
@@ -147,7 +147,16 @@ pub const KEYS: &[(&str, &str)] = &[
 ];
 
 const SPEEDS: [f32; 7] = [0.125, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0];
-const SAMPLE_LEVELS: [msth_core::config::SampleLevel; 3] = msth_core::config::SampleLevel::ALL;
+/// The samples menu and the M key: the file's play-time counts, then the levels.
+const SAMPLE_CHOICES: [msth_core::config::PlaySamples; 4] = {
+    use msth_core::config::{PlaySamples, SampleLevel};
+    [
+        PlaySamples::File,
+        PlaySamples::Level(SampleLevel::Full),
+        PlaySamples::Level(SampleLevel::Fast),
+        PlaySamples::Level(SampleLevel::Faster),
+    ]
+};
 
 /// The window and what draws into it.
 struct Gfx {
@@ -361,7 +370,11 @@ impl App {
             meta.model.sampler.num_proposal_samples,
             meta.model.sampler.num_samples,
         );
-        let base = worker::base_settings(meta.quant, opts.gpu_tables, opts.incremental);
+        let base = worker::base_settings(
+            meta.parts_quant().finest_table(),
+            opts.gpu_tables,
+            opts.incremental,
+        );
         App {
             opts: opts.clone(),
             name,
@@ -498,7 +511,11 @@ impl App {
 
     fn start_worker(&mut self) -> Result<(), ViewError> {
         let meta = &self.stream.index().metadata;
-        let base = worker::base_settings(meta.quant, self.opts.gpu_tables, self.opts.incremental);
+        let base = worker::base_settings(
+            meta.parts_quant().finest_table(),
+            self.opts.gpu_tables,
+            self.opts.incremental,
+        );
         let setup = WorkerSetup {
             stream: Arc::clone(&self.stream),
             base: msth_player::RenderSettings {
@@ -1450,11 +1467,11 @@ impl App {
             };
         }
         if pressed(Key::M) {
-            let i = SAMPLE_LEVELS
+            let i = SAMPLE_CHOICES
                 .iter()
-                .position(|l| msth_core::config::PlaySamples::Level(*l) == self.controls.samples)
-                .map_or(0, |i| (i + 1) % SAMPLE_LEVELS.len());
-            self.controls.samples = msth_core::config::PlaySamples::Level(SAMPLE_LEVELS[i]);
+                .position(|s| *s == self.controls.samples)
+                .map_or(0, |i| (i + 1) % SAMPLE_CHOICES.len());
+            self.controls.samples = SAMPLE_CHOICES[i];
         }
         if pressed(Key::V) && self.volumes {
             self.set_volume(!self.controls.volume);
@@ -1568,19 +1585,23 @@ impl App {
         ui.separator();
         // Render settings: each control writes a field of `RenderControls` (worker.rs).
         ui.label("samples per ray");
-        let model = self.stream.index().metadata.model.sampler.clone();
+        let meta = &self.stream.index().metadata;
+        let model = meta.model.sampler.clone();
+        let stored = meta
+            .play_samples
+            .map(|s| (s.proposal as usize, s.main as usize));
         let name = |s: msth_core::config::PlaySamples| {
-            let (p, m) = s.counts(&model);
+            let (p, m) = s.counts(&model, stored);
             match s {
                 msth_core::config::PlaySamples::Level(l) => format!("{} ({p} + {m})", l.name()),
+                msth_core::config::PlaySamples::File => format!("file ({p} + {m})"),
                 _ => format!("{p} + {m}"),
             }
         };
         egui::ComboBox::from_id_salt("samples")
             .selected_text(name(self.controls.samples))
             .show_ui(ui, |ui| {
-                for l in SAMPLE_LEVELS {
-                    let s = msth_core::config::PlaySamples::Level(l);
+                for s in SAMPLE_CHOICES {
                     ui.selectable_value(&mut self.controls.samples, s, name(s));
                 }
             });

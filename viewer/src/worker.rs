@@ -289,6 +289,8 @@ fn render_loop(
                 .samples
                 .apply(
                     &meta.model,
+                    meta.play_samples
+                        .map(|s| (s.proposal as usize, s.main as usize)),
                     setup.limits.max_proposal_samples as usize,
                     setup.limits.max_samples as usize,
                 )

@@ -1,4 +1,4 @@
-// The `.msth` format (docs/format.md, versions 1 and 2) for the browser and Node: the prefix
+// The `.msth` format (docs/format.md, versions 1 to 3) for the browser and Node: the prefix
 // (fixed header, metadata JSON, section index), section decoding (CRC-32, zstd through the
 // `fzstd` npm package, blocks f32 / f16 / affine / codebook with the delta predictor, sparse 4D
 // chunks, the occupancy grid of version 2) and the model's flat parameter buffer layout (§7),
@@ -9,7 +9,7 @@
 import { Decompress } from "fzstd";
 import {
   MAGIC, VERSION, MIN_VERSION, FIXED_HEADER, INDEX_ENTRY, ALIGN, COMPRESSION_ZSTD, KIND, FIXED_SECTIONS,
-  SHARED_TAG, LIMITS, OCCUPANCY, METADATA_KEYS, QUANT_MODES, HASH_PRIMES, PARAM_ALIGN, SH_COEFFS,
+  SHARED_TAG, LIMITS, OCCUPANCY, METADATA_KEYS, METADATA_OPTIONAL_KEYS, QUANT_PARTS, QUANT_MODES, HASH_PRIMES, PARAM_ALIGN, SH_COEFFS,
 } from "./generated/contract.js";
 
 export { MAGIC, VERSION, MIN_VERSION, FIXED_HEADER, INDEX_ENTRY, KIND, LIMITS, HASH_PRIMES };
@@ -269,7 +269,8 @@ export function parsePrefix(bytes, limits = LIMITS) {
   } catch (e) {
     throw new FormatError("metadata JSON", e.message);
   }
-  const layout = checkMetadata(metadata, limits);
+  const version = u16(bytes, 4);
+  const layout = checkMetadata(metadata, version, limits);
   const count = u32(bytes, 16);
   const sections = [];
   for (let i = 0; i < count; i++) {
@@ -288,7 +289,6 @@ export function parsePrefix(bytes, limits = LIMITS) {
       crc32: u32(bytes, o + 32),
     });
   }
-  const version = u16(bytes, 4);
   checkSections(sections, metadata, layout, version, headerSize, limits);
   const fileLength = sections.reduce((m, s) => Math.max(m, s.offset + s.length), headerSize);
   return { version, metadata, sections, layout, headerSize, fileLength, firstChunk: firstChunk(version) };
@@ -296,12 +296,16 @@ export function parsePrefix(bytes, limits = LIMITS) {
 
 const TOP_KEYS = METADATA_KEYS;
 
-function checkMetadata(m, limits) {
+function checkMetadata(m, version, limits) {
   const bad = (msg) => {
     throw new FormatError("metadata", msg);
   };
   if (!m || typeof m !== "object" || Array.isArray(m)) bad("not a JSON object");
-  for (const k of Object.keys(m)) if (!TOP_KEYS.includes(k)) bad(`unknown key \`${k}\``);
+  for (const k of Object.keys(m)) {
+    if (TOP_KEYS.includes(k)) continue;
+    if (!METADATA_OPTIONAL_KEYS.includes(k)) bad(`unknown key \`${k}\``);
+    if (version < 3) bad(`unknown key \`${k}\` (version ${version}; it exists from version 3)`);
+  }
   for (const k of TOP_KEYS) if (!(k in m)) bad(`missing key \`${k}\``);
   // msth-codec reads every number as binary32 or an integer: one that overflows binary32 is out
   // of range (JSON has no infinity, so this is how a non-finite value would arrive).
@@ -337,6 +341,26 @@ function checkMetadata(m, limits) {
   if (!Array.isArray(m.time_range) || m.time_range.length !== 2 || !m.time_range.every(Number.isFinite)) bad("time_range must be two numbers");
   if (m.time_range[0] !== 0 || m.time_range[1] !== 1) bad(`time_range is [${m.time_range[0]}, ${m.time_range[1]}], version 1 allows only [0, 1]`);
   if (!QUANT_MODES.includes(m.quant)) bad(`unknown quantisation mode \`${m.quant}\``);
+  if (m.section_quant !== undefined) {
+    const q = m.section_quant;
+    if (!q || typeof q !== "object" || Array.isArray(q)) bad("section_quant must be an object");
+    for (const k of Object.keys(q)) if (!QUANT_PARTS.includes(k)) bad(`section_quant: unknown key \`${k}\``);
+    for (const k of QUANT_PARTS) if (!QUANT_MODES.includes(q[k])) bad(`section_quant.${k}: unknown quantisation mode \`${q[k]}\``);
+    // The finest mode (earliest in QUANT_MODES) of the parts is `quant`.
+    const finest = QUANT_MODES[Math.min(...QUANT_PARTS.map((k) => QUANT_MODES.indexOf(q[k])))];
+    if (finest !== m.quant) bad(`quant is ${m.quant} but the finest mode in section_quant is ${finest}`);
+  }
+  if (m.play_samples !== undefined) {
+    const s = m.play_samples;
+    if (!s || typeof s !== "object" || Array.isArray(s)) bad("play_samples must be an object");
+    for (const k of Object.keys(s)) if (k !== "proposal" && k !== "main") bad(`play_samples: unknown key \`${k}\``);
+    for (const [k, max] of [["proposal", limits.maxProposalSamples], ["main", limits.maxSamples]]) {
+      const v = s[k];
+      if (!Number.isInteger(v) || v < 0 || v > 0xffffffff) bad(`play_samples.${k} must be an integer`);
+      if (v === 0) bad(`play_samples.${k} is 0: at least 1 sample per ray`);
+      if (v > max) bad(`play_samples.${k} is ${v}, the limit is ${max}`);
+    }
+  }
   if (!(Number.isFinite(m.dynamic_threshold) && m.dynamic_threshold >= 0 && m.dynamic_threshold <= 1)) bad("dynamic_threshold must lie in [0, 1]");
   if (!(Number.isInteger(m.chunk_frames) && m.chunk_frames >= 1)) bad("chunk_frames must be an integer >= 1");
   if (typeof m.encoder !== "string") bad("encoder must be a string");

@@ -34,7 +34,8 @@
 // `msth play --path view:AZ,EL,DIST`, instead of a file camera), `t=T` (normalised time, starts
 // paused there), `size=WxH` (render size, as `msth play --size`), `play=0|1`, `skip=0` (evaluate
 // every sample: the file's occupancy grid unused, as `msth play --no-skip-empty`),
-// `samples=full|fast|faster|P,M` (samples per ray, as `msth play --samples`; the samples menu),
+// `samples=file|full|fast|faster|P,M` (samples per ray, as `msth play --samples`; the samples menu;
+// default file: the counts the file stores for playback, the model's own without them),
 // `incremental=0` (no static cache: every frame re-renders every pixel), `deadline=S` and
 // `stall=S` (the loader's deadlines in seconds, as `msth play --deadline` and `--stall-timeout`).
 //
@@ -214,7 +215,7 @@ async function main() {
   const shown = Math.max(1, Math.floor(Math.min(640 / template.width, 480 / template.height)));
   canvas.style.width = `${template.width * shown}px`;
   canvas.style.height = `${template.height * shown}px`;
-  $("info").textContent = `${name}: ${meta.model.num_frames} frames, ${meta.param_count.toLocaleString()} parameters, ${meta.quant}, ${meta.chunks.length} chunks`;
+  $("info").textContent = `${name}: ${meta.model.num_frames} frames, ${meta.param_count.toLocaleString()} parameters, ${meta.section_quant ? Object.entries(meta.section_quant).map(([k, v]) => `${k} ${v}`).join(" ") : meta.quant}, ${meta.chunks.length} chunks`;
   const modelFps = meta.frame_rate || 24;
   $("policy").textContent =
     `Resolution: while you move the camera, frames are drawn at 1/2 to 1/8 of ${template.width}x${template.height} per side (interpolated in between), ` +
@@ -272,8 +273,10 @@ async function main() {
   // ---- samples per ray (the menu, `?samples=`): the model's own or fewer, for speed
   const sampleSel = $("samples");
   const model = meta.model.sampler;
-  for (const level of Object.keys(SAMPLE_LEVELS)) {
-    const [p, m] = playSamples(level, model);
+  // The file's play-time counts (format.md §3.4; the model's own when it stores none) first.
+  const stored = meta.play_samples ?? null;
+  for (const level of ["file", ...Object.keys(SAMPLE_LEVELS)]) {
+    const [p, m] = playSamples(level, model, stored);
     sampleSel.append(new Option(`${level} (${p} + ${m})`, level));
   }
   // A fallback adapter (a software GPU such as Chromium's SwiftShader) starts at `fast`, where
@@ -282,17 +285,17 @@ async function main() {
   const fallback = Boolean(renderer.adapter.info?.isFallbackAdapter);
   hooks.fallbackAdapter = fallback;
   hooks.modelSamples = [model.num_proposal_samples, model.num_samples];
-  let samplesSpec = params.get("samples") ?? (fallback ? "fast" : "full");
-  let samples = playSamples(samplesSpec, model);
+  let samplesSpec = params.get("samples") ?? (fallback ? "fast" : "file");
+  let samples = playSamples(samplesSpec, model, stored);
   if (!samples || samples[0] > LIMITS.maxProposalSamples || samples[1] > LIMITS.maxSamples) {
-    throw new Error(`samples=${samplesSpec}: full, fast, faster or P,M (proposal and main samples per ray, at most ${LIMITS.maxProposalSamples} and ${LIMITS.maxSamples})`);
+    throw new Error(`samples=${samplesSpec}: file, full, fast, faster or P,M (proposal and main samples per ray, at most ${LIMITS.maxProposalSamples} and ${LIMITS.maxSamples})`);
   }
-  if (!Object.hasOwn(SAMPLE_LEVELS, samplesSpec)) sampleSel.append(new Option(`${samples[0]} + ${samples[1]}`, samplesSpec));
+  if (samplesSpec !== "file" && !Object.hasOwn(SAMPLE_LEVELS, samplesSpec)) sampleSel.append(new Option(`${samples[0]} + ${samples[1]}`, samplesSpec));
   sampleSel.value = samplesSpec;
   hooks.samples = samples;
   hooks.samplesSpec = samplesSpec;
   $("policy").textContent +=
-    ` Samples per ray (menu): full is the model's own ${model.num_proposal_samples} proposal + ${model.num_samples} main samples; ` +
+    ` Samples per ray (menu): file is the file's play-time counts (${stored ? `${stored.proposal} + ${stored.main}, chosen at export` : "none stored: the model's own"}); full is the model's own ${model.num_proposal_samples} proposal + ${model.num_samples} main samples; ` +
     `fast and faster render with fewer, faster and less accurately (docs/tradeoff.md)` +
     (fallback && params.get("samples") === null ? `; this GPU is a software one, so the page started at fast.` : ".");
   const withSamples = (cfg, [p, m]) => ({ ...cfg, sampler: { ...cfg.sampler, num_proposal_samples: p, num_samples: m } });
@@ -303,7 +306,9 @@ async function main() {
   await stream.waitForKind(KIND.mlp);
   hooks.timings.mlp = performance.now();
   // Hash tables as binary16 unless the file is lossless (as `msth play`); `?tables=f32|f16`.
-  const tables = params.get("tables") ?? (meta.quant === "f32" ? "f32" : "f16");
+  // f32 tables when a hash-table part of the file is lossless (format.md §5.4), else binary16.
+  const tableParts = meta.section_quant ? [meta.section_quant.proposal, meta.section_quant.static, meta.section_quant.dynamic] : [meta.quant];
+  const tables = params.get("tables") ?? (tableParts.includes("f32") ? "f32" : "f16");
   const gpu = await renderer.create(canvas, withSamples(meta.model, samples), stream.decoder.layout, hooks.timings, stream.decoder.base, tables);
   hooks.mlpNote = gpu.mlpNote;
   hooks.tables = gpu.tables;
@@ -413,10 +418,10 @@ async function main() {
     camSel.value = "free";
     state.dirty = true;
   };
-  /** Renders with samples `spec` (`full`, `fast`, `faster` or `P,M`) from the next frame on, as the samples menu does. */
+  /** Renders with samples `spec` (`file`, `full`, `fast`, `faster` or `P,M`) from the next frame on, as the samples menu does. */
   const setSamples = (spec) => {
-    const next = playSamples(spec, model);
-    if (!next) throw new Error(`samples ${spec}: full, fast, faster or P,M`);
+    const next = playSamples(spec, model, stored);
+    if (!next) throw new Error(`samples ${spec}: file, full, fast, faster or P,M`);
     gpu.setSamples(next[0], next[1]);
     samplesSpec = spec;
     samples = next;

@@ -128,10 +128,12 @@ function wordsPerRay(np, geo, samples) {
 /** The browser has no usable WebGPU (the page says so instead of rendering). */
 /**
  * Proposal and main samples per ray for `spec` and a model's `sampler`, as `msth play --samples`
- * (msth_core::config::PlaySamples): a level of SAMPLE_LEVELS (`full`, `fast`, `faster`: a
- * fraction of the model's counts, rounded up) or `P,M`; null when `spec` is neither.
+ * (msth_core::config::PlaySamples): `file` (the file's `play_samples`, `stored`, or the model's
+ * counts when it stores none), a level of SAMPLE_LEVELS (`full`, `fast`, `faster`: a fraction of
+ * the model's counts, rounded up) or `P,M`; null when `spec` is none of these.
  */
-export function playSamples(spec, sampler) {
+export function playSamples(spec, sampler, stored = null) {
+  if (spec === "file") return stored ? [stored.proposal, stored.main] : [sampler.num_proposal_samples, sampler.num_samples];
   if (Object.hasOwn(SAMPLE_LEVELS, spec ?? "")) {
     const [[pn, pd], [mn, md]] = SAMPLE_LEVELS[spec];
     const scale = (n, num, den) => Math.max(1, Math.ceil((n * num) / den));

@@ -6,7 +6,7 @@
 // ---- msth-codec: the .msth format (docs/format.md)
 export const MAGIC = [77, 83, 84, 72];
 /** The version msth-codec writes. */
-export const VERSION = 2;
+export const VERSION = 3;
 /** The oldest version msth-codec reads. */
 export const MIN_VERSION = 1;
 export const FIXED_HEADER = 32;
@@ -16,14 +16,18 @@ export const COMPRESSION_ZSTD = 1;
 /** Index entry `kind` codes. */
 export const KIND = { mlp: 1, proposal: 2, static: 3, dynamic: 4, shared: 5, occupancy: 6 };
 /** Per version, the kinds of the index entries before the shared section and the chunks. */
-export const FIXED_SECTIONS = { 1: [1, 2, 3], 2: [1, 2, 3, 6] };
+export const FIXED_SECTIONS = { 1: [1, 2, 3], 2: [1, 2, 3, 6], 3: [1, 2, 3, 6] };
 /** The shared section's `chunk` field. */
 export const SHARED_TAG = 4294967295;
 export const BLOCK_ENCODING = { f32: 0, f16: 1, affine: 2, codebook: 3 };
 export const PREDICTOR = { none: 0, delta: 1 };
 export const QUANT_MODES = ["f32", "f16", "q8", "q6", "q5", "q4", "k4", "k3"];
-/** The metadata's top-level keys (every one required). */
+/** The metadata's required top-level keys. */
 export const METADATA_KEYS = ["cameras", "chunk_frames", "chunks", "dynamic_threshold", "encoder", "frame_rate", "model", "param_count", "quant", "time_range"];
+/** The metadata's optional top-level keys (version 3 on; none in versions 1 and 2). */
+export const METADATA_OPTIONAL_KEYS = ["play_samples", "section_quant"];
+/** The keys of the metadata's `section_quant`. */
+export const QUANT_PARTS = ["mlp", "proposal", "static", "mask", "dynamic"];
 /** msth-codec's default `Limits` (format.md §8). */
 export const LIMITS = {
   maxMetadata: 16777216,
