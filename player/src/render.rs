@@ -719,16 +719,11 @@ impl Renderer {
         if self.slice_error.is_some() {
             return 0.0;
         }
-        for k in bv.volume.dynamic.missing_for(time) {
-            let t = bv.plan.slice_times[k];
-            let owned = params_at(t);
-            let p = owned.as_deref().unwrap_or(params);
-            if let Err(e) =
-                crate::volume::bake_slice(&mut bv.volume, &bv.plan, k, &self.cfg, &self.layout, p)
-            {
-                self.slice_error = Some(e.to_string());
-                break;
-            }
+        let (cfg, layout) = (&self.cfg, &self.layout);
+        if let Err(e) = bv.bake_missing_slices(time, params, params_at, &mut |v, plan, k, p| {
+            crate::volume::bake_slice(v, plan, k, cfg, layout, p)
+        }) {
+            self.slice_error = Some(e.to_string());
         }
         start.elapsed().as_secs_f64()
     }

@@ -274,6 +274,35 @@ pub struct BakedVolume {
     pub plan: Arc<BakePlan>,
 }
 
+/// One time slice baked into a volume: `(volume, plan, slice, flat buffer at its time)`.
+pub type SliceBaker<'a> =
+    dyn FnMut(&mut Volume, &BakePlan, usize, &[f32]) -> Result<usize, BakeError> + 'a;
+
+impl BakedVolume {
+    /// Bakes the time slices a frame at `time` needs that the volume does not hold, each through
+    /// `bake` with the flat buffer at its own time (`params_at`, else `params`); stops at the
+    /// first error (the renderers then draw dynamic bricks from the exact field).
+    pub fn bake_missing_slices(
+        &mut self,
+        time: f32,
+        params: &[f32],
+        params_at: &mut dyn FnMut(f32) -> Option<Vec<f32>>,
+        bake: &mut SliceBaker<'_>,
+    ) -> Result<(), BakeError> {
+        let plan = self.plan.clone();
+        for k in self.volume.dynamic.missing_for(time) {
+            let owned = params_at(plan.slice_times[k]);
+            bake(
+                &mut self.volume,
+                &plan,
+                k,
+                owned.as_deref().unwrap_or(params),
+            )?;
+        }
+        Ok(())
+    }
+}
+
 /// A bake on its own thread: the renderer draws exact frames until [`BakeJob::poll`] hands over
 /// the volume.
 pub struct BakeJob {

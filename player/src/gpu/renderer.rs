@@ -638,43 +638,29 @@ impl GpuRenderer {
         };
         let (ctx, cfg, layout) = (&self.ctx, &self.cfg, &self.layout);
         let on_device = self.device_bake;
-        for k in bv.volume.dynamic.missing_for(time) {
-            let t = bv.plan.slice_times[k];
-            let owned = params_at(t);
+        let uploaded_version = &mut self.uploaded_version;
+        let result = bv.bake_missing_slices(time, params, params_at, &mut |v, plan, k, p| {
             if !on_device {
-                let p = owned.as_deref().unwrap_or(params);
-                if let Err(e) =
-                    crate::volume::bake_slice(&mut bv.volume, &bv.plan, k, cfg, layout, p)
-                {
-                    self.slice_error = Some(e.to_string());
-                    break;
-                }
-                continue;
+                return crate::volume::bake_slice(v, plan, k, cfg, layout, p);
             }
-            let result = (|| {
-                if let Some(p) = &owned {
-                    // Another chunk's parameters for this slice; the frame's go back after it.
-                    self.uploaded_version = None;
-                    scene
-                        .update(ctx, p)
-                        .map_err(|e| BakeError::Device(e.to_string()))?;
-                }
-                let p = owned.as_deref().unwrap_or(params);
-                let plan = bv.plan.clone();
-                bake_slice_with(&mut bv.volume, &plan, k, &mut |set| {
-                    bake_set_on_device(ctx, scene, &plan, cfg, layout, p, set)
-                })?;
-                if owned.is_some() {
-                    scene
-                        .update(ctx, params)
-                        .map_err(|e| BakeError::Device(e.to_string()))?;
-                }
-                Ok::<(), BakeError>(())
-            })();
-            if let Err(e) = result {
-                self.slice_error = Some(e.to_string());
-                break;
+            let device = |e: GpuError| BakeError::Device(e.to_string());
+            // Another chunk's parameters for this slice: on the device for it, then the frame's
+            // back.
+            let other = !std::ptr::eq(p, params);
+            if other {
+                *uploaded_version = None;
+                scene.update(ctx, p).map_err(device)?;
             }
+            let n = bake_slice_with(v, plan, k, &mut |set| {
+                bake_set_on_device(ctx, scene, plan, cfg, layout, p, set)
+            })?;
+            if other {
+                scene.update(ctx, params).map_err(device)?;
+            }
+            Ok(n)
+        });
+        if let Err(e) = result {
+            self.slice_error = Some(e.to_string());
         }
         start.elapsed().as_secs_f64()
     }
