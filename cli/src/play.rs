@@ -151,6 +151,12 @@ pub struct VolumeArgs {
     /// samples a ray and blur thin surfaces.
     #[arg(long, value_name = "CELLS")]
     pub volume_step: Option<f32>,
+    /// Keep the occupied bricks that none of the file's cameras looks into. By default, where
+    /// the model's resolution does not fit the budget, those are left empty before the
+    /// resolution is lowered (a view far from the file's cameras then shows the background
+    /// there).
+    #[arg(long)]
+    pub volume_keep_outside: bool,
 }
 
 impl VolumeArgs {
@@ -192,6 +198,7 @@ impl VolumeArgs {
             }
             o.min_proposal_alpha = a;
         }
+        o.keep_outside_views = self.volume_keep_outside;
         Ok(o)
     }
 }

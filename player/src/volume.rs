@@ -36,6 +36,9 @@ pub struct VolumeOptions {
     pub min_proposal_alpha: f32,
     /// What the vertices hold: a colour (the players' mode) or features (measurements).
     pub colour: ColourMode,
+    /// Keep the occupied bricks none of the file's cameras looks into, at a coarser resolution
+    /// if need be ([`PlanOptions::keep_outside_views`]).
+    pub keep_outside_views: bool,
 }
 
 impl Default for VolumeOptions {
@@ -46,6 +49,7 @@ impl Default for VolumeOptions {
             min_cell_alpha: DEFAULT_MIN_CELL_ALPHA,
             min_proposal_alpha: DEFAULT_MIN_PROPOSAL_ALPHA,
             colour: ColourMode::default(),
+            keep_outside_views: false,
         }
     }
 }
@@ -81,6 +85,8 @@ pub fn plan_bake(
             min_proposal_alpha: options.min_proposal_alpha,
             colour: options.colour,
             eyes: cameras.iter().map(|c| c.center()).collect(),
+            views: cameras.to_vec(),
+            keep_outside_views: options.keep_outside_views,
         },
     )
 }

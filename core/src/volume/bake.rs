@@ -138,6 +138,13 @@ pub struct PlanOptions {
     pub colour: ColourMode,
     /// Camera centres the baked colours face (the file's cameras).
     pub eyes: Vec<glam::Vec3>,
+    /// The cameras whose views the volume serves (the file's). Where the model's resolution does
+    /// not fit the budget over every occupied brick, the bricks none of them looks into are left
+    /// empty before the resolution is lowered ([`super::views`]); no cameras, or
+    /// [`PlanOptions::keep_outside_views`], lowers the resolution instead.
+    pub views: Vec<crate::Camera>,
+    /// Keep the bricks outside every view, at whatever resolution the budget then allows.
+    pub keep_outside_views: bool,
 }
 
 impl Default for PlanOptions {
@@ -149,6 +156,8 @@ impl Default for PlanOptions {
             min_proposal_alpha: DEFAULT_MIN_PROPOSAL_ALPHA,
             colour: ColourMode::default(),
             eyes: Vec::new(),
+            views: Vec::new(),
+            keep_outside_views: false,
         }
     }
 }
@@ -188,12 +197,23 @@ pub struct BakePlan {
     /// Bytes of the volume before empty bricks are dropped, with its resident slices.
     pub bytes_bound: u64,
     pub budget: u64,
+    /// Occupied bricks left empty because no camera of [`PlanOptions::views`] looks into them
+    /// (0 where everything fitted).
+    pub outside_views: usize,
 }
 
 impl BakePlan {
     /// A line for the user when the budget made the volume coarser than the model's.
     pub fn note(&self) -> Option<String> {
         let mut notes = Vec::new();
+        if self.outside_views > 0 {
+            notes.push(format!(
+                "{} occupied bricks that none of the file's cameras looks into are left empty, so that the volume can be {}^3 cells within {} MiB (--volume-keep-outside keeps them at a coarser resolution)",
+                self.outside_views,
+                self.geometry.resolution,
+                self.budget >> 20
+            ));
+        }
         if self.geometry.resolution < self.requested_resolution {
             notes.push(format!(
                 "the volume is {}^3 cells instead of the model's {}^3: that would not fit the budget of {} MiB (--volume-budget)",
@@ -284,19 +304,18 @@ pub fn plan_with(
         _ => density_threshold(&cfg.bounds, FALLBACK_THRESHOLD_RESOLUTION, FALLBACK_ALPHA),
     };
     let frames = cfg.num_frames.clamp(1, MAX_SLICES);
-    let mut r = requested;
-    loop {
-        let g = VolumeGeometry::new(r);
-        let slot = g.slot_bytes(channels);
-        let candidates = candidates(&g, occupancy.as_ref());
-        let index = g.index_len() as u64 * 4;
-        // Bound the cheapest outcome first: every candidate a static slot.
-        let floor = index + candidates.len() as u64 * slot;
-        // What this resolution needs at the least, for the error below.
-        let mut need = floor;
-        if floor <= o.budget {
+    // The plan of `candidates` at geometry `g`, or the bytes it needs at the least.
+    let fit =
+        |g: VolumeGeometry, candidates: &[u32], outside_views: usize| -> Result<BakePlan, u64> {
+            let slot = g.slot_bytes(channels);
+            let index = g.index_len() as u64 * 4;
+            // Bound the cheapest outcome first: every candidate a static slot.
+            let floor = index + candidates.len() as u64 * slot;
+            if floor > o.budget {
+                return Err(floor);
+            }
             let (static_bricks, dynamic_bricks, dynamic_cells) =
-                sort_bricks(&g, layout, params, occupancy.as_ref(), &candidates);
+                sort_bricks(&g, layout, params, occupancy.as_ref(), candidates);
             let fixed = index
                 + static_bricks.len() as u64 * slot
                 + dynamic_cells.len() as u64 * 4
@@ -313,34 +332,56 @@ pub fn plan_with(
                 .saturating_sub(fixed)
                 .checked_div(per_slice)
                 .map_or(slices, |n| n.min(slices as u64) as usize);
-            need = fixed + per_slice * slices.min(2) as u64;
-            if fixed <= o.budget && (slices == 0 || resident >= 2) {
-                let cell = cell_world_size(&cfg.bounds, g.resolution);
-                let alpha = o.min_cell_alpha.clamp(0.0, 0.999_999);
-                let from_alpha = -(1.0 - alpha).ln() / cell;
-                let slice_times = (0..slices)
-                    .map(|k| k as f32 / (slices - 1).max(1) as f32)
-                    .collect();
-                return Ok(BakePlan {
-                    geometry: g,
-                    requested_resolution: requested,
-                    colour: o.colour,
-                    eyes: o.eyes.clone(),
-                    geo,
-                    channels,
-                    static_bricks,
-                    dynamic_bricks,
-                    dynamic_cells,
-                    slice_times,
-                    resident_slices: resident,
-                    density_threshold: file_threshold.max(from_alpha),
-                    min_cell_alpha: alpha,
-                    proposal_threshold: -(1.0 - o.min_proposal_alpha.clamp(0.0, 0.999_999)).ln()
-                        / cell,
-                    occupancy: occupancy.map(|occ| (occ.resolution, occ.words.to_vec())),
-                    bytes_bound: fixed + resident as u64 * per_slice,
-                    budget: o.budget,
-                });
+            if fixed > o.budget || (slices > 0 && resident < 2) {
+                return Err(fixed + per_slice * slices.min(2) as u64);
+            }
+            let cell = cell_world_size(&cfg.bounds, g.resolution);
+            let alpha = o.min_cell_alpha.clamp(0.0, 0.999_999);
+            let from_alpha = -(1.0 - alpha).ln() / cell;
+            let slice_times = (0..slices)
+                .map(|k| k as f32 / (slices - 1).max(1) as f32)
+                .collect();
+            Ok(BakePlan {
+                geometry: g,
+                requested_resolution: requested,
+                colour: o.colour,
+                eyes: o.eyes.clone(),
+                geo,
+                channels,
+                static_bricks,
+                dynamic_bricks,
+                dynamic_cells,
+                slice_times,
+                resident_slices: resident,
+                density_threshold: file_threshold.max(from_alpha),
+                min_cell_alpha: alpha,
+                proposal_threshold: -(1.0 - o.min_proposal_alpha.clamp(0.0, 0.999_999)).ln() / cell,
+                occupancy: occupancy.map(|occ| (occ.resolution, occ.words.to_vec())),
+                bytes_bound: fixed + resident as u64 * per_slice,
+                budget: o.budget,
+                outside_views,
+            })
+        };
+    let mut r = requested;
+    loop {
+        let g = VolumeGeometry::new(r);
+        let candidates = candidates(&g, occupancy.as_ref());
+        let mut need = match fit(g, &candidates, 0) {
+            Ok(plan) => return Ok(plan),
+            Err(need) => need,
+        };
+        if !o.keep_outside_views && !o.views.is_empty() {
+            let in_view = super::views::bricks_in_view(&g, &cfg.bounds, &o.views);
+            let seen: Vec<u32> = candidates
+                .iter()
+                .copied()
+                .filter(|&b| in_view[b as usize])
+                .collect();
+            if seen.len() < candidates.len() {
+                match fit(g, &seen, candidates.len() - seen.len()) {
+                    Ok(plan) => return Ok(plan),
+                    Err(n) => need = need.min(n),
+                }
             }
         }
         if r <= MIN_VOLUME_RESOLUTION {

@@ -44,6 +44,7 @@ use crate::pipeline::RENDER_STATIC_CUTOFF;
 
 pub mod bake;
 pub mod march;
+pub mod views;
 
 pub use bake::{
     plan, BakeError, BakePlan, BakeProgress, BakeScratch, Occupancy, DEFAULT_CPU_BUDGET,

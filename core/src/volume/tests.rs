@@ -248,6 +248,51 @@ fn the_budget_picks_a_coarser_volume_and_refuses_below_the_coarsest() {
     }
 }
 
+/// Where the model's resolution does not fit over every brick, the bricks no camera looks into
+/// are left empty first, and only then (or when told to keep them) is the volume coarser.
+#[test]
+fn bricks_outside_the_views_go_before_the_resolution() {
+    let (cfg, layout, params) = model(6.0, 3);
+    // A narrow view (0.3 rad) into the box.
+    let cam = Camera::look_at(64, 48, 0.3, Vec3::new(0.3, -4.0, 1.2), Vec3::ZERO, Vec3::Z);
+    let with_views = |budget: u64, keep: bool| {
+        plan_with(
+            &cfg,
+            &layout,
+            &params,
+            None,
+            &PlanOptions {
+                budget,
+                max_resolution: Some(128),
+                views: vec![cam.clone()],
+                keep_outside_views: keep,
+                ..Default::default()
+            },
+        )
+        .unwrap()
+    };
+    let full = with_views(1 << 40, false);
+    assert_eq!((full.geometry.resolution, full.outside_views), (128, 0));
+    let all = full.static_bricks.len() + full.dynamic_bricks.len();
+    // Half of the full volume's bytes: the view of one camera holds less than that.
+    let half = full.bytes_bound / 2;
+    let seen = with_views(half, false);
+    assert_eq!(seen.geometry.resolution, 128);
+    let kept = seen.static_bricks.len() + seen.dynamic_bricks.len();
+    assert!(kept + seen.outside_views == all && seen.outside_views > 0);
+    assert!(seen.bytes_bound <= half);
+    assert!(seen
+        .note()
+        .unwrap()
+        .contains("none of the file's cameras looks into"));
+    let in_view = views::bricks_in_view(&seen.geometry, &cfg.bounds, &[cam]);
+    for b in seen.static_bricks.iter().chain(&seen.dynamic_bricks) {
+        assert!(in_view[*b as usize]);
+    }
+    let coarser = with_views(half, true);
+    assert!(coarser.geometry.resolution < 128 && coarser.outside_views == 0);
+}
+
 #[test]
 fn the_budget_holds_fewer_slices_before_a_coarser_volume() {
     let (cfg, layout, params) = model(-2.0, 3);
