@@ -10,13 +10,15 @@
 //! # Buffers
 //! - `words` (`u32`): the brick index, the static slots' cell bits, the dynamic bricks'
 //!   dynamic-cell bits, then two regions of slice cell bits (A and B);
-//! - `values` (`vec4<f32>` per vertex: density pre-activation, red, green, blue): the static
-//!   slots, then two regions of slice values.
+//! - `values` (`vec2<u32>` per vertex: density pre-activation, red, green, blue as binary16,
+//!   the volume's own [`msth_core::volume::Value`]s): the static slots, then two regions of
+//!   slice values.
 //!
 //! A frame at time `t` reads the two slices around `t` ([`Volume::slices_for`]): each is kept in
 //! a region until another slice needs it, so a playback moving forward uploads one slice per
 //! slice interval.
 
+use half::slice::HalfFloatSliceExt;
 use msth_core::volume::march::TimeSlices;
 use msth_core::volume::{ColourMode, MarchSettings, Volume};
 use wgpu::util::DeviceExt;
@@ -96,10 +98,11 @@ impl VolumeKernel {
 /// regions when it has dynamic bricks.
 pub fn device_bytes(vol: &Volume) -> u64 {
     let (w, v) = buffer_lengths(vol);
-    w as u64 * 4 + v as u64 * 16
+    w as u64 * 4 + v as u64 * 8
 }
 
-/// Lengths of the `words` (u32) and `values` (vec4) buffers for `vol`.
+/// Lengths of the `words` (u32) and `values` (vertices of four binary16 values) buffers for
+/// `vol`.
 fn buffer_lengths(vol: &Volume) -> (usize, usize) {
     let g = vol.geometry;
     let fw = g.flag_words();
@@ -196,7 +199,7 @@ impl GpuVolume {
         let slots = vol.slots();
         let (nw, nval) = buffer_lengths(vol);
         let words_bytes = nw as u64 * 4;
-        let values_bytes = nval.max(1) as u64 * 16;
+        let values_bytes = nval.max(1) as u64 * 8;
         ctx.check_storage("the volume's index and cell bits", words_bytes)?;
         ctx.check_storage("the volume's vertex values", values_bytes)?;
         let at_occupied = vol.index.len();
@@ -215,8 +218,11 @@ impl GpuVolume {
         w(at_occupied, &vol.occupied);
         w(at_cells, &vol.dynamic.cells);
         if !vol.values.is_empty() {
-            ctx.queue
-                .write_buffer(&values, 0, bytemuck::cast_slice(&vol.values));
+            ctx.queue.write_buffer(
+                &values,
+                0,
+                bytemuck::cast_slice(vol.values.reinterpret_cast()),
+            );
         }
         let uniform = VolumeU {
             geom: [g.resolution, g.brick, g.bricks_per_side(), fw as u32],
@@ -325,8 +331,8 @@ impl GpuVolume {
         if !slice.values.is_empty() {
             ctx.queue.write_buffer(
                 &self.values,
-                self.region_values[r] as u64 * 16,
-                bytemuck::cast_slice(&slice.values),
+                self.region_values[r] as u64 * 8,
+                bytemuck::cast_slice(slice.values.reinterpret_cast()),
             );
         }
         self.held[r] = Some(k);

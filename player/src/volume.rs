@@ -14,7 +14,7 @@ use msth_core::volume::bake::{
 };
 use msth_core::volume::{
     BakeError, BakePlan, BakeProgress, BakeScratch, ColourMode, MarchOutput, MarchSettings,
-    MarchWorkspace, Occupancy, Volume,
+    MarchWorkspace, Occupancy, Value, Volume,
 };
 use msth_core::Camera;
 use msth_gpu::{GpuContext, GpuScene};
@@ -103,11 +103,11 @@ fn bake_set(
     params: &[f32],
     set: &BrickSet<'_>,
     progress: &BakeProgress,
-) -> Result<(Vec<f32>, Vec<u32>, usize), BakeError> {
+) -> Result<(Vec<Value>, Vec<u32>, usize), BakeError> {
     let g = plan.geometry;
     let (fw, sv) = (g.flag_words(), g.vertices_per_brick() * plan.channels);
     let n = set.bricks.len();
-    let mut values = vec![0f32; n * sv];
+    let mut values = vec![Value::ZERO; n * sv];
     let mut occupied = vec![0u32; n * fw];
     let evaluated: Result<Vec<usize>, BakeError> = values
         .par_chunks_mut(BAKE_BATCH * sv)
@@ -139,7 +139,7 @@ fn cell_bits_par(
     layout: &ModelLayout,
     params: &[f32],
     set: &BrickSet<'_>,
-    values: &[f32],
+    values: &[Value],
     occupied: &mut [u32],
 ) {
     let g = plan.geometry;
@@ -165,7 +165,7 @@ pub fn bake_set_on_device(
     layout: &ModelLayout,
     params: &[f32],
     set: &BrickSet<'_>,
-) -> Result<(Vec<f32>, Vec<u32>, usize), BakeError> {
+) -> Result<(Vec<Value>, Vec<u32>, usize), BakeError> {
     if plan.colour != ColourMode::Baked || plan.channels != 4 {
         return Err(BakeError::Device(
             "the device bakes colours only (--colour baked)".into(),
@@ -202,13 +202,15 @@ pub fn bake_set_on_device(
     }
     let out = msth_gpu::volume::eval_points(ctx, scene, &points)
         .map_err(|e| BakeError::Device(e.to_string()))?;
-    let mut values = vec![0f32; out.len() * 4];
+    let mut values = vec![Value::ZERO; out.len() * 4];
     for (j, (v, dst)) in out.iter().zip(values.chunks_exact_mut(4)).enumerate() {
         if v.iter().any(|x| !x.is_finite()) {
             let p = &points[j * 8..j * 8 + 3];
             return Err(BakeError::NotFinite([p[0], p[1], p[2]]));
         }
-        dst.copy_from_slice(&[v[3], v[0], v[1], v[2]]);
+        for (d, x) in dst.iter_mut().zip([v[3], v[0], v[1], v[2]]) {
+            *d = Value::from_f32(x);
+        }
     }
     let mut occupied = vec![0u32; set.bricks.len() * g.flag_words()];
     cell_bits_par(plan, layout, params, set, &values, &mut occupied);

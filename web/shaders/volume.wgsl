@@ -299,7 +299,8 @@ fn sample_point(o: vec3<f32>, d: vec3<f32>, t0: f32, t1: f32, time: f32) -> vec4
 // The volume (`Volume` in msth-core): `R^3` cells in bricks of `B^3`; a brick index of `I^3`
 // entries (`I = R / B`): a static slot, `DYNAMIC | d` for dynamic brick `d`, or `EMPTY`. A slot
 // holds `(B + 1)^3` vertices of (density pre-activation, red, green, blue), the colour baked for
-// a reference view direction, and one bit per cell saying whether the cell can hold density.
+// a reference view direction, each as binary16 (two per u32, the first in the low half), and
+// one bit per cell saying whether the cell can hold density.
 // A dynamic brick's values are in two time slices around the frame's time (regions A and B,
 // blended with weight `f` on B), and a bit per cell says whether the mask leaves the cell
 // dynamic (such a cell blends the slices; the others read A alone). The host binds the slices a
@@ -321,8 +322,9 @@ struct VolumeU {
 @group(0) @binding(7) var<uniform> vol: VolumeU;
 // The brick index (`I^3` words from 0), then the bit words at the offsets of `vol.words`.
 @group(0) @binding(8) var<storage, read> vwords: array<u32>;
-// Static slots from 0, then the slices' dynamic bricks at the offsets of `vol.values`.
-@group(0) @binding(9) var<storage, read> vvalues: array<vec4<f32>>;
+// Static slots from 0, then the slices' dynamic bricks at the offsets of `vol.values`: one
+// vertex per element, its four binary16 values.
+@group(0) @binding(9) var<storage, read> vvalues: array<vec2<u32>>;
 
 const EMPTY_BRICK: u32 = 0xffffffffu;
 const DYNAMIC_BRICK: u32 = 0x80000000u;
@@ -368,16 +370,21 @@ fn exit_distance(p: vec3<f32>, v: vec3<f32>, lo: vec3<f32>, hi: vec3<f32>) -> f3
 
 // Trilinear interpolation of the slot starting at vertex `base` at brick-local cell
 // coordinates `local` (cell `i` of the brick, fraction `f`).
+fn vertex(i: u32) -> vec4<f32> {
+    let w = vvalues[i];
+    return vec4<f32>(unpack2x16float(w.x), unpack2x16float(w.y));
+}
+
 fn interpolate(base: u32, i: vec3<u32>, f: vec3<f32>) -> vec4<f32> {
     let v1 = vol.geom.y + 1u;
     let o = base + i.x + v1 * (i.y + v1 * i.z);
     let sy = v1;
     let sz = v1 * v1;
     let g = vec3<f32>(1.0) - f;
-    let c00 = vvalues[o] * g.x + vvalues[o + 1u] * f.x;
-    let c10 = vvalues[o + sy] * g.x + vvalues[o + sy + 1u] * f.x;
-    let c01 = vvalues[o + sz] * g.x + vvalues[o + sz + 1u] * f.x;
-    let c11 = vvalues[o + sy + sz] * g.x + vvalues[o + sy + sz + 1u] * f.x;
+    let c00 = vertex(o) * g.x + vertex(o + 1u) * f.x;
+    let c10 = vertex(o + sy) * g.x + vertex(o + sy + 1u) * f.x;
+    let c01 = vertex(o + sz) * g.x + vertex(o + sz + 1u) * f.x;
+    let c11 = vertex(o + sy + sz) * g.x + vertex(o + sy + sz + 1u) * f.x;
     return (c00 * g.y + c10 * f.y) * g.z + (c01 * g.y + c11 * f.y) * f.z;
 }
 

@@ -27,8 +27,8 @@ use crate::sh::{sh4, SH_COEFFS};
 
 use super::{
     channels_for, has_static_part, model_resolution, reference_direction, BakeStats, ColourMode,
-    DynamicPart, Slice, Volume, VolumeGeometry, DYNAMIC_BRICK, EMPTY_BRICK, MIN_VOLUME_RESOLUTION,
-    VOLUME_STATIC_CUTOFF,
+    DynamicPart, Slice, Value, Volume, VolumeGeometry, DYNAMIC_BRICK, EMPTY_BRICK,
+    MIN_VOLUME_RESOLUTION, VOLUME_STATIC_CUTOFF,
 };
 
 /// The CPU renderer's default volume budget.
@@ -614,7 +614,7 @@ pub fn eval_vertices(
     params: &[f32],
     set: &BrickSet<'_>,
     first: usize,
-    values: &mut [f32],
+    values: &mut [Value],
     scratch: &mut BakeScratch,
     progress: &BakeProgress,
 ) -> Result<usize, BakeError> {
@@ -700,8 +700,8 @@ pub fn eval_vertices(
         for (j, &v) in scratch.vertex.iter().enumerate() {
             let row = &out[j * out_w..(j + 1) * out_w];
             let dst = &mut slot[v * ch..(v + 1) * ch];
-            dst.fill(0.0);
-            dst[0] = row[0];
+            dst.fill(Value::ZERO);
+            dst[0] = Value::from_f32(row[0]);
             if plan.colour == ColourMode::Baked {
                 let c = &layout.field.color.0.output(&scratch.colour_acts)[j * 3..j * 3 + 3];
                 for (d, &x) in dst[1..4].iter_mut().zip(c) {
@@ -710,11 +710,11 @@ pub fn eval_vertices(
                         let p = &scratch.points[j * 4..j * 4 + 3];
                         return Err(BakeError::NotFinite([p[0], p[1], p[2]]));
                     }
-                    *d = rgb;
+                    *d = Value::from_f32(rgb);
                 }
             } else {
                 for (d, &x) in dst[1..1 + geo].iter_mut().zip(&row[1..1 + geo]) {
-                    *d = x;
+                    *d = Value::from_f32(x);
                 }
             }
         }
@@ -725,7 +725,7 @@ pub fn eval_vertices(
 
 /// Phase 2: copies into every slot of `set` the border vertices that another brick of the set
 /// owns (`values`: every slot of the set, in set order).
-pub fn fill_borders(plan: &BakePlan, set: &BrickSet<'_>, values: &mut [f32]) {
+pub fn fill_borders(plan: &BakePlan, set: &BrickSet<'_>, values: &mut [Value]) {
     let g = plan.geometry;
     let v1 = g.brick as usize + 1;
     let b = g.brick as usize;
@@ -766,7 +766,7 @@ pub fn cell_bits(
     params: &[f32],
     set: &BrickSet<'_>,
     first: usize,
-    values: &[f32],
+    values: &[Value],
     occupied: &mut [u32],
 ) {
     let g = plan.geometry;
@@ -786,7 +786,7 @@ pub fn cell_bits(
         let o = brick_origin(&g, set.bricks[first + k]);
         let words = &mut occupied[k * fw..(k + 1) * fw];
         words.fill(0);
-        let logit = |v: usize| values[(k * nv + v) * ch];
+        let logit = |v: usize| values[(k * nv + v) * ch].to_f32();
         let proposal: &[f32] = if gate {
             points.clear();
             for z in 0..v1 {
@@ -882,7 +882,7 @@ impl Volume {
 
     /// Takes the baked static bricks (every slot of `plan.static_bricks`, in order): keeps the
     /// slots with an occupied cell and indexes them.
-    pub fn set_static(&mut self, plan: &BakePlan, mut values: Vec<f32>, mut occupied: Vec<u32>) {
+    pub fn set_static(&mut self, plan: &BakePlan, mut values: Vec<Value>, mut occupied: Vec<u32>) {
         let g = self.geometry;
         let (fw, sv) = (g.flag_words(), g.vertices_per_brick() * self.channels);
         let mut kept = 0usize;
@@ -936,10 +936,10 @@ pub fn bake_set(
     params: &[f32],
     set: &BrickSet<'_>,
     progress: &BakeProgress,
-) -> Result<(Vec<f32>, Vec<u32>, usize), BakeError> {
+) -> Result<(Vec<Value>, Vec<u32>, usize), BakeError> {
     let g = plan.geometry;
     let n = set.bricks.len();
-    let mut values = vec![0f32; n * g.vertices_per_brick() * plan.channels];
+    let mut values = vec![Value::ZERO; n * g.vertices_per_brick() * plan.channels];
     let mut occupied = vec![0u32; n * g.flag_words()];
     let mut scratch = BakeScratch::default();
     let evaluated = eval_vertices(
@@ -961,7 +961,7 @@ pub fn bake_set(
 /// What bakes one set of bricks: its values, cell words and field evaluations ([`bake_set`] on
 /// this thread; the player spreads the same phases over threads).
 pub type SetBaker<'a> =
-    dyn FnMut(&BrickSet<'_>) -> Result<(Vec<f32>, Vec<u32>, usize), BakeError> + 'a;
+    dyn FnMut(&BrickSet<'_>) -> Result<(Vec<Value>, Vec<u32>, usize), BakeError> + 'a;
 
 /// Bakes `plan`'s static bricks with `bake_set`; the slices are baked when needed
 /// ([`bake_slice_with`]).
