@@ -88,7 +88,7 @@ pub struct ExportArgs {
     pub occupancy_from: OccupancyFrom,
     /// The rendering weight a sample must carry for its cell to count as seen
     /// (`--occupancy-from cameras`).
-    #[arg(long, default_value_t = msth_codec::occupancy::DEFAULT_SEEN_WEIGHT)]
+    #[arg(long, default_value_t = msth_player::seen::DEFAULT_SEEN_WEIGHT)]
     pub seen_weight: f32,
 }
 
@@ -432,7 +432,7 @@ pub(crate) fn choose(
 
 /// The occupancy grid of `opts` (the density grid) restricted to the cells the checkpoint's
 /// training cameras see with samples of weight `>= min_weight`, or that lie outside their views
-/// ([`msth_codec::occupancy::seen_cells`]), and a line saying what was cast and kept. A
+/// ([`msth_player::seen::seen_cells`]), and a line saying what was cast and kept. A
 /// checkpoint that does not list every training camera keeps the density grid.
 pub(crate) fn seen_occupancy(
     ckpt: &Checkpoint,
@@ -452,7 +452,7 @@ pub(crate) fn seen_occupancy(
         );
         return (grid, line);
     };
-    let (seen, r) = msth_codec::occupancy::seen_cells(
+    let (seen, r) = msth_player::seen::seen_cells(
         model,
         &layout,
         &ckpt.params,
@@ -465,7 +465,7 @@ pub(crate) fn seen_occupancy(
         format!(
             " ({} samples stood for more than {} cells per side and marked only those around them)",
             r.clipped_footprints,
-            msth_codec::occupancy::MAX_FOOTPRINT_CELLS
+            msth_player::seen::MAX_FOOTPRINT_CELLS
         )
     } else {
         String::new()

@@ -8,6 +8,7 @@
 //! - [`samples`]: sample-level reuse on the dynamic rays (fixed samples, only dynamic ones
 //!   evaluated per frame);
 //! - [`empty_space`]: empty-space skipping with the file's occupancy grid;
+//! - [`seen`]: the cells the training cameras see, which `msth export` keeps in that grid;
 //! - [`gpu`]: the same on a GPU through wgpu, with the WGSL kernels of `msth-gpu`;
 //! - [`backend`]: the choice between the two (automatic, `--cpu`, `--gpu`);
 //! - [`path`]: camera paths (fixed, orbit, spiral, the file's cameras, JSON);
@@ -25,6 +26,7 @@ pub mod play;
 pub mod policy;
 pub mod render;
 pub mod samples;
+pub mod seen;
 pub mod source;
 pub mod stream;
 pub mod volume;
