@@ -9,11 +9,11 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 
-use msth_codec::auto::AutoOptions;
 use msth_codec::{decode_all, encode, EncodeOptions, EncodeReport, QuantMode, QuantPart};
 use msth_core::config::{ModelConfig, PlaySamples};
 use msth_core::field::ModelLayout;
 use msth_dataset::Dataset;
+use msth_player::quant_auto::AutoOptions;
 use msth_trainer::checkpoint::{write_atomic, Checkpoint};
 use msth_trainer::eval::render_image;
 use msth_trainer::metrics::psnr;
@@ -33,7 +33,7 @@ pub struct ExportArgs {
     #[arg(long, value_enum, default_value_t = QuantArg::Auto)]
     pub quant: QuantArg,
     /// The loss budget (dB of PSNR) of `--quant auto` and of `--play-samples auto`, each.
-    #[arg(long, value_name = "DB", default_value_t = msth_codec::auto::DEFAULT_MAX_LOSS_DB)]
+    #[arg(long, value_name = "DB", default_value_t = msth_player::quant_auto::DEFAULT_MAX_LOSS_DB)]
     pub max_loss: f64,
     /// The model's held-out PSNR (dB), which turns the renders' squared error into a loss
     /// (default: `psnr` of the metrics.json beside the checkpoint, else 35).
@@ -45,10 +45,10 @@ pub struct ExportArgs {
     #[arg(long, default_value = "auto", value_parser = parse_play_samples)]
     pub play_samples: PlaySamplesArg,
     /// Cameras the searches of `auto` render (spread over the checkpoint's cameras).
-    #[arg(long, value_name = "N", default_value_t = msth_codec::auto::AutoOptions::default().views)]
+    #[arg(long, value_name = "N", default_value_t = msth_player::quant_auto::AutoOptions::default().views)]
     pub auto_views: usize,
     /// Longest side (pixels) of the searches' renders.
-    #[arg(long, value_name = "PX", default_value_t = msth_codec::auto::AutoOptions::default().side)]
+    #[arg(long, value_name = "PX", default_value_t = msth_player::quant_auto::AutoOptions::default().side)]
     pub auto_side: u32,
     /// Frames per dynamic time chunk.
     #[arg(long, default_value_t = 10)]
@@ -154,7 +154,7 @@ pub(crate) struct Choices {
     pub quant: bool,
     pub samples: PlaySamplesArg,
     /// The budget and reference PSNR (`None`: from metrics.json beside the checkpoint, else
-    /// [`msth_codec::auto::DEFAULT_REFERENCE_PSNR`]).
+    /// [`msth_player::quant_auto::DEFAULT_REFERENCE_PSNR`]).
     pub max_loss: f64,
     pub reference_psnr: Option<f64>,
     /// Views and their longest side (pixels) of the searches' renders.
@@ -168,7 +168,7 @@ impl Choices {
         Choices {
             quant: true,
             samples: PlaySamplesArg::Auto,
-            max_loss: msth_codec::auto::DEFAULT_MAX_LOSS_DB,
+            max_loss: msth_player::quant_auto::DEFAULT_MAX_LOSS_DB,
             reference_psnr: None,
             views: AutoOptions::default().views,
             side: AutoOptions::default().side,
@@ -197,7 +197,7 @@ fn reference_psnr(given: Option<f64>, ckpt_path: &Path) -> Result<(f64, String)>
     Ok(match found {
         Some(p) => (p, format!("the held-out PSNR in {}", path.display())),
         None => (
-            msth_codec::auto::DEFAULT_REFERENCE_PSNR,
+            msth_player::quant_auto::DEFAULT_REFERENCE_PSNR,
             "assumed: no metrics.json with a PSNR beside the checkpoint (--reference-psnr sets it)"
                 .into(),
         ),
@@ -330,7 +330,7 @@ pub(crate) fn choose(
     opts: &mut EncodeOptions,
     choices: &Choices,
 ) -> Result<Vec<String>> {
-    use msth_codec::auto::{choose_quant, choose_samples, Probe};
+    use msth_player::quant_auto::{choose_quant, choose_samples, Probe};
     let mut lines = Vec::new();
     if let PlaySamplesArg::Counts(p, m) = choices.samples {
         opts.play_samples = Some(msth_codec::PlaySampleCounts {

@@ -14,7 +14,9 @@
 //! - [`path`]: camera paths (fixed, orbit, spiral, the file's cameras, JSON);
 //! - [`policy`]: the interactive viewer policy (reduced resolution while moving, refinement when
 //!   still, the timeline at the model's frame rate), shared by the native viewers;
-//! - [`play`]: all of it together, writing PNG frames and an MP4.
+//! - [`play`]: all of it together, writing PNG frames and an MP4;
+//! - [`quant_auto`]: `msth export --quant auto`'s searches, measured on renders of the file's
+//!   own cameras.
 //!
 //! The player links the codec and the field math, never the trainer.
 
@@ -24,6 +26,7 @@ pub mod gpu;
 pub mod path;
 pub mod play;
 pub mod policy;
+pub mod quant_auto;
 pub mod render;
 pub mod samples;
 pub mod seen;
