@@ -240,7 +240,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
         &scene,
         &opts,
         false,
-        Some(msth_codec::occupancy::DEFAULT_SEEN_WEIGHT),
+        Some(msth_player::seen::DEFAULT_SEEN_WEIGHT),
         &choices,
     )?;
     stage(

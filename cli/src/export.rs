@@ -9,11 +9,11 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 
-use msth_codec::auto::AutoOptions;
 use msth_codec::{decode_all, encode, EncodeOptions, EncodeReport, QuantMode, QuantPart};
 use msth_core::config::{ModelConfig, PlaySamples};
 use msth_core::field::ModelLayout;
 use msth_dataset::Dataset;
+use msth_player::quant_auto::AutoOptions;
 use msth_trainer::checkpoint::{write_atomic, Checkpoint};
 use msth_trainer::eval::render_image;
 use msth_trainer::metrics::psnr;
@@ -33,7 +33,7 @@ pub struct ExportArgs {
     #[arg(long, value_enum, default_value_t = QuantArg::Auto)]
     pub quant: QuantArg,
     /// The loss budget (dB of PSNR) of `--quant auto` and of `--play-samples auto`, each.
-    #[arg(long, value_name = "DB", default_value_t = msth_codec::auto::DEFAULT_MAX_LOSS_DB)]
+    #[arg(long, value_name = "DB", default_value_t = msth_player::quant_auto::DEFAULT_MAX_LOSS_DB)]
     pub max_loss: f64,
     /// The model's held-out PSNR (dB), which turns the renders' squared error into a loss
     /// (default: `psnr` of the metrics.json beside the checkpoint, else 35).
@@ -45,10 +45,10 @@ pub struct ExportArgs {
     #[arg(long, default_value = "auto", value_parser = parse_play_samples)]
     pub play_samples: PlaySamplesArg,
     /// Cameras the searches of `auto` render (spread over the checkpoint's cameras).
-    #[arg(long, value_name = "N", default_value_t = msth_codec::auto::AutoOptions::default().views)]
+    #[arg(long, value_name = "N", default_value_t = msth_player::quant_auto::AutoOptions::default().views)]
     pub auto_views: usize,
     /// Longest side (pixels) of the searches' renders.
-    #[arg(long, value_name = "PX", default_value_t = msth_codec::auto::AutoOptions::default().side)]
+    #[arg(long, value_name = "PX", default_value_t = msth_player::quant_auto::AutoOptions::default().side)]
     pub auto_side: u32,
     /// Frames per dynamic time chunk.
     #[arg(long, default_value_t = 10)]
@@ -88,7 +88,7 @@ pub struct ExportArgs {
     pub occupancy_from: OccupancyFrom,
     /// The rendering weight a sample must carry for its cell to count as seen
     /// (`--occupancy-from cameras`).
-    #[arg(long, default_value_t = msth_codec::occupancy::DEFAULT_SEEN_WEIGHT)]
+    #[arg(long, default_value_t = msth_player::seen::DEFAULT_SEEN_WEIGHT)]
     pub seen_weight: f32,
 }
 
@@ -154,7 +154,7 @@ pub(crate) struct Choices {
     pub quant: bool,
     pub samples: PlaySamplesArg,
     /// The budget and reference PSNR (`None`: from metrics.json beside the checkpoint, else
-    /// [`msth_codec::auto::DEFAULT_REFERENCE_PSNR`]).
+    /// [`msth_player::quant_auto::DEFAULT_REFERENCE_PSNR`]).
     pub max_loss: f64,
     pub reference_psnr: Option<f64>,
     /// Views and their longest side (pixels) of the searches' renders.
@@ -168,7 +168,7 @@ impl Choices {
         Choices {
             quant: true,
             samples: PlaySamplesArg::Auto,
-            max_loss: msth_codec::auto::DEFAULT_MAX_LOSS_DB,
+            max_loss: msth_player::quant_auto::DEFAULT_MAX_LOSS_DB,
             reference_psnr: None,
             views: AutoOptions::default().views,
             side: AutoOptions::default().side,
@@ -197,7 +197,7 @@ fn reference_psnr(given: Option<f64>, ckpt_path: &Path) -> Result<(f64, String)>
     Ok(match found {
         Some(p) => (p, format!("the held-out PSNR in {}", path.display())),
         None => (
-            msth_codec::auto::DEFAULT_REFERENCE_PSNR,
+            msth_player::quant_auto::DEFAULT_REFERENCE_PSNR,
             "assumed: no metrics.json with a PSNR beside the checkpoint (--reference-psnr sets it)"
                 .into(),
         ),
@@ -330,7 +330,7 @@ pub(crate) fn choose(
     opts: &mut EncodeOptions,
     choices: &Choices,
 ) -> Result<Vec<String>> {
-    use msth_codec::auto::{choose_quant, choose_samples, Probe};
+    use msth_player::quant_auto::{choose_quant, choose_samples, Probe};
     let mut lines = Vec::new();
     if let PlaySamplesArg::Counts(p, m) = choices.samples {
         opts.play_samples = Some(msth_codec::PlaySampleCounts {
@@ -432,7 +432,7 @@ pub(crate) fn choose(
 
 /// The occupancy grid of `opts` (the density grid) restricted to the cells the checkpoint's
 /// training cameras see with samples of weight `>= min_weight`, or that lie outside their views
-/// ([`msth_codec::occupancy::seen_cells`]), and a line saying what was cast and kept. A
+/// ([`msth_player::seen::seen_cells`]), and a line saying what was cast and kept. A
 /// checkpoint that does not list every training camera keeps the density grid.
 pub(crate) fn seen_occupancy(
     ckpt: &Checkpoint,
@@ -452,7 +452,7 @@ pub(crate) fn seen_occupancy(
         );
         return (grid, line);
     };
-    let (seen, r) = msth_codec::occupancy::seen_cells(
+    let (seen, r) = msth_player::seen::seen_cells(
         model,
         &layout,
         &ckpt.params,
@@ -465,7 +465,7 @@ pub(crate) fn seen_occupancy(
         format!(
             " ({} samples stood for more than {} cells per side and marked only those around them)",
             r.clipped_footprints,
-            msth_codec::occupancy::MAX_FOOTPRINT_CELLS
+            msth_player::seen::MAX_FOOTPRINT_CELLS
         )
     } else {
         String::new()

@@ -15,7 +15,6 @@
 //! quantisation), [`sections`] (section payloads), [`dynamic_rows`] (which 4D rows a chunk keeps),
 //! [`occupancy`] (the occupancy grid and how export computes it), [`error`]. This crate knows the model's layout, not how it was trained.
 
-pub mod auto;
 pub mod decode;
 pub mod dynamic_rows;
 pub mod encode;

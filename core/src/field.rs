@@ -179,6 +179,13 @@ impl EncodingLayout {
                 self.forward_dynamic(params, points, n, s);
             }
         }
+        self.ramp_levels(n, s);
+    }
+
+    /// Scales `s.enc` of `n` points by the level factors of `s.active_levels` (training's
+    /// coarse-to-fine ramp; nothing when every level is on).
+    fn ramp_levels(&self, n: usize, s: &mut EncodingScratch) {
+        let e = self.out_dim;
         if let Some(active) = self.ramp(s) {
             let f = self.features_per_level();
             for row in s.enc[..n * e].chunks_exact_mut(e) {
@@ -262,6 +269,61 @@ impl EncodingLayout {
             }
         }
         self.blend_into(n, s);
+    }
+
+    /// Whether point `i` of the last forward pass needs the 4D grid under `s.static_cutoff`
+    /// ([`BlendMode::is_dynamic`] at its mask value `s.m[i]`).
+    pub fn is_dynamic(&self, s: &EncodingScratch, i: usize) -> bool {
+        self.blend
+            .is_dynamic(self.mask.is_some(), s.m[i], s.static_cutoff)
+    }
+
+    /// The time-independent part of point `i` of the last forward pass, kept to evaluate the
+    /// point at other times with [`EncodingLayout::forward_dynamic_prescaled`]: appends the
+    /// blend's static term `a(m) h3` (the 3D features already multiplied by the mask's static
+    /// share; nothing without h3) to `static_term` and returns the 4D coefficient `b(m)`
+    /// ([`BlendMode::coefficients`]).
+    pub fn static_term(&self, s: &EncodingScratch, i: usize, static_term: &mut Vec<f32>) -> f32 {
+        let (a, b) = self.blend.coefficients(s.m[i]);
+        if self.h3.is_some() {
+            let e = self.out_dim;
+            static_term.extend(s.h3[i * e..(i + 1) * e].iter().map(|v| a * v));
+        }
+        b
+    }
+
+    /// [`EncodingLayout::forward_dynamic`] of `n` points from their kept static parts
+    /// ([`EncodingLayout::static_term`]: `static_term: [n, out_dim]`, empty without h3, and
+    /// `b: [n]`) instead of `s.h3` and `s.m`: the 4D lookup at every point, then
+    /// `s.enc = b h4 + static_term`. The same bits as the blend of the full pass, whose products
+    /// are the same.
+    pub fn forward_dynamic_prescaled(
+        &self,
+        params: &[f32],
+        points: &[f32],
+        n: usize,
+        static_term: &[f32],
+        b: &[f32],
+        s: &mut EncodingScratch,
+    ) {
+        let e = self.out_dim;
+        s.enc.clear();
+        s.enc.resize(n * e, 0.0);
+        if let Some((g, r)) = &self.h4 {
+            s.h4.resize(n * e, 0.0);
+            g.encode(&params[r.clone()], &points[..n * 4], 4, &mut s.h4, e, 0);
+            for i in 0..n {
+                for k in i * e..(i + 1) * e {
+                    s.enc[k] = b[i] * s.h4[k];
+                }
+            }
+        }
+        if self.h3.is_some() {
+            for (v, h) in s.enc.iter_mut().zip(&static_term[..n * e]) {
+                *v += h;
+            }
+        }
+        self.ramp_levels(n, s);
     }
 
     /// Whether the 4D lookup is skipped for points the mask makes static (`s.static_cutoff`).
@@ -504,6 +566,28 @@ impl FieldLayout {
     /// Density only (the first half of [`FieldLayout::forward`]): fills `s.sigma`.
     pub fn forward_density(&self, params: &[f32], points: &[f32], n: usize, s: &mut FieldScratch) {
         self.encoding.forward(params, points, n, &mut s.enc);
+        self.decode_density(params, n, s);
+    }
+
+    /// [`FieldLayout::forward_density`] of points whose static part was kept: the encoding by
+    /// [`EncodingLayout::forward_dynamic_prescaled`] (same arguments), then the density MLP.
+    /// [`FieldLayout::forward_color`] may follow.
+    pub fn forward_density_prescaled(
+        &self,
+        params: &[f32],
+        points: &[f32],
+        n: usize,
+        static_term: &[f32],
+        b: &[f32],
+        s: &mut FieldScratch,
+    ) {
+        self.encoding
+            .forward_dynamic_prescaled(params, points, n, static_term, b, &mut s.enc);
+        self.decode_density(params, n, s);
+    }
+
+    /// The density MLP on the encoding `s.enc.enc` of `n` points: fills `s.sigma`.
+    fn decode_density(&self, params: &[f32], n: usize, s: &mut FieldScratch) {
         let (dm, dr) = &self.density;
         dm.forward(&params[dr.clone()], &s.enc.enc, n, &mut s.density_acts);
         let out = dm.output(&s.density_acts);

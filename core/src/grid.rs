@@ -698,6 +698,49 @@ fn prefetch(table: &[f32], i: usize) {
     let _ = (table, i);
 }
 
+/// Corner rows and weights of the points of one block on one level: `.0[j][c]` and `.1[j][c]`
+/// for corner `c` of the block's `j`-th point.
+type CornerBlock = ([[u32; 16]; ENCODE_BLOCK], [[f32; 16]; ENCODE_BLOCK]);
+
+/// A [`CornerBlock`] before its first fill.
+const EMPTY_BLOCK: CornerBlock = ([[0; 16]; ENCODE_BLOCK], [[0.0; 16]; ENCODE_BLOCK]);
+
+/// The walk of every scalar level kernel over its `n` points, one block ahead
+/// ([`ENCODE_BLOCK`]): `fill(state, start, m, block)` makes (and prefetches) the corners of the
+/// `m` points from `start`, the next block's before `visit(state, i, j, block)` takes point `i`,
+/// the `j`-th of the current one. Points are visited in order, so sums come out as one point at
+/// a time. `state` is what the visits write (outputs, or the gradient table the fills prefetch
+/// from), lent to each call in turn; `B` holds one block's corners (one grid's, or a pair's).
+#[inline(always)]
+fn walk_blocks<S: ?Sized, B: Copy>(
+    n: usize,
+    empty: B,
+    state: &mut S,
+    fill: impl Fn(&S, usize, usize, &mut B),
+    mut visit: impl FnMut(&mut S, usize, usize, &B),
+) {
+    let mut blocks = [empty, empty];
+    let count = n.div_ceil(ENCODE_BLOCK);
+    let size = |b: usize| (n - b * ENCODE_BLOCK).min(ENCODE_BLOCK);
+    if count > 0 {
+        fill(state, 0, size(0), &mut blocks[0]);
+    }
+    for b in 0..count {
+        let (cur, next) = (b & 1, (b + 1) & 1);
+        if b + 1 < count {
+            fill(
+                state,
+                (b + 1) * ENCODE_BLOCK,
+                size(b + 1),
+                &mut blocks[next],
+            );
+        }
+        for j in 0..size(b) {
+            visit(state, b * ENCODE_BLOCK + j, j, &blocks[cur]);
+        }
+    }
+}
+
 /// Corner rows and weights of one block of points on one level, and (hashed levels) prefetches of
 /// their rows in `table`. `live(i)` false leaves point `i` out (its weights are zeroed).
 #[allow(clippy::too_many_arguments)]
@@ -711,9 +754,9 @@ fn corners_block<const D: usize, const F: usize, const DENSE: bool>(
     start: usize,
     m: usize,
     live: impl Fn(usize) -> bool,
-    rows: &mut [[u32; 16]; ENCODE_BLOCK],
-    weights: &mut [[f32; 16]; ENCODE_BLOCK],
+    block: &mut CornerBlock,
 ) {
+    let (rows, weights) = block;
     for j in 0..m {
         let i = start + j;
         if !live(i) {
@@ -730,6 +773,8 @@ fn corners_block<const D: usize, const F: usize, const DENSE: bool>(
     }
 }
 
+/// The scalar forward of one level: per point, the weighted sum of its corners' rows
+/// ([`gather`]), pipelined by [`walk_blocks`].
 #[allow(clippy::too_many_arguments)]
 #[inline(never)]
 fn encode_level_impl<const D: usize, const F: usize, const DENSE: bool>(
@@ -744,60 +789,30 @@ fn encode_level_impl<const D: usize, const F: usize, const DENSE: bool>(
 ) {
     let n = points.len() / point_stride;
     let mask = (layout.table_size - 1) as u32;
-    let mut rows = [[[0u32; 16]; ENCODE_BLOCK]; 2];
-    let mut weights = [[[0f32; 16]; ENCODE_BLOCK]; 2];
     let rows_in_table = table.len() / F;
-    let blocks = n.div_ceil(ENCODE_BLOCK);
-    let size = |b: usize| (n - b * ENCODE_BLOCK).min(ENCODE_BLOCK);
-    if blocks > 0 {
-        corners_block::<D, F, DENSE>(
-            mask,
-            level,
-            table,
-            points,
-            point_stride,
-            0,
-            size(0),
-            |_| true,
-            &mut rows[0],
-            &mut weights[0],
-        );
-    }
-    for b in 0..blocks {
-        let (cur, next) = (b & 1, (b + 1) & 1);
-        if b + 1 < blocks {
-            let (r, w) = (&mut rows[next], &mut weights[next]);
+    walk_blocks(
+        n,
+        EMPTY_BLOCK,
+        out,
+        |_, start, m, block| {
+            let all = |_| true;
             corners_block::<D, F, DENSE>(
                 mask,
                 level,
                 table,
                 points,
                 point_stride,
-                (b + 1) * ENCODE_BLOCK,
-                size(b + 1),
-                |_| true,
-                r,
-                w,
-            );
-        }
-        let (rows, weights) = (&rows[cur], &weights[cur]);
-        for j in 0..size(b) {
-            let i = b * ENCODE_BLOCK + j;
-            let mut acc = [0f32; F];
-            for c in 0..(1usize << D) {
-                let r = rows[j][c] as usize;
-                // Rows are in range by construction (dense: corners <= res; hashed: masked); the
-                // check keeps the access safe and lets the compiler drop per-feature checks.
-                if r < rows_in_table {
-                    let feat = &table[r * F..r * F + F];
-                    for f in 0..F {
-                        acc[f] += weights[j][c] * feat[f];
-                    }
-                }
-            }
-            out[i * out_stride + out_offset..i * out_stride + out_offset + F].copy_from_slice(&acc);
-        }
-    }
+                start,
+                m,
+                all,
+                block,
+            )
+        },
+        |out, i, j, block| {
+            let o = i * out_stride + out_offset;
+            out[o..o + F].copy_from_slice(&gather::<F>(table, rows_in_table, block, j, 1 << D));
+        },
+    );
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -882,9 +897,9 @@ fn backward_level<const D: usize, const F: usize>(
     }
 }
 
-/// The scatter of [`GridLayout::backward`] on one level, pipelined like [`encode_level_impl`]:
-/// points are visited in order and corners in order, so the sums are the same as one point at a
-/// time. Points whose incoming gradient is zero are skipped.
+/// The scatter of [`GridLayout::backward`] on one level ([`scatter`]), pipelined like
+/// [`encode_level_impl`]: points are visited in order and corners in order, so the sums are the
+/// same as one point at a time. Points whose incoming gradient is zero are skipped.
 #[allow(clippy::too_many_arguments)]
 #[inline(never)]
 fn backward_level_impl<const D: usize, const F: usize, const DENSE: bool>(
@@ -899,64 +914,27 @@ fn backward_level_impl<const D: usize, const F: usize, const DENSE: bool>(
 ) {
     let n = points.len() / point_stride;
     let mask = (layout.table_size - 1) as u32;
-    let mut rows = [[[0u32; 16]; ENCODE_BLOCK]; 2];
-    let mut weights = [[[0f32; 16]; ENCODE_BLOCK]; 2];
-    let rows_in_table = grad.len() / F;
     let d_row = |i: usize| &d_out[i * d_stride + d_offset..i * d_stride + d_offset + F];
     let live = |i: usize| d_row(i).iter().any(|&v| v != 0.0);
-    let blocks = n.div_ceil(ENCODE_BLOCK);
-    let size = |b: usize| (n - b * ENCODE_BLOCK).min(ENCODE_BLOCK);
-    if blocks > 0 {
-        corners_block::<D, F, DENSE>(
-            mask,
-            level,
-            grad,
-            points,
-            point_stride,
-            0,
-            size(0),
-            live,
-            &mut rows[0],
-            &mut weights[0],
-        );
-    }
-    for b in 0..blocks {
-        let (cur, next) = (b & 1, (b + 1) & 1);
-        if b + 1 < blocks {
-            let (r, w) = (&mut rows[next], &mut weights[next]);
+    walk_blocks(
+        n,
+        EMPTY_BLOCK,
+        grad,
+        |grad, start, m, block| {
             corners_block::<D, F, DENSE>(
                 mask,
                 level,
                 grad,
                 points,
                 point_stride,
-                (b + 1) * ENCODE_BLOCK,
-                size(b + 1),
+                start,
+                m,
                 live,
-                r,
-                w,
-            );
-        }
-        let (rows, weights) = (&rows[cur], &weights[cur]);
-        for j in 0..size(b) {
-            let i = b * ENCODE_BLOCK + j;
-            let g = d_row(i);
-            if g.iter().all(|&v| v == 0.0) {
-                continue;
-            }
-            let mut gv = [0f32; F];
-            gv.copy_from_slice(g);
-            for c in 0..(1usize << D) {
-                let r = rows[j][c] as usize;
-                if r < rows_in_table {
-                    let dst = &mut grad[r * F..r * F + F];
-                    for f in 0..F {
-                        dst[f] += weights[j][c] * gv[f];
-                    }
-                }
-            }
-        }
-    }
+                block,
+            )
+        },
+        |grad, i, j, block| scatter::<F>(grad, block, j, d_row(i), 1 << D),
+    );
 }
 
 /// Whether [`encode_pair`] / [`backward_pair`] can share the spatial corners of `g3` (3D) and
@@ -1028,55 +1006,19 @@ pub fn encode_pair_with(
     assert!(out3.len() >= n * out_stride && out4.len() >= n * out_stride);
     assert!(out_offset + g3.output_dim() <= out_stride);
     assert!(table3.len() >= g3.num_params && table4.len() >= g4.num_params);
-    macro_rules! go {
-        ($f:literal) => {
-            for (l, (l3, l4)) in g3.levels.iter().zip(&g4.levels).enumerate() {
-                let t3 = &table3[l3.offset..l3.offset + l3.rows * $f];
-                let t4 = &table4[l4.offset..l4.offset + l4.rows * $f];
-                let off = out_offset + l * $f;
-                if !l3.dense && !l4.dense {
-                    let done = simd_encode(
-                        simd,
-                        g3,
-                        Pass::Pair(l3, l4),
-                        t3,
-                        t4,
-                        points,
-                        point_stride,
-                        out3,
-                        out4,
-                        out_stride,
-                        off,
-                    );
-                    let o = done * out_stride;
-                    encode_pair_level::<$f>(
-                        g3,
-                        l3,
-                        t3,
-                        l4,
-                        t4,
-                        &points[done * point_stride..],
-                        point_stride,
-                        &mut out3[o..],
-                        &mut out4[o..],
-                        out_stride,
-                        off,
-                    );
-                } else {
-                    let (p, ps) = (points, point_stride);
-                    encode_level::<3, $f>(simd, g3, l3, t3, p, ps, out3, out_stride, off);
-                    encode_level::<4, $f>(simd, g4, l4, t4, p, ps, out4, out_stride, off);
-                }
-            }
-        };
-    }
-    match g3.features {
-        1 => go!(1),
-        2 => go!(2),
-        4 => go!(4),
-        8 => go!(8),
-        _ => unreachable!("validated grid config"),
-    }
+    let mut pass = EncodePair {
+        simd,
+        g3,
+        table3,
+        g4,
+        table4,
+        points,
+        point_stride,
+        out3,
+        out4,
+        out_stride,
+    };
+    pair_levels(g3, g4, out_offset, &mut pass);
 }
 
 /// [`GridLayout::backward`] of `g3` (from `d3`) and `g4` (from `d4`) in one pass, with the same
@@ -1128,44 +1070,43 @@ pub fn backward_pair_with(
 ) {
     assert!(pairable(g3, g4) && point_stride >= 4);
     assert!(grad3.len() >= g3.num_params && grad4.len() >= g4.num_params);
+    let mut pass = BackwardPair {
+        simd,
+        g3,
+        g4,
+        points,
+        point_stride,
+        d3,
+        d4,
+        d_stride,
+        grad3,
+        grad4,
+    };
+    pair_levels(g3, g4, d_offset, &mut pass);
+}
+
+/// One paired pass over the levels of two [`pairable`] grids, the forward ([`EncodePair`]) or
+/// the backward ([`BackwardPair`]), as [`pair_levels`] walks it. `offset` is where the level's
+/// `F` features lie in each point's output (or gradient) row.
+trait PairPass {
+    /// Both levels hashed: the AVX2 kernel's full blocks, then the paired scalar kernel on the
+    /// points it left.
+    fn hashed<const F: usize>(&mut self, l3: &LevelLayout, l4: &LevelLayout, offset: usize);
+    /// A dense level on either side: each grid's own level pass.
+    fn separate<const F: usize>(&mut self, l3: &LevelLayout, l4: &LevelLayout, offset: usize);
+}
+
+/// The level loop of the paired passes: per level of `g3` and `g4`, with the features as a
+/// constant, [`PairPass::hashed`] where both are hashed, else [`PairPass::separate`].
+fn pair_levels(g3: &GridLayout, g4: &GridLayout, offset: usize, pass: &mut impl PairPass) {
     macro_rules! go {
         ($f:literal) => {
             for (l, (l3, l4)) in g3.levels.iter().zip(&g4.levels).enumerate() {
-                let r3 = &mut grad3[l3.offset..l3.offset + l3.rows * $f];
-                let r4 = &mut grad4[l4.offset..l4.offset + l4.rows * $f];
-                let off = d_offset + l * $f;
+                let off = offset + l * $f;
                 if !l3.dense && !l4.dense {
-                    let done = simd_backward(
-                        simd,
-                        g3,
-                        Pass::Pair(l3, l4),
-                        r3,
-                        r4,
-                        points,
-                        point_stride,
-                        d3,
-                        d4,
-                        d_stride,
-                        off,
-                    );
-                    let o = (done * d_stride).min(d3.len().min(d4.len()));
-                    backward_pair_level::<$f>(
-                        g3,
-                        l3,
-                        r3,
-                        l4,
-                        r4,
-                        &points[done * point_stride..],
-                        point_stride,
-                        &d3[o..],
-                        &d4[o..],
-                        d_stride,
-                        off,
-                    );
+                    pass.hashed::<$f>(l3, l4, off);
                 } else {
-                    let (p, ps) = (points, point_stride);
-                    backward_level::<3, $f>(simd, g3, l3, r3, p, ps, d3, d_stride, off);
-                    backward_level::<4, $f>(simd, g4, l4, r4, p, ps, d4, d_stride, off);
+                    pass.separate::<$f>(l3, l4, off);
                 }
             }
         };
@@ -1176,6 +1117,104 @@ pub fn backward_pair_with(
         4 => go!(4),
         8 => go!(8),
         _ => unreachable!("validated grid config"),
+    }
+}
+
+/// The [`PairPass`] of [`encode_pair_with`].
+struct EncodePair<'a> {
+    simd: bool,
+    g3: &'a GridLayout,
+    table3: &'a [f32],
+    g4: &'a GridLayout,
+    table4: &'a [f32],
+    points: &'a [f32],
+    point_stride: usize,
+    out3: &'a mut [f32],
+    out4: &'a mut [f32],
+    out_stride: usize,
+}
+
+impl PairPass for EncodePair<'_> {
+    fn hashed<const F: usize>(&mut self, l3: &LevelLayout, l4: &LevelLayout, offset: usize) {
+        let t3 = &self.table3[l3.offset..l3.offset + l3.rows * F];
+        let t4 = &self.table4[l4.offset..l4.offset + l4.rows * F];
+        let (points, ps, stride) = (self.points, self.point_stride, self.out_stride);
+        let pass = Pass::Pair(l3, l4);
+        let (o3, o4) = (&mut *self.out3, &mut *self.out4);
+        let done = simd_encode(
+            self.simd, self.g3, pass, t3, t4, points, ps, o3, o4, stride, offset,
+        );
+        let o = done * stride;
+        encode_pair_level::<F>(
+            self.g3,
+            l3,
+            t3,
+            l4,
+            t4,
+            &points[done * ps..],
+            ps,
+            &mut o3[o..],
+            &mut o4[o..],
+            stride,
+            offset,
+        );
+    }
+
+    fn separate<const F: usize>(&mut self, l3: &LevelLayout, l4: &LevelLayout, offset: usize) {
+        let t3 = &self.table3[l3.offset..l3.offset + l3.rows * F];
+        let t4 = &self.table4[l4.offset..l4.offset + l4.rows * F];
+        let (p, ps, stride) = (self.points, self.point_stride, self.out_stride);
+        encode_level::<3, F>(self.simd, self.g3, l3, t3, p, ps, self.out3, stride, offset);
+        encode_level::<4, F>(self.simd, self.g4, l4, t4, p, ps, self.out4, stride, offset);
+    }
+}
+
+/// The [`PairPass`] of [`backward_pair_with`].
+struct BackwardPair<'a> {
+    simd: bool,
+    g3: &'a GridLayout,
+    g4: &'a GridLayout,
+    points: &'a [f32],
+    point_stride: usize,
+    d3: &'a [f32],
+    d4: &'a [f32],
+    d_stride: usize,
+    grad3: &'a mut [f32],
+    grad4: &'a mut [f32],
+}
+
+impl PairPass for BackwardPair<'_> {
+    fn hashed<const F: usize>(&mut self, l3: &LevelLayout, l4: &LevelLayout, offset: usize) {
+        let r3 = &mut self.grad3[l3.offset..l3.offset + l3.rows * F];
+        let r4 = &mut self.grad4[l4.offset..l4.offset + l4.rows * F];
+        let (points, ps) = (self.points, self.point_stride);
+        let (d3, d4, ds) = (self.d3, self.d4, self.d_stride);
+        let pass = Pass::Pair(l3, l4);
+        let done = simd_backward(
+            self.simd, self.g3, pass, r3, r4, points, ps, d3, d4, ds, offset,
+        );
+        let o = (done * ds).min(d3.len().min(d4.len()));
+        backward_pair_level::<F>(
+            self.g3,
+            l3,
+            r3,
+            l4,
+            r4,
+            &points[done * ps..],
+            ps,
+            &d3[o..],
+            &d4[o..],
+            ds,
+            offset,
+        );
+    }
+
+    fn separate<const F: usize>(&mut self, l3: &LevelLayout, l4: &LevelLayout, offset: usize) {
+        let r3 = &mut self.grad3[l3.offset..l3.offset + l3.rows * F];
+        let r4 = &mut self.grad4[l4.offset..l4.offset + l4.rows * F];
+        let (p, ps, ds) = (self.points, self.point_stride, self.d_stride);
+        backward_level::<3, F>(self.simd, self.g3, l3, r3, p, ps, self.d3, ds, offset);
+        backward_level::<4, F>(self.simd, self.g4, l4, r4, p, ps, self.d4, ds, offset);
     }
 }
 
@@ -1196,8 +1235,8 @@ fn pair_corners_block<const F: usize>(
     start: usize,
     m: usize,
     live: impl Fn(usize) -> bool,
-    c3: &mut ([[u32; 16]; ENCODE_BLOCK], [[f32; 16]; ENCODE_BLOCK]),
-    c4: &mut ([[u32; 16]; ENCODE_BLOCK], [[f32; 16]; ENCODE_BLOCK]),
+    c3: &mut CornerBlock,
+    c4: &mut CornerBlock,
 ) {
     for j in 0..m {
         let i = start + j;
@@ -1231,8 +1270,8 @@ fn pair_corners_block<const F: usize>(
     }
 }
 
-type CornerBlock = ([[u32; 16]; ENCODE_BLOCK], [[f32; 16]; ENCODE_BLOCK]);
-
+/// The scalar forward of a paired level: [`encode_level_impl`] of both levels in one walk, over
+/// the corners [`pair_corners_block`] makes.
 #[allow(clippy::too_many_arguments)]
 #[inline(never)]
 fn encode_pair_level<const F: usize>(
@@ -1250,56 +1289,40 @@ fn encode_pair_level<const F: usize>(
 ) {
     let n = points.len() / point_stride;
     let mask = (layout.table_size - 1) as u32;
-    let zero: CornerBlock = ([[0; 16]; ENCODE_BLOCK], [[0.0; 16]; ENCODE_BLOCK]);
-    let mut c3 = [zero, zero];
-    let mut c4 = [zero, zero];
     let (rows3, rows4) = (table3.len() / F, table4.len() / F);
-    let blocks = n.div_ceil(ENCODE_BLOCK);
-    let size = |b: usize| (n - b * ENCODE_BLOCK).min(ENCODE_BLOCK);
-    let fill = |b: usize, c3: &mut CornerBlock, c4: &mut CornerBlock| {
-        pair_corners_block::<F>(
-            mask,
-            l3,
-            table3,
-            l4,
-            table4,
-            points,
-            point_stride,
-            b * ENCODE_BLOCK,
-            size(b),
-            |_| true,
-            c3,
-            c4,
-        )
-    };
-    if blocks > 0 {
-        fill(0, &mut c3[0], &mut c4[0]);
-    }
-    for b in 0..blocks {
-        let (cur, next) = (b & 1, (b + 1) & 1);
-        if b + 1 < blocks {
-            fill(b + 1, &mut c3[next], &mut c4[next]);
-        }
-        for j in 0..size(b) {
-            let i = b * ENCODE_BLOCK + j;
+    walk_blocks(
+        n,
+        (EMPTY_BLOCK, EMPTY_BLOCK),
+        &mut (out3, out4),
+        |_, start, m, (c3, c4)| {
+            let (ps, all) = (point_stride, |_| true);
+            pair_corners_block::<F>(
+                mask, l3, table3, l4, table4, points, ps, start, m, all, c3, c4,
+            )
+        },
+        |(out3, out4), i, j, (c3, c4)| {
             let o = i * out_stride + out_offset;
-            out3[o..o + F].copy_from_slice(&gather::<F, 8>(table3, rows3, &c3[cur], j));
-            out4[o..o + F].copy_from_slice(&gather::<F, 16>(table4, rows4, &c4[cur], j));
-        }
-    }
+            out3[o..o + F].copy_from_slice(&gather::<F>(table3, rows3, c3, j, 8));
+            out4[o..o + F].copy_from_slice(&gather::<F>(table4, rows4, c4, j, 16));
+        },
+    );
 }
 
-/// `sum_c w_c table[row_c]` over the first `C` corners of point `j` of a block, in corner order.
+/// `sum_c w_c table[row_c]` over the first `corners` corners of point `j` of a block, in corner
+/// order.
 #[inline(always)]
-fn gather<const F: usize, const C: usize>(
+fn gather<const F: usize>(
     table: &[f32],
     rows_in_table: usize,
     block: &CornerBlock,
     j: usize,
+    corners: usize,
 ) -> [f32; F] {
     let mut acc = [0f32; F];
-    for c in 0..C {
+    for c in 0..corners {
         let r = block.0[j][c] as usize;
+        // Rows are in range by construction (dense: corners <= res; hashed: masked); the check
+        // keeps the access safe and lets the compiler drop per-feature checks.
         if r < rows_in_table {
             let feat = &table[r * F..r * F + F];
             for f in 0..F {
@@ -1310,13 +1333,15 @@ fn gather<const F: usize, const C: usize>(
     acc
 }
 
-/// `grad[row_c] += w_c g` over the first `C` corners of point `j` of a block, in corner order.
+/// `grad[row_c] += w_c g` over the first `corners` corners of point `j` of a block, in corner
+/// order (nothing where `g` is zero).
 #[inline(always)]
-fn scatter<const F: usize, const C: usize>(
+fn scatter<const F: usize>(
     grad: &mut [f32],
     block: &CornerBlock,
     j: usize,
     g: &[f32],
+    corners: usize,
 ) {
     if g.iter().all(|&v| v == 0.0) {
         return;
@@ -1324,7 +1349,7 @@ fn scatter<const F: usize, const C: usize>(
     let rows_in_table = grad.len() / F;
     let mut gv = [0f32; F];
     gv.copy_from_slice(g);
-    for c in 0..C {
+    for c in 0..corners {
         let r = block.0[j][c] as usize;
         if r < rows_in_table {
             let dst = &mut grad[r * F..r * F + F];
@@ -1335,6 +1360,7 @@ fn scatter<const F: usize, const C: usize>(
     }
 }
 
+/// The scalar backward of a paired level: [`backward_level_impl`] of both levels in one walk.
 #[allow(clippy::too_many_arguments)]
 #[inline(never)]
 fn backward_pair_level<const F: usize>(
@@ -1352,54 +1378,24 @@ fn backward_pair_level<const F: usize>(
 ) {
     let n = points.len() / point_stride;
     let mask = (layout.table_size - 1) as u32;
-    let zero: CornerBlock = ([[0; 16]; ENCODE_BLOCK], [[0.0; 16]; ENCODE_BLOCK]);
-    let mut c3 = [zero, zero];
-    let mut c4 = [zero, zero];
     let row = |i: usize| i * d_stride + d_offset..i * d_stride + d_offset + F;
     let live =
         |i: usize| d3[row(i)].iter().any(|&v| v != 0.0) || d4[row(i)].iter().any(|&v| v != 0.0);
-    let blocks = n.div_ceil(ENCODE_BLOCK);
-    let size = |b: usize| (n - b * ENCODE_BLOCK).min(ENCODE_BLOCK);
-    if blocks > 0 {
-        pair_corners_block::<F>(
-            mask,
-            l3,
-            grad3,
-            l4,
-            grad4,
-            points,
-            point_stride,
-            0,
-            size(0),
-            live,
-            &mut c3[0],
-            &mut c4[0],
-        );
-    }
-    for b in 0..blocks {
-        let (cur, next) = (b & 1, (b + 1) & 1);
-        if b + 1 < blocks {
+    walk_blocks(
+        n,
+        (EMPTY_BLOCK, EMPTY_BLOCK),
+        &mut (grad3, grad4),
+        |(grad3, grad4), start, m, (c3, c4)| {
+            let ps = point_stride;
             pair_corners_block::<F>(
-                mask,
-                l3,
-                grad3,
-                l4,
-                grad4,
-                points,
-                point_stride,
-                (b + 1) * ENCODE_BLOCK,
-                size(b + 1),
-                live,
-                &mut c3[next],
-                &mut c4[next],
-            );
-        }
-        for j in 0..size(b) {
-            let i = b * ENCODE_BLOCK + j;
-            scatter::<F, 8>(grad3, &c3[cur], j, &d3[row(i)]);
-            scatter::<F, 16>(grad4, &c4[cur], j, &d4[row(i)]);
-        }
-    }
+                mask, l3, grad3, l4, grad4, points, ps, start, m, live, c3, c4,
+            )
+        },
+        |(grad3, grad4), i, j, (c3, c4)| {
+            scatter::<F>(grad3, c3, j, &d3[row(i)], 8);
+            scatter::<F>(grad4, c4, j, &d4[row(i)], 16);
+        },
+    );
 }
 
 /// A dense 3D grid of scalars at `res^3` vertices covering `[0, 1]^3`, read trilinearly

@@ -8,12 +8,15 @@
 //! - [`samples`]: sample-level reuse on the dynamic rays (fixed samples, only dynamic ones
 //!   evaluated per frame);
 //! - [`empty_space`]: empty-space skipping with the file's occupancy grid;
+//! - [`seen`]: the cells the training cameras see, which `msth export` keeps in that grid;
 //! - [`gpu`]: the same on a GPU through wgpu, with the WGSL kernels of `msth-gpu`;
 //! - [`backend`]: the choice between the two (automatic, `--cpu`, `--gpu`);
 //! - [`path`]: camera paths (fixed, orbit, spiral, the file's cameras, JSON);
 //! - [`policy`]: the interactive viewer policy (reduced resolution while moving, refinement when
 //!   still, the timeline at the model's frame rate), shared by the native viewers;
-//! - [`play`]: all of it together, writing PNG frames and an MP4.
+//! - [`play`]: all of it together, writing PNG frames and an MP4;
+//! - [`quant_auto`]: `msth export --quant auto`'s searches, measured on renders of the file's
+//!   own cameras.
 //!
 //! The player links the codec and the field math, never the trainer.
 
@@ -23,8 +26,10 @@ pub mod gpu;
 pub mod path;
 pub mod play;
 pub mod policy;
+pub mod quant_auto;
 pub mod render;
 pub mod samples;
+pub mod seen;
 pub mod source;
 pub mod stream;
 pub mod volume;

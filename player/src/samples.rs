@@ -10,8 +10,11 @@
 //! - **static samples** (`1 - m < cutoff`, the 4D lookup skipped as the full renderer skips it):
 //!   density and colour are computed once and kept;
 //! - **dynamic samples**: the 3D features (with the blend's coefficient) and the 4D weight
-//!   `1 - m` are kept; a frame looks up only the 4D grid at the new time and runs the two MLPs,
-//!   the colour MLP only where the new transmittance can still reach the sample.
+//!   `1 - m` are kept ([`msth_core::field::EncodingLayout::static_term`]); a frame evaluates
+//!   only the field's dynamic part at the new time
+//!   ([`msth_core::field::FieldLayout::forward_density_prescaled`]: the 4D grid and the density
+//!   MLP) and the colour MLP, the latter only where the new transmittance can still reach the
+//!   sample.
 //!
 //! A frame then costs, per dynamic ray, the dynamic samples' 4D lookups and MLPs, and no
 //! proposal pass. The price is that sample positions no longer follow the proposal field frame
@@ -21,10 +24,8 @@
 //! [`reference_render`] is the plain version of a frame (per-point reference field, no cache),
 //! which the fast path is tested against.
 
-use msth_core::activation::{sigmoid, trunc_exp};
 use msth_core::config::ModelConfig;
 use msth_core::field::{FieldScratch, ModelLayout};
-use msth_core::mlp::MlpActivations;
 use msth_core::pipeline::{
     composite_ray, direction_encodings, playback_partition, Partition, TimedRay, Workspace,
     HIDDEN_TRANSMITTANCE,
@@ -56,7 +57,8 @@ pub struct SampleCache {
     dyn_slot: Vec<u16>,
     /// `[dynamic * 3]`: unit-cube points.
     dyn_pts: Vec<f32>,
-    /// `[dynamic * h3_dim]`: 3D features times the blend's 3D coefficient (empty without h3).
+    /// `[dynamic * h3_dim]`: static terms, the 3D features times the blend's 3D coefficient
+    /// ([`msth_core::field::EncodingLayout::static_term`]; empty without h3).
     dyn_h3: Vec<f32>,
     /// Per dynamic sample: the blend's 4D coefficient.
     dyn_b: Vec<f32>,
@@ -65,16 +67,13 @@ pub struct SampleCache {
 /// Per-thread buffers of [`SampleCache::render`].
 #[derive(Default)]
 struct Scratch {
+    /// `[dynamic * 4]`: the chunk's dynamic samples at the frame's time.
     pts: Vec<f32>,
-    h4: Vec<f32>,
-    enc: Vec<f32>,
-    density: MlpActivations,
-    color: MlpActivations,
-    color_in: Vec<f32>,
-    /// Visible dynamic samples (index from the chunk's first) and their rays (from the chunk's
-    /// first).
+    field: FieldScratch,
+    /// Per dynamic sample of the chunk: its ray.
+    dyn_ray: Vec<u32>,
+    /// Visible dynamic samples (index from the chunk's first).
     active: Vec<u32>,
-    active_ray: Vec<u32>,
     sigma: Vec<f32>,
     w: Vec<f32>,
     rgb: Vec<f32>,
@@ -143,9 +142,6 @@ impl SampleCache {
         let n = rays.len();
         let s = part.samples;
         let enc = &layout.field.encoding;
-        let e = enc.out_dim;
-        let h3_dim = if enc.h3.is_some() { e } else { 0 };
-        let has_mask = enc.mask.is_some();
         let mut sh = Vec::new();
         direction_encodings(rays, &mut sh);
         // Static samples as the full renderer evaluates them: the 4D lookup skipped below the
@@ -171,17 +167,11 @@ impl SampleCache {
         for i in 0..n {
             for k in 0..s {
                 let j = i * s + k;
-                let m = fs.enc.m[j];
-                if enc.blend.is_dynamic(has_mask, m, cutoff) {
-                    let (a, b) = enc.blend.coefficients(m);
+                if enc.is_dynamic(&fs.enc, j) {
                     out.dyn_slot.push(k as u16);
                     out.dyn_pts
                         .extend_from_slice(&part.points[j * 4..j * 4 + 3]);
-                    out.dyn_h3.extend(
-                        fs.enc.h3[j * h3_dim..(j + 1) * h3_dim]
-                            .iter()
-                            .map(|v| a * v),
-                    );
+                    let b = enc.static_term(&fs.enc, j, &mut out.dyn_h3);
                     out.dyn_b.push(b);
                     out.sigma[j] = 0.0;
                     out.rgb[j * 3..j * 3 + 3].fill(0.0);
@@ -253,58 +243,42 @@ impl SampleCache {
     ) -> Vec<[f32; 3]> {
         let field = &layout.field;
         let enc = &field.encoding;
-        let e = enc.out_dim;
+        let h3_dim = if enc.h3.is_some() { enc.out_dim } else { 0 };
         let s = self.samples;
         let d0 = self.dyn_start[rays.start] as usize;
         let d1 = self.dyn_start[rays.end] as usize;
         let nd = d1 - d0;
-        // Density of the dynamic samples: 4D lookup at `time`, blend, density MLP.
-        let (dm, dr) = &field.density;
-        let w_out = dm.output_dim();
+        // Density of the dynamic samples: the field's dynamic part at `time` from their kept
+        // static terms.
         if nd > 0 {
             sc.pts.clear();
             for j in d0..d1 {
                 sc.pts.extend_from_slice(&self.dyn_pts[j * 3..j * 3 + 3]);
                 sc.pts.push(time);
             }
-            sc.enc.clear();
-            sc.enc.resize(nd * e, 0.0);
-            if let Some((g, r)) = &enc.h4 {
-                sc.h4.resize(nd * e, 0.0);
-                g.encode(&params[r.clone()], &sc.pts, 4, &mut sc.h4, e, 0);
-                for j in 0..nd {
-                    let b = self.dyn_b[d0 + j];
-                    for k in 0..e {
-                        sc.enc[j * e + k] = b * sc.h4[j * e + k];
-                    }
-                }
-            }
-            if enc.h3.is_some() {
-                let h3 = &self.dyn_h3[d0 * e..d1 * e];
-                for (v, h) in sc.enc.iter_mut().zip(h3) {
-                    *v += h;
-                }
-            }
-            dm.forward(&params[dr.clone()], &sc.enc, nd, &mut sc.density);
+            field.forward_density_prescaled(
+                params,
+                &sc.pts,
+                nd,
+                &self.dyn_h3[d0 * h3_dim..d1 * h3_dim],
+                &self.dyn_b[d0..d1],
+                &mut sc.field,
+            );
         }
-        let dout = if nd > 0 {
-            dm.output(&sc.density)
-        } else {
-            &[][..]
-        };
         // Per ray: densities, weights, and which dynamic samples light can still reach.
         let tau_hidden = (1.0 / HIDDEN_TRANSMITTANCE).ln();
         let nr = rays.len();
         sc.sigma.clear();
         sc.sigma
             .extend_from_slice(&self.sigma[rays.start * s..rays.end * s]);
+        sc.dyn_ray.clear();
         sc.active.clear();
-        sc.active_ray.clear();
         for (li, ri) in rays.clone().enumerate() {
             let (a, b) = (self.dyn_start[ri] as usize, self.dyn_start[ri + 1] as usize);
             for j in a..b {
                 let slot = self.dyn_slot[j] as usize;
-                sc.sigma[li * s + slot] = trunc_exp(dout[(j - d0) * w_out]);
+                sc.sigma[li * s + slot] = sc.field.sigma[j - d0];
+                sc.dyn_ray.push(ri as u32);
             }
             // Walk the ray; a dynamic sample gets a colour when the optical depth before it is
             // below the hidden threshold.
@@ -316,42 +290,32 @@ impl SampleCache {
                 }
                 if next < b && self.dyn_slot[next] as usize == k {
                     sc.active.push((next - d0) as u32);
-                    sc.active_ray.push(li as u32);
                     next += 1;
                 }
                 tau += render::tau_of(sc.sigma[li * s + k], self.deltas[ri * s + k]);
             }
         }
         // Colour of the visible dynamic samples.
-        let (cm, cr) = &field.color;
-        let g = field.geo_features;
-        let cw = SH_COEFFS + g;
-        let na = sc.active.len();
-        if na > 0 {
-            sc.color_in.resize(na * cw, 0.0);
-            for (k, (&j, &li)) in sc.active.iter().zip(&sc.active_ray).enumerate() {
-                let j = j as usize;
-                let ray = rays.start + li as usize;
-                sc.color_in[k * cw..k * cw + SH_COEFFS]
-                    .copy_from_slice(&self.sh[ray * SH_COEFFS..(ray + 1) * SH_COEFFS]);
-                sc.color_in[k * cw + SH_COEFFS..(k + 1) * cw]
-                    .copy_from_slice(&dout[j * w_out + 1..j * w_out + 1 + g]);
-            }
-            cm.forward(&params[cr.clone()], &sc.color_in, na, &mut sc.color);
+        if !sc.active.is_empty() {
+            let dyn_ray = &sc.dyn_ray;
+            field.forward_color(
+                params,
+                &self.sh,
+                &|j| dyn_ray[j] as usize,
+                Some(&sc.active),
+                nd,
+                &mut sc.field,
+            );
         }
-        let cout = if na > 0 {
-            cm.output(&sc.color)
-        } else {
-            &[][..]
-        };
         sc.rgb.clear();
         sc.rgb
             .extend_from_slice(&self.rgb[rays.start * s * 3..rays.end * s * 3]);
-        for (k, (&j, &li)) in sc.active.iter().zip(&sc.active_ray).enumerate() {
-            let slot = self.dyn_slot[d0 + j as usize] as usize;
-            for ch in 0..3 {
-                sc.rgb[(li as usize * s + slot) * 3 + ch] = sigmoid(cout[k * 3 + ch]);
-            }
+        for &j in &sc.active {
+            let j = j as usize;
+            let li = sc.dyn_ray[j] as usize - rays.start;
+            let slot = self.dyn_slot[d0 + j] as usize;
+            sc.rgb[(li * s + slot) * 3..(li * s + slot) * 3 + 3]
+                .copy_from_slice(&sc.field.rgb[j * 3..j * 3 + 3]);
         }
         sc.w.resize(s, 0.0);
         let mut out = Vec::with_capacity(nr);

@@ -272,7 +272,7 @@ fn occupancy_skipping_keeps_frames_within_40_db() {
 }
 
 /// `msth export`'s default grid (issue #17): the density grid restricted to the cells the
-/// file's cameras see ([`msth_codec::occupancy::seen_cells`]). It is a subset of the density
+/// file's cameras see ([`msth_player::seen::seen_cells`]). It is a subset of the density
 /// grid and of the dilated cells that hold the cast rays' weighted samples; every such sample's
 /// cell is kept; and frames of those cameras rendered with it stay within 40 dB of unskipped
 /// ones at several times (the property the export relies on), at 64^3 (the default until
@@ -285,8 +285,9 @@ fn the_grid_of_what_the_cameras_see_keeps_their_frames() {
 }
 
 fn seen_grid_keeps_the_frames(r: u32) {
-    use msth_codec::occupancy::{compute, seen_cells, DEFAULT_SEEN_WEIGHT};
+    use msth_codec::occupancy::compute;
     use msth_core::pipeline::{weighted_samples, TimedRay, Workspace};
+    use msth_player::seen::{seen_cells, DEFAULT_SEEN_WEIGHT};
     use msth_player::{RenderSettings, Renderer};
     let d = decode_all(&std::fs::read(fixtures().join("v2.msth")).unwrap()).unwrap();
     let density = compute(&d.config, &d.layout, &d.params, r, 1e-2);

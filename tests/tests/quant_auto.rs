@@ -5,10 +5,10 @@
 
 use std::path::{Path, PathBuf};
 
-use msth_codec::auto::{choose_quant, choose_samples, mse, AutoOptions, Probe};
 use msth_codec::{decode_all, encode, EncodeOptions, PlaySampleCounts, QuantMode, SectionQuant};
 use msth_core::config::{PlaySamples, SampleLevel};
 use msth_core::field::ModelLayout;
+use msth_player::quant_auto::{choose_quant, choose_samples, mse, AutoOptions, Probe};
 use msth_player::{play, BackendChoice, PlayOptions};
 
 fn fixtures() -> PathBuf {

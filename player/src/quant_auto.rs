@@ -1,5 +1,6 @@
 //! `msth export --quant auto`: each part's quantisation mode, and the play-time samples per ray,
-//! chosen from renders of the file's own cameras (no dataset).
+//! chosen from renders of the file's own cameras (no dataset). The searches render, so they live
+//! here with the renderers; the codec (`msth_codec`) encodes and decodes the candidates.
 //!
 //! **The loss.** Renders of a few of the cameras (at a small resolution, each at another frame)
 //! with the lossless (`f32`) file are the reference; a candidate is rendered the same way and its
@@ -32,12 +33,12 @@ use msth_core::pipeline::{render_chunk, RenderOutput, TimedRay, Workspace};
 use msth_core::Camera;
 use rayon::prelude::*;
 
-use crate::encode::{encode, frame_time, EncodeOptions};
-use crate::error::EncodeError;
-use crate::format::{PlaySampleCounts, QuantMode, QuantPart, SectionQuant};
-use crate::quant::BlockEncoding;
-use crate::sections::Encodings;
-use crate::{decode_all, DecodedModel};
+use msth_codec::encode::{encode, frame_time, EncodeOptions};
+use msth_codec::error::EncodeError;
+use msth_codec::format::{PlaySampleCounts, QuantMode, QuantPart, SectionQuant};
+use msth_codec::quant::BlockEncoding;
+use msth_codec::sections::Encodings;
+use msth_codec::{decode_all, DecodedModel};
 
 /// The held-out PSNR assumed when the model's own is unknown: the top of what converged models
 /// reach (docs/tradeoff.md), so the budget in squared error errs on the small side.
@@ -306,7 +307,7 @@ pub fn choose_quant(
     let layout = ModelLayout::new(model);
     let mut base = base.clone();
     if base.occupancy.is_none() {
-        base.occupancy = Some(std::sync::Arc::new(crate::encode::occupancy_grid(
+        base.occupancy = Some(std::sync::Arc::new(msth_codec::encode::occupancy_grid(
             model, &layout, params, &base,
         )));
     }
