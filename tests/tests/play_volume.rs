@@ -134,8 +134,10 @@ fn a_budget_too_small_for_the_fine_volume_gets_a_coarser_one() {
         &VolumeOptions::default(),
     )
     .unwrap();
+    // Bricks outside the cameras' views kept: the resolution is what gives.
     let options = VolumeOptions {
         budget: Some(fine.bytes_bound / 3),
+        keep_outside_views: true,
         ..Default::default()
     };
     let coarse = baked(&d, &options);
@@ -154,6 +156,29 @@ fn a_budget_too_small_for_the_fine_volume_gets_a_coarser_one() {
     );
     // 34.3 dB measured at 64^3.
     assert!(p >= 30.0, "{p:.2} dB");
+
+    // By default the bricks no camera looks into go first: a volume at least as fine, within
+    // the same budget, that draws the file's own views as well.
+    let seen = baked(
+        &d,
+        &VolumeOptions {
+            keep_outside_views: false,
+            ..options
+        },
+    );
+    let r2 = seen.plan.geometry.resolution;
+    assert!(r2 >= r1 && seen.volume.bytes() <= options.budget.unwrap());
+    if seen.plan.outside_views > 0 {
+        let note = seen.plan.note().unwrap();
+        assert!(
+            note.contains("none of the file's cameras looks into"),
+            "{note}"
+        );
+    }
+    let mut volume = renderer(&d, Some(seen), false);
+    let q = draw(&mut volume, &d, &camera, 0.7).psnr_displayed(&draw(&mut exact, &d, &camera, 0.7));
+    println!("{r2}^3 without the bricks outside the views: {q:.2} dB against exact");
+    assert!(q >= p - 0.5, "{q:.2} dB against {p:.2} dB at {r1}^3");
 
     // Below the coarsest volume: an error naming the budget, never an allocation.
     let tiny = VolumeOptions {
