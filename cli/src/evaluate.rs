@@ -88,9 +88,16 @@ pub fn eval_file(a: &EvalArgs) -> Result<()> {
     let occupancy = model.occupancy.clone().map(Arc::new);
     let want_exact = matches!(a.renderer, EvalRenderer::Exact | EvalRenderer::Both);
     let want_volume = matches!(a.renderer, EvalRenderer::Volume | EvalRenderer::Both);
+    // By default the slices are baked for every view (their time is reported apart), so that
+    // the volume's figures are the volume's own.
     let settings = RenderSettings {
         incremental: false,
         march: a.volume.march()?,
+        slices: a
+            .volume
+            .volume_slices
+            .unwrap_or(crate::play::VolumeSlices::Always)
+            .into(),
         ..Default::default()
     };
     let mut exact = want_exact.then(|| {

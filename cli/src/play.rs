@@ -157,6 +157,30 @@ pub struct VolumeArgs {
     /// there).
     #[arg(long)]
     pub volume_keep_outside: bool,
+    /// When the CPU renderer bakes the time slices of the volume's dynamic bricks: `auto` once
+    /// the exact evaluations of the frames waiting for them reach what baking costs (a
+    /// playback that holds its time bakes, one whose time moves every frame evaluates them
+    /// exactly), `always` before the first frame that needs them (default: auto; `always` in
+    /// `msth eval`, whose figures are the slices' own).
+    #[arg(long, value_enum)]
+    pub volume_slices: Option<VolumeSlices>,
+}
+
+/// `--volume-slices`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum VolumeSlices {
+    #[default]
+    Auto,
+    Always,
+}
+
+impl From<VolumeSlices> for msth_player::SlicePolicy {
+    fn from(v: VolumeSlices) -> Self {
+        match v {
+            VolumeSlices::Auto => msth_player::SlicePolicy::Auto,
+            VolumeSlices::Always => msth_player::SlicePolicy::Always,
+        }
+    }
 }
 
 impl VolumeArgs {
@@ -349,6 +373,7 @@ pub fn options(a: &PlayArgs) -> Result<PlayOptions> {
     o.render.exact = !a.volume;
     o.volume = a.volume_args.options()?;
     o.render.march = a.volume_args.march()?;
+    o.render.slices = a.volume_args.volume_slices.unwrap_or_default().into();
     o.bake_first = a.bake_first;
     a.reuse.apply(&mut o.render)?;
     o.render.probe_tolerance = a.probe_tolerance;

@@ -39,6 +39,6 @@ pub use gpu::{GpuError, GpuRenderer};
 pub use msth_gpu::TableFormat;
 pub use path::CameraPath;
 pub use play::{play, FrameRecord, PlayError, PlayOptions, PlayReport};
-pub use render::{Frame, FrameStats, RenderSettings, Renderer, Reuse};
+pub use render::{Frame, FrameStats, RenderSettings, Renderer, Reuse, SlicePolicy};
 pub use source::{ByteSource, FileSource, HttpOptions, HttpSource, SourceError};
 pub use stream::{ModelStream, StreamError, StreamProgress};

@@ -84,6 +84,23 @@ pub struct RenderSettings {
     pub exact: bool,
     /// How rays walk the volume.
     pub march: MarchSettings,
+    /// When the CPU renderer bakes the volume's time slices (the GPU renderer always does).
+    pub slices: SlicePolicy,
+}
+
+/// When the CPU renderer bakes a volume's time slices for a frame that lacks them; until then
+/// the frame evaluates its dynamic bricks' samples from the exact field.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SlicePolicy {
+    /// Once the exact evaluations spent on frames that needed the same missing slices reach
+    /// what baking them costs (a slice's vertices): a playback that holds its time bakes after
+    /// a few frames, one whose time moves to new slices every frame never pays for a slice it
+    /// uses once. At most twice the cheaper of the two.
+    #[default]
+    Auto,
+    /// Before the first frame that needs them.
+    Always,
 }
 
 impl RenderSettings {
@@ -167,6 +184,7 @@ impl Default for RenderSettings {
             gpu_lanes: None,
             exact: false,
             march: MarchSettings::default(),
+            slices: SlicePolicy::default(),
         }
     }
 }
@@ -301,12 +319,18 @@ pub struct Renderer {
     slice_error: Option<String>,
     /// The volume path's cache of one camera.
     volume_cache: Option<VolumeCache>,
+    /// [`SlicePolicy::Auto`]: the slices the last frames lacked, and the dynamic samples they
+    /// evaluated exactly instead.
+    slice_debt: (Vec<usize>, usize),
 }
 
 /// The volume path's cache of one camera: the last frame, and the pixels whose rays met a
 /// dynamic sample (re-rendered at every frame; the others do not depend on time).
 struct VolumeCache {
     camera: Camera,
+    /// Whether its frame read the time slices (else its dynamic bricks were exact): a frame of
+    /// the other kind renders every pixel.
+    sliced: bool,
     rgb: Vec<f32>,
     dynamic: Vec<u32>,
     rays: Vec<TimedRay>,
@@ -446,6 +470,7 @@ impl Renderer {
             volume: None,
             slice_error: None,
             volume_cache: None,
+            slice_debt: (Vec::new(), 0),
         }
     }
 
@@ -456,6 +481,7 @@ impl Renderer {
         self.slice_error = None;
         self.cache = None;
         self.volume_cache = None;
+        self.slice_debt = (Vec::new(), 0);
     }
 
     /// Takes the volume back (frames come from the exact field from now on); forgets the
@@ -624,6 +650,7 @@ impl Renderer {
         let start = Instant::now();
         let slice_seconds = self.bake_slices(time, params, params_at);
         let vol = &self.volume.as_ref().expect("uses_volume checked it").volume;
+        let sliced = vol.dynamic.ready_for(time);
         let (w, h) = (camera.width, camera.height);
         let total = w as usize * h as usize;
         let mut stats = FrameStats {
@@ -633,10 +660,9 @@ impl Renderer {
             ..Default::default()
         };
         let reuse = self.settings.incremental
-            && self
-                .volume_cache
-                .as_ref()
-                .is_some_and(|c| c.camera == *camera && c.rgb.len() == total * 3);
+            && self.volume_cache.as_ref().is_some_and(|c| {
+                c.camera == *camera && c.sliced == sliced && c.rgb.len() == total * 3
+            });
         let rgb = if reuse {
             let mut cache = self.volume_cache.take().expect("checked above");
             for r in &mut cache.rays {
@@ -687,6 +713,7 @@ impl Renderer {
             stats.volume_samples = out.samples;
             self.volume_cache = self.settings.incremental.then(|| VolumeCache {
                 camera: *camera,
+                sliced,
                 rgb: rgb.clone(),
                 dynamic,
                 rays: dyn_rays,
@@ -694,6 +721,9 @@ impl Renderer {
             });
             rgb
         };
+        if !sliced {
+            self.slice_debt.1 += stats.samples_evaluated;
+        }
         stats.seconds = start.elapsed().as_secs_f64();
         Frame {
             width: w,
@@ -703,9 +733,10 @@ impl Renderer {
         }
     }
 
-    /// Bakes the time slices the volume needs at `time` that it does not hold (each with the
-    /// flat buffer at its own time: `params_at`, else `params`); returns the seconds spent. A
-    /// slice that cannot be baked leaves the dynamic bricks to the exact field.
+    /// Bakes the time slices the volume needs at `time` that it does not hold, when
+    /// [`RenderSettings::slices`] says so (each with the flat buffer at its own time:
+    /// `params_at`, else `params`); returns the seconds spent. A slice that cannot be baked
+    /// leaves the dynamic bricks to the exact field.
     fn bake_slices(
         &mut self,
         time: f32,
@@ -718,6 +749,21 @@ impl Renderer {
         };
         if self.slice_error.is_some() {
             return 0.0;
+        }
+        if self.settings.slices == SlicePolicy::Auto {
+            let missing = bv.volume.dynamic.missing_for(time);
+            if missing.is_empty() {
+                return 0.0;
+            }
+            if missing != self.slice_debt.0 {
+                self.slice_debt = (missing, 0);
+                return 0.0;
+            }
+            let cost = bv.plan.slice_evaluations() * missing.len();
+            if self.slice_debt.1 < cost {
+                return 0.0;
+            }
+            self.slice_debt = (Vec::new(), 0);
         }
         let (cfg, layout) = (&self.cfg, &self.layout);
         if let Err(e) = bv.bake_missing_slices(time, params, params_at, &mut |v, plan, k, p| {

@@ -16,7 +16,7 @@ use msth_core::camera::Camera;
 use msth_core::field::ModelLayout;
 use msth_core::volume::{BakeError, BakeProgress};
 use msth_player::volume::{bake, plan_bake, BakedVolume, VolumeOptions};
-use msth_player::{Frame, RenderSettings, Renderer};
+use msth_player::{Frame, RenderSettings, Renderer, SlicePolicy};
 
 /// The fixture with a mask that splits the scene ([`msth_tests::split_mask_fixture`]).
 fn fixture() -> DecodedModel {
@@ -47,12 +47,23 @@ fn baked(d: &DecodedModel, options: &VolumeOptions) -> BakedVolume {
     }
 }
 
+/// A renderer that bakes the volume's slices before the first frame that needs them.
 fn renderer(d: &DecodedModel, volume: Option<BakedVolume>, incremental: bool) -> Renderer {
+    renderer_with(d, volume, incremental, SlicePolicy::Always)
+}
+
+fn renderer_with(
+    d: &DecodedModel,
+    volume: Option<BakedVolume>,
+    incremental: bool,
+    slices: SlicePolicy,
+) -> Renderer {
     let mut r = Renderer::new(
         &d.config,
         RenderSettings {
             incremental,
             exact: volume.is_none(),
+            slices,
             ..Default::default()
         },
     );
@@ -262,4 +273,57 @@ fn the_proposal_threshold_empties_cells() {
     let (none, some, most) = (occupied(0.0), occupied(0.05), occupied(0.5));
     println!("occupied cells: {none} without the test, {some} at 0.05, {most} at 0.5");
     assert!(none > some && some > most, "{none} {some} {most}");
+}
+
+/// `SlicePolicy::Auto`: frames whose time moves to new slices evaluate the dynamic bricks
+/// exactly and bake nothing; a held time bakes its slices once the exact evaluations spent
+/// waiting for them reach a slice's cost, and from then on evaluates nothing. Incremental frames
+/// still equal full ones across the switch.
+#[test]
+fn auto_slices_are_baked_once_a_held_time_has_paid_for_them() {
+    let d = fixture();
+    let vol = baked(&d, &VolumeOptions::default());
+    assert!(vol.volume.has_dynamic(), "the fixture has dynamic bricks");
+    let cost = vol.plan.slice_evaluations();
+    let auto = |incremental| renderer_with(&d, Some(vol.clone()), incremental, SlicePolicy::Auto);
+    let (mut full, mut incremental) = (auto(false), auto(true));
+    let mut always = renderer(&d, Some(vol.clone()), false);
+    let camera = d.cameras[0];
+    // A new slice interval every frame: nothing baked, dynamic samples exact.
+    let n = vol.volume.dynamic.times.len();
+    for k in 0..4.min(n - 1) {
+        let time = (k as f32 + 0.5) / (n - 1) as f32;
+        let a = draw(&mut full, &d, &camera, time);
+        let b = draw(&mut incremental, &d, &camera, time);
+        assert_eq!(a.rgb, b.rgb, "t={time}: incremental frame differs");
+        assert!(a.stats.slice_seconds == 0.0 && a.stats.samples_evaluated > 0);
+        let p = a.psnr_displayed(&draw(&mut always, &d, &camera, time));
+        println!("t={time}: exact dynamic samples against slices {p:.2} dB");
+        assert!(p >= 30.0, "t={time}: {p:.2} dB");
+    }
+    // The time held: exact frames until they have paid for the slices, then none.
+    let time = 0.5 / (n - 1) as f32;
+    let (mut paid, mut frames) = (0, 0);
+    loop {
+        let a = draw(&mut full, &d, &camera, time);
+        let b = draw(&mut incremental, &d, &camera, time);
+        assert_eq!(
+            a.rgb, b.rgb,
+            "held frame {frames}: incremental frame differs"
+        );
+        frames += 1;
+        if a.stats.samples_evaluated == 0 {
+            break;
+        }
+        paid += a.stats.samples_evaluated;
+        assert!(frames < 1000, "the slices were never baked");
+    }
+    println!("baked after {frames} frames, {paid} exact evaluations for slices of {cost}");
+    assert!(
+        paid >= cost,
+        "baked after {paid} exact evaluations, before paying {cost}"
+    );
+    let last = draw(&mut full, &d, &camera, time);
+    assert_eq!(last.stats.samples_evaluated, 0);
+    assert_eq!(last.rgb, draw(&mut always, &d, &camera, time).rgb);
 }
