@@ -266,7 +266,7 @@ fn bricks_outside_the_views_go_before_the_resolution() {
             &PlanOptions {
                 budget,
                 max_resolution: Some(128),
-                views: vec![cam.clone()],
+                views: vec![cam],
                 keep_outside_views: keep,
                 ..Default::default()
             },

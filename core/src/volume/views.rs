@@ -23,7 +23,6 @@ pub fn bricks_in_view(g: &VolumeGeometry, bounds: &SceneBounds, cameras: &[Camer
     let i = g.bricks_per_side() as usize;
     let v = i + 1;
     let world: Vec<Vec3> = (0..v * v * v)
-        .into_iter()
         .map(|k| {
             let u = Vec3::new(
                 (k % v) as f32 / i as f32,
