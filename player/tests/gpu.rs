@@ -1363,9 +1363,12 @@ fn volume_frames_on_the_gpu_match_the_cpu_march() {
         let cam = test_camera(48, 36);
         let vol = baked_volume(&cfg, &params, &cam, msth_core::volume::ColourMode::Baked);
         assert!(vol.volume.has_dynamic(), "{bounds:?}: no dynamic brick");
+        // The GPU renderer reads baked slices for every frame: so must the CPU's frames it is
+        // compared with.
         let settings = RenderSettings {
             exact: false,
             incremental: false,
+            slices: msth_player::SlicePolicy::Always,
             ..Default::default()
         };
         let mut cpu = Renderer::new(&cfg, settings);
