@@ -1,7 +1,11 @@
-//! A compute device for the training kernels: the adapter the render context would pick
-//! ([`AdapterPolicy`]), the optional feature the kernels use when the adapter has it (f32
-//! atomics), f32 storage buffers, dispatches of `n` invocations, read-back, and the device's
-//! asynchronous errors turned into [`GpuError`]s.
+//! Opening the GPU: [`GpuDevice`], the adapter and device that both the training kernels
+//! ([`ComputeDevice`]) and the renderer ([`crate::GpuContext`]) hold, opened one way (the
+//! adapter [`AdapterPolicy`] picks, its own buffer limits, the optional features it has) and
+//! checked one way ([`GpuDevice::check_storage`], [`GpuDevice::check_state`]).
+//!
+//! [`ComputeDevice`] adds what the training kernels need: f32 storage buffers, dispatches of `n`
+//! invocations, batches of dispatches, read-back, with native f32 atomics where the adapter has
+//! them.
 
 use std::sync::{Arc, Mutex};
 
@@ -12,65 +16,58 @@ use crate::layout::{dispatch_size, WORKGROUP};
 use crate::render::{check_state, pick_adapter, watch, DeviceState};
 use crate::{AdapterPolicy, GpuError};
 
-/// An open device for compute kernels.
-pub struct ComputeDevice {
+/// An open adapter and device: the queue, what the adapter is, the limits and features the
+/// device was opened with, and the device's asynchronous errors.
+pub struct GpuDevice {
     pub(crate) device: wgpu::Device,
     pub(crate) queue: wgpu::Queue,
-    info: wgpu::AdapterInfo,
-    limits: wgpu::Limits,
-    float_atomics: bool,
-    state: Arc<Mutex<DeviceState>>,
-    /// While a batch is open ([`ComputeDevice::begin_batch`]): the encoder that dispatches and
-    /// clears are recorded into instead of being submitted one by one.
-    batch: Mutex<Option<wgpu::CommandEncoder>>,
+    pub(crate) info: wgpu::AdapterInfo,
+    pub(crate) limits: wgpu::Limits,
+    pub(crate) features: wgpu::Features,
+    pub(crate) state: Arc<Mutex<DeviceState>>,
 }
 
-impl std::fmt::Debug for ComputeDevice {
+impl std::fmt::Debug for GpuDevice {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "ComputeDevice({})", self.adapter_name())
+        write!(f, "GpuDevice({})", self.adapter_name())
     }
 }
 
-impl ComputeDevice {
-    /// Opens the best adapter `policy` allows, with native f32 atomics enabled when the adapter
-    /// offers them (`wgpu::Features::SHADER_FLOAT32_ATOMIC`).
-    pub fn open(policy: AdapterPolicy) -> Result<Self, GpuError> {
-        let adapter = pick_adapter(policy)?;
+impl GpuDevice {
+    /// Opens `adapter` with its own buffer limits (models and frames can be large; WebGPU's
+    /// defaults otherwise, as the kernels use nothing beyond them) and those of `optional`
+    /// features it has.
+    pub(crate) fn open(
+        adapter: wgpu::Adapter,
+        label: &str,
+        optional: wgpu::Features,
+    ) -> Result<Self, GpuError> {
         let info = adapter.get_info();
-        let name = format!("{} ({:?})", info.name, info.backend);
-        let float_atomics = adapter
-            .features()
-            .contains(wgpu::Features::SHADER_FLOAT32_ATOMIC);
-        let required_features = if float_atomics {
-            wgpu::Features::SHADER_FLOAT32_ATOMIC
-        } else {
-            wgpu::Features::empty()
-        };
         let al = adapter.limits();
         let limits = wgpu::Limits {
             max_storage_buffer_binding_size: al.max_storage_buffer_binding_size,
             max_buffer_size: al.max_buffer_size,
             ..wgpu::Limits::default()
         };
+        let features = adapter.features() & optional;
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
-            label: Some("msth compute"),
-            required_features,
+            label: Some(label),
+            required_features: features,
             required_limits: limits.clone(),
             ..Default::default()
         }))
         .map_err(|e| GpuError::Device {
-            adapter: name,
+            adapter: format!("{} ({:?})", info.name, info.backend),
             error: e.to_string(),
         })?;
         let state = watch(&device);
-        Ok(ComputeDevice {
+        Ok(GpuDevice {
             device,
             queue,
             info,
             limits,
-            float_atomics,
+            features,
             state,
-            batch: Mutex::new(None),
         })
     }
 
@@ -80,11 +77,6 @@ impl ComputeDevice {
             "{} ({:?}, {:?})",
             self.info.name, self.info.backend, self.info.device_type
         )
-    }
-
-    /// Whether native f32 atomics (`atomic<f32>`, `atomicAdd`) are enabled on this device.
-    pub fn has_float_atomics(&self) -> bool {
-        self.float_atomics
     }
 
     /// Checks that a storage buffer of `bytes` fits the device's limits (naming the limit).
@@ -108,6 +100,55 @@ impl ComputeDevice {
             }
         }
         Ok(())
+    }
+
+    /// Fails with what the device reported since the last check (lost device, validation).
+    pub(crate) fn check_state(&self) -> Result<(), GpuError> {
+        check_state(&self.state)
+    }
+}
+
+/// An open device for compute kernels.
+pub struct ComputeDevice {
+    gpu: GpuDevice,
+    /// While a batch is open ([`ComputeDevice::begin_batch`]): the encoder that dispatches and
+    /// clears are recorded into instead of being submitted one by one.
+    batch: Mutex<Option<wgpu::CommandEncoder>>,
+}
+
+impl std::ops::Deref for ComputeDevice {
+    type Target = GpuDevice;
+
+    fn deref(&self) -> &GpuDevice {
+        &self.gpu
+    }
+}
+
+impl std::fmt::Debug for ComputeDevice {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "ComputeDevice({})", self.adapter_name())
+    }
+}
+
+impl ComputeDevice {
+    /// Opens the best adapter `policy` allows, with native f32 atomics enabled when the adapter
+    /// offers them (`wgpu::Features::SHADER_FLOAT32_ATOMIC`).
+    pub fn open(policy: AdapterPolicy) -> Result<Self, GpuError> {
+        let gpu = GpuDevice::open(
+            pick_adapter(policy)?,
+            "msth compute",
+            wgpu::Features::SHADER_FLOAT32_ATOMIC,
+        )?;
+        Ok(ComputeDevice {
+            gpu,
+            batch: Mutex::new(None),
+        })
+    }
+
+    /// Whether native f32 atomics (`atomic<f32>`, `atomicAdd`) are enabled on this device.
+    pub fn has_float_atomics(&self) -> bool {
+        self.features
+            .contains(wgpu::Features::SHADER_FLOAT32_ATOMIC)
     }
 
     /// A storage buffer holding `data` (at least one word), readable back and writable.

@@ -225,6 +225,7 @@ pub mod specialise;
 pub mod step;
 pub mod volume;
 
+pub use device::{ComputeDevice, GpuDevice};
 pub use layout::{GpuLayoutError, GpuModel, TableFormat, ViewU, FLAG_COMPACT, FLAG_LIST};
 pub use passes::{FrameScratch, GpuSampleCache, PassCounts, Pixels, FRAME_WORK_BYTES};
 pub use render::{

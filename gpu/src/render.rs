@@ -214,10 +214,7 @@ fn lanes_of(wgsl: &str) -> u32 {
 
 /// An open device with the compiled kernels.
 pub struct GpuContext {
-    pub(crate) device: wgpu::Device,
-    pub(crate) queue: wgpu::Queue,
-    info: wgpu::AdapterInfo,
-    pub(crate) limits: wgpu::Limits,
+    gpu: crate::device::GpuDevice,
     pub(crate) layout: wgpu::BindGroupLayout,
     render: wgpu::ComputePipeline,
     eval: wgpu::ComputePipeline,
@@ -235,7 +232,14 @@ pub struct GpuContext {
     pub(crate) timestamps: bool,
     /// Bound at bindings 7-10 by the per-ray kernels, which use none of them.
     pub(crate) placeholders: crate::passes::Placeholders,
-    pub(crate) state: Arc<Mutex<DeviceState>>,
+}
+
+impl std::ops::Deref for GpuContext {
+    type Target = crate::device::GpuDevice;
+
+    fn deref(&self) -> &crate::device::GpuDevice {
+        &self.gpu
+    }
 }
 
 impl std::fmt::Debug for GpuContext {
@@ -296,30 +300,10 @@ impl GpuContext {
             ))
         })?;
         let wgsl = source.as_str();
-        let info = adapter.get_info();
-        let name = format!("{} ({:?})", info.name, info.backend);
-        // Ask for the adapter's own buffer limits (models and frames can be large), WebGPU
-        // defaults otherwise: the kernels use nothing beyond them.
-        let al = adapter.limits();
-        let limits = wgpu::Limits {
-            max_storage_buffer_binding_size: al.max_storage_buffer_binding_size,
-            max_buffer_size: al.max_buffer_size,
-            ..wgpu::Limits::default()
-        };
         // Timestamp queries where the adapter has them: only the pass-by-pass profile
         // (`MSTH_GPU_PASS_PROFILE`) writes any.
-        let features = adapter.features() & wgpu::Features::TIMESTAMP_QUERY;
-        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
-            label: Some("msth"),
-            required_limits: limits.clone(),
-            required_features: features,
-            ..Default::default()
-        }))
-        .map_err(|e| GpuError::Device {
-            adapter: name.clone(),
-            error: e.to_string(),
-        })?;
-        let state = watch(&device);
+        let gpu = crate::device::GpuDevice::open(adapter, "msth", wgpu::Features::TIMESTAMP_QUERY)?;
+        let device = &gpu.device;
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
         let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("render.wgsl"),
@@ -382,23 +366,20 @@ impl GpuContext {
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(GpuError::Shader(e.to_string()));
         }
-        let placeholders = crate::passes::Placeholders::new(&device);
+        let placeholders = crate::passes::Placeholders::new(device);
+        let timestamps = gpu.features.contains(wgpu::Features::TIMESTAMP_QUERY);
         Ok(GpuContext {
-            device,
-            queue,
-            info,
-            limits,
+            gpu,
             layout,
             render,
             eval,
             passes,
             pipeline_layout: pl,
             lanes: lanes_of(&source),
-            timestamps: features.contains(wgpu::Features::TIMESTAMP_QUERY),
+            timestamps,
             source,
             tables,
             placeholders,
-            state,
         })
     }
 
@@ -410,14 +391,6 @@ impl GpuContext {
     /// Samples one invocation of the per-sample passes evaluates ([`with_lanes`]).
     pub fn lanes(&self) -> u32 {
         self.lanes
-    }
-
-    /// `name (backend, device type)` of the adapter in use.
-    pub fn adapter_name(&self) -> String {
-        format!(
-            "{} ({:?}, {:?})",
-            self.info.name, self.info.backend, self.info.device_type
-        )
     }
 
     /// Bytes of scratch a batch of a frame's rays takes by default on this adapter
@@ -450,35 +423,6 @@ impl GpuContext {
     /// of an invocation after [`layout::LAVAPIPE_LOOP_ITERATIONS`] iterations in total.
     pub fn is_lavapipe(&self) -> bool {
         self.is_software() && self.info.name.contains("llvmpipe")
-    }
-
-    /// Checks that a storage buffer of `bytes` fits the device's limits.
-    pub fn check_storage(&self, what: &str, bytes: u64) -> Result<(), GpuError> {
-        let l = &self.limits;
-        let checks = [
-            (
-                "max_storage_buffer_binding_size",
-                l.max_storage_buffer_binding_size,
-            ),
-            ("max_buffer_size", l.max_buffer_size),
-        ];
-        for (limit, max) in checks {
-            if bytes > max {
-                return Err(GpuError::Limit {
-                    what: what.to_string(),
-                    amount: bytes,
-                    unit: "bytes",
-                    limit,
-                    max,
-                });
-            }
-        }
-        Ok(())
-    }
-
-    /// Fails with what the device reported since the last check (lost device, validation).
-    pub(crate) fn check_state(&self) -> Result<(), GpuError> {
-        check_state(&self.state)
     }
 
     /// A storage buffer with `data` (at least 4 bytes: empty data gets a placeholder word).
