@@ -322,6 +322,9 @@ pub struct Renderer {
     /// [`SlicePolicy::Auto`]: the slices the last frames lacked, and the dynamic samples they
     /// evaluated exactly instead.
     slice_debt: (Vec<usize>, usize),
+    /// Field evaluations one time slice of the volume costs ([`msth_core::volume::BakePlan::slice_evaluations`],
+    /// counted once per volume).
+    slice_cost: usize,
 }
 
 /// The volume path's cache of one camera: the last frame, and the pixels whose rays met a
@@ -471,6 +474,7 @@ impl Renderer {
             slice_error: None,
             volume_cache: None,
             slice_debt: (Vec::new(), 0),
+            slice_cost: 0,
         }
     }
 
@@ -482,6 +486,10 @@ impl Renderer {
         self.cache = None;
         self.volume_cache = None;
         self.slice_debt = (Vec::new(), 0);
+        self.slice_cost = self
+            .volume
+            .as_ref()
+            .map_or(0, |v| v.plan.slice_evaluations());
     }
 
     /// Takes the volume back (frames come from the exact field from now on); forgets the
@@ -759,7 +767,7 @@ impl Renderer {
                 self.slice_debt = (missing, 0);
                 return 0.0;
             }
-            let cost = bv.plan.slice_evaluations() * missing.len();
+            let cost = self.slice_cost * missing.len();
             if self.slice_debt.1 < cost {
                 return 0.0;
             }
