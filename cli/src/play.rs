@@ -152,9 +152,9 @@ pub struct VolumeArgs {
     #[arg(long, value_name = "CELLS")]
     pub volume_step: Option<f32>,
     /// Keep the occupied bricks that none of the file's cameras looks into. By default, where
-    /// the model's resolution does not fit the budget, those are left empty before the
-    /// resolution is lowered (a view far from the file's cameras then shows the background
-    /// there).
+    /// the model's resolution does not fit the budget, those are left out before the
+    /// resolution is lowered, and the rays of a view that reach them are drawn by the exact
+    /// path (slower, where a view looks far from the file's cameras).
     #[arg(long)]
     pub volume_keep_outside: bool,
     /// When the CPU renderer bakes the time slices of the volume's dynamic bricks: `auto` once
@@ -434,7 +434,8 @@ fn frame_line(r: &FrameRecord, n: usize) -> String {
 }
 
 /// What a volume frame spent: samples per ray read from the volume (counted on the CPU),
-/// samples evaluated from the field, and the time slices baked for it.
+/// samples evaluated from the field, rays drawn by the exact path, and the time slices baked
+/// for it.
 fn volume_detail(s: &msth_player::FrameStats) -> String {
     if !s.volume {
         return String::new();
@@ -448,6 +449,12 @@ fn volume_detail(s: &msth_player::FrameStats) -> String {
     }
     if s.samples_evaluated > 0 {
         parts.push(format!("{} field samples", s.samples_evaluated));
+    }
+    if s.rays_exact > 0 {
+        parts.push(format!(
+            "{} rays exact (outside the file's views)",
+            s.rays_exact
+        ));
     }
     if s.slice_seconds > 0.0 {
         parts.push(format!("slices baked in {:.0} ms", 1e3 * s.slice_seconds));

@@ -28,7 +28,7 @@ use msth_core::pipeline::{ray_limits, render_chunk, spacing_unit, RenderOutput, 
 use msth_core::Camera;
 use rayon::prelude::*;
 
-use msth_core::volume::{MarchSettings, Volume};
+use msth_core::volume::{MarchOutput, MarchSettings, Volume};
 
 use crate::volume::BakedVolume;
 
@@ -221,6 +221,9 @@ pub struct FrameStats {
     pub volume_samples: usize,
     /// Volume frames: time spent baking the dynamic bricks' time slices this frame needed.
     pub slice_seconds: f64,
+    /// Volume frames: rays drawn by the exact path because they reach bricks the volume left
+    /// out (none of the file's cameras looks into them).
+    pub rays_exact: usize,
 }
 
 /// How one camera's rays were sorted into cached and re-rendered ([`classify_static_with_stats`]).
@@ -676,7 +679,7 @@ impl Renderer {
             for r in &mut cache.rays {
                 r.time = time;
             }
-            let out = crate::volume::render_rays(
+            let mut out = crate::volume::render_rays(
                 vol,
                 &self.cfg,
                 &self.layout,
@@ -684,6 +687,7 @@ impl Renderer {
                 &cache.rays,
                 &self.settings.march,
             );
+            stats.rays_exact = self.render_outside(params, &cache.rays, &mut out);
             for (&p, c) in cache.dynamic.iter().zip(&out.rgb) {
                 cache.rgb[p as usize * 3..p as usize * 3 + 3].copy_from_slice(c);
             }
@@ -697,7 +701,7 @@ impl Renderer {
             rgb
         } else {
             let (mut rgb, pixels, rays, empty) = self.pixel_rays(camera, time);
-            let out = crate::volume::render_rays(
+            let mut out = crate::volume::render_rays(
                 vol,
                 &self.cfg,
                 &self.layout,
@@ -705,11 +709,13 @@ impl Renderer {
                 &rays,
                 &self.settings.march,
             );
+            stats.rays_exact = self.render_outside(params, &rays, &mut out);
             let mut dynamic = Vec::new();
             let mut dyn_rays = Vec::new();
             for (k, (&p, c)) in pixels.iter().zip(&out.rgb).enumerate() {
                 rgb[p as usize * 3..p as usize * 3 + 3].copy_from_slice(c);
-                if out.dynamic[k] {
+                // A ray drawn by the exact path may depend on the time: it is drawn again.
+                if out.dynamic[k] || out.outside[k] {
                     dynamic.push(p);
                     dyn_rays.push(rays[k]);
                 }
@@ -739,6 +745,21 @@ impl Renderer {
             rgb,
             stats,
         }
+    }
+
+    /// Draws the rays of `out` that reached a brick the volume left out with the exact path,
+    /// into `out.rgb`; returns how many there were.
+    fn render_outside(&self, params: &[f32], rays: &[TimedRay], out: &mut MarchOutput) -> usize {
+        let at: Vec<usize> = (0..rays.len()).filter(|&k| out.outside[k]).collect();
+        if at.is_empty() {
+            return 0;
+        }
+        let subset: Vec<TimedRay> = at.iter().map(|&k| rays[k]).collect();
+        let exact = self.render_rays(params, &subset);
+        for (&k, c) in at.iter().zip(&exact.rgb) {
+            out.rgb[k] = *c;
+        }
+        at.len()
     }
 
     /// Bakes the time slices the volume needs at `time` that it does not hold, when

@@ -115,6 +115,11 @@ fn main() -> std::process::ExitCode {
         )
         .needs(
             &[&gpu],
+            "rays_reaching_bricks_left_out_of_the_volume_draw_exactly_on_the_gpu",
+            rays_reaching_bricks_left_out_of_the_volume_draw_exactly_on_the_gpu,
+        )
+        .needs(
+            &[&gpu],
             "volumes_the_gpu_cannot_draw_are_clear_errors",
             volumes_the_gpu_cannot_draw_are_clear_errors,
         )
@@ -1444,6 +1449,82 @@ fn volume_frames_on_the_gpu_match_the_cpu_march() {
         let b = gpu.render(&cam, 0.5, &params).unwrap();
         assert!(!a.stats.volume && !b.stats.volume);
         assert!(max_diff(&a, &b) < 2e-3);
+    }
+}
+
+/// A volume planned for a narrow view within a budget that holds only the bricks that view sees
+/// leaves the others out ([`msth_core::volume::OUTSIDE_BRICK`]); a wider camera's rays that reach
+/// them are drawn by the exact passes on the GPU, as by the exact renderer on the CPU.
+fn rays_reaching_bricks_left_out_of_the_volume_draw_exactly_on_the_gpu() {
+    use msth_player::volume::{bake, plan_bake, BakedVolume, VolumeOptions};
+    let mut cfg = config(BlendMode::Mst);
+    small(&mut cfg);
+    let layout = ModelLayout::new(&cfg);
+    let mut params = random_params(&layout, 5);
+    centre_dynamic(&cfg, &mut params);
+    let cam = test_camera(48, 36);
+    let forward = -cam.world_from_camera.z_axis.truncate();
+    let fov_x = 2.0 * (0.5 * cam.width as f32 / cam.fx).atan();
+    let narrow = Camera::look_at(
+        cam.width,
+        cam.height,
+        fov_x / 3.0,
+        cam.center(),
+        cam.center() + forward,
+        cam.world_from_camera.y_axis.truncate(),
+    );
+    let options = |budget| VolumeOptions {
+        max_resolution: Some(64),
+        budget,
+        ..Default::default()
+    };
+    let full = plan_bake(&cfg, &params, None, &[narrow], &options(None)).unwrap();
+    let plan = plan_bake(
+        &cfg,
+        &params,
+        None,
+        &[narrow],
+        // Fewer resident time slices fit the full volume in half its bound: a fifth does not.
+        &options(Some(full.bytes_bound / 5)),
+    )
+    .unwrap();
+    assert!(plan.outside_views > 0, "no brick left out");
+    assert_eq!(plan.geometry.resolution, full.geometry.resolution);
+    let volume = bake(
+        &plan,
+        &cfg,
+        &layout,
+        &params,
+        &msth_core::volume::BakeProgress::default(),
+    )
+    .unwrap();
+    let vol = BakedVolume {
+        volume,
+        plan: std::sync::Arc::new(plan),
+    };
+    let settings = RenderSettings {
+        exact: false,
+        incremental: false,
+        slices: msth_player::SlicePolicy::Always,
+        ..Default::default()
+    };
+    let mut cpu = Renderer::new(&cfg, settings);
+    cpu.set_volume(Some(vol.clone()));
+    let mut gpu = GpuRenderer::new(context(), &cfg, settings).unwrap();
+    gpu.set_volume(Some(vol)).unwrap();
+    for t in [0.0f32, 0.5] {
+        let a = cpu.render(&cam, t, &params);
+        let b = gpu.render(&cam, t, &params).unwrap();
+        assert!(a.stats.volume && b.stats.volume);
+        let (ea, eb) = (a.stats.rays_exact, b.stats.rays_exact);
+        println!("t={t}: {ea} (CPU) and {eb} (GPU) of {} rays exact", a.stats.rays_total);
+        assert!(ea > 0 && ea < a.stats.rays_total, "{ea} rays exact");
+        // The same rays, but for a step within rounding of a brick's face.
+        assert!(ea.abs_diff(eb) <= a.stats.rays_total / 100, "{ea} against {eb}");
+        let p = psnr(&a, &b);
+        let d = max_diff(&a, &b);
+        println!("t={t}: GPU against CPU {p:.1} dB, max {d:.4}");
+        assert!(p >= 60.0 && d < 0.01, "t={t}: {p:.1} dB, max {d}");
     }
 }
 

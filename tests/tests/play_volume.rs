@@ -209,6 +209,86 @@ fn a_budget_too_small_for_the_fine_volume_gets_a_coarser_one() {
 }
 
 #[test]
+fn rays_that_reach_bricks_left_out_are_drawn_exactly() {
+    let d = fixture();
+    let c = d.cameras[0];
+    // The volume planned for a view a third as wide as the file's first camera, from the same
+    // place: the budget holds the bricks that view sees, not every occupied brick.
+    let forward = -c.world_from_camera.z_axis.truncate();
+    let up = c.world_from_camera.y_axis.truncate();
+    let fov_x = 2.0 * (0.5 * c.width as f32 / c.fx).atan();
+    let narrow = Camera::look_at(
+        c.width,
+        c.height,
+        fov_x / 3.0,
+        c.center(),
+        c.center() + forward * 2.0,
+        up,
+    );
+    let full = plan_bake(
+        &d.config,
+        &d.params,
+        d.occupancy.as_ref(),
+        &[narrow],
+        &VolumeOptions::default(),
+    )
+    .unwrap();
+    let options = VolumeOptions {
+        budget: Some(full.bytes_bound / 2),
+        ..Default::default()
+    };
+    let plan = plan_bake(
+        &d.config,
+        &d.params,
+        d.occupancy.as_ref(),
+        &[narrow],
+        &options,
+    )
+    .unwrap();
+    assert!(plan.outside_views > 0, "the narrow view leaves bricks out");
+    assert_eq!(plan.geometry.resolution, full.geometry.resolution);
+    let note = plan.note().unwrap();
+    assert!(note.contains("rendered exactly"), "{note}");
+    let layout = ModelLayout::new(&d.config);
+    let volume = bake(
+        &plan,
+        &d.config,
+        &layout,
+        &d.params,
+        &BakeProgress::default(),
+    )
+    .unwrap();
+    let vol = BakedVolume {
+        volume,
+        plan: Arc::new(plan),
+    };
+    let mut exact = renderer(&d, None, false);
+    let mut volume = renderer(&d, Some(vol.clone()), false);
+    let mut incremental = renderer(&d, Some(vol), true);
+    // The wide camera's border rays reach the bricks left out and go to the exact path; the
+    // frame matches the exact one as the full volume's does (35 dB and more).
+    for time in [0.0, 0.7, 1.0] {
+        let e = draw(&mut exact, &d, &c, time);
+        let v = draw(&mut volume, &d, &c, time);
+        let i = draw(&mut incremental, &d, &c, time);
+        assert!(v.stats.volume);
+        assert!(
+            v.stats.rays_exact > 0 && v.stats.rays_exact < v.stats.rays_total,
+            "{} of {} rays exact",
+            v.stats.rays_exact,
+            v.stats.rays_total
+        );
+        let p = v.psnr_displayed(&e);
+        println!(
+            "t={time}: {} of {} rays exact, {p:.2} dB against the exact frame",
+            v.stats.rays_exact, v.stats.rays_total
+        );
+        assert!(p >= 35.0, "t={time}: {p:.2} dB");
+        assert_eq!(i.rgb, v.rgb, "t={time}: incremental frame differs");
+    }
+}
+
+#[test]
 fn hostile_files_end_the_bake_with_an_error() {
     // Parameters the decoder cannot bound (its checks are structural): a NaN in the static
     // network.

@@ -327,7 +327,12 @@ struct VolumeU {
 @group(0) @binding(9) var<storage, read> vvalues: array<vec2<u32>>;
 
 const EMPTY_BRICK: u32 = 0xffffffffu;
+// An occupied brick left out of the volume: a ray that reaches one goes to the exact path.
+const OUTSIDE_BRICK: u32 = 0xfffffffeu;
 const DYNAMIC_BRICK: u32 = 0x80000000u;
+// The visible depth of a ray that reached an OUTSIDE_BRICK (msth-core `MarchOutput::outside`):
+// its colour is not written, and the host draws it with the per-sample passes.
+const OUTSIDE: f32 = -2.0;
 // Samples below this weight add no colour (msth-core `MIN_FEATURE_WEIGHT`).
 const MIN_COLOUR_WEIGHT: f32 = 1e-5;
 const INF: f32 = 3.40282346e38;
@@ -393,7 +398,7 @@ fn bit_set(word: u32, bit: u32) -> bool {
 }
 
 struct Step {
-    // x: 1 = a sample, 0 = skip; y: the distance to skip from the step's midpoint.
+    // 1 = a sample, 0 = a skip of `skip` from the step's midpoint, 2 = an OUTSIDE_BRICK.
     kind: u32,
     skip: f32,
     value: vec4<f32>,
@@ -412,7 +417,9 @@ fn lookup(u: vec3<f32>, v: vec3<f32>) -> Step {
     let brick = cell / b;
     let entry = vwords[brick.x + nb * (brick.y + nb * brick.z)];
     let cell_len = 1.0 / rf;
-    if entry == EMPTY_BRICK {
+    if entry == OUTSIDE_BRICK {
+        s.kind = 2u;
+    } else if entry == EMPTY_BRICK {
         let lo = vec3<f32>(brick * b);
         s.skip = exit_distance(u, v, lo * cell_len, (lo + f32(b)) * cell_len);
     } else {
@@ -510,6 +517,9 @@ fn march_ray(o: vec3<f32>, d: vec3<f32>) -> March {
         }
         let tm = t + 0.5 * dt;
         let s = lookup(um, vm);
+        if s.kind == 2u {
+            return March(vec3<f32>(0.0), OUTSIDE);
+        }
         if s.kind == 0u {
             // Past the boundary by a hair, and never backwards.
             t = max(tm + s.skip + 1e-3 * dt, t + 1e-3 * dt);
@@ -543,7 +553,8 @@ fn march_ray(o: vec3<f32>, d: vec3<f32>) -> March {
 
 // One invocation per pixel of the `view.size.x` by `view.size.y` frame (`view.size.z` pixels):
 // writes (r, g, b, visible depth) to frame[pixel]; a ray that misses the scene under a constant
-// background gets the background and the visible depth MISSED.
+// background gets the background and the visible depth MISSED, one that reaches a brick the
+// volume left out the visible depth OUTSIDE.
 @compute @workgroup_size(64)
 fn volume_march(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let i = invocation(gid, groups);

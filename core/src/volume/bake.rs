@@ -27,7 +27,7 @@ use crate::sh::{sh4, SH_COEFFS};
 
 use super::{
     channels_for, has_static_part, model_resolution, reference_direction, BakeStats, ColourMode,
-    DynamicPart, Slice, Value, Volume, VolumeGeometry, DYNAMIC_BRICK, EMPTY_BRICK,
+    DynamicPart, Slice, Value, Volume, VolumeGeometry, DYNAMIC_BRICK, EMPTY_BRICK, OUTSIDE_BRICK,
     MIN_VOLUME_RESOLUTION, VOLUME_STATIC_CUTOFF,
 };
 
@@ -197,9 +197,11 @@ pub struct BakePlan {
     /// Bytes of the volume before empty bricks are dropped, with its resident slices.
     pub bytes_bound: u64,
     pub budget: u64,
-    /// Occupied bricks left empty because no camera of [`PlanOptions::views`] looks into them
-    /// (0 where everything fitted).
+    /// Occupied bricks left out because no camera of [`PlanOptions::views`] looks into them
+    /// (0 where everything fitted): [`BakePlan::outside_bricks`]`.len()`.
     pub outside_views: usize,
+    /// Those bricks, ascending: the index marks them [`OUTSIDE_BRICK`].
+    pub outside_bricks: Vec<u32>,
 }
 
 impl BakePlan {
@@ -208,7 +210,7 @@ impl BakePlan {
         let mut notes = Vec::new();
         if self.outside_views > 0 {
             notes.push(format!(
-                "{} occupied bricks that none of the file's cameras looks into are left empty, so that the volume can be {}^3 cells within {} MiB (--volume-keep-outside keeps them at a coarser resolution)",
+                "{} occupied bricks that none of the file's cameras looks into are left out, so that the volume can be {}^3 cells within {} MiB; rays that reach them are rendered exactly (--volume-keep-outside keeps them at a coarser resolution)",
                 self.outside_views,
                 self.geometry.resolution,
                 self.budget >> 20
@@ -306,7 +308,7 @@ pub fn plan_with(
     let frames = cfg.num_frames.clamp(1, MAX_SLICES);
     // The plan of `candidates` at geometry `g`, or the bytes it needs at the least.
     let fit =
-        |g: VolumeGeometry, candidates: &[u32], outside_views: usize| -> Result<BakePlan, u64> {
+        |g: VolumeGeometry, candidates: &[u32], outside: Vec<u32>| -> Result<BakePlan, u64> {
             let slot = g.slot_bytes(channels);
             let index = g.index_len() as u64 * 4;
             // Bound the cheapest outcome first: every candidate a static slot.
@@ -359,26 +361,24 @@ pub fn plan_with(
                 occupancy: occupancy.map(|occ| (occ.resolution, occ.words.to_vec())),
                 bytes_bound: fixed + resident as u64 * per_slice,
                 budget: o.budget,
-                outside_views,
+                outside_views: outside.len(),
+                outside_bricks: outside,
             })
         };
     let mut r = requested;
     loop {
         let g = VolumeGeometry::new(r);
         let candidates = candidates(&g, occupancy.as_ref());
-        let mut need = match fit(g, &candidates, 0) {
+        let mut need = match fit(g, &candidates, Vec::new()) {
             Ok(plan) => return Ok(plan),
             Err(need) => need,
         };
         if !o.keep_outside_views && !o.views.is_empty() {
             let in_view = super::views::bricks_in_view(&g, &cfg.bounds, &o.views);
-            let seen: Vec<u32> = candidates
-                .iter()
-                .copied()
-                .filter(|&b| in_view[b as usize])
-                .collect();
-            if seen.len() < candidates.len() {
-                match fit(g, &seen, candidates.len() - seen.len()) {
+            let (seen, outside): (Vec<u32>, Vec<u32>) =
+                candidates.iter().partition(|&&b| in_view[b as usize]);
+            if !outside.is_empty() {
+                match fit(g, &seen, outside) {
                     Ok(plan) => return Ok(plan),
                     Err(n) => need = need.min(n),
                 }
@@ -847,6 +847,9 @@ impl Volume {
     pub fn allocate(plan: &BakePlan) -> Volume {
         let g = plan.geometry;
         let mut index = vec![EMPTY_BRICK; g.index_len()];
+        for &brick in &plan.outside_bricks {
+            index[brick as usize] = OUTSIDE_BRICK;
+        }
         for (d, &brick) in plan.dynamic_bricks.iter().enumerate() {
             index[brick as usize] = DYNAMIC_BRICK | d as u32;
         }

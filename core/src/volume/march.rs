@@ -12,6 +12,10 @@
 //!   in one batch for a chunk of rays after the walk (the walk records the samples from a ray's
 //!   first such one on, and composites them once the batch is back).
 //!
+//! A ray that reaches a brick the volume left out ([`super::OUTSIDE_BRICK`]: none of the file's
+//! cameras looks into it) stops there and is marked ([`MarchOutput::outside`]): the players draw
+//! it with the exact renderer.
+//!
 //! A ray stops once its transmittance falls below [`MarchSettings::stop_transmittance`]. A static
 //! sample's colour is the baked one ([`ColourMode::Baked`]), a dynamic sample's the colour MLP's
 //! at the ray's direction; they are composited as the exact renderer composites.
@@ -33,7 +37,7 @@ use crate::sh::{sh4, SH_COEFFS};
 
 use half::slice::HalfFloatSliceExt;
 
-use super::{Value, Volume, DYNAMIC_BRICK, EMPTY_BRICK, VOLUME_STATIC_CUTOFF};
+use super::{Value, Volume, DYNAMIC_BRICK, EMPTY_BRICK, OUTSIDE_BRICK, VOLUME_STATIC_CUTOFF};
 
 /// What a volume's vertices hold besides the density, and so how a static sample gets its
 /// colour. The volume is baked for one mode ([`super::bake::PlanOptions::colour`]).
@@ -86,6 +90,9 @@ pub struct MarchOutput {
     pub visible_depth: Vec<f32>,
     /// Whether the ray composited a dynamic sample: its colour may change with time.
     pub dynamic: Vec<bool>,
+    /// Whether the ray reached a brick the volume left out ([`super::OUTSIDE_BRICK`]) before it
+    /// stopped: its entry is not its colour, and the caller renders it with the exact path.
+    pub outside: Vec<bool>,
     /// Samples composited (static and dynamic) over all rays.
     pub samples: usize,
     /// Of those, dynamic samples (exact field evaluations).
@@ -103,6 +110,7 @@ impl MarchOutput {
         self.rgb.extend_from_slice(&other.rgb);
         self.visible_depth.extend_from_slice(&other.visible_depth);
         self.dynamic.extend_from_slice(&other.dynamic);
+        self.outside.extend_from_slice(&other.outside);
         self.samples += other.samples;
         self.dynamic_samples += other.dynamic_samples;
         self.steps += other.steps;
@@ -132,6 +140,8 @@ struct RayState {
     far: f32,
     dynamic: bool,
     missed: bool,
+    /// Reached a brick the volume left out.
+    outside: bool,
     /// Recorded entries `entries[start..end]`.
     entries: (usize, usize),
     /// Row of the last composited sample's outputs in `last` (LastSample background).
@@ -221,6 +231,8 @@ enum Lookup {
     /// A sample of a dynamic brick whose slices are not baked: the exact field at this unit
     /// point.
     Exact(Vec3),
+    /// A brick the volume left out: the ray goes to the exact path.
+    Outside,
 }
 
 /// Where a baked sample's values are.
@@ -377,6 +389,9 @@ impl Volume {
         let brick = [cell[0] / b, cell[1] / b, cell[2] / b];
         let entry = self.index[(brick[0] + i * (brick[1] + i * brick[2])) as usize];
         let cell_len = 1.0 / rf;
+        if entry == OUTSIDE_BRICK {
+            return Lookup::Outside;
+        }
         if entry == EMPTY_BRICK {
             let lo = Vec3::new(brick[0] as f32, brick[1] as f32, brick[2] as f32) * (b as f32);
             return Lookup::Skip(
@@ -550,6 +565,10 @@ pub fn march_chunk(
                     t = (tm + d + 1e-3 * dt).max(t + 1e-3 * dt);
                     continue;
                 }
+                Lookup::Outside => {
+                    st.outside = true;
+                    break;
+                }
                 Lookup::Exact(u) => {
                     recording = true;
                     let row = (ws.values.len() / nch) as u32;
@@ -674,6 +693,7 @@ pub fn march_chunk(
                 .unwrap_or(if st.missed { 0.0 } else { st.far }),
         );
         out.dynamic.push(st.dynamic);
+        out.outside.push(st.outside);
     }
     out.samples += samples;
     out.dynamic_samples += dynamic_samples;

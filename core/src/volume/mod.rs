@@ -59,6 +59,11 @@ pub type Value = half::f16;
 /// The brick index's mark for a brick with nothing to draw.
 pub const EMPTY_BRICK: u32 = u32::MAX;
 
+/// The brick index's mark for an occupied brick the volume leaves out because none of the file's
+/// cameras looks into it ([`bake::PlanOptions::views`]): a ray that reaches one is rendered by
+/// the exact path instead ([`march::MarchOutput::outside`]).
+pub const OUTSIDE_BRICK: u32 = u32::MAX - 1;
+
 /// The smallest brick side, in cells.
 pub const MIN_BRICK: u32 = 4;
 
@@ -215,7 +220,7 @@ pub struct Volume {
     /// Density (world units^-1) below which a cell counts as empty.
     pub density_threshold: f32,
     /// `I^3` entries, brick `(x, y, z)` at `x + I (y + I z)`: a static slot, [`DYNAMIC_BRICK`]
-    /// `| d` for dynamic brick `d`, or [`EMPTY_BRICK`].
+    /// `| d` for dynamic brick `d`, [`OUTSIDE_BRICK`] or [`EMPTY_BRICK`].
     pub index: Vec<u32>,
     /// Per static slot, [`VolumeGeometry::flag_words`] words: cell `(x, y, z)` of the brick at
     /// bit `x + B (y + B z)` can hold density.

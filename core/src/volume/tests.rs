@@ -251,7 +251,7 @@ fn the_budget_picks_a_coarser_volume_and_refuses_below_the_coarsest() {
 }
 
 /// Where the model's resolution does not fit over every brick, the bricks no camera looks into
-/// are left empty first, and only then (or when told to keep them) is the volume coarser.
+/// are left out first, and only then (or when told to keep them) is the volume coarser.
 #[test]
 fn bricks_outside_the_views_go_before_the_resolution() {
     let (cfg, layout, params) = model(6.0, 3);

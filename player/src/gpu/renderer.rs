@@ -697,17 +697,37 @@ impl GpuRenderer {
             .expect("compiled with the volume");
         gv.render(&self.ctx, kernel, scene, &view, &self.settings.march, frame)?;
         let host = Instant::now();
-        let (rgb, empty) =
+        let (mut rgb, empty, outside) =
             self.ctx
-                .read_vec4_with(frame, total, &mut self.readback, frame_colours)?;
+                .read_vec4_with(frame, total, &mut self.readback, volume_colours)?;
+        let mut host_seconds = host.elapsed().as_secs_f64();
+        if !outside.is_empty() {
+            // The rays that reached bricks the volume left out: the exact passes draw them.
+            self.specialise()?;
+            if self.scratch.is_none() {
+                let s =
+                    self.ctx
+                        .frame_scratch_within(&self.gpu_model, pixels32, self.scratch_budget)?;
+                self.scratch = Some((s, total));
+            }
+            let scene = self.scene.as_ref().expect("uploaded by the caller");
+            let scratch = self.scratch.as_ref().map(|(s, _)| s);
+            let colours = render_list(&self.ctx, scene, scratch, camera, time, &outside, None)?;
+            let host = Instant::now();
+            for (&p, c) in outside.iter().zip(&colours) {
+                rgb[3 * p as usize..3 * p as usize + 3].copy_from_slice(c);
+            }
+            host_seconds += host.elapsed().as_secs_f64();
+        }
         let stats = FrameStats {
             rays_total: total,
             rays_rendered: total - empty,
             rays_empty: empty,
+            rays_exact: outside.len(),
             full: true,
             volume: true,
             slice_seconds,
-            host_seconds: host.elapsed().as_secs_f64(),
+            host_seconds,
             seconds: start.elapsed().as_secs_f64(),
             ..Default::default()
         };
@@ -869,6 +889,19 @@ fn frame_colours(out: &[[f32; 4]]) -> (Vec<f32>, usize) {
         })
         .sum();
     (rgb, empty)
+}
+
+/// The visible depth `volume.wgsl` writes for a ray that reached a brick the volume left out.
+const OUTSIDE_DEPTH: f32 = -2.0;
+
+/// A volume frame's colours, its count of rays that missed the scene, and its pixels whose rays
+/// reached a brick the volume left out (their colours still to draw).
+fn volume_colours(out: &[[f32; 4]]) -> (Vec<f32>, usize, Vec<u32>) {
+    let (rgb, missed) = frame_colours(out);
+    let outside: Vec<u32> = (0..out.len() as u32)
+        .filter(|&p| out[p as usize][3] == OUTSIDE_DEPTH)
+        .collect();
+    (rgb, missed - outside.len(), outside)
 }
 
 fn apply_occupancy(
