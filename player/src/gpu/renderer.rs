@@ -5,13 +5,13 @@
 //! (`(r, g, b, visible depth)` per pixel, a negative depth for a ray that missed the scene),
 //! through the per-sample passes of `msth-gpu` ([`msth_gpu::passes`]), in batches of rays sized
 //! to the scratch budget ([`GpuRenderer::set_scratch_budget`]). The second frame of a fixed
-//! camera classifies the first frame's rays with [`classify_static_with_stats`] (the CPU renderer's mask test, then probes
-//! rendered on the device, each with the parameters of its own time), uploads the compacted
-//! list of dynamic pixels, and, with [`Reuse::Samples`], builds the device's sample cache of
-//! those rays ([`GpuSampleCache`]: fixed samples over the clip, static samples evaluated once).
-//! From then on each frame evaluates only the dynamic samples (or, with [`Reuse::Rays`], the
-//! dynamic pixels' whole rays) into a compact output of the dynamic pixels, which alone is read
-//! back and written into the host's copy of the frame.
+//! camera classifies the first frame's rays with [`classify_static_with_stats`] (the CPU
+//! renderer's mask test, then probes rendered on the device, each with the parameters of its own
+//! time), uploads the compacted list of dynamic pixels, and, with [`Reuse::Samples`], builds the
+//! device's sample cache of those rays ([`GpuSampleCache`]: fixed samples over the clip, static
+//! samples evaluated once). From then on each frame evaluates only the dynamic samples (or, with
+//! [`Reuse::Rays`], the dynamic pixels' whole rays) into a compact output of the dynamic pixels,
+//! which alone is read back and written into the host's copy of the frame.
 
 use std::sync::Arc;
 use std::time::Instant;
