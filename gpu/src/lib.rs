@@ -1,11 +1,11 @@
 //! `msth-gpu`: every WGSL kernel of msth and its wgpu host code (Vulkan, Metal, DX12 natively;
 //! the browser runs the same render kernels through WebGPU).
 //!
-//! - [`render`]: the renderer's kernels ([`RENDER_WGSL`]: the per-sample passes, the older
-//!   one-invocation-per-ray `render`, and `eval_points`), the device context that compiles them
+//! - [`render`]: the renderer's kernels ([`RENDER_WGSL`]: the per-sample passes and
+//!   `eval_points`), the device context that compiles them
 //!   and one model's buffers on the device;
 //! - [`shaders`]: the render kernels' WGSL modules (`shaders/render/`: camera and rays, hash
-//!   grids, mask, MLPs, SH, the per-point field, the per-ray entry points, the passes) and the
+//!   grids, mask, MLPs, SH, the per-point field, the per-point entry point, the passes) and the
 //!   preprocessor that composes them (`// #import NAME` lines);
 //! - [`passes`]: rendering through per-sample passes over compacted work lists (frames, probes,
 //!   and the sample cache of incremental playback);

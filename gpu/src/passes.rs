@@ -13,8 +13,8 @@
 //!   the dynamic ones evaluated per frame.
 //!
 //! # The `work` buffer, and why one
-//! Every pass binds the same group (`web/shaders/README.md`): the per-ray kernels' seven
-//! bindings plus `work` (one read-write f32 buffer holding every intermediate array at word
+//! Every pass binds the same group (`web/shaders/README.md`): the seven bindings of
+//! `eval_points` (uniforms, tables, pixel list, output) plus `work` (one read-write f32 buffer holding every intermediate array at word
 //! offsets given in the `Pass` uniform), `ctrl` (the atomic counters), the `Pass` uniform and
 //! the file's occupancy grid (`pass_density` and `pass_visible` skip samples in its empty
 //! cells, as msth-player's `empty_space.rs`). One buffer for the intermediates rather than one binding
@@ -139,7 +139,7 @@ pub fn words_per_ray(model: &GpuModel, samples: u64, cache: bool) -> u64 {
         }
 }
 
-/// The pass pipelines, compiled with the per-ray kernels over one layout.
+/// The pass pipelines, compiled with `eval_points` over one layout.
 pub(crate) struct Pipelines {
     setup: wgpu::ComputePipeline,
     args: wgpu::ComputePipeline,
@@ -518,8 +518,8 @@ impl GpuContext {
     }
 
     /// Renders `pixels` of `view`'s camera at its time with the per-sample passes into `out`
-    /// (`(r, g, b, visible depth)` per pixel, as the `render` kernel writes), in batches of
-    /// `scratch.capacity()` pixels; waits for the device.
+    /// (`(r, g, b, visible depth)` per pixel; a negative depth for a ray that missed), in
+    /// batches of `scratch.capacity()` pixels; waits for the device.
     pub fn render_passes(
         &self,
         scene: &GpuScene,

@@ -7,9 +7,10 @@
 //!   adapter ([`AdapterPolicy`]);
 //! - [`GpuScene`]: one model's uniforms and parameter buffers on the device, re-uploaded when the
 //!   parameters change (a new dynamic chunk);
-//! - [`GpuContext::dispatch`]: one `render` or `eval_points` pass. The frame-level policy (full
-//!   frames, then incremental frames for a fixed camera with the CPU renderer's classification)
-//!   is `msth_player::gpu::GpuRenderer`, built on these.
+//! - [`GpuContext::render_passes`] ([`crate::passes`]): a frame, or listed pixels of it, through
+//!   the per-sample passes; [`GpuContext::dispatch`]: one `eval_points` pass. The frame-level
+//!   policy (full frames, then incremental frames for a fixed camera with the CPU renderer's
+//!   classification) is `msth_player::gpu::GpuRenderer`, built on these.
 //!
 //! Errors (no adapter, a model or frame beyond the adapter's limits, a lost device, a failed
 //! dispatch) are [`GpuError`]s, never panics.
@@ -216,7 +217,6 @@ fn lanes_of(wgsl: &str) -> u32 {
 pub struct GpuContext {
     gpu: crate::device::GpuDevice,
     pub(crate) layout: wgpu::BindGroupLayout,
-    render: wgpu::ComputePipeline,
     eval: wgpu::ComputePipeline,
     /// The per-sample passes' pipelines ([`crate::passes`]).
     pub(crate) passes: crate::passes::Pipelines,
@@ -230,7 +230,7 @@ pub struct GpuContext {
     lanes: u32,
     /// Whether the device writes timestamps at pass boundaries (the pass-by-pass profile).
     pub(crate) timestamps: bool,
-    /// Bound at bindings 7-10 by the per-ray kernels, which use none of them.
+    /// Bound at bindings 7-10 by `eval_points`, which uses none of them.
     pub(crate) placeholders: crate::passes::Placeholders,
 }
 
@@ -248,11 +248,10 @@ impl std::fmt::Debug for GpuContext {
     }
 }
 
-/// Which kernel a dispatch runs.
+/// Which kernel a dispatch runs (the per-sample passes run through
+/// [`GpuContext::render_passes`]).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Kernel {
-    /// `render`: one ray per invocation.
-    Render,
     /// `eval_points`: one field evaluation per invocation.
     EvalPoints,
 }
@@ -360,7 +359,6 @@ impl GpuContext {
                 cache: None,
             })
         };
-        let render = pipeline("render");
         let eval = pipeline("eval_points");
         let passes = crate::passes::Pipelines::new(wgsl, pipeline);
         if let Some(e) = pollster::block_on(scope.pop()) {
@@ -371,7 +369,6 @@ impl GpuContext {
         Ok(GpuContext {
             gpu,
             layout,
-            render,
             eval,
             passes,
             pipeline_layout: pl,
@@ -536,7 +533,6 @@ impl GpuContext {
         {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor::default());
             pass.set_pipeline(match kernel {
-                Kernel::Render => &self.render,
                 Kernel::EvalPoints => &self.eval,
             });
             pass.set_bind_group(0, &bg, &[]);
@@ -753,8 +749,8 @@ impl GpuScene {
 
     /// Uses the file's occupancy grid (docs/format.md §6.5: `resolution` cells per axis, the bit
     /// words) to skip the main field in empty cells in the per-sample passes' frames, or none
-    /// (every sample evaluated). The sample cache of incremental playback and the per-ray
-    /// kernel evaluate every sample, as the CPU renderer's sample cache does.
+    /// (every sample evaluated). The sample cache of incremental playback evaluates every
+    /// sample, as the CPU renderer's sample cache does.
     pub fn set_occupancy(
         &mut self,
         ctx: &GpuContext,

@@ -13,7 +13,7 @@
 //! | `hashgrid` | `grid_level`, `grid_level_at`: one level of a 3D/4D hash grid |
 //! | `mlp` | the generic one-sample MLP layers and their activations |
 //! | `field` | `encode`, `blend_of`, `reads4`, `proposal_sigma`, `field_density`, `field_color`: the fields at one point |
-//! | `per_ray` | the entry points `render` (one ray per invocation) and `eval_points` |
+//! | `points` | the entry point `eval_points`: the fields at given points (kernel tests, the volume's bake) |
 //! | `passes_work` | the per-sample passes' `Pass` uniform, `work` buffer and counters (bindings 7-10) and helpers |
 //! | `passes_lanes` | `LANES` and the activations of the passes' MLPs (`hid4`, `out4`) |
 //! | `specialise` | the region [`crate::specialise`] rewrites for a model: the passes' encodings and MLPs |
@@ -38,7 +38,7 @@ pub use sets::SETS;
 pub const RENDER_MODULES: &[(&str, &str)] =
     include!(concat!(env!("OUT_DIR"), "/render_modules.rs"));
 
-/// The renderer's kernels, composed when the crate builds: roots `per_ray` and `passes` (the
+/// The renderer's kernels, composed when the crate builds: roots `points` and `passes` (the
 /// first entry of [`SETS`]).
 pub const RENDER_WGSL: &str = include_str!(concat!(env!("OUT_DIR"), "/render.wgsl"));
 

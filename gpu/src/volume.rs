@@ -117,7 +117,7 @@ fn buffer_lengths(vol: &Volume) -> (usize, usize) {
 const EVAL_BATCH: usize = 1 << 20;
 
 /// Evaluates `scene`'s fields at `points` (8 values each, the `eval_points` kernel's layout:
-/// unit point and time, direction, kind; `per_ray.wgsl`) in batches; returns one `vec4` per
+/// unit point and time, direction, kind; `points.wgsl`) in batches; returns one `vec4` per
 /// point. The play-time volume's bake asks for kinds 2 and 3 (the density pre-activation and the
 /// colour, under the renderer's static cutoff or with no 4D lookup).
 pub fn eval_points(

@@ -1,35 +1,33 @@
-//! Old against new in one run (issue #17): the GPU renderer's one-invocation-per-ray kernel
-//! (`GpuKernels::PerRay`, the renderer before #17) and the per-sample passes
-//! (`GpuKernels::PerSample`) on the same model, camera and adapter, with the CPU renderer as the
-//! reference: full-frame time and PSNR against the CPU, then incremental frames of a fixed camera
-//! (sample-level reuse) on the CPU and the GPU.
+//! One full frame and incremental frames of the GPU renderer's per-sample passes against the CPU
+//! renderer on the same model, camera and adapter: full-frame time and PSNR against the CPU,
+//! then incremental frames of a fixed camera (sample-level reuse) on the CPU and the GPU.
 //!
 //! `cargo run --release -p msth-player --example bench_gpu_render -- FILE.msth [SIZE] [FRAMES]`
 //! (default 256 pixels square, 4 incremental frames). `FILE` may be `small` instead: a model
-//! with random parameters small enough for the per-ray kernel on lavapipe (the size of the
-//! end-to-end GPU test's model), for comparing both kernels where lavapipe takes both. The
-//! camera is the file's first camera: SIZE `N` makes it N x N, its intrinsics scaled by N over
-//! its larger side; `WxH` resizes it keeping its horizontal field of view (`Camera::resized`;
-//! the training cameras' own aspect shows what they see). Any adapter is used (lavapipe included;
-//! `MSTH_BENCH_SKIP_PER_RAY=1` skips the old kernel, which takes minutes on software adapters
-//! for large frames; `MSTH_BENCH_OLD_WGSL=FILE` compiles the old kernel from another version of
-//! `render.wgsl`, e.g. `git show a04e488:gpu/shaders/render.wgsl`, the kernels before the
-//! per-sample passes were optimised (a file from 67e1290 or before reads the proposal field's
-//! tables from `rest`, where the uniform no longer points: run it with a binary of its time,
-//! e.g. one built from 67e1290; the passes of a file from 83ea3f1 or before call the compiled
-//! encodings without their `with4` argument, so this binary compiles them generic: give those
-//! call sites `, true` to time them compiled), and `MSTH_BENCH_OLD_KERNELS=passes` times that file's
-//! per-sample passes instead of its per-ray kernel, `MSTH_BENCH_OLD_KERNELS=generic` the generic
-//! passes (level values and weights read from buffers) against the passes compiled for the model
-//! (`msth_gpu::specialise`; lavapipe compiles at the first dispatch, so the first new frame
-//! includes compiling them); `MSTH_BENCH_SKIP_INCREMENTAL=1` stops after the full
-//! frames; `MSTH_BENCH_REPEAT=N` times N more frames of the new kernels, each after one of the old
-//! ones, and reports the fastest of each). A file's occupancy grid is used by every renderer (CPU and GPU, as `msth play`
-//! does; `MSTH_BENCH_NO_SKIP=1` turns it off), and the CPU frame without it is the quality
-//! reference printed beside. Timings include the read-back of the frame; "cpu" is this process's CPU time over
-//! the same span (all threads: lavapipe's included), which a busy machine inflates less than
-//! the wall time. The new kernels hold the hash tables as binary16, as `msth play` does for
-//! quantised files (`MSTH_BENCH_TABLES=f32` for f32; the old kernels always read f32).
+//! with random parameters, quick on software adapters (the size of the end-to-end GPU test's
+//! model). The camera is the file's first camera: SIZE `N` makes it N x N, its intrinsics scaled
+//! by N over its larger side; `WxH` resizes it keeping its horizontal field of view
+//! (`Camera::resized`; the training cameras' own aspect shows what they see). Any adapter is used
+//! (lavapipe included).
+//!
+//! Old against new: `MSTH_BENCH_OLD_WGSL=FILE` also times the passes compiled from another
+//! version of `render.wgsl` (e.g. `git show a04e488:gpu/shaders/render.wgsl`, the passes before
+//! they were optimised; a file from 67e1290 or before reads the proposal field's tables from
+//! `rest`, where the uniform no longer points: run it with a binary of its time; the passes of a
+//! file from 83ea3f1 or before call the compiled encodings without their `with4` argument, so
+//! this binary compiles them generic: give those call sites `, true` to time them compiled), its
+//! tables f32; `MSTH_BENCH_OLD_KERNELS=generic` times the generic passes (level values and
+//! weights read from buffers; of that file, or of this binary) against the passes compiled for
+//! the model (`msth_gpu::specialise`; lavapipe compiles at the first dispatch, so the first new
+//! frame includes compiling them). `MSTH_BENCH_REPEAT=N` times N more frames of the new passes,
+//! each after one of the old ones, and reports the fastest of each;
+//! `MSTH_BENCH_SKIP_INCREMENTAL=1` stops after the full frames. A file's occupancy grid is used
+//! by every renderer (CPU and GPU, as `msth play` does; `MSTH_BENCH_NO_SKIP=1` turns it off),
+//! and the CPU frame without it is the quality reference printed beside. Timings include the
+//! read-back of the frame; "cpu" is this process's CPU time over the same span (all threads:
+//! lavapipe's included), which a busy machine inflates less than the wall time. The new passes
+//! hold the hash tables as binary16, as `msth play` does for quantised files
+//! (`MSTH_BENCH_TABLES=f32` for f32).
 
 use std::time::Instant;
 
@@ -39,7 +37,7 @@ use msth_core::config::{Background, ModelConfig, Preset};
 use msth_core::field::ModelLayout;
 use msth_core::rng::Rng;
 use msth_core::{Camera, SceneBounds};
-use msth_player::gpu::{AdapterPolicy, GpuContext, GpuKernels, GpuMlps, GpuRenderer};
+use msth_player::gpu::{AdapterPolicy, GpuContext, GpuMlps, GpuRenderer};
 use msth_player::{RenderSettings, Renderer};
 use std::sync::Arc;
 
@@ -170,22 +168,22 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         Some(p) => Some(std::fs::read_to_string(&p)?),
         None => None,
     };
-    let ctx = match &old_source {
-        Some(src) => GpuContext::open_with_source(AdapterPolicy::any(), src)?,
-        None => GpuContext::open(AdapterPolicy::any())?,
-    };
-    println!("adapter: {}", ctx.adapter_name());
+    let generic = std::env::var("MSTH_BENCH_OLD_KERNELS").as_deref() == Ok("generic");
     let mut old_s = None;
     let mut old_r = None;
-    if std::env::var("MSTH_BENCH_SKIP_PER_RAY").as_deref() != Ok("1") {
-        let (kernels, what) = match std::env::var("MSTH_BENCH_OLD_KERNELS").as_deref() {
-            Ok("passes") => (GpuKernels::PerSample, "per-sample passes"),
-            Ok("generic") => (GpuKernels::PerSample, "passes, generic kernels"),
-            _ => (GpuKernels::PerRay, "per-ray kernel"),
+    if old_source.is_some() || generic {
+        let what = if generic {
+            "passes, generic kernels"
+        } else {
+            "per-sample passes"
         };
-        match GpuRenderer::with_kernels(ctx, &cfg, full, kernels) {
+        let ctx = match &old_source {
+            Some(src) => GpuContext::open_with_source(AdapterPolicy::any(), src)?,
+            None => GpuContext::open_with_tables(AdapterPolicy::any(), tables)?,
+        };
+        match GpuRenderer::new(ctx, &cfg, full) {
             Ok(mut old) => {
-                if std::env::var("MSTH_BENCH_OLD_KERNELS").as_deref() == Ok("generic") {
+                if generic {
                     old.set_mlps(GpuMlps::Generic);
                 }
                 old.set_occupancy(grid.clone())?;
@@ -204,7 +202,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         }
     }
     let ctx = GpuContext::open_with_tables(AdapterPolicy::any(), tables)?;
-    println!("new kernels: hash tables {}", tables.name());
+    println!(
+        "adapter: {}; new kernels: hash tables {}",
+        ctx.adapter_name(),
+        tables.name()
+    );
     let mut new = GpuRenderer::new(ctx, &cfg, full)?;
     new.set_occupancy(grid.clone())?;
     // The first frame compiles nothing more (pipelines are made with the context), but pays

@@ -9,4 +9,4 @@ pub use msth_gpu::{
     layout, AdapterPolicy, FrameScratch, GpuContext, GpuError, GpuModel, GpuSampleCache, GpuScene,
     Kernel, Pixels, ViewU, ALLOW_SOFTWARE_ENV, FLAG_COMPACT, FLAG_LIST, RENDER_WGSL,
 };
-pub use renderer::{GpuKernels, GpuMlps, GpuRenderer, MlpStatus};
+pub use renderer::{GpuMlps, GpuRenderer, MlpStatus};

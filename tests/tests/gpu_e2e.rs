@@ -58,20 +58,14 @@ impl Fixture {
         let dir = tempfile::tempdir().unwrap();
         let (_, data) = tiny_scene();
         let mut s = short_run(&data, 40);
-        // A small model: one ray of it fits Mesa lavapipe's budget of 65535 loop iterations per
-        // invocation (the CI's GPU); presets exceed it and are refused there with an error.
+        // A small model: quick to train, and to render on a software adapter (Mesa's lavapipe,
+        // the CI's GPU).
         let m = &mut s.model;
         m.field.encoding.resize(4, 12, 128.0, 16);
         m.proposal.encoding.resize(2, 10, 32.0, 16);
         m.resize_mlps(16, 8);
         m.field.geo_features = 7;
         m.sampler.set_samples(24, 12);
-        assert!(
-            msth_player::gpu::layout::loop_iterations_per_ray(m)
-                < msth_player::gpu::layout::LAVAPIPE_LOOP_ITERATIONS,
-            "{}",
-            msth_player::gpu::layout::loop_iterations_per_ray(m)
-        );
         let train_dir = dir.path().join("train");
         train(&data, s, &train_dir, None, &mut |_| true).unwrap();
         let file = dir.path().join("tiny.msth");

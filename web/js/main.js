@@ -556,7 +556,7 @@ async function main() {
    * size keeps drawing whole frames instead).
    */
   function wantCache(camKey, full) {
-    if (state.drawnCamKey !== camKey || state.drawnT === state.t || gpu.kernel !== "passes") return false;
+    if (state.drawnCamKey !== camKey || state.drawnT === state.t) return false;
     if (!probeTimes.every((t) => stream.readyFor(t))) return false;
     const n = full.width * full.height;
     if (!(gpu.raysPerMs > 0 && (PROBES.count * n) / gpu.raysPerMs <= CACHE_BUDGET_MS)) return false;

@@ -11,10 +11,9 @@
 // `gpu/src/passes.rs`, documented in `shaders/README.md`): per batch of pixels, ray setup,
 // proposal densities per sample, resampling per ray, main-field density per sample, visibility
 // per ray, colour per visible sample and compositing per ray, each a dispatch over a compacted
-// list sized on the GPU (indirect dispatch). `?kernel=ray` on the page's URL selects the older
-// one-invocation-per-ray `render` kernel instead (for timing comparisons).
+// list sized on the GPU (indirect dispatch).
 //
-// The kernel writes (r, g, b, depth) per pixel to a storage buffer; a small display pass (below,
+// The passes write (r, g, b, depth) per pixel to a storage buffer; a small display pass (below,
 // not part of the renderer: it only copies that buffer to the canvas, clamped to [0, 1]) draws it.
 //
 // Reduced frames are interlaced: a frame at 1/s of the size per side renders the pixels of the
@@ -27,7 +26,7 @@
 
 import {
   LEVEL_SLOTS, LEVEL_BYTES, LEVEL_OFFSETS, ENCODING_OFFSETS, GRID_OFFSETS, MODEL_BYTES, MODEL_OFFSETS, VIEW_BYTES, WORKGROUP,
-  FLAG_LIST, MAX_PROPOSAL_SAMPLES, MAX_SAMPLES, MAX_HIDDEN, MAX_GEO, RENDER_STATIC_CUTOFF, RENDER_HISTOGRAM_PADDING, BLEND,
+  MAX_PROPOSAL_SAMPLES, MAX_SAMPLES, MAX_HIDDEN, MAX_GEO, RENDER_STATIC_CUTOFF, RENDER_HISTOGRAM_PADDING, BLEND,
   FRAME_WORK_BYTES, PASS_ARGS as ARGS, PASS_BYTES, PASS_OFFSETS, PASS_FLAGS, SAMPLE_LEVELS,
 } from "./generated/contract.js";
 import { specialiseWgsl } from "./specialise.js";
@@ -429,21 +428,17 @@ export class Renderer {
    * model's level values and weights as constants (`specialise.js`), unless `?mlp=generic` or
    * the model's MLPs are too large; `mlpNote` on the scene says which. `tables`: `"f32"` or
    * `"f16"`, how the device holds the hash tables (msth-gpu `TableFormat`); `tables` on the
-   * scene says what it got (f32 for `?kernel=ray`, the old kernel, timed with f32 tables as
-   * natively).
+   * scene says what it got.
    */
   async create(canvas, cfg, layout, marks = {}, params = null, tables = "f32") {
     const device = this.device;
     const { uniform, split, mlps } = gpuModel(cfg, layout);
     const query = typeof location !== "undefined" ? new URLSearchParams(location.search) : new URLSearchParams();
-    const perRay = query.get("kernel") === "ray";
     if (tables !== "f32" && tables !== "f16") throw new Error(`hash tables ${tables}: f32 or f16`);
-    if (perRay) tables = "f32";
     const source = tables === "f16" ? tablesSource(this.source, this.tablesF16) : this.source;
     let code = source;
     let mlpNote = "generic kernels";
-    if (perRay) mlpNote = "per-ray kernel";
-    else if (query.get("mlp") === "generic") mlpNote = "generic kernels (?mlp=generic)";
+    if (query.get("mlp") === "generic") mlpNote = "generic kernels (?mlp=generic)";
     else if (params) {
       try {
         code = specialiseWgsl(source, { mlps, uniform }, params.subarray(split.rest[0]));
@@ -460,8 +455,8 @@ export class Renderer {
       entries: kinds.map((type, binding) => ({ binding, visibility: C, buffer: { type } })),
     });
     const pl = device.createPipelineLayout({ bindGroupLayouts: [bindLayout] });
-    const names = perRay ? ["render"] : PASS_ENTRIES.filter((n) => !PASS_ENTRIES_3D.includes(n));
-    const later = perRay ? [] : PASS_ENTRIES_3D;
+    const names = PASS_ENTRIES.filter((n) => !PASS_ENTRIES_3D.includes(n));
+    const later = PASS_ENTRIES_3D;
     // The module and every pipeline of `code`, or an Error saying what the device refused.
     const build = async (code) => {
       device.pushErrorScope("validation");
@@ -503,7 +498,7 @@ export class Renderer {
       pipelines = await build(source);
     }
     marks.pipelines = performance.now();
-    const scene = new GpuScene(this, canvas, { layout: bindLayout, pipelines, perRay }, uniform, { ...split, f16: tables === "f16" }, cfg);
+    const scene = new GpuScene(this, canvas, { layout: bindLayout, pipelines }, uniform, { ...split, f16: tables === "f16" }, cfg);
     let ready = null;
     /** Compiles `pass_proposal3` and `pass_density3` (once; the page asks after its first
      * picture, so that the compile does not delay it) and uses them from the next batch on. */
@@ -532,8 +527,6 @@ class GpuScene {
     this.device = device;
     this.canvas = canvas;
     this.kernels = kernels;
-    /** `"passes"` (per-sample passes) or `"ray"` (one invocation per ray). */
-    this.kernel = kernels.perRay ? "ray" : "passes";
     this.split = split;
     /** Whether `pass_proposal3` and `pass_density3` are compiled (the live lists then put the
      * samples without a 4D lookup apart for them). */
@@ -564,8 +557,6 @@ class GpuScene {
     const small = (usage, label) => device.createBuffer({ size: ARGS.bytes, usage, label });
     this.ctrl = small(GPUBufferUsage.STORAGE | GPUBufferUsage.COPY_DST | GPUBufferUsage.COPY_SRC, "pass counters");
     this.args = small(GPUBufferUsage.STORAGE | GPUBufferUsage.INDIRECT, "pass dispatch sizes");
-    this.noWork = small(GPUBufferUsage.STORAGE, "no work");
-    this.noCtrl = small(GPUBufferUsage.STORAGE, "no counters");
     /** The file's occupancy grid (`setOccupancy`); a placeholder and resolution 0 without one. */
     this.noOccupancy = small(GPUBufferUsage.STORAGE, "no occupancy grid");
     this.occupancy = this.noOccupancy;
@@ -646,17 +637,15 @@ class GpuScene {
     device.queue.writeBuffer(this.order, 0, ids);
     this.orderEnds = ends;
     this.orderIds = ids;
-    if (!this.kernels.perRay) {
-      // Scratch of one batch: as many rays as fit FRAME_WORK_BYTES and the binding limit.
-      const perRay = 4 * wordsPerRay(this.np, this.geo, this.samples);
-      const fit = Math.floor(Math.min(FRAME_WORK_BYTES, this.storageLimit) / perRay);
-      if (fit < 1) throw new Error(`one ray's scratch needs ${perRay} bytes, more than this GPU's storage buffer limit ${this.storageLimit}`);
-      this.capacity = Math.min(w * h, fit);
-      const reg = passRegions(this.np, this.geo, this.capacity, this.samples);
-      this.regions = reg.offsets;
-      this.lists = reg.lists;
-      this.work = device.createBuffer({ size: 4 * reg.words, usage: GPUBufferUsage.STORAGE, label: "work" });
-    }
+    // Scratch of one batch: as many rays as fit FRAME_WORK_BYTES and the binding limit.
+    const rayBytes = 4 * wordsPerRay(this.np, this.geo, this.samples);
+    const fit = Math.floor(Math.min(FRAME_WORK_BYTES, this.storageLimit) / rayBytes);
+    if (fit < 1) throw new Error(`one ray's scratch needs ${rayBytes} bytes, more than this GPU's storage buffer limit ${this.storageLimit}`);
+    this.capacity = Math.min(w * h, fit);
+    const reg = passRegions(this.np, this.geo, this.capacity, this.samples);
+    this.regions = reg.offsets;
+    this.lists = reg.lists;
+    this.work = device.createBuffer({ size: 4 * reg.words, usage: GPUBufferUsage.STORAGE, label: "work" });
     this.displayBind = device.createBindGroup({
       layout: this.display.getBindGroupLayout(0),
       entries: [
@@ -732,8 +721,7 @@ class GpuScene {
    * `stride` (one of STRIDES): render the lattice of that spacing (a frame reduced to 1/stride
    * per side), shown interpolated between its pixels. `done` (a coarser stride, or 0): the frame
    * buffer already holds that lattice of this very camera, time and parameters (the previous
-   * frame, not aborted), so only the pixels it lacks are rendered (the per-ray kernel renders
-   * the whole lattice again).
+   * frame, not aborted), so only the pixels it lacks are rendered.
    *
    * A frame is rendered in tiles, each a run of consecutive entries of the interlaced pixel
    * order (the kernels' pixel-list mode) and its own submission, and the canvas is
@@ -752,9 +740,9 @@ class GpuScene {
     // The display uniform follows each batch (`displayUniform`).
     this.displayStride = stride;
     const end = this.orderEnds[stride];
-    const keep = !fresh && done > stride && this.orderEnds[done] !== undefined && !this.kernels.perRay;
+    const keep = !fresh && done > stride && this.orderEnds[done] !== undefined;
     const begin = keep ? this.orderEnds[done] : 0;
-    return this.kernels.perRay ? this.#renderPerRay(cam, t, abort, end) : this.#renderPasses(cam, t, abort, begin, end);
+    return this.#renderPasses(cam, t, abort, begin, end);
   }
 
   /**
@@ -880,50 +868,10 @@ class GpuScene {
   }
 
   /** Sizes the next batches to about TILE_MS of GPU work, from `count` rays that took `ms`
-   * (multiples of 64 rays: the per-ray kernel's binding offset alignment). */
+   * (multiples of 64 rays: whole workgroups). */
   #adaptTile(count, ms) {
     this.raysPerMs = count / ms;
     this.tile = Math.min(1 << 22, Math.max(64, Math.round((count * TILE_MS) / ms / 64) * 64));
-  }
-
-  async #renderPerRay(cam, t, abort, end) {
-    const device = this.device;
-    const maxDim = device.limits.maxComputeWorkgroupsPerDimension;
-    for (let start = 0; start < end; ) {
-      const count = Math.min(this.tile, end - start);
-      const groups = dispatchSize(count, maxDim);
-      if (!groups) throw new Error(`${count} rays exceed this GPU's dispatch limits`);
-      device.queue.writeBuffer(this.view, 0, viewUniform(cam, t, count, FLAG_LIST));
-      const [w, h] = this.frameSize;
-      this.shownSize = displayUniform(w, h, this.orderIds, this.orderEnds, this.displayStride, start + count);
-      device.queue.writeBuffer(this.size, 0, this.shownSize);
-      device.pushErrorScope("validation");
-      const bind = device.createBindGroup({
-        layout: this.kernels.layout,
-        entries: [this.model, this.view, this.tab3, this.tab4, this.rest, this.order, this.frame, this.noWork, this.noCtrl, this.pass, this.noOccupancy].map((buffer, binding) => ({
-          binding,
-          resource: binding === 5 ? { buffer, offset: 4 * start, size: 4 * count } : { buffer },
-        })),
-      });
-      const enc = device.createCommandEncoder();
-      const pass = enc.beginComputePass();
-      pass.setPipeline(this.kernels.pipelines.render);
-      pass.setBindGroup(0, bind);
-      pass.dispatchWorkgroups(groups[0], groups[1], 1);
-      pass.end();
-      this.#present(enc);
-      const t0 = performance.now();
-      device.queue.submit([enc.finish()]);
-      const err = await device.popErrorScope();
-      if (err) throw new Error(`render: ${err.message}`);
-      await device.queue.onSubmittedWorkDone();
-      const ms = Math.max(performance.now() - t0, 0.1);
-      this.#adaptTile(count, ms);
-      start += count;
-      this.rays += count;
-      if (start < end && abort()) return false;
-    }
-    return true;
   }
 
   /**
@@ -938,7 +886,6 @@ class GpuScene {
    * or new samples drop the cache.
    */
   async buildStaticCache(cam, probes, tolerance, abort, restore) {
-    if (this.kernels.perRay) throw new Error("the static cache needs the per-sample passes");
     if (this.r.lost) throw new Error(this.r.lost);
     const { width: w, height: h } = cam;
     this.#ensureFrame(w, h);

@@ -1,4 +1,4 @@
-// Composed from WGSL modules by msth-gpu (`shaders::compose`), roots: per_ray, passes.
+// Composed from WGSL modules by msth-gpu (`shaders::compose`), roots: points, passes.
 
 // #module common
 // common: the constants and small math every render kernel shares (limits, msth-core's
@@ -32,8 +32,8 @@ const TAU_HIDDEN: f32 = 9.210340372; // ln(1 / HIDDEN_TRANSMITTANCE), HIDDEN_TRA
 
 // Loops are kept flat (one loop over (row, column) pairs rather than two nested ones) and
 // functions return once at their end. Mesa's lavapipe ends every loop of an invocation after
-// 65535 loop iterations in total, which a ray of a preset-sized model exceeds; the native host
-// refuses such models there with an error (gpu/src/layout.rs, loop_iterations_per_ray).
+// 65535 loop iterations in total; the native host refuses models whose invocations could exceed
+// that there with an error (gpu/src/layout.rs, loop_iterations_per_invocation).
 
 fn clamp_unit(x: f32) -> f32 {
     // NaN maps to 0 (as the CPU's `if x >= 0 { min(x, 1) } else { 0 }`).
@@ -186,107 +186,11 @@ fn table2(buf: u32, i: u32) -> vec2<f32> {
 // #module io
 // io: the pixel list and output buffer of the render entry points (bindings 5 and 6).
 
-// Pixel list (render) or packed points (eval_points).
+// Pixel list (the passes) or packed points (eval_points).
 @group(0) @binding(5) var<storage, read> list: array<u32>;
-// Output: (r, g, b, visible depth) per pixel (render) or (r, g, b, sigma) per point.
+// Output: (r, g, b, visible depth) per pixel (the passes, volume_march) or (r, g, b, sigma) per
+// point (eval_points).
 @group(0) @binding(6) var<storage, read_write> frame: array<vec4<f32>>;
-
-// #module camera
-// camera: a pixel's ray, its interval in the scene (box or contraction), the spacing of
-// samples along it (`t_of_s`), and a sample's point in the grids' unit cube (`to_unit`).
-
-// Spacing: normalised s in [0, 1] to distance.
-fn g_fwd(t: f32) -> f32 {
-    return select(1.0 - 0.5 / max(t, 1.0), 0.5 * t, t < 1.0);
-}
-
-fn g_inv(y: f32) -> f32 {
-    return select(0.5 / max(1.0 - y, 1e-7), 2.0 * y, y < 0.5);
-}
-
-fn t_of_s(s: f32, near: f32, far: f32) -> f32 {
-    var t = near + s * (far - near);
-    if model.sampler.z == 1u {
-        let unit = model.limits.w;
-        let a = g_fwd(near / unit);
-        let b = g_fwd(far / unit);
-        t = unit * g_inv(a + s * (b - a));
-    }
-    return select(near, t, far > near);
-}
-
-// World point to the unit cube.
-fn to_unit(p: vec3<f32>) -> vec3<f32> {
-    var u: vec3<f32>;
-    if model.sampler.w == 0u {
-        let lo = model.bounds_a.xyz;
-        let hi = model.bounds_b.xyz;
-        u = (p - lo) / (hi - lo);
-    } else {
-        let y = (p - model.bounds_a.xyz) / model.bounds_a.w;
-        let n = max(max(abs(y.x), abs(y.y)), abs(y.z));
-        var c: vec3<f32>;
-        if !(n <= 3.40282346e38) {
-            c = sign(y) * 2.0;
-        } else if n < 1.0 {
-            c = y;
-        } else {
-            c = (2.0 - 1.0 / n) * (y / n);
-        }
-        u = (c + 2.0) * 0.25;
-    }
-    return clamp(u, vec3<f32>(0.0), vec3<f32>(1.0));
-}
-
-// Ray interval [near, far]; empty (near == far == 0) when the ray misses the box.
-fn ray_limits(o: vec3<f32>, d: vec3<f32>) -> vec2<f32> {
-    var near = model.limits.x;
-    var far = model.limits.y;
-    if model.sampler.w == 0u {
-        var miss = false;
-        let lo = model.bounds_a.xyz;
-        let hi = model.bounds_b.xyz;
-        for (var a = 0u; a < 3u; a++) {
-            if d[a] == 0.0 {
-                // Parallel to the slab: inside (or on it) leaves the interval alone.
-                miss = miss || o[a] < lo[a] || o[a] > hi[a];
-            } else {
-                let inv = 1.0 / d[a];
-                let t0 = (lo[a] - o[a]) * inv;
-                let t1 = (hi[a] - o[a]) * inv;
-                let tmin = min(t0, t1);
-                let tmax = max(t0, t1);
-                if tmin > near {
-                    near = tmin;
-                }
-                if tmax < far {
-                    far = tmax;
-                }
-            }
-        }
-        if miss || !(far > near) {
-            near = 0.0;
-            far = 0.0;
-        }
-    }
-    return vec2<f32>(near, far);
-}
-
-// The ray through the centre of pixel `pixel` (row-major).
-fn pixel_ray_dir(pixel: u32) -> vec3<f32> {
-    let w = view.size.x;
-    let px = f32(pixel % w) + 0.5;
-    let py = f32(pixel / w) + 0.5;
-    let d_cam = vec3<f32>((px - view.intr.z) / view.intr.x, -(py - view.intr.w) / view.intr.y, -1.0);
-    let r = mat3x3<f32>(view.c2w[0].xyz, view.c2w[1].xyz, view.c2w[2].xyz);
-    return normalize(r * d_cam);
-}
-
-// The unit-cube point and time of the sample between distances t0 and t1 on ray (o, d).
-fn sample_point(o: vec3<f32>, d: vec3<f32>, t0: f32, t1: f32, time: f32) -> vec4<f32> {
-    let u = to_unit(o + d * (0.5 * (t0 + t1)));
-    return vec4<f32>(u, time);
-}
 
 // #module sh
 // sh: the view-direction encoding, 16 real spherical harmonics of a unit direction into
@@ -352,6 +256,82 @@ fn mask_at(e: Encoding, x: vec3<f32>) -> f32 {
         m = sigmoid(mask_logit(e.mode.w, e.mode.z, x));
     }
     return m;
+}
+
+// #module mlp
+// mlp: the generic MLP layers of one sample (weights read from `rest`, activations in the
+// private arrays below), as msth-core's decoders.
+
+// MLP activations: the input (an encoding of at most MAX_LEVELS * MAX_FEATURES values) and
+// hidden layers in `hid`, each layer's output in `hid2`.
+var<private> hid: array<f32, 256>;
+var<private> hid2: array<f32, MAX_HIDDEN>;
+var<private> dout: array<f32, 32>; // 1 + MAX_GEO
+
+// rest[b .. b + 4], the components at or beyond `left` read as 0.
+fn w4(b: u32, left: u32) -> vec4<f32> {
+    return vec4<f32>(
+        select(0.0, rest[b], left > 0u),
+        select(0.0, rest[b + 1u], left > 1u),
+        select(0.0, rest[b + 2u], left > 2u),
+        select(0.0, rest[b + 3u], left > 3u),
+    );
+}
+
+// rest[b .. b + 4], unconditionally: in `dense_lanes` the components past a layer's last output
+// are other parameters (or, past the buffer's end, what robust buffer access returns) and reach
+// only outputs that are not stored.
+fn r4(b: u32) -> vec4<f32> {
+    return vec4<f32>(rest[b], rest[b + 1u], rest[b + 2u], rest[b + 3u]);
+}
+
+// a - b, or 0 when b > a.
+fn sub_sat(a: u32, b: u32) -> u32 {
+    return select(0u, a - b, a > b);
+}
+
+// hid2[0..nout] = hid[0..nin] W (W [nin, nout] row-major at `off` in `rest`), ReLU when `relu`;
+// each output summed over the inputs in order, as on the CPU. Sixteen outputs at a time in four
+// vec4 accumulators that stay in registers (indexed private memory only outside the inner loop:
+// software rasterisers such as SwiftShader turn every indexed private access into a per-lane
+// gather or scatter).
+fn dense_layer(off: u32, nin: u32, nout: u32, relu: bool) {
+    for (var o0 = 0u; o0 < nout; o0 += 16u) {
+        let left = nout - o0;
+        let l1 = sub_sat(left, 4u);
+        let l2 = sub_sat(left, 8u);
+        let l3 = sub_sat(left, 12u);
+        var a0 = vec4<f32>(0.0);
+        var a1 = vec4<f32>(0.0);
+        var a2 = vec4<f32>(0.0);
+        var a3 = vec4<f32>(0.0);
+        var row = off + o0;
+        for (var i = 0u; i < nin; i++) {
+            let x = hid[i];
+            a0 += x * w4(row, left);
+            a1 += x * w4(row + 4u, l1);
+            a2 += x * w4(row + 8u, l2);
+            a3 += x * w4(row + 12u, l3);
+            row += nout;
+        }
+        if relu {
+            a0 = max(a0, vec4<f32>(0.0));
+            a1 = max(a1, vec4<f32>(0.0));
+            a2 = max(a2, vec4<f32>(0.0));
+            a3 = max(a3, vec4<f32>(0.0));
+        }
+        let outs = array<vec4<f32>, 4>(a0, a1, a2, a3);
+        for (var k = 0u; k < min(left, 16u); k++) {
+            hid2[o0 + k] = outs[k >> 2u][k & 3u];
+        }
+    }
+}
+
+// hid[0..n] = hid2[0..n].
+fn hid2_to_hid(n: u32) {
+    for (var j = 0u; j < n; j++) {
+        hid[j] = hid2[j];
+    }
 }
 
 // #module hashgrid
@@ -435,88 +415,12 @@ fn grid_level_at(lv: Level, shape: vec4<u32>, p: vec4<f32>, buf: u32) -> Feat {
     return Feat(fa, fb);
 }
 
-// #module mlp
-// mlp: the generic MLP layers of one sample (weights read from `rest`, activations in the
-// private arrays below), as msth-core's decoders.
-
-// MLP activations: the input (an encoding of at most MAX_LEVELS * MAX_FEATURES values) and
-// hidden layers in `hid`, each layer's output in `hid2`.
-var<private> hid: array<f32, 256>;
-var<private> hid2: array<f32, MAX_HIDDEN>;
-var<private> dout: array<f32, 32>; // 1 + MAX_GEO
-
-// rest[b .. b + 4], the components at or beyond `left` read as 0.
-fn w4(b: u32, left: u32) -> vec4<f32> {
-    return vec4<f32>(
-        select(0.0, rest[b], left > 0u),
-        select(0.0, rest[b + 1u], left > 1u),
-        select(0.0, rest[b + 2u], left > 2u),
-        select(0.0, rest[b + 3u], left > 3u),
-    );
-}
-
-// rest[b .. b + 4], unconditionally: in `dense_lanes` the components past a layer's last output
-// are other parameters (or, past the buffer's end, what robust buffer access returns) and reach
-// only outputs that are not stored.
-fn r4(b: u32) -> vec4<f32> {
-    return vec4<f32>(rest[b], rest[b + 1u], rest[b + 2u], rest[b + 3u]);
-}
-
-// a - b, or 0 when b > a.
-fn sub_sat(a: u32, b: u32) -> u32 {
-    return select(0u, a - b, a > b);
-}
-
-// hid2[0..nout] = hid[0..nin] W (W [nin, nout] row-major at `off` in `rest`), ReLU when `relu`;
-// each output summed over the inputs in order, as on the CPU. Sixteen outputs at a time in four
-// vec4 accumulators that stay in registers (indexed private memory only outside the inner loop:
-// software rasterisers such as SwiftShader turn every indexed private access into a per-lane
-// gather or scatter).
-fn dense_layer(off: u32, nin: u32, nout: u32, relu: bool) {
-    for (var o0 = 0u; o0 < nout; o0 += 16u) {
-        let left = nout - o0;
-        let l1 = sub_sat(left, 4u);
-        let l2 = sub_sat(left, 8u);
-        let l3 = sub_sat(left, 12u);
-        var a0 = vec4<f32>(0.0);
-        var a1 = vec4<f32>(0.0);
-        var a2 = vec4<f32>(0.0);
-        var a3 = vec4<f32>(0.0);
-        var row = off + o0;
-        for (var i = 0u; i < nin; i++) {
-            let x = hid[i];
-            a0 += x * w4(row, left);
-            a1 += x * w4(row + 4u, l1);
-            a2 += x * w4(row + 8u, l2);
-            a3 += x * w4(row + 12u, l3);
-            row += nout;
-        }
-        if relu {
-            a0 = max(a0, vec4<f32>(0.0));
-            a1 = max(a1, vec4<f32>(0.0));
-            a2 = max(a2, vec4<f32>(0.0));
-            a3 = max(a3, vec4<f32>(0.0));
-        }
-        let outs = array<vec4<f32>, 4>(a0, a1, a2, a3);
-        for (var k = 0u; k < min(left, 16u); k++) {
-            hid2[o0 + k] = outs[k >> 2u][k & 3u];
-        }
-    }
-}
-
-// hid[0..n] = hid2[0..n].
-fn hid2_to_hid(n: u32) {
-    for (var j = 0u; j < n; j++) {
-        hid[j] = hid2[j];
-    }
-}
-
 // #module field
 // field: the fields at one point: the masked space-time encoding (`encode`: mask, blend, 3D and
 // 4D grids) and the decoders on it: the proposal field's density (`proposal_sigma`), the main
 // field's density and geometry features (`field_density`) and its colour from those and the SH
-// of the view direction (`field_color`). One point per call: the per-ray kernels call them per
-// sample, a per-pixel kernel can too.
+// of the view direction (`field_color`). One point per call: `eval_points` calls them per point,
+// the passes' sample cache and the generic encodings per sample, a per-pixel kernel can too.
 
 // The blend of encoding `e` at a point of mask value m: `(k3, k4, read3, read4)`, the features
 // being v = k3 f3 + k4 f4 (mst: m, 1 - m; mt: 1, 1 - m; add: 1, 1; 4d: 0, 1; static: 1, 0: the
@@ -658,154 +562,9 @@ fn field_color() -> vec3<f32> {
     return rgb;
 }
 
-// #module per_ray
-// per_ray: one invocation per ray (`render`) or per point (`eval_points`), exactly as the CPU
-// renderer at render time (msth-core `pipeline::render_chunk`): ray limits against the scene
-// box (or contraction), proposal samples, proposal field density, proposal resampling, main
-// samples, masked space-time encoding (3D hash grid, 4D hash grid, dense mask), density and
-// colour decoders, SH direction encoding, volume compositing and background. The per-sample
-// passes (`passes`) render the same frames with bounded work per invocation.
-
-// Per-invocation scratch of `render_ray`: the proposal weights and the main samples' edges.
-var<private> w_prop: array<f32, MAX_PROPOSAL_SAMPLES>;
-var<private> s_main: array<f32, 129>; // MAX_SAMPLES + 1
-
-struct RayResult {
-    rgb: vec3<f32>,
-    visible_depth: f32,
-}
-
-fn render_ray(o: vec3<f32>, d: vec3<f32>, time_in: f32) -> RayResult {
-    let np = model.sampler.x;
-    let nf = model.sampler.y;
-    let lim = ray_limits(o, d);
-    let near = lim.x;
-    let far = lim.y;
-    let time = select(0.0, min(time_in, 1.0), time_in >= 0.0);
-    let cutoff3 = model.field.consts.y;
-    let cutoff_p = model.prop.consts.y;
-    sh4(normalize(d));
-
-    // Proposal samples: uniform in s, midpoints in distance; weights by volume rendering.
-    var tau_sum = 0.0;
-    var t_prev = t_of_s(0.0, near, far);
-    for (var k = 0u; k < np; k++) {
-        let t_next = t_of_s(f32(k + 1u) / f32(np), near, far);
-        let delta = max(t_next - t_prev, 0.0);
-        let sigma = proposal_sigma(sample_point(o, d, t_prev, t_next, time), cutoff_p);
-        let tau = tau_of(sigma, delta);
-        w_prop[k] = exp(-tau_sum) * -expm1(-tau);
-        tau_sum += tau;
-        t_prev = t_next;
-    }
-
-    // Resample (deterministic inverse-CDF of the padded histogram), nf + 1 edges in s.
-    let m_out = nf + 1u;
-    let pad = model.limits.z;
-    var total = 0.0;
-    for (var k = 0u; k < np; k++) {
-        total += sanitize(w_prop[k]) + pad;
-    }
-    if !(total > 0.0 && total <= 3.40282346e38) {
-        for (var k = 0u; k < m_out; k++) {
-            s_main[k] = f32(k) / f32(max(m_out - 1u, 1u));
-        }
-    } else {
-        let inv = 1.0 / total;
-        var bin = 0u;
-        var cdf_lo = 0.0;
-        var cdf_hi = (sanitize(w_prop[0]) + pad) * inv;
-        for (var k = 0u; k < m_out; k++) {
-            let u = f32(k) / f32(max(m_out - 1u, 1u));
-            while u > cdf_hi && bin + 1u < np {
-                bin += 1u;
-                cdf_lo = cdf_hi;
-                cdf_hi += (sanitize(w_prop[bin]) + pad) * inv;
-            }
-            let span = cdf_hi - cdf_lo;
-            var frac = 0.0;
-            if span > 0.0 {
-                frac = clamp((u - cdf_lo) / span, 0.0, 1.0);
-            }
-            let e0 = f32(bin) / f32(np);
-            let e1 = f32(bin + 1u) / f32(np);
-            s_main[k] = e0 + frac * (e1 - e0);
-        }
-        for (var k = 1u; k < m_out; k++) {
-            if s_main[k] < s_main[k - 1u] {
-                s_main[k] = s_main[k - 1u];
-            }
-        }
-    }
-
-    // Main samples: density everywhere, colour where light still arrives; composite in order.
-    var rgb = vec3<f32>(0.0);
-    var last_rgb = vec3<f32>(0.0);
-    tau_sum = 0.0;
-    var acc = 0.0;
-    var visible = -1.0;
-    var t0 = t_of_s(s_main[0], near, far);
-    var t1 = t0;
-    for (var k = 0u; k < nf; k++) {
-        t1 = t_of_s(s_main[k + 1u], near, far);
-        let delta = max(t1 - t0, 0.0);
-        var m = 1.0;
-        let sigma = field_density(sample_point(o, d, t0, t1, time), cutoff3, &m);
-        var c = vec3<f32>(0.0);
-        if tau_sum <= TAU_HIDDEN {
-            c = field_color();
-        }
-        let tau = tau_of(sigma, delta);
-        let w = exp(-tau_sum) * -expm1(-tau);
-        tau_sum += tau;
-        rgb += w * c;
-        last_rgb = c;
-        acc += w;
-        if visible < 0.0 && 1.0 - acc < VISIBLE_TRANSMITTANCE {
-            visible = t1;
-        }
-        t0 = t1;
-    }
-    let t_final = exp(-tau_sum);
-    var bg = model.background.xyz;
-    if model.background.w == 0.0 {
-        bg = select(vec3<f32>(0.0), last_rgb, nf > 0u);
-    }
-    rgb += t_final * bg;
-    if visible < 0.0 {
-        visible = t1;
-    }
-    return RayResult(rgb, visible);
-}
-
-// ---- Entry points -----------------------------------------------------------------------------
-
-// Renders view.size.z rays: pixel i, or pixel list[i] with flag bit 0. Writes
-// (r, g, b, visible depth) to frame[pixel], or frame[i] with flag bit 1. Rays that miss the scene
-// box under a constant background get the background without evaluation and the visible depth
-// MISSED (negative; a rendered ray's is at least the sampler's near >= 0), so that whoever reads
-// the frame back counts them without recomputing the rays.
-@compute @workgroup_size(64)
-fn render(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let i = invocation(gid, groups);
-    if i < view.size.z {
-        let flags = view.size.w;
-        var pixel = i;
-        if (flags & 1u) == 1u {
-            pixel = list[i];
-        }
-        let out = select(pixel, i, (flags & 2u) == 2u);
-        let o = view.c2w[3].xyz;
-        let d = pixel_ray_dir(pixel);
-        let lim = ray_limits(o, d);
-        if !(lim.y > lim.x) && model.background.w == 1.0 {
-            frame[out] = vec4<f32>(model.background.xyz, MISSED);
-        } else {
-            let r = render_ray(o, d, view.time.x);
-            frame[out] = vec4<f32>(r.rgb, r.visible_depth);
-        }
-    }
-}
+// #module points
+// points: the `eval_points` entry point, one invocation per point: the fields at given points,
+// exactly as the CPU's field evaluation (kernel tests; the play-time volume's bake).
 
 // Evaluates the fields at view.size.z points. Point j is 8 words of `list` read as f32: (x, y, z,
 // t) in the unit cube / unit time, direction (dx, dy, dz) for the SH encoding, and what to
@@ -841,6 +600,103 @@ fn eval_points(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
             frame[j] = vec4<f32>(c, select(sigma, dout[0], v[7] >= 2.0));
         }
     }
+}
+
+// #module camera
+// camera: a pixel's ray, its interval in the scene (box or contraction), the spacing of
+// samples along it (`t_of_s`), and a sample's point in the grids' unit cube (`to_unit`).
+
+// Spacing: normalised s in [0, 1] to distance.
+fn g_fwd(t: f32) -> f32 {
+    return select(1.0 - 0.5 / max(t, 1.0), 0.5 * t, t < 1.0);
+}
+
+fn g_inv(y: f32) -> f32 {
+    return select(0.5 / max(1.0 - y, 1e-7), 2.0 * y, y < 0.5);
+}
+
+fn t_of_s(s: f32, near: f32, far: f32) -> f32 {
+    var t = near + s * (far - near);
+    if model.sampler.z == 1u {
+        let unit = model.limits.w;
+        let a = g_fwd(near / unit);
+        let b = g_fwd(far / unit);
+        t = unit * g_inv(a + s * (b - a));
+    }
+    return select(near, t, far > near);
+}
+
+// World point to the unit cube.
+fn to_unit(p: vec3<f32>) -> vec3<f32> {
+    var u: vec3<f32>;
+    if model.sampler.w == 0u {
+        let lo = model.bounds_a.xyz;
+        let hi = model.bounds_b.xyz;
+        u = (p - lo) / (hi - lo);
+    } else {
+        let y = (p - model.bounds_a.xyz) / model.bounds_a.w;
+        let n = max(max(abs(y.x), abs(y.y)), abs(y.z));
+        var c: vec3<f32>;
+        if !(n <= 3.40282346e38) {
+            c = sign(y) * 2.0;
+        } else if n < 1.0 {
+            c = y;
+        } else {
+            c = (2.0 - 1.0 / n) * (y / n);
+        }
+        u = (c + 2.0) * 0.25;
+    }
+    return clamp(u, vec3<f32>(0.0), vec3<f32>(1.0));
+}
+
+// Ray interval [near, far]; empty (near == far == 0) when the ray misses the box.
+fn ray_limits(o: vec3<f32>, d: vec3<f32>) -> vec2<f32> {
+    var near = model.limits.x;
+    var far = model.limits.y;
+    if model.sampler.w == 0u {
+        var miss = false;
+        let lo = model.bounds_a.xyz;
+        let hi = model.bounds_b.xyz;
+        for (var a = 0u; a < 3u; a++) {
+            if d[a] == 0.0 {
+                // Parallel to the slab: inside (or on it) leaves the interval alone.
+                miss = miss || o[a] < lo[a] || o[a] > hi[a];
+            } else {
+                let inv = 1.0 / d[a];
+                let t0 = (lo[a] - o[a]) * inv;
+                let t1 = (hi[a] - o[a]) * inv;
+                let tmin = min(t0, t1);
+                let tmax = max(t0, t1);
+                if tmin > near {
+                    near = tmin;
+                }
+                if tmax < far {
+                    far = tmax;
+                }
+            }
+        }
+        if miss || !(far > near) {
+            near = 0.0;
+            far = 0.0;
+        }
+    }
+    return vec2<f32>(near, far);
+}
+
+// The ray through the centre of pixel `pixel` (row-major).
+fn pixel_ray_dir(pixel: u32) -> vec3<f32> {
+    let w = view.size.x;
+    let px = f32(pixel % w) + 0.5;
+    let py = f32(pixel / w) + 0.5;
+    let d_cam = vec3<f32>((px - view.intr.z) / view.intr.x, -(py - view.intr.w) / view.intr.y, -1.0);
+    let r = mat3x3<f32>(view.c2w[0].xyz, view.c2w[1].xyz, view.c2w[2].xyz);
+    return normalize(r * d_cam);
+}
+
+// The unit-cube point and time of the sample between distances t0 and t1 on ray (o, d).
+fn sample_point(o: vec3<f32>, d: vec3<f32>, t0: f32, t1: f32, time: f32) -> vec4<f32> {
+    let u = to_unit(o + d * (0.5 * (t0 + t1)));
+    return vec4<f32>(u, time);
 }
 
 // #module passes_lanes
@@ -1652,9 +1508,10 @@ fn pass_dynamic(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
 }
 
 // #module passes
-// passes: the per-sample passes' entry points (`pass_*`): the same rendering as `per_ray`, split
-// into dispatches over compacted work lists, so that no invocation loops over a whole ray's
-// field evaluations. One frame (or one batch of rays of it) is, in order:
+// passes: the per-sample passes' entry points (`pass_*`): the CPU renderer's rendering (msth-core
+// `pipeline::render_chunk`), split into dispatches over compacted work lists, so that no
+// invocation loops over a whole ray's field evaluations. One frame (or one batch of rays of it)
+// is, in order:
 //
 //   pass_setup      one per pixel of the batch: ray limits; a ray that misses the scene under a
 //                   constant background writes the background, the others are appended to the

@@ -32,8 +32,8 @@ const TAU_HIDDEN: f32 = 9.210340372; // ln(1 / HIDDEN_TRANSMITTANCE), HIDDEN_TRA
 
 // Loops are kept flat (one loop over (row, column) pairs rather than two nested ones) and
 // functions return once at their end. Mesa's lavapipe ends every loop of an invocation after
-// 65535 loop iterations in total, which a ray of a preset-sized model exceeds; the native host
-// refuses such models there with an error (gpu/src/layout.rs, loop_iterations_per_ray).
+// 65535 loop iterations in total; the native host refuses models whose invocations could exceed
+// that there with an error (gpu/src/layout.rs, loop_iterations_per_invocation).
 
 fn clamp_unit(x: f32) -> f32 {
     // NaN maps to 0 (as the CPU's `if x >= 0 { min(x, 1) } else { 0 }`).
@@ -82,9 +82,10 @@ fn invocation(gid: vec3<u32>, groups: vec3<u32>) -> u32 {
 // #module io
 // io: the pixel list and output buffer of the render entry points (bindings 5 and 6).
 
-// Pixel list (render) or packed points (eval_points).
+// Pixel list (the passes) or packed points (eval_points).
 @group(0) @binding(5) var<storage, read> list: array<u32>;
-// Output: (r, g, b, visible depth) per pixel (render) or (r, g, b, sigma) per point.
+// Output: (r, g, b, visible depth) per pixel (the passes, volume_march) or (r, g, b, sigma) per
+// point (eval_points).
 @group(0) @binding(6) var<storage, read_write> frame: array<vec4<f32>>;
 
 // #module bindings

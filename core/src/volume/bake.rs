@@ -27,8 +27,8 @@ use crate::sh::{sh4, SH_COEFFS};
 
 use super::{
     channels_for, has_static_part, model_resolution, reference_direction, BakeStats, ColourMode,
-    DynamicPart, Slice, Value, Volume, VolumeGeometry, DYNAMIC_BRICK, EMPTY_BRICK, OUTSIDE_BRICK,
-    MIN_VOLUME_RESOLUTION, VOLUME_STATIC_CUTOFF,
+    DynamicPart, Slice, Value, Volume, VolumeGeometry, DYNAMIC_BRICK, EMPTY_BRICK,
+    MIN_VOLUME_RESOLUTION, OUTSIDE_BRICK, VOLUME_STATIC_CUTOFF,
 };
 
 /// The CPU renderer's default volume budget.
@@ -307,64 +307,63 @@ pub fn plan_with(
     };
     let frames = cfg.num_frames.clamp(1, MAX_SLICES);
     // The plan of `candidates` at geometry `g`, or the bytes it needs at the least.
-    let fit =
-        |g: VolumeGeometry, candidates: &[u32], outside: Vec<u32>| -> Result<BakePlan, u64> {
-            let slot = g.slot_bytes(channels);
-            let index = g.index_len() as u64 * 4;
-            // Bound the cheapest outcome first: every candidate a static slot.
-            let floor = index + candidates.len() as u64 * slot;
-            if floor > o.budget {
-                return Err(floor);
-            }
-            let (static_bricks, dynamic_bricks, dynamic_cells) =
-                sort_bricks(&g, layout, params, occupancy.as_ref(), candidates);
-            let fixed = index
-                + static_bricks.len() as u64 * slot
-                + dynamic_cells.len() as u64 * 4
-                + dynamic_bricks.len() as u64 * 4;
-            let per_slice = dynamic_bricks.len() as u64 * slot;
-            let slices = if dynamic_bricks.is_empty() {
-                0
-            } else {
-                frames.max(2)
-            };
-            // At least the two slices around a frame's time must fit.
-            let resident = o
-                .budget
-                .saturating_sub(fixed)
-                .checked_div(per_slice)
-                .map_or(slices, |n| n.min(slices as u64) as usize);
-            if fixed > o.budget || (slices > 0 && resident < 2) {
-                return Err(fixed + per_slice * slices.min(2) as u64);
-            }
-            let cell = cell_world_size(&cfg.bounds, g.resolution);
-            let alpha = o.min_cell_alpha.clamp(0.0, 0.999_999);
-            let from_alpha = -(1.0 - alpha).ln() / cell;
-            let slice_times = (0..slices)
-                .map(|k| k as f32 / (slices - 1).max(1) as f32)
-                .collect();
-            Ok(BakePlan {
-                geometry: g,
-                requested_resolution: requested,
-                colour: o.colour,
-                eyes: o.eyes.clone(),
-                geo,
-                channels,
-                static_bricks,
-                dynamic_bricks,
-                dynamic_cells,
-                slice_times,
-                resident_slices: resident,
-                density_threshold: file_threshold.max(from_alpha),
-                min_cell_alpha: alpha,
-                proposal_threshold: -(1.0 - o.min_proposal_alpha.clamp(0.0, 0.999_999)).ln() / cell,
-                occupancy: occupancy.map(|occ| (occ.resolution, occ.words.to_vec())),
-                bytes_bound: fixed + resident as u64 * per_slice,
-                budget: o.budget,
-                outside_views: outside.len(),
-                outside_bricks: outside,
-            })
+    let fit = |g: VolumeGeometry, candidates: &[u32], outside: Vec<u32>| -> Result<BakePlan, u64> {
+        let slot = g.slot_bytes(channels);
+        let index = g.index_len() as u64 * 4;
+        // Bound the cheapest outcome first: every candidate a static slot.
+        let floor = index + candidates.len() as u64 * slot;
+        if floor > o.budget {
+            return Err(floor);
+        }
+        let (static_bricks, dynamic_bricks, dynamic_cells) =
+            sort_bricks(&g, layout, params, occupancy.as_ref(), candidates);
+        let fixed = index
+            + static_bricks.len() as u64 * slot
+            + dynamic_cells.len() as u64 * 4
+            + dynamic_bricks.len() as u64 * 4;
+        let per_slice = dynamic_bricks.len() as u64 * slot;
+        let slices = if dynamic_bricks.is_empty() {
+            0
+        } else {
+            frames.max(2)
         };
+        // At least the two slices around a frame's time must fit.
+        let resident = o
+            .budget
+            .saturating_sub(fixed)
+            .checked_div(per_slice)
+            .map_or(slices, |n| n.min(slices as u64) as usize);
+        if fixed > o.budget || (slices > 0 && resident < 2) {
+            return Err(fixed + per_slice * slices.min(2) as u64);
+        }
+        let cell = cell_world_size(&cfg.bounds, g.resolution);
+        let alpha = o.min_cell_alpha.clamp(0.0, 0.999_999);
+        let from_alpha = -(1.0 - alpha).ln() / cell;
+        let slice_times = (0..slices)
+            .map(|k| k as f32 / (slices - 1).max(1) as f32)
+            .collect();
+        Ok(BakePlan {
+            geometry: g,
+            requested_resolution: requested,
+            colour: o.colour,
+            eyes: o.eyes.clone(),
+            geo,
+            channels,
+            static_bricks,
+            dynamic_bricks,
+            dynamic_cells,
+            slice_times,
+            resident_slices: resident,
+            density_threshold: file_threshold.max(from_alpha),
+            min_cell_alpha: alpha,
+            proposal_threshold: -(1.0 - o.min_proposal_alpha.clamp(0.0, 0.999_999)).ln() / cell,
+            occupancy: occupancy.map(|occ| (occ.resolution, occ.words.to_vec())),
+            bytes_bound: fixed + resident as u64 * per_slice,
+            budget: o.budget,
+            outside_views: outside.len(),
+            outside_bricks: outside,
+        })
+    };
     let mut r = requested;
     loop {
         let g = VolumeGeometry::new(r);

@@ -29,8 +29,8 @@ const TAU_HIDDEN: f32 = 9.210340372; // ln(1 / HIDDEN_TRANSMITTANCE), HIDDEN_TRA
 
 // Loops are kept flat (one loop over (row, column) pairs rather than two nested ones) and
 // functions return once at their end. Mesa's lavapipe ends every loop of an invocation after
-// 65535 loop iterations in total, which a ray of a preset-sized model exceeds; the native host
-// refuses such models there with an error (gpu/src/layout.rs, loop_iterations_per_ray).
+// 65535 loop iterations in total; the native host refuses models whose invocations could exceed
+// that there with an error (gpu/src/layout.rs, loop_iterations_per_invocation).
 
 fn clamp_unit(x: f32) -> f32 {
     // NaN maps to 0 (as the CPU's `if x >= 0 { min(x, 1) } else { 0 }`).

@@ -1,8 +1,8 @@
 // field: the fields at one point: the masked space-time encoding (`encode`: mask, blend, 3D and
 // 4D grids) and the decoders on it: the proposal field's density (`proposal_sigma`), the main
 // field's density and geometry features (`field_density`) and its colour from those and the SH
-// of the view direction (`field_color`). One point per call: the per-ray kernels call them per
-// sample, a per-pixel kernel can too.
+// of the view direction (`field_color`). One point per call: `eval_points` calls them per point,
+// the passes' sample cache and the generic encodings per sample, a per-pixel kernel can too.
 
 // #import common
 // #import bindings

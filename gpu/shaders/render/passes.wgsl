@@ -1,6 +1,7 @@
-// passes: the per-sample passes' entry points (`pass_*`): the same rendering as `per_ray`, split
-// into dispatches over compacted work lists, so that no invocation loops over a whole ray's
-// field evaluations. One frame (or one batch of rays of it) is, in order:
+// passes: the per-sample passes' entry points (`pass_*`): the CPU renderer's rendering (msth-core
+// `pipeline::render_chunk`), split into dispatches over compacted work lists, so that no
+// invocation loops over a whole ray's field evaluations. One frame (or one batch of rays of it)
+// is, in order:
 //
 //   pass_setup      one per pixel of the batch: ray limits; a ray that misses the scene under a
 //                   constant background writes the background, the others are appended to the

@@ -3,11 +3,11 @@
 //! import comes with them). The build script compiles this file too (`build.rs`).
 
 /// (file name, root modules) of each composed shader text. `render.wgsl` is the renderer's
-/// ([`crate::RENDER_WGSL`]): the per-ray kernels and the per-sample passes; `volume.wgsl` the
+/// ([`crate::RENDER_WGSL`]): `eval_points` and the per-sample passes; `volume.wgsl` the
 /// march through the play-time volume ([`crate::VOLUME_WGSL`]). Another set of entry points is
 /// another entry here, rooted at its entry module, and a constant in `shaders.rs` that includes
 /// its text.
 pub const SETS: &[(&str, &[&str])] = &[
-    ("render.wgsl", &["per_ray", "passes"]),
+    ("render.wgsl", &["points", "passes"]),
     ("volume.wgsl", &["volume"]),
 ];

@@ -3,17 +3,15 @@
 //!
 //! A full frame renders every pixel on the device into a frame buffer that stays there
 //! (`(r, g, b, visible depth)` per pixel, a negative depth for a ray that missed the scene),
-//! through the per-sample passes of `msth-gpu`
-//! ([`GpuKernels::PerSample`], the default) or the older one-invocation-per-ray kernel
-//! ([`GpuKernels::PerRay`], kept for comparison: `player/examples/bench_gpu_render.rs` times
-//! both). The second frame of a fixed camera classifies
-//! the first frame's rays with [`classify_static_with_stats`] (the CPU renderer's mask test, then probes
-//! rendered on the device, each with the parameters of its own time), uploads the compacted
-//! list of dynamic pixels, and, with [`Reuse::Samples`], builds the device's sample cache of
-//! those rays ([`GpuSampleCache`]: fixed samples over the clip, static samples evaluated once).
-//! From then on each frame evaluates only the dynamic samples (or, with [`Reuse::Rays`], the
-//! dynamic pixels' whole rays) into a compact output of the dynamic pixels, which alone is read
-//! back and written into the host's copy of the frame.
+//! through the per-sample passes of `msth-gpu` ([`msth_gpu::passes`]), in batches of rays sized
+//! to the scratch budget ([`GpuRenderer::set_scratch_budget`]). The second frame of a fixed
+//! camera classifies the first frame's rays with [`classify_static_with_stats`] (the CPU
+//! renderer's mask test, then probes rendered on the device, each with the parameters of its own
+//! time), uploads the compacted list of dynamic pixels, and, with [`Reuse::Samples`], builds the
+//! device's sample cache of those rays ([`GpuSampleCache`]: fixed samples over the clip, static
+//! samples evaluated once). From then on each frame evaluates only the dynamic samples (or, with
+//! [`Reuse::Rays`], the dynamic pixels' whole rays) into a compact output of the dynamic pixels,
+//! which alone is read back and written into the host's copy of the frame.
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -26,7 +24,7 @@ use msth_core::Camera;
 use msth_gpu::passes::FrameScratch;
 use msth_gpu::{GpuSampleCache, GpuVolume, Pixels, ReadBack, VolumeKernel};
 
-use super::{GpuContext, GpuError, GpuModel, GpuScene, Kernel, ViewU, FLAG_COMPACT, FLAG_LIST};
+use super::{GpuContext, GpuError, GpuModel, GpuScene, ViewU, FLAG_COMPACT, FLAG_LIST};
 use crate::render::{
     classify_static_with_stats, partition_samples, partition_times, ClassifyStats, Frame,
     FrameStats, RenderSettings, Reuse,
@@ -34,17 +32,6 @@ use crate::render::{
 use crate::volume::{bake_set_on_device, BakedVolume};
 use msth_core::volume::bake::bake_slice_with;
 use msth_core::volume::BakeError;
-
-/// Which kernels render rays.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub enum GpuKernels {
-    /// Per-sample passes over compacted work lists (`msth_gpu::passes`).
-    #[default]
-    PerSample,
-    /// The `render` kernel: one invocation loops over a whole ray (the renderer before #17;
-    /// refused on lavapipe for models beyond its loop budget).
-    PerRay,
-}
 
 /// How the per-sample passes evaluate the model's fields (encodings and MLPs).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -61,7 +48,7 @@ pub enum GpuMlps {
 /// What became of [`GpuMlps::Specialised`].
 #[derive(Clone, Debug, PartialEq)]
 pub enum MlpStatus {
-    /// Not asked for ([`GpuMlps::Generic`], the per-ray kernel) or no parameters uploaded yet.
+    /// Not asked for ([`GpuMlps::Generic`]) or no parameters uploaded yet.
     Generic,
     /// Specialised; compiling took this many seconds.
     Specialised(f64),
@@ -117,7 +104,6 @@ pub struct GpuRenderer {
     cfg: ModelConfig,
     layout: ModelLayout,
     settings: RenderSettings,
-    kernels: GpuKernels,
     gpu_model: GpuModel,
     scene: Option<GpuScene>,
     /// Per-pixel output, and how many pixels it holds.
@@ -125,7 +111,8 @@ pub struct GpuRenderer {
     /// The staging buffer frames are read back through (full frames and the dynamic pixels of
     /// incremental ones), kept between frames.
     readback: ReadBack,
-    /// The passes' scratch, and the pixel count it was made for.
+    /// The passes' scratch, and the pixel count it was made for (made by each frame whose pixel
+    /// count differs; `None` before the first exact frame).
     scratch: Option<(FrameScratch, usize)>,
     /// Bytes of scratch one batch of rays may take ([`GpuContext::default_scratch_budget`]
     /// unless set).
@@ -134,8 +121,6 @@ pub struct GpuRenderer {
     /// and the version the device holds (`None`: compare the values).
     params_version: Option<u64>,
     uploaded_version: Option<u64>,
-    /// Bound as `list` when a dispatch reads none.
-    no_list: wgpu::Buffer,
     cache: Option<Cache>,
     /// The file's occupancy grid: the per-sample passes skip samples in its empty cells.
     occupancy: Option<Arc<OccupancyGrid>>,
@@ -155,37 +140,18 @@ pub struct GpuRenderer {
 
 impl GpuRenderer {
     /// A renderer of `cfg` on `ctx` with the per-sample passes; fails when the kernels cannot
-    /// render the model.
+    /// render the model (beyond the kernels' or the adapter's limits, or lavapipe's loop budget).
     pub fn new(
         ctx: GpuContext,
         cfg: &ModelConfig,
         settings: RenderSettings,
     ) -> Result<Self, GpuError> {
-        Self::with_kernels(ctx, cfg, settings, GpuKernels::PerSample)
-    }
-
-    /// A renderer of `cfg` on `ctx` with the given kernels.
-    pub fn with_kernels(
-        ctx: GpuContext,
-        cfg: &ModelConfig,
-        settings: RenderSettings,
-        kernels: GpuKernels,
-    ) -> Result<Self, GpuError> {
         let gpu_model = GpuModel::new(cfg).map_err(|e| GpuError::Model(e.to_string()))?;
         if ctx.is_lavapipe() {
-            let (n, what) = match kernels {
-                GpuKernels::PerRay => (
-                    super::layout::loop_iterations_per_ray(cfg),
-                    "one ray of this model",
-                ),
-                GpuKernels::PerSample => (
-                    super::layout::loop_iterations_per_invocation(cfg),
-                    "one per-sample invocation of this model",
-                ),
-            };
+            let n = super::layout::loop_iterations_per_invocation(cfg);
             if n > super::layout::LAVAPIPE_LOOP_ITERATIONS {
                 return Err(GpuError::Limit {
-                    what: what.to_string(),
+                    what: "one per-sample invocation of this model".to_string(),
                     amount: n,
                     unit: "loop iterations",
                     limit: "lavapipe loop iterations per invocation (LP_MAX_TGSI_LOOP_ITERATIONS)",
@@ -196,7 +162,6 @@ impl GpuRenderer {
         for (what, bytes) in gpu_model.buffer_sizes(ctx.tables()) {
             ctx.check_storage(what, bytes)?;
         }
-        let no_list = ctx.storage_buffer("empty list", &[], false)?;
         let ctx_software = ctx.is_software();
         let scratch_budget = ctx.default_scratch_budget();
         Ok(GpuRenderer {
@@ -204,7 +169,6 @@ impl GpuRenderer {
             cfg: cfg.clone(),
             layout: ModelLayout::new(cfg),
             settings,
-            kernels,
             gpu_model,
             scene: None,
             frame: None,
@@ -213,7 +177,6 @@ impl GpuRenderer {
             scratch_budget,
             params_version: None,
             uploaded_version: None,
-            no_list,
             cache: None,
             occupancy: None,
             mlps: GpuMlps::default(),
@@ -337,7 +300,7 @@ impl GpuRenderer {
     }
 
     /// Rays per batch of the per-sample passes at the last frame's size (None before the
-    /// first frame, and with the per-ray kernel).
+    /// first exact frame).
     pub fn batch_rays(&self) -> Option<u32> {
         self.scratch.as_ref().map(|(s, _)| s.capacity())
     }
@@ -368,7 +331,7 @@ impl GpuRenderer {
     /// Uses the file's occupancy grid to skip empty space, as the CPU renderer's
     /// [`crate::render::Renderer::set_occupancy`] (`None`: a version-1 file, or skipping off):
     /// the per-sample passes evaluate the main field only at samples in occupied cells; the
-    /// sample cache and the per-ray kernel evaluate every sample. Forgets the static cache.
+    /// sample cache evaluates every sample. Forgets the static cache.
     pub fn set_occupancy(&mut self, grid: Option<Arc<OccupancyGrid>>) -> Result<(), GpuError> {
         if let Some(g) = &grid {
             msth_gpu::render::check_occupancy(g.resolution, &g.words)?;
@@ -388,11 +351,6 @@ impl GpuRenderer {
 
     pub fn settings(&self) -> &RenderSettings {
         &self.settings
-    }
-
-    /// The kernels that render rays.
-    pub fn kernels(&self) -> GpuKernels {
-        self.kernels
     }
 
     /// Forgets the static cache: the next frame is rendered in full.
@@ -419,7 +377,7 @@ impl GpuRenderer {
 
     /// The list sizes of the last batch of per-sample passes that rendered pixels through the
     /// frame scratch (a full frame, or an incremental one without the sample cache; reads them
-    /// back from the device); `None` with the per-ray kernel or before the first frame.
+    /// back from the device); `None` before the first exact frame.
     pub fn last_pass_counts(&self) -> Option<Result<msth_gpu::PassCounts, GpuError>> {
         self.scratch.as_ref().map(|(s, _)| s.last_counts(&self.ctx))
     }
@@ -448,7 +406,7 @@ impl GpuRenderer {
     /// Compiles the passes for the model ([`GpuMlps::Specialised`]) before its first exact frame
     /// (frames from a volume need none of them).
     fn specialise(&mut self) -> Result<(), GpuError> {
-        let want = self.mlps == GpuMlps::Specialised && self.kernels == GpuKernels::PerSample;
+        let want = self.mlps == GpuMlps::Specialised;
         if let Some(scene) = &mut self.scene {
             if want && !scene.is_specialised() && !matches!(self.mlp_status, MlpStatus::Refused(_))
             {
@@ -499,9 +457,7 @@ impl GpuRenderer {
         let total = w as usize * h as usize;
         let pixels32 = u32::try_from(total)
             .map_err(|_| GpuError::Model(format!("{w}x{h} pixels exceed 32-bit indices")))?;
-        if self.kernels == GpuKernels::PerSample
-            && self.scratch.as_ref().is_none_or(|(_, n)| *n != total)
-        {
+        if self.scratch.as_ref().is_none_or(|(_, n)| *n != total) {
             self.scratch = None;
             let s =
                 self.ctx
@@ -535,12 +491,13 @@ impl GpuRenderer {
                 // written into the host's copy of the frame.
                 let n = cache.dynamic.len() as u32;
                 let view = ViewU::new(camera, time, n, FLAG_LIST | FLAG_COMPACT);
-                match (&cache.samples, &self.scratch) {
-                    (Some(sc), _) => {
+                match &cache.samples {
+                    Some(sc) => {
                         stats.samples_evaluated = sc.dynamic_samples() as usize;
                         self.ctx.render_sample_cache(scene, &view, sc, list, out)?;
                     }
-                    (None, Some((scratch, _))) => {
+                    None => {
+                        let (scratch, _) = self.scratch.as_ref().expect("made above");
                         let px = Pixels::List {
                             list,
                             n,
@@ -548,7 +505,6 @@ impl GpuRenderer {
                         };
                         self.ctx.render_passes(scene, &view, px, out, scratch)?;
                     }
-                    (None, None) => self.ctx.dispatch(Kernel::Render, scene, &view, list, out)?,
                 }
                 host = Instant::now();
                 // Written into the host's frame from the mapped staging buffer, kept between
@@ -579,16 +535,10 @@ impl GpuRenderer {
             }
             let scene = self.scene.as_ref().expect("uploaded above");
             let (frame, _) = self.frame.as_ref().expect("made above");
+            let (scratch, _) = self.scratch.as_ref().expect("made above");
             let view = ViewU::new(camera, time, pixels32, 0);
-            match &self.scratch {
-                Some((scratch, _)) => {
-                    self.ctx
-                        .render_passes(scene, &view, Pixels::All(pixels32), frame, scratch)?
-                }
-                None => self
-                    .ctx
-                    .dispatch(Kernel::Render, scene, &view, &self.no_list, frame)?,
-            }
+            self.ctx
+                .render_passes(scene, &view, Pixels::All(pixels32), frame, scratch)?;
             // The colours and the count of rays that missed the scene, straight from the
             // mapped staging buffer; the rays' list waits for the camera to stay.
             let host = Instant::now();
@@ -705,13 +655,15 @@ impl GpuRenderer {
             // The rays that reached bricks the volume left out: the exact passes draw them.
             self.specialise()?;
             if self.scratch.is_none() {
-                let s =
-                    self.ctx
-                        .frame_scratch_within(&self.gpu_model, pixels32, self.scratch_budget)?;
+                let s = self.ctx.frame_scratch_within(
+                    &self.gpu_model,
+                    pixels32,
+                    self.scratch_budget,
+                )?;
                 self.scratch = Some((s, total));
             }
             let scene = self.scene.as_ref().expect("uploaded by the caller");
-            let scratch = self.scratch.as_ref().map(|(s, _)| s);
+            let (scratch, _) = self.scratch.as_ref().expect("made above");
             let colours = render_list(&self.ctx, scene, scratch, camera, time, &outside, None)?;
             let host = Instant::now();
             for (&p, c) in outside.iter().zip(&colours) {
@@ -753,7 +705,7 @@ impl GpuRenderer {
     ) -> Result<ClassifyStats, GpuError> {
         let ctx = &self.ctx;
         let scene = self.scene.as_mut().expect("uploaded before");
-        let scratch = self.scratch.as_ref().map(|(s, _)| s);
+        let (scratch, _) = self.scratch.as_ref().expect("made by the frame");
         // The probes upload other times' parameters and then the frame's again; should one
         // fail, the device's copy is unknown.
         let version = self.uploaded_version.take();
@@ -798,7 +750,7 @@ impl GpuRenderer {
             false,
         )?;
         let out = ctx.output_buffer("dynamic pixels' colours", cache.dynamic.len())?;
-        if self.settings.reuse == Reuse::Samples && self.kernels == GpuKernels::PerSample {
+        if self.settings.reuse == Reuse::Samples {
             let n = cache.dynamic.len() as u32;
             let samples = partition_samples(&self.cfg, &self.settings) as u32;
             let bytes = GpuContext::sample_cache_bytes(&self.gpu_model, n as u64, samples as u64);
@@ -913,12 +865,12 @@ fn apply_occupancy(
 }
 
 /// Renders the listed pixels of `camera` at `time` into a compact output and reads their colours
-/// back (probes), with the per-sample passes when `scratch` is given, else the per-ray kernel;
-/// `visible`, when given, receives the visible depths.
+/// back (probes), with the per-sample passes through `scratch`; `visible`, when given, receives
+/// the visible depths.
 pub(crate) fn render_list(
     ctx: &GpuContext,
     scene: &GpuScene,
-    scratch: Option<&FrameScratch>,
+    scratch: &FrameScratch,
     camera: &Camera,
     time: f32,
     pixels: &[u32],
@@ -931,17 +883,12 @@ pub(crate) fn render_list(
     let out = ctx.output_buffer("probe colours", pixels.len())?;
     let n = pixels.len() as u32;
     let view = ViewU::new(camera, time, n, FLAG_LIST | FLAG_COMPACT);
-    match scratch {
-        Some(s) => {
-            let px = Pixels::List {
-                list: &list,
-                n,
-                compact: true,
-            };
-            ctx.render_passes(scene, &view, px, &out, s)?
-        }
-        None => ctx.dispatch(Kernel::Render, scene, &view, &list, &out)?,
-    }
+    let px = Pixels::List {
+        list: &list,
+        n,
+        compact: true,
+    };
+    ctx.render_passes(scene, &view, px, &out, scratch)?;
     let v = ctx.read_vec4(&out, pixels.len())?;
     if let Some(vis) = visible {
         vis.clear();
