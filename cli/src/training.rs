@@ -429,6 +429,8 @@ pub fn eval(a: EvalArgs) -> Result<()> {
         field_samples_per_sec: 0.0,
         rays_per_sec: 0.0,
         last_loss: f32::NAN,
+        held_out: Vec::new(),
+        converged: false,
     };
     let m = eval_and_save(
         &data,

@@ -24,6 +24,10 @@ fn main() -> std::process::ExitCode {
             tradeoff_sweep_writes_tables_plots_and_fronts,
         )
         .test("tradeoff_rejects_bad_options", tradeoff_rejects_bad_options)
+        .test(
+            "converged_sweeps_stop_each_variant_when_it_stalls",
+            converged_sweeps_stop_each_variant_when_it_stalls,
+        )
         .needs(
             &[&font],
             "scatter_draws_points_and_front",
@@ -213,6 +217,92 @@ fn tradeoff_sweep_writes_tables_plots_and_fronts() {
         .unwrap()
         .iter()
         .all(|r| r["steps"].as_u64() == Some(4)));
+}
+
+/// `--converge`: each variant stops at the measurement that gains less than `--min-gain` (here
+/// an unreachable 1000 dB: the second one), the steps and the measured curve are recorded, and
+/// the report says how the variants were trained.
+fn converged_sweeps_stop_each_variant_when_it_stalls() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    let out = tmp.path().join("out");
+    synth_cmd(
+        &data,
+        &["--size", "32x24", "--frames", "3", "--cameras", "3"],
+    )
+    .unwrap();
+    let run = || {
+        msth(&[
+            "--threads",
+            "2",
+            "bench",
+            "tradeoff",
+            data.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--quick",
+            "--converge",
+            "--converge-every",
+            "2",
+            "--min-gain",
+            "1000",
+            "--iters",
+            "50",
+            "--presets",
+            "fast",
+            "--factors",
+            "iters,mask-",
+            "--fps-size",
+            "16x12",
+            "--fps-frames",
+            "1",
+            "--stride",
+            "1",
+        ])
+        .unwrap()
+    };
+    run();
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("tradeoff.json")).unwrap()).unwrap();
+    let rows = json["rows"].as_array().unwrap();
+    let names: Vec<&str> = rows.iter().map(|r| r["name"].as_str().unwrap()).collect();
+    // The iters factor means nothing when runs choose their steps: left out.
+    assert_eq!(names, ["fast", "fast-mask-32"], "{json:#}");
+    for r in rows {
+        assert_eq!(r["steps"].as_u64(), Some(4), "{r}");
+    }
+    let result: serde_json::Value = serde_json::from_slice(
+        &std::fs::read(out.join("runs").join("fast").join("result.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(result["converged"], true, "{result}");
+    let curve = result["held_out"].as_array().unwrap();
+    assert_eq!(curve.len(), 2, "{result}");
+    assert_eq!(curve[1][0].as_u64(), Some(4));
+    let md = std::fs::read_to_string(out.join("tradeoff.md")).unwrap();
+    assert!(md.contains("until converged"), "{md}");
+    // A second run reuses both: the cached results are not written again.
+    let cached = out.join("runs").join("fast").join("result.json");
+    let before = std::fs::read(&cached).unwrap();
+    let modified = std::fs::metadata(&cached).unwrap().modified().unwrap();
+    run();
+    assert_eq!(std::fs::read(&cached).unwrap(), before);
+    assert_eq!(
+        std::fs::metadata(&cached).unwrap().modified().unwrap(),
+        modified
+    );
+    let e = msth(&[
+        "bench",
+        "tradeoff",
+        "builtin",
+        "--out",
+        out.to_str().unwrap(),
+        "--converge",
+        "--converge-every",
+        "0",
+    ])
+    .unwrap_err();
+    assert!(e.contains("--converge-every"), "{e}");
 }
 
 fn tradeoff_rejects_bad_options() {

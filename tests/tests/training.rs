@@ -45,6 +45,10 @@ fn main() -> std::process::ExitCode {
             "mask_learning_resume_is_exact",
             mask_learning_resume_is_exact,
         )
+        .test(
+            "training_until_converged_stops_when_the_held_out_psnr_stalls",
+            training_until_converged_stops_when_the_held_out_psnr_stalls,
+        )
         .run()
 }
 
@@ -86,6 +90,58 @@ fn training_improves_held_out_psnr() {
     );
     assert!(after.psnr > 18.0, "{:.2}", after.psnr);
     assert!(after.ssim > before.ssim);
+}
+
+/// `converge_every`: the held-out PSNR measured every N steps, the run stopped (and its
+/// checkpoint written) at the first measurement that gains less than the threshold; the
+/// measurements equal an evaluation of the parameters at that step.
+fn training_until_converged_stops_when_the_held_out_psnr_stalls() {
+    let (_, data) = tiny_scene();
+    let mut s = quick_settings(&data, 400);
+    s.batch_rays = 256;
+    s.eval_stride = 2;
+    s.converge_every = 20;
+    // No run gains 1000 dB in 20 steps: the second measurement stops it.
+    s.converge_min_gain_db = 1000.0;
+    let dir = tempfile::tempdir().unwrap();
+    let mut reported = Vec::new();
+    let (trainer, outcome) = train(&data, s, dir.path(), None, &mut |p| {
+        if let Some(psnr) = p.held_out_psnr {
+            reported.push((p.step, psnr));
+        }
+        true
+    })
+    .unwrap();
+    assert!(outcome.converged);
+    assert_eq!(outcome.steps, 40, "stopped at the second measurement");
+    assert_eq!(
+        outcome.held_out.iter().map(|m| m.0).collect::<Vec<_>>(),
+        vec![20, 40]
+    );
+    assert_eq!(reported, outcome.held_out, "each measurement is reported");
+    let last = evaluate(
+        &data,
+        &trainer.settings.model,
+        &trainer.layout,
+        &trainer.params,
+        2,
+        None,
+    )
+    .unwrap();
+    assert_eq!(last.psnr, outcome.held_out[1].1);
+    let ckpt = Checkpoint::load(&dir.path().join("model.ckpt")).unwrap();
+    assert_eq!(ckpt.header.step, 40);
+
+    // A dataset without held-out views cannot measure convergence: a clear error.
+    let mut none = data.clone();
+    none.test.clear();
+    let mut s = quick_settings(&none, 40);
+    s.converge_every = 20;
+    let dir = tempfile::tempdir().unwrap();
+    let e = train(&none, s, dir.path(), None, &mut |_| true)
+        .err()
+        .unwrap();
+    assert!(e.to_string().contains("held-out views"), "{e}");
 }
 
 fn same_seed_same_model_and_resume_is_exact() {

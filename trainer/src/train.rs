@@ -60,6 +60,14 @@ pub struct TrainSettings {
     pub checkpoint_secs: f64,
     /// Evaluate every `eval_stride`-th test view.
     pub eval_stride: usize,
+    /// Train until converged: every `converge_every` steps the held-out PSNR (every
+    /// `eval_stride`-th test view) is measured, and the run stops once it gained less than
+    /// `converge_min_gain_db` since the last measurement ([`converged`]); `iters` is then the cap
+    /// (the schedules follow it). 0: run to `iters`.
+    #[serde(default)]
+    pub converge_every: usize,
+    #[serde(default = "default_min_gain")]
+    pub converge_min_gain_db: f64,
     /// Stop early after this many seconds of training (0: no limit). The learning rate then
     /// decays with time as well as steps; such runs depend on the machine's speed and are not
     /// bit-for-bit repeatable.
@@ -301,6 +309,8 @@ impl TrainSettings {
             checkpoint_every: 1000,
             checkpoint_secs: 600.0,
             eval_stride: 1,
+            converge_every: 0,
+            converge_min_gain_db: DEFAULT_MIN_GAIN_DB,
             time_limit_secs: 0.0,
             random_background: true,
             pixel_jitter: false,
@@ -450,6 +460,12 @@ impl TrainSettings {
                 self.scene_scale
             )));
         }
+        if !(self.converge_min_gain_db.is_finite() && self.converge_min_gain_db >= 0.0) {
+            return Err(SettingsError::Invalid(format!(
+                "converge_min_gain_db must be finite and >= 0 (got {})",
+                self.converge_min_gain_db
+            )));
+        }
         if self.eval_stride == 0 {
             return Err(SettingsError::Invalid(
                 "eval_stride must be at least 1".into(),
@@ -470,6 +486,23 @@ impl TrainSettings {
             ));
         }
         self.model.validate().map_err(SettingsError::Model)
+    }
+}
+
+/// [`TrainSettings::converge_min_gain_db`] by default: 0.1 dB per measurement.
+pub const DEFAULT_MIN_GAIN_DB: f64 = 0.1;
+
+fn default_min_gain() -> f64 {
+    DEFAULT_MIN_GAIN_DB
+}
+
+/// Whether a run whose held-out PSNR was measured at the points of `curve` (step, dB), at equal
+/// intervals, has converged: the last measurement gained less than `min_gain_db` over the one
+/// before (a NaN counts as no gain).
+pub fn converged(curve: &[(usize, f64)], min_gain_db: f64) -> bool {
+    match curve {
+        [.., (_, a), (_, b)] => !(b - a >= min_gain_db),
+        _ => false,
     }
 }
 
@@ -538,6 +571,8 @@ pub struct Progress {
     pub psnr: f32,
     pub elapsed_secs: f64,
     pub field_samples_per_sec: f64,
+    /// The held-out PSNR measured at this step ([`TrainSettings::converge_every`]), if any.
+    pub held_out_psnr: Option<f64>,
 }
 
 /// The weighted terms of a step's loss ([`Progress::terms`]).
@@ -559,6 +594,10 @@ pub struct TrainOutcome {
     pub field_samples_per_sec: f64,
     pub rays_per_sec: f64,
     pub last_loss: f32,
+    /// The held-out PSNR measured every [`TrainSettings::converge_every`] steps: (step, dB).
+    pub held_out: Vec<(usize, f64)>,
+    /// Whether the run stopped because the held-out PSNR stopped gaining ([`converged`]).
+    pub converged: bool,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -590,6 +629,8 @@ pub enum TrainError {
     Batch(String),
     #[error(transparent)]
     Device(#[from] DeviceError),
+    #[error("measuring the held-out PSNR: {0}")]
+    Eval(std::io::Error),
 }
 
 /// The slices of the main field's hash tables under `grid_decay` (its 3D and 4D tables), with
@@ -1185,6 +1226,16 @@ pub fn train(
     let mut samples = 0usize;
     let mut steps_run = 0usize;
     let mut last_loss = f32::NAN;
+    let converge_every = trainer.settings.converge_every;
+    if converge_every > 0 && data.test.is_empty() {
+        return Err(TrainError::Settings(SettingsError::Invalid(
+            "converge_every needs held-out views to measure, and the dataset has none".into(),
+        )));
+    }
+    let mut held_out: Vec<(usize, f64)> = Vec::new();
+    let mut converged_at = false;
+    // Time spent measuring the held-out PSNR: not training time.
+    let mut eval_secs = 0.0f64;
     while trainer.step < iters {
         let mut step_rng = Rng::stream(batch_seed, trainer.step as u64);
         let fraction = (trainer.step as f32 / iters.max(1) as f32).max(trainer.time_fraction);
@@ -1247,7 +1298,25 @@ pub fn train(
             });
         }
         last_loss = loss;
-        let elapsed = start.elapsed().as_secs_f64();
+        let mut measured = None;
+        if converge_every > 0 && trainer.step % converge_every == 0 {
+            let t = Instant::now();
+            trainer.sync()?;
+            let m = crate::eval::evaluate(
+                data,
+                &trainer.settings.model,
+                &trainer.layout,
+                &trainer.params,
+                trainer.settings.eval_stride,
+                None,
+            )
+            .map_err(TrainError::Eval)?;
+            held_out.push((trainer.step, m.psnr));
+            measured = Some(m.psnr);
+            converged_at = converged(&held_out, trainer.settings.converge_min_gain_db);
+            eval_secs += t.elapsed().as_secs_f64();
+        }
+        let elapsed = start.elapsed().as_secs_f64() - eval_secs;
         let keep_going = progress(&Progress {
             notes: std::mem::take(&mut notes),
             step: trainer.step,
@@ -1257,7 +1326,8 @@ pub fn train(
             psnr: (-10.0 * mse.max(1e-12).log10()) as f32,
             elapsed_secs: elapsed,
             field_samples_per_sec: samples as f64 / elapsed.max(1e-9),
-        });
+            held_out_psnr: measured,
+        }) && !converged_at;
 
         let every = trainer.settings.checkpoint_every;
         let every_secs = trainer.settings.checkpoint_secs;
@@ -1323,7 +1393,7 @@ pub fn train(
         }
     }
     trainer.sync()?;
-    let secs = start.elapsed().as_secs_f64();
+    let secs = start.elapsed().as_secs_f64() - eval_secs;
     let outcome = TrainOutcome {
         checkpoint: ckpt_path,
         steps: steps_run,
@@ -1331,6 +1401,8 @@ pub fn train(
         field_samples_per_sec: samples as f64 / secs.max(1e-9),
         rays_per_sec: (steps_run * batch) as f64 / secs.max(1e-9),
         last_loss,
+        held_out,
+        converged: converged_at,
     };
     Ok((trainer, outcome))
 }
@@ -1548,6 +1620,18 @@ mod tests {
         );
         // Other knobs keep the preset's values.
         assert_eq!(s.adam, AdamConfig::default());
+    }
+
+    #[test]
+    fn converged_means_the_last_measurement_gained_too_little() {
+        assert!(!converged(&[], 0.1));
+        assert!(!converged(&[(500, 20.0)], 0.1));
+        assert!(!converged(&[(500, 20.0), (1000, 20.1)], 0.1));
+        assert!(converged(&[(500, 20.0), (1000, 20.09)], 0.1));
+        assert!(converged(&[(500, 20.0), (1000, 19.0)], 0.1));
+        assert!(converged(&[(500, 20.0), (1000, f64::NAN)], 0.1));
+        // Only the last two count.
+        assert!(!converged(&[(500, 20.0), (1000, 20.05), (1500, 21.0)], 0.1));
     }
 
     #[test]

@@ -44,9 +44,22 @@ pub struct TradeoffArgs {
     /// Presets measured as they are (same step budget), comma-separated.
     #[arg(long, default_value = "fast,balanced,quality")]
     pub presets: String,
-    /// Training steps of every variant (default 600; 30 with --quick).
+    /// Training steps of every variant (default 600; 30 with --quick); with `--converge`, the
+    /// cap (default 8000).
     #[arg(long)]
     pub iters: Option<usize>,
+    /// Train each variant until converged: its held-out PSNR (every `--stride`-th view) is
+    /// measured every `--converge-every` steps, and training stops once it gains less than
+    /// `--min-gain` dB between two measurements, or at the cap (`--iters`). The `iters` factor
+    /// is left out.
+    #[arg(long)]
+    pub converge: bool,
+    /// Steps between two measurements of `--converge`.
+    #[arg(long, default_value_t = 500)]
+    pub converge_every: usize,
+    /// The least gain (dB) between two measurements that keeps a `--converge` run going.
+    #[arg(long, default_value_t = msth_trainer::train::DEFAULT_MIN_GAIN_DB)]
+    pub min_gain: f64,
     /// Factors varied one at a time around the base, comma-separated, from: iters, table,
     /// levels, finest, samples, scale, mask, proposal, quant (default: all). A trailing `+`
     /// or `-` keeps only the costlier or the cheaper value (`table+,levels-`).
@@ -142,6 +155,12 @@ struct VariantResult {
     /// Full-frame rendering rate of the player (first quant mode's file).
     fps: f64,
     quants: Vec<QuantResult>,
+    /// With `--converge`: the held-out PSNR measured during training, (step, dB).
+    #[serde(default)]
+    held_out: Vec<(usize, f64)>,
+    /// With `--converge`: whether the run stopped for lack of gain (else at the cap).
+    #[serde(default)]
+    converged: bool,
 }
 
 /// One row of the tables: a variant exported with one quantisation mode.
@@ -498,13 +517,28 @@ fn parse_variant(s: &str) -> Result<(String, Vec<String>)> {
 }
 
 /// The settings of `v`: its preset's for `data`, the step budget, then its overrides.
-fn settings_for(v: &Variant, data: &Dataset, iters: usize) -> Result<TrainSettings> {
+/// How long each variant trains: a fixed number of steps, or until converged.
+#[derive(Clone, Copy, Debug)]
+struct Schedule {
+    /// The steps, or the cap.
+    iters: usize,
+    /// `(every, min_gain_db, stride)` for `--converge`.
+    converge: Option<(usize, f64, usize)>,
+}
+
+fn settings_for(v: &Variant, data: &Dataset, schedule: Schedule) -> Result<TrainSettings> {
+    let iters = schedule.iters;
     let mut s = TrainSettings::for_preset(v.preset, data);
     let mut sets = vec![
         format!("iters={iters}"),
         format!("anneal_steps={}", (iters / 4).max(1)),
         "checkpoint_every=0".to_string(),
     ];
+    if let Some((every, gain, stride)) = schedule.converge {
+        sets.push(format!("converge_every={every}"));
+        sets.push(format!("converge_min_gain_db={gain}"));
+        sets.push(format!("eval_stride={stride}"));
+    }
     sets.extend(v.sets.iter().cloned());
     s.apply_overrides(None, &sets)
         .map_err(|e| anyhow::anyhow!("variant {}: {e}", v.name))?;
@@ -606,6 +640,8 @@ fn measure(
         ssim_f32: m.ssim,
         fps,
         quants,
+        held_out: outcome.held_out.clone(),
+        converged: outcome.converged,
     })
 }
 
@@ -632,10 +668,20 @@ pub fn run(a: TradeoffArgs) -> Result<()> {
     } else {
         presets
     };
-    let factors = match &a.factors {
+    let mut factors = match &a.factors {
         Some(f) => parse_list(f),
         None => FACTORS.iter().map(|s| s.to_string()).collect(),
     };
+    if a.converge {
+        // Converged runs choose their own steps.
+        factors.retain(|f| split_factor(f, Direction::Both).0 != "iters");
+        if a.converge_every == 0 {
+            bail!("--converge-every must be at least 1");
+        }
+        if !(a.min_gain.is_finite() && a.min_gain >= 0.0) {
+            bail!("--min-gain must be a finite number of dB, 0 or more");
+        }
+    }
     for f in &factors {
         if !FACTORS.contains(&split_factor(f, Direction::Both).0) {
             bail!(
@@ -644,13 +690,23 @@ pub fn run(a: TradeoffArgs) -> Result<()> {
             );
         }
     }
-    let iters = a.iters.unwrap_or(if a.quick { 30 } else { 600 });
+    let iters = a.iters.unwrap_or(match (a.quick, a.converge) {
+        (true, _) => 30,
+        (false, true) => 8000,
+        (false, false) => 600,
+    });
     if iters == 0 {
         bail!("--iters must be at least 1");
     }
     if a.stride == 0 {
         bail!("--stride must be at least 1");
     }
+    let schedule = Schedule {
+        iters,
+        converge: a
+            .converge
+            .then_some((a.converge_every, a.min_gain, a.stride)),
+    };
     let fps_size =
         parse_size(
             a.fps_size
@@ -693,7 +749,7 @@ pub fn run(a: TradeoffArgs) -> Result<()> {
             quants: vec![],
         },
         &data,
-        iters,
+        schedule,
     )?;
     let vs = variants(
         base,
@@ -716,19 +772,24 @@ pub fn run(a: TradeoffArgs) -> Result<()> {
     }
     let threads = rayon::current_num_threads();
     println!(
-        "msth bench tradeoff: {} ({} training / {} test views), base {}, {} steps per variant, {} variants, {threads} threads",
+        "msth bench tradeoff: {} ({} training / {} test views), base {}, {}, {} variants, {threads} threads",
         data.name,
         data.train.len(),
         data.test.len(),
         preset_name(base),
-        iters,
+        match schedule.converge {
+            Some((every, gain, _)) => format!(
+                "each variant until it gains less than {gain} dB in {every} steps (at most {iters})"
+            ),
+            None => format!("{iters} steps per variant"),
+        },
         vs.len()
     );
 
     // Resolve settings and cache state first, so the progress bar knows the work left.
     let mut plan = Vec::new();
     for v in &vs {
-        let s = settings_for(v, &data, iters)?;
+        let s = settings_for(v, &data, schedule)?;
         let fingerprint = json!({
             "settings": serde_json::to_value(&s)?,
             "data": a.data, "dataset": data.name, "downscale": a.dataset.downscale,
@@ -797,11 +858,16 @@ pub fn run(a: TradeoffArgs) -> Result<()> {
                     .with_context(|| format!("writing {}", path.display()))?;
                 pb.suspend(|| {
                     println!(
-                        "{}: {:.2} dB (f32 {:.2} dB) after {} steps in {:.1} s, {} bytes, {:.2} FPS ({:.0} s in all)",
+                        "{}: {:.2} dB (f32 {:.2} dB) after {} steps{} in {:.1} s, {} bytes, {:.2} FPS ({:.0} s in all)",
                         v.name,
                         r.quants.first().map(|q| q.psnr).unwrap_or(f64::NAN),
                         r.psnr_f32,
                         r.steps,
+                        match (schedule.converge, r.converged) {
+                            (Some(_), true) => " (converged)",
+                            (Some(_), false) => " (the cap)",
+                            (None, _) => "",
+                        },
                         r.train_seconds,
                         r.quants.first().map(|q| q.file_bytes).unwrap_or(0),
                         r.fps,
@@ -869,6 +935,7 @@ pub fn run(a: TradeoffArgs) -> Result<()> {
         fps_frames,
         threads,
         quant: default_quant.to_string(),
+        converge: a.converge.then_some((a.converge_every, a.min_gain)),
     };
     write_outputs(&a.out, &meta, &rows)?;
     println!("{}", markdown_table(&rows));

@@ -26,6 +26,22 @@ pub struct Meta {
     pub fps_frames: usize,
     pub threads: usize,
     pub quant: String,
+    /// `--converge`: (steps between measurements, least gain in dB).
+    #[serde(default)]
+    pub converge: Option<(usize, f64)>,
+}
+
+impl Meta {
+    /// How long each variant trained, for titles and text.
+    fn schedule(&self) -> String {
+        match self.converge {
+            Some((every, gain)) => format!(
+                "until converged: less than {gain} dB gained in {every} steps, at most {} steps",
+                self.iters
+            ),
+            None => format!("{} steps", self.iters),
+        }
+    }
 }
 
 fn mib(b: u64) -> String {
@@ -168,7 +184,10 @@ pub fn write_outputs(out: &Path, meta: &Meta, rows: &[Row]) -> Result<()> {
                 }
             })
             .collect();
-        let title = format!("{title} ({}, {} steps)", meta.dataset, meta.iters);
+        let title = match meta.converge {
+            Some(_) => format!("{title} ({}, until converged)", meta.dataset),
+            None => format!("{title} ({}, {} steps)", meta.dataset, meta.iters),
+        };
         let img = tradeoff_plot::scatter(&title, xl, yl, logx, &points)?;
         let p = out.join(file);
         save_png_atomic(&p, &img).with_context(|| format!("writing {}", p.display()))?;
@@ -184,8 +203,8 @@ pub fn write_outputs(out: &Path, meta: &Meta, rows: &[Row]) -> Result<()> {
         }
     }
     let md = format!(
-        "# Trade-off: {} (base preset {}, {} steps per variant)\n\n\
-         `msth bench tradeoff {}`: each variant trains for {} steps ({} threads), is evaluated on every \
+        "# Trade-off: {} (base preset {}, {} per variant)\n\n\
+         `msth bench tradeoff {}`: each variant trains {} ({} threads), is evaluated on every \
          {}th of the {} held-out views (PSNR f32: the trained parameters; PSNR file: the decoded \
          `.msth` file, {} unless the row says otherwise), and its file is played from the first \
          camera at {}x{} ({} full frames, no incremental rendering) for the FPS. Training times \
@@ -193,9 +212,9 @@ pub fn write_outputs(out: &Path, meta: &Meta, rows: &[Row]) -> Result<()> {
          the Pareto fronts: PSNR against training time, PSNR against file size, FPS against PSNR.\n\n{}\n{}",
         meta.dataset,
         meta.base,
-        meta.iters,
+        meta.schedule(),
         meta.data,
-        meta.iters,
+        meta.schedule(),
         meta.threads,
         meta.stride,
         meta.test_views,
