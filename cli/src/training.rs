@@ -139,6 +139,9 @@ pub(crate) fn report(pb: &ProgressBar, p: &Progress) -> bool {
     } else if p.step.is_multiple_of(10) || p.step == p.iters {
         pb.set_message(format!("loss {:.5}  {rate}", p.loss));
     }
+    if let Some(h) = p.held_out_psnr {
+        pb.suspend(|| println!("step {}: held-out PSNR {h:.2} dB", p.step));
+    }
     true
 }
 
@@ -313,6 +316,15 @@ pub fn train(a: TrainArgs) -> Result<Option<Metrics>> {
 }
 
 fn print_outcome(o: &TrainOutcome) {
+    if o.converged {
+        println!(
+            "converged: the held-out PSNR gained less than the threshold in the last {} steps",
+            o.held_out
+                .windows(2)
+                .last()
+                .map_or(0, |w| w[1].0 - w[0].0)
+        );
+    }
     println!(
         "trained {} steps in {:.1} s ({:.0} field samples/s, {:.0} rays/s); checkpoint {}",
         o.steps,
