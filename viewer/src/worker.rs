@@ -26,7 +26,7 @@ use serde::Serialize;
 ///
 /// A control bound to another render setting is one more field here, one line in
 /// [`RenderControls::apply`] (and in [`RenderControls::rebuilds`] or the render loop) and one
-/// widget in the panel (`app.rs`, `controls_panel`).
+/// widget in the panel (`app/ui.rs`, `controls_panel`).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct RenderControls {
     /// Samples per ray (the samples menu).
