@@ -164,6 +164,11 @@ pub struct VolumeArgs {
     /// `msth eval`, whose figures are the slices' own).
     #[arg(long, value_enum)]
     pub volume_slices: Option<VolumeSlices>,
+    /// Keep drawing from the volume while the camera holds still. By default a camera that
+    /// holds goes to the exact renderer's incremental cache (it re-evaluates only the dynamic
+    /// samples, far faster for a still camera) and the volume draws the camera while it moves.
+    #[arg(long)]
+    pub volume_still: bool,
 }
 
 /// `--volume-slices`.
@@ -374,6 +379,7 @@ pub fn options(a: &PlayArgs) -> Result<PlayOptions> {
     o.volume = a.volume_args.options()?;
     o.render.march = a.volume_args.march()?;
     o.render.slices = a.volume_args.volume_slices.unwrap_or_default().into();
+    o.render.volume_when_still = a.volume_args.volume_still;
     o.bake_first = a.bake_first;
     a.reuse.apply(&mut o.render)?;
     o.render.probe_tolerance = a.probe_tolerance;

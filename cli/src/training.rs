@@ -319,10 +319,7 @@ fn print_outcome(o: &TrainOutcome) {
     if o.converged {
         println!(
             "converged: the held-out PSNR gained less than the threshold in the last {} steps",
-            o.held_out
-                .windows(2)
-                .last()
-                .map_or(0, |w| w[1].0 - w[0].0)
+            o.held_out.windows(2).last().map_or(0, |w| w[1].0 - w[0].0)
         );
     }
     println!(

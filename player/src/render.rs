@@ -86,6 +86,12 @@ pub struct RenderSettings {
     pub march: MarchSettings,
     /// When the CPU renderer bakes the volume's time slices (the GPU renderer always does).
     pub slices: SlicePolicy,
+    /// With a volume and `incremental`: keep drawing from the volume while the camera holds
+    /// still. By default a camera that holds (the same camera as the previous frame) goes to
+    /// the exact path's incremental cache, which re-evaluates only the dynamic samples of its
+    /// dynamic rays (on the stage model at 256x256, 0.05 s a frame against 0.9 s re-marching
+    /// the volume's dynamic rays with the time moving), and the volume draws the moving camera.
+    pub volume_when_still: bool,
 }
 
 /// When the CPU renderer bakes a volume's time slices for a frame that lacks them; until then
@@ -185,6 +191,7 @@ impl Default for RenderSettings {
             exact: false,
             march: MarchSettings::default(),
             slices: SlicePolicy::default(),
+            volume_when_still: false,
         }
     }
 }
@@ -325,6 +332,8 @@ pub struct Renderer {
     /// [`SlicePolicy::Auto`]: the slices the last frames lacked, and the dynamic samples they
     /// evaluated exactly instead.
     slice_debt: (Vec<usize>, usize),
+    /// The previous frame's camera ([`RenderSettings::volume_when_still`]).
+    last_camera: Option<Camera>,
     /// Field evaluations one time slice of the volume costs ([`msth_core::volume::BakePlan::slice_evaluations`],
     /// counted once per volume).
     slice_cost: usize,
@@ -477,6 +486,7 @@ impl Renderer {
             slice_error: None,
             volume_cache: None,
             slice_debt: (Vec::new(), 0),
+            last_camera: None,
             slice_cost: 0,
         }
     }
@@ -588,7 +598,11 @@ impl Renderer {
         params: &[f32],
         params_at: &mut dyn FnMut(f32) -> Option<Vec<f32>>,
     ) -> Frame {
-        if self.uses_volume() {
+        let still = self.settings.incremental
+            && !self.settings.volume_when_still
+            && self.last_camera == Some(*camera);
+        self.last_camera = Some(*camera);
+        if self.uses_volume() && !still {
             return self.render_volume(camera, time, params, params_at);
         }
         let start = Instant::now();

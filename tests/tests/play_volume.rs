@@ -64,6 +64,8 @@ fn renderer_with(
             incremental,
             exact: volume.is_none(),
             slices,
+            // These tests draw the volume's own incremental frames.
+            volume_when_still: true,
             ..Default::default()
         },
     );
@@ -206,6 +208,50 @@ fn a_budget_too_small_for_the_fine_volume_gets_a_coarser_one() {
         Err(e @ BakeError::OverBudget { .. }) => assert!(e.to_string().contains("--volume-budget")),
         other => panic!("expected OverBudget, got {other:?}"),
     }
+}
+
+/// By default ([`RenderSettings::volume_when_still`] off) the volume draws a moving camera, and a
+/// camera that holds goes to the exact path's incremental cache: those frames are the exact
+/// incremental renderer's, and the volume takes over again when the camera moves.
+#[test]
+fn a_still_camera_goes_to_the_exact_incremental_cache() {
+    let d = fixture();
+    let mut r = Renderer::new(
+        &d.config,
+        RenderSettings {
+            incremental: true,
+            slices: SlicePolicy::Always,
+            ..Default::default()
+        },
+    );
+    r.set_occupancy(d.occupancy.clone().map(Arc::new));
+    r.set_volume(Some(baked(&d, &VolumeOptions::default())));
+    let cams = cameras(&d);
+    for camera in [cams[1], cams[0]] {
+        assert!(
+            draw(&mut r, &d, &camera, 0.2).stats.volume,
+            "a moving camera"
+        );
+    }
+    // Held from here: the exact renderer's incremental frames, from its first (full) one.
+    let mut exact = renderer(&d, None, true);
+    let mut partial = 0;
+    for k in 0..4 {
+        let time = 0.3 + 0.2 * k as f32;
+        let a = draw(&mut r, &d, &cams[0], time);
+        let b = draw(&mut exact, &d, &cams[0], time);
+        assert!(
+            !a.stats.volume,
+            "t={time}: a still camera drew from the volume"
+        );
+        assert_eq!(a.rgb, b.rgb, "t={time}");
+        partial += usize::from(!a.stats.full);
+    }
+    assert!(
+        partial >= 2,
+        "the exact cache re-rendered only dynamic rays"
+    );
+    assert!(draw(&mut r, &d, &cams[1], 0.5).stats.volume, "moving again");
 }
 
 #[test]

@@ -410,6 +410,8 @@ pub fn base_settings(
         incremental,
         time_range: (0.0, 1.0),
         gpu_tables: tables.unwrap_or(gpu_tables_for(quant)),
+        // The volume switch (V) is the viewer's own choice: it holds for a still camera too.
+        volume_when_still: true,
         ..RenderSettings::default()
     }
 }

@@ -131,6 +131,8 @@ pub struct GpuRenderer {
     volume: Option<(BakedVolume, GpuVolume)>,
     /// The march kernel, compiled with the first volume.
     volume_kernel: Option<VolumeKernel>,
+    /// The previous frame's camera ([`RenderSettings::volume_when_still`]).
+    last_camera: Option<Camera>,
     /// Why the volume's time slices could not be baked, if they could not (frames then come
     /// from the exact field).
     slice_error: Option<String>,
@@ -183,6 +185,7 @@ impl GpuRenderer {
             mlp_status: MlpStatus::Generic,
             volume: None,
             volume_kernel: None,
+            last_camera: None,
             slice_error: None,
             device_bake: !ctx_software,
         })
@@ -446,7 +449,11 @@ impl GpuRenderer {
             .validate()
             .map_err(|e| GpuError::Model(format!("camera: {e}")))?;
         self.upload(params)?;
-        if self.uses_volume() {
+        let still = self.settings.incremental
+            && !self.settings.volume_when_still
+            && self.last_camera == Some(*camera);
+        self.last_camera = Some(*camera);
+        if self.uses_volume() && !still {
             let slice_seconds = self.bake_slices(time, params, params_at);
             if self.slice_error.is_none() {
                 return self.render_volume(camera, time, start, slice_seconds);
