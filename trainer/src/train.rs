@@ -501,7 +501,8 @@ fn default_min_gain() -> f64 {
 /// before (a NaN counts as no gain).
 pub fn converged(curve: &[(usize, f64)], min_gain_db: f64) -> bool {
     match curve {
-        [.., (_, a), (_, b)] => !(b - a >= min_gain_db),
+        // NaN gains compare as nothing: converged.
+        [.., (_, a), (_, b)] => (b - a).partial_cmp(&min_gain_db).is_none_or(|o| o.is_lt()),
         _ => false,
     }
 }
