@@ -196,6 +196,18 @@ impl Default for RenderSettings {
     }
 }
 
+/// Whether `camera` is the previous frame's (`last`, which becomes `camera`) for a playback
+/// that sends a still camera to the exact incremental cache
+/// ([`RenderSettings::volume_when_still`] off, `incremental` on).
+pub(crate) fn holds_still(
+    settings: &RenderSettings,
+    last: &mut Option<Camera>,
+    camera: &Camera,
+) -> bool {
+    let held = last.replace(*camera) == Some(*camera);
+    held && settings.incremental && !settings.volume_when_still
+}
+
 /// What one frame cost.
 #[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
 pub struct FrameStats {
@@ -598,10 +610,7 @@ impl Renderer {
         params: &[f32],
         params_at: &mut dyn FnMut(f32) -> Option<Vec<f32>>,
     ) -> Frame {
-        let still = self.settings.incremental
-            && !self.settings.volume_when_still
-            && self.last_camera == Some(*camera);
-        self.last_camera = Some(*camera);
+        let still = holds_still(&self.settings, &mut self.last_camera, camera);
         if self.uses_volume() && !still {
             return self.render_volume(camera, time, params, params_at);
         }

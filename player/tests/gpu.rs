@@ -1264,13 +1264,23 @@ fn baked_volume(
     cam: &Camera,
     colour: msth_core::volume::ColourMode,
 ) -> msth_player::volume::BakedVolume {
-    use msth_player::volume::{bake, plan_bake, BakedVolume, VolumeOptions};
+    use msth_player::volume::{plan_bake, VolumeOptions};
     let options = VolumeOptions {
         max_resolution: Some(64),
         colour,
         ..Default::default()
     };
     let plan = plan_bake(cfg, params, None, &[*cam], &options).unwrap();
+    bake_planned(cfg, params, plan)
+}
+
+/// The volume `plan` baked on the host.
+fn bake_planned(
+    cfg: &ModelConfig,
+    params: &[f32],
+    plan: msth_core::volume::BakePlan,
+) -> msth_player::volume::BakedVolume {
+    use msth_player::volume::{bake, BakedVolume};
     let layout = ModelLayout::new(cfg);
     let volume = bake(
         &plan,
@@ -1415,7 +1425,7 @@ fn volume_frames_on_the_gpu_match_the_cpu_march() {
 /// leaves the others out ([`msth_core::volume::OUTSIDE_BRICK`]); a wider camera's rays that reach
 /// them are drawn by the exact passes on the GPU, as by the exact renderer on the CPU.
 fn rays_reaching_bricks_left_out_of_the_volume_draw_exactly_on_the_gpu() {
-    use msth_player::volume::{bake, plan_bake, BakedVolume, VolumeOptions};
+    use msth_player::volume::{plan_bake, VolumeOptions};
     let mut cfg = config(BlendMode::Mst);
     small(&mut cfg);
     let layout = ModelLayout::new(&cfg);
@@ -1449,18 +1459,7 @@ fn rays_reaching_bricks_left_out_of_the_volume_draw_exactly_on_the_gpu() {
     .unwrap();
     assert!(plan.outside_views > 0, "no brick left out");
     assert_eq!(plan.geometry.resolution, full.geometry.resolution);
-    let volume = bake(
-        &plan,
-        &cfg,
-        &layout,
-        &params,
-        &msth_core::volume::BakeProgress::default(),
-    )
-    .unwrap();
-    let vol = BakedVolume {
-        volume,
-        plan: std::sync::Arc::new(plan),
-    };
+    let vol = bake_planned(&cfg, &params, plan);
     let settings = RenderSettings {
         exact: false,
         incremental: false,

@@ -14,7 +14,7 @@ use glam::Vec3;
 use msth_codec::{decode_all, DecodedModel};
 use msth_core::camera::Camera;
 use msth_core::field::ModelLayout;
-use msth_core::volume::{BakeError, BakeProgress};
+use msth_core::volume::{BakeError, BakePlan, BakeProgress};
 use msth_player::volume::{bake, plan_bake, BakedVolume, VolumeOptions};
 use msth_player::{Frame, RenderSettings, Renderer, SlicePolicy};
 
@@ -32,6 +32,10 @@ fn baked(d: &DecodedModel, options: &VolumeOptions) -> BakedVolume {
         options,
     )
     .unwrap();
+    bake_planned(d, plan)
+}
+
+fn bake_planned(d: &DecodedModel, plan: BakePlan) -> BakedVolume {
     let layout = ModelLayout::new(&d.config);
     let volume = bake(
         &plan,
@@ -295,19 +299,7 @@ fn rays_that_reach_bricks_left_out_are_drawn_exactly() {
     assert_eq!(plan.geometry.resolution, full.geometry.resolution);
     let note = plan.note().unwrap();
     assert!(note.contains("rendered exactly"), "{note}");
-    let layout = ModelLayout::new(&d.config);
-    let volume = bake(
-        &plan,
-        &d.config,
-        &layout,
-        &d.params,
-        &BakeProgress::default(),
-    )
-    .unwrap();
-    let vol = BakedVolume {
-        volume,
-        plan: Arc::new(plan),
-    };
+    let vol = bake_planned(&d, plan);
     let mut exact = renderer(&d, None, false);
     let mut volume = renderer(&d, Some(vol.clone()), false);
     let mut incremental = renderer(&d, Some(vol), true);

@@ -449,10 +449,7 @@ impl GpuRenderer {
             .validate()
             .map_err(|e| GpuError::Model(format!("camera: {e}")))?;
         self.upload(params)?;
-        let still = self.settings.incremental
-            && !self.settings.volume_when_still
-            && self.last_camera == Some(*camera);
-        self.last_camera = Some(*camera);
+        let still = crate::render::holds_still(&self.settings, &mut self.last_camera, camera);
         if self.uses_volume() && !still {
             let slice_seconds = self.bake_slices(time, params, params_at);
             if self.slice_error.is_none() {
