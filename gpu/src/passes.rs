@@ -1,4 +1,4 @@
-//! Rendering through per-sample passes (issue #17): the host side of the `pass_*` entry points
+//! Rendering through per-sample passes: the host side of the `pass_*` entry points
 //! of the render shader (modules `passes*` of `shaders/render/`, [`crate::shaders`]). A frame is rendered in batches of pixels; each batch is one
 //! submission of nine dispatches over compacted work lists (rays that hit the scene, then
 //! (ray, sample) pairs, then the samples light still reaches), sized on the device by
