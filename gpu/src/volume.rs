@@ -37,10 +37,13 @@ pub struct VolumeU {
     pub march: [f32; 4],
 }
 
-/// The compiled `volume_march` kernel and its bindings (model, view, frame, the volume).
+/// The compiled `volume_march` kernel and its bindings (model, view, pixel list, frame, the
+/// volume).
 pub struct VolumeKernel {
     layout: wgpu::BindGroupLayout,
     pipeline: wgpu::ComputePipeline,
+    /// The pixel list's placeholder: the native player draws every pixel (no list flag).
+    no_list: wgpu::Buffer,
 }
 
 impl VolumeKernel {
@@ -68,6 +71,7 @@ impl VolumeKernel {
             entries: &[
                 entry(0, wgpu::BufferBindingType::Uniform),
                 entry(1, wgpu::BufferBindingType::Uniform),
+                entry(5, read),
                 entry(6, wgpu::BufferBindingType::Storage { read_only: false }),
                 entry(7, wgpu::BufferBindingType::Uniform),
                 entry(8, read),
@@ -90,7 +94,16 @@ impl VolumeKernel {
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(GpuError::Shader(e.to_string()));
         }
-        Ok(VolumeKernel { layout, pipeline })
+        let no_list = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("no pixel list"),
+            contents: &[0; 4],
+            usage: wgpu::BufferUsages::STORAGE,
+        });
+        Ok(VolumeKernel {
+            layout,
+            pipeline,
+            no_list,
+        })
     }
 }
 
@@ -383,6 +396,7 @@ impl GpuVolume {
             entries: &[
                 bind(0, &scene.model),
                 bind(1, &view_buf),
+                bind(5, &kernel.no_list),
                 bind(6, out),
                 bind(7, &vol_buf),
                 bind(8, &self.words),

@@ -281,6 +281,36 @@ fn web_player_streams_renders_and_matches_native() {
         natives.push(out.join("frame_00000.png"));
     }
 
+    // The play-time volume: the fixture whose mask splits the scene (static and dynamic bricks),
+    // drawn by the native CPU renderer's volume at its camera, between two time slices.
+    let split = served.join("split.msth");
+    std::fs::write(&split, msth_tests::split_mask_fixture()).unwrap();
+    let native_volume = dir.path().join("native_volume");
+    msth(&[
+        "play",
+        split.to_str().unwrap(),
+        "--path",
+        "0",
+        "--frames",
+        "1",
+        "--time",
+        "0.37:0.37",
+        "--out",
+        native_volume.to_str().unwrap(),
+        "--no-video",
+        "--quiet",
+        "--cpu",
+        "--volume",
+        "--bake-first",
+        "--volume-slices",
+        "always",
+        "--volume-still",
+        "--volume-budget",
+        "64",
+    ])
+    .unwrap();
+    let native_volume = native_volume.join("frame_00000.png");
+
     // The server `msth serve --web web` runs, on a random loopback port.
     let server = BackgroundServer::start(ServerConfig {
         addr: "127.0.0.1:0".parse().unwrap(),
@@ -333,6 +363,10 @@ fn web_player_streams_renders_and_matches_native() {
             "wide.msth",
             "--wide-clamped",
             &wide_clamped,
+            "--model-volume",
+            "split.msth",
+            "--native-volume",
+            native_volume.to_str().unwrap(),
             "--chromium",
             chromium.to_str().unwrap(),
             "--out",
@@ -351,6 +385,7 @@ fn web_player_streams_renders_and_matches_native() {
         "{r:#}"
     );
     assert!(r["figures"]["psnr_vs_native_t0"].as_f64().unwrap() >= 35.0);
+    assert!(r["figures"]["psnr_volume_vs_native_volume"].as_f64().unwrap() >= 35.0);
     assert!(r["figures"]["psnr_model2_vs_native"].as_f64().unwrap() >= 35.0);
     assert!(
         r["figures"]["psnr_model2_faster_vs_native"]

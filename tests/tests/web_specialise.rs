@@ -11,6 +11,11 @@
 //! by `web/tests/binary16.mjs`) are msth-gpu's `TableFormat::F16` bit for bit: the packed words
 //! of values at every rounding boundary, and the kernels' source.
 //!
+//! The page plans the play-time volume as the native players do: `web/js/volume.js` (run by
+//! `web/tests/volume_plan.mjs` on the page's decoder) chooses the same resolution, the same
+//! static, dynamic and left-out bricks, the same dynamic cells, slices and thresholds as
+//! msth-player's `plan_bake` for the same file and budget.
+//!
 //! Needs `node`; without it the test is reported as ignored with the reason, unless
 //! `MSTH_REQUIRE_NODE=1` (CI sets `MSTH_REQUIRE_ALL=1`).
 
@@ -32,6 +37,11 @@ fn main() -> std::process::ExitCode {
             &[&node],
             "javascript_and_rust_specialise_the_same_text",
             javascript_and_rust_specialise_the_same_text,
+        )
+        .needs(
+            &[&node],
+            "javascript_and_rust_plan_the_same_volume",
+            javascript_and_rust_plan_the_same_volume,
         )
         .needs(
             &[&node],
@@ -264,5 +274,171 @@ fn javascript_and_rust_hold_binary16_tables_alike() {
     println!(
         "{} values packed alike in both languages, {clamped} of them clamped",
         values.len()
+    );
+}
+
+fn javascript_and_rust_plan_the_same_volume() {
+    use msth_player::volume::{plan_bake, VolumeOptions};
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let dir = tempfile::tempdir().unwrap();
+    // The fixture with a mask that splits the scene (static and dynamic bricks), as it is and
+    // with one narrow camera (so that a budget leaves bricks out of the views).
+    let split = msth_tests::split_mask_fixture();
+    let d = msth_codec::decode_all(&split).unwrap();
+    let narrow = {
+        let mut cam = d.cameras[0].clone();
+        cam.fx *= 3.0;
+        cam.fy *= 3.0;
+        let opts = msth_codec::EncodeOptions {
+            quant: d.metadata.quant,
+            chunk_frames: d.metadata.chunk_frames as usize,
+            dynamic_threshold: d.metadata.dynamic_threshold,
+            frame_rate: d.metadata.frame_rate,
+            occupancy_resolution: d.occupancy.as_ref().map_or(64, |g| g.resolution),
+            ..Default::default()
+        };
+        msth_codec::encode(&d.config, &d.params, &[cam], &opts)
+            .unwrap()
+            .0
+    };
+    let mut kinds = std::collections::BTreeSet::new();
+    for (name, bytes) in [("split", &split), ("narrow", &narrow)] {
+        let file = dir.path().join(format!("{name}.msth"));
+        std::fs::write(&file, bytes).unwrap();
+        let d = msth_codec::decode_all(bytes).unwrap();
+        for budget in [512u64 << 20, 1 << 20, 300 << 10, 100 << 10, 4 << 10] {
+            let rust = plan_bake(
+                &d.config,
+                &d.params,
+                d.occupancy.as_ref(),
+                &d.cameras,
+                &VolumeOptions {
+                    budget: Some(budget),
+                    ..Default::default()
+                },
+            );
+            let out = Command::new("node")
+                .current_dir(&root)
+                .arg("web/tests/volume_plan.mjs")
+                .arg(&file)
+                .arg(budget.to_string())
+                .output()
+                .unwrap();
+            assert!(
+                out.status.success(),
+                "{name}: node failed:\n{}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+            let js: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+            let what = format!("{name} at {budget} bytes");
+            let plan = match rust {
+                Ok(plan) => plan,
+                Err(e) => {
+                    let err = js["error"]
+                        .as_str()
+                        .unwrap_or_else(|| panic!("{what}: rust refuses ({e}), js plans {js}"));
+                    assert!(err.starts_with("even a 32^3 volume needs"), "{what}: {err}");
+                    kinds.insert("over budget");
+                    println!("{what}: both refuse: {err}");
+                    continue;
+                }
+            };
+            let ints = |k: &str| -> Vec<u64> {
+                js[k]
+                    .as_array()
+                    .unwrap_or_else(|| panic!("{what}: {k} missing in {js}"))
+                    .iter()
+                    .map(|v| v.as_u64().unwrap())
+                    .collect()
+            };
+            let widen = |v: &[u32]| v.iter().map(|&x| x as u64).collect::<Vec<_>>();
+            assert_eq!(
+                js["resolution"].as_u64(),
+                Some(plan.geometry.resolution as u64),
+                "{what}"
+            );
+            assert_eq!(
+                js["brick"].as_u64(),
+                Some(plan.geometry.brick as u64),
+                "{what}"
+            );
+            assert_eq!(
+                ints("static_bricks"),
+                widen(&plan.static_bricks),
+                "{what}: static bricks"
+            );
+            assert_eq!(
+                ints("dynamic_bricks"),
+                widen(&plan.dynamic_bricks),
+                "{what}: dynamic bricks"
+            );
+            assert_eq!(
+                ints("dynamic_cells"),
+                widen(&plan.dynamic_cells),
+                "{what}: dynamic cells"
+            );
+            assert_eq!(
+                ints("outside_bricks"),
+                widen(&plan.outside_bricks),
+                "{what}: bricks left out"
+            );
+            assert_eq!(
+                js["resident_slices"].as_u64(),
+                Some(plan.resident_slices as u64),
+                "{what}"
+            );
+            let times: Vec<f64> = js["slice_times"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|v| v.as_f64().unwrap())
+                .collect();
+            assert_eq!(
+                times,
+                plan.slice_times
+                    .iter()
+                    .map(|&t| t as f64)
+                    .collect::<Vec<_>>(),
+                "{what}"
+            );
+            for (k, want) in [
+                ("density_threshold", plan.density_threshold),
+                ("proposal_threshold", plan.proposal_threshold),
+            ] {
+                let got = js[k].as_f64().unwrap();
+                assert!(
+                    (got - want as f64).abs() <= 1e-6 * want.abs() as f64,
+                    "{what}: {k} {got} against {want}"
+                );
+            }
+            if !plan.outside_bricks.is_empty() {
+                kinds.insert("bricks left out");
+            }
+            if plan.geometry.resolution < plan.requested_resolution {
+                kinds.insert("coarser");
+            }
+            if !plan.dynamic_bricks.is_empty() && !plan.static_bricks.is_empty() {
+                kinds.insert("static and dynamic");
+            }
+            println!(
+                "{what}: the same plan: {}^3, {} static, {} dynamic, {} left out, {} of {} slices resident",
+                plan.geometry.resolution,
+                plan.static_bricks.len(),
+                plan.dynamic_bricks.len(),
+                plan.outside_bricks.len(),
+                plan.resident_slices,
+                plan.slice_times.len()
+            );
+        }
+    }
+    // The budgets reach every branch of the plan.
+    assert_eq!(
+        kinds.into_iter().collect::<Vec<_>>(),
+        [
+            "bricks left out",
+            "coarser",
+            "over budget",
+            "static and dynamic"
+        ]
     );
 }

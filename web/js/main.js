@@ -26,6 +26,16 @@
 // the cache. Only where the probes take at most CACHE_BUDGET_MS at the GPU's measured rate (on a
 // software GPU, small sizes only), and while playing only where a full-size frame takes at most
 // PLAY_CACHE_FRAMES model frames (the frame rate comes first; paused, scrubbing uses it).
+// Play-time volume (stated on the page): after the first picture, the page bakes the file's
+// static field into a sparse volume on the GPU (volume.js: the native players' plan and bake;
+// `eval_points` evaluates the vertices), within a quarter of the GPU's storage buffer limit. Once
+// it is ready, the frames of a moving camera or of playing video (but the incremental frames of
+// a still camera) are drawn through it (`volume_march`, the native `volume.wgsl`): a few reads a
+// sample instead of the hash grids and MLPs, at the resolution the policy above adapts to the
+// volume's own frame times; a view that comes to rest is drawn again exactly, as the native
+// players do. The dynamic bricks' time slices are baked when a frame first needs them, and rays
+// that reach a brick the volume left out are drawn exactly. `exact=1` keeps every frame on the
+// exact path.
 // Samples per ray (also stated on the page): the model's own on a hardware GPU, `fast` (fewer,
 // docs/tradeoff.md) on a fallback (software) adapter; the samples menu changes them.
 //
@@ -36,7 +46,10 @@
 // every sample: the file's occupancy grid unused, as `msth play --no-skip-empty`),
 // `samples=file|full|fast|faster|P,M` (samples per ray, as `msth play --samples`; the samples menu;
 // default file: the counts the file stores for playback, the model's own without them),
-// `incremental=0` (no static cache: every frame re-renders every pixel), `deadline=S` and
+// `incremental=0` (no static cache: every frame re-renders every pixel), `exact=1` (no play-time
+// volume: every frame from the hash grids and MLPs, as `msth play --exact`), `volume-budget=MIB`
+// (the volume's memory budget, as `msth play --volume-budget`), `volume=wait` (bake the volume
+// before the first frame: tests and benchmarks), `deadline=S` and
 // `stall=S` (the loader's deadlines in seconds, as `msth play --deadline` and `--stall-timeout`).
 //
 // `window.msth` exposes the player's state to tests and to the console (see `hooks` below).
@@ -44,6 +57,7 @@
 import { loaderOptions, ModelStream } from "./stream.js";
 import { cameraFromJson, makeRig, Orbit, templateCamera } from "./camera.js";
 import { Renderer, NoWebGpu, playSamples } from "./renderer.js";
+import { bakeSlice, bakeVolume, planNote, planVolume, sliceAround, volumeLayout } from "./volume.js";
 import { KIND, LIMITS, PROBES, SAMPLE_LEVELS } from "./generated/contract.js";
 
 const $ = (id) => document.getElementById(id);
@@ -82,6 +96,14 @@ const hooks = {
   /** Milestones in ms since navigation start: adapter, prefix, pipeline, params, firstFrame. */
   timings: {},
   noWebGpu: false,
+  /** The play-time volume: `{ state: "off" | "waiting" | "baking" | "ready" | "failed", progress,
+   * note, error, resolution, bytes, ms, evaluated, slices }` (set once the kernels exist). */
+  volume: null,
+  /** Whether the last frame was drawn through the volume, and how many of its rays exactly. */
+  lastVolume: false,
+  lastOutside: 0,
+  /** Frames drawn through the volume so far. */
+  volumeFrames: 0,
 };
 window.msth = hooks;
 
@@ -261,6 +283,9 @@ async function main() {
     /** The static cache: `{ camKey, dynamic, pixels }` (camKey: the camera and samples it
      * belongs to), or null. */
     cache: null,
+    /** Index into SCALES of frames drawn through the play-time volume (adapted to the frame
+     * budget as `level` is). */
+    volumeLevel: 0,
   };
   hooks.state = state;
   hooks.orbit = orbit;
@@ -324,7 +349,45 @@ async function main() {
   };
   hooks.renderer = gpu;
   hooks.timings.pipeline = performance.now();
+  $("policy").textContent += params.get("exact") === "1"
+    ? " Every frame is drawn from the hash grids and MLPs (?exact=1)."
+    : " After the first picture the page bakes the file's static field into a play-time volume on the GPU (within a quarter of its storage buffer limit, ?volume-budget=MiB); once it is ready, a moving camera and playing video (but a still camera's incremental frames) are drawn through it, a few reads per sample instead of the hash grids and MLPs, at the resolution adapted to its own frame times, and rays that reach a part the volume left out are drawn exactly; a view at rest is drawn again exactly (?exact=1 draws every frame exactly).";
   const paramBuf = new Float32Array(stream.decoder.layout.total);
+
+  // ---- the play-time volume (top of this file)
+  const exactOnly = params.get("exact") === "1";
+  const volume = { state: exactOnly ? "off" : "waiting", progress: 0, note: null, error: null, resolution: null, bytes: 0, ms: null, evaluated: 0, slices: 0, sliceMs: 0 };
+  hooks.volume = volume;
+  let volumeData = null;
+  let volumePlan = null;
+  /** Plans and bakes the volume from the uploaded static parameters (`paramBuf` holds them). */
+  async function bakeVolumeNow() {
+    volume.state = "baking";
+    const t0 = performance.now();
+    try {
+      const limits = renderer.device.limits;
+      const mib = Number(params.get("volume-budget"));
+      const budget = mib > 0 ? Math.floor(mib * 1048576) : Math.floor(Math.min(limits.maxStorageBufferBindingSize, limits.maxBufferSize) / 4);
+      const plan = planVolume({ model: meta.model, layout: stream.decoder.layout, params: paramBuf, occupancy: stream.decoder.occupancy, cameras, budget });
+      volume.planMs = performance.now() - t0;
+      volume.note = planNote(plan);
+      volume.resolution = plan.geometry.resolution;
+      const vol = await bakeVolume(gpu, plan, { onProgress: (f) => (volume.progress = f) });
+      volume.bytes = await gpu.setVolume(vol, volumeLayout(vol));
+      volume.evaluated = vol.stats.evaluated;
+      volumePlan = plan;
+      volumeData = vol;
+      volume.ms = performance.now() - t0;
+      volume.progress = 1;
+      volume.state = "ready";
+      state.dirty = true;
+      console.log(`play-time volume: ${plan.geometry.resolution}^3, ${vol.stats.bricks} bricks, ${(volume.bytes / 1048576).toFixed(1)} MiB, baked in ${volume.ms.toFixed(0)} ms${volume.note ? ` (${volume.note})` : ""}`);
+    } catch (e) {
+      volume.state = "failed";
+      volume.error = e.message;
+      console.log(`play-time volume: ${e.message}; frames are drawn exactly`);
+    }
+  }
 
   // ---- timeline
   const scrub = $("scrub");
@@ -465,6 +528,7 @@ async function main() {
       state.uploads++;
       hooks.timings.params ??= performance.now();
     }
+    if (volume.state === "waiting" && params.get("volume") === "wait") await bakeVolumeNow();
     const full = orbit.camera();
     // The resolution policy (top of this file): reduced while moving or playing, refined step by
     // step to full size when still.
@@ -477,6 +541,9 @@ async function main() {
       await renderIncremental(full, camKey);
       return;
     }
+    // Through the play-time volume while the camera moves or the video plays; a still view is
+    // refined on the exact path.
+    if (volume.state === "ready" && (moving || state.playing) && (await renderVolumeFrame(full, camKey, moving))) return;
     // Moving: at most half size per side unless the GPU's measured rate draws a full-size frame
     // in half the moving budget (a drag should answer at once); playing: full size as long as a
     // frame fits one model frame; still and paused: one step finer than the last frame
@@ -514,7 +581,77 @@ async function main() {
     state.refine = scale !== 1;
     hooks.lastRays = w * h - (done ? Math.ceil(full.width / done) * Math.ceil(full.height / done) : 0);
     hooks.lastIncremental = false;
+    hooks.lastVolume = false;
     finishFrame(full, scale, w, h, t0, t1);
+  }
+
+  /**
+   * Bakes the volume's time slices around `t` that are not baked yet (uploading their chunk's
+   * parameters for it): `sliceAround`'s `[k0, k1, w]`, or null when a chunk has not arrived.
+   */
+  async function bakeSlicesFor(t) {
+    const d = volumeData.dynamic;
+    const around = sliceAround(d.times, t);
+    if (d.bricks.length) {
+      const missing = [...new Set([around[0], around[1]])].filter((k) => !d.slices[k]);
+      if (!missing.every((k) => stream.readyFor(d.times[k]))) return null;
+      for (const k of missing) {
+        const ts = performance.now();
+        const tk = d.times[k];
+        const own = stream.decoder.chunkForTime(tk) === state.loadedChunk;
+        if (!own) {
+          const scratch = new Float32Array(stream.decoder.layout.total);
+          stream.decoder.paramsForTime(tk, scratch);
+          gpu.setParams(scratch, true);
+        }
+        try {
+          await bakeSlice(gpu, volumePlan, volumeData, k);
+        } finally {
+          if (!own) gpu.setParams(paramBuf, true);
+        }
+        volume.slices++;
+        volume.sliceMs += performance.now() - ts;
+      }
+    }
+    return around;
+  }
+
+  /**
+   * A frame through the play-time volume (the lattice of the volume's resolution level),
+   * baking the time slices it needs first; false (nothing drawn) when a slice's chunk has not
+   * arrived.
+   */
+  async function renderVolumeFrame(full, camKey, moving) {
+    const level = state.volumeLevel;
+    const scale = SCALES[level];
+    const stride = Math.round(1 / scale);
+    const around = await bakeSlicesFor(state.t);
+    if (!around) return false;
+    gpu.bindSlices(around);
+    const t0 = performance.now();
+    state.drawnKey = null;
+    const out = await gpu.renderVolume(full, state.t, () => state.dirty, stride);
+    if (!out) return true;
+    const t1 = performance.now();
+    // The same resolution policy as the exact path's, adapted on the volume's own frame times.
+    const budget = moving ? state.movingBudget : 1000 / modelFps;
+    if (t1 - t0 > budget && level < SCALES.length - 1) state.volumeLevel++;
+    else if ((t1 - t0) * 4 < 0.7 * budget && level > 0) state.volumeLevel--;
+    // The frame buffer holds no lattice of the exact path: a still view is drawn again exactly,
+    // at full size, shown as it progresses.
+    state.drawnCamKey = camKey;
+    state.drawnT = state.t;
+    state.scale = scale;
+    state.refine = true;
+    state.refineLevel = 0;
+    const [w, h] = [Math.ceil(full.width / stride), Math.ceil(full.height / stride)];
+    hooks.lastRays = w * h;
+    hooks.lastIncremental = false;
+    hooks.lastVolume = true;
+    hooks.lastOutside = out.outside;
+    hooks.volumeFrames++;
+    finishFrame(full, scale, w, h, t0, t1);
+    return true;
   }
 
   /** The bookkeeping after any finished frame: hooks, first-frame marks, the FPS window. */
@@ -532,8 +669,10 @@ async function main() {
       hooks.timings.firstFrame = t1;
       hooks.firstFrameSize = [w, h];
       console.log(`first frame (${w}x${h}) after ${t1.toFixed(0)} ms`);
-      // The passes compiled later (renderer.js `compileLater`): after the first picture.
+      // The passes compiled later (renderer.js `compileLater`) and the play-time volume: after
+      // the first picture.
       hooks.renderer?.compileLater?.();
+      if (volume.state === "waiting") bakeVolumeNow();
     }
     if (hooks.firstFullFrameMs === null && scale === 1) {
       hooks.firstFullFrameMs = t1;
@@ -603,6 +742,7 @@ async function main() {
     state.refine = false;
     state.refineLevel = 0;
     hooks.lastIncremental = true;
+    hooks.lastVolume = false;
     finishFrame(full, 1, w, h, t0, t1);
   }
 
@@ -644,7 +784,8 @@ async function main() {
       const why = state.playing ? "playing" : performance.now() - state.lastInput < STILL_MS ? "moving" : "refining";
       const fewer = samples[0] !== model.num_proposal_samples || samples[1] !== model.num_samples;
       const shown = hooks.lastIncremental && state.cache ? ` (full, incremental: ${state.cache.dynamic} of ${state.cache.pixels} pixels re-rendered)` : s === 1 ? " (full)" : ` (1/${Math.round(1 / s)}, ${why})`;
-      $("res").textContent = `· ${rw}x${rh}${shown}${fewer ? ` · ${samples[0]} + ${samples[1]} samples` : ""}`;
+      const vs = volume.state === "baking" ? ` · baking the volume ${Math.round(100 * volume.progress)}%` : hooks.lastVolume ? ` · volume ${volume.resolution}³${hooks.lastOutside ? `, ${hooks.lastOutside} rays exact` : ""}` : "";
+      $("res").textContent = `· ${rw}x${rh}${shown}${fewer && !hooks.lastVolume ? ` · ${samples[0]} + ${samples[1]} samples` : ""}${vs}`;
     }
     if (performance.now() - (recent[n - 1] ?? 0) > 1000) recent.length = 0;
     if (!hooks.error) requestAnimationFrame(tick);
@@ -665,6 +806,39 @@ async function main() {
     return { frames: n, seconds: s, fps: n / s, width: canvas.width, height: canvas.height };
   };
   /**
+   * Renders `n` frames of a camera moving around the orbit (`step` degrees of azimuth a frame)
+   * back to back, through the volume (`useVolume`, once baked) or exactly, at full size: per
+   * frame ms, GPU complete, and the mean frames per second. Restores the view after.
+   */
+  hooks.orbitBenchmark = async (n = 8, step = 5, useVolume = true) => {
+    setPlaying(false);
+    while (state.rendering) await new Promise((r) => setTimeout(r, 5));
+    if (useVolume && volume.state !== "ready") throw new Error(`the volume is ${volume.state}${volume.error ? `: ${volume.error}` : ""}`);
+    state.rendering = true;
+    const az0 = orbit.az;
+    const around = useVolume ? await bakeSlicesFor(state.t) : null;
+    if (useVolume && !around) throw new Error("the chunks of the volume's time slices have not arrived");
+    const ms = [];
+    let outside = 0;
+    try {
+      for (let i = 0; i < n; i++) {
+        orbit.az = az0 + (i + 1) * step;
+        const cam = orbit.camera();
+        const t0 = performance.now();
+        if (useVolume) {
+          gpu.bindSlices(around);
+          outside += (await gpu.renderVolume(cam, state.t)).outside;
+        } else await gpu.render(cam, state.t);
+        ms.push(performance.now() - t0);
+      }
+    } finally {
+      orbit.az = az0;
+      state.rendering = false;
+      state.dirty = true;
+    }
+    return { ms, fps: (1000 * n) / ms.reduce((a, b) => a + b, 0), outside, width: canvas.width, height: canvas.height };
+  };
+  /**
    * Test hooks. `hold()` pauses and stops the page drawing (after the frame in progress).
    * `drawHeld(stride, done, rays)` then draws the current view reduced to 1/`stride` per side
    * and keeps it on the canvas: `done`, the coarser lattice of this very view the frame buffer
@@ -682,6 +856,16 @@ async function main() {
     if (rays > 0) gpu.tile = rays;
     await gpu.render(orbit.camera(), state.t, () => rays > 0, stride, done);
     return Array.from(gpu.shownSize);
+  };
+  /** Held (after `hold()`): draws the current view through the play-time volume at 1/`stride`
+   * per side (its slices baked first) and keeps it on the canvas; resolves to the rays drawn
+   * exactly because they reached a brick the volume left out. */
+  hooks.drawVolumeHeld = async (stride = 1) => {
+    if (volume.state !== "ready") throw new Error(`the volume is ${volume.state}${volume.error ? `: ${volume.error}` : ""}`);
+    const around = await bakeSlicesFor(state.t);
+    if (!around) throw new Error("the chunks of the volume's time slices have not arrived");
+    gpu.bindSlices(around);
+    return (await gpu.renderVolume(orbit.camera(), state.t, () => false, stride)).outside;
   };
   hooks.release = () => {
     state.rendering = false;

@@ -39,6 +39,12 @@ import { specialiseWgsl } from "./specialise.js";
  */
 const TILE_MS = 200;
 
+/** The visible depth `volume_march` writes for a ray that reached a brick the volume left out. */
+const OUTSIDE_DEPTH = -2;
+
+/** Points one `eval_points` dispatch evaluates at most (the volume's bake). */
+const EVAL_BATCH = 1 << 18;
+
 /** Lattice spacings of reduced frames (pixels per side of a block), finest first. */
 export const STRIDES = [1, 2, 4, 8];
 
@@ -404,16 +410,18 @@ export class Renderer {
       if (!resp.ok) throw new Error(`shaders/${name}: HTTP ${resp.status}`);
       return resp.text();
     };
-    const [source, tablesF16] = await Promise.all([text("render.wgsl"), text("tables_f16.wgsl")]);
-    return new Renderer(adapter, device, source, tablesF16);
+    const [source, tablesF16, volume] = await Promise.all([text("render.wgsl"), text("tables_f16.wgsl"), text("volume.wgsl")]);
+    return new Renderer(adapter, device, source, tablesF16, volume);
   }
 
-  constructor(adapter, device, source, tablesF16) {
+  constructor(adapter, device, source, tablesF16, volume = null) {
     this.adapter = adapter;
     this.device = device;
     this.source = source;
     /** The region of `render.wgsl` that holds the hash tables as binary16 (`tablesSource`). */
     this.tablesF16 = tablesF16;
+    /** `volume.wgsl`: the march through the play-time volume (`GpuScene.setVolume`). */
+    this.volumeSource = volume;
     this.lost = null;
     device.lost.then((info) => {
       this.lost = `the GPU device was lost: ${info.message || info.reason}`;
@@ -473,6 +481,8 @@ export class Renderer {
           const make = (entryPoint) => device.createComputePipelineAsync({ layout: pl, compute: { module, entryPoint } });
           const made = await Promise.all(names.map(make));
           names.forEach((n, i) => (pipelines[n] = made[i]));
+          /** The `eval_points` pipeline (the play-time volume's bake), compiled when first asked. */
+          pipelines.evalPoints = () => make("eval_points");
           // Compiled once asked (after the first picture); a refusal only leaves them out.
           pipelines.later = () =>
             Promise.all(later.map(make)).then(
@@ -754,7 +764,7 @@ class GpuScene {
   #passGroups(target = "frame") {
     this.groups ??= {};
     if (this.groups[target]) return this.groups[target];
-    const order = target === "dynamic" ? this.dynOrder : this.order;
+    const order = target === "dynamic" ? this.dynOrder : target === "outside" ? this.outsideOrder : this.order;
     const frame = target === "probe" ? this.probeFrame : this.frame;
     const group = (work) =>
       this.device.createBindGroup({
@@ -961,6 +971,226 @@ class GpuScene {
       return true;
     }
     return this.#renderPasses(cam, t, abort, 0, this.dynamicCount, "dynamic");
+  }
+
+  /**
+   * The fields at `points` (8 values a point: unit point, time, direction, kind; the
+   * `eval_points` kernel, web/shaders/README.md) with the parameters uploaded: one `vec4` a
+   * point, in batches of EVAL_BATCH points. The play-time volume's bake (volume.js).
+   */
+  async evalPoints(points) {
+    if (this.r.lost) throw new Error(this.r.lost);
+    if (points.length % 8) throw new Error(`evalPoints: ${points.length} values are not whole points of 8`);
+    const device = this.device;
+    if (!this.evalPipeline) {
+      const t0 = performance.now();
+      this.evalPipeline = await this.kernels.pipelines.evalPoints();
+      /** Milliseconds the `eval_points` pipeline took to compile. */
+      this.evalCompileMs = performance.now() - t0;
+    }
+    const n = points.length / 8;
+    const out = new Float32Array(n * 4);
+    const batch = Math.min(EVAL_BATCH, Math.max(n, 1));
+    if (!this.evalBuffers || this.evalBuffers.batch < batch) {
+      if (this.evalBuffers) for (const b of ["list", "out", "read"]) this.evalBuffers[b].destroy();
+      this.evalBuffers = {
+        batch,
+        list: device.createBuffer({ size: batch * 32, usage: GPUBufferUsage.STORAGE | GPUBufferUsage.COPY_DST, label: "eval points" }),
+        out: device.createBuffer({ size: batch * 16, usage: GPUBufferUsage.STORAGE | GPUBufferUsage.COPY_SRC, label: "eval output" }),
+        read: device.createBuffer({ size: batch * 16, usage: GPUBufferUsage.MAP_READ | GPUBufferUsage.COPY_DST, label: "eval read back" }),
+        view: device.createBuffer({ size: VIEW_BYTES, usage: GPUBufferUsage.UNIFORM | GPUBufferUsage.COPY_DST, label: "eval View" }),
+      };
+      const e = this.evalBuffers;
+      e.group = device.createBindGroup({
+        layout: this.kernels.layout,
+        entries: [this.model, e.view, this.tab3, this.tab4, this.rest, e.list, e.out, this.args, this.ctrl, this.pass, this.noOccupancy].map((buffer, binding) => ({ binding, resource: { buffer } })),
+      });
+    }
+    const e = this.evalBuffers;
+    const maxDim = device.limits.maxComputeWorkgroupsPerDimension;
+    for (let first = 0; first < n; first += batch) {
+      const count = Math.min(batch, n - first);
+      device.queue.writeBuffer(e.list, 0, points.buffer, points.byteOffset + first * 32, count * 32);
+      const view = new Uint32Array(VIEW_BYTES / 4);
+      view[22] = count;
+      device.queue.writeBuffer(e.view, 0, view);
+      device.pushErrorScope("validation");
+      const enc = device.createCommandEncoder();
+      const cp = enc.beginComputePass();
+      cp.setPipeline(this.evalPipeline);
+      cp.setBindGroup(0, e.group);
+      const [gx, gy] = dispatchSize(count, maxDim);
+      cp.dispatchWorkgroups(gx, gy, 1);
+      cp.end();
+      enc.copyBufferToBuffer(e.out, 0, e.read, 0, count * 16);
+      device.queue.submit([enc.finish()]);
+      const err = await device.popErrorScope();
+      if (err) throw new Error(`eval_points: ${err.message}`);
+      await e.read.mapAsync(GPUMapMode.READ, 0, count * 16);
+      out.set(new Float32Array(e.read.getMappedRange(0, count * 16)), first * 4);
+      e.read.unmap();
+    }
+    return out;
+  }
+
+  /**
+   * Uploads a baked play-time volume (volume.js `assembleVolume`, `volumeLayout`): the brick
+   * index, the static slots and the dynamic bricks' cells; slices follow with `bindSlices`.
+   * Throws when it exceeds this GPU's storage buffer limit.
+   */
+  async setVolume(vol, layout) {
+    const device = this.device;
+    this.dropVolume();
+    if (!this.r.volumeSource) throw new Error("volume.wgsl was not loaded");
+    this.volumePipeline ??= await device.createComputePipelineAsync({
+      layout: "auto",
+      compute: { module: device.createShaderModule({ code: this.r.volumeSource, label: "volume.wgsl" }), entryPoint: "volume_march" },
+    });
+    const wordsBytes = layout.words * 4;
+    const valuesBytes = Math.max(layout.values, 1) * 8;
+    for (const [what, bytes] of [["the volume's index and cell bits", wordsBytes], ["the volume's vertex values", valuesBytes]]) {
+      if (bytes > this.storageLimit) throw new Error(`${what} need ${bytes} bytes, more than this GPU's storage buffer limit ${this.storageLimit}`);
+    }
+    const S = GPUBufferUsage.STORAGE | GPUBufferUsage.COPY_DST;
+    const words = device.createBuffer({ size: wordsBytes, usage: S, label: "volume words" });
+    const values = device.createBuffer({ size: valuesBytes, usage: S, label: "volume values" });
+    const q = device.queue;
+    q.writeBuffer(words, 0, vol.index);
+    if (vol.occupied.length) q.writeBuffer(words, layout.atOccupied * 4, vol.occupied);
+    if (vol.dynamic.cells.length) q.writeBuffer(words, layout.atCells * 4, vol.dynamic.cells);
+    if (vol.values.length) q.writeBuffer(values, 0, vol.values);
+    const uniform = device.createBuffer({ size: 64, usage: GPUBufferUsage.UNIFORM | GPUBufferUsage.COPY_DST, label: "VolumeU" });
+    const g = vol.geometry;
+    const u = new ArrayBuffer(64);
+    new Uint32Array(u, 0, 12).set([g.resolution, g.brick, g.perSide, g.fw, layout.atOccupied, layout.atCells, layout.regionWords[0], layout.regionWords[0], layout.regionValues[0], layout.regionValues[0], vol.dynamic.bricks.length ? 1 : 0, 0]);
+    new Float32Array(u, 48, 4).set([1, 1e-3, 0, 0]);
+    this.volume = { vol, layout, words, values, uniform, u, held: [null, null], bytes: wordsBytes + valuesBytes };
+    this.volumeFrame = null;
+    return this.volume.bytes;
+  }
+
+  /** Forgets the play-time volume. */
+  dropVolume() {
+    if (!this.volume) return;
+    this.volume.words.destroy();
+    this.volume.values.destroy();
+    this.volume.uniform.destroy();
+    this.volume = null;
+  }
+
+  /**
+   * Binds the time slices `[k0, k1, w]` of the volume's dynamic bricks (volume.js
+   * `sliceAround`), uploading those the two regions do not hold (msth-gpu
+   * `GpuVolume::bind_slices`); each must be baked (`vol.dynamic.slices[k]`).
+   */
+  bindSlices(around) {
+    const v = this.volume;
+    const d = v.vol.dynamic;
+    const f32 = new Float32Array(v.u, 48, 4);
+    const u32 = new Uint32Array(v.u, 0, 12);
+    if (!d.bricks.length) {
+      f32[2] = 0;
+      return;
+    }
+    if (!around) throw new Error("the volume's time slices for this frame are not baked");
+    let [k0, k1, w] = around;
+    if (!(w > 0)) k1 = k0;
+    const region = (k, keep) => {
+      const at = v.held.indexOf(k);
+      if (at >= 0) return at;
+      const s = d.slices[k];
+      if (!s) throw new Error(`time slice ${k} of the volume is not baked`);
+      const r = keep === 0 ? 1 : keep === 1 ? 0 : Math.max(v.held.indexOf(null), 0);
+      this.device.queue.writeBuffer(v.words, v.layout.regionWords[r] * 4, s.occupied);
+      if (s.values.length) this.device.queue.writeBuffer(v.values, v.layout.regionValues[r] * 8, s.values);
+      v.held[r] = k;
+      return r;
+    };
+    const ra = region(k0, null);
+    const rb = k1 === k0 ? ra : region(k1, ra);
+    u32[6] = v.layout.regionWords[ra];
+    u32[7] = v.layout.regionWords[rb];
+    u32[8] = v.layout.regionValues[ra];
+    u32[9] = v.layout.regionValues[rb];
+    f32[2] = k1 === k0 ? 0 : w;
+  }
+
+  /**
+   * Draws `cam` at time `t` through the play-time volume (`volume_march`, one invocation a
+   * pixel) with the slices last bound, then the rays that reached a brick the volume left out
+   * with the per-sample passes (the exact path), and shows the frame. `stride` (one of STRIDES)
+   * draws the lattice of that spacing, as `render` does (the interlaced pixel order), shown
+   * interpolated. Resolves to `{ outside }` (the rays drawn exactly), or null when `abort()`
+   * stopped it.
+   */
+  async renderVolume(cam, t, abort = () => false, stride = 1) {
+    if (this.r.lost) throw new Error(this.r.lost);
+    const v = this.volume;
+    if (!v) throw new Error("renderVolume: no volume");
+    if (!STRIDES.includes(stride)) throw new Error(`renderVolume: stride ${stride} is not one of ${STRIDES.join(", ")}`);
+    const { width: w, height: h } = cam;
+    this.#ensureFrame(w, h);
+    this.dynamicCount = -1;
+    const device = this.device;
+    const count = this.orderEnds[stride];
+    device.queue.writeBuffer(this.view, 0, viewUniform(cam, t, count, PASS_FLAGS.list));
+    device.queue.writeBuffer(v.uniform, 0, v.u);
+    this.displayStride = stride;
+    this.shownSize = displayUniform(w, h, this.orderIds, this.orderEnds, stride, count);
+    device.queue.writeBuffer(this.size, 0, this.shownSize);
+    if (this.volumeFrame !== this.frame) {
+      v.group = device.createBindGroup({
+        layout: this.volumePipeline.getBindGroupLayout(0),
+        entries: [
+          [0, this.model],
+          [1, this.view],
+          [5, this.order],
+          [6, this.frame],
+          [7, v.uniform],
+          [8, v.words],
+          [9, v.values],
+        ].map(([binding, buffer]) => ({ binding, resource: { buffer } })),
+      });
+      this.volumeFrame = this.frame;
+    }
+    device.pushErrorScope("validation");
+    const enc = device.createCommandEncoder();
+    const cp = enc.beginComputePass();
+    cp.setPipeline(this.volumePipeline);
+    cp.setBindGroup(0, v.group);
+    const [gx, gy] = dispatchSize(count, device.limits.maxComputeWorkgroupsPerDimension);
+    cp.dispatchWorkgroups(gx, gy, 1);
+    cp.end();
+    const hasOutside = v.vol.outside > 0;
+    if (!hasOutside) this.#present(enc);
+    device.queue.submit([enc.finish()]);
+    const err = await device.popErrorScope();
+    if (err) throw new Error(`volume_march: ${err.message}`);
+    let outside = 0;
+    if (hasOutside) {
+      // The rays that reached a brick left out: their visible depth is OUTSIDE.
+      const px = await this.#readFrame(this.frame);
+      const list = new Uint32Array(count);
+      for (let k = 0; k < count; k++) {
+        const i = this.orderIds[k];
+        if (px[4 * i + 3] === OUTSIDE_DEPTH) list[outside++] = i;
+      }
+      if (outside) {
+        if (!this.outsideOrder || this.outsideOrder.size < w * h * 4) {
+          this.outsideOrder?.destroy();
+          this.outsideOrder = device.createBuffer({ size: w * h * 4, usage: GPUBufferUsage.STORAGE | GPUBufferUsage.COPY_DST, label: "rays beyond the volume" });
+          if (this.groups) delete this.groups.outside;
+        }
+        device.queue.writeBuffer(this.outsideOrder, 0, list.buffer, 0, outside * 4);
+        if (!(await this.#renderPasses(cam, t, abort, 0, outside, "outside"))) return null;
+      }
+      const enc2 = device.createCommandEncoder();
+      this.#present(enc2);
+      device.queue.submit([enc2.finish()]);
+    }
+    await device.queue.onSubmittedWorkDone();
+    this.rays += count;
+    return { outside };
   }
 
   /** The RGBA f32 values of a frame-sized buffer. */

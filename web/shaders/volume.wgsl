@@ -294,8 +294,8 @@ fn sample_point(o: vec3<f32>, d: vec3<f32>, t0: f32, t1: f32, time: f32) -> vec4
 // one invocation per pixel walks its ray through a brick pool baked from the file, so that a
 // sample reads eight vertices instead of evaluating hash grids and MLPs. Entry point
 // `volume_march`; its own shader text (`volume.wgsl`, natively and in the page), with the model
-// and view uniforms (bindings 0-1), the output `frame` (binding 6) and the volume at bindings
-// 7-9. Host side: `gpu/src/volume.rs` (native), `web/js/volume.js` (the page).
+// and view uniforms (bindings 0-1), the pixel list (5, read with flag 1), the output `frame`
+// (binding 6) and the volume at bindings 7-9. Host side: `gpu/src/volume.rs` (native), `web/js/volume.js` (the page).
 //
 // The volume (`Volume` in msth-core): `R^3` cells in bricks of `B^3`; a brick index of `I^3`
 // entries (`I = R / B`): a static slot, `DYNAMIC | d` for dynamic brick `d`, or `EMPTY`. A slot
@@ -552,22 +552,28 @@ fn march_ray(o: vec3<f32>, d: vec3<f32>) -> March {
     return March(rgb, visible);
 }
 
-// One invocation per pixel of the `view.size.x` by `view.size.y` frame (`view.size.z` pixels):
-// writes (r, g, b, visible depth) to frame[pixel]; a ray that misses the scene under a constant
-// background gets the background and the visible depth MISSED, one that reaches a brick the
-// volume left out the visible depth OUTSIDE.
+// One invocation per pixel of the `view.size.x` by `view.size.y` frame (`view.size.z` pixels),
+// or with flag 1 (`view.size.w`) per entry of the pixel list: invocation `i` draws pixel
+// `list[i]` (the page's interlaced lattices of reduced frames). Writes (r, g, b, visible depth) to
+// frame[pixel]; a ray that misses the scene under a constant background gets the background and
+// the visible depth MISSED, one that reaches a brick the volume left out the visible depth
+// OUTSIDE.
 @compute @workgroup_size(64)
 fn volume_march(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let i = invocation(gid, groups);
     if i < view.size.z {
+        var p = i;
+        if (view.size.w & 1u) != 0u {
+            p = list[i];
+        }
         let o = view.c2w[3].xyz;
-        let d = pixel_ray_dir(i);
+        let d = pixel_ray_dir(p);
         let lim = ray_limits(o, d);
         if !(lim.y > lim.x) && model.background.w == 1.0 {
-            frame[i] = vec4<f32>(model.background.xyz, MISSED);
+            frame[p] = vec4<f32>(model.background.xyz, MISSED);
         } else {
             let m = march_ray(o, d);
-            frame[i] = vec4<f32>(m.rgb, m.visible_depth);
+            frame[p] = vec4<f32>(m.rgb, m.visible_depth);
         }
     }
 }

@@ -37,7 +37,7 @@
 //! # Modules
 //! - [`bake`]: choosing the resolution for a memory budget, the bricks to bake, the bake;
 //! - [`march`]: the renderer over a volume on the CPU; msth-gpu's `volume.wgsl` is the same
-//!   march on the GPU (the native player's; the web page has no volume yet).
+//!   march on the GPU (the native player's, and the web page's: `web/js/volume.js`).
 
 use crate::config::ModelConfig;
 use crate::pipeline::RENDER_STATIC_CUTOFF;
