@@ -385,7 +385,12 @@ fn web_player_streams_renders_and_matches_native() {
         "{r:#}"
     );
     assert!(r["figures"]["psnr_vs_native_t0"].as_f64().unwrap() >= 35.0);
-    assert!(r["figures"]["psnr_volume_vs_native_volume"].as_f64().unwrap() >= 35.0);
+    assert!(
+        r["figures"]["psnr_volume_vs_native_volume"]
+            .as_f64()
+            .unwrap()
+            >= 35.0
+    );
     assert!(r["figures"]["psnr_model2_vs_native"].as_f64().unwrap() >= 35.0);
     assert!(
         r["figures"]["psnr_model2_faster_vs_native"]

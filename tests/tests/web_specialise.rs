@@ -286,7 +286,7 @@ fn javascript_and_rust_plan_the_same_volume() {
     let split = msth_tests::split_mask_fixture();
     let d = msth_codec::decode_all(&split).unwrap();
     let narrow = {
-        let mut cam = d.cameras[0].clone();
+        let mut cam = d.cameras[0];
         cam.fx *= 3.0;
         cam.fy *= 3.0;
         let opts = msth_codec::EncodeOptions {

@@ -65,6 +65,10 @@ const $ = (id) => document.getElementById(id);
 const SCALES = [1, 1 / 2, 1 / 4, 1 / 8];
 /** Frame budget while the camera moves (ms). */
 const MOVING_BUDGET_MS = 1000 / 30;
+/** The play-time volume's default budget (MiB) on a software adapter (SwiftShader): a quarter of
+ * lavapipe's 128 MiB binding limit, as `msth play --gpu` gets there; at the hardware default (a
+ * quarter of SwiftShader's 1 GiB) the demo model's bake takes about 8 minutes there. */
+const SOFTWARE_VOLUME_MIB = 32;
 /** The camera counts as still this long after the last input (ms). */
 const STILL_MS = 250;
 /** The static cache (incremental playback) is built only where its probe frames take at most
@@ -351,7 +355,7 @@ async function main() {
   hooks.timings.pipeline = performance.now();
   $("policy").textContent += params.get("exact") === "1"
     ? " Every frame is drawn from the hash grids and MLPs (?exact=1)."
-    : " After the first picture the page bakes the file's static field into a play-time volume on the GPU (within a quarter of its storage buffer limit, ?volume-budget=MiB); once it is ready, a moving camera and playing video (but a still camera's incremental frames) are drawn through it, a few reads per sample instead of the hash grids and MLPs, at the resolution adapted to its own frame times, and rays that reach a part the volume left out are drawn exactly; a view at rest is drawn again exactly (?exact=1 draws every frame exactly).";
+    : ` After the first picture the page bakes the file's static field into a play-time volume on the GPU (within a quarter of its storage buffer limit, ${SOFTWARE_VOLUME_MIB} MiB at most on a software GPU; ?volume-budget=MiB); once it is ready, a moving camera and playing video (but a still camera's incremental frames) are drawn through it, a few reads per sample instead of the hash grids and MLPs, at the resolution adapted to its own frame times, and rays that reach a part the volume left out are drawn exactly; a view at rest is drawn again exactly (?exact=1 draws every frame exactly).`;
   const paramBuf = new Float32Array(stream.decoder.layout.total);
 
   // ---- the play-time volume (top of this file)
@@ -367,7 +371,10 @@ async function main() {
     try {
       const limits = renderer.device.limits;
       const mib = Number(params.get("volume-budget"));
-      const budget = mib > 0 ? Math.floor(mib * 1048576) : Math.floor(Math.min(limits.maxStorageBufferBindingSize, limits.maxBufferSize) / 4);
+      // A quarter of the storage buffer limit (as msth play on a GPU); on a software adapter at
+      // most SOFTWARE_VOLUME_MIB, whose bake it evaluates in about a minute.
+      const quarter = Math.floor(Math.min(limits.maxStorageBufferBindingSize, limits.maxBufferSize) / 4);
+      const budget = mib > 0 ? Math.floor(mib * 1048576) : fallback ? Math.min(quarter, SOFTWARE_VOLUME_MIB * 1048576) : quarter;
       const plan = planVolume({ model: meta.model, layout: stream.decoder.layout, params: paramBuf, occupancy: stream.decoder.occupancy, cameras, budget });
       volume.planMs = performance.now() - t0;
       volume.note = planNote(plan);

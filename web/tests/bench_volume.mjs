@@ -1,20 +1,21 @@
 // Benchmark: the page's play-time volume against its exact path, in headless Chromium on
 // SwiftShader (or whatever WebGPU adapter the browser has). For a model served by `msth serve`:
 // the bake (plan, points evaluated, time, memory), then along an orbit of `--views` viewpoints
-// (every `--step` degrees of azimuth from `--view`), each frame drawn at full size exactly and
+// (every `--step` degrees of azimuth from `--view`, or without it from the file's camera 0's
+// azimuth, elevation and distance about the rig's centre), each frame drawn at full size exactly and
 // through the volume: the time of each and the volume frame's PSNR against the exact one (8-bit
 // frames). The worst frame is written as PNGs (volume and exact) with `--worst DIR`. Prints JSON.
 //
 //   msth serve DIR --web web --addr 127.0.0.1:8765 &
 //   node web/tests/bench_volume.mjs --base http://127.0.0.1:8765 --model demo.msth \
-//     --size 256x256 --view 30,20,4 --views 4 --step 30 [--budget MIB] [--samples full] [--worst DIR]
+//     --size 256x256 [--view 30,20,4] --views 4 --step 30 [--budget MIB] [--samples full] [--worst DIR]
 
 import { mkdtempSync, rmSync, writeFileSync } from "node:fs";
 import { tmpdir } from "node:os";
 import { join } from "node:path";
 import { chromium } from "playwright-core";
 
-const a = { samples: "full", views: "4", step: "30", size: "256x256", view: "30,20,4" };
+const a = { samples: "full", views: "4", step: "30", size: "256x256" };
 for (let i = 2; i < process.argv.length; i += 2) a[process.argv[i].replace(/^--/, "")] = process.argv[i + 1];
 if (!a.base || !a.model) {
   console.error("usage: node web/tests/bench_volume.mjs --base URL --model NAME [--size WxH] [--view AZ,EL,DIST] [--views N] [--step DEG] [--budget MIB] [--samples S] [--worst DIR]");
@@ -28,14 +29,15 @@ try {
   page.on("pageerror", (e) => console.error(`pageerror: ${e.message}`));
   const budget = a.budget ? `&volume-budget=${a.budget}` : "";
   const t0 = Date.now();
-  await page.goto(`${a.base}/?model=${encodeURIComponent(a.model)}&view=${a.view}&t=0.5&size=${a.size}&play=0&samples=${a.samples}&volume=wait${budget}`);
+  const start = a.view ? `view=${a.view}` : "camera=0";
+  await page.goto(`${a.base}/?model=${encodeURIComponent(a.model)}&${start}&t=0.5&size=${a.size}&play=0&samples=${a.samples}&volume=wait${budget}`);
   await page.waitForFunction(() => window.msth && (window.msth.firstFrameMs !== null || window.msth.error), null, { timeout: 3_600_000, polling: 500 });
   const err = await page.evaluate(() => window.msth.error);
   if (err) throw new Error(err);
   const volume = await page.evaluate(() => ({ ...window.msth.volume, compileMs: window.msth.renderer.evalCompileMs, limit: window.msth.renderer.device.limits.maxStorageBufferBindingSize }));
   if (volume.state !== "ready") throw new Error(`the volume is ${volume.state}: ${volume.error}`);
   await page.evaluate(() => window.msth.hold());
-  const [az0, el, dist] = a.view.split(",").map(Number);
+  const [az0, el, dist] = a.view ? a.view.split(",").map(Number) : await page.evaluate(() => [window.msth.orbit.az, window.msth.orbit.el, window.msth.orbit.dist]);
   const [w, h] = a.size.split("x").map(Number);
   const frames = [];
   let worst = null;
