@@ -419,22 +419,25 @@ export function bakePoints(plan, bricks, first, n, time, dynamic, proposal) {
 }
 
 /**
- * Stores `eval_points`'s output for `bakePoints` into the set's vertex arrays: `vals` (4 a
- * vertex: density pre-activation, red, green, blue) and, with the proposal, `prop` (its
- * density). Throws on a value that is not finite.
+ * Stores `eval_points`'s output for `bakePoints` into the set's vertex arrays: `values` (4
+ * binary16 a vertex, as the volume holds them: density pre-activation, red, green, blue) and,
+ * with the proposal, `prop` (its density, f32). Throws on a value that is not finite.
  */
-export function storeVertices(slots, evaluated, vals, prop) {
+export function storeVertices(slots, evaluated, values, prop) {
   const m = slots.length;
+  const ordered = new Float32Array(m * 4);
   for (let j = 0; j < m; j++) {
     const e = evaluated.subarray(j * 4, j * 4 + 4);
     if (!e.every(Number.isFinite)) throw new Error("the field is not finite at a vertex of the volume: the file's parameters cannot be played");
-    vals.set([e[3], e[0], e[1], e[2]], slots[j] * 4);
+    ordered.set([e[3], e[0], e[1], e[2]], j * 4);
     if (prop) prop[slots[j]] = evaluated[(m + j) * 4 + 3];
   }
+  const h = toBinary16(ordered);
+  for (let j = 0; j < m; j++) values.set(h.subarray(j * 4, j * 4 + 4), slots[j] * 4);
 }
 
 /** msth-core `bake::fill_borders`: every border vertex another brick of the set owns, copied
- * from it (`vals`, 4 a vertex, and `prop`, 1 a vertex, when given). */
+ * from it (`vals`, 4 values a vertex, and `prop`, 1 a vertex, when given). */
 export function fillBorders(plan, bricks, vals, prop) {
   const g = plan.geometry;
   const v1 = g.brick + 1;
@@ -455,14 +458,12 @@ export function fillBorders(plan, bricks, vals, prop) {
 }
 
 /**
- * The baked values and cell bits of the set `bricks` from its vertex arrays (`storeVertices`,
- * `fillBorders`): `{ values: Uint16Array (binary16, 4 a vertex), occupied: Uint32Array }`
- * (msth-core `cell_bits`: a cell can hold density when a corner reaches the plan's threshold,
- * and the proposal's, and the occupancy grid has it).
+ * The cell bits of the set `bricks` from its vertex arrays (`storeVertices`, `fillBorders`:
+ * `values` binary16, 4 a vertex): msth-core `cell_bits`, a cell can hold density when a corner
+ * reaches the plan's threshold, and the proposal's, and the occupancy grid has it.
  */
-export function bakeBricks(plan, bricks, vals, prop) {
+export function cellBits(plan, bricks, values, prop) {
   const g = plan.geometry;
-  const values = toBinary16(vals);
   const b = g.brick;
   const v1 = b + 1;
   const occupied = new Uint32Array(bricks.length * g.fw);
@@ -487,7 +488,7 @@ export function bakeBricks(plan, bricks, vals, prop) {
           occupied[k * g.fw + (bit >>> 5)] |= 1 << (bit & 31);
         }
   }
-  return { values, occupied };
+  return occupied;
 }
 
 const popcount = (w) => {
@@ -574,19 +575,20 @@ async function bakeSet(scene, plan, bricks, time, dynamic, onProgress, abort) {
   const g = plan.geometry;
   const gate = plan.proposalThreshold > 0;
   const per = Math.max(1, Math.floor(BAKE_POINTS / (g.nv * (gate ? 2 : 1))));
-  const vals = new Float32Array(bricks.length * g.nv * 4);
+  // Binary16 from the start: the set's values take what the volume will (within the budget).
+  const values = new Uint16Array(bricks.length * g.nv * 4);
   const prop = gate ? new Float32Array(bricks.length * g.nv) : null;
   let evaluated = 0;
   for (let first = 0; first < bricks.length; first += per) {
     if (abort()) return null;
     const n = Math.min(per, bricks.length - first);
     const { points, slots } = bakePoints(plan, bricks, first, n, time, dynamic, gate);
-    storeVertices(slots, await scene.evalPoints(points), vals, prop);
+    storeVertices(slots, await scene.evalPoints(points), values, prop);
     evaluated += points.length / 8;
     onProgress((first + n) / bricks.length);
   }
-  fillBorders(plan, bricks, vals, prop);
-  return { ...bakeBricks(plan, bricks, vals, prop), evaluated };
+  fillBorders(plan, bricks, values, prop);
+  return { values, occupied: cellBits(plan, bricks, values, prop), evaluated };
 }
 
 /**
