@@ -115,6 +115,23 @@ fn sig3(v: f64) -> String {
     }
 }
 
+/// A log axis's tick label: [`sig3`] at the ticks whose leading digit is 1, 2 or 5, none at the
+/// others (labels at 600, 700, 800, 900 and 1000 run into each other).
+fn log_tick(v: f64) -> String {
+    if !(v.is_finite() && v > 0.0) {
+        return String::new();
+    }
+    let lead = v / 10f64.powf(v.log10().floor());
+    if [1.0, 2.0, 5.0, 10.0]
+        .iter()
+        .any(|d| (lead - d).abs() < 1e-6 * d)
+    {
+        sig3(v)
+    } else {
+        String::new()
+    }
+}
+
 fn range(vals: impl Iterator<Item = f64>) -> (f64, f64) {
     let (lo, hi) = vals.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
         (a.min(v), b.max(v))
@@ -243,7 +260,7 @@ pub fn scatter(
         root.fill(&WHITE).map_err(|x| e(&x))?;
         // The same drawing for a linear and a log x axis (different coordinate types).
         macro_rules! draw {
-            ($xspec:expr) => {{
+            ($xspec:expr, $xfmt:expr) => {{
                 let mut chart = ChartBuilder::on(&root)
                     .caption(title, ("sans-serif", 22))
                     .margin(18)
@@ -255,7 +272,7 @@ pub fn scatter(
                     .configure_mesh()
                     .x_desc(x_label)
                     .y_desc(y_label)
-                    .x_label_formatter(&|v| sig3(*v))
+                    .x_label_formatter(&|v| $xfmt(*v))
                     .y_label_formatter(&|v| sig3(*v))
                     .label_style(("sans-serif", 14))
                     .axis_desc_style(("sans-serif", 16))
@@ -322,10 +339,10 @@ pub fn scatter(
             } else {
                 (1.0, 10.0)
             };
-            draw!((lo..hi).log_scale());
+            draw!((lo..hi).log_scale(), log_tick);
         } else {
             let (x0, x1) = range(pts.iter().map(|p| p.x));
-            draw!(x0..x1);
+            draw!(x0..x1, sig3);
         }
         root.present().map_err(|x| e(&x))?;
     }
@@ -347,5 +364,20 @@ mod tests {
         assert_eq!(sig3(0.012345), "0.0123");
         assert_eq!(sig3(20.0), "20");
         assert_eq!(sig3(0.0), "0");
+    }
+
+    #[test]
+    fn log_ticks_are_labelled_at_1_2_and_5_only() {
+        let labels: Vec<String> = [
+            100.0, 200.0, 300.0, 500.0, 800.0, 900.0, 1000.0, 2000.0, 0.05,
+        ]
+        .into_iter()
+        .map(log_tick)
+        .collect();
+        assert_eq!(
+            labels,
+            ["100", "200", "", "500", "", "", "1000", "2000", "0.05"]
+        );
+        assert_eq!(log_tick(0.0), "");
     }
 }
