@@ -197,7 +197,7 @@ pub fn display_need() -> Need {
 /// holds the vertices with the highest index along the grid's first axis dynamic (a quarter of
 /// them) and makes the others static, so that a play-time volume baked from it has both parts.
 pub fn split_mask_fixture() -> Vec<u8> {
-    use msth_codec::{decode_all, encode, EncodeOptions};
+    use msth_codec::decode_all;
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/v2.msth");
     let d = decode_all(&std::fs::read(path).unwrap()).unwrap();
     let mut params = d.params.clone();
@@ -216,7 +216,17 @@ pub fn split_mask_fixture() -> Vec<u8> {
             20.0
         };
     }
-    let opts = EncodeOptions {
+    reencode(&d, &params, &d.cameras)
+}
+
+/// `d` encoded again with other parameters or cameras, under the export settings it was
+/// written with.
+pub fn reencode(
+    d: &msth_codec::DecodedModel,
+    params: &[f32],
+    cameras: &[msth_core::Camera],
+) -> Vec<u8> {
+    let opts = msth_codec::EncodeOptions {
         quant: d.metadata.quant,
         chunk_frames: d.metadata.chunk_frames as usize,
         dynamic_threshold: d.metadata.dynamic_threshold,
@@ -224,5 +234,7 @@ pub fn split_mask_fixture() -> Vec<u8> {
         occupancy_resolution: d.occupancy.as_ref().map_or(64, |g| g.resolution),
         ..Default::default()
     };
-    encode(&d.config, &params, &d.cameras, &opts).unwrap().0
+    msth_codec::encode(&d.config, params, cameras, &opts)
+        .unwrap()
+        .0
 }

@@ -289,17 +289,7 @@ fn javascript_and_rust_plan_the_same_volume() {
         let mut cam = d.cameras[0];
         cam.fx *= 3.0;
         cam.fy *= 3.0;
-        let opts = msth_codec::EncodeOptions {
-            quant: d.metadata.quant,
-            chunk_frames: d.metadata.chunk_frames as usize,
-            dynamic_threshold: d.metadata.dynamic_threshold,
-            frame_rate: d.metadata.frame_rate,
-            occupancy_resolution: d.occupancy.as_ref().map_or(64, |g| g.resolution),
-            ..Default::default()
-        };
-        msth_codec::encode(&d.config, &d.params, &[cam], &opts)
-            .unwrap()
-            .0
+        msth_tests::reencode(&d, &d.params, &[cam])
     };
     let mut kinds = std::collections::BTreeSet::new();
     for (name, bytes) in [("split", &split), ("narrow", &narrow)] {
@@ -362,26 +352,14 @@ fn javascript_and_rust_plan_the_same_volume() {
                 Some(plan.geometry.brick as u64),
                 "{what}"
             );
-            assert_eq!(
-                ints("static_bricks"),
-                widen(&plan.static_bricks),
-                "{what}: static bricks"
-            );
-            assert_eq!(
-                ints("dynamic_bricks"),
-                widen(&plan.dynamic_bricks),
-                "{what}: dynamic bricks"
-            );
-            assert_eq!(
-                ints("dynamic_cells"),
-                widen(&plan.dynamic_cells),
-                "{what}: dynamic cells"
-            );
-            assert_eq!(
-                ints("outside_bricks"),
-                widen(&plan.outside_bricks),
-                "{what}: bricks left out"
-            );
+            for (k, rust) in [
+                ("static_bricks", &plan.static_bricks),
+                ("dynamic_bricks", &plan.dynamic_bricks),
+                ("dynamic_cells", &plan.dynamic_cells),
+                ("outside_bricks", &plan.outside_bricks),
+            ] {
+                assert_eq!(ints(k), widen(rust), "{what}: {k}");
+            }
             assert_eq!(
                 js["resident_slices"].as_u64(),
                 Some(plan.resident_slices as u64),

@@ -26,7 +26,7 @@
 
 import {
   LEVEL_SLOTS, LEVEL_BYTES, LEVEL_OFFSETS, ENCODING_OFFSETS, GRID_OFFSETS, MODEL_BYTES, MODEL_OFFSETS, VIEW_BYTES, WORKGROUP,
-  MAX_PROPOSAL_SAMPLES, MAX_SAMPLES, MAX_HIDDEN, MAX_GEO, RENDER_STATIC_CUTOFF, RENDER_HISTOGRAM_PADDING, BLEND,
+  MAX_PROPOSAL_SAMPLES, MAX_SAMPLES, MAX_HIDDEN, MAX_GEO, RENDER_STATIC_CUTOFF, RENDER_HISTOGRAM_PADDING, BLEND, VISIBLE_TRANSMITTANCE,
   FRAME_WORK_BYTES, PASS_ARGS as ARGS, PASS_BYTES, PASS_OFFSETS, PASS_FLAGS, SAMPLE_LEVELS,
 } from "./generated/contract.js";
 import { specialiseWgsl } from "./specialise.js";
@@ -1063,7 +1063,8 @@ class GpuScene {
     const g = vol.geometry;
     const u = new ArrayBuffer(64);
     new Uint32Array(u, 0, 12).set([g.resolution, g.brick, g.perSide, g.fw, layout.atOccupied, layout.atCells, layout.regionWords[0], layout.regionWords[0], layout.regionValues[0], layout.regionValues[0], vol.dynamic.bricks.length ? 1 : 0, 0]);
-    new Float32Array(u, 48, 4).set([1, 1e-3, 0, 0]);
+    // March: steps of one cell, stopping where the exact path does.
+    new Float32Array(u, 48, 4).set([1, VISIBLE_TRANSMITTANCE, 0, 0]);
     this.volume = { vol, layout, words, values, uniform, u, held: [null, null], bytes: wordsBytes + valuesBytes };
     this.volumeFrame = null;
     return this.volume.bytes;

@@ -11,6 +11,7 @@
 
 import { f16ToF32 } from "./format.js";
 import { toBinary16 } from "./renderer.js";
+import { RENDER_STATIC_CUTOFF } from "./generated/contract.js";
 
 export const EMPTY_BRICK = 0xffffffff;
 export const OUTSIDE_BRICK = 0xfffffffe;
@@ -20,18 +21,11 @@ const MAX_INDEX_RESOLUTION = 128;
 const MIN_VOLUME_RESOLUTION = 32;
 const MAX_VOLUME_RESOLUTION = 1024;
 const MAX_SLICES = 4096;
-/** msth-core `RENDER_STATIC_CUTOFF`: a point whose mask leaves at least this to the 4D grid is
- * dynamic. */
-const STATIC_CUTOFF = 0.02;
 const FALLBACK_ALPHA = 1e-2;
 const FALLBACK_THRESHOLD_RESOLUTION = 128;
 export const DEFAULT_MIN_PROPOSAL_ALPHA = 0.003;
-/** msth-core `VISIBLE_TRANSMITTANCE`: a ray stops below this transmittance. */
-export const STOP_TRANSMITTANCE = 1e-3;
 /** Values per vertex (density pre-activation, red, green, blue), each binary16. */
 const CHANNELS = 4;
-/** The visible depth `volume_march` writes for a ray that reached a brick left out. */
-export const OUTSIDE = -2;
 const NEAR_CLIP = 1e-4;
 const f = Math.fround;
 
@@ -139,7 +133,7 @@ function sortBricks(g, model, layout, params, occ, candidates) {
   const dyn = [];
   const cells = [];
   const vd = new Uint8Array(g.nv);
-  const isDynamic = (m) => (blend === "static" ? false : blend === "add" || blend === "four_d" ? true : !enc.mask || 1 - m >= STATIC_CUTOFF);
+  const isDynamic = (m) => (blend === "static" ? false : blend === "add" || blend === "four_d" ? true : !enc.mask || 1 - m >= RENDER_STATIC_CUTOFF);
   for (const brick of candidates) {
     const o = brickOrigin(g, brick);
     let any = false;
