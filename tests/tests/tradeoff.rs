@@ -111,6 +111,8 @@ fn tradeoff_sweep_writes_tables_plots_and_fronts() {
         let psnr = f(r, "psnr");
         assert!(psnr.is_finite() && psnr > 5.0, "{r}");
         assert!(f(r, "file_bytes") > 0.0 && f(r, "fps") > 0.0, "{r}");
+        // A fixed camera's incremental frames re-render part of the frame: faster than full ones.
+        assert!(f(r, "fps_fixed") > 0.0, "{r}");
         assert!(f(r, "train_seconds") > 0.0, "{r}");
     }
     // Lossless f32 files decode to the trained parameters: same PSNR as f32 evaluation.

@@ -154,6 +154,11 @@ struct VariantResult {
     ssim_f32: f64,
     /// Full-frame rendering rate of the player (first quant mode's file).
     fps: f64,
+    /// Rendering rate of a fixed camera's incremental frames (the file's camera 0, its time
+    /// moving), the static cache's one-off cost left out; `None` in results cached before it
+    /// was measured (measured then from the kept file, if any).
+    #[serde(default)]
+    fps_fixed: Option<f64>,
     quants: Vec<QuantResult>,
     /// With `--converge`: the held-out PSNR measured during training, (step, dB).
     #[serde(default)]
@@ -182,6 +187,8 @@ pub struct Row {
     pub psnr: f64,
     pub file_bytes: u64,
     pub fps: f64,
+    /// Incremental frames of a fixed camera per second (NaN where not measured).
+    pub fps_fixed: f64,
     /// On the Pareto front of PSNR against training time.
     pub front_time: bool,
     /// On the front of PSNR against file size.
@@ -600,7 +607,7 @@ fn measure(
     .with_context(|| format!("evaluating variant {}", v.name))?;
     let cameras = playback_cameras(train_data);
     let mut quants = Vec::new();
-    let mut fps = f64::NAN;
+    let (mut fps, mut fps_fixed) = (f64::NAN, f64::NAN);
     for (k, &q) in v.quants.iter().enumerate() {
         let opts = EncodeOptions {
             quant: q,
@@ -616,7 +623,7 @@ fn measure(
         if k == 0 {
             let file = dir.join("model.msth");
             write_atomic(&file, &bytes).with_context(|| format!("writing {}", file.display()))?;
-            fps = play_fps(&file, ctx.fps_size, ctx.fps_frames)?;
+            (fps, fps_fixed) = play_fps(&file, ctx.fps_size, ctx.fps_frames)?;
             if !ctx.keep_models {
                 let _ = std::fs::remove_file(&file);
             }
@@ -639,22 +646,31 @@ fn measure(
         psnr_f32: m.psnr,
         ssim_f32: m.ssim,
         fps,
+        fps_fixed: Some(fps_fixed),
         quants,
         held_out: outcome.held_out.clone(),
         converged: outcome.converged,
     })
 }
 
-/// Full-frame rendering rate of the player on `file` from the first camera.
-fn play_fps(file: &Path, size: (u32, u32), frames: usize) -> Result<f64> {
-    let mut opts = msth_player::PlayOptions::new(file.display().to_string());
-    opts.size = Some(size);
-    opts.frames = Some(frames.max(1));
-    opts.video = false;
-    opts.render.incremental = false;
-    let report = msth_player::play(&opts, &mut |_, _| {})
-        .with_context(|| format!("playing {}", file.display()))?;
-    Ok(report.fps().unwrap_or(f64::NAN))
+/// Rendering rates of the player on `file` from the first camera, its time moving: full frames
+/// (every pixel rendered: a moving camera's cost), and a fixed camera's incremental frames
+/// (`frames` of them after the first, the static cache's one-off cost left out).
+fn play_fps(file: &Path, size: (u32, u32), frames: usize) -> Result<(f64, f64)> {
+    let run = |incremental: bool, frames: usize| {
+        let mut opts = msth_player::PlayOptions::new(file.display().to_string());
+        opts.size = Some(size);
+        opts.frames = Some(frames);
+        opts.video = false;
+        opts.render.incremental = incremental;
+        msth_player::play(&opts, &mut |_, _| {})
+            .with_context(|| format!("playing {}", file.display()))
+    };
+    let moving = run(false, frames.max(1))?.fps().unwrap_or(f64::NAN);
+    let fixed = run(true, frames.max(1) + 1)?
+        .steady_incremental_fps()
+        .unwrap_or(f64::NAN);
+    Ok((moving, fixed))
 }
 
 pub fn run(a: TradeoffArgs) -> Result<()> {
@@ -830,7 +846,18 @@ pub fn run(a: TradeoffArgs) -> Result<()> {
     let n = plan.len();
     for (i, (v, s, fingerprint, dir, cached)) in plan.into_iter().enumerate() {
         let r = match cached {
-            Some(r) => r,
+            Some(mut r) => {
+                // Results cached before the fixed camera's rate was measured: measured now from
+                // the kept file, where there is one.
+                let file = dir.join("model.msth");
+                if r.fps_fixed.is_none() && file.exists() {
+                    r.fps_fixed = Some(play_fps(&file, fps_size, fps_frames)?.1);
+                    let path = dir.join("result.json");
+                    write_atomic(&path, &serde_json::to_vec_pretty(&r)?)
+                        .with_context(|| format!("writing {}", path.display()))?;
+                }
+                r
+            }
             None => {
                 pb.set_message(format!("[{}/{n}] {}", i + 1, v.name));
                 if pb.is_hidden() {
@@ -917,6 +944,7 @@ pub fn run(a: TradeoffArgs) -> Result<()> {
                 psnr: q.psnr,
                 file_bytes: q.file_bytes,
                 fps: r.fps,
+                fps_fixed: r.fps_fixed.unwrap_or(f64::NAN),
                 front_time: false,
                 front_size: false,
                 front_fps: false,
@@ -997,6 +1025,7 @@ mod tests {
             psnr,
             file_bytes: bytes,
             fps,
+            fps_fixed: f64::NAN,
             front_time: false,
             front_size: false,
             front_fps: false,

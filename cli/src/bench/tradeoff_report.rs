@@ -59,11 +59,11 @@ fn mark(b: bool) -> &'static str {
 /// The rows as a markdown table (fronts marked **x**).
 pub fn markdown_table(rows: &[Row]) -> String {
     let mut s = String::from(
-        "| variant | factor | value | steps | batch | params | train s | PSNR f32 | PSNR file | SSIM f32 | quant | file MiB | FPS | front time | front size | front FPS |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
+        "| variant | factor | value | steps | batch | params | train s | PSNR f32 | PSNR file | SSIM f32 | quant | file MiB | FPS | FPS fixed | front time | front size | front FPS |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     for r in rows {
         s.push_str(&format!(
-            "| {} | {} | {} | {} | {} | {} | {:.1} | {:.2} | {:.2} | {:.4} | {} | {} | {:.2} | {} | {} | {} |\n",
+            "| {} | {} | {} | {} | {} | {} | {:.1} | {:.2} | {:.2} | {:.4} | {} | {} | {:.2} | {:.1} | {} | {} | {} |\n",
             r.label,
             r.factor,
             r.value,
@@ -77,6 +77,7 @@ pub fn markdown_table(rows: &[Row]) -> String {
             r.quant,
             mib(r.file_bytes),
             r.fps,
+            r.fps_fixed,
             mark(r.front_time),
             mark(r.front_size),
             mark(r.front_fps)
@@ -95,7 +96,7 @@ fn csv_field(s: &str) -> String {
 
 /// The rows as CSV, one header line.
 pub fn csv_table(rows: &[Row]) -> String {
-    let mut s = String::from("name,label,factor,value,preset,quant,steps,batch_rays,params,train_seconds,psnr_f32,ssim_f32,psnr,file_bytes,fps,front_time,front_size,front_fps\n");
+    let mut s = String::from("name,label,factor,value,preset,quant,steps,batch_rays,params,train_seconds,psnr_f32,ssim_f32,psnr,file_bytes,fps,fps_fixed,front_time,front_size,front_fps\n");
     for r in rows {
         let f = [
             csv_field(&r.name),
@@ -113,6 +114,7 @@ pub fn csv_table(rows: &[Row]) -> String {
             format!("{:.4}", r.psnr),
             r.file_bytes.to_string(),
             format!("{:.4}", r.fps),
+            format!("{:.4}", r.fps_fixed),
             r.front_time.to_string(),
             r.front_size.to_string(),
             r.front_fps.to_string(),
