@@ -90,6 +90,11 @@ pub struct ExportArgs {
     /// (`--occupancy-from cameras`).
     #[arg(long, default_value_t = msth_player::seen::DEFAULT_SEEN_WEIGHT)]
     pub seen_weight: f32,
+    /// Progressive layers (1..=16): the field's hash levels split coarse to fine, so a player
+    /// draws from the first layers while the others arrive (docs/streaming.md). 1 writes a
+    /// file without layers (format version 3, which every msth player reads).
+    #[arg(long, default_value_t = 1, value_name = "N")]
+    pub layers: usize,
 }
 
 /// `msth export --quant` (and `msth demo --quant`): `auto` or one mode for every section.
@@ -246,6 +251,7 @@ pub fn export(a: ExportArgs) -> Result<()> {
         occupancy_resolution: a.occupancy_resolution,
         occupancy_alpha: a.occupancy_alpha,
         occupancy: None,
+        layers: a.layers,
     };
     if let Some(d) = &a.measure {
         let dir = a.checkpoint.parent().unwrap_or(std::path::Path::new("."));
@@ -311,6 +317,9 @@ pub(crate) fn write_msth(
         &opts,
     )
     .with_context(|| format!("encoding {}", ckpt_path.display()))?;
+    if report.layers.len() > 1 {
+        lines.extend(layer_lines(ckpt, ckpt_path, &bytes, &report, choices)?);
+    }
     // Atomic: a full disk or a crash leaves the file that was there (if any) as it was.
     let kept = if out.exists() {
         "the file there before is unchanged"
@@ -426,6 +435,75 @@ pub(crate) fn choose(
             .map(|s| format!("{} + {} {:.3}", s.samples.0, s.samples.1, s.loss_db))
             .collect();
         lines.push(format!("  measured (dB): {}", steps.join(", ")));
+    }
+    Ok(lines)
+}
+
+/// What each prefix of a layered file's layers costs and draws: the bytes before the first
+/// frame and in all, and the loss against the whole file on the renders `--quant auto`
+/// measures on (the file's cameras; none without cameras).
+fn layer_lines(
+    ckpt: &Checkpoint,
+    ckpt_path: &Path,
+    bytes: &[u8],
+    report: &EncodeReport,
+    choices: &Choices,
+) -> Result<Vec<String>> {
+    let model = &ckpt.header.model;
+    let (psnr, _) = reference_psnr(choices.reference_psnr, ckpt_path)?;
+    let auto = AutoOptions {
+        max_loss_db: choices.max_loss,
+        reference_psnr: psnr,
+        views: choices.views,
+        side: choices.side,
+    };
+    let probe = msth_player::quant_auto::Probe::new(model, &ckpt.header.cameras, &auto);
+    let mut decoder = msth_codec::Decoder::new(bytes)?;
+    decoder.feed(bytes)?;
+    let layout = decoder.layout().clone();
+    let n = report.layers.len();
+    let render = |k: usize| {
+        probe.render(model, &layout, &|t| {
+            let mut out = Vec::new();
+            // Every section is decoded: this cannot fail.
+            let _ = decoder.params_for_layers_into(t, k, &mut out);
+            out
+        })
+    };
+    let full = (!probe.views.is_empty()).then(|| render(n));
+    let mut lines = vec![format!(
+        "progressive layers ({n}): what a player holding the first k has; loss against the whole file on {} renders of at most {} px, as an estimate of held-out PSNR from {psnr:.2} dB",
+        probe.views.len(),
+        auto.side
+    )];
+    let mut total = report.file_bytes
+        - report
+            .layers
+            .iter()
+            .map(|l| l.static_bytes + l.dynamic_bytes)
+            .sum::<u64>();
+    for k in 1..=n {
+        let l = &report.layers[k - 1];
+        total += l.static_bytes + l.dynamic_bytes;
+        let loss = match &full {
+            Some(full) if k < n => {
+                let mse = msth_player::quant_auto::mse(&render(k), full);
+                format!(
+                    "loss {:.2} dB (~{:.2} dB)",
+                    auto.loss_db(mse),
+                    psnr - auto.loss_db(mse)
+                )
+            }
+            Some(_) => format!("the whole file (~{psnr:.2} dB)"),
+            None => "no cameras to measure on".into(),
+        };
+        lines.push(format!(
+            "  layers 0..{k} (levels {}/{} of the 3D/4D tables): first frame {}, all frames {}: {loss}",
+            l.levels.h3,
+            l.levels.h4,
+            mb(report.first_frame_bytes(k)),
+            mb(total),
+        ));
     }
     Ok(lines)
 }

@@ -164,6 +164,50 @@ fn h4_rows(index: &FileIndex) -> u64 {
         .map_or(0, |(g, _)| g.levels.iter().map(|l| l.rows as u64).sum())
 }
 
+/// Per progressive layer: its cumulative levels, its stored bytes, and the bytes a player
+/// fetches before the first frame (time 0) holding layers up to it (prefix included).
+fn layer_bytes(index: &FileIndex) -> Vec<(msth_codec::LayerLevels, u64, u64)> {
+    let first = index.chunk_for_time(0.0);
+    let levels = index.metadata.layer_levels();
+    levels
+        .iter()
+        .enumerate()
+        .map(|(l, &lv)| {
+            let own: u64 = index
+                .sections
+                .iter()
+                .filter(|s| {
+                    s.layer as usize == l
+                        && matches!(
+                            s.kind,
+                            msth_codec::SectionKind::Static
+                                | msth_codec::SectionKind::Shared
+                                | msth_codec::SectionKind::Dynamic
+                        )
+                })
+                .map(|s| s.length)
+                .sum();
+            let first_frame: u64 = index.header.header_size as u64
+                + index
+                    .sections_for(first, l + 1)
+                    .iter()
+                    .map(|&i| index.sections[i].length)
+                    .sum::<u64>();
+            (lv, own, first_frame)
+        })
+        .collect()
+}
+
+/// Stored bytes of chunk `c`, all its layers.
+fn chunk_bytes(index: &FileIndex, c: usize) -> u64 {
+    index
+        .sections
+        .iter()
+        .filter(|s| s.kind == msth_codec::SectionKind::Dynamic && s.chunk as usize == c)
+        .map(|s| s.length)
+        .sum()
+}
+
 /// Rows stored by a sparse section.
 fn rows_of(c: &msth_codec::sections::SparseChunk) -> u64 {
     c.levels.iter().map(|(r, _)| r.len() as u64).sum()
@@ -202,6 +246,7 @@ impl Inspection {
             .map(|(i, s)| {
                 json!({
                     "index": i, "kind": s.kind.name(), "label": s.label(), "chunk": s.chunk,
+                    "layer": s.layer,
                     "offset": s.offset, "stored_bytes": s.length, "raw_bytes": s.raw_length,
                     "ratio": ratio(s.raw_length, s.length), "crc32": format!("{:08x}", s.crc32),
                 })
@@ -216,7 +261,7 @@ impl Inspection {
                 let mut v = json!({
                     "chunk": c, "frame_start": span.frame_start, "frame_end": span.frame_end,
                     "t_start": span.t_start, "t_end": span.t_end,
-                    "stored_bytes": ix.chunk(c).map(|s| s.length),
+                    "stored_bytes": chunk_bytes(ix, c),
                 });
                 if let Some((shared, per)) = &rows {
                     v["rows"] = json!(per[c]);
@@ -253,6 +298,10 @@ impl Inspection {
             "metadata": serde_json::to_value(meta).unwrap_or(Value::Null),
             "param_count": ix.layout.params.total,
             "sections": sections,
+            "layers": layer_bytes(ix).iter().map(|(lv, own, first)| json!({
+                "h3_levels": lv.h3, "h4_levels": lv.h4, "stored_bytes": own,
+                "first_frame_bytes": first,
+            })).collect::<Vec<_>>(),
             "chunks": chunks,
             "cameras": cameras,
             "h4_rows": total_rows,
@@ -373,15 +422,38 @@ impl Inspection {
                 "the model's own: the file stores no play-time counts"
             }
         );
+        if ix.layer_count() > 1 {
+            let parts: Vec<String> = layer_bytes(ix)
+                .iter()
+                .enumerate()
+                .map(|(l, (lv, own, first))| {
+                    format!(
+                        "{l}: levels to {}/{}, {own} bytes, first frame {first} bytes",
+                        lv.h3, lv.h4
+                    )
+                })
+                .collect();
+            let _ = writeln!(
+                o,
+                "layers      {} progressive (3D/4D levels held up to each; first frame: bytes before it holding layers 0..=l): {}",
+                ix.layer_count(),
+                parts.join("; ")
+            );
+        } else {
+            let _ = writeln!(o, "layers      1 (no progressive layers)");
+        }
         let _ = writeln!(
             o,
             "sections    #  kind       offset      stored        raw   ratio  crc32"
         );
         for (i, sec) in ix.sections.iter().enumerate() {
-            let kind = match sec.kind {
+            let mut kind = match sec.kind {
                 msth_codec::SectionKind::Dynamic => format!("chunk {}", sec.chunk),
                 k => k.name().to_string(),
             };
+            if sec.layer > 0 {
+                kind = format!("{kind} L{}", sec.layer);
+            }
             let _ = writeln!(
                 o,
                 "           {i:>2}  {kind:<9} {:>8} {:>10} {:>10} {:>6.2}  {:08x}",
@@ -413,7 +485,7 @@ impl Inspection {
                 span.frame_end,
                 span.t_start,
                 span.t_end,
-                ix.chunk(c).map_or(0, |s| s.length)
+                chunk_bytes(ix, c)
             );
         }
         let _ = writeln!(o, "cameras     {}", meta.cameras.len());

@@ -10,7 +10,8 @@ use crate::error::DecodeError;
 use crate::format::{FileIndex, Limits, Metadata, SectionEntry, SectionKind};
 use crate::occupancy::OccupancyGrid;
 use crate::sections::{
-    max_chunk_bytes, max_static_bytes, read_chunk, read_static, SparseChunk, StaticPart, SHARED_TAG,
+    max_chunk_bytes, max_static_bytes, read_chunk_levels, read_static, SparseChunk, StaticPart,
+    SHARED_TAG,
 };
 
 /// Checks a section's stored bytes (length, CRC-32, size limits) and decompresses them.
@@ -103,14 +104,21 @@ fn check_single_frame(stored: &[u8], what: &str) -> Result<(), DecodeError> {
 }
 
 /// A streaming decoder: built from the file's prefix, fed sections as their bytes arrive.
+///
+/// Of a layered file (version 4) it renders from what has arrived: the static section's layers
+/// decoded so far (the finer levels' values 0), and each 4D layer whose shared section and
+/// chunk have both arrived ([`Decoder::params_for_time_into`]).
 #[derive(Clone, Debug)]
 pub struct Decoder {
     index: FileIndex,
     /// MLPs, proposal and static tables; the 4D table stays zero here.
     base: Vec<f32>,
-    have: [bool; 3],
-    shared: Option<SparseChunk>,
-    chunks: Vec<Option<SparseChunk>>,
+    /// Per index position: decoded.
+    decoded: Vec<bool>,
+    /// Per layer: the shared 4D rows of that layer.
+    shared: Vec<Option<SparseChunk>>,
+    /// Per layer, per chunk: the chunk's 4D rows of that layer.
+    chunks: Vec<Vec<Option<SparseChunk>>>,
     /// The occupancy grid (version 2 files), once decoded.
     occupancy: Option<OccupancyGrid>,
     max_occupancy_resolution: u64,
@@ -126,13 +134,14 @@ impl Decoder {
     pub fn with_limits(bytes: &[u8], limits: &Limits) -> Result<Self, DecodeError> {
         let index = FileIndex::parse(bytes, limits)?;
         let base = vec![0f32; index.layout.params.total];
-        let chunks = vec![None; index.metadata.chunks.len()];
+        let layers = index.layer_count();
+        let chunks = vec![vec![None; index.metadata.chunks.len()]; layers];
         Ok(Decoder {
-            index,
             base,
-            have: [false; 3],
-            shared: None,
+            decoded: vec![false; index.sections.len()],
+            shared: vec![None; layers],
             chunks,
+            index,
             occupancy: None,
             max_occupancy_resolution: limits.max_occupancy_resolution,
         })
@@ -150,20 +159,25 @@ impl Decoder {
 
     /// Whether section `i` (index order) has been decoded.
     pub fn is_decoded(&self, i: usize) -> bool {
-        let Some(e) = self.index.sections.get(i) else {
-            return false;
-        };
-        match e.kind {
-            SectionKind::Mlp => self.have[0],
-            SectionKind::Proposal => self.have[1],
-            SectionKind::Static => self.have[2],
-            SectionKind::Occupancy => self.occupancy.is_some(),
-            SectionKind::Shared => self.shared.is_some(),
-            SectionKind::Dynamic => self
-                .chunks
-                .get(e.chunk as usize)
-                .is_some_and(|c| c.is_some()),
+        self.decoded.get(i).copied().unwrap_or(false)
+    }
+
+    /// How many layers, from the first, of chunk `chunk` (`None`: of a file without chunks)
+    /// have arrived with the static and shared sections of the same layers: the layers a frame
+    /// of that chunk is drawn with. 0 until the static sections and the chunk's layer 0 are in.
+    pub fn layers_ready(&self, chunk: Option<usize>) -> usize {
+        if !self.static_ready() {
+            return 0;
         }
+        let ix = &self.index;
+        (0..ix.layer_count())
+            .take_while(|&l| {
+                let ok = |kind, c| ix.position(kind, c, l).is_none_or(|i| self.is_decoded(i));
+                ok(SectionKind::Static, 0)
+                    && ok(SectionKind::Shared, 0)
+                    && chunk.is_none_or(|c| ok(SectionKind::Dynamic, c))
+            })
+            .count()
     }
 
     /// Every section before the first chunk decoded (MLPs, proposal, static, the occupancy grid
@@ -189,15 +203,33 @@ impl Decoder {
             .ok_or_else(|| DecodeError::malformed("request", format!("no section {i}")))?;
         let layout = &self.index.layout;
         let what = entry.label();
+        let layer = entry.layer as usize;
+        let levels = self.index.metadata.layer_levels();
+        // The levels of layer `layer` of the 3D (`h4` false) or 4D table.
+        let level_range = |h4: bool| {
+            let end = |e: &crate::format::LayerLevels| if h4 { e.h4 } else { e.h3 } as usize;
+            let start = if layer == 0 {
+                0
+            } else {
+                end(&levels[layer - 1])
+            };
+            start..end(&levels[layer])
+        };
         match entry.kind {
             SectionKind::Dynamic => {
                 let raw = unpack(&entry, stored, max_chunk_bytes(layout))?;
-                let chunk = read_chunk(layout, &raw, entry.chunk, &what)?;
-                self.chunks[entry.chunk as usize] = Some(chunk);
+                let chunk = read_chunk_levels(layout, &raw, entry.chunk, level_range(true), &what)?;
+                self.chunks[layer][entry.chunk as usize] = Some(chunk);
             }
             SectionKind::Shared => {
                 let raw = unpack(&entry, stored, max_chunk_bytes(layout))?;
-                self.shared = Some(read_chunk(layout, &raw, SHARED_TAG, &what)?);
+                self.shared[layer] = Some(read_chunk_levels(
+                    layout,
+                    &raw,
+                    SHARED_TAG,
+                    level_range(true),
+                    &what,
+                )?);
             }
             SectionKind::Occupancy => {
                 let max = self.max_occupancy_resolution;
@@ -205,19 +237,23 @@ impl Decoder {
                 self.occupancy = Some(OccupancyGrid::from_payload(&raw, max, &what)?);
             }
             kind => {
-                let (part, slot) = match kind {
-                    SectionKind::Mlp => (StaticPart::Mlp, 0),
-                    SectionKind::Proposal => (StaticPart::Proposal, 1),
-                    _ => (StaticPart::Static, 2),
+                let part = match kind {
+                    SectionKind::Mlp => StaticPart::Mlp,
+                    SectionKind::Proposal => StaticPart::Proposal,
+                    _ if self.index.metadata.layers.is_some() => StaticPart::StaticLayer {
+                        levels: level_range(false),
+                        first: layer == 0,
+                    },
+                    _ => StaticPart::Static,
                 };
-                let raw = unpack(&entry, stored, max_static_bytes(layout, part))?;
+                let raw = unpack(&entry, stored, max_static_bytes(layout, part.clone()))?;
                 // Decode into a copy so that a failure leaves the decoder unchanged.
                 let mut params = self.base.clone();
                 read_static(layout, &raw, part, &what, &mut params)?;
                 self.base = params;
-                self.have[slot] = true;
             }
         }
+        self.decoded[i] = true;
         Ok(())
     }
 
@@ -242,14 +278,28 @@ impl Decoder {
         Ok(done)
     }
 
-    /// The decoded chunk `c`, if it has arrived.
+    /// The decoded chunk `c` (its layer 0), if it has arrived.
     pub fn chunk(&self, c: usize) -> Option<&SparseChunk> {
-        self.chunks.get(c).and_then(|c| c.as_ref())
+        self.chunks[0].get(c).and_then(|c| c.as_ref())
     }
 
     /// Writes the parameters for normalised time `t` into `out`: the static part and the rows of
-    /// the chunk covering `t` (other 4D rows 0). Needs the static sections and that chunk.
+    /// the chunk covering `t` (other 4D rows 0). Needs the static sections and that chunk (its
+    /// layer 0); of a layered file, the static layers that have arrived and the 4D layers of
+    /// [`Decoder::layers_ready`].
     pub fn params_for_time_into(&self, t: f32, out: &mut Vec<f32>) -> Result<(), DecodeError> {
+        self.params_for_layers_into(t, usize::MAX, out)
+    }
+
+    /// [`Decoder::params_for_time_into`] with at most `layers` layers: the static section's
+    /// finer layers are left out (their levels 0) even if they have arrived. What a player
+    /// holding `layers` layers draws; `usize::MAX`: every layer that has arrived.
+    pub fn params_for_layers_into(
+        &self,
+        t: f32,
+        layers: usize,
+        out: &mut Vec<f32>,
+    ) -> Result<(), DecodeError> {
         if !self.static_ready() {
             let missing = (0..self.index.before_first_frame())
                 .find(|&i| !self.is_decoded(i))
@@ -258,14 +308,32 @@ impl Decoder {
         }
         out.clear();
         out.extend_from_slice(&self.base);
-        if let Some(c) = self.index.chunk_for_time(t) {
-            let chunk = self
-                .chunk(c)
-                .ok_or_else(|| not_loaded(&self.index.sections[self.index.first_chunk() + c]))?;
-            if let Some(shared) = &self.shared {
-                shared.apply(&self.index.layout, out);
+        let layout = &self.index.layout;
+        if layers < self.index.layer_count() {
+            // Zero the 3D levels of the layers left out.
+            let keep = self.index.metadata.layer_levels()[layers.max(1) - 1].h3 as usize;
+            if let Some((g, range)) = &layout.field.encoding.h3 {
+                for level in g.levels.iter().skip(keep) {
+                    let start = range.start + level.offset;
+                    out[start..start + level.rows * g.features].fill(0.0);
+                }
             }
-            chunk.apply(&self.index.layout, out);
+        }
+        let chunk = self.index.chunk_for_time(t);
+        if let Some(c) = chunk {
+            if self.chunk(c).is_none() {
+                return Err(not_loaded(
+                    &self.index.sections[self.index.first_chunk() + c],
+                ));
+            }
+            for l in 0..self.layers_ready(chunk).min(layers.max(1)) {
+                if let Some(shared) = &self.shared[l] {
+                    shared.apply(layout, out);
+                }
+                if let Some(part) = &self.chunks[l][c] {
+                    part.apply(layout, out);
+                }
+            }
         }
         Ok(())
     }
@@ -281,9 +349,27 @@ impl Decoder {
         if let Some(i) = (0..self.index.sections.len()).find(|&i| !self.is_decoded(i)) {
             return Err(not_loaded(&self.index.sections[i]));
         }
-        let chunks: Vec<SparseChunk> = self.chunks.into_iter().flatten().collect();
+        // Each chunk and the shared section with all their layers.
+        let mut layers = self.chunks.into_iter();
+        let mut chunks: Vec<SparseChunk> = layers
+            .next()
+            .unwrap_or_default()
+            .into_iter()
+            .flatten()
+            .collect();
+        for layer in layers {
+            for (c, part) in chunks.iter_mut().zip(layer.into_iter().flatten()) {
+                c.merge(&part);
+            }
+        }
+        let mut shared_layers = self.shared.into_iter().flatten();
+        let shared = shared_layers.next().map(|mut s| {
+            for part in shared_layers {
+                s.merge(&part);
+            }
+            s
+        });
         let mut base = self.base;
-        let shared = self.shared;
         if let Some(shared) = &shared {
             shared.apply(&self.index.layout, &mut base);
         }

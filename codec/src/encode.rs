@@ -10,8 +10,9 @@ use msth_core::Camera;
 use crate::dynamic_rows::{dynamic_region, reached_rows};
 use crate::error::EncodeError;
 use crate::format::{
-    index_offset, prefix_size, write_entry, ChunkSpan, FixedHeader, Metadata, PlaySampleCounts,
-    QuantMode, SectionEntry, SectionKind, SectionQuant, ALIGN, FIXED_HEADER, VERSION,
+    index_offset, prefix_size, write_entry, ChunkSpan, FixedHeader, LayerLevels, Metadata,
+    PlaySampleCounts, QuantMode, SectionEntry, SectionKind, SectionQuant, ALIGN, FIXED_HEADER,
+    LAYERED_VERSION, UNLAYERED_VERSION,
 };
 use crate::occupancy::{
     OccupancyGrid, DEFAULT_OCCUPANCY_ALPHA, DEFAULT_OCCUPANCY_RESOLUTION, MAX_OCCUPANCY_RESOLUTION,
@@ -45,6 +46,9 @@ pub struct EncodeOptions {
     /// A grid computed beforehand (e.g. once for several encodings of one model); `None`: the
     /// encoder computes it from the parameters.
     pub occupancy: Option<std::sync::Arc<OccupancyGrid>>,
+    /// Progressive layers (format.md §6.6), 1..=16: the field's table levels split coarse to
+    /// fine ([`msth_core::layers::layer_level_ends`]). 1 writes a version-3 file without layers.
+    pub layers: usize,
 }
 
 impl Default for EncodeOptions {
@@ -60,6 +64,7 @@ impl Default for EncodeOptions {
             occupancy_resolution: DEFAULT_OCCUPANCY_RESOLUTION,
             occupancy_alpha: DEFAULT_OCCUPANCY_ALPHA,
             occupancy: None,
+            layers: 1,
         }
     }
 }
@@ -87,6 +92,20 @@ pub struct ChunkReport {
     pub kept_values: u64,
 }
 
+/// Bytes of one progressive layer.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LayerReport {
+    /// The field's 3D and 4D table levels layers `0..=l` hold.
+    pub levels: LayerLevels,
+    /// Stored bytes of the layer's static section.
+    pub static_bytes: u64,
+    /// Stored bytes of the layer's shared section and chunks.
+    pub dynamic_bytes: u64,
+    /// Stored bytes of the layer's part of chunk 0 (with the shared section's): what it adds to
+    /// the first frame.
+    pub first_chunk_bytes: u64,
+}
+
 /// What went where.
 #[derive(Clone, Debug, PartialEq)]
 pub struct EncodeReport {
@@ -99,8 +118,12 @@ pub struct EncodeReport {
     pub prefix_bytes: u64,
     /// `4 * parameter count`: the raw f32 parameters of the checkpoint.
     pub raw_param_bytes: u64,
+    /// The sections that are not chunks (each summed over its layers).
     pub sections: Vec<SectionReport>,
+    /// The chunks (each summed over its layers).
     pub chunks: Vec<ChunkReport>,
+    /// The progressive layers, coarse first (one for a file without layers).
+    pub layers: Vec<LayerReport>,
     /// Values of the field's 4D table (0 without one).
     pub h4_values: u64,
     /// Distinct 4D values kept by at least one chunk.
@@ -114,6 +137,26 @@ pub struct EncodeReport {
 }
 
 impl EncodeReport {
+    /// Bytes a player fetches before the first frame when it takes layers `0..layers`: the
+    /// prefix, the sections that are not layered, and those layers' static, shared and chunk-0
+    /// parts.
+    pub fn first_frame_bytes(&self, layers: usize) -> u64 {
+        let fixed: u64 = self
+            .sections
+            .iter()
+            .filter(|s| s.name != "static" && s.name != "shared")
+            .map(|s| s.stored_bytes)
+            .sum();
+        self.prefix_bytes
+            + fixed
+            + self
+                .layers
+                .iter()
+                .take(layers)
+                .map(|l| l.static_bytes + l.first_chunk_bytes)
+                .sum::<u64>()
+    }
+
     pub fn ratio(&self) -> f64 {
         self.raw_param_bytes as f64 / self.file_bytes.max(1) as f64
     }
@@ -155,6 +198,32 @@ pub fn chunk_spans(num_frames: usize, chunk_frames: usize) -> Vec<ChunkSpan> {
                     frame_time(f1, n)
                 },
             }
+        })
+        .collect()
+}
+
+/// Row numbers per level of the field's 4D table.
+type RowsPerLevel = Vec<Vec<u32>>;
+
+/// The layers' cumulative level counts for `layers` requested layers: the field's 3D and 4D
+/// tables split alike by [`msth_core::layers::layer_level_ends`] (at most one layer per level).
+pub fn split_layers(model: &ModelConfig, layers: usize) -> Vec<LayerLevels> {
+    let enc = &model.field.encoding;
+    let l3 = if enc.blend.uses_h3() {
+        enc.grid3.levels
+    } else {
+        0
+    };
+    let l4 = if enc.blend.uses_h4() {
+        enc.grid4.levels
+    } else {
+        0
+    };
+    let n = layers.clamp(1, l3.max(l4).max(1));
+    (1..=n)
+        .map(|l| LayerLevels {
+            h3: (l3 * l).div_ceil(n) as u32,
+            h4: (l4 * l).div_ceil(n) as u32,
         })
         .collect()
 }
@@ -279,9 +348,47 @@ pub fn encode(
         ..Encodings::for_mode(parts.static_table)
     };
     let dyn_enc = Encodings::for_mode(parts.dynamic);
+    if !(1..=msth_core::layers::MAX_LAYERS).contains(&opts.layers) {
+        return Err(EncodeError::InvalidOption(format!(
+            "layers must be in 1..={} (got {})",
+            msth_core::layers::MAX_LAYERS,
+            opts.layers
+        )));
+    }
+    let layer_levels = split_layers(model, opts.layers);
+    let layered = layer_levels.len() > 1;
+    // Level ranges of layer l in the 3D and 4D tables.
+    let level_range = |l: usize, h4: bool| {
+        let end = |e: &LayerLevels| if h4 { e.h4 } else { e.h3 } as usize;
+        let start = if l == 0 { 0 } else { end(&layer_levels[l - 1]) };
+        start..end(&layer_levels[l])
+    };
+    // Rows of `rows` (per level) that layer l holds.
+    let rows_of_layer = |rows: &[Vec<u32>], l: usize| -> Vec<Vec<u32>> {
+        let r = level_range(l, true);
+        rows.iter()
+            .enumerate()
+            .map(|(k, v)| {
+                if r.contains(&k) {
+                    v.clone()
+                } else {
+                    Vec::new()
+                }
+            })
+            .collect()
+    };
 
-    let mut payloads: Vec<(SectionKind, u32, Vec<u8>)> = Vec::new();
+    // Each payload: kind, chunk, layer, and where its bytes count in the report.
+    let mut payloads: Vec<(SectionKind, u32, u16, Vec<u8>)> = Vec::new();
     let mut sections = Vec::new();
+    let static_part = if layered {
+        StaticPart::StaticLayer {
+            levels: level_range(0, false),
+            first: true,
+        }
+    } else {
+        StaticPart::Static
+    };
     for (kind, part, enc) in [
         (
             SectionKind::Mlp,
@@ -293,7 +400,7 @@ pub fn encode(
             StaticPart::Proposal,
             Encodings::for_mode(parts.proposal),
         ),
-        (SectionKind::Static, StaticPart::Static, static_enc),
+        (SectionKind::Static, static_part, static_enc),
     ] {
         let (raw, values) = write_static(&layout, params, part, enc);
         sections.push(SectionReport {
@@ -302,7 +409,7 @@ pub fn encode(
             raw_bytes: raw.len() as u64,
             values,
         });
-        payloads.push((kind, 0, raw));
+        payloads.push((kind, 0, 0, raw));
     }
     let occupancy = match &opts.occupancy {
         Some(g) => {
@@ -320,13 +427,15 @@ pub fn encode(
         raw_bytes: raw.len() as u64,
         values: 0,
     });
-    payloads.push((SectionKind::Occupancy, 0, raw));
+    payloads.push((SectionKind::Occupancy, 0, 0, raw));
 
     let region = dynamic_region(&layout.field.encoding, params, opts.dynamic_threshold);
     let mut chunks = Vec::new();
     let mut spans = Vec::new();
     let mut h4_values = 0;
     let mut h4_kept_union = 0;
+    // The 4D rows of the shared section and of each chunk, per level, for the later layers.
+    let mut dynamic_rows: Option<(RowsPerLevel, Vec<RowsPerLevel>)> = None;
     if let Some((g, _)) = &layout.field.encoding.h4 {
         h4_values = g.num_params as u64;
         if !region.boxes.is_empty() {
@@ -375,18 +484,24 @@ pub fn encode(
                 .collect();
             let shared_values: u64 =
                 shared.iter().map(|r| r.len() as u64).sum::<u64>() * g.features as u64;
-            let raw = write_chunk(&layout, params, SHARED_TAG, &shared, dyn_enc);
+            let raw = write_chunk(
+                &layout,
+                params,
+                SHARED_TAG,
+                &rows_of_layer(&shared, 0),
+                dyn_enc,
+            );
             sections.push(SectionReport {
                 name: SectionKind::Shared.name().into(),
                 stored_bytes: 0,
                 raw_bytes: raw.len() as u64,
                 values: shared_values,
             });
-            payloads.push((SectionKind::Shared, 0, raw));
-            for (c, (span, own)) in spans.iter().zip(own_rows).enumerate() {
+            payloads.push((SectionKind::Shared, 0, 0, raw));
+            for (c, (span, own)) in spans.iter().zip(&own_rows).enumerate() {
                 let reached = reached_per_chunk[c];
                 let kept: u64 = own.iter().map(|r| r.len() as u64).sum();
-                let raw = write_chunk(&layout, params, c as u32, &own, dyn_enc);
+                let raw = write_chunk(&layout, params, c as u32, &rows_of_layer(own, 0), dyn_enc);
                 chunks.push(ChunkReport {
                     span: span.clone(),
                     stored_bytes: 0,
@@ -394,13 +509,48 @@ pub fn encode(
                     reached_values: reached * g.features as u64,
                     kept_values: kept * g.features as u64,
                 });
-                payloads.push((SectionKind::Dynamic, c as u32, raw));
+                payloads.push((SectionKind::Dynamic, c as u32, 0, raw));
             }
+            dynamic_rows = Some((shared, own_rows));
             h4_kept_union = users
                 .iter()
                 .map(|u| u.iter().filter(|&&n| n > 0).count() as u64)
                 .sum::<u64>()
                 * g.features as u64;
+        }
+    }
+
+    // The later layers: each its static section, then its shared section and chunks.
+    let static_report = sections
+        .iter()
+        .position(|s| s.name == SectionKind::Static.name())
+        .unwrap_or(0);
+    for l in 1..layer_levels.len() {
+        let part = StaticPart::StaticLayer {
+            levels: level_range(l, false),
+            first: false,
+        };
+        let (raw, values) = write_static(&layout, params, part, static_enc);
+        sections[static_report].raw_bytes += raw.len() as u64;
+        sections[static_report].values += values;
+        payloads.push((SectionKind::Static, 0, l as u16, raw));
+        if let Some((shared, own_rows)) = &dynamic_rows {
+            let raw = write_chunk(
+                &layout,
+                params,
+                SHARED_TAG,
+                &rows_of_layer(shared, l),
+                dyn_enc,
+            );
+            if let Some(s) = sections.iter_mut().find(|s| s.name == "shared") {
+                s.raw_bytes += raw.len() as u64;
+            }
+            payloads.push((SectionKind::Shared, 0, l as u16, raw));
+            for (c, own) in own_rows.iter().enumerate() {
+                let raw = write_chunk(&layout, params, c as u32, &rows_of_layer(own, l), dyn_enc);
+                chunks[c].raw_bytes += raw.len() as u64;
+                payloads.push((SectionKind::Dynamic, c as u32, l as u16, raw));
+            }
         }
     }
 
@@ -416,6 +566,7 @@ pub fn encode(
         dynamic_threshold: opts.dynamic_threshold,
         chunk_frames: opts.chunk_frames as u32,
         chunks: spans,
+        layers: layered.then(|| layer_levels.clone()),
         encoder: format!("msth-codec {}", env!("CARGO_PKG_VERSION")),
     };
     let meta = serde_json::to_vec(&metadata)
@@ -423,16 +574,17 @@ pub fn encode(
 
     let compressed: Vec<Vec<u8>> = payloads
         .iter()
-        .map(|(_, _, raw)| compress(raw, opts.zstd_level))
+        .map(|(_, _, _, raw)| compress(raw, opts.zstd_level))
         .collect::<Result<_, _>>()?;
     let header_size = prefix_size(meta.len() as u64, payloads.len() as u64);
     let mut entries = Vec::with_capacity(payloads.len());
     let mut offset = header_size;
-    for ((kind, chunk, raw), stored) in payloads.iter().zip(&compressed) {
+    for ((kind, chunk, layer, raw), stored) in payloads.iter().zip(&compressed) {
         offset = offset.div_ceil(ALIGN) * ALIGN;
         entries.push(SectionEntry {
             kind: *kind,
             chunk: *chunk,
+            layer: *layer,
             offset,
             length: stored.len() as u64,
             raw_length: raw.len() as u64,
@@ -450,7 +602,11 @@ pub fn encode(
         write_entry(&mut out, e);
     }
     let mut header = FixedHeader {
-        version: VERSION,
+        version: if layered {
+            LAYERED_VERSION
+        } else {
+            UNLAYERED_VERSION
+        },
         flags: 0,
         header_size: header_size_u32,
         metadata_length: meta.len() as u32,
@@ -468,12 +624,39 @@ pub fn encode(
         out.extend_from_slice(stored);
     }
 
-    for (s, e) in sections.iter_mut().zip(&entries) {
-        s.stored_bytes = e.length;
-    }
-    let first_chunk = entries.len() - chunks.len();
-    for (c, e) in chunks.iter_mut().zip(&entries[first_chunk..]) {
-        c.stored_bytes = e.length;
+    let mut layers: Vec<LayerReport> = layer_levels
+        .iter()
+        .map(|&levels| LayerReport {
+            levels,
+            static_bytes: 0,
+            dynamic_bytes: 0,
+            first_chunk_bytes: 0,
+        })
+        .collect();
+    for e in &entries {
+        let layer = &mut layers[e.layer as usize];
+        match e.kind {
+            SectionKind::Dynamic => {
+                chunks[e.chunk as usize].stored_bytes += e.length;
+                layer.dynamic_bytes += e.length;
+                if e.chunk == 0 {
+                    layer.first_chunk_bytes += e.length;
+                }
+            }
+            kind => {
+                if let Some(s) = sections.iter_mut().find(|s| s.name == kind.name()) {
+                    s.stored_bytes += e.length;
+                }
+                match kind {
+                    SectionKind::Static => layer.static_bytes += e.length,
+                    SectionKind::Shared => {
+                        layer.dynamic_bytes += e.length;
+                        layer.first_chunk_bytes += e.length;
+                    }
+                    _ => {}
+                }
+            }
+        }
     }
     let report = EncodeReport {
         quant: parts.finest(),
@@ -483,6 +666,7 @@ pub fn encode(
         raw_param_bytes: 4 * layout.params.total as u64,
         sections,
         chunks,
+        layers,
         h4_values,
         h4_kept_union,
         dynamic_voxels: region.voxels,

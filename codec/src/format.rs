@@ -12,8 +12,13 @@ use crate::error::DecodeError;
 
 /// `b"MSTH"`.
 pub const MAGIC: [u8; 4] = *b"MSTH";
-/// The format version this crate writes (3: the metadata's `section_quant` and `play_samples`).
-pub const VERSION: u16 = 3;
+/// The newest format version this crate reads and writes (4: progressive layers). It writes the
+/// oldest version that holds a file: [`UNLAYERED_VERSION`] for a file of one layer.
+pub const VERSION: u16 = 4;
+/// The version of files without layers (3: the metadata's `section_quant` and `play_samples`).
+pub const UNLAYERED_VERSION: u16 = 3;
+/// The first version with progressive layers (the metadata's `layers`, index entries' `layer`).
+pub const LAYERED_VERSION: u16 = 4;
 /// The oldest version this crate reads (version 1: no occupancy section).
 pub const MIN_VERSION: u16 = 1;
 /// Bytes of the fixed header.
@@ -92,6 +97,9 @@ pub struct SectionEntry {
     pub kind: SectionKind,
     /// The chunk number for dynamic sections, 0 otherwise.
     pub chunk: u32,
+    /// The progressive layer (version 4; 0 in earlier versions and for the sections that are not
+    /// layered: MLP, proposal, occupancy).
+    pub layer: u16,
     /// Absolute byte offset of the stored (compressed) bytes.
     pub offset: u64,
     /// Stored bytes.
@@ -107,10 +115,15 @@ impl SectionEntry {
         self.offset..self.offset + self.length
     }
     pub fn label(&self) -> String {
-        match self.kind {
+        let base = match self.kind {
             SectionKind::Dynamic => format!("dynamic chunk {}", self.chunk),
             SectionKind::Shared => "shared dynamic section".into(),
             k => format!("{} section", k.name()),
+        };
+        if self.layer > 0 {
+            format!("{base}, layer {}", self.layer)
+        } else {
+            base
         }
     }
 }
@@ -363,11 +376,41 @@ pub struct Metadata {
     pub chunk_frames: u32,
     /// One span per dynamic section, in chunk order (empty: no dynamic sections).
     pub chunks: Vec<ChunkSpan>,
+    /// The progressive layers (version 4; absent: one layer, the whole field), coarse first.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub layers: Option<Vec<LayerLevels>>,
     /// Free-form producer string.
     pub encoder: String,
 }
 
+/// What layers `0..=l` of a layered file hold (the metadata's `layers[l]`, version 4): the
+/// field's 3D and 4D table levels `0..h3` and `0..h4`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LayerLevels {
+    pub h3: u32,
+    pub h4: u32,
+}
+
 impl Metadata {
+    /// The layers' cumulative level counts: `layers`, or one layer of every level.
+    pub fn layer_levels(&self) -> Vec<LayerLevels> {
+        match &self.layers {
+            Some(l) => l.clone(),
+            None => {
+                let enc = &self.model.field.encoding;
+                let n = |uses: bool, levels: usize| if uses { levels as u32 } else { 0 };
+                vec![LayerLevels {
+                    h3: n(enc.blend.uses_h3(), enc.grid3.levels),
+                    h4: n(enc.blend.uses_h4(), enc.grid4.levels),
+                }]
+            }
+        }
+    }
+    /// Progressive layers: 1 for a file without `layers`.
+    pub fn layer_count(&self) -> usize {
+        self.layers.as_ref().map_or(1, |l| l.len())
+    }
     /// How each part is quantised: `section_quant`, or `quant` throughout (versions 1 and 2).
     pub fn parts_quant(&self) -> SectionQuant {
         self.section_quant
@@ -604,7 +647,7 @@ pub fn prefix_size(metadata_length: u64, sections: u64) -> u64 {
 pub fn write_entry(out: &mut Vec<u8>, e: &SectionEntry) {
     out.push(e.kind as u8);
     out.push(COMPRESSION_ZSTD);
-    out.extend_from_slice(&0u16.to_le_bytes());
+    out.extend_from_slice(&e.layer.to_le_bytes());
     out.extend_from_slice(&e.chunk.to_le_bytes());
     out.extend_from_slice(&e.offset.to_le_bytes());
     out.extend_from_slice(&e.length.to_le_bytes());
@@ -613,7 +656,7 @@ pub fn write_entry(out: &mut Vec<u8>, e: &SectionEntry) {
     out.extend_from_slice(&0u32.to_le_bytes());
 }
 
-fn parse_entry(b: &[u8], i: usize) -> Result<SectionEntry, DecodeError> {
+fn parse_entry(b: &[u8], i: usize, version: u16) -> Result<SectionEntry, DecodeError> {
     let what = format!("index entry {i}");
     let u32_at = |o: usize| u32::from_le_bytes([b[o], b[o + 1], b[o + 2], b[o + 3]]);
     let u64_at = |o: usize| {
@@ -631,12 +674,14 @@ fn parse_entry(b: &[u8], i: usize) -> Result<SectionEntry, DecodeError> {
             message: format!("compression {} (zstd = 1 is the only one)", b[1]),
         });
     }
-    if b[2] != 0 || b[3] != 0 || u32_at(36) != 0 {
+    let layer = u16::from_le_bytes([b[2], b[3]]);
+    if (version < LAYERED_VERSION && layer != 0) || u32_at(36) != 0 {
         return Err(DecodeError::malformed(what, "reserved fields must be zero"));
     }
     Ok(SectionEntry {
         kind,
         chunk: u32_at(4),
+        layer,
         offset: u64_at(8),
         length: u64_at(16),
         raw_length: u64_at(24),
@@ -695,7 +740,7 @@ impl FileIndex {
         let mut sections = Vec::with_capacity(header.section_count as usize);
         for i in 0..header.section_count as usize {
             let o = io + i * INDEX_ENTRY;
-            sections.push(parse_entry(&bytes[o..o + INDEX_ENTRY], i)?);
+            sections.push(parse_entry(&bytes[o..o + INDEX_ENTRY], i, header.version)?);
         }
         check_sections(&sections, &metadata, header.version, hs as u64, limits)?;
         Ok(FileIndex {
@@ -720,19 +765,85 @@ impl FileIndex {
         fixed_sections(self.header.version).len() + 1
     }
 
-    /// The sections a player needs before the first frame (index positions `0..n`).
+    /// The sections a player needs before the first frame (index positions `0..n`): the fixed
+    /// sections and, with chunks, the shared section; of a layered file, layer 0 of them.
     pub fn before_first_frame(&self) -> usize {
-        self.first_chunk().min(self.sections.len())
+        let fixed = fixed_sections(self.header.version).len();
+        if self.metadata.chunks.is_empty() {
+            fixed
+        } else {
+            fixed + 1
+        }
     }
 
+    /// Progressive layers (1 for a file without them).
+    pub fn layer_count(&self) -> usize {
+        self.metadata.layer_count()
+    }
+
+    /// Index entries of each layer after the first: the static section, and with chunks the
+    /// shared section and every chunk.
+    fn per_layer(&self) -> usize {
+        let chunks = self.metadata.chunks.len();
+        if chunks == 0 {
+            1
+        } else {
+            2 + chunks
+        }
+    }
+
+    /// Index position of a section of layer `layer` (`chunk` for kind dynamic, else 0); `None`
+    /// when the file has no such section.
+    pub fn position(&self, kind: SectionKind, chunk: usize, layer: usize) -> Option<usize> {
+        let chunks = self.metadata.chunks.len();
+        if layer >= self.layer_count() || (kind == SectionKind::Dynamic && chunk >= chunks) {
+            return None;
+        }
+        let fixed = fixed_sections(self.header.version);
+        if layer == 0 {
+            return match kind {
+                SectionKind::Dynamic => Some(self.first_chunk() + chunk),
+                SectionKind::Shared => (chunks > 0).then_some(fixed.len()),
+                k => fixed.iter().position(|&f| f == k),
+            };
+        }
+        let base = fixed.len() + if chunks > 0 { 1 + chunks } else { 0 };
+        let at = base + (layer - 1) * self.per_layer();
+        match kind {
+            SectionKind::Static => Some(at),
+            SectionKind::Shared if chunks > 0 => Some(at + 1),
+            SectionKind::Dynamic => Some(at + 2 + chunk),
+            _ => None,
+        }
+    }
+
+    /// Layer 0 of a section of that kind (the first of its kind for chunks).
     pub fn section(&self, kind: SectionKind) -> Option<&SectionEntry> {
         self.sections.iter().find(|s| s.kind == kind)
     }
 
+    /// Layer 0 of chunk `chunk`.
     pub fn chunk(&self, chunk: usize) -> Option<&SectionEntry> {
-        self.sections
-            .iter()
-            .find(|s| s.kind == SectionKind::Dynamic && s.chunk as usize == chunk)
+        self.position(SectionKind::Dynamic, chunk, 0)
+            .and_then(|i| self.sections.get(i))
+    }
+
+    /// The index positions a player holding layers `0..layers` of chunk `chunk` (`None`: the
+    /// static file's sections) has decoded: everything before the first frame, the chunk's
+    /// layer 0 and, for each further layer, the static section, the shared section and the
+    /// chunk of that layer.
+    pub fn sections_for(&self, chunk: Option<usize>, layers: usize) -> Vec<usize> {
+        let mut out: Vec<usize> = (0..self.before_first_frame()).collect();
+        for l in 0..layers.min(self.layer_count()) {
+            if l > 0 {
+                out.extend(self.position(SectionKind::Static, 0, l));
+                out.extend(self.position(SectionKind::Shared, 0, l));
+            }
+            if let Some(c) = chunk {
+                out.extend(self.position(SectionKind::Dynamic, c, l));
+            }
+        }
+        out
     }
 
     /// The rules format.md puts on writers that a decoder need not enforce, for validators
@@ -794,6 +905,9 @@ fn check_metadata(m: &Metadata, version: u16, limits: &Limits) -> Result<ModelLa
                 ));
             }
         }
+    }
+    if let Some(layers) = &m.layers {
+        check_layers(m, layers, version)?;
     }
     if let Some(q) = m.section_quant {
         if q.finest() != m.quant {
@@ -909,6 +1023,54 @@ fn check_metadata(m: &Metadata, version: u16, limits: &Limits) -> Result<ModelLa
     Ok(layout)
 }
 
+/// The metadata's `layers` (version 4): 1..=16 entries, each holding more levels than the one
+/// before, the last every level of the field's tables (0 for a table the blend mode lacks).
+fn check_layers(m: &Metadata, layers: &[LayerLevels], version: u16) -> Result<(), DecodeError> {
+    let bad = |msg: String| Err(DecodeError::malformed("metadata", msg));
+    if version < LAYERED_VERSION {
+        return bad(format!(
+            "unknown key `layers` (version {version}; it exists from version {LAYERED_VERSION})"
+        ));
+    }
+    let max = msth_core::layers::MAX_LAYERS;
+    if layers.is_empty() || layers.len() > max {
+        return bad(format!(
+            "layers has {} entries, expected 1 to {max}",
+            layers.len()
+        ));
+    }
+    let enc = &m.model.field.encoding;
+    let full = LayerLevels {
+        h3: if enc.blend.uses_h3() {
+            enc.grid3.levels as u32
+        } else {
+            0
+        },
+        h4: if enc.blend.uses_h4() {
+            enc.grid4.levels as u32
+        } else {
+            0
+        },
+    };
+    let mut prev = LayerLevels { h3: 0, h4: 0 };
+    for (l, &e) in layers.iter().enumerate() {
+        if e.h3 < prev.h3 || e.h4 < prev.h4 || (e.h3, e.h4) == (prev.h3, prev.h4) {
+            return bad(format!(
+                "layers[{l}] holds levels {}/{} after {}/{}: each layer adds levels",
+                e.h3, e.h4, prev.h3, prev.h4
+            ));
+        }
+        prev = e;
+    }
+    if prev != full {
+        return bad(format!(
+            "the last layer holds levels {}/{}, the field's tables have {}/{}",
+            prev.h3, prev.h4, full.h3, full.h4
+        ));
+    }
+    Ok(())
+}
+
 fn check_sections(
     s: &[SectionEntry],
     m: &Metadata,
@@ -918,11 +1080,13 @@ fn check_sections(
 ) -> Result<(), DecodeError> {
     let n_chunks = m.chunks.len();
     let fixed = fixed_sections(version);
-    let expected = if n_chunks == 0 {
+    let per_layer = if n_chunks == 0 { 1 } else { 2 + n_chunks };
+    let first_layer = if n_chunks == 0 {
         fixed.len()
     } else {
         fixed.len() + 1 + n_chunks
     };
+    let expected = first_layer + (m.layer_count() - 1) * per_layer;
     if s.len() != expected {
         return Err(DecodeError::malformed(
             "index",
@@ -934,17 +1098,28 @@ fn check_sections(
     }
     let mut end = header_size;
     for (i, e) in s.iter().enumerate() {
-        let (kind, chunk) = match i {
-            i if i < fixed.len() => (fixed[i], 0),
-            i if i == fixed.len() => (SectionKind::Shared, 0),
-            c => (SectionKind::Dynamic, (c - fixed.len() - 1) as u32),
+        let (kind, chunk, layer) = match i {
+            i if i < fixed.len() => (fixed[i], 0, 0),
+            i if i == fixed.len() && n_chunks > 0 => (SectionKind::Shared, 0, 0),
+            i if i < first_layer => (SectionKind::Dynamic, (i - fixed.len() - 1) as u32, 0),
+            i => {
+                let (layer, k) = (
+                    (i - first_layer) / per_layer + 1,
+                    (i - first_layer) % per_layer,
+                );
+                match k {
+                    0 => (SectionKind::Static, 0, layer as u16),
+                    1 => (SectionKind::Shared, 0, layer as u16),
+                    c => (SectionKind::Dynamic, (c - 2) as u32, layer as u16),
+                }
+            }
         };
-        if e.kind != kind || e.chunk != chunk {
+        if e.kind != kind || e.chunk != chunk || e.layer != layer {
             return Err(DecodeError::malformed(
                 "index",
                 format!(
-                    "entry {i} is {:?} chunk {}, expected {kind:?} chunk {chunk}",
-                    e.kind, e.chunk
+                    "entry {i} is {:?} chunk {} layer {}, expected {kind:?} chunk {chunk} layer {layer}",
+                    e.kind, e.chunk, e.layer
                 ),
             ));
         }

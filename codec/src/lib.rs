@@ -25,11 +25,13 @@ pub mod quant;
 pub mod sections;
 
 pub use decode::{decode_all, decode_all_with_limits, DecodedModel, Decoder};
-pub use encode::{encode, ChunkReport, EncodeOptions, EncodeReport, SectionReport};
+pub use encode::{
+    encode, split_layers, ChunkReport, EncodeOptions, EncodeReport, LayerReport, SectionReport,
+};
 pub use error::{DecodeError, EncodeError};
 pub use format::{
-    FileIndex, Limits, Metadata, PlaySampleCounts, QuantMode, QuantPart, SectionEntry, SectionKind,
-    SectionQuant,
+    FileIndex, LayerLevels, Limits, Metadata, PlaySampleCounts, QuantMode, QuantPart, SectionEntry,
+    SectionKind, SectionQuant,
 };
 pub use occupancy::OccupancyGrid;
 

@@ -85,8 +85,12 @@ fn section_ranges(layout: &ModelLayout, which: StaticPart) -> Vec<(String, Range
     let mut out = Vec::new();
     let table = |out: &mut Vec<(String, Range<usize>, Part)>,
                  name: &str,
-                 g: &(GridLayout, Range<usize>)| {
+                 g: &(GridLayout, Range<usize>),
+                 levels: Range<usize>| {
         for (l, level) in g.0.levels.iter().enumerate() {
+            if !levels.contains(&l) {
+                continue;
+            }
             let start = g.1.start + level.offset;
             out.push((
                 format!("{name} level {l}"),
@@ -102,16 +106,18 @@ fn section_ranges(layout: &ModelLayout, which: StaticPart) -> Vec<(String, Range
     let encoding = |out: &mut Vec<(String, Range<usize>, Part)>,
                     prefix: &str,
                     e: &EncodingLayout,
-                    with_h4: bool| {
+                    with_h4: bool,
+                    h3_levels: Range<usize>,
+                    with_mask: bool| {
         if let Some(g) = &e.h3 {
-            table(out, &format!("{prefix}.h3"), g);
+            table(out, &format!("{prefix}.h3"), g, h3_levels);
         }
         if with_h4 {
             if let Some(g) = &e.h4 {
-                table(out, &format!("{prefix}.h4"), g);
+                table(out, &format!("{prefix}.h4"), g, 0..usize::MAX);
             }
         }
-        if let Some((_, r)) = &e.mask {
+        if let (Some((_, r)), true) = (&e.mask, with_mask) {
             out.push((format!("{prefix}.mask"), r.clone(), Part::Mask));
         }
     };
@@ -133,10 +139,30 @@ fn section_ranges(layout: &ModelLayout, which: StaticPart) -> Vec<(String, Range
                 Part::Mlp,
             ));
         }
-        StaticPart::Proposal => {
-            encoding(&mut out, "proposal", &layout.proposal.field.encoding, true)
-        }
-        StaticPart::Static => encoding(&mut out, "field", &layout.field.encoding, false),
+        StaticPart::Proposal => encoding(
+            &mut out,
+            "proposal",
+            &layout.proposal.field.encoding,
+            true,
+            0..usize::MAX,
+            true,
+        ),
+        StaticPart::Static => encoding(
+            &mut out,
+            "field",
+            &layout.field.encoding,
+            false,
+            0..usize::MAX,
+            true,
+        ),
+        StaticPart::StaticLayer { levels, first } => encoding(
+            &mut out,
+            "field",
+            &layout.field.encoding,
+            false,
+            levels,
+            first,
+        ),
     }
     out
 }
@@ -149,12 +175,19 @@ enum Part {
     Mlp,
 }
 
-/// The three sections that are not time chunks.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+/// The sections that are not time chunks.
+#[derive(Clone, Debug, PartialEq, Eq)]
 pub enum StaticPart {
     Mlp,
     Proposal,
+    /// The whole static section (a file of one layer).
     Static,
+    /// One layer of a layered file's static section (format.md §6.6): the field's 3D table
+    /// `levels`, and in the first layer the mask grid after them.
+    StaticLayer {
+        levels: Range<usize>,
+        first: bool,
+    },
 }
 
 /// Writes the payload of a non-chunk section.
@@ -166,7 +199,7 @@ pub fn write_static(
 ) -> (Vec<u8>, u64) {
     let mut w = Writer::default();
     let mut values = 0u64;
-    for (_, r, part) in section_ranges(layout, which) {
+    for (_, r, part) in section_ranges(layout, which.clone()) {
         let e = match part {
             Part::Table => enc.tables,
             Part::DenseTable => enc.dense_tables,
@@ -212,6 +245,19 @@ pub struct SparseChunk {
 }
 
 impl SparseChunk {
+    /// Adds the rows of levels this chunk stores none of from `other` (another layer of the same
+    /// chunk: layers hold disjoint levels).
+    pub fn merge(&mut self, other: &SparseChunk) {
+        if self.levels.len() < other.levels.len() {
+            self.levels.resize(other.levels.len(), Default::default());
+        }
+        for (mine, theirs) in self.levels.iter_mut().zip(&other.levels) {
+            if mine.0.is_empty() && !theirs.0.is_empty() {
+                *mine = theirs.clone();
+            }
+        }
+    }
+
     /// Stored table entries (values).
     pub fn entries(&self) -> u64 {
         self.levels.iter().map(|(_, v)| v.len() as u64).sum()
@@ -301,6 +347,18 @@ pub fn read_chunk(
     chunk: u32,
     what: &str,
 ) -> Result<SparseChunk, DecodeError> {
+    read_chunk_levels(layout, payload, chunk, 0..usize::MAX, what)
+}
+
+/// [`read_chunk`] for one layer of a layered file (format.md §6.6): levels outside `levels`
+/// MUST store no rows.
+pub fn read_chunk_levels(
+    layout: &ModelLayout,
+    payload: &[u8],
+    chunk: u32,
+    allowed: Range<usize>,
+    what: &str,
+) -> Result<SparseChunk, DecodeError> {
     let Some((g, _)) = &layout.field.encoding.h4 else {
         return Err(DecodeError::malformed(what, "the model has no 4D table"));
     };
@@ -322,6 +380,15 @@ pub fn read_chunk(
     let mut levels = Vec::with_capacity(n_levels);
     for (l, level) in g.levels.iter().enumerate() {
         let n = r.u32()? as usize;
+        if n > 0 && !allowed.contains(&l) {
+            return Err(DecodeError::malformed(
+                what,
+                format!(
+                    "level {l}: {n} rows stored, but this layer holds levels {}..{}",
+                    allowed.start, allowed.end
+                ),
+            ));
+        }
         if n > level.rows {
             return Err(DecodeError::malformed(
                 what,

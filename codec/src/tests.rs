@@ -259,3 +259,235 @@ fn encoder_refuses_what_the_decoder_limits_refuse() {
         limits.check_image("camera", w, h).unwrap();
     }
 }
+
+/// A layered file (version 4) decodes to the same parameters as the file of one layer, bit for
+/// bit, for every blend mode and a static scene; a decoder holding the first `k` layers renders
+/// the finer levels as 0 and every stored coarser value exactly; its index lists each layer's
+/// sections where `FileIndex::position` says.
+#[test]
+fn layers_decode_like_one_layer_and_prefixes_zero_the_finer_levels() {
+    for (blend, frames) in [
+        (BlendMode::Mst, 12),
+        (BlendMode::Mt, 12),
+        (BlendMode::Add, 5),
+        (BlendMode::Mst, 1),
+    ] {
+        let c = tiny(blend, frames);
+        let p = params_for(&c);
+        let layout = ModelLayout::new(&c);
+        let one = EncodeOptions {
+            quant: QuantMode::Q5,
+            chunk_frames: 4,
+            ..Default::default()
+        };
+        let (flat, flat_report) = encode(&c, &p, &[], &one).unwrap();
+        let (bytes, report) = encode(
+            &c,
+            &p,
+            &[],
+            &EncodeOptions {
+                layers: 3,
+                ..one.clone()
+            },
+        )
+        .unwrap();
+        assert_eq!(&flat[4..6], &3u16.to_le_bytes());
+        assert_eq!(&bytes[4..6], &4u16.to_le_bytes());
+        assert_eq!(report.layers.len(), 3, "{blend:?}");
+        assert_eq!(flat_report.layers.len(), 1);
+        assert_eq!(report.file_bytes, bytes.len() as u64);
+        assert_eq!(report.chunks.len(), flat_report.chunks.len());
+        let a = decode_all(&flat).unwrap();
+        let b = decode_all(&bytes).unwrap();
+        assert_eq!(a.params.len(), b.params.len());
+        assert!(
+            a.params
+                .iter()
+                .zip(&b.params)
+                .all(|(x, y)| x.to_bits() == y.to_bits()),
+            "{blend:?}"
+        );
+        for t in [0.0, 0.4, 1.0] {
+            let (x, y) = (a.params_for_time(t), b.params_for_time(t));
+            assert!(
+                x.iter().zip(&y).all(|(x, y)| x.to_bits() == y.to_bits()),
+                "{blend:?} t {t}"
+            );
+        }
+        let ix = FileIndex::parse(&bytes, &Limits::default()).unwrap();
+        for (i, e) in ix.sections.iter().enumerate() {
+            let chunk = e.chunk as usize;
+            assert_eq!(
+                ix.position(e.kind, chunk, e.layer as usize),
+                Some(i),
+                "{e:?}"
+            );
+        }
+        // Prefixes: a decoder fed layers 0..k only.
+        let chunk = ix.chunk_for_time(0.9);
+        let levels = ix.metadata.layer_levels();
+        for k in 1..=3 {
+            let mut d = Decoder::new(&bytes).unwrap();
+            for i in ix.sections_for(chunk, k) {
+                let e = &ix.sections[i];
+                d.decode_section(i, &bytes[e.offset as usize..(e.offset + e.length) as usize])
+                    .unwrap();
+            }
+            assert_eq!(d.layers_ready(chunk), k);
+            let got = d.params_for_time(0.9).unwrap();
+            let full = b.params_for_time(0.9);
+            let mut kept = 0;
+            for (name, grid, keep) in [
+                ("h3", &layout.field.encoding.h3, levels[k - 1].h3),
+                ("h4", &layout.field.encoding.h4, levels[k - 1].h4),
+            ] {
+                let Some((g, range)) = grid else { continue };
+                for (l, level) in g.levels.iter().enumerate() {
+                    let s = range.start + level.offset
+                        ..range.start + level.offset + level.rows * g.features;
+                    if l < keep as usize {
+                        kept += 1;
+                        assert!(
+                            got[s.clone()]
+                                .iter()
+                                .zip(&full[s])
+                                .all(|(x, y)| x.to_bits() == y.to_bits()),
+                            "{name} {l}"
+                        );
+                    } else {
+                        assert!(
+                            got[s].iter().all(|&v| v == 0.0),
+                            "{blend:?} {name} level {l} of prefix {k}"
+                        );
+                    }
+                }
+            }
+            assert!(kept > 0);
+            // The full decoder asked for k layers draws the same.
+            let mut all = Decoder::new(&bytes).unwrap();
+            all.feed(&bytes).unwrap();
+            let mut same = Vec::new();
+            all.params_for_layers_into(0.9, k, &mut same).unwrap();
+            assert!(
+                same.iter()
+                    .zip(&got)
+                    .all(|(x, y)| x.to_bits() == y.to_bits()),
+                "{blend:?} {k}"
+            );
+        }
+        // Each layer's bytes add up to the layered sections.
+        let layered: u64 = report
+            .layers
+            .iter()
+            .map(|l| l.static_bytes + l.dynamic_bytes)
+            .sum();
+        let listed: u64 = ix
+            .sections
+            .iter()
+            .filter(|e| {
+                matches!(
+                    e.kind,
+                    crate::SectionKind::Static
+                        | crate::SectionKind::Shared
+                        | crate::SectionKind::Dynamic
+                )
+            })
+            .map(|e| e.length)
+            .sum();
+        assert_eq!(layered, listed);
+        assert!(report.first_frame_bytes(1) < report.first_frame_bytes(3));
+    }
+}
+
+/// A layered file's structure is checked like the rest: a layer field in an older version, a
+/// `layers` list that does not end at the tables' levels or adds none, rows of a level outside
+/// the layer.
+#[test]
+fn layered_files_are_checked() {
+    let c = tiny(BlendMode::Mst, 12);
+    let p = params_for(&c);
+    let opts = EncodeOptions {
+        chunk_frames: 4,
+        layers: 2,
+        ..Default::default()
+    };
+    let (bytes, _) = encode(&c, &p, &[], &opts).unwrap();
+    let ix = FileIndex::parse(&bytes, &Limits::default()).unwrap();
+    // A version-3 file with a layer number in an entry.
+    let (flat, _) = encode(
+        &c,
+        &p,
+        &[],
+        &EncodeOptions {
+            layers: 1,
+            ..opts.clone()
+        },
+    )
+    .unwrap();
+    let mut bad = flat.clone();
+    let io = crate::format::index_offset(
+        FileIndex::parse(&flat, &Limits::default())
+            .unwrap()
+            .header
+            .metadata_length as u64,
+    ) as usize;
+    bad[io + 2] = 1;
+    refix_prefix_crc(&mut bad);
+    let e = decode_all(&bad).unwrap_err().to_string();
+    assert!(e.contains("reserved"), "{e}");
+    // `layers` that do not reach every level, or repeat one.
+    for layers in [
+        r#"[{"h3":2,"h4":2}]"#,
+        r#"[{"h3":2,"h4":2},{"h3":2,"h4":2},{"h3":4,"h4":4}]"#,
+    ] {
+        let mut m = ix.metadata.clone();
+        m.layers = Some(serde_json::from_str(layers).unwrap());
+        let e = crate::format::FileIndex::parse(&with_metadata(&bytes, &m), &Limits::default())
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("layer"), "{e}");
+    }
+    // Layer 1's shared rows read as layer 0's: rows in levels the layer does not hold.
+    let e1 = &ix.sections[ix.position(crate::SectionKind::Shared, 0, 1).unwrap()];
+    let stored = &bytes[e1.offset as usize..(e1.offset + e1.length) as usize];
+    let payload = zstd::bulk::decompress(stored, e1.raw_length as usize).unwrap();
+    let layer0 = 0..ix.metadata.layer_levels()[0].h4 as usize;
+    let e = crate::sections::read_chunk_levels(
+        &ix.layout,
+        &payload,
+        crate::sections::SHARED_TAG,
+        layer0,
+        "shared",
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(e.contains("this layer holds levels"), "{e}");
+}
+
+/// Rewrites the prefix CRC after an edit of the prefix.
+fn refix_prefix_crc(b: &mut [u8]) {
+    let hs = u32::from_le_bytes([b[8], b[9], b[10], b[11]]) as usize;
+    let mut crc = crc32fast::Hasher::new();
+    crc.update(&b[..28]);
+    crc.update(&b[32..hs]);
+    let v = crc.finalize();
+    b[28..32].copy_from_slice(&v.to_le_bytes());
+}
+
+/// The file's prefix with other metadata (offsets unchanged: only the index is read).
+fn with_metadata(bytes: &[u8], m: &crate::Metadata) -> Vec<u8> {
+    let ix = FileIndex::parse(bytes, &Limits::default()).unwrap();
+    let meta = serde_json::to_vec(m).unwrap();
+    let io = crate::format::index_offset(meta.len() as u64) as usize;
+    let mut out = bytes[..32].to_vec();
+    out.extend_from_slice(&meta);
+    out.resize(io, 0);
+    for e in &ix.sections {
+        crate::format::write_entry(&mut out, e);
+    }
+    let hs = out.len() as u32;
+    out[8..12].copy_from_slice(&hs.to_le_bytes());
+    out[12..16].copy_from_slice(&(meta.len() as u32).to_le_bytes());
+    refix_prefix_crc(&mut out);
+    out
+}

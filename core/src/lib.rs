@@ -18,6 +18,7 @@ pub mod camera;
 pub mod config;
 pub mod field;
 pub mod grid;
+pub mod layers;
 pub mod losses;
 pub mod mlp;
 pub mod params;

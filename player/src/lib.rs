@@ -20,6 +20,7 @@
 //!
 //! The player links the codec and the field math, never the trainer.
 
+pub mod abr;
 pub mod backend;
 pub mod empty_space;
 pub mod gpu;

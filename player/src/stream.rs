@@ -2,12 +2,17 @@
 //! playback order from the playhead, on a background thread.
 //!
 //! [`ModelStream::open`] reads and checks the prefix (header, metadata, index) synchronously, so a
-//! bad URL or a corrupt file fails right away. A fetch thread then
-//! 1. reads the sections every frame needs (MLPs, proposal, static tables, shared 4D rows) in one
-//!    Range request when they are contiguous, as they are in files the encoder writes;
-//! 2. reads the chunk the playhead wants ([`ModelStream::seek`] or a blocking
+//! bad URL or a corrupt file fails right away. A fetch thread then asks [`crate::abr`] what to
+//! read next, from what is decoded, the playhead, the playback speed and the throughput it
+//! measures:
+//! 1. the sections every frame needs (MLPs, proposal, static tables, shared 4D rows; of a
+//!    layered file, layer 0 of them) in one Range request when they are contiguous, as they are
+//!    in files the encoder writes;
+//! 2. the chunk the playhead wants ([`ModelStream::seek`] or a blocking
 //!    [`ModelStream::params_for_time`] moves it), then the following chunks in playback order,
-//!    wrapping around, until the whole file is in.
+//!    wrapping around; of a layered file, layer 0 of the coming chunks first, then as many finer
+//!    layers as the link carries before each chunk plays ([`ModelStream::set_speed`] says how
+//!    fast playback runs), until the whole file is in.
 //!
 //! A source that must be read forward ([`ByteSource::sequential`]: a server that ignores Range
 //! requests) is read in file order instead, one section at a time, whatever the playhead. Once
@@ -25,6 +30,7 @@ use std::time::{Duration, Instant};
 use msth_codec::format::{FileIndex, FIXED_HEADER};
 use msth_codec::{Decoder, Limits};
 
+use crate::abr::{Playback, RateMeter};
 use crate::source::{ByteSource, SourceError, TransferStats};
 
 /// Errors of streaming playback.
@@ -65,6 +71,10 @@ struct State {
     decoder: Decoder,
     /// The chunk the playhead needs (fetched first), if any.
     want: Option<usize>,
+    /// The playhead and the playback speed the layer policy plans with.
+    playback: Playback,
+    /// Throughput of the requests so far.
+    meter: RateMeter,
     error: Option<String>,
     bytes_ready: u64,
     stop: bool,
@@ -89,11 +99,6 @@ pub struct ModelStream {
     shared: Arc<Shared>,
 }
 
-/// The sections before the first dynamic chunk, as index positions.
-fn static_sections(index: &FileIndex) -> Range<usize> {
-    0..index.before_first_frame()
-}
-
 impl ModelStream {
     /// Reads and checks the prefix from `source`, then starts fetching the rest.
     pub fn open(source: Box<dyn ByteSource>, limits: &Limits) -> Result<Self, StreamError> {
@@ -112,7 +117,10 @@ impl ModelStream {
                 have: len,
             }));
         }
+        let began = Instant::now();
         let prefix = source.read_range(0..prefix_len)?;
+        let mut meter = RateMeter::default();
+        meter.add(prefix_len, began.elapsed().as_secs_f64());
         let decoder = Decoder::with_limits(&prefix, limits).map_err(decode_err)?;
         let index = decoder.index().clone();
         if index.file_len() > len {
@@ -127,6 +135,11 @@ impl ModelStream {
             state: Mutex::new(State {
                 decoder,
                 want: None,
+                playback: Playback {
+                    time: 0.0,
+                    seconds_per_unit: 0.0,
+                },
+                meter,
                 error: None,
                 bytes_ready: prefix_len,
                 stop: false,
@@ -153,10 +166,39 @@ impl ModelStream {
     pub fn seek(&self, t: f32) {
         let want = self.index().chunk_for_time(t);
         let mut st = self.shared.lock();
+        st.playback.time = t;
         if st.want != want {
             st.want = want;
             self.shared.changed.notify_all();
         }
+    }
+
+    /// How fast playback runs: wall-clock seconds per unit of normalised time (the clip's
+    /// length), 0 when paused. The layer policy plans each chunk's layers against it; by default
+    /// (0) it fetches every layer of the chunk on screen first.
+    pub fn set_speed(&self, seconds_per_unit: f64) {
+        let mut st = self.shared.lock();
+        let s = if seconds_per_unit.is_finite() {
+            seconds_per_unit.max(0.0)
+        } else {
+            0.0
+        };
+        if st.playback.seconds_per_unit != s {
+            st.playback.seconds_per_unit = s;
+            self.shared.changed.notify_all();
+        }
+    }
+
+    /// The progressive layers a frame at time `t` is drawn with now (0: not ready; 1 for a file
+    /// without layers once ready).
+    pub fn layers_for(&self, t: f32) -> usize {
+        let st = self.shared.lock();
+        st.decoder.layers_ready(self.index().chunk_for_time(t))
+    }
+
+    /// The throughput measured over the last requests, bytes per second.
+    pub fn rate(&self) -> Option<f64> {
+        self.shared.lock().meter.rate()
     }
 
     /// Waits until the static sections are decoded (the first frame needs nothing else when the
@@ -169,7 +211,9 @@ impl ModelStream {
     }
 
     /// Writes the parameters for time `t` into `out`, waiting up to `timeout` for the sections
-    /// they need; moves the playhead to `t`. Returns the chunk used (`None`: a static file).
+    /// they need, every progressive layer of them (what `msth play` renders: the same frames
+    /// however fast the link); moves the playhead to `t`. Returns the chunk used (`None`: a
+    /// static file).
     pub fn params_for_time(
         &self,
         t: f32,
@@ -194,8 +238,9 @@ impl ModelStream {
             Some(c) => format!("dynamic chunk {c} (time {t})"),
             None => "the static sections".into(),
         };
+        let layers = self.index().layer_count();
         let st = self.wait(&what, timeout, |st| {
-            st.decoder.static_ready() && chunk.is_none_or(|c| st.decoder.chunk(c).is_some())
+            st.decoder.layers_ready(chunk) == layers
         })?;
         st.decoder
             .params_for_time_into(t, out)
@@ -206,6 +251,31 @@ impl ModelStream {
         Ok(chunk)
     }
 
+    /// Writes the parameters for time `t` into `out` as soon as the chunk's layer 0 is in (a
+    /// progressive player: it draws at once and again as finer layers arrive); moves the
+    /// playhead to `t`. Returns the chunk and the layers used.
+    pub fn params_progressive(
+        &self,
+        t: f32,
+        out: &mut Vec<f32>,
+        timeout: Duration,
+    ) -> Result<(Option<usize>, usize), StreamError> {
+        self.seek(t);
+        let chunk = self.index().chunk_for_time(t);
+        let what = match chunk {
+            Some(c) => format!("dynamic chunk {c} (time {t})"),
+            None => "the static sections".into(),
+        };
+        let st = self.wait(&what, timeout, |st| st.decoder.layers_ready(chunk) > 0)?;
+        st.decoder
+            .params_for_time_into(t, out)
+            .map_err(|error| StreamError::Decode {
+                name: self.shared.name.clone(),
+                error,
+            })?;
+        Ok((chunk, st.decoder.layers_ready(chunk)))
+    }
+
     /// The file's occupancy grid once its section is decoded (`None` before, and for a
     /// version-1 file, which has none).
     pub fn occupancy(&self) -> Option<Arc<msth_codec::OccupancyGrid>> {
@@ -213,14 +283,10 @@ impl ModelStream {
         st.decoder.occupancy().cloned().map(Arc::new)
     }
 
-    /// Whether the chunk for time `t` (and the static part) is already decoded.
+    /// Whether the chunk for time `t` (and the static part) is already decoded, every layer.
     pub fn ready_for(&self, t: f32) -> bool {
         let st = self.shared.lock();
-        st.decoder.static_ready()
-            && self
-                .index()
-                .chunk_for_time(t)
-                .is_none_or(|c| st.decoder.chunk(c).is_some())
+        st.decoder.layers_ready(self.index().chunk_for_time(t)) == self.index().layer_count()
     }
 
     /// Waits until every section is decoded.
@@ -286,9 +352,6 @@ impl Drop for ModelStream {
     }
 }
 
-/// Largest gap between two sections fetched in one request (the format pads to 8 bytes).
-const MAX_GAP: u64 = 4096;
-
 /// What the fetch thread reads next: index positions of contiguous sections.
 fn next_request(st: &State, index: &FileIndex, sequential: bool) -> Option<Range<usize>> {
     if sequential {
@@ -298,53 +361,33 @@ fn next_request(st: &State, index: &FileIndex, sequential: bool) -> Option<Range
             .min_by_key(|&i| index.sections[i].offset)
             .map(|i| i..i + 1);
     }
-    let statics = static_sections(index);
-    let missing: Vec<usize> = statics
-        .clone()
-        .filter(|&i| !st.decoder.is_decoded(i))
+    let decoded: Vec<bool> = (0..index.sections.len())
+        .map(|i| st.decoder.is_decoded(i))
         .collect();
-    if let (Some(&first), Some(&last)) = (missing.first(), missing.last()) {
-        // One request for all of them when only padding lies between them, as in files the
-        // encoder writes.
-        let contiguous = (first..last).all(|i| {
-            let (a, b) = (&index.sections[i], &index.sections[i + 1]);
-            b.offset >= a.offset + a.length && b.offset - (a.offset + a.length) <= MAX_GAP
-        });
-        return Some(if contiguous && missing.len() == last - first + 1 {
-            first..last + 1
-        } else {
-            first..first + 1
-        });
-    }
-    let chunks = index.sections.len() - statics.end;
-    if chunks == 0 {
-        return None;
-    }
-    let start = st.want.unwrap_or(0).min(chunks - 1);
-    (0..chunks)
-        .map(|k| (start + k) % chunks)
-        .find(|&c| st.decoder.chunk(c).is_none())
-        .map(|c| {
-            let i = index
-                .sections
-                .iter()
-                .position(|s| s.kind == msth_codec::SectionKind::Dynamic && s.chunk as usize == c)
-                .unwrap_or(statics.end + c);
-            i..i + 1
-        })
+    crate::abr::next_request(index, &decoded, Some(st.playback), st.meter.rate())
 }
 
 fn fetch_loop(shared: &Shared) {
     loop {
         let index = &shared.index;
         let request = {
-            let st = shared.lock();
-            if st.stop {
-                return;
-            }
-            match next_request(&st, index, shared.source.sequential()) {
-                Some(r) => r,
-                None => return,
+            let mut st = shared.lock();
+            loop {
+                if st.stop {
+                    return;
+                }
+                if let Some(r) = next_request(&st, index, shared.source.sequential()) {
+                    break r;
+                }
+                if (0..index.sections.len()).all(|i| st.decoder.is_decoded(i)) {
+                    return;
+                }
+                // The policy holds back until the playhead or the speed moves.
+                st = shared
+                    .changed
+                    .wait_timeout(st, Duration::from_millis(200))
+                    .unwrap_or_else(|p| p.into_inner())
+                    .0;
             }
         };
         let entries = &index.sections[request.clone()];
@@ -354,10 +397,13 @@ fn fetch_loop(shared: &Shared) {
             .map(|e| e.offset + e.length)
             .max()
             .unwrap_or(start);
+        let began = Instant::now();
         let result = shared.source.read_range(start..end);
+        let took = began.elapsed().as_secs_f64();
         let mut st = shared.lock();
         match result {
             Ok(bytes) => {
+                st.meter.add(end - start, took);
                 for (i, e) in request.clone().zip(entries) {
                     let lo = (e.offset - start) as usize;
                     let stored = &bytes[lo..lo + e.length as usize];

@@ -52,6 +52,19 @@ fn valid_file() -> Vec<u8> {
     encode(&c, &p, &[], &opts).unwrap().0
 }
 
+/// The valid file in two progressive layers (version 4): one hash level per layer.
+fn layered_file() -> Vec<u8> {
+    let (c, p) = tiny_model();
+    let opts = EncodeOptions {
+        quant: QuantMode::Q8,
+        chunk_frames: 2,
+        occupancy_resolution: 64,
+        layers: 2,
+        ..Default::default()
+    };
+    encode(&c, &p, &[], &opts).unwrap().0
+}
+
 struct File {
     bytes: Vec<u8>,
 }
@@ -723,6 +736,42 @@ fn corpus() -> Vec<(&'static str, Vec<u8>)> {
     let mut b = f();
     b.edit_metadata(|m| m["section_quant"]["mask"] = serde_json::json!("q7"));
     add("section_quant_unknown_mode", b.bytes);
+    // Version 4's progressive layers (format.md §6.6): the layered file is MLP, proposal,
+    // static, occupancy, shared, chunks 0 and 1 of layer 0, then static, shared, chunks 0 and
+    // 1 of layer 1.
+    let layered = || File {
+        bytes: layered_file(),
+    };
+    let mut b = f();
+    let e = b.entry(2);
+    b.bytes[e + 2] = 1;
+    b.fix_prefix();
+    add("layer_in_v3_entry", b.bytes);
+    let mut b = f();
+    b.edit_metadata(|m| m["layers"] = serde_json::json!([{"h3": 1, "h4": 1}, {"h3": 2, "h4": 2}]));
+    add("layers_key_in_v3_file", b.bytes);
+    let mut b = layered();
+    b.edit_metadata(|m| m["layers"] = serde_json::json!([{"h3": 1, "h4": 1}, {"h3": 1, "h4": 2}]));
+    add("layers_last_short_of_the_levels", b.bytes);
+    let mut b = layered();
+    b.edit_metadata(|m| m["layers"] = serde_json::json!([{"h3": 2, "h4": 2}, {"h3": 2, "h4": 2}]));
+    add("layers_add_no_level", b.bytes);
+    let mut b = layered();
+    b.edit_metadata(|m| {
+        m["layers"] = serde_json::json!([{"h3": 1, "h4": 1, "h5": 0}, {"h3": 2, "h4": 2}])
+    });
+    add("layers_unknown_key", b.bytes);
+    let mut b = layered();
+    let n = b.u32_at(16) as usize;
+    let e = b.entry(n - 1);
+    b.bytes[e + 2] = 2;
+    b.fix_prefix();
+    add("layer_number_out_of_order", b.bytes);
+    // A row of level 0 in layer 1's chunk 1 (the last section): a level the layer does not hold.
+    let mut b = layered();
+    let n = b.u32_at(16) as usize;
+    b.set_payload(n - 1, &one_row_payload(1, 0, 0.5));
+    add("layer_rows_outside_its_levels", b.bytes);
     out
 }
 
@@ -849,6 +898,25 @@ fn each_fault_names_its_violation() {
             &["occupancy section raw length"],
         ),
         ("v2_file_marked_v1", &["index", "7 sections, expected 6"]),
+        ("layer_in_v3_entry", &["index entry 2", "reserved"]),
+        (
+            "layers_key_in_v3_file",
+            &["unknown key `layers`", "version 3"],
+        ),
+        (
+            "layers_last_short_of_the_levels",
+            &["last layer", "1/2", "2/2"],
+        ),
+        ("layers_add_no_level", &["layers[1]", "adds levels"]),
+        ("layers_unknown_key", &["metadata JSON", "h5"]),
+        (
+            "layer_number_out_of_order",
+            &["entry 10", "layer 2", "expected Dynamic chunk 1 layer 1"],
+        ),
+        (
+            "layer_rows_outside_its_levels",
+            &["dynamic chunk 1, layer 1", "level 0", "holds levels 1..2"],
+        ),
         ("v1_file_marked_v2", &["index"]),
         (
             "v3_key_in_v2_file",

@@ -22,8 +22,8 @@ use std::fmt::Write;
 use std::path::PathBuf;
 
 use msth_codec::format::{
-    fixed_sections, Limits, SectionKind, ALIGN, COMPRESSION_ZSTD, FIXED_HEADER, INDEX_ENTRY, MAGIC,
-    MIN_VERSION, VERSION,
+    fixed_sections, Limits, SectionKind, ALIGN, COMPRESSION_ZSTD, FIXED_HEADER, INDEX_ENTRY,
+    LAYERED_VERSION, MAGIC, MIN_VERSION, VERSION,
 };
 use msth_codec::occupancy::{
     DEFAULT_OCCUPANCY_RESOLUTION, MAX_OCCUPANCY_RESOLUTION, OCCUPANCY_HEADER,
@@ -105,6 +105,16 @@ fn generate() -> String {
     let _ = writeln!(w, "export const MAGIC = {};", js_list(MAGIC));
     let _ = writeln!(w, "/** The version msth-codec writes. */");
     let _ = writeln!(w, "export const VERSION = {VERSION};");
+    let _ = writeln!(
+        w,
+        "/** The first version with progressive layers (format.md §6.6), and the most layers. */"
+    );
+    let _ = writeln!(w, "export const LAYERED_VERSION = {LAYERED_VERSION};");
+    let _ = writeln!(
+        w,
+        "export const MAX_LAYERS = {};",
+        msth_core::layers::MAX_LAYERS
+    );
     let _ = writeln!(w, "/** The oldest version msth-codec reads. */");
     let _ = writeln!(w, "export const MIN_VERSION = {MIN_VERSION};");
     let _ = writeln!(w, "export const FIXED_HEADER = {FIXED_HEADER};");
@@ -163,6 +173,7 @@ fn generate() -> String {
         dynamic_threshold: 0.0,
         chunk_frames: 1,
         chunks: Vec::new(),
+        layers: None,
         encoder: String::new(),
     };
     let value = serde_json::to_value(&meta).unwrap();
@@ -185,6 +196,7 @@ fn generate() -> String {
             proposal: 1,
             main: 1,
         }),
+        layers: Some(vec![msth_codec::LayerLevels { h3: 1, h4: 1 }]),
         ..meta.clone()
     };
     let full = serde_json::to_value(&full).unwrap();

@@ -122,6 +122,17 @@ pub struct TrainSettings {
     /// Share of the main field's levels on at step 0 of the ramp, in `(0, 1]`.
     #[serde(default = "one")]
     pub level_ramp_start: f32,
+    /// Nested dropout over the progressive layers (docs/streaming.md): the share of steps, in
+    /// `[0, 1]`, that train a prefix of the main field's levels only, the finer levels' features
+    /// at 0, as a player holding only the first layers of a layered file renders it. The prefix
+    /// is `k` of `nested_dropout_layers` layers (`msth_core::layers::layer_level_ends`), `k`
+    /// drawn evenly from `1..nested_dropout_layers` per step. 0: off.
+    #[serde(default)]
+    pub nested_dropout: f32,
+    /// The layers nested dropout trains prefixes of: the `--layers` the file will be exported
+    /// with (2..=16).
+    #[serde(default = "default_dropout_layers")]
+    pub nested_dropout_layers: usize,
     /// The distortion loss's weight moves linearly from `distortion_weight` to
     /// `distortion_late_weight` over `distortion_ramp_steps` steps from step
     /// `distortion_ramp_start` (0: no ramp).
@@ -147,6 +158,13 @@ pub struct TrainSettings {
 /// proposal following the field's surfaces) is run in the first few hundred steps whatever the
 /// run's length.
 pub const MIN_ANNEAL_STEPS: usize = 2000;
+
+/// [`TrainSettings::nested_dropout_layers`]'s default: `msth export --layers`'s.
+pub const DEFAULT_DROPOUT_LAYERS: usize = 4;
+
+fn default_dropout_layers() -> usize {
+    DEFAULT_DROPOUT_LAYERS
+}
 
 /// The presets' ray sampler for a scene's bounds.
 ///
@@ -331,6 +349,8 @@ impl TrainSettings {
             free_space_weight: priors.free_space_weight,
             level_ramp_steps: priors.level_ramp_steps,
             level_ramp_start: priors.level_ramp_start,
+            nested_dropout: 0.0,
+            nested_dropout_layers: DEFAULT_DROPOUT_LAYERS,
             distortion_ramp_start: priors.distortion_ramp_start,
             distortion_ramp_steps: priors.distortion_ramp_steps,
             distortion_late_weight: priors.distortion_late_weight,
@@ -410,6 +430,29 @@ impl TrainSettings {
         Some(levels * (self.level_ramp_start + (1.0 - self.level_ramp_start) * f))
     }
 
+    /// The levels step `step` trains (`StepSettings::active_levels`): the coarse-to-fine ramp's
+    /// value, lowered to a prefix of the layers on the steps nested dropout picks (drawn from the
+    /// seed and the step alone, so a resumed run drops the same steps).
+    pub fn step_levels(&self, step: usize) -> Option<f32> {
+        let ramp = self.active_levels(step);
+        if self.nested_dropout <= 0.0 || self.nested_dropout_layers < 2 {
+            return ramp;
+        }
+        let mut rng = Rng::stream(self.seed ^ 0x4E57_D000, step as u64);
+        if rng.f32() >= self.nested_dropout {
+            return ramp;
+        }
+        let enc = &self.model.field.encoding;
+        let levels = enc.grid3.levels.max(enc.grid4.levels);
+        let ends = msth_core::layers::layer_level_ends(levels, self.nested_dropout_layers);
+        if ends.len() < 2 {
+            return ramp;
+        }
+        let k = 1 + rng.below(ends.len() as u64 - 1) as usize;
+        let prefix = ends[k - 1] as f32;
+        Some(ramp.map_or(prefix, |r| r.min(prefix)))
+    }
+
     pub fn validate(&self) -> Result<(), SettingsError> {
         if self.iters == 0 {
             return Err(SettingsError::Invalid("iters must be at least 1".into()));
@@ -418,6 +461,19 @@ impl TrainSettings {
             return Err(SettingsError::Invalid(format!(
                 "level_ramp_start must be in (0, 1] (got {})",
                 self.level_ramp_start
+            )));
+        }
+        if !(self.nested_dropout.is_finite() && (0.0..=1.0).contains(&self.nested_dropout)) {
+            return Err(SettingsError::Invalid(format!(
+                "nested_dropout must be in [0, 1] (got {})",
+                self.nested_dropout
+            )));
+        }
+        if !(2..=msth_core::layers::MAX_LAYERS).contains(&self.nested_dropout_layers) {
+            return Err(SettingsError::Invalid(format!(
+                "nested_dropout_layers must be in 2..={} (got {})",
+                msth_core::layers::MAX_LAYERS,
+                self.nested_dropout_layers
             )));
         }
         if !(1..=1 << 22).contains(&self.batch_rays) || !(1..=1 << 16).contains(&self.chunk_rays) {
@@ -881,7 +937,7 @@ impl Trainer {
             loss_scale: 1.0 / rays.max(1) as f32,
             sample_mask_weight: s.sample_mask_weight,
             free_space_weight: s.free_space_weight,
-            active_levels: s.active_levels(self.step),
+            active_levels: s.step_levels(self.step),
         }
     }
 
@@ -1593,6 +1649,52 @@ mod tests {
             s.apply_overrides(None, &["level_ramp_start=0".into()])
                 .unwrap_err();
         }
+    }
+
+    /// Nested dropout: off by default; at probability p about p of the steps train a proper
+    /// prefix of the layers (a layer end, below the level count), the same steps for the same
+    /// seed, and under the coarse-to-fine ramp the lower of the two.
+    #[test]
+    fn nested_dropout_trains_prefixes_of_the_layers() {
+        let bg = Background::Color { rgb: [0.0; 3] };
+        let object = ModelConfig::preset(Preset::Fast, SceneBounds::dnerf_default(), bg, 10);
+        let mut s = TrainSettings::for_model(Preset::Fast, object);
+        assert!((0..200).all(|step| s.step_levels(step).is_none()));
+        s.apply_overrides(None, &["nested_dropout=0.5".into()])
+            .unwrap();
+        let levels = s.model.field.encoding.grid3.levels;
+        let ends = msth_core::layers::layer_level_ends(levels, s.nested_dropout_layers);
+        let picked: Vec<(usize, f32)> = (0..1000)
+            .filter_map(|step| s.step_levels(step).map(|a| (step, a)))
+            .collect();
+        assert!((400..600).contains(&picked.len()), "{}", picked.len());
+        for &(_, a) in &picked {
+            assert!(ends[..ends.len() - 1].contains(&(a as usize)), "{a}");
+            assert_eq!(a.fract(), 0.0);
+        }
+        for k in 0..ends.len() - 1 {
+            assert!(
+                picked.iter().any(|&(_, a)| a as usize == ends[k]),
+                "prefix {k}"
+            );
+        }
+        let again: Vec<Option<f32>> = (0..1000).map(|step| s.step_levels(step)).collect();
+        assert!(picked.iter().all(|&(step, a)| again[step] == Some(a)));
+        s.level_ramp_steps = 1000;
+        s.level_ramp_start = 0.5;
+        for step in 0..1000 {
+            let ramp = s.active_levels(step).unwrap();
+            let got = s.step_levels(step).unwrap();
+            assert!(got <= ramp);
+            if let Some(&(_, a)) = picked.iter().find(|p| p.0 == step) {
+                assert_eq!(got, a.min(ramp));
+            }
+        }
+        s.apply_overrides(None, &["nested_dropout=1.5".into()])
+            .unwrap_err();
+        s.nested_dropout = 0.5;
+        s.apply_overrides(None, &["nested_dropout_layers=1".into()])
+            .unwrap_err();
     }
 
     #[test]

@@ -250,7 +250,8 @@ fn render_loop(
     let mut renderer: Option<(RenderControls, ModelConfig, FrameRenderer)> = None;
     let mut bake = Bake::Idle;
     let mut params = Vec::new();
-    let mut loaded: Option<Option<usize>> = None;
+    // The chunk whose parameters are loaded, and with how many progressive layers.
+    let mut loaded: Option<(Option<usize>, usize)> = None;
     let mut version = 0u64;
     let mut pending: Option<Job> = None;
     loop {
@@ -318,13 +319,19 @@ fn render_loop(
             continue;
         };
         // The parameters of the job's time: wait for its chunk, giving way to a newer job.
+        // Of a layered file, the frame is drawn from the layers in and again as finer ones come.
         let chunk = stream.index().chunk_for_time(job.time);
-        if loaded != Some(chunk) {
+        let have = loaded.filter(|&(c, _)| c == chunk).map(|(_, l)| l);
+        if have.is_none_or(|l| stream.layers_for(job.time) > l) {
             stream.seek(job.time);
             let mut said = false;
+            let mut layers = 0;
             loop {
-                match stream.params_for_time(job.time, &mut params, Duration::from_millis(50)) {
-                    Ok(_) => break,
+                match stream.params_progressive(job.time, &mut params, Duration::from_millis(50)) {
+                    Ok((_, l)) => {
+                        layers = l;
+                        break;
+                    }
                     Err(msth_player::StreamError::Timeout { .. }) => {
                         if !said {
                             said = true;
@@ -353,7 +360,11 @@ fn render_loop(
                 r.set_occupancy(stream.occupancy())
                     .map_err(|e| e.to_string())?;
             }
-            loaded = Some(chunk);
+            if have.is_some() {
+                // Finer layers of the same chunk: nothing cached from the coarser ones holds.
+                r.invalidate();
+            }
+            loaded = Some((chunk, layers));
         }
         // The volume switch: the static part is here, so a bake can start.
         if job.controls.volume {

@@ -1,7 +1,8 @@
-// The `.msth` format (docs/format.md, versions 1 to 3) for the browser and Node: the prefix
+// The `.msth` format (docs/format.md, versions 1 to 4) for the browser and Node: the prefix
 // (fixed header, metadata JSON, section index), section decoding (CRC-32, zstd through the
 // `fzstd` npm package, blocks f32 / f16 / affine / codebook with the delta predictor, sparse 4D
-// chunks, the occupancy grid of version 2) and the model's flat parameter buffer layout (§7),
+// chunks, the occupancy grid of version 2, the progressive layers of version 4) and the model's
+// flat parameter buffer layout (§7),
 // mirroring msth-codec and msth-core's `ModelLayout`. Every count read from a file is checked
 // before it is used to allocate or index. The constants both languages must agree on come from
 // `generated/contract.js`, which tests/tests/web_contract.rs writes from the Rust code.
@@ -9,7 +10,7 @@
 import { Decompress } from "fzstd";
 import {
   MAGIC, VERSION, MIN_VERSION, FIXED_HEADER, INDEX_ENTRY, ALIGN, COMPRESSION_ZSTD, KIND, FIXED_SECTIONS,
-  SHARED_TAG, LIMITS, OCCUPANCY, METADATA_KEYS, METADATA_OPTIONAL_KEYS, QUANT_PARTS, QUANT_MODES, HASH_PRIMES, PARAM_ALIGN, SH_COEFFS,
+  SHARED_TAG, LIMITS, OCCUPANCY, METADATA_KEYS, LAYERED_VERSION, MAX_LAYERS, METADATA_OPTIONAL_KEYS, QUANT_PARTS, QUANT_MODES, HASH_PRIMES, PARAM_ALIGN, SH_COEFFS,
 } from "./generated/contract.js";
 
 export { MAGIC, VERSION, MIN_VERSION, FIXED_HEADER, INDEX_ENTRY, KIND, LIMITS, HASH_PRIMES };
@@ -279,19 +280,57 @@ export function parsePrefix(bytes, limits = LIMITS) {
     const kind = bytes[o];
     if (!KIND_NAME[kind]) throw new FormatError(what, `unsupported section kind ${kind}`);
     if (bytes[o + 1] !== COMPRESSION_ZSTD) throw new FormatError(what, `unsupported compression ${bytes[o + 1]} (zstd = ${COMPRESSION_ZSTD} is the only one)`);
-    if (bytes[o + 2] || bytes[o + 3] || u32(bytes, o + 36)) throw new FormatError(what, "reserved fields must be zero");
+    const layer = u16(bytes, o + 2);
+    if ((version < LAYERED_VERSION && layer) || u32(bytes, o + 36)) throw new FormatError(what, "reserved fields must be zero");
     sections.push({
       kind,
       chunk: u32(bytes, o + 4),
+      layer,
       offset: u64(bytes, o + 8, what),
       length: u64(bytes, o + 16, what),
       rawLength: u64(bytes, o + 24, what),
       crc32: u32(bytes, o + 32),
     });
   }
-  checkSections(sections, metadata, layout, version, headerSize, limits);
+  const layers = layerLevels(metadata, layout);
+  checkSections(sections, metadata, layout, version, headerSize, limits, layers.length);
   const fileLength = sections.reduce((m, s) => Math.max(m, s.offset + s.length), headerSize);
-  return { version, metadata, sections, layout, headerSize, fileLength, firstChunk: firstChunk(version) };
+  const fixed = FIXED_SECTIONS[version].length;
+  const beforeFirstFrame = metadata.chunks.length ? fixed + 1 : fixed;
+  return { version, metadata, sections, layout, headerSize, fileLength, firstChunk: firstChunk(version), beforeFirstFrame, layers };
+}
+
+/** The layers' cumulative level counts `[{ h3, h4 }]` (format.md §6.6): `layers`, or one layer of every level. */
+function layerLevels(metadata, layout) {
+  if (metadata.layers !== undefined) return metadata.layers;
+  const e = layout.field.encoding;
+  return [{ h3: e.h3 ? e.h3.levels.length : 0, h4: e.h4 ? e.h4.levels.length : 0 }];
+}
+
+/**
+ * Index position of a section of `kind` for `chunk` (dynamic) and `layer` in a parsed prefix
+ * (as msth-codec's `FileIndex::position`), or null when the file has none.
+ */
+export function sectionPosition(ix, kind, chunk, layer) {
+  const chunks = ix.metadata.chunks.length;
+  if (layer >= ix.layers.length || (kind === KIND.dynamic && chunk >= chunks)) return null;
+  const fixed = FIXED_SECTIONS[ix.version];
+  if (layer === 0) {
+    if (kind === KIND.dynamic) return ix.firstChunk + chunk;
+    if (kind === KIND.shared) return chunks ? fixed.length : null;
+    const i = fixed.indexOf(kind);
+    return i < 0 ? null : i;
+  }
+  const at = fixed.length + (chunks ? 1 + chunks : 0) + (layer - 1) * (chunks ? 2 + chunks : 1);
+  if (kind === KIND.static) return at;
+  if (kind === KIND.shared) return chunks ? at + 1 : null;
+  if (kind === KIND.dynamic) return at + 2 + chunk;
+  return null;
+}
+
+/** The levels `[start, end)` layer `layer` holds of the 3D (`key` "h3") or 4D ("h4") table. */
+export function layerRange(layers, layer, key) {
+  return [layer === 0 ? 0 : layers[layer - 1][key], layers[layer][key]];
 }
 
 const TOP_KEYS = METADATA_KEYS;
@@ -361,25 +400,48 @@ function checkMetadata(m, version, limits) {
       if (v > max) bad(`play_samples.${k} is ${v}, the limit is ${max}`);
     }
   }
+  if (m.layers !== undefined) {
+    if (version < LAYERED_VERSION) bad(`unknown key \`layers\` (version ${version}; it exists from version ${LAYERED_VERSION})`);
+    const l = m.layers;
+    if (!Array.isArray(l) || l.length < 1 || l.length > MAX_LAYERS) bad(`layers must be an array of 1 to ${MAX_LAYERS} entries`);
+    let prev = { h3: 0, h4: 0 };
+    l.forEach((e, i) => {
+      if (!e || typeof e !== "object" || Array.isArray(e)) bad(`layers[${i}] must be an object`);
+      for (const k of Object.keys(e)) if (k !== "h3" && k !== "h4") bad(`layers[${i}]: unknown key \`${k}\``);
+      if (![e.h3, e.h4].every((v) => Number.isInteger(v) && v >= 0 && v <= 0xffffffff)) bad(`layers[${i}] must hold integer level counts`);
+      if (e.h3 < prev.h3 || e.h4 < prev.h4 || (e.h3 === prev.h3 && e.h4 === prev.h4)) bad(`layers[${i}] holds levels ${e.h3}/${e.h4} after ${prev.h3}/${prev.h4}: each layer adds levels`);
+      prev = e;
+    });
+    const enc = layout.field.encoding;
+    const full = { h3: enc.h3 ? enc.h3.levels.length : 0, h4: enc.h4 ? enc.h4.levels.length : 0 };
+    if (prev.h3 !== full.h3 || prev.h4 !== full.h4) bad(`the last layer holds levels ${prev.h3}/${prev.h4}, the field's tables have ${full.h3}/${full.h4}`);
+  }
   if (!(Number.isFinite(m.dynamic_threshold) && m.dynamic_threshold >= 0 && m.dynamic_threshold <= 1)) bad("dynamic_threshold must lie in [0, 1]");
   if (!(Number.isInteger(m.chunk_frames) && m.chunk_frames >= 1)) bad("chunk_frames must be an integer >= 1");
   if (typeof m.encoder !== "string") bad("encoder must be a string");
   return layout;
 }
 
-function checkSections(sections, metadata, layout, version, headerSize, limits) {
+function checkSections(sections, metadata, layout, version, headerSize, limits, layerCount) {
   const chunks = metadata.chunks.length;
   const fixed = FIXED_SECTIONS[version];
   const first = fixed.length + 1;
-  const expected = chunks ? first + chunks : fixed.length;
+  const firstLayer = chunks ? first + chunks : fixed.length;
+  const perLayer = chunks ? 2 + chunks : 1;
+  const expected = firstLayer + (layerCount - 1) * perLayer;
   if (sections.length !== expected) throw new FormatError("index", `${sections.length} sections, the metadata implies ${expected}`);
   const order = [...fixed, KIND.shared];
   let end = headerSize;
   sections.forEach((s, i) => {
     const what = `index entry ${i}`;
-    const kind = i < first ? order[i] : KIND.dynamic;
-    const chunk = i < first ? 0 : i - first;
-    if (s.kind !== kind || s.chunk !== chunk) throw new FormatError(what, `expected a ${KIND_NAME[kind]} section${kind === KIND.dynamic ? ` for chunk ${chunk}` : ""}`);
+    let kind, chunk, layer;
+    if (i < firstLayer) [kind, chunk, layer] = [i < first ? order[i] : KIND.dynamic, i < first ? 0 : i - first, 0];
+    else {
+      const k = (i - firstLayer) % perLayer;
+      layer = Math.floor((i - firstLayer) / perLayer) + 1;
+      [kind, chunk] = k === 0 ? [KIND.static, 0] : k === 1 ? [KIND.shared, 0] : [KIND.dynamic, k - 2];
+    }
+    if (s.kind !== kind || s.chunk !== chunk || s.layer !== layer) throw new FormatError(what, `expected a ${KIND_NAME[kind]} section${kind === KIND.dynamic ? ` for chunk ${chunk}` : ""}${layer ? ` of layer ${layer}` : ""}`);
     if (s.length > limits.maxSectionBytes || s.rawLength > limits.maxSectionBytes) throw new FormatError(what, "section exceeds the 2 GiB limit");
     if (s.rawLength > maxPayload(layout, s.kind, limits)) throw new FormatError(what, `raw length ${s.rawLength} exceeds what the model allows`);
     if (s.offset % 8 !== 0) throw new FormatError(what, "offset is not a multiple of 8");
@@ -392,16 +454,19 @@ function checkSections(sections, metadata, layout, version, headerSize, limits) 
 
 const maxBlockBytes = (count) => 8 + 4 * 256 + 4 * count;
 
-function staticRanges(layout, kind) {
+/** The flat-buffer ranges of a section's blocks; `levels` `[start, end)` of the field's 3D
+ * table for one layer of a layered static section (the mask in layer 0 only). */
+function staticRanges(layout, kind, levels = null, withMask = true) {
   const out = [];
-  const table = (name, g) => g.levels.forEach((lv, l) => {
+  const table = (name, g, range) => g.levels.forEach((lv, l) => {
+    if (range && (l < range[0] || l >= range[1])) return;
     const start = g.start + lv.offset;
     out.push([`${name} level ${l}`, start, start + lv.rows * g.features]);
   });
-  const encoding = (prefix, e, withH4) => {
-    if (e.h3) table(`${prefix}.h3`, e.h3);
-    if (withH4 && e.h4) table(`${prefix}.h4`, e.h4);
-    if (e.mask) out.push([`${prefix}.mask`, e.mask.start, e.mask.end]);
+  const encoding = (prefix, e, withH4, range = null, mask = true) => {
+    if (e.h3) table(`${prefix}.h3`, e.h3, range);
+    if (withH4 && e.h4) table(`${prefix}.h4`, e.h4, null);
+    if (e.mask && mask) out.push([`${prefix}.mask`, e.mask.start, e.mask.end]);
   };
   if (kind === KIND.mlp) {
     out.push(["field.density_mlp", layout.field.density.start, layout.field.density.end]);
@@ -410,7 +475,7 @@ function staticRanges(layout, kind) {
   } else if (kind === KIND.proposal) {
     encoding("proposal", layout.proposal.encoding, true);
   } else {
-    encoding("field", layout.field.encoding, false);
+    encoding("field", layout.field.encoding, false, levels, withMask);
   }
   return out;
 }
@@ -545,10 +610,8 @@ export function f16ToF32(h) {
 
 /** A section's label as msth-codec names it in errors. */
 export function sectionLabel(s) {
-  if (s.kind === KIND.dynamic) return `dynamic chunk ${s.chunk}`;
-  if (s.kind === KIND.shared) return "shared dynamic section";
-  if (s.kind === KIND.occupancy) return "occupancy section";
-  return `${KIND_NAME[s.kind]} section`;
+  const base = s.kind === KIND.dynamic ? `dynamic chunk ${s.chunk}` : s.kind === KIND.shared ? "shared dynamic section" : `${KIND_NAME[s.kind]} section`;
+  return s.layer ? `${base}, layer ${s.layer}` : base;
 }
 
 /** Checks the stored bytes' length and CRC-32 and decompresses into exactly `rawLength` bytes. */
@@ -624,10 +687,11 @@ function checkZstdFrame(b, rawLength, what) {
   if (o < b.length) throw new FormatError(what, `${b.length - o} bytes after the zstd frame (${o} of ${b.length} stored bytes): a section is exactly one frame`);
 }
 
-/** Decodes a non-chunk section's payload into the flat buffer `params`. */
-export function readStatic(layout, payload, entry, params) {
+/** Decodes a non-chunk section's payload into the flat buffer `params`; `levels`: the 3D
+ * levels of a layered static section's layer (`layerRange`). */
+export function readStatic(layout, payload, entry, params, levels = null) {
   const r = new Reader(payload, sectionLabel(entry));
-  for (const [name, a, b] of staticRanges(layout, entry.kind)) r.blockInto(params.subarray(a, b), name);
+  for (const [name, a, b] of staticRanges(layout, entry.kind, levels, entry.layer === 0)) r.blockInto(params.subarray(a, b), name);
   r.finish();
 }
 
@@ -664,8 +728,9 @@ export function occupiedUnit(grid, p) {
   return ((grid.words[i >>> 5] >>> (i & 31)) & 1) === 1;
 }
 
-/** Decodes a shared or chunk payload: per 4D level `{ rows: Uint32Array, values: Float32Array }`. */
-export function readChunk(layout, payload, entry) {
+/** Decodes a shared or chunk payload: per 4D level `{ rows: Uint32Array, values: Float32Array }`;
+ * `allowed` `[start, end)`: the levels of its layer (the others must store no rows). */
+export function readChunk(layout, payload, entry, allowed = [0, Infinity]) {
   const what = sectionLabel(entry);
   const g = layout.field.encoding.h4;
   if (!g) throw new FormatError(what, "the model has no 4D table");
@@ -678,6 +743,7 @@ export function readChunk(layout, payload, entry) {
   const levels = [];
   g.levels.forEach((level, l) => {
     const count = r.u32();
+    if (count > 0 && (l < allowed[0] || l >= allowed[1])) throw new FormatError(what, `level ${l}: ${count} rows stored, but this layer holds levels ${allowed[0]}..${allowed[1]}`);
     if (count > level.rows) throw new FormatError(what, `level ${l}: ${count} rows stored, the table has ${level.rows}`);
     if (count > r.remaining()) throw new FormatError(what, `level ${l}: ${count} rows but ${r.remaining()} bytes left`);
     const rows = new Uint32Array(count);
@@ -726,8 +792,11 @@ export class Decoder {
     this.limits = limits;
     this.base = new Float32Array(this.layout.total);
     this.decoded = new Array(this.sections.length).fill(false);
-    this.shared = null;
-    this.chunks = new Array(this.metadata.chunks.length).fill(null);
+    /** Per layer: the shared section's rows, and per chunk the chunk's rows. */
+    this.sharedLayers = this.layers.map(() => null);
+    this.chunkLayers = this.layers.map(() => new Array(this.metadata.chunks.length).fill(null));
+    /** Layer 0 of each chunk. */
+    this.chunks = this.chunkLayers[0];
     /** The occupancy grid (`readOccupancy`) once decoded; stays null for a version-1 file. */
     this.occupancy = null;
   }
@@ -736,16 +805,65 @@ export class Decoder {
   decodeSection(i, stored) {
     const e = this.sections[i];
     const payload = unpack(e, stored);
-    if (e.kind === KIND.shared) this.shared = readChunk(this.layout, payload, e);
-    else if (e.kind === KIND.dynamic) this.chunks[e.chunk] = readChunk(this.layout, payload, e);
+    const layered = this.metadata.layers !== undefined;
+    if (e.kind === KIND.shared) this.sharedLayers[e.layer] = readChunk(this.layout, payload, e, layerRange(this.layers, e.layer, "h4"));
+    else if (e.kind === KIND.dynamic) this.chunkLayers[e.layer][e.chunk] = readChunk(this.layout, payload, e, layerRange(this.layers, e.layer, "h4"));
     else if (e.kind === KIND.occupancy) this.occupancy = readOccupancy(payload, e, this.limits);
-    else readStatic(this.layout, payload, e, this.base);
+    else if (e.kind === KIND.static && layered) {
+      // Into a copy: a failure leaves the decoder as it was.
+      const next = this.base.slice();
+      readStatic(this.layout, payload, e, next, layerRange(this.layers, e.layer, "h3"));
+      this.base = next;
+    } else readStatic(this.layout, payload, e, this.base);
     this.decoded[i] = true;
+  }
+
+  /** Layer 0 of the shared section (null before it arrives, and without chunks). */
+  get shared() {
+    return this.sharedLayers[0];
+  }
+
+  /** Index position of a section (`sectionPosition`). */
+  position(kind, chunk, layer) {
+    return sectionPosition(this, kind, chunk, layer);
+  }
+
+  /**
+   * The index positions a player holding layers `0..layers` of chunk `c` (null: a file without
+   * chunks) has decoded (msth-codec's `FileIndex::sections_for`).
+   */
+  sectionsFor(c, layers) {
+    const out = [];
+    for (let i = 0; i < this.beforeFirstFrame; i++) out.push(i);
+    for (let l = 0; l < Math.min(layers, this.layers.length); l++) {
+      const add = (i) => i !== null && out.push(i);
+      if (l > 0) {
+        add(this.position(KIND.static, 0, l));
+        add(this.position(KIND.shared, 0, l));
+      }
+      if (c !== null) add(this.position(KIND.dynamic, c, l));
+    }
+    return out;
   }
 
   /** Whether the sections every frame needs are decoded. */
   staticReady() {
-    return this.decoded.slice(0, Math.min(this.firstChunk, this.sections.length)).every(Boolean);
+    return this.decoded.slice(0, this.beforeFirstFrame).every(Boolean);
+  }
+
+  /**
+   * How many layers, from the first, of chunk `c` (null: a file without chunks) have arrived
+   * with the static and shared sections of the same layers (as msth-codec's `layers_ready`).
+   */
+  layersReady(c) {
+    if (!this.staticReady()) return 0;
+    let n = 0;
+    const ok = (kind, chunk, l) => {
+      const i = this.position(kind, chunk, l);
+      return i === null || this.decoded[i];
+    };
+    while (n < this.layers.length && ok(KIND.static, 0, n) && ok(KIND.shared, 0, n) && (c === null || ok(KIND.dynamic, c, n))) n++;
+    return n;
   }
 
   chunkForTime(t) {
@@ -758,14 +876,26 @@ export class Decoder {
     return this.staticReady() && (c === null || this.chunks[c] !== null);
   }
 
-  /** The flat parameter buffer for time `t` (into `out` when given). */
-  paramsForTime(t, out = new Float32Array(this.layout.total)) {
+  /**
+   * The flat parameter buffer for time `t` (into `out` when given): the static layers that have
+   * arrived and the 4D layers of `layersReady`, at most `layers` of each (msth-codec's
+   * `params_for_layers_into`).
+   */
+  paramsForTime(t, out = new Float32Array(this.layout.total), layers = Infinity) {
     if (!this.readyFor(t)) throw new FormatError("decoder", `the sections for time ${t} are not loaded`);
     out.set(this.base);
+    if (layers < this.layers.length) {
+      const keep = this.layers[Math.max(layers, 1) - 1].h3;
+      const g = this.layout.field.encoding.h3;
+      if (g) g.levels.slice(keep).forEach((lv) => out.fill(0, g.start + lv.offset, g.start + lv.offset + lv.rows * g.features));
+    }
     const c = this.chunkForTime(t);
     if (c !== null) {
-      if (this.shared) applyChunk(this.layout, this.shared, out);
-      applyChunk(this.layout, this.chunks[c], out);
+      const n = Math.min(this.layersReady(c), Math.max(layers, 1));
+      for (let l = 0; l < n; l++) {
+        if (this.sharedLayers[l]) applyChunk(this.layout, this.sharedLayers[l], out);
+        if (this.chunkLayers[l][c]) applyChunk(this.layout, this.chunkLayers[l][c], out);
+      }
     }
     return out;
   }

@@ -174,7 +174,11 @@ function drawLoading(stream) {
       return s;
     }),
   );
-  $("loading-text").textContent = `${formatBytes(p.bytesReady)} / ${formatBytes(p.fileLength)} · ${p.sectionsReady}/${p.sections} sections`;
+  const total = stream.decoder.layers.length;
+  const layers = total > 1 ? ` · layers ${stream.layersFor(stream.playback.time)}/${total}` : "";
+  const rate = stream.rate();
+  const mbit = rate ? ` · ${((8 * rate) / 1e6).toFixed(1)} Mbit/s` : "";
+  $("loading-text").textContent = `${formatBytes(p.bytesReady)} / ${formatBytes(p.fileLength)} · ${p.sectionsReady}/${p.sections} sections${layers}${mbit}`;
   $("loading").dataset.complete = p.complete ? "1" : "0";
 }
 
@@ -261,6 +265,8 @@ async function main() {
     movingBudget: MOVING_BUDGET_MS,
     dirty: true,
     loadedChunk: undefined,
+    /** Progressive layers in the uploaded parameters (a layered file refines as they come). */
+    loadedLayers: 0,
     rendering: false,
     /** When the camera last moved (ms, performance.now()). */
     lastInput: -Infinity,
@@ -403,6 +409,9 @@ async function main() {
   const duration = Math.max(frames, 2) / modelFps;
   const setPlaying = (p) => {
     state.playing = p;
+    // The layer policy plans each chunk against the playback speed (paused: every layer of the
+    // chunk on screen first).
+    stream.setSpeed(p ? duration : 0);
     playBtn.textContent = p ? "❚❚" : "▶";
     playBtn.setAttribute("aria-label", p ? "pause" : "play");
   };
@@ -525,17 +534,23 @@ async function main() {
   const frameDone = [];
   async function renderNow() {
     const chunk = stream.decoder.chunkForTime(state.t);
-    if (chunk !== state.loadedChunk) {
+    const layers = stream.layersFor(state.t);
+    const finer = chunk === state.loadedChunk && layers > state.loadedLayers;
+    if (chunk !== state.loadedChunk || finer) {
       stream.decoder.paramsForTime(state.t, paramBuf);
-      // After the first upload a new chunk changes the field's 4D table alone.
-      gpu.setParams(paramBuf, state.loadedChunk !== undefined);
+      // After the first upload a new chunk changes the field's 4D table alone; finer layers
+      // change the 3D table too, and nothing the static cache holds stays true.
+      gpu.setParams(paramBuf, state.loadedChunk !== undefined && !finer);
+      if (finer) state.cache = null;
+      state.loadedLayers = layers;
+      hooks.layers = layers;
       // The occupancy section is one of the sections every frame needs: decoded by now.
       if (state.loadedChunk === undefined && params.get("skip") !== "0") gpu.setOccupancy(stream.decoder.occupancy);
       state.loadedChunk = chunk;
       state.uploads++;
       hooks.timings.params ??= performance.now();
     }
-    if (volume.state === "waiting" && params.get("volume") === "wait") await bakeVolumeNow();
+    if (volume.state === "waiting" && params.get("volume") === "wait" && state.loadedLayers === stream.decoder.layers.length) await bakeVolumeNow();
     const full = orbit.camera();
     // The resolution policy (top of this file): reduced while moving or playing, refined step by
     // step to full size when still.
@@ -679,7 +694,7 @@ async function main() {
       // The passes compiled later (renderer.js `compileLater`) and the play-time volume: after
       // the first picture.
       hooks.renderer?.compileLater?.();
-      if (volume.state === "waiting") bakeVolumeNow();
+      if (volume.state === "waiting" && state.loadedLayers === stream.decoder.layers.length) bakeVolumeNow();
     }
     if (hooks.firstFullFrameMs === null && scale === 1) {
       hooks.firstFullFrameMs = t1;
@@ -760,6 +775,9 @@ async function main() {
     const dt = (now - last) / 1000;
     last = now;
     if (stream.error && !hooks.error) fail(stream.error);
+    // Finer layers of the chunk on screen: draw again; the volume is baked from every layer.
+    if (state.loadedChunk !== undefined && stream.layersFor(state.t) > state.loadedLayers) state.dirty = true;
+    if (volume.state === "waiting" && hooks.firstFrameMs !== null && state.loadedLayers === stream.decoder.layers.length && !state.rendering) bakeVolumeNow();
     // Playback holds still while the chunk under the playhead is streaming.
     if (state.playing && stream.readyFor(state.t)) {
       setTime((state.t + dt / duration) % 1);

@@ -13,11 +13,12 @@
 // buffered whole. Every read has a deadline and a stall deadline (`?deadline=`, `?stall=`, in
 // seconds); either ends the stream with a message saying which bytes stalled.
 // Sections are decoded as they arrive; `ranges` tells the loading bar what has streamed.
+// What comes next is abr.js's choice, the native player's: of a layered file, layer 0 of the
+// coming chunks first, then as many finer layers as the measured rate carries before each chunk
+// plays (`setSpeed` tells it how fast playback runs).
 
 import { Decoder, FIXED_HEADER, FormatError, KIND, prefixLength } from "./format.js";
-
-/** Largest gap between two sections fetched in one request (as stream.rs). */
-const MAX_GAP = 4096;
+import { nextRequest, RateMeter } from "./abr.js";
 /** Bytes kept from the start of a body that ignores Range requests (as the native player). */
 const PROBE = 64 << 10;
 /** Default deadlines in seconds: one read of the file, and no byte received (as `msth play`). */
@@ -320,7 +321,9 @@ export class ModelStream {
     const first = await src.read(0, FIXED_HEADER, (n) => s.#received(n));
     const hs = prefixLength(first);
     if (hs > src.length) throw new FormatError("header and index", `the file is ${src.length} bytes, its prefix ${hs}`, true);
+    const began = performance.now();
     const prefix = await src.read(0, hs, (n) => s.#received(n));
+    s.meter.add(hs, (performance.now() - began) / 1000);
     s.decoder = new Decoder(prefix);
     if (s.decoder.fileLength > src.length) throw new FormatError("file", `the index points past its end (${s.decoder.fileLength} > ${src.length} bytes)`, true);
     s.fileLength = s.decoder.fileLength;
@@ -335,6 +338,11 @@ export class ModelStream {
     this.source = source;
     this.decoder = null;
     this.want = null;
+    /** The playhead and the playback speed the layer policy plans with (abr.js). */
+    this.playback = { time: 0, secondsPerUnit: 0 };
+    this.meter = new RateMeter();
+    /** Wakes a fetch loop that waits for the playhead or the speed to move. */
+    this.wake = null;
     this.error = null;
     this.bytesReady = 0;
     this.bytesReceived = 0;
@@ -368,7 +376,30 @@ export class ModelStream {
   /** Moves the playhead: the chunk for time `t` is fetched next. */
   seek(t) {
     const c = this.decoder.chunkForTime(t);
-    if (c !== this.want) this.want = c;
+    this.playback.time = t;
+    if (c !== this.want) {
+      this.want = c;
+      this.wake?.();
+    }
+  }
+
+  /** How fast playback runs: seconds per unit of normalised time, 0 when paused. */
+  setSpeed(secondsPerUnit) {
+    const s = Number.isFinite(secondsPerUnit) ? Math.max(secondsPerUnit, 0) : 0;
+    if (s !== this.playback.secondsPerUnit) {
+      this.playback.secondsPerUnit = s;
+      this.wake?.();
+    }
+  }
+
+  /** The progressive layers a frame at time `t` is drawn with now (0: not ready). */
+  layersFor(t) {
+    return this.decoder.layersReady(this.decoder.chunkForTime(t));
+  }
+
+  /** The measured throughput, bytes per second (null before the first request). */
+  rate() {
+    return this.meter.rate();
   }
 
   readyFor(t) {
@@ -432,30 +463,11 @@ export class ModelStream {
       });
       return next < 0 ? null : [next, next + 1];
     }
-    const nStatic = Math.min(d.firstChunk, secs.length);
-    const missing = [];
-    for (let i = 0; i < nStatic; i++) if (!d.decoded[i]) missing.push(i);
-    if (missing.length) {
-      const first = missing[0];
-      const last = missing[missing.length - 1];
-      let contiguous = missing.length === last - first + 1;
-      for (let i = first; contiguous && i < last; i++) {
-        const end = secs[i].offset + secs[i].length;
-        contiguous = secs[i + 1].offset >= end && secs[i + 1].offset - end <= MAX_GAP;
-      }
-      // The MLP section alone first: the kernels are compiled from it (renderer.js `create`
-      // waits for it) while the other sections stream.
-      if (secs[first].kind === KIND.mlp || !contiguous) return [first, first + 1];
-      return [first, last + 1];
-    }
-    const chunks = secs.length - nStatic;
-    if (chunks === 0) return null;
-    const start = Math.min(this.want ?? 0, chunks - 1);
-    for (let k = 0; k < chunks; k++) {
-      const c = (start + k) % chunks;
-      if (!d.chunks[c]) return [d.firstChunk + c, d.firstChunk + c + 1];
-    }
-    return null;
+    const req = nextRequest(d, d.decoded, this.playback, this.meter.rate());
+    // The MLP section alone first: the kernels are compiled from it (renderer.js `create`
+    // waits for it) while the other sections stream.
+    if (req && secs[req[0]].kind === KIND.mlp) return [req[0], req[0] + 1];
+    return req;
   }
 
   async #loop() {
@@ -463,15 +475,29 @@ export class ModelStream {
       if (this.stopped) return;
       const req = this.#nextRequest();
       if (!req) {
-        // The whole file is in: a body still streaming (a server without ranges) is not read on.
-        this.source.close();
-        return;
+        if (this.decoder.decoded.every(Boolean)) {
+          // The whole file is in: a body still streaming (a server without ranges) is not read on.
+          this.source.close();
+          return;
+        }
+        // The policy holds back until the playhead or the speed moves.
+        await new Promise((r) => {
+          const t = setTimeout(r, 200);
+          this.wake = () => {
+            clearTimeout(t);
+            r();
+          };
+        });
+        this.wake = null;
+        continue;
       }
       const entries = this.decoder.sections.slice(req[0], req[1]);
       const start = entries[0].offset;
       const end = Math.max(...entries.map((e) => e.offset + e.length));
       this.inflight = { start, end, got: 0 };
+      const began = performance.now();
       const bytes = await this.source.read(start, end, (n) => this.#received(n));
+      this.meter.add(end - start, (performance.now() - began) / 1000);
       this.inflight = null;
       entries.forEach((e, k) => {
         const lo = e.offset - start;

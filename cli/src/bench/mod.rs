@@ -6,6 +6,8 @@
 //!   thread, the plain reference hash encoding against the batched one, and the MLPs'
 //!   forward + backward on `matrixmultiply` against the SIMD kernels;
 //! - [`play`]: `msth bench play` (streamed playback, CPU and GPU);
+//! - [`stream`]: `msth bench stream` (progressive layers over a throttled link: time to first
+//!   picture, layers and stalls on a changing link);
 //! - [`tradeoff`], [`tradeoff_report`], [`tradeoff_plot`]: `msth bench tradeoff` (size, quality
 //!   and training time over model settings; tables and plots);
 //! - [`ablation`]: `msth bench ablation` (the paper's ablations).
@@ -19,6 +21,7 @@
 
 pub mod ablation;
 pub mod play;
+pub mod stream;
 pub mod tradeoff;
 pub mod tradeoff_plot;
 pub(crate) mod tradeoff_report;
@@ -68,6 +71,10 @@ enum BenchKind {
     /// Playback of a .msth file over loopback HTTP: time to first frame against the full
     /// download, incremental against full rendering (FPS and PSNR).
     Play(play::BenchPlayArgs),
+    /// Streaming over a throttled loopback link: time to first picture of a layered file
+    /// against the same model without layers, and real-time playback on a changing link
+    /// (layers drawn, stalls; see `docs/streaming.md`).
+    Stream(stream::BenchStreamArgs),
     /// The accuracy / cost trade-off: a one-factor-at-a-time sweep around a preset, plus the
     /// presets; tables and plots with the Pareto fronts (see `docs/tradeoff.md`).
     Tradeoff(Box<tradeoff::TradeoffArgs>),
@@ -93,6 +100,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
             }
         }
         BenchKind::Play(a) => play::run(a),
+        BenchKind::Stream(a) => stream::run(a),
         BenchKind::Tradeoff(a) => tradeoff::run(*a),
         BenchKind::Ablation(a) => ablation::run(a).map(|_| ()),
     }

@@ -1,6 +1,7 @@
 //! Fuzzes the `.msth` decoder: whole-file decoding, streaming decoding of every prefix-complete
-//! section, and random access to sections from arbitrary byte ranges must never panic, hang or
-//! allocate beyond the (reduced) limits.
+//! section, random access to sections from arbitrary byte ranges, and the parameters of every
+//! prefix of a layered file's layers must never panic, hang or allocate beyond the (reduced)
+//! limits.
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
@@ -23,5 +24,13 @@ fuzz_target!(|data: &[u8]| {
             let _ = d.decode_section(i, &data[start..end]);
         }
         let _ = d.params_for_time(0.5);
+        // Progressive layers (version 4): what a player holding some of them draws.
+        let chunk = d.index().chunk_for_time(0.5);
+        let _ = d.layers_ready(chunk);
+        let mut out = Vec::new();
+        for k in 0..=d.index().layer_count() {
+            let _ = d.params_for_layers_into(0.5, k, &mut out);
+        }
+        let _ = d.index().sections_for(chunk, usize::MAX);
     }
 });

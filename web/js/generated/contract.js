@@ -6,7 +6,10 @@
 // ---- msth-codec: the .msth format (docs/format.md)
 export const MAGIC = [77, 83, 84, 72];
 /** The version msth-codec writes. */
-export const VERSION = 3;
+export const VERSION = 4;
+/** The first version with progressive layers (format.md §6.6), and the most layers. */
+export const LAYERED_VERSION = 4;
+export const MAX_LAYERS = 16;
 /** The oldest version msth-codec reads. */
 export const MIN_VERSION = 1;
 export const FIXED_HEADER = 32;
@@ -16,7 +19,7 @@ export const COMPRESSION_ZSTD = 1;
 /** Index entry `kind` codes. */
 export const KIND = { mlp: 1, proposal: 2, static: 3, dynamic: 4, shared: 5, occupancy: 6 };
 /** Per version, the kinds of the index entries before the shared section and the chunks. */
-export const FIXED_SECTIONS = { 1: [1, 2, 3], 2: [1, 2, 3, 6], 3: [1, 2, 3, 6] };
+export const FIXED_SECTIONS = { 1: [1, 2, 3], 2: [1, 2, 3, 6], 3: [1, 2, 3, 6], 4: [1, 2, 3, 6] };
 /** The shared section's `chunk` field. */
 export const SHARED_TAG = 4294967295;
 export const BLOCK_ENCODING = { f32: 0, f16: 1, affine: 2, codebook: 3 };
@@ -25,7 +28,7 @@ export const QUANT_MODES = ["f32", "f16", "q8", "q6", "q5", "q4", "k4", "k3"];
 /** The metadata's required top-level keys. */
 export const METADATA_KEYS = ["cameras", "chunk_frames", "chunks", "dynamic_threshold", "encoder", "frame_rate", "model", "param_count", "quant", "time_range"];
 /** The metadata's optional top-level keys (version 3 on; none in versions 1 and 2). */
-export const METADATA_OPTIONAL_KEYS = ["play_samples", "section_quant"];
+export const METADATA_OPTIONAL_KEYS = ["layers", "play_samples", "section_quant"];
 /** The keys of the metadata's `section_quant`. */
 export const QUANT_PARTS = ["mlp", "proposal", "static", "mask", "dynamic"];
 /** msth-codec's default `Limits` (format.md §8). */

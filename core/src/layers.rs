@@ -1,0 +1,40 @@
+//! Progressive layers: the main field's hash-grid levels split, coarse to fine, into the layers
+//! a layered `.msth` file stores (format.md §6.6) and nested dropout trains the networks for.
+//! Layer `l` holds the levels `ends[l - 1]..ends[l]` (`0..ends[0]` for layer 0) of the field's 3D
+//! and 4D tables; a player holding layers `0..k` renders with the finer levels' features at 0.
+
+/// The most layers a file may have.
+pub const MAX_LAYERS: usize = 16;
+
+/// How many of `levels` levels layers `0..=l` hold, for each layer `l` of `layers`: an even split
+/// by level count, `ceil(levels * (l + 1) / layers)`. Coarse levels are small (dense or few
+/// rows) and fine ones large, so the first layers are a small share of the bytes. `layers` is
+/// clamped to `1..=levels.max(1)`; the last end is `levels`.
+pub fn layer_level_ends(levels: usize, layers: usize) -> Vec<usize> {
+    let layers = layers.clamp(1, levels.max(1));
+    (1..=layers)
+        .map(|l| (levels * l).div_ceil(layers))
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ends_split_levels_evenly_and_end_at_the_level_count() {
+        assert_eq!(layer_level_ends(16, 4), vec![4, 8, 12, 16]);
+        assert_eq!(layer_level_ends(12, 5), vec![3, 5, 8, 10, 12]);
+        assert_eq!(layer_level_ends(3, 8), vec![1, 2, 3]);
+        assert_eq!(layer_level_ends(7, 1), vec![7]);
+        assert_eq!(layer_level_ends(0, 3), vec![0]);
+        for levels in 1..=20 {
+            for layers in 1..=MAX_LAYERS {
+                let e = layer_level_ends(levels, layers);
+                assert_eq!(*e.last().unwrap(), levels);
+                assert!(e.windows(2).all(|w| w[0] < w[1]), "{levels} {layers} {e:?}");
+                assert!(e[0] >= 1);
+            }
+        }
+    }
+}
