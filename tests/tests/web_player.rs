@@ -141,6 +141,14 @@ fn web_player_streams_renders_and_matches_native() {
     let file = served.join("tiny.msth");
     let q8 = ["--quant", "q8", "--chunk-frames", "2"];
     export_cmd(&train_dir.join("model.ckpt"), &file, &q8).unwrap();
+    // The same model in two progressive layers (format version 4).
+    let layered = served.join("layered.msth");
+    export_cmd(
+        &train_dir.join("model.ckpt"),
+        &layered,
+        &["--quant", "q8", "--chunk-frames", "2", "--layers", "2"],
+    )
+    .unwrap();
 
     // A balanced-preset model (#17: the page renders its layout as the native renderers do:
     // 16 levels, 2^17-row tables, 96 proposal + 32 main samples per ray). A few steps: what is
@@ -361,6 +369,8 @@ fn web_player_streams_renders_and_matches_native() {
             natives[3].to_str().unwrap(),
             "--model-wide",
             "wide.msth",
+            "--model-layered",
+            "layered.msth",
             "--wide-clamped",
             &wide_clamped,
             "--model-volume",
@@ -385,6 +395,12 @@ fn web_player_streams_renders_and_matches_native() {
         "{r:#}"
     );
     assert!(r["figures"]["psnr_vs_native_t0"].as_f64().unwrap() >= 35.0);
+    assert!(
+        r["figures"]["psnr_layered_vs_one_layer"]
+            .as_f64()
+            .unwrap()
+            >= 40.0
+    );
     assert!(
         r["figures"]["psnr_volume_vs_native_volume"]
             .as_f64()

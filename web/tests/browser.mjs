@@ -388,6 +388,22 @@ async function main() {
     check("scrubbing leaves static pixels alone", enough && sMean <= 1 && s99 <= 3, `${stat.length} static pixels (native t=0 vs t=1 within 1/255): mean change ${sMean.toFixed(3)}/255, 99th percentile ${s99}/255`);
     check("scrubbing changes dynamic pixels", enough && dMean >= 0.5 * dNative, `${dyn.length} dynamic pixels (native change >= 24/255): mean change ${dMean.toFixed(1)}/255 in the page, ${dNative.toFixed(1)}/255 natively`);
 
+    // ---- the first model in progressive layers (format version 4): the page draws from the
+    // first layers, refines as the others arrive, and with every layer shows what the file of
+    // one layer shows (the two decode to the same parameters)
+    if (a["model-layered"]) {
+      await page.goto(`${a.base}/?model=${encodeURIComponent(a["model-layered"])}&view=${a.view}&t=0&size=${a.size}&exact=1`);
+      await waitFirstFrame(page);
+      await page.waitForFunction(() => window.msth.state.loadedLayers === window.msth.stream.decoder.layers.length && window.msth.stream.decoder.layers.length > 1, null, { timeout: 120_000 });
+      await settled(page);
+      const pxL = await pixels(page);
+      const pL = pxL.length === 4 * n ? psnr(pxL, px0, n) : 0;
+      const info = await page.evaluate(() => ({ layers: window.msth.stream.decoder.layers.length, text: document.getElementById("loading-text").textContent }));
+      // JSON has no infinity: identical frames are reported as 99 dB.
+      results.figures.psnr_layered_vs_one_layer = Math.min(pL, 99);
+      check("a layered file plays and refines to the picture of the same model in one layer", pL >= 40 && /layers \d+\/\d+/.test(info.text), `${info.layers} layers; every layer drawn matches the one-layer file's frame at ${pL.toFixed(1)} dB; status "${info.text}"`);
+    }
+
     // ---- a second model at the same view and time (the Rust test passes a balanced-preset
     // file: its layout, 16 levels, 2^17-row tables and 96 + 32 samples per ray, renders in the
     // page as natively)

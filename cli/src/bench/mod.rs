@@ -6,6 +6,8 @@
 //!   thread, the plain reference hash encoding against the batched one, and the MLPs'
 //!   forward + backward on `matrixmultiply` against the SIMD kernels;
 //! - [`play`]: `msth bench play` (streamed playback, CPU and GPU);
+//! - [`layers`]: `msth bench layers` (held-out PSNR against bytes of each prefix of the
+//!   progressive layers);
 //! - [`stream`]: `msth bench stream` (progressive layers over a throttled link: time to first
 //!   picture, layers and stalls on a changing link);
 //! - [`tradeoff`], [`tradeoff_report`], [`tradeoff_plot`]: `msth bench tradeoff` (size, quality
@@ -20,6 +22,7 @@
 //! (and the re-exports `msth_cli::{bench_tradeoff, tradeoff_plot}` for `tests/`).
 
 pub mod ablation;
+pub mod layers;
 pub mod play;
 pub mod stream;
 pub mod tradeoff;
@@ -75,6 +78,9 @@ enum BenchKind {
     /// against the same model without layers, and real-time playback on a changing link
     /// (layers drawn, stalls; see `docs/streaming.md`).
     Stream(stream::BenchStreamArgs),
+    /// Quality against bytes of progressive layers: held-out PSNR of every prefix of a layered
+    /// export, one curve per checkpoint.
+    Layers(layers::BenchLayersArgs),
     /// The accuracy / cost trade-off: a one-factor-at-a-time sweep around a preset, plus the
     /// presets; tables and plots with the Pareto fronts (see `docs/tradeoff.md`).
     Tradeoff(Box<tradeoff::TradeoffArgs>),
@@ -101,6 +107,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
         }
         BenchKind::Play(a) => play::run(a),
         BenchKind::Stream(a) => stream::run(a),
+        BenchKind::Layers(a) => layers::run(a),
         BenchKind::Tradeoff(a) => tradeoff::run(*a),
         BenchKind::Ablation(a) => ablation::run(a).map(|_| ()),
     }
