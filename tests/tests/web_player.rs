@@ -395,12 +395,7 @@ fn web_player_streams_renders_and_matches_native() {
         "{r:#}"
     );
     assert!(r["figures"]["psnr_vs_native_t0"].as_f64().unwrap() >= 35.0);
-    assert!(
-        r["figures"]["psnr_layered_vs_one_layer"]
-            .as_f64()
-            .unwrap()
-            >= 40.0
-    );
+    assert!(r["figures"]["psnr_layered_vs_one_layer"].as_f64().unwrap() >= 40.0);
     assert!(
         r["figures"]["psnr_volume_vs_native_volume"]
             .as_f64()

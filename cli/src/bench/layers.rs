@@ -168,13 +168,21 @@ fn plot(curves: &[(String, Vec<(f64, f64)>)], data: &str, path: &std::path::Path
                 .draw_series(LineSeries::new(c.clone(), col.stroke_width(2)))
                 .map_err(|x| e(&x))?
                 .label(name.clone())
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], col.stroke_width(2)));
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], col.stroke_width(2))
+                });
             chart
                 .draw_series(c.iter().map(|&p| Circle::new(p, 4, col.filled())))
                 .map_err(|x| e(&x))?;
+            // Each point is labelled with its layer count, beside it.
             chart
                 .draw_series(c.iter().enumerate().map(|(i, &p)| {
-                    Text::new(format!("{}", i + 1), (p.0, p.1), ("sans-serif", 12).into_font())
+                    EmptyElement::at(p)
+                        + Text::new(
+                            format!("{}", i + 1),
+                            (6, -16),
+                            ("sans-serif", 12).into_font(),
+                        )
                 }))
                 .map_err(|x| e(&x))?;
         }
