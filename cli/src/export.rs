@@ -480,11 +480,11 @@ fn layer_lines(
         - report
             .layers
             .iter()
-            .map(|l| l.static_bytes + l.dynamic_bytes)
+            .map(|l| l.proposal_bytes + l.static_bytes + l.dynamic_bytes)
             .sum::<u64>();
     for k in 1..=n {
         let l = &report.layers[k - 1];
-        total += l.static_bytes + l.dynamic_bytes;
+        total += report.layer_bytes(k - 1);
         let loss = match &full {
             Some(full) if k < n => {
                 let mse = msth_player::quant_auto::mse(&render(k), full);
@@ -498,9 +498,11 @@ fn layer_lines(
             None => "no cameras to measure on".into(),
         };
         lines.push(format!(
-            "  layers 0..{k} (levels {}/{} of the 3D/4D tables): first frame {}, all frames {}: {loss}",
+            "  layers 0..{k} (levels {}/{}/{}/{} of the field's 3D/4D and the proposal's 3D/4D tables): first frame {}, all frames {}: {loss}",
             l.levels.h3,
             l.levels.h4,
+            l.levels.p3,
+            l.levels.p4,
             mb(report.first_frame_bytes(k)),
             mb(total),
         ));

@@ -180,7 +180,8 @@ fn layer_bytes(index: &FileIndex) -> Vec<(msth_codec::LayerLevels, u64, u64)> {
                     s.layer as usize == l
                         && matches!(
                             s.kind,
-                            msth_codec::SectionKind::Static
+                            msth_codec::SectionKind::Proposal
+                                | msth_codec::SectionKind::Static
                                 | msth_codec::SectionKind::Shared
                                 | msth_codec::SectionKind::Dynamic
                         )
@@ -299,7 +300,8 @@ impl Inspection {
             "param_count": ix.layout.params.total,
             "sections": sections,
             "layers": layer_bytes(ix).iter().map(|(lv, own, first)| json!({
-                "h3_levels": lv.h3, "h4_levels": lv.h4, "stored_bytes": own,
+                "h3_levels": lv.h3, "h4_levels": lv.h4, "proposal_h3_levels": lv.p3,
+                "proposal_h4_levels": lv.p4, "stored_bytes": own,
                 "first_frame_bytes": first,
             })).collect::<Vec<_>>(),
             "chunks": chunks,
@@ -428,14 +430,14 @@ impl Inspection {
                 .enumerate()
                 .map(|(l, (lv, own, first))| {
                     format!(
-                        "{l}: levels to {}/{}, {own} bytes, first frame {first} bytes",
-                        lv.h3, lv.h4
+                        "{l}: levels to {}/{}/{}/{}, {own} bytes, first frame {first} bytes",
+                        lv.h3, lv.h4, lv.p3, lv.p4
                     )
                 })
                 .collect();
             let _ = writeln!(
                 o,
-                "layers      {} progressive (3D/4D levels held up to each; first frame: bytes before it holding layers 0..=l): {}",
+                "layers      {} progressive (levels of the field's 3D/4D and the proposal's 3D/4D tables held up to each; first frame: bytes before it holding layers 0..=l): {}",
                 ix.layer_count(),
                 parts.join("; ")
             );

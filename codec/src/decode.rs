@@ -173,7 +173,8 @@ impl Decoder {
         (0..ix.layer_count())
             .take_while(|&l| {
                 let ok = |kind, c| ix.position(kind, c, l).is_none_or(|i| self.is_decoded(i));
-                ok(SectionKind::Static, 0)
+                ok(SectionKind::Proposal, 0)
+                    && ok(SectionKind::Static, 0)
                     && ok(SectionKind::Shared, 0)
                     && chunk.is_none_or(|c| ok(SectionKind::Dynamic, c))
             })
@@ -205,16 +206,23 @@ impl Decoder {
         let what = entry.label();
         let layer = entry.layer as usize;
         let levels = self.index.metadata.layer_levels();
-        // The levels of layer `layer` of the 3D (`h4` false) or 4D table.
-        let level_range = |h4: bool| {
-            let end = |e: &crate::format::LayerLevels| if h4 { e.h4 } else { e.h3 } as usize;
+        // The levels of layer `layer` of one of the tables.
+        let range_of = |end: &dyn Fn(&crate::format::LayerLevels) -> u32| {
             let start = if layer == 0 {
                 0
             } else {
-                end(&levels[layer - 1])
+                end(&levels[layer - 1]) as usize
             };
-            start..end(&levels[layer])
+            start..end(&levels[layer]) as usize
         };
+        let level_range = |h4: bool| {
+            if h4 {
+                range_of(&|e| e.h4)
+            } else {
+                range_of(&|e| e.h3)
+            }
+        };
+        let layered = self.index.metadata.layers.is_some();
         match entry.kind {
             SectionKind::Dynamic => {
                 let raw = unpack(&entry, stored, max_chunk_bytes(layout))?;
@@ -239,8 +247,13 @@ impl Decoder {
             kind => {
                 let part = match kind {
                     SectionKind::Mlp => StaticPart::Mlp,
+                    SectionKind::Proposal if layered => StaticPart::ProposalLayer {
+                        h3: range_of(&|e| e.p3),
+                        h4: range_of(&|e| e.p4),
+                        first: layer == 0,
+                    },
                     SectionKind::Proposal => StaticPart::Proposal,
-                    _ if self.index.metadata.layers.is_some() => StaticPart::StaticLayer {
+                    _ if layered => StaticPart::StaticLayer {
                         levels: level_range(false),
                         first: layer == 0,
                     },
@@ -310,12 +323,20 @@ impl Decoder {
         out.extend_from_slice(&self.base);
         let layout = &self.index.layout;
         if layers < self.index.layer_count() {
-            // Zero the 3D levels of the layers left out.
-            let keep = self.index.metadata.layer_levels()[layers.max(1) - 1].h3 as usize;
-            if let Some((g, range)) = &layout.field.encoding.h3 {
-                for level in g.levels.iter().skip(keep) {
-                    let start = range.start + level.offset;
-                    out[start..start + level.rows * g.features].fill(0.0);
+            // Zero the levels of the layers left out: the field's 3D table and the proposal's
+            // tables (the field's 4D rows come from the chunks' layers below).
+            let keep = self.index.metadata.layer_levels()[layers.max(1) - 1];
+            let prop = &layout.proposal.field.encoding;
+            for (grid, keep) in [
+                (&layout.field.encoding.h3, keep.h3),
+                (&prop.h3, keep.p3),
+                (&prop.h4, keep.p4),
+            ] {
+                if let Some((g, range)) = grid {
+                    for level in g.levels.iter().skip(keep as usize) {
+                        let start = range.start + level.offset;
+                        out[start..start + level.rows * g.features].fill(0.0);
+                    }
                 }
             }
         }

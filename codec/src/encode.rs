@@ -95,8 +95,10 @@ pub struct ChunkReport {
 /// Bytes of one progressive layer.
 #[derive(Clone, Debug, PartialEq)]
 pub struct LayerReport {
-    /// The field's 3D and 4D table levels layers `0..=l` hold.
+    /// The table levels layers `0..=l` hold.
     pub levels: LayerLevels,
+    /// Stored bytes of the layer's proposal section.
+    pub proposal_bytes: u64,
     /// Stored bytes of the layer's static section.
     pub static_bytes: u64,
     /// Stored bytes of the layer's shared section and chunks.
@@ -138,13 +140,13 @@ pub struct EncodeReport {
 
 impl EncodeReport {
     /// Bytes a player fetches before the first frame when it takes layers `0..layers`: the
-    /// prefix, the sections that are not layered, and those layers' static, shared and chunk-0
-    /// parts.
+    /// prefix, the sections that are not layered (MLPs, occupancy), and those layers' proposal,
+    /// static, shared and chunk-0 parts.
     pub fn first_frame_bytes(&self, layers: usize) -> u64 {
         let fixed: u64 = self
             .sections
             .iter()
-            .filter(|s| s.name != "static" && s.name != "shared")
+            .filter(|s| !["proposal", "static", "shared"].contains(&s.name.as_str()))
             .map(|s| s.stored_bytes)
             .sum();
         self.prefix_bytes
@@ -153,8 +155,15 @@ impl EncodeReport {
                 .layers
                 .iter()
                 .take(layers)
-                .map(|l| l.static_bytes + l.first_chunk_bytes)
+                .map(|l| l.proposal_bytes + l.static_bytes + l.first_chunk_bytes)
                 .sum::<u64>()
+    }
+
+    /// Stored bytes of layer `l`'s sections (proposal, static, shared, chunks).
+    pub fn layer_bytes(&self, l: usize) -> u64 {
+        self.layers
+            .get(l)
+            .map_or(0, |r| r.proposal_bytes + r.static_bytes + r.dynamic_bytes)
     }
 
     pub fn ratio(&self) -> f64 {
@@ -205,25 +214,19 @@ pub fn chunk_spans(num_frames: usize, chunk_frames: usize) -> Vec<ChunkSpan> {
 /// Row numbers per level of the field's 4D table.
 type RowsPerLevel = Vec<Vec<u32>>;
 
-/// The layers' cumulative level counts for `layers` requested layers: the field's 3D and 4D
-/// tables split alike by [`msth_core::layers::layer_level_ends`] (at most one layer per level).
+/// The layers' cumulative level counts for `layers` requested layers: each of the model's four
+/// tables (the field's and the proposal's 3D and 4D tables) split evenly by level count
+/// ([`msth_core::layers::level_end`]), at most one layer per level of the field's tables.
 pub fn split_layers(model: &ModelConfig, layers: usize) -> Vec<LayerLevels> {
-    let enc = &model.field.encoding;
-    let l3 = if enc.blend.uses_h3() {
-        enc.grid3.levels
-    } else {
-        0
-    };
-    let l4 = if enc.blend.uses_h4() {
-        enc.grid4.levels
-    } else {
-        0
-    };
-    let n = layers.clamp(1, l3.max(l4).max(1));
-    (1..=n)
+    let all = LayerLevels::all(model);
+    let n = msth_core::layers::layer_count(all.h3.max(all.h4) as usize, layers);
+    let end = |levels: u32, l: usize| msth_core::layers::level_end(levels as usize, n, l) as u32;
+    (0..n)
         .map(|l| LayerLevels {
-            h3: (l3 * l).div_ceil(n) as u32,
-            h4: (l4 * l).div_ceil(n) as u32,
+            h3: end(all.h3, l),
+            h4: end(all.h4, l),
+            p3: end(all.p3, l),
+            p4: end(all.p4, l),
         })
         .collect()
 }
@@ -357,11 +360,26 @@ pub fn encode(
     }
     let layer_levels = split_layers(model, opts.layers);
     let layered = layer_levels.len() > 1;
-    // Level ranges of layer l in the 3D and 4D tables.
+    // Level ranges of layer l in one of the tables.
+    let range_of = |l: usize, end: &dyn Fn(&LayerLevels) -> u32| {
+        let start = if l == 0 {
+            0
+        } else {
+            end(&layer_levels[l - 1]) as usize
+        };
+        start..end(&layer_levels[l]) as usize
+    };
     let level_range = |l: usize, h4: bool| {
-        let end = |e: &LayerLevels| if h4 { e.h4 } else { e.h3 } as usize;
-        let start = if l == 0 { 0 } else { end(&layer_levels[l - 1]) };
-        start..end(&layer_levels[l])
+        if h4 {
+            range_of(l, &|e| e.h4)
+        } else {
+            range_of(l, &|e| e.h3)
+        }
+    };
+    let proposal_part = |l: usize| StaticPart::ProposalLayer {
+        h3: range_of(l, &|e| e.p3),
+        h4: range_of(l, &|e| e.p4),
+        first: l == 0,
     };
     // Rows of `rows` (per level) that layer l holds.
     let rows_of_layer = |rows: &[Vec<u32>], l: usize| -> Vec<Vec<u32>> {
@@ -397,7 +415,11 @@ pub fn encode(
         ),
         (
             SectionKind::Proposal,
-            StaticPart::Proposal,
+            if layered {
+                proposal_part(0)
+            } else {
+                StaticPart::Proposal
+            },
             Encodings::for_mode(parts.proposal),
         ),
         (SectionKind::Static, static_part, static_enc),
@@ -520,12 +542,26 @@ pub fn encode(
         }
     }
 
-    // The later layers: each its static section, then its shared section and chunks.
+    // The later layers: each its proposal and static sections, then its shared section and
+    // chunks.
     let static_report = sections
         .iter()
         .position(|s| s.name == SectionKind::Static.name())
         .unwrap_or(0);
+    let proposal_report = sections
+        .iter()
+        .position(|s| s.name == SectionKind::Proposal.name())
+        .unwrap_or(0);
     for l in 1..layer_levels.len() {
+        let (raw, values) = write_static(
+            &layout,
+            params,
+            proposal_part(l),
+            Encodings::for_mode(parts.proposal),
+        );
+        sections[proposal_report].raw_bytes += raw.len() as u64;
+        sections[proposal_report].values += values;
+        payloads.push((SectionKind::Proposal, 0, l as u16, raw));
         let part = StaticPart::StaticLayer {
             levels: level_range(l, false),
             first: false,
@@ -628,6 +664,7 @@ pub fn encode(
         .iter()
         .map(|&levels| LayerReport {
             levels,
+            proposal_bytes: 0,
             static_bytes: 0,
             dynamic_bytes: 0,
             first_chunk_bytes: 0,
@@ -648,6 +685,7 @@ pub fn encode(
                     s.stored_bytes += e.length;
                 }
                 match kind {
+                    SectionKind::Proposal => layer.proposal_bytes += e.length,
                     SectionKind::Static => layer.static_bytes += e.length,
                     SectionKind::Shared => {
                         layer.dynamic_bytes += e.length;

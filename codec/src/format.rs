@@ -384,12 +384,39 @@ pub struct Metadata {
 }
 
 /// What layers `0..=l` of a layered file hold (the metadata's `layers[l]`, version 4): the
-/// field's 3D and 4D table levels `0..h3` and `0..h4`.
+/// field's 3D and 4D table levels `0..h3` and `0..h4`, the proposal's `0..p3` and `0..p4`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct LayerLevels {
     pub h3: u32,
     pub h4: u32,
+    pub p3: u32,
+    pub p4: u32,
+}
+
+impl LayerLevels {
+    /// Every level of the model's four tables (0 for a table its blend mode lacks).
+    pub fn all(model: &ModelConfig) -> Self {
+        let n = |e: &msth_core::config::EncodingConfig, h4: bool| {
+            if h4 && e.blend.uses_h4() {
+                e.grid4.levels as u32
+            } else if !h4 && e.blend.uses_h3() {
+                e.grid3.levels as u32
+            } else {
+                0
+            }
+        };
+        let (f, p) = (&model.field.encoding, &model.proposal.encoding);
+        LayerLevels {
+            h3: n(f, false),
+            h4: n(f, true),
+            p3: n(p, false),
+            p4: n(p, true),
+        }
+    }
+    fn sum(&self) -> u64 {
+        self.h3 as u64 + self.h4 as u64 + self.p3 as u64 + self.p4 as u64
+    }
 }
 
 impl Metadata {
@@ -397,14 +424,7 @@ impl Metadata {
     pub fn layer_levels(&self) -> Vec<LayerLevels> {
         match &self.layers {
             Some(l) => l.clone(),
-            None => {
-                let enc = &self.model.field.encoding;
-                let n = |uses: bool, levels: usize| if uses { levels as u32 } else { 0 };
-                vec![LayerLevels {
-                    h3: n(enc.blend.uses_h3(), enc.grid3.levels),
-                    h4: n(enc.blend.uses_h4(), enc.grid4.levels),
-                }]
-            }
+            None => vec![LayerLevels::all(&self.model)],
         }
     }
     /// Progressive layers: 1 for a file without `layers`.
@@ -781,14 +801,14 @@ impl FileIndex {
         self.metadata.layer_count()
     }
 
-    /// Index entries of each layer after the first: the static section, and with chunks the
-    /// shared section and every chunk.
+    /// Index entries of each layer after the first: the proposal and static sections, and with
+    /// chunks the shared section and every chunk.
     fn per_layer(&self) -> usize {
         let chunks = self.metadata.chunks.len();
         if chunks == 0 {
-            1
+            2
         } else {
-            2 + chunks
+            3 + chunks
         }
     }
 
@@ -810,9 +830,10 @@ impl FileIndex {
         let base = fixed.len() + if chunks > 0 { 1 + chunks } else { 0 };
         let at = base + (layer - 1) * self.per_layer();
         match kind {
-            SectionKind::Static => Some(at),
-            SectionKind::Shared if chunks > 0 => Some(at + 1),
-            SectionKind::Dynamic => Some(at + 2 + chunk),
+            SectionKind::Proposal => Some(at),
+            SectionKind::Static => Some(at + 1),
+            SectionKind::Shared if chunks > 0 => Some(at + 2),
+            SectionKind::Dynamic => Some(at + 3 + chunk),
             _ => None,
         }
     }
@@ -830,12 +851,13 @@ impl FileIndex {
 
     /// The index positions a player holding layers `0..layers` of chunk `chunk` (`None`: the
     /// static file's sections) has decoded: everything before the first frame, the chunk's
-    /// layer 0 and, for each further layer, the static section, the shared section and the
+    /// layer 0 and, for each further layer, the proposal, static and shared sections and the
     /// chunk of that layer.
     pub fn sections_for(&self, chunk: Option<usize>, layers: usize) -> Vec<usize> {
         let mut out: Vec<usize> = (0..self.before_first_frame()).collect();
         for l in 0..layers.min(self.layer_count()) {
             if l > 0 {
+                out.extend(self.position(SectionKind::Proposal, 0, l));
                 out.extend(self.position(SectionKind::Static, 0, l));
                 out.extend(self.position(SectionKind::Shared, 0, l));
             }
@@ -1039,33 +1061,34 @@ fn check_layers(m: &Metadata, layers: &[LayerLevels], version: u16) -> Result<()
             layers.len()
         ));
     }
-    let enc = &m.model.field.encoding;
-    let full = LayerLevels {
-        h3: if enc.blend.uses_h3() {
-            enc.grid3.levels as u32
-        } else {
-            0
-        },
-        h4: if enc.blend.uses_h4() {
-            enc.grid4.levels as u32
-        } else {
-            0
-        },
+    let full = LayerLevels::all(&m.model);
+    let show = |e: &LayerLevels| format!("{}/{}/{}/{}", e.h3, e.h4, e.p3, e.p4);
+    let mut prev = LayerLevels {
+        h3: 0,
+        h4: 0,
+        p3: 0,
+        p4: 0,
     };
-    let mut prev = LayerLevels { h3: 0, h4: 0 };
     for (l, &e) in layers.iter().enumerate() {
-        if e.h3 < prev.h3 || e.h4 < prev.h4 || (e.h3, e.h4) == (prev.h3, prev.h4) {
+        if e.h3 < prev.h3
+            || e.h4 < prev.h4
+            || e.p3 < prev.p3
+            || e.p4 < prev.p4
+            || e.sum() == prev.sum()
+        {
             return bad(format!(
-                "layers[{l}] holds levels {}/{} after {}/{}: each layer adds levels",
-                e.h3, e.h4, prev.h3, prev.h4
+                "layers[{l}] holds levels {} after {}: each layer adds levels",
+                show(&e),
+                show(&prev)
             ));
         }
         prev = e;
     }
     if prev != full {
         return bad(format!(
-            "the last layer holds levels {}/{}, the field's tables have {}/{}",
-            prev.h3, prev.h4, full.h3, full.h4
+            "the last layer holds levels {}, the model's tables have {} (field 3D/4D, proposal 3D/4D)",
+            show(&prev),
+            show(&full)
         ));
     }
     Ok(())
@@ -1080,7 +1103,7 @@ fn check_sections(
 ) -> Result<(), DecodeError> {
     let n_chunks = m.chunks.len();
     let fixed = fixed_sections(version);
-    let per_layer = if n_chunks == 0 { 1 } else { 2 + n_chunks };
+    let per_layer = if n_chunks == 0 { 2 } else { 3 + n_chunks };
     let first_layer = if n_chunks == 0 {
         fixed.len()
     } else {
@@ -1108,9 +1131,10 @@ fn check_sections(
                     (i - first_layer) % per_layer,
                 );
                 match k {
-                    0 => (SectionKind::Static, 0, layer as u16),
-                    1 => (SectionKind::Shared, 0, layer as u16),
-                    c => (SectionKind::Dynamic, (c - 2) as u32, layer as u16),
+                    0 => (SectionKind::Proposal, 0, layer as u16),
+                    1 => (SectionKind::Static, 0, layer as u16),
+                    2 => (SectionKind::Shared, 0, layer as u16),
+                    c => (SectionKind::Dynamic, (c - 3) as u32, layer as u16),
                 }
             }
         };

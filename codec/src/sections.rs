@@ -106,15 +106,15 @@ fn section_ranges(layout: &ModelLayout, which: StaticPart) -> Vec<(String, Range
     let encoding = |out: &mut Vec<(String, Range<usize>, Part)>,
                     prefix: &str,
                     e: &EncodingLayout,
-                    with_h4: bool,
+                    h4_levels: Option<Range<usize>>,
                     h3_levels: Range<usize>,
                     with_mask: bool| {
         if let Some(g) = &e.h3 {
             table(out, &format!("{prefix}.h3"), g, h3_levels);
         }
-        if with_h4 {
+        if let Some(levels) = h4_levels {
             if let Some(g) = &e.h4 {
-                table(out, &format!("{prefix}.h4"), g, 0..usize::MAX);
+                table(out, &format!("{prefix}.h4"), g, levels);
             }
         }
         if let (Some((_, r)), true) = (&e.mask, with_mask) {
@@ -143,15 +143,23 @@ fn section_ranges(layout: &ModelLayout, which: StaticPart) -> Vec<(String, Range
             &mut out,
             "proposal",
             &layout.proposal.field.encoding,
-            true,
+            Some(0..usize::MAX),
             0..usize::MAX,
             true,
+        ),
+        StaticPart::ProposalLayer { h3, h4, first } => encoding(
+            &mut out,
+            "proposal",
+            &layout.proposal.field.encoding,
+            Some(h4),
+            h3,
+            first,
         ),
         StaticPart::Static => encoding(
             &mut out,
             "field",
             &layout.field.encoding,
-            false,
+            None,
             0..usize::MAX,
             true,
         ),
@@ -159,7 +167,7 @@ fn section_ranges(layout: &ModelLayout, which: StaticPart) -> Vec<(String, Range
             &mut out,
             "field",
             &layout.field.encoding,
-            false,
+            None,
             levels,
             first,
         ),
@@ -186,6 +194,13 @@ pub enum StaticPart {
     /// `levels`, and in the first layer the mask grid after them.
     StaticLayer {
         levels: Range<usize>,
+        first: bool,
+    },
+    /// One layer of a layered file's proposal section: the proposal's 3D table levels `h3`, its
+    /// 4D table levels `h4`, and in the first layer its mask grid.
+    ProposalLayer {
+        h3: Range<usize>,
+        h4: Range<usize>,
         first: bool,
     },
 }

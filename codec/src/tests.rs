@@ -337,9 +337,12 @@ fn layers_decode_like_one_layer_and_prefixes_zero_the_finer_levels() {
             let got = d.params_for_time(0.9).unwrap();
             let full = b.params_for_time(0.9);
             let mut kept = 0;
+            let prop = &layout.proposal.field.encoding;
             for (name, grid, keep) in [
                 ("h3", &layout.field.encoding.h3, levels[k - 1].h3),
                 ("h4", &layout.field.encoding.h4, levels[k - 1].h4),
+                ("p3", &prop.h3, levels[k - 1].p3),
+                ("p4", &prop.h4, levels[k - 1].p4),
             ] {
                 let Some((g, range)) = grid else { continue };
                 for (l, level) in g.levels.iter().enumerate() {
@@ -437,8 +440,8 @@ fn layered_files_are_checked() {
     assert!(e.contains("reserved"), "{e}");
     // `layers` that do not reach every level, or repeat one.
     for layers in [
-        r#"[{"h3":2,"h4":2}]"#,
-        r#"[{"h3":2,"h4":2},{"h3":2,"h4":2},{"h3":4,"h4":4}]"#,
+        r#"[{"h3":2,"h4":2,"p3":2,"p4":2}]"#,
+        r#"[{"h3":2,"h4":2,"p3":2,"p4":2},{"h3":2,"h4":2,"p3":2,"p4":2},{"h3":4,"h4":4,"p3":4,"p4":4}]"#,
     ] {
         let mut m = ix.metadata.clone();
         m.layers = Some(serde_json::from_str(layers).unwrap());

@@ -1,7 +1,8 @@
-//! Progressive layers: the main field's hash-grid levels split, coarse to fine, into the layers
-//! a layered `.msth` file stores (format.md §6.6) and nested dropout trains the networks for.
-//! Layer `l` holds the levels `ends[l - 1]..ends[l]` (`0..ends[0]` for layer 0) of the field's 3D
-//! and 4D tables; a player holding layers `0..k` renders with the finer levels' features at 0.
+//! Progressive layers: the hash-grid levels of the main field and of the proposal field split,
+//! coarse to fine, into the layers a layered `.msth` file stores (format.md §6.6) and nested
+//! dropout trains the networks for. Layer `l` holds the levels `ends[l - 1]..ends[l]` (`0..ends[0]`
+//! for layer 0) of each table; a player holding layers `0..k` renders with the finer levels'
+//! features at 0.
 
 /// The most layers a file may have.
 pub const MAX_LAYERS: usize = 16;
@@ -12,9 +13,20 @@ pub const MAX_LAYERS: usize = 16;
 /// clamped to `1..=levels.max(1)`; the last end is `levels`.
 pub fn layer_level_ends(levels: usize, layers: usize) -> Vec<usize> {
     let layers = layers.clamp(1, levels.max(1));
-    (1..=layers)
-        .map(|l| (levels * l).div_ceil(layers))
-        .collect()
+    (0..layers).map(|l| level_end(levels, layers, l)).collect()
+}
+
+/// The layers a file of `requested` layers has: one per level of the main field at most
+/// (`field_levels`, the larger of its two tables' level counts).
+pub fn layer_count(field_levels: usize, requested: usize) -> usize {
+    requested.clamp(1, field_levels.max(1))
+}
+
+/// How many of a table's `levels` levels layers `0..=l` of `layers` hold: `ceil(levels (l + 1)
+/// / layers)`. For the proposal's tables, which have fewer levels than the main field's, two
+/// layers may hold the same count (the later one adds none of them).
+pub fn level_end(levels: usize, layers: usize, l: usize) -> usize {
+    (levels * (l + 1)).div_ceil(layers.max(1))
 }
 
 #[cfg(test)]

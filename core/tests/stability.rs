@@ -900,6 +900,7 @@ mod pipeline {
             sample_mask_weight: 0.0,
             free_space_weight: 0.0,
             active_levels: None,
+            proposal_levels: None,
         };
         let l = train_chunk(
             cfg,
@@ -1152,6 +1153,7 @@ mod pipeline {
             sample_mask_weight: 0.0,
             free_space_weight: 0.0,
             active_levels: None,
+            proposal_levels: None,
         };
         let run = |p: &[f32], grad: &mut [f32]| {
             let l = train_chunk(

@@ -397,6 +397,7 @@ impl GpuStep {
         // The coarse-to-fine schedule acts on every evaluation of the main field's encoding.
         self.main.active_levels = step.active_levels;
         self.free.active_levels = step.active_levels;
+        self.prop.active_levels = step.proposal_levels;
         let n = batch.rays.len();
         let cfg = &self.cfg;
         let np = cfg.sampler.num_proposal_samples;

@@ -121,6 +121,7 @@ fn step_matches_cpu(cfg: ModelConfig, random_backgrounds: bool, ramp: bool) {
         sample_mask_weight: 0.005,
         free_space_weight: 0.5,
         active_levels: ramp.then_some(0.6 * cfg.field.encoding.grid3.levels as f32),
+        proposal_levels: ramp.then_some(0.6 * cfg.proposal.encoding.grid3.levels as f32),
     };
 
     // The CPU step draws one proposal jitter per ray, then one resampling jitter per ray, then
@@ -236,6 +237,7 @@ fn step_bad_input_is_an_error() {
         sample_mask_weight: 0.0,
         free_space_weight: 0.0,
         active_levels: None,
+        proposal_levels: None,
     };
     let batch = |n: usize, m: usize| HostBatch {
         rays: &r[..n],
@@ -256,6 +258,7 @@ fn step_bad_input_is_an_error() {
     let free_space = StepSettings {
         free_space_weight: 0.1,
         active_levels: None,
+        proposal_levels: None,
         ..settings
     };
     let e = step

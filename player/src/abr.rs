@@ -75,10 +75,11 @@ fn chunk_order(index: &FileIndex, playback: Option<Playback>) -> Vec<(usize, Opt
 }
 
 /// The index positions chunk `c` needs for layer `l`: the chunk's section and, for `l > 0`,
-/// the static and shared sections of that layer.
+/// the proposal, static and shared sections of that layer.
 fn layer_sections(index: &FileIndex, c: usize, l: usize) -> Vec<usize> {
-    let mut out = Vec::with_capacity(3);
+    let mut out = Vec::with_capacity(4);
     if l > 0 {
+        out.extend(index.position(SectionKind::Proposal, 0, l));
         out.extend(index.position(SectionKind::Static, 0, l));
         out.extend(index.position(SectionKind::Shared, 0, l));
     }
@@ -177,9 +178,13 @@ pub fn next_request(
         });
     }
     if index.metadata.chunks.is_empty() {
-        // A file without chunks: its further static layers, coarse first.
+        // A file without chunks: its further proposal and static layers, coarse first.
         return (1..index.layer_count())
-            .filter_map(|l| index.position(SectionKind::Static, 0, l))
+            .flat_map(|l| {
+                [SectionKind::Proposal, SectionKind::Static]
+                    .into_iter()
+                    .filter_map(move |k| index.position(k, 0, l))
+            })
             .find(|&i| missing(i))
             .map(|i| i..i + 1);
     }
@@ -364,9 +369,10 @@ pub fn simulate(
         (0..index.layer_count())
             .take_while(|&l| match chunk {
                 Some(c) => layer_sections(index, c, l).iter().all(|&i| decoded[i]),
-                None => index
-                    .position(SectionKind::Static, 0, l)
-                    .is_none_or(|i| decoded[i]),
+                None => [SectionKind::Proposal, SectionKind::Static]
+                    .into_iter()
+                    .filter_map(|k| index.position(k, 0, l))
+                    .all(|i| decoded[i]),
             })
             .count()
     };
@@ -558,14 +564,16 @@ mod tests {
         let pos = |kind, chunk, layer| ix.position(kind, chunk, layer).unwrap();
         let expect = [
             pos(SectionKind::Dynamic, c, 0),
+            pos(SectionKind::Proposal, 0, 1),
             pos(SectionKind::Static, 0, 1),
             pos(SectionKind::Shared, 0, 1),
             pos(SectionKind::Dynamic, c, 1),
+            pos(SectionKind::Proposal, 0, 2),
             pos(SectionKind::Static, 0, 2),
             pos(SectionKind::Shared, 0, 2),
             pos(SectionKind::Dynamic, c, 2),
         ];
-        assert_eq!(&all[5..12], &expect);
+        assert_eq!(&all[5..14], &expect);
     }
 
     #[test]

@@ -748,17 +748,17 @@ fn corpus() -> Vec<(&'static str, Vec<u8>)> {
     b.fix_prefix();
     add("layer_in_v3_entry", b.bytes);
     let mut b = f();
-    b.edit_metadata(|m| m["layers"] = serde_json::json!([{"h3": 1, "h4": 1}, {"h3": 2, "h4": 2}]));
+    b.edit_metadata(|m| m["layers"] = serde_json::json!([{"h3": 1, "h4": 1, "p3": 1, "p4": 1}, {"h3": 2, "h4": 2, "p3": 2, "p4": 2}]));
     add("layers_key_in_v3_file", b.bytes);
     let mut b = layered();
-    b.edit_metadata(|m| m["layers"] = serde_json::json!([{"h3": 1, "h4": 1}, {"h3": 1, "h4": 2}]));
+    b.edit_metadata(|m| m["layers"] = serde_json::json!([{"h3": 1, "h4": 1, "p3": 1, "p4": 1}, {"h3": 1, "h4": 2, "p3": 2, "p4": 2}]));
     add("layers_last_short_of_the_levels", b.bytes);
     let mut b = layered();
-    b.edit_metadata(|m| m["layers"] = serde_json::json!([{"h3": 2, "h4": 2}, {"h3": 2, "h4": 2}]));
+    b.edit_metadata(|m| m["layers"] = serde_json::json!([{"h3": 2, "h4": 2, "p3": 2, "p4": 2}, {"h3": 2, "h4": 2, "p3": 2, "p4": 2}]));
     add("layers_add_no_level", b.bytes);
     let mut b = layered();
     b.edit_metadata(|m| {
-        m["layers"] = serde_json::json!([{"h3": 1, "h4": 1, "h5": 0}, {"h3": 2, "h4": 2}])
+        m["layers"] = serde_json::json!([{"h3": 1, "h4": 1, "p3": 1, "p4": 1, "h5": 0}, {"h3": 2, "h4": 2, "p3": 2, "p4": 2}])
     });
     add("layers_unknown_key", b.bytes);
     let mut b = layered();
@@ -905,13 +905,13 @@ fn each_fault_names_its_violation() {
         ),
         (
             "layers_last_short_of_the_levels",
-            &["last layer", "1/2", "2/2"],
+            &["last layer", "1/2/2/2", "2/2/2/2"],
         ),
         ("layers_add_no_level", &["layers[1]", "adds levels"]),
         ("layers_unknown_key", &["metadata JSON", "h5"]),
         (
             "layer_number_out_of_order",
-            &["entry 10", "layer 2", "expected Dynamic chunk 1 layer 1"],
+            &["entry 11", "layer 2", "expected Dynamic chunk 1 layer 1"],
         ),
         (
             "layer_rows_outside_its_levels",

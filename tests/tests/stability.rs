@@ -145,6 +145,7 @@ fn assert_gradient_finite(data: &Dataset, s: &TrainSettings, params: &[f32]) {
         sample_mask_weight: 0.0,
         free_space_weight: 0.0,
         active_levels: None,
+        proposal_levels: None,
     };
     let l = train_chunk(
         &s.model,

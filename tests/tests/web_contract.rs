@@ -196,7 +196,12 @@ fn generate() -> String {
             proposal: 1,
             main: 1,
         }),
-        layers: Some(vec![msth_codec::LayerLevels { h3: 1, h4: 1 }]),
+        layers: Some(vec![msth_codec::LayerLevels {
+            h3: 1,
+            h4: 1,
+            p3: 1,
+            p4: 1,
+        }]),
         ..meta.clone()
     };
     let full = serde_json::to_value(&full).unwrap();

@@ -434,23 +434,36 @@ impl TrainSettings {
     /// value, lowered to a prefix of the layers on the steps nested dropout picks (drawn from the
     /// seed and the step alone, so a resumed run drops the same steps).
     pub fn step_levels(&self, step: usize) -> Option<f32> {
+        self.nested_levels(step).0
+    }
+
+    /// The main field's and the proposal field's levels step `step` trains
+    /// (`StepSettings::active_levels`, `proposal_levels`): the proposal's finer levels drop with
+    /// the same layers, as a player holding those layers has none of them.
+    pub fn nested_levels(&self, step: usize) -> (Option<f32>, Option<f32>) {
         let ramp = self.active_levels(step);
         if self.nested_dropout <= 0.0 || self.nested_dropout_layers < 2 {
-            return ramp;
+            return (ramp, None);
         }
         let mut rng = Rng::stream(self.seed ^ 0x4E57_D000, step as u64);
         if rng.f32() >= self.nested_dropout {
-            return ramp;
+            return (ramp, None);
         }
         let enc = &self.model.field.encoding;
         let levels = enc.grid3.levels.max(enc.grid4.levels);
-        let ends = msth_core::layers::layer_level_ends(levels, self.nested_dropout_layers);
-        if ends.len() < 2 {
-            return ramp;
+        let n = msth_core::layers::layer_count(levels, self.nested_dropout_layers);
+        if n < 2 {
+            return (ramp, None);
         }
-        let k = 1 + rng.below(ends.len() as u64 - 1) as usize;
-        let prefix = ends[k - 1] as f32;
-        Some(ramp.map_or(prefix, |r| r.min(prefix)))
+        let k = 1 + rng.below(n as u64 - 1) as usize;
+        let prefix = msth_core::layers::level_end(levels, n, k - 1) as f32;
+        let prop = &self.model.proposal.encoding;
+        let prop_levels = prop.grid3.levels.max(prop.grid4.levels);
+        let prop_prefix = msth_core::layers::level_end(prop_levels, n, k - 1) as f32;
+        (
+            Some(ramp.map_or(prefix, |r| r.min(prefix))),
+            Some(prop_prefix),
+        )
     }
 
     pub fn validate(&self) -> Result<(), SettingsError> {
@@ -930,6 +943,7 @@ impl Trainer {
     fn step_settings(&self, rays: usize) -> StepSettings {
         let s = &self.settings;
         let f = (self.step as f32 / s.anneal_steps.max(1) as f32).min(1.0);
+        let (active_levels, proposal_levels) = s.nested_levels(self.step);
         StepSettings {
             anneal: 10.0 * f / (9.0 * f + 1.0),
             interlevel_weight: s.interlevel_weight,
@@ -937,7 +951,8 @@ impl Trainer {
             loss_scale: 1.0 / rays.max(1) as f32,
             sample_mask_weight: s.sample_mask_weight,
             free_space_weight: s.free_space_weight,
-            active_levels: s.step_levels(self.step),
+            active_levels,
+            proposal_levels,
         }
     }
 
@@ -1678,6 +1693,16 @@ mod tests {
                 "prefix {k}"
             );
         }
+        // The proposal's levels drop with the same layers (5 levels in 4 layers: 2, 3, 4).
+        let prop = s.model.proposal.encoding.grid3.levels;
+        for &(step, a) in &picked {
+            let k = ends.iter().position(|&e| e == a as usize).unwrap();
+            let want = msth_core::layers::level_end(prop, ends.len(), k) as f32;
+            assert_eq!(s.nested_levels(step).1, Some(want));
+        }
+        assert!((0..1000)
+            .filter(|step| !picked.iter().any(|p| p.0 == *step))
+            .all(|step| s.nested_levels(step).1.is_none()));
         let again: Vec<Option<f32>> = (0..1000).map(|step| s.step_levels(step)).collect();
         assert!(picked.iter().all(|&(step, a)| again[step] == Some(a)));
         s.level_ramp_steps = 1000;

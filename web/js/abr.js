@@ -45,6 +45,7 @@ function layerSections(ix, c, l) {
   const out = [];
   const add = (i) => i !== null && out.push(i);
   if (l > 0) {
+    add(sectionPosition(ix, KIND.proposal, 0, l));
     add(sectionPosition(ix, KIND.static, 0, l));
     add(sectionPosition(ix, KIND.shared, 0, l));
   }
@@ -98,8 +99,10 @@ export function nextRequest(ix, decoded, playback, rate) {
   }
   if (ix.metadata.chunks.length === 0) {
     for (let l = 1; l < ix.layers.length; l++) {
-      const i = sectionPosition(ix, KIND.static, 0, l);
-      if (i !== null && missing(i)) return [i, i + 1];
+      for (const kind of [KIND.proposal, KIND.static]) {
+        const i = sectionPosition(ix, kind, 0, l);
+        if (i !== null && missing(i)) return [i, i + 1];
+      }
     }
     return null;
   }
@@ -170,7 +173,7 @@ function readyLayers(ix, decoded, t) {
   const c = chunkForTime(ix.metadata, t);
   let n = 0;
   while (n < ix.layers.length) {
-    const need = c === null ? [sectionPosition(ix, KIND.static, 0, n)].filter((i) => i !== null) : layerSections(ix, c, n);
+    const need = c === null ? [KIND.proposal, KIND.static].map((k) => sectionPosition(ix, k, 0, n)).filter((i) => i !== null) : layerSections(ix, c, n);
     if (!need.every((i) => decoded[i])) break;
     n++;
   }

@@ -300,11 +300,17 @@ export function parsePrefix(bytes, limits = LIMITS) {
   return { version, metadata, sections, layout, headerSize, fileLength, firstChunk: firstChunk(version), beforeFirstFrame, layers };
 }
 
-/** The layers' cumulative level counts `[{ h3, h4 }]` (format.md §6.6): `layers`, or one layer of every level. */
+/** Every level of the model's four tables (0 for a table its blend mode lacks). */
+function allLevels(layout) {
+  const n = (g) => (g ? g.levels.length : 0);
+  const [f, p] = [layout.field.encoding, layout.proposal.encoding];
+  return { h3: n(f.h3), h4: n(f.h4), p3: n(p.h3), p4: n(p.h4) };
+}
+
+/** The layers' cumulative level counts `[{ h3, h4, p3, p4 }]` (format.md §6.6): `layers`, or one layer of every level. */
 function layerLevels(metadata, layout) {
   if (metadata.layers !== undefined) return metadata.layers;
-  const e = layout.field.encoding;
-  return [{ h3: e.h3 ? e.h3.levels.length : 0, h4: e.h4 ? e.h4.levels.length : 0 }];
+  return [allLevels(layout)];
 }
 
 /**
@@ -321,14 +327,16 @@ export function sectionPosition(ix, kind, chunk, layer) {
     const i = fixed.indexOf(kind);
     return i < 0 ? null : i;
   }
-  const at = fixed.length + (chunks ? 1 + chunks : 0) + (layer - 1) * (chunks ? 2 + chunks : 1);
-  if (kind === KIND.static) return at;
-  if (kind === KIND.shared) return chunks ? at + 1 : null;
-  if (kind === KIND.dynamic) return at + 2 + chunk;
+  const at = fixed.length + (chunks ? 1 + chunks : 0) + (layer - 1) * (chunks ? 3 + chunks : 2);
+  if (kind === KIND.proposal) return at;
+  if (kind === KIND.static) return at + 1;
+  if (kind === KIND.shared) return chunks ? at + 2 : null;
+  if (kind === KIND.dynamic) return at + 3 + chunk;
   return null;
 }
 
-/** The levels `[start, end)` layer `layer` holds of the 3D (`key` "h3") or 4D ("h4") table. */
+/** The levels `[start, end)` layer `layer` holds of a table: `key` "h3" and "h4" the field's 3D
+ * and 4D tables, "p3" and "p4" the proposal's. */
 export function layerRange(layers, layer, key) {
   return [layer === 0 ? 0 : layers[layer - 1][key], layers[layer][key]];
 }
@@ -404,17 +412,19 @@ function checkMetadata(m, version, limits) {
     if (version < LAYERED_VERSION) bad(`unknown key \`layers\` (version ${version}; it exists from version ${LAYERED_VERSION})`);
     const l = m.layers;
     if (!Array.isArray(l) || l.length < 1 || l.length > MAX_LAYERS) bad(`layers must be an array of 1 to ${MAX_LAYERS} entries`);
-    let prev = { h3: 0, h4: 0 };
+    const KEYS = ["h3", "h4", "p3", "p4"];
+    const show = (e) => KEYS.map((k) => e[k]).join("/");
+    const sum = (e) => KEYS.reduce((s, k) => s + e[k], 0);
+    let prev = { h3: 0, h4: 0, p3: 0, p4: 0 };
     l.forEach((e, i) => {
       if (!e || typeof e !== "object" || Array.isArray(e)) bad(`layers[${i}] must be an object`);
-      for (const k of Object.keys(e)) if (k !== "h3" && k !== "h4") bad(`layers[${i}]: unknown key \`${k}\``);
-      if (![e.h3, e.h4].every((v) => Number.isInteger(v) && v >= 0 && v <= 0xffffffff)) bad(`layers[${i}] must hold integer level counts`);
-      if (e.h3 < prev.h3 || e.h4 < prev.h4 || (e.h3 === prev.h3 && e.h4 === prev.h4)) bad(`layers[${i}] holds levels ${e.h3}/${e.h4} after ${prev.h3}/${prev.h4}: each layer adds levels`);
+      for (const k of Object.keys(e)) if (!KEYS.includes(k)) bad(`layers[${i}]: unknown key \`${k}\``);
+      if (!KEYS.every((k) => Number.isInteger(e[k]) && e[k] >= 0 && e[k] <= 0xffffffff)) bad(`layers[${i}] must hold integer level counts h3, h4, p3, p4`);
+      if (KEYS.some((k) => e[k] < prev[k]) || sum(e) === sum(prev)) bad(`layers[${i}] holds levels ${show(e)} after ${show(prev)}: each layer adds levels`);
       prev = e;
     });
-    const enc = layout.field.encoding;
-    const full = { h3: enc.h3 ? enc.h3.levels.length : 0, h4: enc.h4 ? enc.h4.levels.length : 0 };
-    if (prev.h3 !== full.h3 || prev.h4 !== full.h4) bad(`the last layer holds levels ${prev.h3}/${prev.h4}, the field's tables have ${full.h3}/${full.h4}`);
+    const full = allLevels(layout);
+    if (KEYS.some((k) => prev[k] !== full[k])) bad(`the last layer holds levels ${show(prev)}, the model's tables have ${show(full)} (field 3D/4D, proposal 3D/4D)`);
   }
   if (!(Number.isFinite(m.dynamic_threshold) && m.dynamic_threshold >= 0 && m.dynamic_threshold <= 1)) bad("dynamic_threshold must lie in [0, 1]");
   if (!(Number.isInteger(m.chunk_frames) && m.chunk_frames >= 1)) bad("chunk_frames must be an integer >= 1");
@@ -427,7 +437,7 @@ function checkSections(sections, metadata, layout, version, headerSize, limits, 
   const fixed = FIXED_SECTIONS[version];
   const first = fixed.length + 1;
   const firstLayer = chunks ? first + chunks : fixed.length;
-  const perLayer = chunks ? 2 + chunks : 1;
+  const perLayer = chunks ? 3 + chunks : 2;
   const expected = firstLayer + (layerCount - 1) * perLayer;
   if (sections.length !== expected) throw new FormatError("index", `${sections.length} sections, the metadata implies ${expected}`);
   const order = [...fixed, KIND.shared];
@@ -439,7 +449,7 @@ function checkSections(sections, metadata, layout, version, headerSize, limits, 
     else {
       const k = (i - firstLayer) % perLayer;
       layer = Math.floor((i - firstLayer) / perLayer) + 1;
-      [kind, chunk] = k === 0 ? [KIND.static, 0] : k === 1 ? [KIND.shared, 0] : [KIND.dynamic, k - 2];
+      [kind, chunk] = k === 0 ? [KIND.proposal, 0] : k === 1 ? [KIND.static, 0] : k === 2 ? [KIND.shared, 0] : [KIND.dynamic, k - 3];
     }
     if (s.kind !== kind || s.chunk !== chunk || s.layer !== layer) throw new FormatError(what, `expected a ${KIND_NAME[kind]} section${kind === KIND.dynamic ? ` for chunk ${chunk}` : ""}${layer ? ` of layer ${layer}` : ""}`);
     if (s.length > limits.maxSectionBytes || s.rawLength > limits.maxSectionBytes) throw new FormatError(what, "section exceeds the 2 GiB limit");
@@ -454,8 +464,9 @@ function checkSections(sections, metadata, layout, version, headerSize, limits, 
 
 const maxBlockBytes = (count) => 8 + 4 * 256 + 4 * count;
 
-/** The flat-buffer ranges of a section's blocks; `levels` `[start, end)` of the field's 3D
- * table for one layer of a layered static section (the mask in layer 0 only). */
+/** The flat-buffer ranges of a section's blocks; of one layer of a layered file, `levels`:
+ * `[start, end)` of the field's 3D table (a static section) or `{ h3, h4 }` ranges of the
+ * proposal's tables (a proposal section), the mask in layer 0 only. */
 function staticRanges(layout, kind, levels = null, withMask = true) {
   const out = [];
   const table = (name, g, range) => g.levels.forEach((lv, l) => {
@@ -463,9 +474,9 @@ function staticRanges(layout, kind, levels = null, withMask = true) {
     const start = g.start + lv.offset;
     out.push([`${name} level ${l}`, start, start + lv.rows * g.features]);
   });
-  const encoding = (prefix, e, withH4, range = null, mask = true) => {
+  const encoding = (prefix, e, h4Range, range = null, mask = true) => {
     if (e.h3) table(`${prefix}.h3`, e.h3, range);
-    if (withH4 && e.h4) table(`${prefix}.h4`, e.h4, null);
+    if (h4Range !== false && e.h4) table(`${prefix}.h4`, e.h4, h4Range);
     if (e.mask && mask) out.push([`${prefix}.mask`, e.mask.start, e.mask.end]);
   };
   if (kind === KIND.mlp) {
@@ -473,7 +484,7 @@ function staticRanges(layout, kind, levels = null, withMask = true) {
     out.push(["field.color_mlp", layout.field.color.start, layout.field.color.end]);
     out.push(["proposal.density_mlp", layout.proposal.density.start, layout.proposal.density.end]);
   } else if (kind === KIND.proposal) {
-    encoding("proposal", layout.proposal.encoding, true);
+    encoding("proposal", layout.proposal.encoding, levels ? levels.h4 : null, levels ? levels.h3 : null, withMask);
   } else {
     encoding("field", layout.field.encoding, false, levels, withMask);
   }
@@ -814,6 +825,10 @@ export class Decoder {
       const next = this.base.slice();
       readStatic(this.layout, payload, e, next, layerRange(this.layers, e.layer, "h3"));
       this.base = next;
+    } else if (e.kind === KIND.proposal && layered) {
+      const next = this.base.slice();
+      readStatic(this.layout, payload, e, next, { h3: layerRange(this.layers, e.layer, "p3"), h4: layerRange(this.layers, e.layer, "p4") });
+      this.base = next;
     } else readStatic(this.layout, payload, e, this.base);
     this.decoded[i] = true;
   }
@@ -838,6 +853,7 @@ export class Decoder {
     for (let l = 0; l < Math.min(layers, this.layers.length); l++) {
       const add = (i) => i !== null && out.push(i);
       if (l > 0) {
+        add(this.position(KIND.proposal, 0, l));
         add(this.position(KIND.static, 0, l));
         add(this.position(KIND.shared, 0, l));
       }
@@ -862,7 +878,7 @@ export class Decoder {
       const i = this.position(kind, chunk, l);
       return i === null || this.decoded[i];
     };
-    while (n < this.layers.length && ok(KIND.static, 0, n) && ok(KIND.shared, 0, n) && (c === null || ok(KIND.dynamic, c, n))) n++;
+    while (n < this.layers.length && ok(KIND.proposal, 0, n) && ok(KIND.static, 0, n) && ok(KIND.shared, 0, n) && (c === null || ok(KIND.dynamic, c, n))) n++;
     return n;
   }
 
@@ -885,9 +901,12 @@ export class Decoder {
     if (!this.readyFor(t)) throw new FormatError("decoder", `the sections for time ${t} are not loaded`);
     out.set(this.base);
     if (layers < this.layers.length) {
-      const keep = this.layers[Math.max(layers, 1) - 1].h3;
-      const g = this.layout.field.encoding.h3;
-      if (g) g.levels.slice(keep).forEach((lv) => out.fill(0, g.start + lv.offset, g.start + lv.offset + lv.rows * g.features));
+      // The levels of the layers left out: the field's 3D table, the proposal's tables.
+      const keep = this.layers[Math.max(layers, 1) - 1];
+      const p = this.layout.proposal.encoding;
+      for (const [g, k] of [[this.layout.field.encoding.h3, keep.h3], [p.h3, keep.p3], [p.h4, keep.p4]]) {
+        if (g) g.levels.slice(k).forEach((lv) => out.fill(0, g.start + lv.offset, g.start + lv.offset + lv.rows * g.features));
+      }
     }
     const c = this.chunkForTime(t);
     if (c !== null) {

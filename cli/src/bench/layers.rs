@@ -38,7 +38,7 @@ pub fn run(a: BenchLayersArgs) -> Result<()> {
     let mut rows = Vec::new();
     let mut curves: Vec<(String, Vec<(f64, f64)>)> = Vec::new();
     let mut md = String::from(
-        "| model | layers | 3D/4D levels | bytes before the first frame | bytes in all | held-out PSNR | against every layer |\n|---|---|---|---|---|---|---|\n",
+        "| model | layers | levels (field 3D/4D, proposal 3D/4D) | bytes before the first frame | bytes in all | held-out PSNR | against every layer |\n|---|---|---|---|---|---|---|\n",
     );
     for ckpt_path in &a.checkpoints {
         let name = ckpt_path
@@ -84,17 +84,19 @@ pub fn run(a: BenchLayersArgs) -> Result<()> {
             - report
                 .layers
                 .iter()
-                .map(|l| l.static_bytes + l.dynamic_bytes)
+                .map(|l| l.proposal_bytes + l.static_bytes + l.dynamic_bytes)
                 .sum::<u64>();
         let mut curve = Vec::new();
         for k in 1..=n {
             let l = &report.layers[k - 1];
-            all += l.static_bytes + l.dynamic_bytes;
+            all += report.layer_bytes(k - 1);
             let first = report.first_frame_bytes(k);
             let line = format!(
-                "| {name} | 0..{k} | {}/{} | {first} | {all} | {:.2} dB | {:+.2} dB |\n",
+                "| {name} | 0..{k} | {}/{}/{}/{} | {first} | {all} | {:.2} dB | {:+.2} dB |\n",
                 l.levels.h3,
                 l.levels.h4,
+                l.levels.p3,
+                l.levels.p4,
                 psnrs[k - 1],
                 psnrs[k - 1] - psnrs[n - 1]
             );
@@ -102,6 +104,7 @@ pub fn run(a: BenchLayersArgs) -> Result<()> {
             md.push_str(&line);
             rows.push(json!({
                 "model": name, "layers": k, "h3_levels": l.levels.h3, "h4_levels": l.levels.h4,
+                "proposal_h3_levels": l.levels.p3, "proposal_h4_levels": l.levels.p4,
                 "first_frame_bytes": first, "bytes": all, "psnr": psnrs[k - 1],
             }));
             curve.push((all as f64 / (1 << 20) as f64, psnrs[k - 1]));

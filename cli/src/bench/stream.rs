@@ -290,12 +290,13 @@ fn plot_layers(playback: &serde_json::Value, schedule: &str, path: &std::path::P
     let measured = xs("rate_mbit");
     let t1 = layers.last().map_or(1.0, |p| p.0).max(1.0);
     let max_layers = layers.iter().map(|p| p.1).fold(1.0, f64::max);
-    let max_rate = link
-        .iter()
-        .chain(&measured)
-        .map(|p| p.1)
-        .fold(1.0, f64::max)
-        * 1.1;
+    // The axis follows the link; a measurement above 1.5x its fastest rate (a short request the
+    // pacing lets through in one piece) is drawn at the top.
+    let max_rate = link.iter().map(|p| p.1).fold(1.0, f64::max) * 1.5;
+    let measured: Vec<(f64, f64)> = measured
+        .into_iter()
+        .map(|(t, r)| (t, r.min(max_rate)))
+        .collect();
     let (w, h) = (900u32, 420u32);
     let mut buf = vec![255u8; (w * h * 3) as usize];
     {

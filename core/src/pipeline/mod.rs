@@ -74,6 +74,9 @@ pub struct StepSettings {
     /// so the first `a` levels are on, the next one partly, the finer ones off. `None` (and any
     /// `a` at or above the level count) leaves the encoding as it is.
     pub active_levels: Option<f32>,
+    /// The same for the proposal field's levels (nested dropout over progressive layers, whose
+    /// later layers hold the proposal's finer levels too). `None`: every level.
+    pub proposal_levels: Option<f32>,
 }
 
 /// The free-space loss's step `delta` as a share of the diagonal of the scene's extent (the

@@ -217,6 +217,7 @@ fn full_step(rays: usize, sample_mask_weight: f32) -> StepSettings {
         sample_mask_weight,
         free_space_weight: 0.0,
         active_levels: None,
+        proposal_levels: None,
     }
 }
 
@@ -497,6 +498,45 @@ fn level_ramp_matches_finite_differences() {
     }
 }
 
+/// The proposal's levels under nested dropout (`StepSettings::proposal_levels`): with one level
+/// on, its finer level's rows get no gradient and the proposal's samples move (the loss
+/// changes); at the level count the step is the plain one, bit for bit. (The proposal's gradient
+/// cannot be checked against finite differences through the whole step, which resamples from
+/// it; the ramp's forward and backward are the encoding's, checked on the main field above.)
+#[test]
+fn proposal_level_ramp_turns_the_finer_proposal_levels_off() {
+    let cfg = tiny_cfg();
+    let layout = ModelLayout::new(&cfg);
+    let p = perturbed_params(&layout);
+    let (rays, tg) = rays();
+    let run = |q: &[f32], active: Option<f32>| {
+        let mut step = full_step(rays.len(), 0.0);
+        step.proposal_levels = active;
+        chunk(&cfg, &layout, q, (&rays, &tg), &step)
+    };
+    let levels = cfg.proposal.encoding.grid3.levels;
+    assert!(levels >= 2);
+    let (l_plain, g_plain) = run(&p, None);
+    let (l_all, g_all) = run(&p, Some(levels as f32));
+    assert_eq!(l_plain, l_all);
+    assert_eq!(g_plain, g_all);
+    let (l_one, g_one) = run(&p, Some(1.0));
+    assert_ne!(l_one.interlevel, l_plain.interlevel);
+    for name in ["proposal.h3", "proposal.h4"] {
+        let grid = if name.ends_with("h3") {
+            &layout.proposal.field.encoding.h3
+        } else {
+            &layout.proposal.field.encoding.h4
+        };
+        let (g, _) = grid.as_ref().unwrap();
+        let e = layout.params.get(name).unwrap();
+        let fine = &g.levels[1];
+        let rows = e.offset + fine.offset..e.offset + fine.offset + fine.rows * g.features;
+        assert!(g_one[rows.clone()].iter().all(|&v| v == 0.0), "{name}");
+        assert!(g_plain[rows].iter().any(|&v| v != 0.0), "{name}");
+    }
+}
+
 /// The whole step with mask learning at its extremes (uncertainty logits at +-60, so `u` at
 /// its floor or huge; MINE weights scaled up until its statistics saturate; `u_min = 0`):
 /// finite losses and gradients.
@@ -542,6 +582,7 @@ fn mask_learning_off_is_the_plain_step() {
         sample_mask_weight: 0.0,
         free_space_weight: 0.0,
         active_levels: None,
+        proposal_levels: None,
     };
     let mc = MaskLearningConfig::default();
     let al = AuxLayout::new(&mc);

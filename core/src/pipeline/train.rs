@@ -117,6 +117,7 @@ pub fn train_chunk_with(
     for f in [&mut ws.main, &mut ws.stat, &mut ws.free] {
         f.enc.active_levels = step.active_levels;
     }
+    ws.prop.enc.active_levels = step.proposal_levels;
     let padding = cfg.sampler.histogram_padding;
     forward_chunk(
         cfg,
