@@ -168,6 +168,16 @@ pub(crate) struct Choices {
 }
 
 impl Choices {
+    /// The searches' options against a held-out PSNR of `reference_psnr`.
+    fn auto_options(&self, reference_psnr: f64) -> AutoOptions {
+        AutoOptions {
+            max_loss_db: self.max_loss,
+            reference_psnr,
+            views: self.views,
+            side: self.side,
+        }
+    }
+
     /// What `msth export` does by default: both searches, 0.1 dB each.
     pub fn auto() -> Self {
         Choices {
@@ -360,12 +370,7 @@ pub(crate) fn choose(
         )));
     }
     let (psnr, source) = reference_psnr(choices.reference_psnr, ckpt_path)?;
-    let auto = AutoOptions {
-        max_loss_db: choices.max_loss,
-        reference_psnr: psnr,
-        views: choices.views,
-        side: choices.side,
-    };
+    let auto = choices.auto_options(psnr);
     let model = &ckpt.header.model;
     let cameras = &ckpt.header.cameras;
     let probe = Probe::new(model, cameras, &auto);
@@ -451,12 +456,7 @@ fn layer_lines(
 ) -> Result<Vec<String>> {
     let model = &ckpt.header.model;
     let (psnr, _) = reference_psnr(choices.reference_psnr, ckpt_path)?;
-    let auto = AutoOptions {
-        max_loss_db: choices.max_loss,
-        reference_psnr: psnr,
-        views: choices.views,
-        side: choices.side,
-    };
+    let auto = choices.auto_options(psnr);
     let probe = msth_player::quant_auto::Probe::new(model, &ckpt.header.cameras, &auto);
     let mut decoder = msth_codec::Decoder::new(bytes)?;
     decoder.feed(bytes)?;
@@ -476,15 +476,8 @@ fn layer_lines(
         probe.views.len(),
         auto.side
     )];
-    let mut total = report.file_bytes
-        - report
-            .layers
-            .iter()
-            .map(|l| l.proposal_bytes + l.static_bytes + l.dynamic_bytes)
-            .sum::<u64>();
     for k in 1..=n {
         let l = &report.layers[k - 1];
-        total += report.layer_bytes(k - 1);
         let loss = match &full {
             Some(full) if k < n => {
                 let mse = msth_player::quant_auto::mse(&render(k), full);
@@ -504,7 +497,7 @@ fn layer_lines(
             l.levels.p3,
             l.levels.p4,
             mb(report.first_frame_bytes(k)),
-            mb(total),
+            mb(report.bytes_through(k)),
         ));
     }
     Ok(lines)

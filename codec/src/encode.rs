@@ -166,6 +166,15 @@ impl EncodeReport {
             .map_or(0, |r| r.proposal_bytes + r.static_bytes + r.dynamic_bytes)
     }
 
+    /// Bytes of the file a player holding layers `0..layers` of every chunk has fetched: the
+    /// whole file less the later layers' sections.
+    pub fn bytes_through(&self, layers: usize) -> u64 {
+        self.file_bytes
+            - (layers..self.layers.len())
+                .map(|l| self.layer_bytes(l))
+                .sum::<u64>()
+    }
+
     pub fn ratio(&self) -> f64 {
         self.raw_param_bytes as f64 / self.file_bytes.max(1) as f64
     }

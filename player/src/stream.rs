@@ -234,10 +234,7 @@ impl ModelStream {
         timeout: Duration,
     ) -> Result<Option<usize>, StreamError> {
         let chunk = self.index().chunk_for_time(t);
-        let what = match chunk {
-            Some(c) => format!("dynamic chunk {c} (time {t})"),
-            None => "the static sections".into(),
-        };
+        let what = waiting_for(chunk, t);
         let layers = self.index().layer_count();
         let st = self.wait(&what, timeout, |st| {
             st.decoder.layers_ready(chunk) == layers
@@ -262,10 +259,7 @@ impl ModelStream {
     ) -> Result<(Option<usize>, usize), StreamError> {
         self.seek(t);
         let chunk = self.index().chunk_for_time(t);
-        let what = match chunk {
-            Some(c) => format!("dynamic chunk {c} (time {t})"),
-            None => "the static sections".into(),
-        };
+        let what = waiting_for(chunk, t);
         let st = self.wait(&what, timeout, |st| st.decoder.layers_ready(chunk) > 0)?;
         st.decoder
             .params_for_time_into(t, out)
@@ -341,6 +335,14 @@ impl ModelStream {
                 .unwrap_or_else(|p| p.into_inner())
                 .0;
         }
+    }
+}
+
+/// What a wait for time `t` (in `chunk`) waits for, as timeouts name it.
+fn waiting_for(chunk: Option<usize>, t: f32) -> String {
+    match chunk {
+        Some(c) => format!("dynamic chunk {c} (time {t})"),
+        None => "the static sections".into(),
     }
 }
 

@@ -188,6 +188,25 @@ impl Drop for Xvfb {
 
 /// A display to open windows on: `Xvfb` starts (the `xvfb` package). "Cannot run it" is a missing
 /// need (`MSTH_REQUIRE_DISPLAY=1` makes it a failure).
+/// `node` with the page's npm packages (`npm ci --prefix web`): what the page's decoder needs to
+/// run outside a browser (`web/tests/*.mjs`).
+pub fn web_decoder_need() -> Need {
+    Need::new("browser", || {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+        let node_ok = std::process::Command::new("node")
+            .arg("--version")
+            .output()
+            .is_ok_and(|o| o.status.success());
+        if !node_ok {
+            Err("`node` is not installed".into())
+        } else if !root.join("web/node_modules/fzstd/package.json").is_file() {
+            Err("web/node_modules/fzstd is missing (run `npm ci --prefix web`)".into())
+        } else {
+            Ok(())
+        }
+    })
+}
+
 pub fn display_need() -> Need {
     Need::new("display", || Xvfb::start(64, 64).map(|_| ()))
 }

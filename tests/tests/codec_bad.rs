@@ -5,7 +5,7 @@
 //! recomputed wherever a deeper check is the target. Regenerate with
 //! `cargo test --release -p msth-tests --test codec_bad -- --ignored regenerate_bad_corpus`.
 
-use msth_testkit::{Need, Tests};
+use msth_testkit::Tests;
 use std::path::{Path, PathBuf};
 
 use msth_codec::format::{index_offset, FIXED_HEADER, INDEX_ENTRY};
@@ -1024,20 +1024,7 @@ fn web_decoder_rejects_the_bad_corpus() {
 
 fn main() -> std::process::ExitCode {
     // The web decoder runs in Node with the page's npm packages.
-    let node = Need::new("browser", || {
-        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-        let node_ok = std::process::Command::new("node")
-            .arg("--version")
-            .output()
-            .is_ok_and(|o| o.status.success());
-        if !node_ok {
-            Err("`node` is not installed".into())
-        } else if !root.join("web/node_modules/fzstd/package.json").is_file() {
-            Err("web/node_modules/fzstd is missing (run `npm ci --prefix web`)".into())
-        } else {
-            Ok(())
-        }
-    });
+    let node = msth_tests::web_decoder_need();
     Tests::new(file!())
         .test("corpus_base_file_is_valid", corpus_base_file_is_valid)
         .test("bad_corpus_fails_cleanly", bad_corpus_fails_cleanly)

@@ -18,23 +18,10 @@ use std::process::Command;
 use msth_codec::{encode, Decoder, EncodeOptions, QuantMode};
 use msth_core::config::{BlendMode, ModelConfig};
 use msth_core::field::ModelLayout;
-use msth_testkit::{Need, Tests};
+use msth_testkit::Tests;
 
 fn main() -> std::process::ExitCode {
-    let node = Need::new("node and web/node_modules", || {
-        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-        let node_ok = Command::new("node")
-            .arg("--version")
-            .output()
-            .is_ok_and(|o| o.status.success());
-        if !node_ok {
-            Err("`node` is not installed".into())
-        } else if !root.join("web/node_modules/fzstd/package.json").is_file() {
-            Err("web/node_modules/fzstd is missing (run `npm ci --prefix web`)".into())
-        } else {
-            Ok(())
-        }
-    });
+    let node = msth_tests::web_decoder_need();
     Tests::new(file!())
         .needs(
             &[&node],

@@ -80,16 +80,10 @@ pub fn run(a: BenchLayersArgs) -> Result<()> {
                 })
             })
             .collect();
-        let mut all = report.file_bytes
-            - report
-                .layers
-                .iter()
-                .map(|l| l.proposal_bytes + l.static_bytes + l.dynamic_bytes)
-                .sum::<u64>();
         let mut curve = Vec::new();
         for k in 1..=n {
             let l = &report.layers[k - 1];
-            all += report.layer_bytes(k - 1);
+            let all = report.bytes_through(k);
             let first = report.first_frame_bytes(k);
             let line = format!(
                 "| {name} | 0..{k} | {}/{}/{}/{} | {first} | {all} | {:.2} dB | {:+.2} dB |\n",
@@ -199,13 +193,5 @@ fn plot(curves: &[(String, Vec<(f64, f64)>)], data: &str, path: &std::path::Path
             .map_err(|x| e(&x))?;
         root.present().map_err(|x| e(&x))?;
     }
-    let img = msth_dataset::Image8 {
-        width: w,
-        height: h,
-        data: buf.into(),
-    };
-    msth_dataset::imageio::save_png_atomic(path, &img)
-        .with_context(|| format!("writing {}", path.display()))?;
-    println!("wrote {}", path.display());
-    Ok(())
+    super::tradeoff_plot::save_rgb(path, w, h, buf)
 }

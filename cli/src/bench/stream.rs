@@ -359,13 +359,5 @@ fn plot_layers(playback: &serde_json::Value, schedule: &str, path: &std::path::P
             .map_err(|e| anyhow::anyhow!("{e:?}"))?;
         root.present().map_err(|e| anyhow::anyhow!("{e:?}"))?;
     }
-    let img = msth_dataset::Image8 {
-        width: w,
-        height: h,
-        data: buf.into(),
-    };
-    msth_dataset::imageio::save_png_atomic(path, &img)
-        .with_context(|| format!("writing {}", path.display()))?;
-    println!("wrote {}", path.display());
-    Ok(())
+    super::tradeoff_plot::save_rgb(path, w, h, buf)
 }

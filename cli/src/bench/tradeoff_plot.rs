@@ -227,6 +227,20 @@ fn legend_corner(anchors: &[(i32, i32)], area: (i32, i32)) -> SeriesLabelPositio
         .unwrap_or(SeriesLabelPosition::LowerRight)
 }
 
+/// Writes an RGB buffer of `w x h` pixels (a plot drawn with plotters' bitmap backend) as a PNG,
+/// atomically, and says so.
+pub fn save_rgb(path: &Path, w: u32, h: u32, buf: Vec<u8>) -> Result<()> {
+    let img = Image8 {
+        width: w,
+        height: h,
+        data: buf.into(),
+    };
+    msth_dataset::imageio::save_png_atomic(path, &img)
+        .map_err(|e| anyhow!("writing {}: {e}", path.display()))?;
+    println!("wrote {}", path.display());
+    Ok(())
+}
+
 /// Draws a labelled scatter plot (x on a log axis when `log_x`), the front points filled red
 /// and joined in x order, the others hollow blue, labels placed to avoid each other. Points
 /// with a non-finite coordinate (or x <= 0 on a log axis) are left out. Needs
