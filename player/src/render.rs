@@ -367,6 +367,23 @@ struct VolumeCache {
 /// Most rays per work item of the parallel loop.
 const CHUNK: usize = 256;
 
+/// Side of the square tiles in which the volume's rays are marched: neighbouring rays cross the
+/// same bricks, so a tile's rays find them in the cache where a row's would not.
+const MARCH_TILE: u32 = 8;
+
+/// The pixels of a `w x h` frame, `tile x tile` squares at a time (row by row within a square,
+/// squares row by row); a tile of 1 is plain row order.
+fn tile_order(w: u32, h: u32, tile: u32) -> impl Iterator<Item = (u32, u32)> {
+    let tile = tile.max(1);
+    (0..h.div_ceil(tile)).flat_map(move |ty| {
+        (0..w.div_ceil(tile)).flat_map(move |tx| {
+            let (y0, x0) = (ty * tile, tx * tile);
+            (y0..(y0 + tile).min(h))
+                .flat_map(move |y| (x0..(x0 + tile).min(w)).map(move |x| (x, y)))
+        })
+    })
+}
+
 /// Scratch memory one rendering thread may use for one batch of rays, bytes. The scratch grows
 /// with rays x samples x the floats kept per sample; batches are sized to stay near this, so
 /// that a file asking for many samples per ray gets smaller batches, not more memory (the
@@ -723,7 +740,7 @@ impl Renderer {
             self.volume_cache = Some(cache);
             rgb
         } else {
-            let (mut rgb, pixels, rays, empty) = self.pixel_rays(camera, time);
+            let (mut rgb, pixels, rays, empty) = self.pixel_rays(camera, time, MARCH_TILE);
             let mut out = crate::volume::render_rays(
                 vol,
                 &self.cfg,
@@ -828,7 +845,12 @@ impl Renderer {
 
     /// The frame with the background where rays miss the scene, and the other pixels with their
     /// rays.
-    fn pixel_rays(&self, camera: &Camera, time: f32) -> (Vec<f32>, Vec<u32>, Vec<TimedRay>, usize) {
+    fn pixel_rays(
+        &self,
+        camera: &Camera,
+        time: f32,
+        tile: u32,
+    ) -> (Vec<f32>, Vec<u32>, Vec<TimedRay>, usize) {
         let (w, h) = (camera.width, camera.height);
         let total = w as usize * h as usize;
         let bg = match self.cfg.background {
@@ -839,21 +861,19 @@ impl Renderer {
         let mut pixels = Vec::with_capacity(total);
         let mut rays = Vec::with_capacity(total);
         let mut empty = 0;
-        for y in 0..h {
-            for x in 0..w {
-                let ray = TimedRay::through_pixel(camera, x, y, time);
-                let (near, far) = ray_limits(&self.cfg, &ray);
-                let p = (y * w + x) as usize;
-                match bg {
-                    // Misses the scene: the background, with nothing to evaluate.
-                    Some(c) if far <= near => {
-                        rgb[p * 3..p * 3 + 3].copy_from_slice(&c);
-                        empty += 1;
-                    }
-                    _ => {
-                        pixels.push(p as u32);
-                        rays.push(ray);
-                    }
+        for (x, y) in tile_order(w, h, tile) {
+            let ray = TimedRay::through_pixel(camera, x, y, time);
+            let (near, far) = ray_limits(&self.cfg, &ray);
+            let p = (y * w + x) as usize;
+            match bg {
+                // Misses the scene: the background, with nothing to evaluate.
+                Some(c) if far <= near => {
+                    rgb[p * 3..p * 3 + 3].copy_from_slice(&c);
+                    empty += 1;
+                }
+                _ => {
+                    pixels.push(p as u32);
+                    rays.push(ray);
                 }
             }
         }
@@ -862,7 +882,7 @@ impl Renderer {
 
     /// Renders every pixel and builds the static cache.
     fn render_full(&self, camera: &Camera, time: f32, params: &[f32]) -> (Vec<f32>, Cache) {
-        let (mut rgb, pixels, rays, empty) = self.pixel_rays(camera, time);
+        let (mut rgb, pixels, rays, empty) = self.pixel_rays(camera, time, 1);
         let out = self.render_rays(params, &rays);
         for (&p, c) in pixels.iter().zip(&out.rgb) {
             rgb[p as usize * 3..p as usize * 3 + 3].copy_from_slice(c);
@@ -1438,6 +1458,30 @@ mod tests {
         );
         assert!(asked.iter().all(|&t| t > 0.0), "{asked:?}");
         assert!(!asked.is_empty());
+    }
+
+    #[test]
+    fn tile_order_visits_every_pixel_once_tile_by_tile() {
+        for (w, h, tile) in [(17, 9, 8), (8, 8, 8), (5, 3, 1), (1, 20, 4), (3, 2, 8)] {
+            let order: Vec<(u32, u32)> = tile_order(w, h, tile).collect();
+            let mut seen = vec![false; (w * h) as usize];
+            for &(x, y) in &order {
+                assert!(x < w && y < h, "{w}x{h}/{tile}: ({x}, {y}) outside");
+                let p = (y * w + x) as usize;
+                assert!(!seen[p], "{w}x{h}/{tile}: ({x}, {y}) twice");
+                seen[p] = true;
+            }
+            assert_eq!(order.len(), (w * h) as usize, "{w}x{h}/{tile}");
+            // Each tile's pixels come together: the tile number never goes back.
+            let tiles: Vec<u32> = order
+                .iter()
+                .map(|&(x, y)| (y / tile) * w.div_ceil(tile) + x / tile)
+                .collect();
+            assert!(tiles.windows(2).all(|t| t[0] <= t[1]), "{w}x{h}/{tile}");
+        }
+        let rows: Vec<(u32, u32)> = tile_order(4, 3, 1).collect();
+        let plain: Vec<(u32, u32)> = (0..3).flat_map(|y| (0..4).map(move |x| (x, y))).collect();
+        assert_eq!(rows, plain, "a tile of 1 is row order");
     }
 
     #[test]

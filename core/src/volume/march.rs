@@ -327,13 +327,15 @@ impl Volume {
             base + sx + sy + sz,
         ];
         if n == 4 && ch == 4 {
-            // The 8 vertices' 32 values converted at once (F16C where the CPU has it).
-            let mut h = [Value::ZERO; 32];
-            for (j, &o) in offsets.iter().enumerate() {
-                h[j * 4..j * 4 + 4].copy_from_slice(&values[o..o + 4]);
+            // A vertex's 4 values are one 8-byte load; the 8 vertices' 32 values are converted
+            // at once (F16C where the CPU has it).
+            let (quads, _) = values.as_chunks::<4>();
+            let mut h = [[Value::ZERO; 4]; 8];
+            for (q, &o) in h.iter_mut().zip(&offsets) {
+                *q = quads[o / 4];
             }
             let mut v = [0f32; 32];
-            h.convert_to_f32_slice(&mut v);
+            h.as_flattened().convert_to_f32_slice(&mut v);
             let mut acc = [0f32; 4];
             for (j, &wc) in w.iter().enumerate() {
                 for c in 0..4 {
@@ -385,9 +387,13 @@ impl Volume {
             ((u.z * rf) as u32).min(r - 1),
         ];
         let b = g.brick;
-        let i = g.bricks_per_side();
-        let brick = [cell[0] / b, cell[1] / b, cell[2] / b];
-        let entry = self.index[(brick[0] + i * (brick[1] + i * brick[2])) as usize];
+        // Brick and index sides are powers of two ([`VolumeGeometry::new`]): shifts, not
+        // divisions, on every step.
+        debug_assert!(b.is_power_of_two() && g.bricks_per_side().is_power_of_two());
+        let bs = b.trailing_zeros();
+        let is = g.bricks_per_side().trailing_zeros();
+        let brick = [cell[0] >> bs, cell[1] >> bs, cell[2] >> bs];
+        let entry = self.index[(brick[0] | ((brick[1] | (brick[2] << is)) << is)) as usize];
         let cell_len = 1.0 / rf;
         if entry == OUTSIDE_BRICK {
             return Lookup::Outside;
@@ -399,12 +405,8 @@ impl Volume {
                 false,
             );
         }
-        let lc = [
-            cell[0] - brick[0] * b,
-            cell[1] - brick[1] * b,
-            cell[2] - brick[2] * b,
-        ];
-        let bit = (lc[0] + b * (lc[1] + b * lc[2])) as usize;
+        let lc = [cell[0] & (b - 1), cell[1] & (b - 1), cell[2] & (b - 1)];
+        let bit = (lc[0] | ((lc[1] | (lc[2] << bs)) << bs)) as usize;
         let fw = g.flag_words();
         let mask = 1u32 << (bit & 31);
         let origin = Vec3::new(
