@@ -293,6 +293,49 @@ fn converged_sweeps_stop_each_variant_when_it_stalls() {
         std::fs::metadata(&cached).unwrap().modified().unwrap(),
         modified
     );
+    // A variant with its own budget trains to it; the others stay cached.
+    msth(&[
+        "--threads",
+        "2",
+        "bench",
+        "tradeoff",
+        data.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--quick",
+        "--converge",
+        "--converge-every",
+        "2",
+        "--min-gain",
+        "1000",
+        "--iters",
+        "50",
+        "--presets",
+        "fast",
+        "--factors",
+        "iters,mask-",
+        "--fps-size",
+        "16x12",
+        "--fps-frames",
+        "1",
+        "--stride",
+        "1",
+        "--cap",
+        "fast-mask-32=2",
+    ])
+    .unwrap();
+    assert_eq!(std::fs::read(&cached).unwrap(), before);
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("tradeoff.json")).unwrap()).unwrap();
+    let steps: Vec<(&str, u64)> = json["rows"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| (r["name"].as_str().unwrap(), r["steps"].as_u64().unwrap()))
+        .collect();
+    assert_eq!(steps, [("fast", 4), ("fast-mask-32", 2)], "{json:#}");
+    let md = std::fs::read_to_string(out.join("tradeoff.md")).unwrap();
+    assert!(md.contains("own budgets: fast-mask-32 2"), "{md}");
     let e = msth(&[
         "bench",
         "tradeoff",
@@ -317,6 +360,8 @@ fn tradeoff_rejects_bad_options() {
         ("--variant", "nolabel", "--variant"),
         ("--fps-size", "0x5", "--fps-size"),
         ("--presets", "huge", "unknown preset"),
+        ("--cap", "quality=0", "--cap quality=0"),
+        ("--cap", "nosuch=5", "no variant `nosuch`"),
     ] {
         let e = msth(&["bench", "tradeoff", "builtin", "--out", o, flag, value]).unwrap_err();
         assert!(e.contains(needle), "{flag} {value}: {e}");

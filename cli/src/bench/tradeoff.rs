@@ -87,6 +87,10 @@ pub struct TradeoffArgs {
     /// repeatable. For changes that go together, which one-factor sweeps cannot show.
     #[arg(long = "variant", value_name = "LABEL:SETS")]
     pub variants: Vec<String>,
+    /// A variant's own step budget, `NAME=STEPS` (its `runs/NAME`; with `--converge`, its
+    /// cap), for variants too costly for the common one; repeatable.
+    #[arg(long = "cap", value_name = "NAME=STEPS")]
+    pub caps: Vec<String>,
     /// Quantisation of every variant's file (the `quant` factor varies it on the base model).
     #[arg(long, default_value = "q5")]
     pub quant: String,
@@ -552,6 +556,20 @@ fn settings_for(v: &Variant, data: &Dataset, schedule: Schedule) -> Result<Train
     Ok(s)
 }
 
+/// `--cap NAME=STEPS`.
+fn parse_cap(s: &str) -> Result<(String, usize)> {
+    let (name, n) = s
+        .split_once('=')
+        .with_context(|| format!("--cap {s}: expected NAME=STEPS"))?;
+    let n: usize = n
+        .trim()
+        .parse()
+        .ok()
+        .filter(|&n| n > 0)
+        .with_context(|| format!("--cap {s}: STEPS must be a whole number of at least 1"))?;
+    Ok((name.trim().to_string(), n))
+}
+
 fn load_cached(path: &Path, fingerprint: &Value) -> Option<VariantResult> {
     let bytes = std::fs::read(path).ok()?;
     match serde_json::from_slice::<VariantResult>(&bytes) {
@@ -767,7 +785,7 @@ pub fn run(a: TradeoffArgs) -> Result<()> {
         &data,
         schedule,
     )?;
-    let vs = variants(
+    let mut vs = variants(
         base,
         &presets,
         &factors,
@@ -778,6 +796,20 @@ pub fn run(a: TradeoffArgs) -> Result<()> {
         direction,
         &extra,
     );
+    let caps: Vec<(String, usize)> = a.caps.iter().map(|c| parse_cap(c)).collect::<Result<_>>()?;
+    for (name, n) in &caps {
+        let Some(v) = vs.iter_mut().find(|v| &v.name == name) else {
+            bail!(
+                "--cap {name}={n}: no variant `{name}` (variants: {})",
+                vs.iter()
+                    .map(|v| v.name.as_str())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            );
+        };
+        v.sets.push(format!("iters={n}"));
+        v.sets.push(format!("anneal_steps={}", (n / 4).max(1)));
+    }
     for (i, v) in vs.iter().enumerate() {
         if vs[..i].iter().any(|w| w.name == v.name) {
             bail!(
@@ -964,6 +996,7 @@ pub fn run(a: TradeoffArgs) -> Result<()> {
         threads,
         quant: default_quant.to_string(),
         converge: a.converge.then_some((a.converge_every, a.min_gain)),
+        caps,
     };
     write_outputs(&a.out, &meta, &rows)?;
     println!("{}", markdown_table(&rows));
@@ -977,6 +1010,15 @@ pub fn run(a: TradeoffArgs) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn caps_name_a_variant_and_a_positive_step_count() {
+        assert_eq!(parse_cap("quality=1500").unwrap(), ("quality".into(), 1500));
+        assert_eq!(parse_cap(" fast = 20 ").unwrap(), ("fast".into(), 20));
+        for bad in ["quality", "quality=0", "quality=-3", "quality=many", "=x"] {
+            assert!(parse_cap(bad).is_err(), "{bad}");
+        }
+    }
 
     #[test]
     fn pareto_front_marks_the_non_dominated_points() {

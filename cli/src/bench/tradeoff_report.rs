@@ -29,17 +29,30 @@ pub struct Meta {
     /// `--converge`: (steps between measurements, least gain in dB).
     #[serde(default)]
     pub converge: Option<(usize, f64)>,
+    /// `--cap`: variants with their own step budget (name, steps).
+    #[serde(default)]
+    pub caps: Vec<(String, usize)>,
 }
 
 impl Meta {
     /// How long each variant trained, for titles and text.
     fn schedule(&self) -> String {
-        match self.converge {
+        let base = match self.converge {
             Some((every, gain)) => format!(
                 "until converged: less than {gain} dB gained in {every} steps, at most {} steps",
                 self.iters
             ),
             None => format!("{} steps", self.iters),
+        };
+        let caps: Vec<String> = self
+            .caps
+            .iter()
+            .map(|(name, n)| format!("{name} {n}"))
+            .collect();
+        if caps.is_empty() {
+            base
+        } else {
+            format!("{base}; own budgets: {}", caps.join(", "))
         }
     }
 }
