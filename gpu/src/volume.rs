@@ -126,6 +126,15 @@ fn buffer_lengths(vol: &Volume) -> (usize, usize) {
     (words, values)
 }
 
+/// Invocations `volume_march` needs for a whole `w x h` frame: one workgroup per 8x8 tile (the
+/// shader's `TILE`), the tiles on the right and bottom edges padded.
+pub fn tile_invocations(w: u32, h: u32) -> u32 {
+    const TILE: u32 = 8;
+    w.div_ceil(TILE)
+        .saturating_mul(h.div_ceil(TILE))
+        .saturating_mul(TILE * TILE)
+}
+
 /// Points one dispatch of [`eval_points`] evaluates at most.
 const EVAL_BATCH: usize = 1 << 20;
 
@@ -352,7 +361,7 @@ impl GpuVolume {
         Ok(r)
     }
 
-    /// Draws every pixel of `view` (its `size.z` pixels, row-major) through the volume into
+    /// Draws every pixel of `view` (`size.x` by `size.y`, in 8x8 tiles) through the volume into
     /// `out` (`(r, g, b, visible depth)` per pixel) with `scene`'s model uniform, the slices last
     /// bound and `settings`; waits for it.
     pub fn render(
@@ -364,10 +373,10 @@ impl GpuVolume {
         settings: &MarchSettings,
         out: &wgpu::Buffer,
     ) -> Result<(), GpuError> {
-        let count = view.size[2];
-        if count == 0 {
+        if view.size[2] == 0 {
             return Ok(());
         }
+        let count = tile_invocations(view.size[0], view.size[1]);
         let max = ctx.limits.max_compute_workgroups_per_dimension;
         let (gx, gy) = dispatch_size(count, max).ok_or_else(|| GpuError::Limit {
             what: format!("a dispatch of {count} invocations"),

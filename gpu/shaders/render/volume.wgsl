@@ -270,14 +270,30 @@ fn march_ray(o: vec3<f32>, d: vec3<f32>) -> March {
 // frame[pixel]; a ray that misses the scene under a constant background gets the background and
 // the visible depth MISSED, one that reaches a brick the volume left out the visible depth
 // OUTSIDE.
+// A whole frame's invocations walk it in 8x8 tiles, a workgroup per tile (the host dispatches
+// `tile_invocations`): neighbouring rays cross the same bricks, so they share the cache and
+// stop at similar depths. A pixel list is walked in its own order.
+const TILE: u32 = 8u;
+
 @compute @workgroup_size(64)
 fn volume_march(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let i = invocation(gid, groups);
-    if i < view.size.z {
-        var p = i;
-        if (view.size.w & 1u) != 0u {
+    var p = i;
+    var inside = i < view.size.z;
+    if (view.size.w & 1u) != 0u {
+        if inside {
             p = list[i];
         }
+    } else {
+        let tiles_x = (view.size.x + TILE - 1u) / TILE;
+        let tile = i / (TILE * TILE);
+        let j = i % (TILE * TILE);
+        let x = (tile % tiles_x) * TILE + j % TILE;
+        let y = (tile / tiles_x) * TILE + j / TILE;
+        inside = x < view.size.x && y < view.size.y;
+        p = y * view.size.x + x;
+    }
+    if inside {
         let o = view.c2w[3].xyz;
         let d = pixel_ray_dir(p);
         let lim = ray_limits(o, d);
