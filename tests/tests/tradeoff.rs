@@ -233,8 +233,8 @@ fn converged_sweeps_stop_each_variant_when_it_stalls() {
         &["--size", "32x24", "--frames", "3", "--cameras", "3"],
     )
     .unwrap();
-    let run = || {
-        msth(&[
+    let run = |extra: &[&str]| {
+        let mut args = vec![
             "--threads",
             "2",
             "bench",
@@ -260,10 +260,11 @@ fn converged_sweeps_stop_each_variant_when_it_stalls() {
             "1",
             "--stride",
             "1",
-        ])
-        .unwrap()
+        ];
+        args.extend_from_slice(extra);
+        msth(&args).unwrap()
     };
-    run();
+    run(&[]);
     let json: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("tradeoff.json")).unwrap()).unwrap();
     let rows = json["rows"].as_array().unwrap();
@@ -287,43 +288,14 @@ fn converged_sweeps_stop_each_variant_when_it_stalls() {
     let cached = out.join("runs").join("fast").join("result.json");
     let before = std::fs::read(&cached).unwrap();
     let modified = std::fs::metadata(&cached).unwrap().modified().unwrap();
-    run();
+    run(&[]);
     assert_eq!(std::fs::read(&cached).unwrap(), before);
     assert_eq!(
         std::fs::metadata(&cached).unwrap().modified().unwrap(),
         modified
     );
     // A variant with its own budget trains to it; the others stay cached.
-    msth(&[
-        "--threads",
-        "2",
-        "bench",
-        "tradeoff",
-        data.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--quick",
-        "--converge",
-        "--converge-every",
-        "2",
-        "--min-gain",
-        "1000",
-        "--iters",
-        "50",
-        "--presets",
-        "fast",
-        "--factors",
-        "iters,mask-",
-        "--fps-size",
-        "16x12",
-        "--fps-frames",
-        "1",
-        "--stride",
-        "1",
-        "--cap",
-        "fast-mask-32=2",
-    ])
-    .unwrap();
+    run(&["--cap", "fast-mask-32=2"]);
     assert_eq!(std::fs::read(&cached).unwrap(), before);
     let json: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("tradeoff.json")).unwrap()).unwrap();
