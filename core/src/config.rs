@@ -400,19 +400,31 @@ impl ModelConfig {
 
 /// Named size presets. `Paper` is method.md's configuration (2^19 rows, 16 levels, 128^3 mask,
 /// 128 -> 48 samples); the others trade accuracy for speed on a CPU.
+///
+/// There was a `quality` preset: the paper's model trained for half the paper's steps. Both
+/// converged trade-off studies (docs/tradeoff.md) found it dominated, so it was removed; settings
+/// and checkpoints that name it still read, as `Paper`, whose model it shares.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Preset {
     Fast,
     Balanced,
-    Quality,
+    #[serde(alias = "quality")]
     Paper,
 }
 
 /// A preset name that [`Preset`]'s `FromStr` does not know.
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
-#[error("unknown preset `{0}` (expected fast, balanced, quality or paper)")]
-pub struct UnknownPreset(pub String);
+pub enum UnknownPreset {
+    #[error("unknown preset `{0}` (expected fast, balanced or paper)")]
+    Unknown(String),
+    #[error(
+        "the `quality` preset was removed: balanced matched or beat it on every measured scene, \
+         smaller and faster to train (docs/tradeoff.md); use `balanced`, or `paper` for the \
+         same model as quality"
+    )]
+    Removed,
+}
 
 impl std::str::FromStr for Preset {
     type Err = UnknownPreset;
@@ -420,9 +432,9 @@ impl std::str::FromStr for Preset {
         match s {
             "fast" => Ok(Preset::Fast),
             "balanced" => Ok(Preset::Balanced),
-            "quality" => Ok(Preset::Quality),
             "paper" => Ok(Preset::Paper),
-            _ => Err(UnknownPreset(s.to_string())),
+            "quality" => Err(UnknownPreset::Removed),
+            _ => Err(UnknownPreset::Unknown(s.to_string())),
         }
     }
 }
@@ -470,7 +482,6 @@ impl ModelConfig {
         let (levels, log2, finest, mask_res, np, nf, log2_prop, hidden_c) = match preset {
             Preset::Fast => (12, 15, 512.0, 64, 48, 24, 14, 64),
             Preset::Balanced => (16, 17, 1024.0, 96, 96, 32, 16, 64),
-            Preset::Quality => (16, 19, 2048.0, 128, 128, 48, 18, 64),
             Preset::Paper => (16, 19, 2048.0, 128, 128, 48, 18, 64),
         };
         let (spacing, near, far) = match bounds {
@@ -622,13 +633,26 @@ mod tests {
     }
 
     #[test]
-    fn presets_validate() {
-        for p in [
-            Preset::Fast,
-            Preset::Balanced,
-            Preset::Quality,
-            Preset::Paper,
+    fn the_removed_quality_preset_names_what_to_use() {
+        let e = "quality".parse::<Preset>().unwrap_err().to_string();
+        assert!(
+            e.contains("removed") && e.contains("balanced") && e.contains("paper"),
+            "{e}"
+        );
+        let e = "qualty".parse::<Preset>().unwrap_err().to_string();
+        assert!(e.contains("unknown preset `qualty`"), "{e}");
+        for (name, p) in [
+            ("fast", Preset::Fast),
+            ("balanced", Preset::Balanced),
+            ("paper", Preset::Paper),
         ] {
+            assert_eq!(name.parse::<Preset>(), Ok(p));
+        }
+    }
+
+    #[test]
+    fn presets_validate() {
+        for p in [Preset::Fast, Preset::Balanced, Preset::Paper] {
             for frames in [1, 2, 30, 300, 10_000] {
                 let c = ModelConfig::preset(
                     p,

@@ -629,12 +629,7 @@ mod tests {
     fn presets_fit_lavapipe_and_very_deep_colour_mlps_do_not() {
         use msth_core::config::Preset;
         // The per-sample passes fit every preset.
-        for p in [
-            Preset::Fast,
-            Preset::Balanced,
-            Preset::Quality,
-            Preset::Paper,
-        ] {
+        for p in [Preset::Fast, Preset::Balanced, Preset::Paper] {
             let cfg = ModelConfig::preset(
                 p,
                 SceneBounds::dnerf_default(),

@@ -301,7 +301,6 @@ impl TrainSettings {
         let (iters, batch) = match preset {
             Preset::Fast => (1400, 2048),
             Preset::Balanced => (4000, 4096),
-            Preset::Quality => (10_000, 8192),
             Preset::Paper => (20_000, 16_384),
         };
         let priors = default_priors(&model.bounds);
@@ -1510,6 +1509,25 @@ fn remove_stale_temporaries(dir: &Path, names: &[&str]) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn settings_that_name_the_removed_quality_preset_still_read() {
+        let data = crate::synth::generate(&crate::synth::SynthConfig {
+            width: 8,
+            height: 6,
+            num_frames: 2,
+            num_train_cams: 2,
+            supersample: 1,
+            ..Default::default()
+        });
+        let s = TrainSettings::for_preset(Preset::Paper, &data);
+        let mut v = serde_json::to_value(&s).unwrap();
+        assert_eq!(v["preset"], "paper");
+        v["preset"] = "quality".into();
+        let back: TrainSettings = serde_json::from_value(v).unwrap();
+        assert_eq!(back.preset, Preset::Paper);
+        assert_eq!(back.iters, s.iters);
+    }
 
     #[test]
     fn playback_cameras_list_the_training_cameras_first() {

@@ -42,7 +42,7 @@ pub struct TradeoffArgs {
     #[arg(long, default_value = "fast")]
     pub base: String,
     /// Presets measured as they are (same step budget), comma-separated.
-    #[arg(long, default_value = "fast,balanced,quality")]
+    #[arg(long, default_value = "fast,balanced")]
     pub presets: String,
     /// Training steps of every variant (default 600; 30 with --quick); with `--converge`, the
     /// cap (default 8000).
@@ -283,7 +283,6 @@ fn preset_name(p: Preset) -> &'static str {
     match p {
         Preset::Fast => "fast",
         Preset::Balanced => "balanced",
-        Preset::Quality => "quality",
         Preset::Paper => "paper",
     }
 }
@@ -697,11 +696,6 @@ pub fn run(a: TradeoffArgs) -> Result<()> {
         .iter()
         .map(|p| p.parse::<Preset>().map_err(anyhow::Error::msg))
         .collect::<Result<_>>()?;
-    let presets = if a.quick && a.presets == "fast,balanced,quality" {
-        vec![Preset::Fast, Preset::Balanced]
-    } else {
-        presets
-    };
     let mut factors = match &a.factors {
         Some(f) => parse_list(f),
         None => FACTORS.iter().map(|s| s.to_string()).collect(),
@@ -1013,9 +1007,9 @@ mod tests {
 
     #[test]
     fn caps_name_a_variant_and_a_positive_step_count() {
-        assert_eq!(parse_cap("quality=1500").unwrap(), ("quality".into(), 1500));
+        assert_eq!(parse_cap("paper=1500").unwrap(), ("paper".into(), 1500));
         assert_eq!(parse_cap(" fast = 20 ").unwrap(), ("fast".into(), 20));
-        for bad in ["quality", "quality=0", "quality=-3", "quality=many", "=x"] {
+        for bad in ["paper", "paper=0", "paper=-3", "paper=many", "=x"] {
             assert!(parse_cap(bad).is_err(), "{bad}");
         }
     }
