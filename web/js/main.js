@@ -335,20 +335,30 @@ async function main() {
     (fallback && params.get("samples") === null ? `; this GPU is a software one, so the page started at fast.` : ".");
   const withSamples = (cfg, [p, m]) => ({ ...cfg, sampler: { ...cfg.sampler, num_proposal_samples: p, num_samples: m } });
 
-  // The passes' encodings and MLPs are compiled with the model's level values and weights as
-  // constants (specialise.js), so the kernels wait for the MLP section (a few KiB, in the first
-  // request after the prefix).
-  await stream.waitForKind(KIND.mlp);
-  hooks.timings.mlp = performance.now();
   // Hash tables as binary16 unless the file is lossless (as `msth play`); `?tables=f32|f16`.
   // f32 tables when a hash-table part of the file is lossless (format.md §5.4), else binary16.
   const tableParts = meta.section_quant ? [meta.section_quant.proposal, meta.section_quant.static, meta.section_quant.dynamic] : [meta.quant];
   const tables = params.get("tables") ?? (tableParts.includes("f32") ? "f32" : "f16");
+  // The first picture comes from the generic kernels: they compile while the MLP section
+  // streams. The kernels compiled with the model's level values and weights as constants
+  // (specialise.js) wait for it (a few KiB, in the first request after the prefix) and replace
+  // them after the first picture (renderer.js `create`).
+  if (params.get("kernels") !== "wait" && (tables === "f32" || tables === "f16")) renderer.compileGeneric(tables, hooks.timings);
+  await stream.waitForKind(KIND.mlp);
+  hooks.timings.mlp = performance.now();
   const gpu = await renderer.create(canvas, withSamples(meta.model, samples), stream.decoder.layout, hooks.timings, stream.decoder.base, tables);
   hooks.mlpNote = gpu.mlpNote;
   hooks.tables = gpu.tables;
-  $("info").textContent += `; ${gpu.mlpNote}; hash tables ${gpu.tables}`;
-  const infoText = $("info").textContent;
+  const infoBase = $("info").textContent;
+  let infoText = `${infoBase}; ${gpu.mlpNote}; hash tables ${gpu.tables}`;
+  $("info").textContent = infoText;
+  // The kernels compiled for the model replace the generic ones after the first picture.
+  gpu.onKernels = (note) => {
+    hooks.mlpNote = note;
+    infoText = `${infoBase}; ${note}; hash tables ${gpu.tables}`;
+    hooks.clampedTables = undefined;
+    noteClamped();
+  };
   /** Says on the info line when binary16 tables hold values clamped (beyond ±65504), as `msth
    * play`'s summary does. */
   const noteClamped = () => {
@@ -785,7 +795,12 @@ async function main() {
     }
     $("time").textContent = `t = ${state.t.toFixed(3)} · frame ${Math.round(state.t * (frames - 1))}`;
     // A pending refinement waits until the camera has been still for STILL_MS.
-    const refine = state.refine && !state.playing && now - state.lastInput >= STILL_MS;
+    // On a software GPU, where compiling and rendering share the CPU, the refinement after the
+    // first picture waits for the kernels compiled for the model (renderer.js `kernelsReady`):
+    // the generic kernels render 1.8x slower, and drawing with them while the others compile
+    // delayed the first full-size frame by 3-10 s.
+    const compiling = fallback && hooks.renderer?.kernelsPending;
+    const refine = state.refine && !state.playing && now - state.lastInput >= STILL_MS && !compiling;
     if (!state.rendering && (state.dirty || state.playing || frameDone.length || refine)) {
       if (stream.readyFor(state.t)) {
         state.rendering = true;

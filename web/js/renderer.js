@@ -428,22 +428,109 @@ export class Renderer {
     });
   }
 
+  /** One explicit layout for every entry point (web/shaders/README.md, "Bindings"). */
+  #layouts() {
+    if (!this.bindLayout) {
+      const C = GPUShaderStage.COMPUTE;
+      const kinds = ["uniform", "uniform", "read-only-storage", "read-only-storage", "read-only-storage", "read-only-storage", "storage", "storage", "storage", "uniform", "read-only-storage"];
+      this.bindLayout = this.device.createBindGroupLayout({
+        label: "msth render bindings",
+        entries: kinds.map((type, binding) => ({ binding, visibility: C, buffer: { type } })),
+      });
+      this.pipelineLayout = this.device.createPipelineLayout({ bindGroupLayouts: [this.bindLayout] });
+    }
+    return { bindLayout: this.bindLayout, pl: this.pipelineLayout };
+  }
+
+  /**
+   * The module of `code` and the pipelines of the passes a first frame needs, or an Error saying
+   * what the device refused. The error scope is pushed and popped around the synchronous calls
+   * alone, so that a build in the background (`kernelsReady`) cannot take the place of a batch's
+   * scope. `marks.module`: when the WGSL compiled.
+   */
+  async #build(code, marks) {
+    const device = this.device;
+    const { pl } = this.#layouts();
+    const names = PASS_ENTRIES.filter((n) => !PASS_ENTRIES_3D.includes(n));
+    let module = null;
+    let made = null;
+    device.pushErrorScope("validation");
+    const make = (entryPoint) => device.createComputePipelineAsync({ layout: pl, compute: { module, entryPoint } });
+    try {
+      module = device.createShaderModule({ code, label: "render.wgsl" });
+      made = Promise.all(names.map(make));
+    } catch (e) {
+      made = Promise.reject(e);
+    }
+    const scope = device.popErrorScope();
+    made.catch(() => {});
+    let failure = null;
+    try {
+      const info = await module?.getCompilationInfo();
+      const errors = (info?.messages ?? []).filter((m) => m.type === "error");
+      if (errors.length) failure = errors.map((m) => `${m.lineNum}:${m.linePos} ${m.message}`).join("; ");
+      else marks.module ??= performance.now();
+      const pipelines = {};
+      if (!failure) {
+        const all = await made;
+        names.forEach((n, i) => (pipelines[n] = all[i]));
+      }
+      const err = await scope;
+      failure ??= err && err.message;
+      if (failure) throw new Error(failure);
+      /** The `eval_points` pipeline (the play-time volume's bake), compiled when first asked. */
+      pipelines.evalPoints = () => make("eval_points");
+      // Compiled once asked (after the first picture); a refusal only leaves them out.
+      pipelines.later = () =>
+        Promise.all(PASS_ENTRIES_3D.map(make)).then(
+          (m) => Object.fromEntries(PASS_ENTRIES_3D.map((n, i) => [n, m[i]])),
+          () => null,
+        );
+      return pipelines;
+    } catch (e) {
+      throw new Error(`render.wgsl: ${failure ?? e.message}`);
+    }
+  }
+
+  /** The WGSL of the generic kernels with hash tables held as `tables` (`"f32"` or `"f16"`). */
+  #source(tables) {
+    if (tables !== "f32" && tables !== "f16") throw new Error(`hash tables ${tables}: f32 or f16`);
+    return tables === "f16" ? tablesSource(this.source, this.tablesF16) : this.source;
+  }
+
+  /**
+   * Starts compiling the generic kernels for hash tables held as `tables`, before the model's
+   * MLP section has arrived (the first picture comes from them; `create` takes them over).
+   */
+  compileGeneric(tables, marks = {}) {
+    if (this.generic?.tables !== tables) {
+      const promise = this.#build(this.#source(tables), marks);
+      promise.catch(() => {});
+      this.generic = { tables, promise };
+    }
+    return this.generic.promise;
+  }
+
   /**
    * Binds the kernels to `canvas` for a model (`cfg` its config, `layout` format.js's). `marks`,
-   * when given, receives `module` (ms since navigation start: the WGSL compiled) and
-   * `pipelines` (every pipeline created). `params`, when given, is the parameter buffer with at
-   * least the MLP section decoded: the passes' encodings and MLPs are then compiled with the
-   * model's level values and weights as constants (`specialise.js`), unless `?mlp=generic` or
-   * the model's MLPs are too large; `mlpNote` on the scene says which. `tables`: `"f32"` or
-   * `"f16"`, how the device holds the hash tables (msth-gpu `TableFormat`); `tables` on the
-   * scene says what it got.
+   * when given, receives `module` (ms since navigation start: the WGSL compiled),
+   * `pipelines` (the first picture's pipelines created) and `specialised` (the kernels compiled
+   * for the model in use). `params`, when given, is the parameter buffer with at least the MLP
+   * section decoded: the passes' encodings and MLPs are then compiled with the model's level
+   * values and weights as constants (`specialise.js`), unless `?mlp=generic` or the model's MLPs
+   * are too large; `mlpNote` on the scene says which. `tables`: `"f32"` or `"f16"`, how the
+   * device holds the hash tables (msth-gpu `TableFormat`); `tables` on the scene says what it
+   * got.
+   *
+   * The kernels compiled for the model take two to three times as long to compile as the generic
+   * ones (a software adapter on two cores: 3.5-4.3 s against 1.4-1.7 s), so the first picture
+   * comes from the generic ones and the others replace them once compiled (`kernelsReady`; the
+   * frames are the same, web_player.rs checks both). `?kernels=wait` compiles them first.
    */
   async create(canvas, cfg, layout, marks = {}, params = null, tables = "f32") {
-    const device = this.device;
     const { uniform, split, mlps } = gpuModel(cfg, layout);
     const query = typeof location !== "undefined" ? new URLSearchParams(location.search) : new URLSearchParams();
-    if (tables !== "f32" && tables !== "f16") throw new Error(`hash tables ${tables}: f32 or f16`);
-    const source = tables === "f16" ? tablesSource(this.source, this.tablesF16) : this.source;
+    const source = this.#source(tables);
     let code = source;
     let mlpNote = "generic kernels";
     if (query.get("mlp") === "generic") mlpNote = "generic kernels (?mlp=generic)";
@@ -455,65 +542,65 @@ export class Renderer {
         mlpNote = `generic kernels (${e.message})`;
       }
     }
-    // One explicit layout for every entry point (web/shaders/README.md, "Bindings").
-    const C = GPUShaderStage.COMPUTE;
-    const kinds = ["uniform", "uniform", "read-only-storage", "read-only-storage", "read-only-storage", "read-only-storage", "storage", "storage", "storage", "uniform", "read-only-storage"];
-    const bindLayout = device.createBindGroupLayout({
-      label: "msth render bindings",
-      entries: kinds.map((type, binding) => ({ binding, visibility: C, buffer: { type } })),
-    });
-    const pl = device.createPipelineLayout({ bindGroupLayouts: [bindLayout] });
-    const names = PASS_ENTRIES.filter((n) => !PASS_ENTRIES_3D.includes(n));
+    const { bindLayout } = this.#layouts();
     const later = PASS_ENTRIES_3D;
-    // The module and every pipeline of `code`, or an Error saying what the device refused.
-    const build = async (code) => {
-      device.pushErrorScope("validation");
-      let failure = null;
-      const pipelines = {};
-      try {
-        const module = device.createShaderModule({ code, label: "render.wgsl" });
-        const info = await module.getCompilationInfo();
-        const errors = info.messages.filter((m) => m.type === "error");
-        if (errors.length) {
-          failure = errors.map((m) => `${m.lineNum}:${m.linePos} ${m.message}`).join("; ");
-        } else {
-          marks.module = performance.now();
-          const make = (entryPoint) => device.createComputePipelineAsync({ layout: pl, compute: { module, entryPoint } });
-          const made = await Promise.all(names.map(make));
-          names.forEach((n, i) => (pipelines[n] = made[i]));
-          /** The `eval_points` pipeline (the play-time volume's bake), compiled when first asked. */
-          pipelines.evalPoints = () => make("eval_points");
-          // Compiled once asked (after the first picture); a refusal only leaves them out.
-          pipelines.later = () =>
-            Promise.all(later.map(make)).then(
-              (m) => Object.fromEntries(later.map((n, i) => [n, m[i]])),
-              () => null,
-            );
-        }
-      } catch (e) {
-        failure = e.message;
-      }
-      const err = await device.popErrorScope();
-      failure ??= err && err.message;
-      if (failure) throw new Error(`render.wgsl: ${failure}`);
-      return pipelines;
-    };
+    const specialised = code !== source;
+    const deferred = specialised && query.get("kernels") !== "wait";
     let pipelines;
-    try {
-      pipelines = await build(code);
-    } catch (e) {
-      // Kernels compiled for the model that the device refuses: the generic ones, and why.
-      if (code === source || this.lost) throw e;
-      mlpNote = `generic kernels (compiling them for the model failed: ${e.message})`;
-      pipelines = await build(source);
+    let pending = null;
+    if (deferred || !specialised) {
+      pipelines = await this.compileGeneric(tables, marks);
+      if (deferred) {
+        pending = code;
+        mlpNote = "generic kernels until the kernels compiled for this model are ready";
+      }
+    } else {
+      try {
+        pipelines = await this.#build(code, marks);
+      } catch (e) {
+        // Kernels compiled for the model that the device refuses: the generic ones, and why.
+        if (this.lost) throw e;
+        mlpNote = `generic kernels (compiling them for the model failed: ${e.message})`;
+        pipelines = await this.compileGeneric(tables, marks);
+      }
     }
+    // The scene's own table: `kernelsReady` and `compileLater` write into it.
+    pipelines = { ...pipelines };
     marks.pipelines = performance.now();
     const scene = new GpuScene(this, canvas, { layout: bindLayout, pipelines }, uniform, { ...split, f16: tables === "f16" }, cfg);
+    /** How the passes run the MLPs (compiled for the model, or generic and why). */
+    scene.mlpNote = mlpNote;
+    /** Called with the new `mlpNote` when the kernels compiled for the model replace the generic
+     * ones, or fail to. */
+    scene.onKernels = null;
+    const setNote = (note) => {
+      scene.mlpNote = note;
+      scene.onKernels?.(note);
+    };
+    /** Whether the kernels compiled for the model are still to come (`kernelsReady`). */
+    scene.kernelsPending = deferred;
+    let better = null;
+    /** Compiles the kernels for the model when the first picture came from the generic ones
+     * (once), and uses them from the next batch on; resolves when they are in use or refused. */
+    scene.kernelsReady = () =>
+      (better ??= (async () => {
+        if (!pending || this.lost) return;
+        try {
+          Object.assign(pipelines, await this.#build(pending, {}));
+          marks.specialised = performance.now();
+          setNote("kernels compiled for this model");
+        } catch (e) {
+          setNote(`generic kernels (compiling them for the model failed: ${e.message})`);
+        }
+        scene.kernelsPending = false;
+      })());
     let ready = null;
-    /** Compiles `pass_proposal3` and `pass_density3` (once; the page asks after its first
-     * picture, so that the compile does not delay it) and uses them from the next batch on. */
+    /** Compiles what the first picture did without (once; the page asks after its first picture,
+     * so that the compile does not delay it) and uses it from the next batch on: the kernels
+     * compiled for the model, then `pass_proposal3` and `pass_density3` from the same module. */
     scene.compileLater = () =>
-      (ready ??= pipelines.later().then((more) => {
+      (ready ??= scene.kernelsReady().then(async () => {
+        const more = await pipelines.later();
         if (more && later.length) {
           Object.assign(pipelines, more);
           scene.split3 = true;
@@ -522,8 +609,6 @@ export class Renderer {
       }));
     // `?split=wait`: the first frame waits for them (tests, benchmarks).
     if (query.get("split") === "wait") await scene.compileLater();
-    /** How the passes run the MLPs (compiled for the model, or generic and why). */
-    scene.mlpNote = mlpNote;
     /** How the device holds the hash tables: `"f32"` or `"f16"`. */
     scene.tables = tables;
     return scene;
@@ -983,6 +1068,8 @@ class GpuScene {
     if (points.length % 8) throw new Error(`evalPoints: ${points.length} values are not whole points of 8`);
     const device = this.device;
     if (!this.evalPipeline) {
+      // The bake evaluates with the kernels compiled for the model (1.8x faster on SwiftShader).
+      await this.kernelsReady?.();
       const t0 = performance.now();
       this.evalPipeline = await this.kernels.pipelines.evalPoints();
       /** Milliseconds the `eval_points` pipeline took to compile. */

@@ -185,6 +185,16 @@ async function main() {
       firstSize && firstSize[0] === Math.ceil(w / 8) && firstSize[1] === Math.ceil(h / 8) && full.size[0] === w && full.size[1] === h && full.frames >= 4 && full.rays === n,
       `first frame ${firstSize ? firstSize.join("x") : "?"} after ${ttff.toFixed(0)} ms, full size ${full.size.join("x")} after ${full.ms.toFixed(0)} ms, ${full.frames} frames in all, ${full.rays} rays rendered for ${n} pixels`,
     );
+    // The first picture comes from the generic kernels, compiled while the MLP section streams;
+    // the kernels compiled for the model take over after it (`?kernels=wait`: before it).
+    await page.waitForFunction(() => !window.msth.mlpNote.startsWith("generic kernels until"), null, { timeout: 120_000 });
+    const kern = await page.evaluate(() => ({ t: window.msth.timings, note: window.msth.mlpNote, fallback: window.msth.fallbackAdapter }));
+    results.figures.kernels_for_the_model_ms = Math.round(kern.t.specialised ?? -1);
+    check(
+      "the first picture comes from the generic kernels, then the kernels compiled for the model",
+      kern.note === "kernels compiled for this model" && kern.t.pipelines <= kern.t.firstFrame && kern.t.specialised > kern.t.firstFrame && (!kern.fallback || kern.t.specialised <= kern.t.firstFullFrame),
+      `first picture after ${kern.t.firstFrame?.toFixed(0)} ms, kernels for the model in use after ${kern.t.specialised?.toFixed(0)} ms${kern.fallback ? " (a software adapter: the refinement waited for them)" : ""}, full size after ${kern.t.firstFullFrame?.toFixed(0)} ms; "${kern.note}"`,
+    );
     const nat0 = await decodePng(page, a.native0);
     const nat1 = await decodePng(page, a.native1);
     if (nat0.w !== w || nat0.h !== h || nat1.w !== w || nat1.h !== h) throw new Error(`native frames are ${nat0.w}x${nat0.h}, expected ${a.size}`);
@@ -446,6 +456,8 @@ async function main() {
 
       // ---- the kernels compiled for the model (specialise.js: encodings and MLPs) render what the
       // generic ones do
+      // The first picture comes from the generic kernels; those compiled for the model follow.
+      await page.waitForFunction(() => !window.msth.mlpNote.startsWith("generic kernels until"), null, { timeout: 120000 });
       const note2 = await page.evaluate(() => window.msth.mlpNote);
       const tables2 = await page.evaluate(() => window.msth.tables);
       await page.goto(`${a.base}/?model=${encodeURIComponent(a.model2)}&view=${a.view}&t=0&size=${a.size}&exact=1&play=0&samples=full&mlp=generic`);
@@ -503,6 +515,7 @@ async function main() {
       });
       await page.goto(`${a.base}/?model=${encodeURIComponent(a.model2)}&view=${a.view}&t=0&size=${a.size}&exact=1&play=0&samples=full`);
       await waitFirstFrame(page);
+      await page.waitForFunction(() => !window.msth.mlpNote.startsWith("generic kernels until"), null, { timeout: 120000 });
       await settled(page);
       const refused = await page.evaluate(() => window.msth.mlpNote);
       const pxR = await pixels(page);
