@@ -107,10 +107,11 @@ pub struct PlayArgs {
     pub ca_cert: Option<PathBuf>,
     /// Draw frames from a play-time volume baked from the file when the file opens (CPU and GPU
     /// renderers): fewer operations per sample than the exact field (hash grids and MLPs per
-    /// sample, the default and the reference). Its quality depends on the scene: held-out PSNR
-    /// within 0.3 dB of the exact renderer's on the demo model, several dB below it on
-    /// forward-facing stages (docs/playback.md, "The play-time volume"); `msth eval FILE.msth
-    /// --renderer both` measures a file.
+    /// sample, the default and the reference). Its quality depends on the scene and the budget:
+    /// held-out PSNR within 0.3 dB of the exact renderer's on the demo model, 0.43 dB below it on
+    /// a balanced stage model at the CPU's default budget, several dB below it where the budget
+    /// holds only a coarser volume (a software GPU's; docs/playback.md, "The play-time volume");
+    /// `msth eval FILE.msth --renderer both` measures a file.
     #[arg(long)]
     pub volume: bool,
     #[command(flatten)]

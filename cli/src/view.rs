@@ -30,9 +30,10 @@ pub struct ViewArgs {
     pub samples: PlaySamples,
     /// Start with the play-time volume on (CPU renderer; V and the panel's switch turn it off and
     /// on): it is baked in the background once the file's static part has arrived, frames come
-    /// from the exact field meanwhile. Its quality depends on the scene: held-out PSNR within
-    /// 0.3 dB of the exact renderer's on the demo model, several dB below it on forward-facing
-    /// stages; `msth eval FILE.msth --renderer both` measures a file (docs/viewer.md).
+    /// from the exact field meanwhile. Its quality depends on the scene and the budget: held-out
+    /// PSNR within 0.3 dB of the exact renderer's on the demo model, 0.43 dB below it on a
+    /// balanced stage model (several dB where the budget holds only a coarser volume); `msth eval
+    /// FILE.msth --renderer both` measures a file (docs/viewer.md).
     #[arg(long)]
     pub volume: bool,
     #[command(flatten)]
