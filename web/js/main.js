@@ -26,7 +26,8 @@
 // the cache. Only where the probes take at most CACHE_BUDGET_MS at the GPU's measured rate (on a
 // software GPU, small sizes only), and while playing only where a full-size frame takes at most
 // PLAY_CACHE_FRAMES model frames (the frame rate comes first; paused, scrubbing uses it).
-// Play-time volume (stated on the page): after the first picture, the page bakes the file's
+// Play-time volume (stated on the page): once the view has reached full size (at once when the
+// video plays or the view moves), the page bakes the file's
 // static field into a sparse volume on the GPU (volume.js: the native players' plan and bake;
 // `eval_points` evaluates the vertices), within a quarter of the GPU's storage buffer limit. Once
 // it is ready, the frames of a moving camera or of playing video (but the incremental frames of
@@ -371,7 +372,7 @@ async function main() {
   hooks.timings.pipeline = performance.now();
   $("policy").textContent += params.get("exact") === "1"
     ? " Every frame is drawn from the hash grids and MLPs (?exact=1)."
-    : ` After the first picture the page bakes the file's static field into a play-time volume on the GPU (within a quarter of its storage buffer limit, ${SOFTWARE_VOLUME_MIB} MiB at most on a software GPU; ?volume-budget=MiB); once it is ready, a moving camera and playing video (but a still camera's incremental frames) are drawn through it, a few reads per sample instead of the hash grids and MLPs, at the resolution adapted to its own frame times, and rays that reach a part the volume left out are drawn exactly; a view at rest is drawn again exactly (?exact=1 draws every frame exactly).`;
+    : ` Once the view has reached full size (at once when the video plays or the view moves), the page bakes the file's static field into a play-time volume on the GPU (within a quarter of its storage buffer limit, ${SOFTWARE_VOLUME_MIB} MiB at most on a software GPU; ?volume-budget=MiB); once it is ready, a moving camera and playing video (but a still camera's incremental frames) are drawn through it, a few reads per sample instead of the hash grids and MLPs, at the resolution adapted to its own frame times, and rays that reach a part the volume left out are drawn exactly; a view at rest is drawn again exactly (?exact=1 draws every frame exactly).`;
   const paramBuf = new Float32Array(stream.decoder.layout.total);
 
   // ---- the play-time volume (top of this file)
@@ -384,6 +385,7 @@ async function main() {
   async function bakeVolumeNow() {
     volume.state = "baking";
     const t0 = performance.now();
+    hooks.timings.bake = t0;
     try {
       const limits = renderer.device.limits;
       const mib = Number(params.get("volume-budget"));
@@ -701,10 +703,8 @@ async function main() {
       hooks.timings.firstFrame = t1;
       hooks.firstFrameSize = [w, h];
       console.log(`first frame (${w}x${h}) after ${t1.toFixed(0)} ms`);
-      // The passes compiled later (renderer.js `compileLater`) and the play-time volume: after
-      // the first picture.
+      // The passes compiled later (renderer.js `compileLater`): after the first picture.
       hooks.renderer?.compileLater?.();
-      if (volume.state === "waiting" && state.loadedLayers === stream.decoder.layers.length) bakeVolumeNow();
     }
     if (hooks.firstFullFrameMs === null && scale === 1) {
       hooks.firstFullFrameMs = t1;
@@ -787,7 +787,12 @@ async function main() {
     if (stream.error && !hooks.error) fail(stream.error);
     // Finer layers of the chunk on screen: draw again; the volume is baked from every layer.
     if (state.loadedChunk !== undefined && stream.layersFor(state.t) > state.loadedLayers) state.dirty = true;
-    if (volume.state === "waiting" && hooks.firstFrameMs !== null && state.loadedLayers === stream.decoder.layers.length && !state.rendering) bakeVolumeNow();
+    // The play-time volume is baked once the view has reached full size, or at once when the
+    // video plays or the view moves (what the volume draws faster): a bake running beside the
+    // refinement of a still view shares the GPU with it (on SwiftShader the first full-size
+    // frame came after 67-97 s instead of 13-16 s).
+    const bakeDue = hooks.firstFullFrameMs !== null || state.playing || state.lastInput > -Infinity;
+    if (volume.state === "waiting" && hooks.firstFrameMs !== null && bakeDue && state.loadedLayers === stream.decoder.layers.length && !state.rendering) bakeVolumeNow();
     // Playback holds still while the chunk under the playhead is streaming.
     if (state.playing && stream.readyFor(state.t)) {
       setTime((state.t + dt / duration) % 1);

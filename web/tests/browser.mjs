@@ -545,6 +545,21 @@ async function main() {
       );
     }
 
+    // ---- a still view reaches full size before the page starts the volume's bake (a budget of
+    // 10 KiB: the plan refuses the file at once, so the check costs no bake)
+    if (a["model-volume"]) {
+      await page.goto(`${a.base}/?model=${encodeURIComponent(a["model-volume"])}&camera=0&t=0.37&play=0&samples=full&volume-budget=0.01`);
+      await waitFirstFrame(page);
+      await settled(page);
+      await page.waitForFunction(() => window.msth.volume.state !== "waiting", null, { timeout: 120_000 });
+      const order = await page.evaluate(() => ({ t: window.msth.timings, state: window.msth.volume.state, error: window.msth.volume.error }));
+      check(
+        "a still view reaches full size before the volume's bake starts",
+        order.t.bake >= order.t.firstFullFrame && order.state === "failed" && /budget|MiB/.test(order.error ?? ""),
+        `first picture ${order.t.firstFrame?.toFixed(0)} ms, full size ${order.t.firstFullFrame?.toFixed(0)} ms, bake started ${order.t.bake?.toFixed(0)} ms; volume ${order.state}: "${order.error}"`,
+      );
+    }
+
     // ---- the play-time volume (`--model-volume`, drawn natively by `msth play --cpu --volume`
     // into `--native-volume` at its camera 0 and t = 0.37, between two time slices): baked
     // before the first frame (`volume=wait`) within the native run's budget
