@@ -344,7 +344,7 @@ async function main() {
   // streams. The kernels compiled with the model's level values and weights as constants
   // (specialise.js) wait for it (a few KiB, in the first request after the prefix) and replace
   // them after the first picture (renderer.js `create`).
-  if (params.get("kernels") !== "wait" && (tables === "f32" || tables === "f16")) renderer.compileGeneric(tables, hooks.timings);
+  if (params.get("kernels") !== "wait") renderer.compileGeneric(tables, hooks.timings);
   await stream.waitForKind(KIND.mlp);
   hooks.timings.mlp = performance.now();
   const gpu = await renderer.create(canvas, withSamples(meta.model, samples), stream.decoder.layout, hooks.timings, stream.decoder.base, tables);

@@ -504,7 +504,8 @@ export class Renderer {
    */
   compileGeneric(tables, marks = {}) {
     if (this.generic?.tables !== tables) {
-      const promise = this.#build(this.#source(tables), marks);
+      // A `tables` that is neither rejects the promise (`create` says so for the same value).
+      const promise = Promise.resolve().then(() => this.#build(this.#source(tables), marks));
       promise.catch(() => {});
       this.generic = { tables, promise };
     }
@@ -523,7 +524,7 @@ export class Renderer {
    * got.
    *
    * The kernels compiled for the model take two to three times as long to compile as the generic
-   * ones (a software adapter on two cores: 3.5-4.3 s against 1.4-1.7 s), so the first picture
+   * ones (a software adapter on two cores: 3.5-5 s against 1.4-1.7 s), so the first picture
    * comes from the generic ones and the others replace them once compiled (`kernelsReady`; the
    * frames are the same, web_player.rs checks both). `?kernels=wait` compiles them first.
    */
