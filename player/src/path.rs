@@ -343,14 +343,25 @@ impl CameraPath {
     }
 
     /// The camera of frame `i` of `n`, and the frame's time when the path fixes it.
+    ///
+    /// `orbit` and `spiral` are closed: frame `i` is at `i / n` of the way round, so a video of
+    /// `n` frames loops without showing a pose twice (frame `n` would be frame 0). Around a
+    /// forward-facing rig they sweep the cameras' arc there and back, which meets every pose
+    /// twice; frame `i` is at `(i + 1/4) / n`, which never lands on a turning point or on
+    /// another frame's pose. Two consecutive frames with the same pose would play as a camera
+    /// that holds still for a frame: the player would hand that frame to the exact renderer's
+    /// incremental cache at the cost of a full exact frame.
     pub fn camera(&self, i: usize, n: usize) -> (Camera, Option<f32>) {
-        let f = if n > 1 {
-            i as f32 / (n - 1) as f32
-        } else {
-            0.0
+        let closed_phase = |rig: &Rig| {
+            let offset = if rig.forward_facing && n > 1 {
+                0.25
+            } else {
+                0.0
+            };
+            (i as f32 + offset) / n.max(1) as f32
         };
         let turn = std::f32::consts::TAU;
-        let sweep = |rig: &Rig| {
+        let sweep = |rig: &Rig, f: f32| {
             if rig.forward_facing {
                 let (a, b) = rig.azimuth_span;
                 // Back and forth across the span.
@@ -361,12 +372,16 @@ impl CameraPath {
         };
         match self {
             CameraPath::Fixed(c) => (*c, None),
-            CameraPath::Orbit(rig) => (rig.view(sweep(rig), rig.elevation, rig.radius), None),
+            CameraPath::Orbit(rig) => {
+                let f = closed_phase(rig);
+                (rig.view(sweep(rig, f), rig.elevation, rig.radius), None)
+            }
             CameraPath::Spiral(rig) => {
+                let f = closed_phase(rig);
                 let swing = (2.0 * f * turn).sin();
                 let el = rig.elevation + 0.25 * swing;
                 let dist = rig.radius * (1.0 + 0.1 * (f * turn).sin());
-                (rig.view(sweep(rig), el, dist), None)
+                (rig.view(sweep(rig, f), el, dist), None)
             }
             CameraPath::Cameras(cams) => (cams[i % cams.len()], None),
             CameraPath::Keyframes(k) => k[i.min(k.len() - 1)],
@@ -449,12 +464,40 @@ mod tests {
             .is_fixed());
         let orbit = CameraPath::parse("orbit", &b, &c, None).unwrap();
         let (a, _) = orbit.camera(0, 9);
-        let (z, _) = orbit.camera(8, 9);
+        let (z, _) = orbit.camera(9, 9);
         assert!((a.center() - z.center()).length() < 1e-3, "a full turn");
         assert!(CameraPath::parse("no-such-file.json", &b, &c, None)
             .unwrap_err()
             .to_string()
             .contains("not a camera index"));
+    }
+
+    #[test]
+    fn closed_paths_never_show_a_pose_twice() {
+        let c = cams();
+        let boxed = SceneBounds::dnerf_default();
+        let facing = SceneBounds::Contracted {
+            center: Vec3::ZERO,
+            radius: 1.0,
+        };
+        for bounds in [boxed, facing] {
+            for name in ["orbit", "spiral"] {
+                let path = CameraPath::parse(name, &bounds, &c, None).unwrap();
+                for n in 2..=48 {
+                    let poses: Vec<Camera> = (0..n).map(|i| path.camera(i, n).0).collect();
+                    for i in 0..n {
+                        for j in i + 1..n {
+                            let d = (poses[i].world_from_camera - poses[j].world_from_camera)
+                                .abs()
+                                .to_cols_array()
+                                .into_iter()
+                                .fold(0f32, f32::max);
+                            assert!(d > 1e-4, "{name} over {bounds:?}, {n} frames: {i} and {j}");
+                        }
+                    }
+                }
+            }
+        }
     }
 
     #[test]
