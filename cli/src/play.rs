@@ -21,7 +21,8 @@ pub struct PlayArgs {
     /// An `http://` or `https://` URL (e.g. from `msth serve`) or a local `.msth` file.
     pub source: String,
     /// Camera path: N (file camera N, fixed), view:AZ,EL,DIST (fixed free viewpoint), orbit,
-    /// spiral, cameras (each file camera in turn) or a JSON file of poses and times.
+    /// spiral (closed loops: no pose shown twice), cameras (each file camera in turn) or a JSON
+    /// file of poses and times.
     #[arg(long, default_value = "0")]
     pub path: String,
     /// Image size WxH (default: the cameras' own).
@@ -452,6 +453,12 @@ fn volume_detail(s: &msth_player::FrameStats) -> String {
         parts.push(format!(
             "{:.0} samples/ray",
             s.volume_samples as f64 / s.rays_rendered.max(1) as f64
+        ));
+    }
+    if s.volume_steps > 0 {
+        parts.push(format!(
+            "{:.0} steps/ray",
+            s.volume_steps as f64 / s.rays_rendered.max(1) as f64
         ));
     }
     if s.samples_evaluated > 0 {

@@ -238,6 +238,9 @@ pub struct FrameStats {
     pub volume: bool,
     /// Volume frames: samples composited (static and dynamic).
     pub volume_samples: usize,
+    /// Volume frames: steps of the march, samples and skips of empty cells and bricks alike
+    /// (counted on the CPU): the walk's cost beside the samples'.
+    pub volume_steps: usize,
     /// Volume frames: time spent baking the dynamic bricks' time slices this frame needed.
     pub slice_seconds: f64,
     /// Volume frames: rays drawn by the exact path because they reach bricks the volume left
@@ -736,6 +739,7 @@ impl Renderer {
             stats.rays_cached = total - cache.rays.len() - cache.empty;
             stats.samples_evaluated = out.dynamic_samples;
             stats.volume_samples = out.samples;
+            stats.volume_steps = out.steps;
             let rgb = cache.rgb.clone();
             self.volume_cache = Some(cache);
             rgb
@@ -765,6 +769,7 @@ impl Renderer {
             stats.rays_empty = empty;
             stats.samples_evaluated = out.dynamic_samples;
             stats.volume_samples = out.samples;
+            stats.volume_steps = out.steps;
             self.volume_cache = self.settings.incremental.then(|| VolumeCache {
                 camera: *camera,
                 sliced,
