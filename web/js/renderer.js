@@ -29,6 +29,7 @@ import {
   MAX_PROPOSAL_SAMPLES, MAX_SAMPLES, MAX_HIDDEN, MAX_GEO, RENDER_STATIC_CUTOFF, RENDER_HISTOGRAM_PADDING, BLEND, VISIBLE_TRANSMITTANCE,
   FRAME_WORK_BYTES, PASS_ARGS as ARGS, PASS_BYTES, PASS_OFFSETS, PASS_FLAGS, SAMPLE_LEVELS,
 } from "./generated/contract.js";
+import { requestGpu } from "./early.js";
 import { specialiseWgsl } from "./specialise.js";
 
 /**
@@ -391,26 +392,17 @@ export function toBinary16(values) {
 
 /** A WebGPU device and the compiled kernels; `create` binds them to a canvas and a model. */
 export class Renderer {
-  /** Requests an adapter and device and fetches the WGSL; throws `NoWebGpu` without WebGPU. */
+  /**
+   * Requests an adapter and device and fetches the WGSL; throws `NoWebGpu` without WebGPU. The
+   * page starts both before its other modules load (early.js): this takes them over, or makes
+   * them where that did not run.
+   */
   static async adapter() {
-    if (!("gpu" in navigator) || !navigator.gpu) throw new NoWebGpu("navigator.gpu is missing");
-    let adapter = null;
-    try {
-      adapter = await navigator.gpu.requestAdapter();
-    } catch (e) {
-      throw new NoWebGpu(`requestAdapter failed: ${e.message}`);
-    }
-    if (!adapter) throw new NoWebGpu("no WebGPU adapter is available");
-    const al = adapter.limits;
-    const device = await adapter.requestDevice({
-      requiredLimits: { maxStorageBufferBindingSize: al.maxStorageBufferBindingSize, maxBufferSize: al.maxBufferSize },
-    });
-    const text = async (name) => {
-      const resp = await fetch(`shaders/${name}`, { cache: "no-store" });
-      if (!resp.ok) throw new Error(`shaders/${name}: HTTP ${resp.status}`);
-      return resp.text();
-    };
-    const [source, tablesF16, volume] = await Promise.all([text("render.wgsl"), text("tables_f16.wgsl"), text("volume.wgsl")]);
+    const early = globalThis.msthEarlyGpu;
+    globalThis.msthEarlyGpu = undefined;
+    const { adapter, device, error, shaders } = await (early ?? requestGpu());
+    if (error) throw new NoWebGpu(error);
+    const [source, tablesF16, volume] = await shaders;
     return new Renderer(adapter, device, source, tablesF16, volume);
   }
 
