@@ -136,12 +136,20 @@ pub struct Xvfb {
 
 impl Xvfb {
     /// Starts `Xvfb :N -screen 0 WxHx24` on the first free `N` from 90 and waits (up to 10 s)
-    /// for its socket.
+    /// for its socket. A number whose lock file names a process that is gone is free: a server
+    /// killed without its clean-up (as [`Drop`] kills ours) leaves its lock file and socket
+    /// behind, and 40 such runs would otherwise take every number.
     pub fn start(width: u32, height: u32) -> Result<Xvfb, String> {
         for n in 90..130 {
             let socket = PathBuf::from(format!("/tmp/.X11-unix/X{n}"));
             let lock = PathBuf::from(format!("/tmp/.X{n}-lock"));
-            if socket.exists() || lock.exists() {
+            if lock.exists() {
+                if !stale_x_lock(&lock) || std::fs::remove_file(&lock).is_err() {
+                    continue;
+                }
+                let _ = std::fs::remove_file(&socket);
+            }
+            if socket.exists() {
                 continue;
             }
             let display = format!(":{n}");
@@ -177,6 +185,15 @@ impl Xvfb {
         }
         Err("no free X display number in :90..:130, or Xvfb never came up".into())
     }
+}
+
+/// Whether the X server lock file `lock` names a process that no longer runs (its PID, as
+/// text). An unreadable lock is not stale: its number is left alone.
+fn stale_x_lock(lock: &Path) -> bool {
+    std::fs::read_to_string(lock)
+        .ok()
+        .and_then(|s| s.trim().parse::<u32>().ok())
+        .is_some_and(|pid| !Path::new(&format!("/proc/{pid}")).exists())
 }
 
 impl Drop for Xvfb {
@@ -256,4 +273,22 @@ pub fn reencode(
     msth_codec::encode(&d.config, params, cameras, &opts)
         .unwrap()
         .0
+}
+
+#[cfg(test)]
+mod x_lock_tests {
+    use super::stale_x_lock;
+
+    #[test]
+    fn a_lock_of_a_process_that_is_gone_is_stale() {
+        let dir = tempfile::tempdir().unwrap();
+        let lock = dir.path().join(".X99-lock");
+        std::fs::write(&lock, format!("{:>10}\n", std::process::id())).unwrap();
+        assert!(!stale_x_lock(&lock), "this process runs");
+        std::fs::write(&lock, "999999999\n").unwrap();
+        assert!(stale_x_lock(&lock), "no such process");
+        std::fs::write(&lock, "garbage").unwrap();
+        assert!(!stale_x_lock(&lock), "unreadable: left alone");
+        assert!(!stale_x_lock(&dir.path().join("missing")));
+    }
 }
