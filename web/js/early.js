@@ -6,8 +6,8 @@
 
 /**
  * Requests the adapter and device and downloads the WGSL: `{adapter, device, error, shaders}`,
- * `error` saying why there is no device, `shaders` a promise of the texts of render.wgsl,
- * tables_f16.wgsl and volume.wgsl.
+ * `error` saying why there is no WebGPU adapter, `shaders` a promise of the texts of
+ * render.wgsl, tables_f16.wgsl and volume.wgsl. A device the adapter refuses rejects.
  */
 export async function requestGpu() {
   const text = async (name) => {
@@ -27,15 +27,15 @@ export async function requestGpu() {
   }
   if (!adapter) return { error: "no WebGPU adapter is available", shaders };
   const al = adapter.limits;
-  try {
-    const device = await adapter.requestDevice({
-      requiredLimits: { maxStorageBufferBindingSize: al.maxStorageBufferBindingSize, maxBufferSize: al.maxBufferSize },
-    });
-    return { adapter, device, shaders };
-  } catch (e) {
-    return { error: `requestDevice failed: ${e.message}`, shaders };
-  }
+  const device = await adapter.requestDevice({
+    requiredLimits: { maxStorageBufferBindingSize: al.maxStorageBufferBindingSize, maxBufferSize: al.maxBufferSize },
+  });
+  return { adapter, device, shaders };
 }
 
-// In the page only (not where node imports renderer.js for its tests).
-if (typeof document !== "undefined") globalThis.msthEarlyGpu ??= requestGpu();
+// In the page only (not where node imports renderer.js for its tests). A rejection is the
+// taker's to report (`Renderer.adapter` awaits this promise), not an unhandled one.
+if (typeof document !== "undefined" && !globalThis.msthEarlyGpu) {
+  globalThis.msthEarlyGpu = requestGpu();
+  globalThis.msthEarlyGpu.catch(() => {});
+}
