@@ -277,8 +277,8 @@ impl Volume {
 
     /// Interpolates the values of slot `slot` of `values` at brick-local cell coordinates
     /// `local`, adding `weight` times them into `out[..n]` (`n = 1`: the density alone).
-    #[inline]
-    fn interpolate_into(
+    #[inline(always)]
+    fn interpolate_into<const F16C: bool>(
         &self,
         values: &[Value],
         slot: usize,
@@ -327,21 +327,22 @@ impl Volume {
             base + sx + sy + sz,
         ];
         if n == 4 && ch == 4 {
-            // A vertex's 4 values are one 8-byte load; the 8 vertices' 32 values are converted
-            // at once (F16C where the CPU has it).
+            // A vertex's 4 values are one 8-byte load.
             let (quads, _) = values.as_chunks::<4>();
             let mut h = [[Value::ZERO; 4]; 8];
             for (q, &o) in h.iter_mut().zip(&offsets) {
                 *q = quads[o / 4];
             }
-            let mut v = [0f32; 32];
-            h.as_flattened().convert_to_f32_slice(&mut v);
-            let mut acc = [0f32; 4];
-            for (j, &wc) in w.iter().enumerate() {
-                for c in 0..4 {
-                    acc[c] += wc * v[j * 4 + c];
-                }
-            }
+            #[cfg(target_arch = "x86_64")]
+            let acc = if F16C {
+                // SAFETY: `F16C` is true only within `x86::march_chunk`, which runs where the CPU
+                // has AVX2, FMA and F16C.
+                unsafe { x86::sum8x4(&h, &w) }
+            } else {
+                sum8x4(&h, &w)
+            };
+            #[cfg(not(target_arch = "x86_64"))]
+            let acc = sum8x4(&h, &w);
             for c in 0..4 {
                 out[c] += acc[c];
             }
@@ -355,28 +356,28 @@ impl Volume {
     }
 
     /// The values at a baked sample into `out[..n]` (`n = 1`: the density alone).
-    #[inline]
-    fn interpolate(&self, at: Source, local: Vec3, out: &mut [f32], n: usize) {
+    #[inline(always)]
+    fn interpolate<const F16C: bool>(&self, at: Source, local: Vec3, out: &mut [f32], n: usize) {
         out[..n].fill(0.0);
         match at {
             Source::Static(slot) => {
-                self.interpolate_into(&self.values, slot as usize, local, 1.0, out, n)
+                self.interpolate_into::<F16C>(&self.values, slot as usize, local, 1.0, out, n)
             }
             Source::Slices { d, k0, k1, f } => {
                 let s = &self.dynamic.slices;
                 let (Some(a), Some(b)) = (&s[k0], &s[k1]) else {
                     return;
                 };
-                self.interpolate_into(&a.values, d as usize, local, 1.0 - f, out, n);
+                self.interpolate_into::<F16C>(&a.values, d as usize, local, 1.0 - f, out, n);
                 if f > 0.0 {
-                    self.interpolate_into(&b.values, d as usize, local, f, out, n);
+                    self.interpolate_into::<F16C>(&b.values, d as usize, local, f, out, n);
                 }
             }
         }
     }
 
     /// What the step whose midpoint is at unit point `u` finds, with the frame's slices.
-    #[inline]
+    #[inline(always)]
     fn lookup(&self, u: Vec3, v: Vec3, slices: Option<TimeSlices>) -> Lookup {
         let g = self.geometry;
         let r = g.resolution;
@@ -467,7 +468,63 @@ impl Volume {
 
 /// Renders `rays` through `vol` (one thread's chunk): appends one entry per ray to `out`.
 /// `params` is the flat buffer for the rays' time (the dynamic samples read its 4D rows).
+///
+/// Where the CPU has AVX2, FMA and F16C (checked once, at run time) the walk is compiled for
+/// them ([`x86::march_chunk`]); the outputs are the same to the bit as the portable walk's
+/// ([`march_chunk_portable`]), which every other CPU runs.
+#[allow(clippy::too_many_arguments)]
 pub fn march_chunk(
+    vol: &Volume,
+    cfg: &ModelConfig,
+    layout: &ModelLayout,
+    params: &[f32],
+    rays: &[TimedRay],
+    settings: &MarchSettings,
+    ws: &mut MarchWorkspace,
+    out: &mut MarchOutput,
+) {
+    #[cfg(target_arch = "x86_64")]
+    if x86::available() {
+        // SAFETY: the CPU has the features `x86::march_chunk` is compiled for.
+        unsafe { x86::march_chunk(vol, cfg, layout, params, rays, settings, ws, out) };
+        return;
+    }
+    march_chunk_portable(vol, cfg, layout, params, rays, settings, ws, out);
+}
+
+/// Whether [`march_chunk`] runs the walk compiled for AVX2, FMA and F16C on this CPU.
+pub fn simd_available() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        x86::available()
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// [`march_chunk`] compiled for the baseline of the target: the reference the x86 walk is tested
+/// against.
+#[allow(clippy::too_many_arguments)]
+pub fn march_chunk_portable(
+    vol: &Volume,
+    cfg: &ModelConfig,
+    layout: &ModelLayout,
+    params: &[f32],
+    rays: &[TimedRay],
+    settings: &MarchSettings,
+    ws: &mut MarchWorkspace,
+    out: &mut MarchOutput,
+) {
+    march_chunk_with::<false>(vol, cfg, layout, params, rays, settings, ws, out);
+}
+
+/// The walk of [`march_chunk`]; `F16C` reads the vertices with F16C instructions (only within
+/// [`x86::march_chunk`]).
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn march_chunk_with<const F16C: bool>(
     vol: &Volume,
     cfg: &ModelConfig,
     layout: &ModelLayout,
@@ -589,7 +646,7 @@ pub fn march_chunk(
                 Lookup::Baked { at, local, dynamic } => {
                     // The density alone first where features are costly to interpolate.
                     let n_density = if !recording && nch > 4 { 1 } else { nch };
-                    vol.interpolate(at, local, &mut ws.sample, n_density);
+                    vol.interpolate::<F16C>(at, local, &mut ws.sample, n_density);
                     let tau = tau_of(trunc_exp(ws.sample[0]), dt);
                     if recording {
                         let row = (ws.values.len() / nch) as u32;
@@ -609,7 +666,7 @@ pub fn march_chunk(
                         let w = st.transmittance * alpha;
                         if w >= MIN_FEATURE_WEIGHT || last_sample_bg {
                             if n_density == 1 {
-                                vol.interpolate(at, local, &mut ws.sample, nch);
+                                vol.interpolate::<F16C>(at, local, &mut ws.sample, nch);
                             }
                             if last_sample_bg {
                                 ws.last[ri * nch..(ri + 1) * nch].copy_from_slice(&ws.sample);
@@ -700,6 +757,77 @@ pub fn march_chunk(
     out.samples += samples;
     out.dynamic_samples += dynamic_samples;
     out.steps += steps;
+}
+
+/// `sum_j w[j] h[j]` of 8 vertices' 4 binary16 values, in vertex order, a multiply and an add
+/// per term (what [`x86::sum8x4`] computes to the bit).
+#[inline(always)]
+fn sum8x4(h: &[[Value; 4]; 8], w: &[f32; 8]) -> [f32; 4] {
+    let mut v = [0f32; 32];
+    h.as_flattened().convert_to_f32_slice(&mut v);
+    let mut acc = [0f32; 4];
+    for (j, &wc) in w.iter().enumerate() {
+        for c in 0..4 {
+            acc[c] += wc * v[j * 4 + c];
+        }
+    }
+    acc
+}
+
+/// The walk compiled for AVX2, FMA and F16C. Rust never contracts a multiply and an add into an
+/// FMA, so the walk computes what the portable one computes, with wider registers and the
+/// binary16 conversions inlined.
+#[cfg(target_arch = "x86_64")]
+mod x86 {
+    use std::arch::x86_64::*;
+
+    use super::*;
+
+    /// Whether this CPU runs [`march_chunk`] (cached by the standard library).
+    pub fn available() -> bool {
+        is_x86_feature_detected!("avx2")
+            && is_x86_feature_detected!("fma")
+            && is_x86_feature_detected!("f16c")
+    }
+
+    /// [`super::march_chunk`] for a CPU with AVX2, FMA and F16C.
+    ///
+    /// # Safety
+    /// The CPU must have AVX2, FMA and F16C ([`available`]).
+    #[allow(clippy::too_many_arguments)]
+    #[target_feature(enable = "avx2,fma,f16c")]
+    pub unsafe fn march_chunk(
+        vol: &Volume,
+        cfg: &ModelConfig,
+        layout: &ModelLayout,
+        params: &[f32],
+        rays: &[TimedRay],
+        settings: &MarchSettings,
+        ws: &mut MarchWorkspace,
+        out: &mut MarchOutput,
+    ) {
+        march_chunk_with::<true>(vol, cfg, layout, params, rays, settings, ws, out);
+    }
+
+    /// [`super::sum8x4`] with one F16C conversion per vertex and the channels in one register.
+    ///
+    /// # Safety
+    /// The CPU must have F16C.
+    #[inline]
+    #[target_feature(enable = "avx2,fma,f16c")]
+    pub unsafe fn sum8x4(h: &[[Value; 4]; 8], w: &[f32; 8]) -> [f32; 4] {
+        let mut acc = _mm_setzero_ps();
+        for (q, &wc) in h.iter().zip(w) {
+            // SAFETY: `q` is 4 binary16 values, 8 bytes, read unaligned.
+            let bits = unsafe { _mm_loadl_epi64(q.as_ptr().cast::<__m128i>()) };
+            let v = _mm_cvtph_ps(bits);
+            acc = _mm_add_ps(acc, _mm_mul_ps(_mm_set1_ps(wc), v));
+        }
+        let mut out = [0f32; 4];
+        // SAFETY: `out` holds 4 floats.
+        unsafe { _mm_storeu_ps(out.as_mut_ptr(), acc) };
+        out
+    }
 }
 
 /// The dynamic samples of the whole chunk in one pass of the exact field: their density and,
