@@ -466,8 +466,9 @@ fn volume_detail(s: &msth_player::FrameStats) -> String {
     }
     if s.rays_exact > 0 {
         parts.push(format!(
-            "{} rays exact (outside the file's views)",
-            s.rays_exact
+            "{} rays exact (outside the file's views) in {:.0} ms",
+            s.rays_exact,
+            1e3 * s.exact_seconds
         ));
     }
     if s.slice_seconds > 0.0 {

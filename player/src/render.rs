@@ -246,6 +246,8 @@ pub struct FrameStats {
     /// Volume frames: rays drawn by the exact path because they reach bricks the volume left
     /// out (none of the file's cameras looks into them).
     pub rays_exact: usize,
+    /// Volume frames: the time those rays took.
+    pub exact_seconds: f64,
 }
 
 /// How one camera's rays were sorted into cached and re-rendered ([`classify_static_with_stats`]).
@@ -730,7 +732,9 @@ impl Renderer {
                 &cache.rays,
                 &self.settings.march,
             );
+            let exact_start = Instant::now();
             stats.rays_exact = self.render_outside(params, &cache.rays, &mut out);
+            stats.exact_seconds = exact_start.elapsed().as_secs_f64();
             for (&p, c) in cache.dynamic.iter().zip(&out.rgb) {
                 cache.rgb[p as usize * 3..p as usize * 3 + 3].copy_from_slice(c);
             }
@@ -753,7 +757,9 @@ impl Renderer {
                 &rays,
                 &self.settings.march,
             );
+            let exact_start = Instant::now();
             stats.rays_exact = self.render_outside(params, &rays, &mut out);
+            stats.exact_seconds = exact_start.elapsed().as_secs_f64();
             let mut dynamic = Vec::new();
             let mut dyn_rays = Vec::new();
             for (k, (&p, c)) in pixels.iter().zip(&out.rgb).enumerate() {

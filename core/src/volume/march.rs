@@ -201,6 +201,35 @@ pub fn unit_velocity(bounds: &SceneBounds, x: Vec3, d: Vec3) -> Vec3 {
     }
 }
 
+/// Where `ray` crosses the inner cube of a scene contracted about `center` with `radius` (the
+/// part of space the contraction leaves as it is): `(t0, t1, u0, v, step)` with the ray's unit
+/// point `u0 + v t` for `t` in `[t0, t1]` and the world length `step` of a step of `h` unit
+/// lengths there; `None` when the ray misses it.
+#[inline(always)]
+pub(crate) fn inner_segment(
+    center: Vec3,
+    radius: f32,
+    ray: &TimedRay,
+    h: f32,
+) -> Option<(f32, f32, Vec3, Vec3, f32)> {
+    let y0 = (ray.origin - center) / radius;
+    let dy = ray.dir / radius;
+    let (mut t0, mut t1) = (f32::NEG_INFINITY, f32::INFINITY);
+    for a in 0..3 {
+        if dy[a] != 0.0 {
+            let (p, q) = ((-1.0 - y0[a]) / dy[a], (1.0 - y0[a]) / dy[a]);
+            t0 = t0.max(p.min(q));
+            t1 = t1.min(p.max(q));
+        } else if y0[a].abs() >= 1.0 {
+            return None;
+        }
+    }
+    // `to_unit` there: `(y + 2) / 4`.
+    let v = dy * 0.25;
+    let speed = v.length();
+    (t0 < t1 && speed > 0.0 && speed.is_finite()).then(|| (t0, t1, (y0 + 2.0) * 0.25, v, h / speed))
+}
+
 /// World distance along velocity `v` (unit cube per world unit) from unit point `p` to the exit
 /// of the box `[lo, hi]`.
 #[inline]
@@ -592,9 +621,21 @@ fn march_chunk_with<const F16C: bool>(
             }
             SceneBounds::Contracted { .. } => None,
         };
+        // A contracted scene is the identity inside its inner cube: there too the unit point
+        // moves at one velocity, from `t0` to `t1`.
+        let inner = match cfg.bounds {
+            SceneBounds::Contracted { center, radius } => inner_segment(center, radius, ray, h),
+            SceneBounds::Box { .. } => None,
+        };
         while t < far && k < max_steps {
             k += 1;
-            let (dt, um, vm) = match linear {
+            let affine = linear.or_else(|| {
+                inner.and_then(|(t0, t1, u0, v, step)| {
+                    let dt = step.min(far - t).max(1e-7 * t.abs().max(1.0));
+                    (t >= t0 && t + 0.5 * dt <= t1).then_some((u0, v, step))
+                })
+            });
+            let (dt, um, vm) = match affine {
                 Some((u0, v, step)) => {
                     let dt = step.min(far - t).max(1e-7 * t.abs().max(1.0));
                     let um = (u0 + v * (t + 0.5 * dt)).clamp(Vec3::ZERO, Vec3::ONE);

@@ -5,7 +5,9 @@ use glam::Vec3;
 use super::bake::{
     bake, bake_slice, plan, plan_with, BakeError, BakeProgress, Occupancy, PlanOptions,
 };
-use super::march::{march_chunk, unit_velocity, ColourMode, MarchOutput, MarchSettings};
+use super::march::{
+    inner_segment, march_chunk, unit_velocity, ColourMode, MarchOutput, MarchSettings,
+};
 use super::*;
 use crate::config::{Background, BlendMode, ModelConfig};
 use crate::field::{FieldScratch, ModelLayout};
@@ -643,4 +645,54 @@ fn finer_steps_converge() {
         diff(&a, &b),
         diff(&b, &c)
     );
+}
+
+/// Inside a contracted scene's inner cube the march steps along `u0 + v t`: that is the unit
+/// point and velocity the general path computes, over exactly the part of the ray inside.
+#[test]
+fn the_inner_cube_of_a_contracted_scene_is_affine() {
+    let bounds = SceneBounds::Contracted {
+        center: Vec3::new(0.2, -0.1, 0.3),
+        radius: 1.5,
+    };
+    let (center, radius) = (Vec3::new(0.2, -0.1, 0.3), 1.5);
+    let mut rng = crate::rng::Rng::new(3);
+    let mut crossed = 0;
+    for _ in 0..500 {
+        let o = Vec3::new(
+            rng.range_f32(-4.0, 4.0),
+            rng.range_f32(-4.0, 4.0),
+            rng.range_f32(-4.0, 4.0),
+        );
+        let d = Vec3::new(
+            rng.range_f32(-1.0, 1.0),
+            rng.range_f32(-1.0, 1.0),
+            rng.range_f32(-1.0, 1.0),
+        )
+        .normalize();
+        let ray = TimedRay {
+            origin: o,
+            dir: d,
+            time: 0.0,
+        };
+        let inside = |t: f32| {
+            let y = (o + d * t - center) / radius;
+            y.abs().max_element() < 1.0
+        };
+        let Some((t0, t1, u0, v, step)) = inner_segment(center, radius, &ray, 0.01) else {
+            // A miss: no point of the ray is inside.
+            assert!((0..=400).all(|i| !inside(-10.0 + 0.05 * i as f32)));
+            continue;
+        };
+        crossed += 1;
+        assert!(!inside(t0 - 1e-3) && inside(t0 + 1e-3) && inside(t1 - 1e-3) && !inside(t1 + 1e-3));
+        assert!((step * v.length() - 0.01).abs() < 1e-6);
+        for i in 0..=10 {
+            let t = t0 + (t1 - t0) * i as f32 / 10.0;
+            let x = o + d * t;
+            assert!((u0 + v * t - bounds.to_unit(x)).abs().max_element() < 1e-5);
+            assert!((v - unit_velocity(&bounds, x, d)).abs().max_element() < 1e-6);
+        }
+    }
+    assert!(crossed > 100, "{crossed} rays crossed the inner cube");
 }

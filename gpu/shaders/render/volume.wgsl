@@ -205,6 +205,37 @@ fn march_ray(o: vec3<f32>, d: vec3<f32>) -> March {
     if boxed && !(speed_box > 0.0 && speed_box <= INF) {
         ok = false;
     }
+    // A contracted scene is the identity inside its inner cube: there too the unit point moves
+    // at one velocity, `ui + v_in t` for t in [t_in0, t_in1] (msth-core `inner_segment`).
+    var t_in0 = 1.0;
+    var t_in1 = 0.0;
+    var ui = vec3<f32>(0.0);
+    var v_in = vec3<f32>(0.0);
+    var step_in = 0.0;
+    if !boxed {
+        let y0 = (o - model.bounds_a.xyz) / model.bounds_a.w;
+        let dy = d / model.bounds_a.w;
+        var a0 = -INF;
+        var a1 = INF;
+        for (var a = 0u; a < 3u; a++) {
+            if dy[a] != 0.0 {
+                let p = (-1.0 - y0[a]) / dy[a];
+                let q = (1.0 - y0[a]) / dy[a];
+                a0 = max(a0, min(p, q));
+                a1 = min(a1, max(p, q));
+            } else if abs(y0[a]) >= 1.0 {
+                a1 = -INF;
+            }
+        }
+        v_in = dy * 0.25;
+        let speed_in = length(v_in);
+        if a0 < a1 && speed_in > 0.0 && speed_in <= INF {
+            t_in0 = a0;
+            t_in1 = a1;
+            ui = (y0 + 2.0) * 0.25;
+            step_in = h / speed_in;
+        }
+    }
     var t = near;
     var k = 0u;
     while ok && t < far && k < max_steps {
@@ -213,10 +244,15 @@ fn march_ray(o: vec3<f32>, d: vec3<f32>) -> March {
         var um: vec3<f32>;
         var vm: vec3<f32>;
         let hair = 1e-7 * max(abs(t), 1.0);
+        let dt_in = max(min(step_in, far - t), hair);
         if boxed {
             dt = max(min(h / speed_box, far - t), hair);
             um = clamp(u0 + v_box * (t + 0.5 * dt), vec3<f32>(0.0), vec3<f32>(1.0));
             vm = v_box;
+        } else if t >= t_in0 && t + 0.5 * dt_in <= t_in1 {
+            dt = dt_in;
+            um = clamp(ui + v_in * (t + 0.5 * dt), vec3<f32>(0.0), vec3<f32>(1.0));
+            vm = v_in;
         } else {
             let x = o + d * t;
             let speed = length(unit_velocity(x, d));

@@ -655,6 +655,7 @@ impl GpuRenderer {
             self.ctx
                 .read_vec4_with(frame, total, &mut self.readback, volume_colours)?;
         let mut host_seconds = host.elapsed().as_secs_f64();
+        let exact_start = Instant::now();
         if !outside.is_empty() {
             // The rays that reached bricks the volume left out: the exact passes draw them.
             self.specialise()?;
@@ -675,11 +676,13 @@ impl GpuRenderer {
             }
             host_seconds += host.elapsed().as_secs_f64();
         }
+        let exact_seconds = exact_start.elapsed().as_secs_f64();
         let stats = FrameStats {
             rays_total: total,
             rays_rendered: total - empty,
             rays_empty: empty,
             rays_exact: outside.len(),
+            exact_seconds,
             full: true,
             volume: true,
             slice_seconds,
