@@ -1,17 +1,20 @@
 //! `msth eval FILE.msth --data DATA`: the held-out views of a dataset rendered from a `.msth`
 //! file as the players draw it (the decoded, quantised model), through the baked volume, the
-//! exact field, or both side by side.
+//! exact field, or both side by side. `msth eval FILE.msth --path SPEC`: the frames of a camera
+//! path (no dataset), the volume's against the exact renderer's.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{anyhow, bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 
 use msth_codec::decode::decode_all;
+use msth_core::Camera;
 use msth_dataset::imageio::{panel, save_png_atomic};
 use msth_dataset::Image8;
+use msth_player::path::CameraPath;
 use msth_player::render::{Frame, RenderSettings, Renderer};
 use msth_player::volume::{bake, plan_bake};
 use msth_trainer::metrics::{psnr, ssim};
@@ -39,6 +42,8 @@ struct FileEval {
     volume: Option<Summary>,
     volume_vs_exact: Option<(f64, f64)>,
     bake: Option<serde_json::Value>,
+    /// `--path`: seconds a frame, exact and volume (the volume's without its slices' bake).
+    seconds_per_frame: Option<(f64, f64)>,
     frames: Vec<FrameScore>,
 }
 
@@ -79,15 +84,25 @@ pub fn eval_file(a: &EvalArgs) -> Result<()> {
             None => dir.join(format!("eval-{stem}")),
         }
     });
-    let mut data = data::load(&a.data, &a.dataset, &out)?;
-    data.rescale(a.scene_scale);
-    if data.test.is_empty() {
-        bail!("{}: the dataset has no held-out views", a.data);
-    }
+    // A path's frames, or the dataset's held-out views.
+    let (path_frames, data) = match (&a.path, &a.data) {
+        (Some(spec), _) => (Some(path_frames(a, spec, &model)?), None),
+        (None, Some(spec)) => {
+            let mut data = data::load(spec, &a.dataset, &out)?;
+            data.rescale(a.scene_scale);
+            if data.test.is_empty() {
+                bail!("{spec}: the dataset has no held-out views");
+            }
+            (None, Some(data))
+        }
+        (None, None) => bail!("--data DATA or --path SPEC"),
+    };
     std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
     let occupancy = model.occupancy.clone().map(Arc::new);
-    let want_exact = matches!(a.renderer, EvalRenderer::Exact | EvalRenderer::Both);
-    let want_volume = matches!(a.renderer, EvalRenderer::Volume | EvalRenderer::Both);
+    // A path compares the two renderers, whatever --renderer says.
+    let both = path_frames.is_some();
+    let want_exact = both || matches!(a.renderer, EvalRenderer::Exact | EvalRenderer::Both);
+    let want_volume = both || matches!(a.renderer, EvalRenderer::Volume | EvalRenderer::Both);
     // By default the slices are baked for every view (their time is reported apart), so that
     // the volume's figures are the volume's own.
     let settings = RenderSettings {
@@ -172,6 +187,10 @@ pub fn eval_file(a: &EvalArgs) -> Result<()> {
         None
     };
 
+    if let (Some(frames), Some(exact), Some(volume)) = (&path_frames, &mut exact, &mut volume) {
+        return eval_path(a, &model, frames, exact, volume, bake_json, &out);
+    }
+    let data = data.expect("a dataset unless --path");
     let chosen: Vec<usize> = (0..data.test.len()).step_by(a.stride.max(1)).collect();
     let mut frames = Vec::new();
     let (mut sums_e, mut sums_v) = ([0f64; 3], [0f64; 3]);
@@ -244,7 +263,7 @@ pub fn eval_file(a: &EvalArgs) -> Result<()> {
     };
     let report = FileEval {
         file: a.checkpoint.clone(),
-        data: a.data.clone(),
+        data: a.data.clone().unwrap_or_default(),
         views: chosen.len(),
         exact: want_exact.then(|| summary(sums_e)),
         volume: want_volume.then(|| summary(sums_v)),
@@ -255,6 +274,7 @@ pub fn eval_file(a: &EvalArgs) -> Result<()> {
             )
         }),
         bake: bake_json,
+        seconds_per_frame: None,
         frames,
     };
     for (name, s) in [("exact", report.exact), ("volume", report.volume)] {
@@ -286,5 +306,149 @@ pub fn eval_file(a: &EvalArgs) -> Result<()> {
     msth_trainer::checkpoint::write_atomic(&path, &serde_json::to_vec_pretty(&report)?)
         .with_context(|| format!("writing {}", path.display()))?;
     println!("report: {}", path.display());
+    Ok(())
+}
+
+/// Most frames `--path` evaluates.
+const MAX_PATH_FRAMES: usize = 4096;
+
+/// The cameras and times of `--path SPEC` (`--frames`, `--size`, `--time`), as `msth play`
+/// places them.
+fn path_frames(
+    a: &EvalArgs,
+    spec: &str,
+    model: &msth_codec::decode::DecodedModel,
+) -> Result<Vec<(Camera, f32)>> {
+    if let Some((w, h)) = a.size {
+        if w == 0 || h == 0 || u64::from(w) * u64::from(h) > 1 << 26 {
+            bail!("--size {w}x{h}: sides of at least 1 and at most 2^26 pixels");
+        }
+    }
+    let (t0, t1) = a.time;
+    if !((0.0..=1.0).contains(&t0) && (0.0..=1.0).contains(&t1)) {
+        bail!("--time {t0}:{t1}: both ends must lie in [0, 1]");
+    }
+    let path = CameraPath::parse(spec, &model.config.bounds, &model.cameras, a.size)
+        .map_err(|e| anyhow!("--path {spec}: {e}"))?;
+    let n = match (path.frame_count(), a.frames) {
+        (Some(k), Some(f)) if k != f => bail!("--frames {f}: the path file defines {k} frames"),
+        (Some(k), _) => k,
+        (None, Some(f)) => f,
+        (None, None) => 8,
+    };
+    if n == 0 || n > MAX_PATH_FRAMES {
+        bail!("--frames {n}: between 1 and {MAX_PATH_FRAMES}");
+    }
+    Ok((0..n)
+        .map(|i| {
+            let (camera, time) = path.camera(i, n);
+            let time = time.unwrap_or(if n > 1 {
+                t0 + (t1 - t0) * i as f32 / (n - 1) as f32
+            } else {
+                t0
+            });
+            (camera, time.clamp(0.0, 1.0))
+        })
+        .collect())
+}
+
+/// `--path`: every frame drawn by both renderers; the volume's against the exact one's, the
+/// worst as a picture (exact | volume | difference times 5).
+fn eval_path(
+    a: &EvalArgs,
+    model: &msth_codec::decode::DecodedModel,
+    path: &[(Camera, f32)],
+    exact: &mut Renderer,
+    volume: &mut Renderer,
+    bake_json: Option<serde_json::Value>,
+    out: &Path,
+) -> Result<()> {
+    let mut frames = Vec::new();
+    let mut worst: Option<(f64, usize, Frame, Frame)> = None;
+    let (mut exact_s, mut volume_s) = (0f64, 0f64);
+    let bar = ProgressBar::new(path.len() as u64).with_style(
+        ProgressStyle::with_template("frames {bar:30} {pos}/{len} {elapsed}").expect("template"),
+    );
+    for (i, (camera, time)) in path.iter().enumerate() {
+        let params = model.params_for_time(*time);
+        exact.invalidate();
+        let e = exact.render(camera, *time, &params);
+        volume.invalidate();
+        let v = volume.render_probing(camera, *time, &params, &mut |t| {
+            Some(model.params_for_time(t))
+        });
+        let d = v.psnr_displayed(&e);
+        let render = v.stats.seconds - v.stats.slice_seconds;
+        exact_s += e.stats.seconds;
+        volume_s += render;
+        frames.push(FrameScore {
+            view: i,
+            time: *time,
+            exact_psnr: None,
+            volume_psnr: None,
+            volume_vs_exact: Some(d),
+            exact_seconds: Some(e.stats.seconds),
+            volume_seconds: Some(render),
+        });
+        if worst.as_ref().is_none_or(|w| d < w.0) {
+            worst = Some((d, i, e, v));
+        }
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let n = path.len() as f64;
+    let vs: Vec<f64> = frames.iter().filter_map(|f| f.volume_vs_exact).collect();
+    let (min, mean) = (
+        vs.iter().copied().fold(f64::INFINITY, f64::min),
+        vs.iter().sum::<f64>() / n,
+    );
+    println!(
+        "{} frames of --path {}: exact {:.3} s a frame, volume {:.3} s ({:.1}x)",
+        path.len(),
+        a.path.as_deref().unwrap_or_default(),
+        exact_s / n,
+        volume_s / n,
+        exact_s / volume_s.max(1e-9)
+    );
+    println!("volume against exact frames: {mean:.2} dB mean, {min:.2} dB worst");
+    if let Some((d, i, e, v)) = worst {
+        let diff: Vec<f32> = e
+            .rgb
+            .chunks_exact(3)
+            .zip(v.rgb.chunks_exact(3))
+            .flat_map(|(x, y)| {
+                let m = (0..3)
+                    .map(|c| (x[c].clamp(0.0, 1.0) - y[c].clamp(0.0, 1.0)).abs())
+                    .sum::<f32>()
+                    / 3.0;
+                [(5.0 * m).min(1.0); 3]
+            })
+            .collect();
+        let ei = Image8::from_f32(e.width, e.height, &e.rgb);
+        let vi = Image8::from_f32(v.width, v.height, &v.rgb);
+        let di = Image8::from_f32(e.width, e.height, &diff);
+        let file = out.join(format!("worst_frame_{i:03}.png"));
+        save_png_atomic(&file, &panel(&[&ei, &vi, &di]))?;
+        println!(
+            "worst frame {i} (t = {:.3}, {d:.2} dB against exact; exact | volume | difference x5): {}",
+            path[i].1,
+            file.display()
+        );
+    }
+    let report = FileEval {
+        file: a.checkpoint.clone(),
+        data: format!("path:{}", a.path.as_deref().unwrap_or_default()),
+        views: path.len(),
+        exact: None,
+        volume: None,
+        volume_vs_exact: Some((min, mean)),
+        bake: bake_json,
+        seconds_per_frame: Some((exact_s / n, volume_s / n)),
+        frames,
+    };
+    let file = out.join("eval-path.json");
+    msth_trainer::checkpoint::write_atomic(&file, &serde_json::to_vec_pretty(&report)?)
+        .with_context(|| format!("writing {}", file.display()))?;
+    println!("report: {}", file.display());
     Ok(())
 }

@@ -175,8 +175,23 @@ pub struct TrainArgs {
 pub struct EvalArgs {
     pub checkpoint: PathBuf,
     /// Dataset folder, or `builtin`.
-    #[arg(long)]
-    pub data: String,
+    #[arg(long, required_unless_present = "path")]
+    pub data: Option<String>,
+    /// A `.msth` file: instead of a dataset's held-out views, the frames of a `msth play
+    /// --path` (`orbit`, `spiral`, `cameras`, `N`, `view:AZ,EL,DIST` or a JSON file), drawn by
+    /// the volume and by the exact renderer: the volume's frames against the exact ones, and the
+    /// worst frame as a picture (exact | volume | difference times 5).
+    #[arg(long, value_name = "PATH", conflicts_with = "data")]
+    pub path: Option<String>,
+    /// With `--path`: frames (default 8, or the path file's).
+    #[arg(long, requires = "path")]
+    pub frames: Option<usize>,
+    /// With `--path`: image size WxH (default: the file's cameras').
+    #[arg(long, requires = "path", value_parser = play::parse_size)]
+    pub size: Option<(u32, u32)>,
+    /// With `--path`: normalised time range START:END over the frames.
+    #[arg(long, requires = "path", default_value = "0:1", value_parser = play::parse_range)]
+    pub time: (f32, f32),
     /// Output folder for metrics.json and pictures (default: the checkpoint's folder; with
     /// `--samples` other than the model's own, its subfolder `eval-samples-P-M`).
     #[arg(long)]

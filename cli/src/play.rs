@@ -312,7 +312,7 @@ pub(crate) fn parse_size(s: &str) -> Result<(u32, u32), String> {
     Ok((p(w)?, p(h)?))
 }
 
-fn parse_range(s: &str) -> Result<(f32, f32), String> {
+pub(crate) fn parse_range(s: &str) -> Result<(f32, f32), String> {
     let (a, b) = s
         .split_once(':')
         .ok_or_else(|| format!("`{s}`: expected START:END, e.g. 0:1"))?;

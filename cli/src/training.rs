@@ -428,7 +428,10 @@ pub fn eval(a: EvalArgs) -> Result<()> {
             None => dir,
         }
     });
-    let mut data = data::load(&a.data, &a.dataset, &out)?;
+    let Some(spec) = &a.data else {
+        bail!("--path needs a .msth file; a checkpoint is evaluated on --data");
+    };
+    let mut data = data::load(spec, &a.dataset, &out)?;
     data.rescale(ckpt.header.scene_scale());
     let layout = ModelLayout::new(&ckpt.header.model);
     let outcome = TrainOutcome {

@@ -445,3 +445,59 @@ fn auto_slices_are_baked_once_a_held_time_has_paid_for_them() {
     assert_eq!(last.stats.samples_evaluated, 0);
     assert_eq!(last.rgb, draw(&mut always, &d, &camera, time).rgb);
 }
+
+/// `msth eval FILE.msth --path`: a camera path's frames drawn by both renderers, the volume's
+/// against the exact ones, the worst frame as a picture and every frame in the report; bad
+/// paths, frame counts, sizes and times are errors that name the flag.
+#[test]
+fn eval_compares_the_renderers_along_a_path() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("split.msth");
+    std::fs::write(&file, msth_tests::split_mask_fixture()).unwrap();
+    let file = file.to_str().unwrap();
+    let out = dir.path().join("eval");
+    let out_s = out.to_str().unwrap();
+    let args = [
+        "eval", file, "--path", "0", "--frames", "3", "--size", "40x30", "--time", "0.2:0.8",
+        "--out", out_s,
+    ];
+    msth_tests::msth(&args).unwrap();
+    let report = msth_tests::read_json(&out.join("eval-path.json"));
+    let frames = report["frames"].as_array().unwrap();
+    assert_eq!(frames.len(), 3);
+    let times: Vec<f64> = frames.iter().map(|f| f["time"].as_f64().unwrap()).collect();
+    assert!(
+        (times[0] - 0.2).abs() < 1e-6 && (times[2] - 0.8).abs() < 1e-6,
+        "{times:?}"
+    );
+    let worst = report["volume_vs_exact"][0].as_f64().unwrap();
+    println!("volume against exact at the file's camera: {worst:.1} dB worst");
+    // What `volume_frames_match_exact_frames` holds for the file's camera.
+    assert!(worst >= 35.0, "{worst} dB");
+    let pictures: Vec<_> = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .filter(|n| n.starts_with("worst_frame_"))
+        .collect();
+    assert_eq!(pictures.len(), 1, "{pictures:?}");
+    let png = image::open(out.join(&pictures[0])).unwrap();
+    assert_eq!(
+        (png.width(), png.height()),
+        (3 * 40 + 2 * 2, 30),
+        "exact | volume | difference, 2 pixels apart"
+    );
+
+    for (extra, flag) in [
+        (&["--path", "nowhere.json"][..], "--path"),
+        (&["--path", "orbit", "--frames", "0"][..], "--frames"),
+        (&["--path", "orbit", "--size", "0x10"][..], "--size"),
+        (&["--path", "orbit", "--time", "0:2"][..], "--time"),
+    ] {
+        let mut a = vec!["eval", file, "--out", out_s];
+        a.extend_from_slice(extra);
+        let e = msth_tests::msth(&a).unwrap_err();
+        assert!(e.contains(flag), "{a:?}: {e}");
+    }
+    let e = msth_tests::msth(&["eval", file, "--path", "orbit", "--data", "builtin"]).unwrap_err();
+    assert!(e.contains("--data") || e.contains("--path"), "{e}");
+}
