@@ -12,7 +12,7 @@ use serde::Serialize;
 
 use msth_codec::decode::decode_all;
 use msth_core::Camera;
-use msth_dataset::imageio::{panel, save_png_atomic};
+use msth_dataset::imageio::{error_map, panel, save_png_atomic};
 use msth_dataset::Image8;
 use msth_player::path::CameraPath;
 use msth_player::render::{Frame, RenderSettings, Renderer};
@@ -312,17 +312,18 @@ pub fn eval_file(a: &EvalArgs) -> Result<()> {
 /// Most frames `--path` evaluates.
 const MAX_PATH_FRAMES: usize = 4096;
 
-/// The cameras and times of `--path SPEC` (`--frames`, `--size`, `--time`), as `msth play`
-/// places them.
+/// The cameras and times of `--path SPEC` (`--frames`, default 8; `--size`; `--time`), as
+/// `msth play` places them.
 fn path_frames(
     a: &EvalArgs,
     spec: &str,
     model: &msth_codec::decode::DecodedModel,
 ) -> Result<Vec<(Camera, f32)>> {
     if let Some((w, h)) = a.size {
-        if w == 0 || h == 0 || u64::from(w) * u64::from(h) > 1 << 26 {
-            bail!("--size {w}x{h}: sides of at least 1 and at most 2^26 pixels");
+        if w == 0 || h == 0 {
+            bail!("--size {w}x{h}: sides must be at least 1");
         }
+        msth_codec::Limits::default().check_image("--size", w, h)?;
     }
     let (t0, t1) = a.time;
     if !((0.0..=1.0).contains(&t0) && (0.0..=1.0).contains(&t1)) {
@@ -330,30 +331,16 @@ fn path_frames(
     }
     let path = CameraPath::parse(spec, &model.config.bounds, &model.cameras, a.size)
         .map_err(|e| anyhow!("--path {spec}: {e}"))?;
-    let n = match (path.frame_count(), a.frames) {
-        (Some(k), Some(f)) if k != f => bail!("--frames {f}: the path file defines {k} frames"),
-        (Some(k), _) => k,
-        (None, Some(f)) => f,
-        (None, None) => 8,
-    };
-    if n == 0 || n > MAX_PATH_FRAMES {
-        bail!("--frames {n}: between 1 and {MAX_PATH_FRAMES}");
-    }
+    let n = path
+        .frames(a.frames, 8, MAX_PATH_FRAMES)
+        .map_err(|e| anyhow!(e))?;
     Ok((0..n)
-        .map(|i| {
-            let (camera, time) = path.camera(i, n);
-            let time = time.unwrap_or(if n > 1 {
-                t0 + (t1 - t0) * i as f32 / (n - 1) as f32
-            } else {
-                t0
-            });
-            (camera, time.clamp(0.0, 1.0))
-        })
+        .map(|i| (path.camera(i, n).0, path.frame_time(i, n, (t0, t1))))
         .collect())
 }
 
 /// `--path`: every frame drawn by both renderers; the volume's against the exact one's, the
-/// worst as a picture (exact | volume | difference times 5).
+/// worst as a picture (exact | volume | error map).
 fn eval_path(
     a: &EvalArgs,
     model: &msth_codec::decode::DecodedModel,
@@ -412,25 +399,12 @@ fn eval_path(
     );
     println!("volume against exact frames: {mean:.2} dB mean, {min:.2} dB worst");
     if let Some((d, i, e, v)) = worst {
-        let diff: Vec<f32> = e
-            .rgb
-            .chunks_exact(3)
-            .zip(v.rgb.chunks_exact(3))
-            .flat_map(|(x, y)| {
-                let m = (0..3)
-                    .map(|c| (x[c].clamp(0.0, 1.0) - y[c].clamp(0.0, 1.0)).abs())
-                    .sum::<f32>()
-                    / 3.0;
-                [(5.0 * m).min(1.0); 3]
-            })
-            .collect();
         let ei = Image8::from_f32(e.width, e.height, &e.rgb);
         let vi = Image8::from_f32(v.width, v.height, &v.rgb);
-        let di = Image8::from_f32(e.width, e.height, &diff);
         let file = out.join(format!("worst_frame_{i:03}.png"));
-        save_png_atomic(&file, &panel(&[&ei, &vi, &di]))?;
+        save_png_atomic(&file, &panel(&[&ei, &vi, &error_map(&ei, &vi)]))?;
         println!(
-            "worst frame {i} (t = {:.3}, {d:.2} dB against exact; exact | volume | difference x5): {}",
+            "worst frame {i} (t = {:.3}, {d:.2} dB against exact; exact | volume | error): {}",
             path[i].1,
             file.display()
         );

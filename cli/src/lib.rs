@@ -180,7 +180,7 @@ pub struct EvalArgs {
     /// A `.msth` file: instead of a dataset's held-out views, the frames of a `msth play
     /// --path` (`orbit`, `spiral`, `cameras`, `N`, `view:AZ,EL,DIST` or a JSON file), drawn by
     /// the volume and by the exact renderer: the volume's frames against the exact ones, and the
-    /// worst frame as a picture (exact | volume | difference times 5).
+    /// worst frame as a picture (exact | volume | error map, as `msth eval` draws errors).
     #[arg(long, value_name = "PATH", conflicts_with = "data")]
     pub path: Option<String>,
     /// With `--path`: frames (default 8, or the path file's).

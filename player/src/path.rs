@@ -342,6 +342,39 @@ impl CameraPath {
         }
     }
 
+    /// How many frames to draw: the path file's own count, else `asked` (`--frames`), else
+    /// `default`. An error naming `--frames` when `asked` disagrees with the file or the count is
+    /// 0 or above `max`.
+    pub fn frames(
+        &self,
+        asked: Option<usize>,
+        default: usize,
+        max: usize,
+    ) -> Result<usize, String> {
+        let n = match (self.frame_count(), asked) {
+            (Some(k), Some(f)) if k != f => {
+                return Err(format!("--frames {f}: the path file defines {k} frames"))
+            }
+            (Some(k), _) => k,
+            (None, Some(f)) => f,
+            (None, None) => default,
+        };
+        if n == 0 || n > max {
+            return Err(format!("--frames {n}: between 1 and {max}"));
+        }
+        Ok(n)
+    }
+
+    /// The time of frame `i` of `n`: the path's own when it fixes one, else evenly over
+    /// `(t0, t1)`, both ends included.
+    pub fn frame_time(&self, i: usize, n: usize, (t0, t1): (f32, f32)) -> f32 {
+        self.camera(i, n).1.unwrap_or(if n > 1 {
+            t0 + (t1 - t0) * i as f32 / (n - 1) as f32
+        } else {
+            t0
+        })
+    }
+
     /// The camera of frame `i` of `n`, and the frame's time when the path fixes it.
     ///
     /// `orbit` and `spiral` are closed: frame `i` is at `i / n` of the way round, so a video of

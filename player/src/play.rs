@@ -242,22 +242,9 @@ pub fn play(
     let stream = ModelStream::open(src, &opts.limits)?;
     let meta = stream.index().metadata.clone();
     let path = CameraPath::parse(&opts.path, &meta.model.bounds, &meta.cameras, opts.size)?;
-    let n = match (path.frame_count(), opts.frames) {
-        (Some(k), Some(f)) if k != f => {
-            return Err(PlayError::Options(format!(
-                "--frames {f}: the path file defines {k} frames"
-            )))
-        }
-        (Some(k), _) => k,
-        (None, Some(f)) => f,
-        (None, None) => meta.model.num_frames.max(1),
-    };
-    if n == 0 || n > 1 << 20 {
-        return Err(PlayError::Options(format!(
-            "--frames {n}: between 1 and {}",
-            1 << 20
-        )));
-    }
+    let n = path
+        .frames(opts.frames, meta.model.num_frames.max(1), 1 << 20)
+        .map_err(PlayError::Options)?;
     if let Some(dir) = &opts.out {
         std::fs::create_dir_all(dir).map_err(|error| PlayError::Io {
             path: dir.clone(),
@@ -266,15 +253,7 @@ pub fn play(
     }
     stream.seek(t0);
     // The incremental renderer probes and places its fixed samples over the times shown.
-    let frame_time = |i: usize| {
-        path.camera(i, n).1.unwrap_or_else(|| {
-            if n > 1 {
-                t0 + (t1 - t0) * i as f32 / (n - 1) as f32
-            } else {
-                t0
-            }
-        })
-    };
+    let frame_time = |i: usize| path.frame_time(i, n, (t0, t1));
     let mut render_settings = opts.render;
     render_settings.gpu_tables = opts
         .gpu_tables

@@ -484,23 +484,29 @@ fn march_ray(o: vec3<f32>, d: vec3<f32>) -> March {
     let stop = vol.march.y;
     let max_steps = 16u * vol.geom.x + 64u;
     let boxed = model.sampler.w == 0u;
-    let lo = model.bounds_a.xyz;
-    let hi = model.bounds_b.xyz;
-    let u0 = (o - lo) / (hi - lo);
-    let v_box = unit_velocity(o, d);
-    let speed_box = length(v_box);
+    // Where the unit point moves at one velocity, `ua + va t` for t in [t_a0, t_a1], with steps
+    // `step_a` long there: along the whole ray in a box, inside the inner cube of a contracted
+    // scene, where the contraction is the identity (msth-core's march, `inner_segment`).
+    var t_a0 = 1.0;
+    var t_a1 = 0.0;
+    var ua = vec3<f32>(0.0);
+    var va = vec3<f32>(0.0);
+    var step_a = 0.0;
     var ok = far > near;
-    if boxed && !(speed_box > 0.0 && speed_box <= INF) {
-        ok = false;
-    }
-    // A contracted scene is the identity inside its inner cube: there too the unit point moves
-    // at one velocity, `ui + v_in t` for t in [t_in0, t_in1] (msth-core `inner_segment`).
-    var t_in0 = 1.0;
-    var t_in1 = 0.0;
-    var ui = vec3<f32>(0.0);
-    var v_in = vec3<f32>(0.0);
-    var step_in = 0.0;
-    if !boxed {
+    if boxed {
+        let lo = model.bounds_a.xyz;
+        let hi = model.bounds_b.xyz;
+        va = unit_velocity(o, d);
+        let speed = length(va);
+        if speed > 0.0 && speed <= INF {
+            t_a0 = -INF;
+            t_a1 = INF;
+            ua = (o - lo) / (hi - lo);
+            step_a = h / speed;
+        } else {
+            ok = false;
+        }
+    } else {
         let y0 = (o - model.bounds_a.xyz) / model.bounds_a.w;
         let dy = d / model.bounds_a.w;
         var a0 = -INF;
@@ -515,13 +521,13 @@ fn march_ray(o: vec3<f32>, d: vec3<f32>) -> March {
                 a1 = -INF;
             }
         }
-        v_in = dy * 0.25;
-        let speed_in = length(v_in);
-        if a0 < a1 && speed_in > 0.0 && speed_in <= INF {
-            t_in0 = a0;
-            t_in1 = a1;
-            ui = (y0 + 2.0) * 0.25;
-            step_in = h / speed_in;
+        va = dy * 0.25;
+        let speed = length(va);
+        if a0 < a1 && speed > 0.0 && speed <= INF {
+            t_a0 = a0;
+            t_a1 = a1;
+            ua = (y0 + 2.0) * 0.25;
+            step_a = h / speed;
         }
     }
     var t = near;
@@ -532,15 +538,11 @@ fn march_ray(o: vec3<f32>, d: vec3<f32>) -> March {
         var um: vec3<f32>;
         var vm: vec3<f32>;
         let hair = 1e-7 * max(abs(t), 1.0);
-        let dt_in = max(min(step_in, far - t), hair);
-        if boxed {
-            dt = max(min(h / speed_box, far - t), hair);
-            um = clamp(u0 + v_box * (t + 0.5 * dt), vec3<f32>(0.0), vec3<f32>(1.0));
-            vm = v_box;
-        } else if t >= t_in0 && t + 0.5 * dt_in <= t_in1 {
-            dt = dt_in;
-            um = clamp(ui + v_in * (t + 0.5 * dt), vec3<f32>(0.0), vec3<f32>(1.0));
-            vm = v_in;
+        let dt_a = max(min(step_a, far - t), hair);
+        if t >= t_a0 && t + 0.5 * dt_a <= t_a1 {
+            dt = dt_a;
+            um = clamp(ua + va * (t + 0.5 * dt), vec3<f32>(0.0), vec3<f32>(1.0));
+            vm = va;
         } else {
             let x = o + d * t;
             let speed = length(unit_velocity(x, d));

@@ -608,8 +608,10 @@ fn march_chunk_with<const F16C: bool>(
         let mut t_rec = 1.0f32;
         let entries_start = ws.entries.len();
         let mut k = 0usize;
-        // In a box the unit point moves at one velocity: `u0 + v t`.
-        let linear = match cfg.bounds {
+        // Where the unit point moves at one velocity, `u0 + v t` for `t` in `[t0, t1]` (with the
+        // world length of a step there): along the whole ray in a box, inside the inner cube of
+        // a contracted scene (the contraction is the identity there).
+        let affine = match cfg.bounds {
             SceneBounds::Box { min, max } => {
                 let v = unit_velocity(&cfg.bounds, ray.origin, ray.dir);
                 let speed = v.length();
@@ -617,30 +619,20 @@ fn march_chunk_with<const F16C: bool>(
                     st.missed = true;
                     continue;
                 }
-                Some(((ray.origin - min) / (max - min), v, h / speed))
+                let u0 = (ray.origin - min) / (max - min);
+                Some((f32::NEG_INFINITY, f32::INFINITY, u0, v, h / speed))
             }
-            SceneBounds::Contracted { .. } => None,
-        };
-        // A contracted scene is the identity inside its inner cube: there too the unit point
-        // moves at one velocity, from `t0` to `t1`.
-        let inner = match cfg.bounds {
             SceneBounds::Contracted { center, radius } => inner_segment(center, radius, ray, h),
-            SceneBounds::Box { .. } => None,
         };
         while t < far && k < max_steps {
             k += 1;
-            let affine = linear.or_else(|| {
-                inner.and_then(|(t0, t1, u0, v, step)| {
-                    let dt = step.min(far - t).max(1e-7 * t.abs().max(1.0));
-                    (t >= t0 && t + 0.5 * dt <= t1).then_some((u0, v, step))
-                })
+            let along = affine.and_then(|(t0, t1, u0, v, step)| {
+                let dt = step.min(far - t).max(1e-7 * t.abs().max(1.0));
+                let tm = t + 0.5 * dt;
+                (t >= t0 && tm <= t1).then(|| (dt, (u0 + v * tm).clamp(Vec3::ZERO, Vec3::ONE), v))
             });
-            let (dt, um, vm) = match affine {
-                Some((u0, v, step)) => {
-                    let dt = step.min(far - t).max(1e-7 * t.abs().max(1.0));
-                    let um = (u0 + v * (t + 0.5 * dt)).clamp(Vec3::ZERO, Vec3::ONE);
-                    (dt, um, v)
-                }
+            let (dt, um, vm) = match along {
+                Some(s) => s,
                 None => {
                     let x = ray.origin + ray.dir * t;
                     let v = unit_velocity(&cfg.bounds, x, ray.dir);
