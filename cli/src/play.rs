@@ -153,11 +153,16 @@ pub struct VolumeArgs {
     /// samples a ray and blur thin surfaces.
     #[arg(long, value_name = "CELLS")]
     pub volume_step: Option<f32>,
-    /// Keep the occupied bricks that none of the file's cameras looks into. By default, where
-    /// the model's resolution does not fit the budget, those are left out before the
-    /// resolution is lowered, and the rays of a view that reach them are drawn by the exact
-    /// path (slower, where a view looks far from the file's cameras).
-    #[arg(long)]
+    /// The occupied bricks that none of the file's cameras looks into: `auto` bakes them where
+    /// every brick fits the budget, and leaves them out where that keeps a finer resolution;
+    /// `exact` always leaves them out, so that views beyond the cameras draw what the exact
+    /// renderer draws there (their colours depend on a direction no camera saw), slower;
+    /// `bake` always bakes them, coarser if need be, and no ray goes to the exact path.
+    /// A ray that reaches a brick left out is drawn by the exact path.
+    #[arg(long, value_enum, value_name = "WHAT")]
+    pub volume_outside: Option<VolumeOutside>,
+    /// The same as `--volume-outside bake`.
+    #[arg(long, hide = true, conflicts_with = "volume_outside")]
     pub volume_keep_outside: bool,
     /// When the CPU renderer bakes the time slices of the volume's dynamic bricks: `auto` once
     /// the exact evaluations of the frames waiting for them reach what baking costs (a
@@ -171,6 +176,25 @@ pub struct VolumeArgs {
     /// samples, far faster for a still camera) and the volume draws the camera while it moves.
     #[arg(long)]
     pub volume_still: bool,
+}
+
+/// `--volume-outside`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum VolumeOutside {
+    #[default]
+    Auto,
+    Exact,
+    Bake,
+}
+
+impl From<VolumeOutside> for msth_core::volume::OutsideViews {
+    fn from(v: VolumeOutside) -> Self {
+        match v {
+            VolumeOutside::Auto => msth_core::volume::OutsideViews::Auto,
+            VolumeOutside::Exact => msth_core::volume::OutsideViews::Exact,
+            VolumeOutside::Bake => msth_core::volume::OutsideViews::Bake,
+        }
+    }
 }
 
 /// `--volume-slices`.
@@ -229,7 +253,11 @@ impl VolumeArgs {
             }
             o.min_proposal_alpha = a;
         }
-        o.keep_outside_views = self.volume_keep_outside;
+        o.outside = match (self.volume_outside, self.volume_keep_outside) {
+            (Some(v), _) => v.into(),
+            (None, true) => msth_core::volume::OutsideViews::Bake,
+            (None, false) => msth_core::volume::OutsideViews::Auto,
+        };
         Ok(o)
     }
 }
@@ -627,5 +655,37 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("SSL_CERT_FILE="), "{e}");
+    }
+
+    /// `--volume-outside` reaches the plan's options; the older `--volume-keep-outside` still
+    /// means `bake`, and the two together are refused.
+    #[test]
+    fn volume_outside_and_its_older_name() {
+        use clap::Parser;
+        use msth_core::volume::OutsideViews;
+        #[derive(Parser)]
+        struct Cmd {
+            #[command(flatten)]
+            volume: VolumeArgs,
+        }
+        let outside = |args: &[&str]| {
+            Cmd::try_parse_from(std::iter::once("msth").chain(args.iter().copied()))
+                .map(|c| c.volume.options().unwrap().outside)
+        };
+        assert_eq!(outside(&[]).unwrap(), OutsideViews::Auto);
+        for (name, want) in [
+            ("auto", OutsideViews::Auto),
+            ("exact", OutsideViews::Exact),
+            ("bake", OutsideViews::Bake),
+        ] {
+            assert_eq!(outside(&["--volume-outside", name]).unwrap(), want);
+            assert_eq!(want.name(), name);
+        }
+        assert_eq!(
+            outside(&["--volume-keep-outside"]).unwrap(),
+            OutsideViews::Bake
+        );
+        assert!(outside(&["--volume-keep-outside", "--volume-outside", "exact"]).is_err());
+        assert!(outside(&["--volume-outside", "sideways"]).is_err());
     }
 }

@@ -14,7 +14,7 @@ use msth_core::volume::bake::{
 };
 use msth_core::volume::{
     BakeError, BakePlan, BakeProgress, BakeScratch, ColourMode, MarchOutput, MarchSettings,
-    MarchWorkspace, Occupancy, Value, Volume,
+    MarchWorkspace, Occupancy, OutsideViews, Value, Volume,
 };
 use msth_core::Camera;
 use msth_gpu::{GpuContext, GpuScene};
@@ -36,9 +36,9 @@ pub struct VolumeOptions {
     pub min_proposal_alpha: f32,
     /// What the vertices hold: a colour (the players' mode) or features (measurements).
     pub colour: ColourMode,
-    /// Keep the occupied bricks none of the file's cameras looks into, at a coarser resolution
-    /// if need be ([`PlanOptions::keep_outside_views`]).
-    pub keep_outside_views: bool,
+    /// What becomes of the occupied bricks none of the file's cameras looks into
+    /// ([`PlanOptions::outside`]).
+    pub outside: OutsideViews,
 }
 
 impl Default for VolumeOptions {
@@ -49,7 +49,7 @@ impl Default for VolumeOptions {
             min_cell_alpha: DEFAULT_MIN_CELL_ALPHA,
             min_proposal_alpha: DEFAULT_MIN_PROPOSAL_ALPHA,
             colour: ColourMode::default(),
-            keep_outside_views: false,
+            outside: OutsideViews::Auto,
         }
     }
 }
@@ -86,7 +86,7 @@ pub fn plan_bake(
             colour: options.colour,
             eyes: cameras.iter().map(|c| c.center()).collect(),
             views: cameras.to_vec(),
-            keep_outside_views: options.keep_outside_views,
+            outside: options.outside,
         },
     )
 }

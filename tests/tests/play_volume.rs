@@ -14,7 +14,7 @@ use glam::Vec3;
 use msth_codec::{decode_all, DecodedModel};
 use msth_core::camera::Camera;
 use msth_core::field::ModelLayout;
-use msth_core::volume::{BakeError, BakePlan, BakeProgress};
+use msth_core::volume::{BakeError, BakePlan, BakeProgress, OutsideViews};
 use msth_player::volume::{bake, plan_bake, BakedVolume, VolumeOptions};
 use msth_player::{Frame, RenderSettings, Renderer, SlicePolicy};
 
@@ -154,7 +154,7 @@ fn a_budget_too_small_for_the_fine_volume_gets_a_coarser_one() {
     // Bricks outside the cameras' views kept: the resolution is what gives.
     let options = VolumeOptions {
         budget: Some(fine.bytes_bound / 3),
-        keep_outside_views: true,
+        outside: OutsideViews::Bake,
         ..Default::default()
     };
     let coarse = baked(&d, &options);
@@ -179,7 +179,7 @@ fn a_budget_too_small_for_the_fine_volume_gets_a_coarser_one() {
     let seen = baked(
         &d,
         &VolumeOptions {
-            keep_outside_views: false,
+            outside: OutsideViews::Auto,
             ..options
         },
     );
@@ -258,23 +258,28 @@ fn a_still_camera_goes_to_the_exact_incremental_cache() {
     assert!(draw(&mut r, &d, &cams[1], 0.5).stats.volume, "moving again");
 }
 
-#[test]
-fn rays_that_reach_bricks_left_out_are_drawn_exactly() {
-    let d = fixture();
-    let c = d.cameras[0];
-    // The volume planned for a view a third as wide as the file's first camera, from the same
-    // place: the budget holds the bricks that view sees, not every occupied brick.
+/// A view a third as wide as camera `c`, from the same place.
+fn narrow_view(c: &Camera) -> Camera {
     let forward = -c.world_from_camera.z_axis.truncate();
     let up = c.world_from_camera.y_axis.truncate();
     let fov_x = 2.0 * (0.5 * c.width as f32 / c.fx).atan();
-    let narrow = Camera::look_at(
+    Camera::look_at(
         c.width,
         c.height,
         fov_x / 3.0,
         c.center(),
         c.center() + forward * 2.0,
         up,
-    );
+    )
+}
+
+#[test]
+fn rays_that_reach_bricks_left_out_are_drawn_exactly() {
+    let d = fixture();
+    let c = d.cameras[0];
+    // The volume planned for a view a third as wide as the file's first camera, from the same
+    // place: the budget holds the bricks that view sees, not every occupied brick.
+    let narrow = narrow_view(&c);
     let full = plan_bake(
         &d.config,
         &d.params,
@@ -323,6 +328,58 @@ fn rays_that_reach_bricks_left_out_are_drawn_exactly() {
         );
         assert!(p >= 35.0, "t={time}: {p:.2} dB");
         assert_eq!(i.rgb, v.rgb, "t={time}: incremental frame differs");
+    }
+}
+
+/// `--volume-outside exact` leaves the bricks no camera looks into to the exact path even where
+/// the budget holds them all, and `bake` bakes them: a view wider than the cameras' draws its
+/// border from the exact renderer in the one, from colours baked for the cameras' direction in
+/// the other.
+#[test]
+fn outside_exact_draws_beyond_the_views_as_the_exact_renderer() {
+    let d = fixture();
+    let c = d.cameras[0];
+    let views = [narrow_view(&c)];
+    let plan = |outside| {
+        let options = VolumeOptions {
+            outside,
+            ..Default::default()
+        };
+        plan_bake(&d.config, &d.params, d.occupancy.as_ref(), &views, &options).unwrap()
+    };
+    let (auto, exact_plan, bake_plan) = (
+        plan(OutsideViews::Auto),
+        plan(OutsideViews::Exact),
+        plan(OutsideViews::Bake),
+    );
+    // The default budget holds every brick: `auto` bakes them.
+    assert_eq!(auto.outside_views, 0);
+    assert_eq!(bake_plan.outside_views, 0);
+    assert!(exact_plan.outside_views > 0);
+    assert_eq!(
+        exact_plan.geometry.resolution,
+        bake_plan.geometry.resolution
+    );
+    let note = exact_plan.note().unwrap();
+    assert!(note.contains("--volume-outside exact"), "{note}");
+    let mut exact = renderer(&d, None, false);
+    let mut left_out = renderer(&d, Some(bake_planned(&d, exact_plan)), false);
+    let mut baked_all = renderer(&d, Some(bake_planned(&d, bake_plan)), false);
+    for time in [0.0, 0.7] {
+        let e = draw(&mut exact, &d, &c, time);
+        let l = draw(&mut left_out, &d, &c, time);
+        let b = draw(&mut baked_all, &d, &c, time);
+        assert!(l.stats.rays_exact > 0 && l.stats.rays_exact < l.stats.rays_total);
+        assert_eq!(b.stats.rays_exact, 0);
+        let (pl, pb) = (l.psnr_displayed(&e), b.psnr_displayed(&e));
+        println!(
+            "t={time}: outside exact {pl:.2} dB ({} rays exact), outside baked {pb:.2} dB against the exact frame",
+            l.stats.rays_exact
+        );
+        assert!(
+            pl >= 35.0 && pl >= pb - 0.1,
+            "t={time}: {pl:.2} against {pb:.2} dB"
+        );
     }
 }
 

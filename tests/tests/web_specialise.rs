@@ -278,6 +278,7 @@ fn javascript_and_rust_hold_binary16_tables_alike() {
 }
 
 fn javascript_and_rust_plan_the_same_volume() {
+    use msth_core::volume::OutsideViews;
     use msth_player::volume::{plan_bake, VolumeOptions};
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
     let dir = tempfile::tempdir().unwrap();
@@ -296,7 +297,11 @@ fn javascript_and_rust_plan_the_same_volume() {
         let file = dir.path().join(format!("{name}.msth"));
         std::fs::write(&file, bytes).unwrap();
         let d = msth_codec::decode_all(bytes).unwrap();
-        for budget in [512u64 << 20, 1 << 20, 300 << 10, 100 << 10, 4 << 10] {
+        let policies = [OutsideViews::Auto, OutsideViews::Exact, OutsideViews::Bake];
+        for (outside, budget) in policies
+            .into_iter()
+            .flat_map(|o| [512u64 << 20, 1 << 20, 300 << 10, 100 << 10, 4 << 10].map(|b| (o, b)))
+        {
             let rust = plan_bake(
                 &d.config,
                 &d.params,
@@ -304,6 +309,7 @@ fn javascript_and_rust_plan_the_same_volume() {
                 &d.cameras,
                 &VolumeOptions {
                     budget: Some(budget),
+                    outside,
                     ..Default::default()
                 },
             );
@@ -312,6 +318,7 @@ fn javascript_and_rust_plan_the_same_volume() {
                 .arg("web/tests/volume_plan.mjs")
                 .arg(&file)
                 .arg(budget.to_string())
+                .arg(outside.name())
                 .output()
                 .unwrap();
             assert!(
@@ -320,7 +327,7 @@ fn javascript_and_rust_plan_the_same_volume() {
                 String::from_utf8_lossy(&out.stderr)
             );
             let js: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
-            let what = format!("{name} at {budget} bytes");
+            let what = format!("{name} at {budget} bytes, outside {}", outside.name());
             let plan = match rust {
                 Ok(plan) => plan,
                 Err(e) => {
@@ -391,6 +398,9 @@ fn javascript_and_rust_plan_the_same_volume() {
             }
             if !plan.outside_bricks.is_empty() {
                 kinds.insert("bricks left out");
+                if budget == 512 << 20 {
+                    kinds.insert("left out within the budget");
+                }
             }
             if plan.geometry.resolution < plan.requested_resolution {
                 kinds.insert("coarser");
@@ -415,6 +425,7 @@ fn javascript_and_rust_plan_the_same_volume() {
         [
             "bricks left out",
             "coarser",
+            "left out within the budget",
             "over budget",
             "static and dynamic"
         ]

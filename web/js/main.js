@@ -49,7 +49,8 @@
 // default file: the counts the file stores for playback, the model's own without them),
 // `incremental=0` (no static cache: every frame re-renders every pixel), `exact=1` (no play-time
 // volume: every frame from the hash grids and MLPs, as `msth play --exact`), `volume-budget=MIB`
-// (the volume's memory budget, as `msth play --volume-budget`), `volume=wait` (bake the volume
+// (the volume's memory budget, as `msth play --volume-budget`), `volume-outside=auto|exact|bake`
+// (the bricks no file camera looks into, as `msth play --volume-outside`), `volume=wait` (bake the volume
 // before the first frame: tests and benchmarks), `deadline=S` and
 // `stall=S` (the loader's deadlines in seconds, as `msth play --deadline` and `--stall-timeout`).
 //
@@ -393,7 +394,7 @@ async function main() {
       // most SOFTWARE_VOLUME_MIB, whose bake it evaluates in about a minute.
       const quarter = Math.floor(Math.min(limits.maxStorageBufferBindingSize, limits.maxBufferSize) / 4);
       const budget = mib > 0 ? Math.floor(mib * 1048576) : fallback ? Math.min(quarter, SOFTWARE_VOLUME_MIB * 1048576) : quarter;
-      const plan = planVolume({ model: meta.model, layout: stream.decoder.layout, params: paramBuf, occupancy: stream.decoder.occupancy, cameras, budget });
+      const plan = planVolume({ model: meta.model, layout: stream.decoder.layout, params: paramBuf, occupancy: stream.decoder.occupancy, cameras, budget, outside: params.get("volume-outside") ?? "auto" });
       volume.planMs = performance.now() - t0;
       volume.note = planNote(plan);
       volume.resolution = plan.geometry.resolution;

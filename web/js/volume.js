@@ -24,6 +24,10 @@ const MAX_SLICES = 4096;
 const FALLBACK_ALPHA = 1e-2;
 const FALLBACK_THRESHOLD_RESOLUTION = 128;
 export const DEFAULT_MIN_PROPOSAL_ALPHA = 0.003;
+// What becomes of the occupied bricks no camera of the file looks into (msth-core `OutsideViews`):
+// "auto" bakes them where every brick fits, "exact" always leaves them to the exact path,
+// "bake" always bakes them.
+export const OUTSIDE_VIEWS = ["auto", "exact", "bake"];
 /** Values per vertex (density pre-activation, red, green, blue), each binary16. */
 const CHANNELS = 4;
 const NEAR_CLIP = 1e-4;
@@ -254,7 +258,8 @@ function hullInView(cam, corners) {
  * static part, `occupancy` format.js's grid or null, `cameras` camera.js cameras, `budget` bytes.
  * Throws with the reason when no volume can be made (no static part, over the budget).
  */
-export function planVolume({ model, layout, params, occupancy, cameras, budget, maxResolution = null, minProposalAlpha = DEFAULT_MIN_PROPOSAL_ALPHA }) {
+export function planVolume({ model, layout, params, occupancy, cameras, budget, maxResolution = null, minProposalAlpha = DEFAULT_MIN_PROPOSAL_ALPHA, outside: outsidePolicy = "auto" }) {
+  if (!OUTSIDE_VIEWS.includes(outsidePolicy)) throw new Error(`volume-outside=${outsidePolicy}: one of ${OUTSIDE_VIEWS.join(", ")}`);
   if (!hasStaticPart(model)) throw new Error(`the model has no static part (blend mode ${model.field.encoding.blend}): every sample depends on time, so there is nothing to bake`);
   const occ = occupancyView(occupancy);
   const requested = maxResolution ? geometry(maxResolution).resolution : modelResolution(model);
@@ -289,6 +294,7 @@ export function planVolume({ model, layout, params, occupancy, cameras, budget, 
         bytesBound: fixed + resident * perSlice,
         budget,
         outsideBricks: outside,
+        outside: outsidePolicy,
       },
     };
   };
@@ -300,16 +306,23 @@ export function planVolume({ model, layout, params, occupancy, cameras, budget, 
     for (let z = 0; z < g.perSide; z++)
       for (let y = 0; y < g.perSide; y++)
         for (let x = 0; x < g.perSide; x++) if (!occ || occ.anyIn([x, y, z], [x + 1, y + 1, z + 1], g.perSide)) candidates.push(x + g.perSide * (y + g.perSide * z));
-    let res = fit(g, candidates, []);
-    if (res.plan) return res.plan;
-    let need = res.need;
-    if (cameras.length) {
+    const leaveOut = outsidePolicy !== "bake" && cameras.length > 0;
+    // Every occupied brick first, unless those outside the views always go.
+    let need = Infinity;
+    let res;
+    if (!(leaveOut && outsidePolicy === "exact")) {
+      res = fit(g, candidates, []);
+      if (res.plan) return res.plan;
+      need = res.need;
+    }
+    if (leaveOut) {
       // More bricks in view than the budget holds slots for: no plan with them either.
       const slots = r > MIN_VOLUME_RESOLUTION ? Math.floor((budget - g.indexLen * 4) / g.slotBytes) : Infinity;
       const inView = bricksInView(g, model.bounds, cameras, candidates, slots);
       const seen = inView ? candidates.filter((b) => inView[b]) : [];
       const outside = inView ? candidates.filter((b) => !inView[b]) : [];
-      if (outside.length) {
+      // (With none outside, "auto" has tried these bricks above.)
+      if (outside.length || (inView && outsidePolicy === "exact")) {
         res = fit(g, seen, outside);
         if (res.plan) return res.plan;
         need = Math.min(need, res.need);
@@ -326,7 +339,8 @@ export function planVolume({ model, layout, params, occupancy, cameras, budget, 
 export function planNote(plan) {
   const notes = [];
   const mib = Math.floor(plan.budget / 1048576);
-  if (plan.outsideBricks.length) notes.push(`${plan.outsideBricks.length} occupied bricks no camera of the file looks into are left out, so that the volume can be ${plan.geometry.resolution}^3 cells within ${mib} MiB; rays that reach them are rendered exactly`);
+  if (plan.outsideBricks.length && plan.outside === "exact") notes.push(`${plan.outsideBricks.length} occupied bricks no camera of the file looks into are left out (?volume-outside=exact); rays that reach them are rendered exactly`);
+  else if (plan.outsideBricks.length) notes.push(`${plan.outsideBricks.length} occupied bricks no camera of the file looks into are left out, so that the volume can be ${plan.geometry.resolution}^3 cells within ${mib} MiB; rays that reach them are rendered exactly (?volume-outside=bake keeps them at a coarser resolution)`);
   if (plan.geometry.resolution < plan.requested) notes.push(`the volume is ${plan.geometry.resolution}^3 cells instead of the model's ${plan.requested}^3 to fit ${mib} MiB`);
   if (plan.residentSlices < plan.sliceTimes.length) notes.push(`${plan.residentSlices} of ${plan.sliceTimes.length} time slices fit at once`);
   return notes.length ? notes.join("; ") : null;

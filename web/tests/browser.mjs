@@ -615,6 +615,18 @@ async function main() {
         during >= 1 && !after.volume && after.scale === 1,
         `${during} frames through the volume during the drag; after it the last frame ${after.volume ? "through the volume" : "exact"} at scale ${after.scale} ("${after.res}")`,
       );
+      // `volume-outside` reaches the plan (web/tests/volume_plan.mjs checks the plans it makes
+      // against msth-player's); a value it does not know is refused by name.
+      for (const [value, ok] of [["exact", true], ["sideways", false]]) {
+        await page.goto(`${a.base}/?model=${encodeURIComponent(a["model-volume"])}&camera=0&t=0.37&play=0&samples=full&volume=wait&volume-budget=64&volume-outside=${value}`);
+        await page.waitForFunction(() => window.msth && window.msth.volume && ["ready", "failed"].includes(window.msth.volume.state), null, { timeout: 300_000 });
+        const v = await page.evaluate(() => ({ state: window.msth.volume.state, error: window.msth.volume.error, note: window.msth.volume.note }));
+        check(
+          `?volume-outside=${value} ${ok ? "plans the volume" : "is refused by name"}`,
+          ok ? v.state === "ready" : v.state === "failed" && /volume-outside=sideways/.test(v.error || ""),
+          `state ${v.state}${v.error ? `: ${v.error}` : ""}${v.note ? `; note: ${v.note}` : ""}`,
+        );
+      }
     }
 
     // ---- for the record: frames per second at the bench size, and the README screenshot

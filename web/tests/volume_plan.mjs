@@ -2,14 +2,14 @@
 // the plan as JSON: resolution, brick side, the static, dynamic and left-out bricks, the dynamic
 // cells' bits, the slice times and the thresholds. `tests/tests/web_volume.rs` compares it with
 // msth-player's plan of the same file. Run from anywhere:
-//   node web/tests/volume_plan.mjs FILE.msth BUDGET_BYTES
+//   node web/tests/volume_plan.mjs FILE.msth BUDGET_BYTES [auto|exact|bake]
 
 import { readFileSync } from "node:fs";
 import { Decoder, prefixLength } from "../js/format.js";
 import { cameraFromJson } from "../js/camera.js";
 import { planVolume } from "../js/volume.js";
 
-const [file, budget] = process.argv.slice(2);
+const [file, budget, outside = "auto"] = process.argv.slice(2);
 if (!file || !budget) {
   console.error("usage: node web/tests/volume_plan.mjs FILE.msth BUDGET_BYTES");
   process.exit(2);
@@ -26,6 +26,7 @@ try {
     occupancy: dec.occupancy,
     cameras: meta.cameras.map(cameraFromJson),
     budget: Number(budget),
+    outside,
   });
   console.log(
     JSON.stringify({

@@ -138,13 +138,41 @@ pub struct PlanOptions {
     pub colour: ColourMode,
     /// Camera centres the baked colours face (the file's cameras).
     pub eyes: Vec<glam::Vec3>,
-    /// The cameras whose views the volume serves (the file's). Where the model's resolution does
-    /// not fit the budget over every occupied brick, the bricks none of them looks into are left
-    /// empty before the resolution is lowered ([`super::views`]); no cameras, or
-    /// [`PlanOptions::keep_outside_views`], lowers the resolution instead.
+    /// The cameras whose views the volume serves (the file's): [`PlanOptions::outside`] says
+    /// what becomes of the bricks none of them looks into ([`super::views`]).
     pub views: Vec<crate::Camera>,
-    /// Keep the bricks outside every view, at whatever resolution the budget then allows.
-    pub keep_outside_views: bool,
+    pub outside: OutsideViews,
+}
+
+/// What a volume does with the occupied bricks that none of the file's cameras looks into
+/// ([`PlanOptions::outside`]). A ray that reaches a brick left out is drawn by the exact path.
+///
+/// Their colours are baked for the mean direction from the file's cameras, which never looked
+/// at them: where a view does (above a forward-facing rig's images, say), the exact renderer
+/// draws the colour network at the ray's own direction, and the two differ.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum OutsideViews {
+    /// Baked when every occupied brick fits the budget at a resolution; left out where that
+    /// keeps a finer resolution.
+    #[default]
+    Auto,
+    /// Always left out: the volume holds what the file's cameras saw, and the exact path draws
+    /// the rest (frames as the exact renderer's, slower where a view looks beyond the cameras).
+    Exact,
+    /// Always baked, at a coarser resolution if need be; no ray goes to the exact path.
+    Bake,
+}
+
+impl OutsideViews {
+    /// The name `--volume-outside` and `?volume-outside=` take.
+    pub fn name(self) -> &'static str {
+        match self {
+            OutsideViews::Auto => "auto",
+            OutsideViews::Exact => "exact",
+            OutsideViews::Bake => "bake",
+        }
+    }
 }
 
 impl Default for PlanOptions {
@@ -157,7 +185,7 @@ impl Default for PlanOptions {
             colour: ColourMode::default(),
             eyes: Vec::new(),
             views: Vec::new(),
-            keep_outside_views: false,
+            outside: OutsideViews::Auto,
         }
     }
 }
@@ -202,15 +230,22 @@ pub struct BakePlan {
     pub outside_views: usize,
     /// Those bricks, ascending: the index marks them [`OUTSIDE_BRICK`].
     pub outside_bricks: Vec<u32>,
+    /// What the plan was told to do with them.
+    pub outside: OutsideViews,
 }
 
 impl BakePlan {
     /// A line for the user when the budget made the volume coarser than the model's.
     pub fn note(&self) -> Option<String> {
         let mut notes = Vec::new();
-        if self.outside_views > 0 {
+        if self.outside_views > 0 && self.outside == OutsideViews::Exact {
             notes.push(format!(
-                "{} occupied bricks that none of the file's cameras looks into are left out, so that the volume can be {}^3 cells within {} MiB; rays that reach them are rendered exactly (--volume-keep-outside keeps them at a coarser resolution)",
+                "{} occupied bricks that none of the file's cameras looks into are left out (--volume-outside exact); rays that reach them are rendered exactly",
+                self.outside_views,
+            ));
+        } else if self.outside_views > 0 {
+            notes.push(format!(
+                "{} occupied bricks that none of the file's cameras looks into are left out, so that the volume can be {}^3 cells within {} MiB; rays that reach them are rendered exactly (--volume-outside bake keeps them at a coarser resolution)",
                 self.outside_views,
                 self.geometry.resolution,
                 self.budget >> 20
@@ -362,21 +397,28 @@ pub fn plan_with(
             budget: o.budget,
             outside_views: outside.len(),
             outside_bricks: outside,
+            outside: o.outside,
         })
     };
     let mut r = requested;
     loop {
         let g = VolumeGeometry::new(r);
         let candidates = candidates(&g, occupancy.as_ref());
-        let mut need = match fit(g, &candidates, Vec::new()) {
-            Ok(plan) => return Ok(plan),
-            Err(need) => need,
-        };
-        if !o.keep_outside_views && !o.views.is_empty() {
+        let leave_out = o.outside != OutsideViews::Bake && !o.views.is_empty();
+        // Every occupied brick first, unless those outside the views always go.
+        let mut need = u64::MAX;
+        if !(leave_out && o.outside == OutsideViews::Exact) {
+            match fit(g, &candidates, Vec::new()) {
+                Ok(plan) => return Ok(plan),
+                Err(n) => need = n,
+            }
+        }
+        if leave_out {
             let in_view = super::views::bricks_in_view(&g, &cfg.bounds, &o.views);
             let (seen, outside): (Vec<u32>, Vec<u32>) =
                 candidates.iter().partition(|&&b| in_view[b as usize]);
-            if !outside.is_empty() {
+            // (With none outside, `Auto` has tried these bricks above.)
+            if !outside.is_empty() || o.outside == OutsideViews::Exact {
                 match fit(g, &seen, outside) {
                     Ok(plan) => return Ok(plan),
                     Err(n) => need = need.min(n),

@@ -47,7 +47,8 @@ pub mod march;
 pub mod views;
 
 pub use bake::{
-    plan, BakeError, BakePlan, BakeProgress, BakeScratch, Occupancy, DEFAULT_CPU_BUDGET,
+    plan, BakeError, BakePlan, BakeProgress, BakeScratch, Occupancy, OutsideViews,
+    DEFAULT_CPU_BUDGET,
 };
 pub use march::{ColourMode, MarchOutput, MarchSettings, MarchWorkspace};
 

@@ -259,7 +259,7 @@ fn bricks_outside_the_views_go_before_the_resolution() {
     let (cfg, layout, params) = model(6.0, 3);
     // A narrow view (0.3 rad) into the box.
     let cam = Camera::look_at(64, 48, 0.3, Vec3::new(0.3, -4.0, 1.2), Vec3::ZERO, Vec3::Z);
-    let with_views = |budget: u64, keep: bool| {
+    let with_views = |budget: u64, outside: OutsideViews| {
         plan_with(
             &cfg,
             &layout,
@@ -269,18 +269,23 @@ fn bricks_outside_the_views_go_before_the_resolution() {
                 budget,
                 max_resolution: Some(128),
                 views: vec![cam],
-                keep_outside_views: keep,
+                outside,
                 ..Default::default()
             },
         )
         .unwrap()
     };
-    let full = with_views(1 << 40, false);
+    let full = with_views(1 << 40, OutsideViews::Auto);
     assert_eq!((full.geometry.resolution, full.outside_views), (128, 0));
+    let bake = with_views(1 << 40, OutsideViews::Bake);
+    assert_eq!(
+        (&full.static_bricks, &full.dynamic_bricks, full.geometry),
+        (&bake.static_bricks, &bake.dynamic_bricks, bake.geometry)
+    );
     let all = full.static_bricks.len() + full.dynamic_bricks.len();
     // Half of the full volume's bytes: the view of one camera holds less than that.
     let half = full.bytes_bound / 2;
-    let seen = with_views(half, false);
+    let seen = with_views(half, OutsideViews::Auto);
     assert_eq!(seen.geometry.resolution, 128);
     let kept = seen.static_bricks.len() + seen.dynamic_bricks.len();
     assert!(kept + seen.outside_views == all && seen.outside_views > 0);
@@ -293,8 +298,24 @@ fn bricks_outside_the_views_go_before_the_resolution() {
     for b in seen.static_bricks.iter().chain(&seen.dynamic_bricks) {
         assert!(in_view[*b as usize]);
     }
-    let coarser = with_views(half, true);
+    let coarser = with_views(half, OutsideViews::Bake);
     assert!(coarser.geometry.resolution < 128 && coarser.outside_views == 0);
+    // `Exact` leaves them out whatever the budget: the bricks of the budget-bound plan.
+    let exact = with_views(1 << 40, OutsideViews::Exact);
+    assert_eq!(exact.geometry.resolution, 128);
+    assert_eq!(
+        (
+            &exact.static_bricks,
+            &exact.dynamic_bricks,
+            &exact.outside_bricks
+        ),
+        (
+            &seen.static_bricks,
+            &seen.dynamic_bricks,
+            &seen.outside_bricks
+        )
+    );
+    assert!(exact.note().unwrap().contains("--volume-outside exact"));
 }
 
 #[test]

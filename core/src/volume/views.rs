@@ -2,8 +2,8 @@
 //!
 //! A volume serves views near the file's cameras. Where the budget cannot hold the model's
 //! resolution over every occupied brick, the plan leaves the bricks no camera looks into out of
-//! the volume and keeps the resolution ([`super::bake::PlanOptions::keep_outside_views`]): on a
-//! forward-facing capture most of the contracted cube lies behind, beside or above the cameras.
+//! the volume and keeps the resolution ([`super::bake::OutsideViews`]): on a forward-facing
+//! capture most of the contracted cube lies behind, beside or above the cameras.
 //! A ray of another view that reaches such a brick ([`super::OUTSIDE_BRICK`]) is drawn by the
 //! exact path.
 
