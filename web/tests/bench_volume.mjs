@@ -8,7 +8,7 @@
 //
 //   msth serve DIR --web web --addr 127.0.0.1:8765 &
 //   node web/tests/bench_volume.mjs --base http://127.0.0.1:8765 --model demo.msth \
-//     --size 256x256 [--view 30,20,4] --views 4 --step 30 [--budget MIB] [--samples full] [--worst DIR]
+//     --size 256x256 [--view 30,20,4] --views 4 --step 30 [--budget MIB] [--outside auto|exact|bake] [--samples full] [--worst DIR]
 
 import { mkdtempSync, rmSync, writeFileSync } from "node:fs";
 import { tmpdir } from "node:os";
@@ -18,7 +18,7 @@ import { chromium } from "playwright-core";
 const a = { samples: "full", views: "4", step: "30", size: "256x256" };
 for (let i = 2; i < process.argv.length; i += 2) a[process.argv[i].replace(/^--/, "")] = process.argv[i + 1];
 if (!a.base || !a.model) {
-  console.error("usage: node web/tests/bench_volume.mjs --base URL --model NAME [--size WxH] [--view AZ,EL,DIST] [--views N] [--step DEG] [--budget MIB] [--samples S] [--worst DIR]");
+  console.error("usage: node web/tests/bench_volume.mjs --base URL --model NAME [--size WxH] [--view AZ,EL,DIST] [--views N] [--step DEG] [--budget MIB] [--outside auto|exact|bake] [--samples S] [--worst DIR]");
   process.exit(2);
 }
 const FLAGS = ["--no-sandbox", "--disable-gpu-sandbox", "--enable-unsafe-webgpu", "--enable-features=Vulkan", "--use-vulkan=swiftshader", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--use-webgpu-adapter=swiftshader"];
@@ -27,7 +27,7 @@ const ctx = await chromium.launchPersistentContext(dir, { executablePath: proces
 try {
   const page = await ctx.newPage();
   page.on("pageerror", (e) => console.error(`pageerror: ${e.message}`));
-  const budget = a.budget ? `&volume-budget=${a.budget}` : "";
+  const budget = (a.budget ? `&volume-budget=${a.budget}` : "") + (a.outside ? `&volume-outside=${a.outside}` : "");
   const t0 = Date.now();
   const start = a.view ? `view=${a.view}` : "camera=0";
   await page.goto(`${a.base}/?model=${encodeURIComponent(a.model)}&${start}&t=0.5&size=${a.size}&play=0&samples=${a.samples}&volume=wait${budget}`);
