@@ -156,7 +156,7 @@ pub struct VolumeArgs {
     /// The occupied bricks that none of the file's cameras looks into: `auto` bakes them where
     /// every brick fits the budget, and leaves them out where that keeps a finer resolution;
     /// `exact` always leaves them out, so that views beyond the cameras draw what the exact
-    /// renderer draws there (their colours depend on a direction no camera saw), slower;
+    /// renderer draws there (what no camera constrained, which the two draw differently), slower;
     /// `bake` always bakes them, coarser if need be, and no ray goes to the exact path.
     /// A ray that reaches a brick left out is drawn by the exact path.
     #[arg(long, value_enum, value_name = "WHAT")]

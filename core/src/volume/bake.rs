@@ -147,9 +147,9 @@ pub struct PlanOptions {
 /// What a volume does with the occupied bricks that none of the file's cameras looks into
 /// ([`PlanOptions::outside`]). A ray that reaches a brick left out is drawn by the exact path.
 ///
-/// Their colours are baked for the mean direction from the file's cameras, which never looked
-/// at them: where a view does (above a forward-facing rig's images, say), the exact renderer
-/// draws the colour network at the ray's own direction, and the two differ.
+/// What they hold (haze and floaters above a forward-facing rig's images, say) no camera
+/// constrained, and the two renderers draw it differently: the march reads every cell, the exact
+/// renderer only where its proposal samples fall (docs/playback.md measures it on the demo).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum OutsideViews {
