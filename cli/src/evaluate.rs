@@ -319,23 +319,15 @@ fn path_frames(
     spec: &str,
     model: &msth_codec::decode::DecodedModel,
 ) -> Result<Vec<(Camera, f32)>> {
-    if let Some((w, h)) = a.size {
-        if w == 0 || h == 0 {
-            bail!("--size {w}x{h}: sides must be at least 1");
-        }
-        msth_codec::Limits::default().check_image("--size", w, h)?;
-    }
-    let (t0, t1) = a.time;
-    if !((0.0..=1.0).contains(&t0) && (0.0..=1.0).contains(&t1)) {
-        bail!("--time {t0}:{t1}: both ends must lie in [0, 1]");
-    }
+    CameraPath::check_options(a.time, a.size, &msth_codec::Limits::default())
+        .map_err(|e| anyhow!(e))?;
     let path = CameraPath::parse(spec, &model.config.bounds, &model.cameras, a.size)
         .map_err(|e| anyhow!("--path {spec}: {e}"))?;
     let n = path
         .frames(a.frames, 8, MAX_PATH_FRAMES)
         .map_err(|e| anyhow!(e))?;
     Ok((0..n)
-        .map(|i| (path.camera(i, n).0, path.frame_time(i, n, (t0, t1))))
+        .map(|i| (path.camera(i, n).0, path.frame_time(i, n, a.time)))
         .collect())
 }
 

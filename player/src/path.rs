@@ -342,6 +342,34 @@ impl CameraPath {
         }
     }
 
+    /// Checks a path's `--time START:END` (both in `[0, 1]`) and `--size WxH` (sides at least 1,
+    /// within `limits`: the bound of the file's own cameras, format.md §8), as `msth play` and
+    /// `msth eval --path` take them.
+    pub fn check_options(
+        time: (f32, f32),
+        size: Option<(u32, u32)>,
+        limits: &msth_codec::Limits,
+    ) -> Result<(), String> {
+        let (t0, t1) = time;
+        if !(t0.is_finite()
+            && t1.is_finite()
+            && (0.0..=1.0).contains(&t0)
+            && (0.0..=1.0).contains(&t1))
+        {
+            return Err(format!("--time {t0}:{t1}: both ends must lie in [0, 1]"));
+        }
+        if let Some((w, h)) = size {
+            if w == 0 || h == 0 {
+                return Err(format!("--size {w}x{h}: sides must be at least 1"));
+            }
+            // The frame, the static cache and the rays all grow with the pixel count.
+            limits
+                .check_image("--size", w, h)
+                .map_err(|e| e.to_string())?;
+        }
+        Ok(())
+    }
+
     /// How many frames to draw: the path file's own count, else `asked` (`--frames`), else
     /// `default`. An error naming `--frames` when `asked` disagrees with the file or the count is
     /// 0 or above `max`.

@@ -220,24 +220,8 @@ pub fn play(
 ) -> Result<PlayReport, PlayError> {
     let start = Instant::now();
     let (t0, t1) = opts.time_range;
-    if !(t0.is_finite() && t1.is_finite() && (0.0..=1.0).contains(&t0) && (0.0..=1.0).contains(&t1))
-    {
-        return Err(PlayError::Options(format!(
-            "--time {t0}:{t1}: both ends must lie in [0, 1]"
-        )));
-    }
-    if let Some((w, h)) = opts.size {
-        if w == 0 || h == 0 {
-            return Err(PlayError::Options(format!(
-                "--size {w}x{h}: sides must be at least 1"
-            )));
-        }
-        // The same bound as the file's own cameras (format.md §8): the frame, the static cache
-        // and the rays all grow with the pixel count.
-        opts.limits
-            .check_image("--size", w, h)
-            .map_err(|e| PlayError::Options(e.to_string()))?;
-    }
+    CameraPath::check_options(opts.time_range, opts.size, &opts.limits)
+        .map_err(PlayError::Options)?;
     let src = source::open(&opts.source, &opts.http).map_err(StreamError::from)?;
     let stream = ModelStream::open(src, &opts.limits)?;
     let meta = stream.index().metadata.clone();

@@ -732,9 +732,7 @@ impl Renderer {
                 &cache.rays,
                 &self.settings.march,
             );
-            let exact_start = Instant::now();
-            stats.rays_exact = self.render_outside(params, &cache.rays, &mut out);
-            stats.exact_seconds = exact_start.elapsed().as_secs_f64();
+            self.render_outside(params, &cache.rays, &mut out, &mut stats);
             for (&p, c) in cache.dynamic.iter().zip(&out.rgb) {
                 cache.rgb[p as usize * 3..p as usize * 3 + 3].copy_from_slice(c);
             }
@@ -757,9 +755,7 @@ impl Renderer {
                 &rays,
                 &self.settings.march,
             );
-            let exact_start = Instant::now();
-            stats.rays_exact = self.render_outside(params, &rays, &mut out);
-            stats.exact_seconds = exact_start.elapsed().as_secs_f64();
+            self.render_outside(params, &rays, &mut out, &mut stats);
             let mut dynamic = Vec::new();
             let mut dyn_rays = Vec::new();
             for (k, (&p, c)) in pixels.iter().zip(&out.rgb).enumerate() {
@@ -799,18 +795,25 @@ impl Renderer {
     }
 
     /// Draws the rays of `out` that reached a brick the volume left out with the exact path,
-    /// into `out.rgb`; returns how many there were.
-    fn render_outside(&self, params: &[f32], rays: &[TimedRay], out: &mut MarchOutput) -> usize {
+    /// into `out.rgb`; counts and times them in `stats` (`rays_exact`, `exact_seconds`).
+    fn render_outside(
+        &self,
+        params: &[f32],
+        rays: &[TimedRay],
+        out: &mut MarchOutput,
+        stats: &mut FrameStats,
+    ) {
+        let start = Instant::now();
         let at: Vec<usize> = (0..rays.len()).filter(|&k| out.outside[k]).collect();
-        if at.is_empty() {
-            return 0;
+        if !at.is_empty() {
+            let subset: Vec<TimedRay> = at.iter().map(|&k| rays[k]).collect();
+            let exact = self.render_rays(params, &subset);
+            for (&k, c) in at.iter().zip(&exact.rgb) {
+                out.rgb[k] = *c;
+            }
         }
-        let subset: Vec<TimedRay> = at.iter().map(|&k| rays[k]).collect();
-        let exact = self.render_rays(params, &subset);
-        for (&k, c) in at.iter().zip(&exact.rgb) {
-            out.rgb[k] = *c;
-        }
-        at.len()
+        stats.rays_exact = at.len();
+        stats.exact_seconds = start.elapsed().as_secs_f64();
     }
 
     /// Bakes the time slices the volume needs at `time` that it does not hold, when

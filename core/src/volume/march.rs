@@ -212,22 +212,20 @@ pub(crate) fn inner_segment(
     ray: &TimedRay,
     h: f32,
 ) -> Option<(f32, f32, Vec3, Vec3, f32)> {
-    let y0 = (ray.origin - center) / radius;
-    let dy = ray.dir / radius;
-    let (mut t0, mut t1) = (f32::NEG_INFINITY, f32::INFINITY);
-    for a in 0..3 {
-        if dy[a] != 0.0 {
-            let (p, q) = ((-1.0 - y0[a]) / dy[a], (1.0 - y0[a]) / dy[a]);
-            t0 = t0.max(p.min(q));
-            t1 = t1.min(p.max(q));
-        } else if y0[a].abs() >= 1.0 {
-            return None;
-        }
-    }
-    // `to_unit` there: `(y + 2) / 4`.
-    let v = dy * 0.25;
+    let cube = SceneBounds::Box {
+        min: center - radius,
+        max: center + radius,
+    };
+    let ray3 = crate::camera::Ray {
+        origin: ray.origin,
+        dir: ray.dir,
+    };
+    let i = cube.ray_interval(&ray3, f32::NEG_INFINITY, f32::INFINITY)?;
+    // `to_unit` there: `(y + 2) / 4` with `y = (x - center) / radius`.
+    let v = ray.dir / radius * 0.25;
     let speed = v.length();
-    (t0 < t1 && speed > 0.0 && speed.is_finite()).then(|| (t0, t1, (y0 + 2.0) * 0.25, v, h / speed))
+    let u0 = ((ray.origin - center) / radius + 2.0) * 0.25;
+    (speed > 0.0 && speed.is_finite()).then(|| (i.near, i.far, u0, v, h / speed))
 }
 
 /// World distance along velocity `v` (unit cube per world unit) from unit point `p` to the exit
