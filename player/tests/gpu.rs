@@ -110,6 +110,11 @@ fn main() -> std::process::ExitCode {
         )
         .needs(
             &[&gpu],
+            "the_finest_volume_draws_on_the_gpu_as_on_the_cpu",
+            the_finest_volume_draws_on_the_gpu_as_on_the_cpu,
+        )
+        .needs(
+            &[&gpu],
             "rays_reaching_bricks_left_out_of_the_volume_draw_exactly_on_the_gpu",
             rays_reaching_bricks_left_out_of_the_volume_draw_exactly_on_the_gpu,
         )
@@ -1419,6 +1424,62 @@ fn volume_frames_on_the_gpu_match_the_cpu_march() {
         assert!(!a.stats.volume && !b.stats.volume);
         assert!(max_diff(&a, &b) < 2e-3);
     }
+}
+
+/// The finest volume, `2048^3` in bricks of `16^3` cells (`--volume-resolution 2048`), over one
+/// occupied cell of a `64^3` occupancy grid: `volume.wgsl` draws what the CPU's march draws.
+fn the_finest_volume_draws_on_the_gpu_as_on_the_cpu() {
+    use msth_core::volume::bake::{plan_with, PlanOptions};
+    use msth_core::volume::Occupancy;
+    let mut cfg = config(BlendMode::Mst);
+    small(&mut cfg);
+    let layout = ModelLayout::new(&cfg);
+    let params = random_params(&layout, 7);
+    let mut words = vec![0u32; 64 * 64 * 64 / 32];
+    let cell = 32 + 64 * (32 + 64 * 32);
+    words[cell / 32] |= 1 << (cell % 32);
+    let options = PlanOptions {
+        budget: 64 << 20,
+        max_resolution: Some(2048),
+        min_proposal_alpha: 0.0,
+        ..Default::default()
+    };
+    let occupancy = Occupancy {
+        resolution: 64,
+        words: &words,
+        density_threshold: 1e-3,
+    };
+    let plan = plan_with(&cfg, &layout, &params, Some(occupancy), &options).unwrap();
+    assert_eq!((plan.geometry.resolution, plan.geometry.brick), (2048, 16));
+    let vol = bake_planned(&cfg, &params, plan);
+    assert!(vol.volume.stats.bricks > 0, "nothing baked");
+    let settings = RenderSettings {
+        exact: false,
+        incremental: false,
+        slices: msth_player::SlicePolicy::Always,
+        ..Default::default()
+    };
+    let mut cpu = Renderer::new(&cfg, settings);
+    cpu.set_volume(Some(vol.clone()));
+    let mut gpu = GpuRenderer::new(context(), &cfg, settings).unwrap();
+    gpu.set_volume(Some(vol)).unwrap();
+    // A narrow camera whose rays all cross the occupied cell.
+    let target = cfg.bounds.from_unit(glam::Vec3::splat(32.5 / 64.0));
+    let cam = Camera::look_at(
+        16,
+        12,
+        0.01,
+        glam::Vec3::new(0.3, -3.5, 1.2),
+        target,
+        glam::Vec3::Z,
+    );
+    let a = cpu.render(&cam, 0.0, &params);
+    let b = gpu.render(&cam, 0.0, &params).unwrap();
+    assert!(a.stats.volume && b.stats.volume);
+    assert!(a.stats.volume_samples > 0, "no sample in the cell");
+    let (p, d) = (psnr(&a, &b), max_diff(&a, &b));
+    println!("2048^3: GPU against CPU march {p:.1} dB, max {d:.5}");
+    assert!(p >= 70.0 && d < 0.01, "{p:.1} dB, max difference {d}");
 }
 
 /// A volume planned for a narrow view within a budget that holds only the bricks that view sees

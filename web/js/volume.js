@@ -19,7 +19,7 @@ export const DYNAMIC_BRICK = 0x80000000;
 const MIN_BRICK = 4;
 const MAX_INDEX_RESOLUTION = 128;
 const MIN_VOLUME_RESOLUTION = 32;
-const MAX_VOLUME_RESOLUTION = 1024;
+const MAX_VOLUME_RESOLUTION = 2048;
 const MAX_SLICES = 4096;
 const FALLBACK_ALPHA = 1e-2;
 const FALLBACK_THRESHOLD_RESOLUTION = 128;
@@ -341,7 +341,7 @@ export function planNote(plan) {
   const mib = Math.floor(plan.budget / 1048576);
   if (plan.outsideBricks.length && plan.outside === "exact") notes.push(`${plan.outsideBricks.length} occupied bricks no camera of the file looks into are left out (?volume-outside=exact); rays that reach them are rendered exactly`);
   else if (plan.outsideBricks.length) notes.push(`${plan.outsideBricks.length} occupied bricks no camera of the file looks into are left out, so that the volume can be ${plan.geometry.resolution}^3 cells within ${mib} MiB; rays that reach them are rendered exactly (?volume-outside=bake keeps them at a coarser resolution)`);
-  if (plan.geometry.resolution < plan.requested) notes.push(`the volume is ${plan.geometry.resolution}^3 cells instead of the model's ${plan.requested}^3 to fit ${mib} MiB`);
+  if (plan.geometry.resolution < plan.requested) notes.push(`the volume is ${plan.geometry.resolution}^3 cells instead of ${plan.requested}^3, which would not fit ${mib} MiB`);
   if (plan.residentSlices < plan.sliceTimes.length) notes.push(`${plan.residentSlices} of ${plan.sliceTimes.length} time slices fit at once`);
   return notes.length ? notes.join("; ") : null;
 }

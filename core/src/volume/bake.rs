@@ -253,7 +253,7 @@ impl BakePlan {
         }
         if self.geometry.resolution < self.requested_resolution {
             notes.push(format!(
-                "the volume is {}^3 cells instead of the model's {}^3: that would not fit the budget of {} MiB (--volume-budget)",
+                "the volume is {}^3 cells instead of {}^3, which would not fit the budget of {} MiB (--volume-budget)",
                 self.geometry.resolution,
                 self.requested_resolution,
                 self.budget >> 20

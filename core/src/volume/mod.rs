@@ -75,8 +75,10 @@ pub const MAX_INDEX_RESOLUTION: u32 = 128;
 /// The coarsest volume a bake falls back to under a small budget (cells per side).
 pub const MIN_VOLUME_RESOLUTION: u32 = 32;
 
-/// The finest volume a model asks for (cells per side).
-pub const MAX_VOLUME_RESOLUTION: u32 = 1024;
+/// The finest volume (cells per side). A model asks for its finest grid's resolution
+/// ([`model_resolution`]); `--volume-resolution` may ask for up to twice that of a 1024 grid,
+/// whose cells then sample the field between its finest grid's vertices.
+pub const MAX_VOLUME_RESOLUTION: u32 = 2048;
 
 /// Values per vertex: the density pre-activation and the colour (4 values), or with features
 /// the geometry features, padded to a whole number of 8 values. Each is held as binary16

@@ -69,6 +69,12 @@ fn geometry_keeps_the_index_within_its_bound() {
     assert_eq!((g.resolution, g.brick, g.bricks_per_side()), (512, 4, 128));
     let g = VolumeGeometry::new(1024);
     assert_eq!((g.resolution, g.brick, g.bricks_per_side()), (1024, 8, 128));
+    let g = VolumeGeometry::new(2048);
+    assert_eq!(
+        (g.resolution, g.brick, g.bricks_per_side()),
+        (2048, 16, 128)
+    );
+    assert_eq!(g.flag_words(), 16 * 16 * 16 / 32);
     let g = VolumeGeometry::new(100);
     assert_eq!((g.resolution, g.brick), (128, 4));
     let g = VolumeGeometry::new(1);
@@ -243,7 +249,7 @@ fn the_budget_picks_a_coarser_volume_and_refuses_below_the_coarsest() {
     assert!(small
         .note()
         .unwrap()
-        .contains("instead of the model's 128^3"));
+        .contains("instead of 128^3, which would not fit"));
     match plan(&cfg, &layout, &params, None, 1000, Some(128)) {
         Err(BakeError::OverBudget { resolution, .. }) => {
             assert_eq!(resolution, MIN_VOLUME_RESOLUTION)
@@ -398,6 +404,97 @@ fn the_occupancy_grid_limits_the_bricks() {
         assert_eq!(*c, rgb);
     }
     assert_eq!(out.samples, 0);
+}
+
+/// The finest volume, `2048^3` in bricks of `16^3` cells: its vertices hold the field, and rays
+/// through it draw what they draw through a `1024^3` volume (bricks of `8^3`) of the same region.
+#[test]
+fn the_finest_volume_has_bricks_of_16_cells() {
+    let (cfg, layout, params) = model(6.0, 5);
+    // One occupied cell of a 64^3 grid: 32 cells of 2048^3 a side, 2^3 bricks.
+    let mut words = vec![0u32; 64 * 64 * 64 / 32];
+    let cell = 32 + 64 * (32 + 64 * 32);
+    words[cell / 32] |= 1 << (cell % 32);
+    let occupancy = || Occupancy {
+        resolution: 64,
+        words: &words,
+        density_threshold: 1e-3,
+    };
+    // Every cell the grid keeps is baked (no proposal test: this model's proposal is untrained).
+    let at = |max_resolution| {
+        let o = PlanOptions {
+            budget: 64 << 20,
+            max_resolution: Some(max_resolution),
+            min_proposal_alpha: 0.0,
+            ..Default::default()
+        };
+        plan_with(&cfg, &layout, &params, Some(occupancy()), &o).unwrap()
+    };
+    let fine = at(4096);
+    assert_eq!((fine.geometry.resolution, fine.geometry.brick), (2048, 16));
+    assert_eq!(fine.static_bricks.len(), 8);
+    let coarse = at(1024);
+    assert_eq!(
+        (coarse.geometry.resolution, coarse.geometry.brick),
+        (1024, 8)
+    );
+    let fine = bake(&fine, &cfg, &layout, &params, &BakeProgress::default()).unwrap();
+    let coarse = bake(&coarse, &cfg, &layout, &params, &BakeProgress::default()).unwrap();
+
+    // Vertex (16, 16, 16) of the first brick is the far corner of a 17^3 slot.
+    let g = fine.geometry;
+    let first = fine.index.iter().position(|&e| e != EMPTY_BRICK).unwrap();
+    let i = g.bricks_per_side() as usize;
+    let corner = [first % i, (first / i) % i, first / (i * i)].map(|b| (b + 1) * 16);
+    let u = corner.map(|c| c as f32 / 2048.0);
+    let mut s = FieldScratch::default();
+    s.enc.static_cutoff = VOLUME_STATIC_CUTOFF;
+    layout
+        .field
+        .forward_density(&params, &[u[0], u[1], u[2], 0.0], 1, &mut s);
+    let exact = layout.field.density.0.output(&s.density_acts)[0];
+    let slot = fine.index[first] as usize;
+    let stored = fine.values[(slot * g.vertices_per_brick() + 17 * 17 * 17 - 1) * fine.channels];
+    let tol = 1e-5 * exact.abs().max(1.0) + exact.abs() * 2f32.powi(-11);
+    assert!(
+        (stored.to_f32() - exact).abs() <= tol,
+        "{stored} against {exact}"
+    );
+
+    // A narrow camera whose rays all cross the occupied cell.
+    let target = cfg.bounds.from_unit(Vec3::splat(32.5 / 64.0));
+    let cam = Camera::look_at(8, 8, 0.004, Vec3::new(0.3, -4.0, 1.2), target, Vec3::Z);
+    let rs = rays(&cam, 0.0);
+    let a = march(
+        &fine,
+        &cfg,
+        &layout,
+        &params,
+        &rs,
+        &MarchSettings::default(),
+    );
+    let b = march(
+        &coarse,
+        &cfg,
+        &layout,
+        &params,
+        &rs,
+        &MarchSettings::default(),
+    );
+    assert!(a.samples > 0 && b.samples > 0);
+    // What the cell adds to the white background, and how far the two volumes differ.
+    let (mut signal, mut worst) = (0f32, 0f32);
+    for (p, q) in a.rgb.iter().zip(&b.rgb) {
+        for k in 0..3 {
+            signal = signal.max(1.0 - p[k]);
+            worst = worst.max((p[k] - q[k]).abs());
+        }
+    }
+    assert!(signal > 0.01, "the rays cross the cell: {signal}");
+    assert!(
+        worst < 0.1 * signal,
+        "2048^3 and 1024^3 differ by {worst}, the cell draws {signal}"
+    );
 }
 
 #[test]
