@@ -110,7 +110,8 @@ pub struct PlayArgs {
     /// renderers): fewer operations per sample than the exact field (hash grids and MLPs per
     /// sample, the default and the reference). Its quality depends on the scene and the budget:
     /// held-out PSNR within 0.3 dB of the exact renderer's on the demo model, 0.43 dB below it on
-    /// a balanced stage model at the CPU's default budget, several dB below it where the budget
+    /// a balanced stage model at the CPU's default budget (0.12 dB above it with
+    /// `--volume-resolution 2048 --volume-budget 2200`), several dB below it where the budget
     /// holds only a coarser volume (a software GPU's; docs/playback.md, "The play-time volume");
     /// `msth eval FILE.msth --renderer both` measures a file.
     #[arg(long)]

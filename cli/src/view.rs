@@ -32,7 +32,8 @@ pub struct ViewArgs {
     /// on): it is baked in the background once the file's static part has arrived, frames come
     /// from the exact field meanwhile. Its quality depends on the scene and the budget: held-out
     /// PSNR within 0.3 dB of the exact renderer's on the demo model, 0.43 dB below it on a
-    /// balanced stage model (several dB where the budget holds only a coarser volume); `msth eval
+    /// balanced stage model (0.12 dB above it with `--volume-resolution 2048 --volume-budget
+    /// 2200`; several dB below where the budget holds only a coarser volume); `msth eval
     /// FILE.msth --renderer both` measures a file (docs/viewer.md).
     #[arg(long)]
     pub volume: bool,
