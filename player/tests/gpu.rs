@@ -1426,6 +1426,25 @@ fn volume_frames_on_the_gpu_match_the_cpu_march() {
     }
 }
 
+/// The CPU and GPU renderers drawing full frames from `vol`, its slices baked before the
+/// first frame that needs them.
+fn volume_renderers(
+    cfg: &ModelConfig,
+    vol: msth_player::volume::BakedVolume,
+) -> (Renderer, GpuRenderer) {
+    let settings = RenderSettings {
+        exact: false,
+        incremental: false,
+        slices: msth_player::SlicePolicy::Always,
+        ..Default::default()
+    };
+    let mut cpu = Renderer::new(cfg, settings);
+    cpu.set_volume(Some(vol.clone()));
+    let mut gpu = GpuRenderer::new(context(), cfg, settings).unwrap();
+    gpu.set_volume(Some(vol)).unwrap();
+    (cpu, gpu)
+}
+
 /// The finest volume, `2048^3` in bricks of `16^3` cells (`--volume-resolution 2048`), over one
 /// occupied cell of a `64^3` occupancy grid: `volume.wgsl` draws what the CPU's march draws.
 fn the_finest_volume_draws_on_the_gpu_as_on_the_cpu() {
@@ -1453,16 +1472,7 @@ fn the_finest_volume_draws_on_the_gpu_as_on_the_cpu() {
     assert_eq!((plan.geometry.resolution, plan.geometry.brick), (2048, 16));
     let vol = bake_planned(&cfg, &params, plan);
     assert!(vol.volume.stats.bricks > 0, "nothing baked");
-    let settings = RenderSettings {
-        exact: false,
-        incremental: false,
-        slices: msth_player::SlicePolicy::Always,
-        ..Default::default()
-    };
-    let mut cpu = Renderer::new(&cfg, settings);
-    cpu.set_volume(Some(vol.clone()));
-    let mut gpu = GpuRenderer::new(context(), &cfg, settings).unwrap();
-    gpu.set_volume(Some(vol)).unwrap();
+    let (mut cpu, mut gpu) = volume_renderers(&cfg, vol);
     // A narrow camera whose rays all cross the occupied cell.
     let target = cfg.bounds.from_unit(glam::Vec3::splat(32.5 / 64.0));
     let cam = Camera::look_at(
@@ -1521,16 +1531,7 @@ fn rays_reaching_bricks_left_out_of_the_volume_draw_exactly_on_the_gpu() {
     assert!(plan.outside_views > 0, "no brick left out");
     assert_eq!(plan.geometry.resolution, full.geometry.resolution);
     let vol = bake_planned(&cfg, &params, plan);
-    let settings = RenderSettings {
-        exact: false,
-        incremental: false,
-        slices: msth_player::SlicePolicy::Always,
-        ..Default::default()
-    };
-    let mut cpu = Renderer::new(&cfg, settings);
-    cpu.set_volume(Some(vol.clone()));
-    let mut gpu = GpuRenderer::new(context(), &cfg, settings).unwrap();
-    gpu.set_volume(Some(vol)).unwrap();
+    let (mut cpu, mut gpu) = volume_renderers(&cfg, vol);
     for t in [0.0f32, 0.5] {
         let a = cpu.render(&cam, t, &params);
         let b = gpu.render(&cam, t, &params).unwrap();
